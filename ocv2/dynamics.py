@@ -1,0 +1,224 @@
+"""One transition of the kitchen: movement, collisions, interactions, timers, recipe resampling.
+
+Pure functions of (config, key, state, actions). ``actions`` is int32[N]. The order of sub-steps and
+every arithmetic detail follow the reference (spec sections 7-9), including its quirks; the fixes
+are switched on by ``EnvConfig.fix_*`` flags.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ocv2 import items as it
+from ocv2.config import EnvConfig
+from ocv2.items import Action, Static
+from ocv2.state import Agents, State
+
+
+class Transition(NamedTuple):
+    """What one transition produced (before observations and auto-reset)."""
+
+    state: State
+    reward: jax.Array  # float32[] team reward
+    shaped_reward: jax.Array  # float32[N]
+    correct_delivery: jax.Array  # bool[]
+
+
+def sample_recipe(config: EnvConfig, key: jax.Array) -> jax.Array:
+    """Draw one of the layout's recipes uniformly (key consumed)."""
+    recipes = jnp.asarray(config.layout.possible_recipes, dtype=jnp.int32)
+    index = jax.random.randint(key, (), 0, recipes.shape[0])
+    return it.recipe_encoding(recipes[index])
+
+
+def move_agents(state: State, actions: jax.Array) -> Agents:
+    """Simultaneous moves with collision resolution and swap prevention (spec 7.2 steps 2-4)."""
+    agents = state.agents
+    height, width = state.grid.shape[:2]
+    num_agents = agents.x.shape[0]
+    act_dir = jnp.asarray(it.ACTION_DIRECTION)[actions]
+    moving = act_dir >= 0
+    vec = jnp.asarray(it.DIRECTION_VECTORS)[jnp.maximum(act_dir, 0)]
+    tx = jnp.clip(agents.x + vec[:, 0], 0, width - 1)
+    ty = jnp.clip(agents.y + vec[:, 1], 0, height - 1)
+    free = state.grid[ty, tx, 0] == Static.FLOOR
+    new_x = jnp.where(moving & free, tx, agents.x)
+    new_y = jnp.where(moving & free, ty, agents.y)
+    direction = jnp.where(moving, act_dir, agents.dir)
+
+    # Revert every agent standing on a shared cell until no cell is shared. Each round reverts at
+    # least one more agent (start cells are distinct), so N rounds always reach the fixed point.
+    others = ~jnp.eye(num_agents, dtype=bool)
+    reverted = jnp.zeros(num_agents, dtype=bool)
+    for _ in range(num_agents):
+        px = jnp.where(reverted, agents.x, new_x)
+        py = jnp.where(reverted, agents.y, new_y)
+        shared = (px[:, None] == px[None, :]) & (py[:, None] == py[None, :]) & others
+        reverted = reverted | shared.any(axis=1)
+    px = jnp.where(reverted, agents.x, new_x)
+    py = jnp.where(reverted, agents.y, new_y)
+
+    # One pass of swap prevention: i took j's cell and j took i's -> both stay.
+    took = (px[:, None] == agents.x[None, :]) & (py[:, None] == agents.y[None, :]) & others
+    swapped = (took & took.T).any(axis=0)
+    px = jnp.where(swapped, agents.x, px)
+    py = jnp.where(swapped, agents.y, py)
+    return agents.replace(x=px, y=py, dir=direction)
+
+
+class _Interaction(NamedTuple):
+    cell: jax.Array  # int32[3] new content of the facing cell
+    inventory: jax.Array
+    reward: jax.Array
+    shaped: jax.Array
+    correct_delivery: jax.Array
+
+
+def interact(config: EnvConfig, cell, inventory, recipe, grid_items, grid_static, start_inventories) -> _Interaction:
+    """Result of one agent interacting with the cell it faces (spec section 8).
+
+    ``grid_items``/``grid_static`` are the whole grid as it is when this agent acts (earlier agents'
+    interactions applied); ``start_inventories`` are every agent's inventories at the step start.
+    """
+    static, item, timer = cell[0], cell[1], cell[2]
+    plated_recipe = recipe | it.PLATE | it.COOKED
+    is_plate_pile = static == Static.PLATE_PILE
+    is_ingredient_pile = static >= Static.INGREDIENT_PILE
+    is_pile = is_plate_pile | is_ingredient_pile
+    is_pot = static == Static.POT
+    is_goal = static == Static.GOAL
+    is_counter = static == Static.WALL
+    is_button = static == Static.BUTTON
+
+    cell_empty = item == 0
+    hands_empty = inventory == 0
+    holds_raw = it.is_raw_ingredient(inventory)
+    holds_plate = inventory == it.PLATE
+    holds_dish = (inventory & it.COOKED) != 0
+    combined = item + inventory  # items combine by addition (pot + ingredient, pot + plate)
+
+    cooking = is_pot & (timer > 0)
+    cooked = is_pot & ((item & it.COOKED) != 0)
+    idle = is_pot & ~cooking & ~cooked
+
+    take_dish = cooked & holds_plate
+    shaped = jnp.where(take_dish & (combined == plated_recipe), float(it.SHAPED_DISH_PICKUP), 0.0)
+
+    pickup = (is_pile & hands_empty) | take_dish | (is_counter & ~cell_empty & hands_empty)
+    press = is_button & hands_empty & cell_empty
+    if config.fix_button_repress:
+        press = press & (timer == 0)
+
+    place = idle & holds_raw & (it.ingredient_count(item) != it.MAX_INGREDIENTS_IN_POT)
+    field = inventory | (inventory << 1)  # the 2-bit counter of the held ingredient
+    useful = (item & field) < (recipe & field)
+    placement_reward = jnp.where(useful, float(it.SHAPED_PLACEMENT_IN_POT), 0.0)
+    if config.fix_negative_placement_reward and config.negative_rewards:
+        placement_reward = jnp.where(useful, placement_reward, -float(it.SHAPED_PLACEMENT_IN_POT))
+    # Reference quirk (default): the sign is chosen after multiplying by "useful", so never -3.
+    shaped = shaped + jnp.where(place, placement_reward, 0.0)
+
+    drop = (is_counter & cell_empty & ~hands_empty) | place
+    deliver = is_goal & holds_dish
+    no_effect = ~pickup & ~drop & ~deliver
+
+    pile_item = jnp.where(is_plate_pile, it.PLATE, 0) + jnp.where(
+        is_ingredient_pile, it.ingredient_unit(jnp.maximum(static - Static.INGREDIENT_PILE, 0)), 0
+    )
+    new_item = jnp.where(drop, combined, 0) + jnp.where(no_effect, item, 0)
+
+    start_cooking = idle & ~cell_empty & hands_empty & config.start_cooking_interaction
+    shaped = shaped + jnp.where(start_cooking & (item == recipe), float(it.SHAPED_POT_START_COOKING), 0.0)
+    full_now = it.ingredient_count(new_item) == it.MAX_INGREDIENTS_IN_POT
+    auto_cook = idle & full_now & (not config.start_cooking_interaction)
+    starts_timer = start_cooking | auto_cook
+    new_timer = jnp.where(starts_timer, it.POT_COOK_TIME, jnp.where(press, it.BUTTON_ACTIVE_TIME, timer))
+
+    new_inventory = jnp.where(pickup, pile_item + combined, 0) + jnp.where(no_effect, inventory, 0)
+
+    correct = inventory == plated_recipe
+    wrong_value = -float(it.DELIVERY_REWARD) if config.negative_rewards else 0.0
+    reward = jnp.where(deliver, jnp.where(correct, float(it.DELIVERY_REWARD), wrong_value), 0.0)
+    reward = reward - jnp.where(press, float(it.BUTTON_COST), 0.0)
+
+    # Plate pickup pays only if fewer plates are held (at step start) than pots are non-empty, and no
+    # bare plate lies anywhere on the grid (the reference's anti-reward-hacking rule).
+    plates_held = jnp.sum(start_inventories == it.PLATE)
+    busy_pots = jnp.sum((grid_static == Static.POT) & (grid_items != 0))
+    no_loose_plates = ~jnp.any(grid_items == it.PLATE)
+    plate_pickup = pickup & (new_inventory == it.PLATE) & (plates_held < busy_pots) & no_loose_plates
+    shaped = shaped + jnp.where(plate_pickup, float(it.SHAPED_PLATE_PICKUP), 0.0)
+
+    new_cell = jnp.stack([static, new_item, new_timer]).astype(jnp.int32)
+    return _Interaction(new_cell, new_inventory.astype(jnp.int32), reward, shaped, deliver & correct)
+
+
+def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions: jax.Array):
+    """Agents interact one after another, each seeing the grid as earlier agents left it."""
+    grid = state.grid
+    height, width = grid.shape[:2]
+    num_agents = agents.x.shape[0]
+    start_inventories = agents.inventory
+    inventories = agents.inventory
+    reward = jnp.zeros((), jnp.float32)
+    shaped = []
+    correct_delivery = jnp.zeros((), bool)
+    vectors = jnp.asarray(it.DIRECTION_VECTORS)
+    for a in range(num_agents):
+        fx = agents.x[a] + vectors[agents.dir[a], 0]
+        fy = agents.y[a] + vectors[agents.dir[a], 1]
+        on_map = (fx >= 0) & (fx < width) & (fy >= 0) & (fy < height)
+        # Reference quirk (default): the facing cell is not bounds-checked; a negative index wraps
+        # to the opposite edge, a too-large one reads the clamped edge cell and its write is dropped.
+        wx = jnp.where(fx < 0, fx + width, fx)
+        wy = jnp.where(fy < 0, fy + height, fy)
+        writable = (wx < width) & (wy < height)
+        rx = jnp.clip(wx, 0, width - 1)
+        ry = jnp.clip(wy, 0, height - 1)
+        acting = actions[a] == Action.INTERACT
+        if config.fix_offmap_interaction:
+            acting = acting & on_map
+        cell = grid[ry, rx]
+        result = interact(
+            config, cell, inventories[a], state.recipe, grid[:, :, 1], grid[:, :, 0], start_inventories
+        )
+        write = acting & writable
+        grid = grid.at[ry, rx].set(jnp.where(write, result.cell, cell))
+        inventories = inventories.at[a].set(jnp.where(acting, result.inventory, inventories[a]))
+        reward = reward + jnp.where(acting, result.reward, 0.0)
+        shaped.append(jnp.where(acting, result.shaped, 0.0))
+        correct_delivery = correct_delivery | (acting & result.correct_delivery)
+    return grid, agents.replace(inventory=inventories), reward, jnp.stack(shaped).astype(jnp.float32), correct_delivery
+
+
+def tick_timers(grid: jax.Array) -> jax.Array:
+    """Pots count down and finish cooking at 0 (COOKED bit set); buttons count down to 0."""
+    static, item, timer = grid[:, :, 0], grid[:, :, 1], grid[:, :, 2]
+    is_pot = static == Static.POT
+    cooking = is_pot & (timer > 0)
+    finished = cooking & (timer == 1)
+    item = item | jnp.where(finished, it.COOKED, 0)
+    timer = jnp.where(cooking, timer - 1, timer)
+    timer = jnp.where(static == Static.BUTTON, jnp.maximum(timer - 1, 0), timer)
+    return jnp.stack([static, item, timer], axis=-1)
+
+
+def transition(config: EnvConfig, key: jax.Array, state: State, actions: jax.Array) -> Transition:
+    """One step without observations or auto-reset (the reference's ``step_env`` minus ``get_obs``)."""
+    actions = jnp.asarray(actions, dtype=jnp.int32)
+    agents = move_agents(state, actions)
+    grid, agents, reward, shaped, correct = apply_interactions(config, state, agents, actions)
+    grid = tick_timers(grid)
+    recipe = state.recipe
+    if config.sample_recipe_on_delivery:
+        _, recipe_key = jax.random.split(key)
+        recipe = jnp.where(correct, sample_recipe(config, recipe_key), recipe)
+    step = state.step + 1
+    done = (step >= config.max_steps) | state.done
+    new_state = state.replace(
+        agents=agents, grid=grid, recipe=recipe, step=step, done=done, new_correct_delivery=correct
+    )
+    return Transition(new_state, reward, shaped, correct)
