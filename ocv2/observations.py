@@ -42,61 +42,129 @@ def grid_obs_shape(config: EnvConfig) -> tuple[int, int, int]:
     return (side, side, num_channels(config))
 
 
-def _permutation_index(config: EnvConfig, permutations: jax.Array) -> jax.Array:
-    """Per-agent channel gather index that applies each agent's ingredient mapping (other-play)."""
+def _channel_permutation(config: EnvConfig, permutations: jax.Array) -> jax.Array:
+    """Per-observer channel gather index applying its ingredient mapping (other-play): [N, C]."""
     n = config.num_ingredients
     base = np.arange(25 + 5 * n + int(config.indicate_successful_delivery))
-    # Offsets of every block whose ingredient channels are permuted.
-    count_starts = [7, 14 + n, 22 + 3 * n, 24 + 4 * n]  # ego inv, other inv, grid items, recipe
-    pile_start = 20 + 2 * n
     index = jnp.broadcast_to(jnp.asarray(base), (permutations.shape[0], base.size))
-    for start in count_starts + [pile_start]:
+    # Ingredient channels of: ego inventory, others' inventories, piles, grid items, recipe.
+    for start in (7, 14 + n, 20 + 2 * n, 22 + 3 * n, 24 + 4 * n):
         index = index.at[:, start:start + n].set(start + permutations)
     return index
 
 
+def _item_chunk_tables(n: int, offset: int, total: int) -> list[np.ndarray]:
+    """Tables mapping each 8-bit chunk of an item to its item-block channels at ``offset``.
+
+    Two-bit counters start at even bits, so none straddles a chunk; summing the chunk rows gives the
+    whole item block. (Splitting keeps tables small for any number of ingredients.)
+    """
+    bits = 2 + 2 * n
+    tables = []
+    for chunk in range((bits + 7) // 8):
+        table = np.zeros((256, total), np.int32)
+        values = np.arange(256) << (8 * chunk)
+        fields = [(0, 1), (1, 1)] + [(2 + 2 * i, 3) for i in range(n)]
+        for channel, (shift, mask) in enumerate(fields):
+            if 8 * chunk <= shift < 8 * chunk + 8:
+                table[:, offset + channel] = (values >> shift) & mask
+        tables.append(table)
+    return tables
+
+
+def _shared_tables(config: EnvConfig):
+    """Constant lookup tables for the channels every observer shares (before permutation)."""
+    n = config.num_ingredients
+    total = 25 + 5 * n + int(config.indicate_successful_delivery)
+    static = np.zeros((2 * (Static.INGREDIENT_PILE + 16), total), np.int32)  # second half: goal lit up
+    for channel, static_id in enumerate(_STATIC_CHANNELS):
+        static[static_id, 14 + 2 * n + channel] = 1
+    for i in range(n):
+        static[Static.INGREDIENT_PILE + i, 20 + 2 * n + i] = 1
+    static[Static.INGREDIENT_PILE + 16:] = static[:Static.INGREDIENT_PILE + 16]
+    if config.indicate_successful_delivery:
+        static[Static.INGREDIENT_PILE + 16 + Static.GOAL, 25 + 5 * n] = 1
+    timer = np.zeros((256, total), np.int32)
+    timer[:, 24 + 5 * n] = np.arange(256)
+    return dict(
+        static=static,
+        items=_item_chunk_tables(n, 20 + 3 * n, total),
+        recipe=_item_chunk_tables(n, 22 + 4 * n, total),
+        timer=timer,
+    )
+
+
+def _agent_row(config: EnvConfig, direction, inventory, offset: int, total: int, dtype) -> jax.Array:
+    """One agent's layer values at its own cell: position, direction one-hot, item block -> [C]."""
+    n = config.num_ingredients
+    features = jnp.concatenate(
+        [jnp.ones((1,), jnp.int32), jax.nn.one_hot(direction, 4, dtype=jnp.int32), it.item_channels(inventory, n)]
+    )
+    return jnp.zeros((total,), dtype).at[offset:offset + 7 + n].set(features.astype(dtype))
+
+
 def grid_observations(config: EnvConfig, state: State) -> jax.Array:
-    """Full-map observation of every agent: [N, H, W, C] (before the view window)."""
+    """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation)."""
     dtype = jnp.dtype(config.obs_dtype)
     n = config.num_ingredients
-    grid = state.grid
-    static, items, timer = grid[:, :, 0], grid[:, :, 1], grid[:, :, 2]
-    height, width = static.shape
+    total = 25 + 5 * n + int(config.indicate_successful_delivery)
+    static, items, timer = state.grid[:, :, 0], state.grid[:, :, 1], state.grid[:, :, 2]
     agents = state.agents
-
-    # Agent layers: [N, H, W, 7 + n] = position, direction one-hot, inventory block at the agent's cell.
-    at_agent = (jnp.arange(height)[None, :, None] == agents.y[:, None, None]) & (
-        jnp.arange(width)[None, None, :] == agents.x[:, None, None]
-    )
-    features = jnp.concatenate(
-        [
-            jnp.ones((agents.x.shape[0], 1), jnp.int32),
-            jax.nn.one_hot(agents.dir, 4, dtype=jnp.int32),
-            it.item_channels(agents.inventory, n),
-        ],
-        axis=-1,
-    )
-    agent_layers = (at_agent[..., None] * features[:, None, None, :]).astype(dtype)
-    others = jnp.sum(agent_layers, axis=0, keepdims=True, dtype=dtype) - agent_layers
-
-    shared = [static[..., None] == jnp.asarray(_STATIC_CHANNELS, jnp.int32)]
-    shared.append(static[..., None] == (Static.INGREDIENT_PILE + jnp.arange(n, dtype=jnp.int32)))
-    shared.append(it.item_channels(items, n))
-    shows_recipe = (static == Static.RECIPE_INDICATOR) | ((static == Static.BUTTON) & (timer > 0))
-    shared.append(it.item_channels(jnp.where(shows_recipe, state.recipe, 0), n))
-    shared.append(jnp.where(static == Static.POT, timer, 0)[..., None])
-    if config.indicate_successful_delivery:
-        shared.append(((static == Static.GOAL) & state.new_correct_delivery)[..., None])
-    shared = jnp.concatenate([s.astype(dtype) for s in shared], axis=-1)
-
     num_agents = agents.x.shape[0]
-    obs = jnp.concatenate(
-        [agent_layers, others, jnp.broadcast_to(shared, (num_agents,) + shared.shape)], axis=-1
-    )
+    tables = _shared_tables(config)
+
+    # Per-cell codes, one lookup table each (code 0 -> an all-zero row).
+    lit = (static == Static.GOAL) & state.new_correct_delivery if config.indicate_successful_delivery else False
+    static_code = jnp.clip(static, 0, Static.INGREDIENT_PILE + 15) + jnp.where(lit, Static.INGREDIENT_PILE + 16, 0)
+    shows_recipe = (static == Static.RECIPE_INDICATOR) | ((static == Static.BUTTON) & (timer > 0))
+    codes = jnp.stack([
+        static_code, items, jnp.where(shows_recipe, state.recipe, 0),
+        jnp.where(static == Static.POT, jnp.clip(timer, 0, 255), 0),
+    ])  # [4, H, W]
+
+    def shared_obs(codes, channel_index):
+        def table(t):
+            t = jnp.asarray(t, dtype)
+            return t if channel_index is None else t[:, channel_index]
+
+        static_code, items, recipe, pot_timer = codes
+        obs = table(tables["static"])[static_code]
+        for chunk, (t_item, t_recipe) in enumerate(zip(tables["items"], tables["recipe"])):
+            obs = obs + table(t_item)[(items >> (8 * chunk)) & 0xFF] + table(t_recipe)[(recipe >> (8 * chunk)) & 0xFF]
+        return obs + table(tables["timer"])[pot_timer]
+
+    channel_index = None
     if config.op_enabled:
-        index = _permutation_index(config, state.ingredient_permutations)
-        obs = jnp.take_along_axis(obs, index[:, None, None, :], axis=-1)
-    return obs
+        channel_index = _channel_permutation(config, state.ingredient_permutations)
+        shared = jax.vmap(lambda m: shared_obs(codes, m))(channel_index)
+    else:
+        shared = jnp.broadcast_to(shared_obs(codes, None), (num_agents,) + static.shape + (total,))
+
+    radius = config.view_radius
+    if radius is not None:
+        side = 2 * radius + 1
+        padded = jnp.pad(shared, ((0, 0), (radius, radius), (radius, radius), (0, 0)))
+        shared = jax.vmap(lambda o, y, x: jax.lax.dynamic_slice(o, (y, x, 0), (side, side, total)))(
+            padded, agents.y, agents.x)
+        origin_y, origin_x = agents.y - radius, agents.x - radius  # window top-left in map coords
+    else:
+        origin_y = origin_x = jnp.zeros((num_agents,), jnp.int32)
+
+    # Add every agent's layers at its cell in each observer's frame (dropped when outside the window).
+    out = []
+    for o in range(num_agents):
+        obs = shared[o]
+        for b in range(num_agents):
+            row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, total, dtype)
+            if channel_index is not None:
+                row = row[channel_index[o]]
+            y, x = agents.y[b] - origin_y[o], agents.x[b] - origin_x[o]
+            # Explicit bounds: negative indices would wrap around before "drop" applies.
+            inside = (y >= 0) & (y < obs.shape[0]) & (x >= 0) & (x < obs.shape[1])
+            y, x = jnp.clip(y, 0, obs.shape[0] - 1), jnp.clip(x, 0, obs.shape[1] - 1)
+            obs = obs.at[y, x].add(jnp.where(inside, row, jnp.zeros_like(row)))
+        out.append(obs)
+    return jnp.stack(out)
 
 
 def view_window(config: EnvConfig, obs: jax.Array, state: State) -> jax.Array:
@@ -115,7 +183,7 @@ def view_window(config: EnvConfig, obs: jax.Array, state: State) -> jax.Array:
 
 def default_observations(config: EnvConfig, state: State) -> jax.Array:
     """Every agent's default observation: [N, h, w, C]."""
-    obs = view_window(config, grid_observations(config, state), state)
+    obs = grid_observations(config, state)
     channels = num_channels(config)
     if obs.shape[-1] != channels:
         obs = obs[..., :channels]

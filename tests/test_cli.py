@@ -1,0 +1,67 @@
+"""The ``ocv2`` command line, called in-process through ``cluster.cli.main``."""
+
+from __future__ import annotations
+
+import os
+
+import imageio.v3 as iio
+from PIL import Image
+
+from cluster.cli import main
+from ocv2 import LAYOUTS
+
+
+def test_layouts_lists_every_layout(capsys):
+    assert main(["layouts"]) == 0
+    out = capsys.readouterr().out
+    assert len(LAYOUTS) == 24
+    for name, layout in LAYOUTS.items():
+        assert name in out
+    lines = {line.split()[1]: line for line in out.splitlines() if len(line.split()) > 1}
+    row = lines["cramped_room_v2"]
+    assert "4x5" in row and "[0, 0, 1]" in row
+    assert "[0, 0, 2], [1, 1, 3]" in lines["fun_coordination"]
+
+
+def test_layouts_show(capsys):
+    assert main(["layouts", "--show", "cramped_room"]) == 0
+    out = capsys.readouterr().out
+    assert LAYOUTS["cramped_room"].to_string() in out
+
+
+def test_layouts_show_unknown(capsys):
+    assert main(["layouts", "--show", "no_such_kitchen"]) == 2
+    captured = capsys.readouterr()
+    assert "unknown layout 'no_such_kitchen'" in captured.err and "Traceback" not in captured.err
+
+
+def test_render_writes_gif(tmp_path, capsys):
+    out = tmp_path / "ep.gif"
+    code = main(["render", "cramped_room", "--steps", "3", "--out", str(out), "--seed", "1", "--fps", "4",
+                 "--tile-size", "8", "--view-radius", "1"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert str(out) in printed and "4 frames" in printed
+    frames = iio.imread(out, index=None)
+    assert frames.shape[:3] == (4, 4 * 8, 5 * 8)
+    with Image.open(out) as im:
+        assert im.n_frames == 4 and im.info["loop"] == 0 and im.info["duration"] == 250
+
+
+def test_render_unknown_layout(tmp_path, capsys):
+    out = tmp_path / "x.gif"
+    assert main(["render", "cramped_rom", "--steps", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "unknown layout 'cramped_rom'" in err and "cramped_room" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_usage_errors_return_2(tmp_path, capsys):
+    assert main([]) == 2
+    assert main(["render", "cramped_room", "--steps", "2"]) == 2  # --out missing
+    assert main(["render", "cramped_room", "--out", str(tmp_path / "x.gif"), "--fps", "0"]) == 2
+    assert main(["render", "cramped_room", "--out", str(tmp_path / "x.txt")]) == 2
+    assert main(["render", "cramped_room", "--out", str(tmp_path / "missing" / "x.gif")]) == 2
+    assert main(["--help"]) == 0
+    capsys.readouterr()
+    assert os.listdir(tmp_path) == []
