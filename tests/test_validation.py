@@ -1,0 +1,105 @@
+"""Bad input fails at construction with an error that names the problem and where it is."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+import ocv2
+from ocv2.layouts import default_recipes
+
+GOOD = "WWPWW\n0A AX\nW   R\nWBWWW"
+
+
+@pytest.mark.parametrize(
+    "grid,kwargs,match",
+    [
+        ("WWPWW\n0A?AX\nW   R\nWBWWW", {}, r"unknown character '\?' at row 1, column 2"),
+        ("WWPWW\n0   X\nW   R\nWBWWW", {}, r"no agent"),
+        ("WWPWW\n0A AX\n    R\nWBWWW", {}, r"map edge at row 2, column 0: the border is open"),
+        ("WWPWW\n0A AX\nW   R\nWBW", {}, r"open"),  # short last row padded with floor
+        ("WWPWW\nWA AX\nW   R\nWBWWW", {}, r"no ingredient pile"),
+        ("WWPWW\n0A AX\nW   W\nWBWWW", {}, r"recipe indicator 'R'"),
+        (GOOD, {"possible_recipes": []}, r"possible_recipes is empty"),
+        (GOOD, {"possible_recipes": [[0, 0]]}, r"recipe 0 .* exactly 3"),
+        (GOOD, {"possible_recipes": [[0, 0, 1]]}, r"ingredient 1, which has no pile"),
+        (GOOD, {"possible_recipes": "000"}, r"list of 3-ingredient lists"),
+        ("", {}, r"empty"),
+    ],
+)
+def test_bad_layouts(grid, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ocv2.Layout.from_string(grid, **kwargs)
+
+
+def test_non_integer_recipe_is_type_error():
+    with pytest.raises(TypeError, match="non-integer ingredient"):
+        ocv2.Layout.from_string(GOOD, possible_recipes=[[0, 0, "a"]])
+
+
+def test_good_layout_and_roundtrip():
+    layout = ocv2.Layout.from_string(GOOD)
+    assert layout.num_agents == 2 and layout.num_ingredients == 1
+    assert ocv2.Layout.from_string(layout.to_string()).agent_positions == layout.agent_positions
+    for name, built_in in ocv2.LAYOUTS.items():
+        again = ocv2.Layout.from_string(built_in.to_string(), possible_recipes=[list(r) for r in built_in.possible_recipes])
+        assert (again.static_objects == built_in.static_objects).all(), name
+
+
+def test_default_recipe_order_matches_reference_table():
+    assert default_recipes(2) == ((0, 0, 0), (0, 0, 1), (1, 1, 1), (0, 1, 1))
+    assert default_recipes(3)[:3] == ((2, 2, 2), (0, 0, 0), (1, 1, 2))
+    assert len(default_recipes(4)) == 20
+
+
+def test_all_layouts_present():
+    assert len(ocv2.REFERENCE_LAYOUT_NAMES) == 23
+    assert set(ocv2.LAYOUTS) == set(ocv2.REFERENCE_LAYOUT_NAMES) | {"overcookedv2_demo"}
+
+
+@pytest.mark.parametrize(
+    "kwargs,error,match",
+    [
+        ({"layout": "no_such_room"}, ValueError, r"unknown layout 'no_such_room'; choose one of: cramped_room"),
+        ({"layout": 3}, TypeError, r"layout must be"),
+        ({"agent_view_size": -1}, ValueError, r"agent_view_size must be None or >= 0"),
+        ({"agent_view_size": 1.5}, TypeError, r"agent_view_size"),
+        ({"observation_type": "pixels"}, ValueError, r"unknown observation_type 'pixels'"),
+        ({"observation_type": ["default"]}, ValueError, r"lists 1 types but layout .* has 2 agents"),
+        ({"layout": "cramped_room_v2", "observation_type": "featurized"}, ValueError, r"single-ingredient"),
+        ({"observation_type": "featurized", "agent_view_size": 2}, ValueError, r"cannot be combined"),
+        ({"max_steps": 0}, ValueError, r"max_steps"),
+        ({"random_reset": 1}, TypeError, r"random_reset must be True or False"),
+        ({"op_ingredient_permutations": [0, 5]}, ValueError, r"op_ingredient_permutations: 5"),
+        ({"op_ingredient_permutations": [0, 0]}, ValueError, r"repeated"),
+        ({"obs_dtype": "float16"}, ValueError, r"obs_dtype"),
+        ({"not_a_param": 1}, TypeError, r"unknown environment parameter\(s\) \['not_a_param'\]"),
+    ],
+)
+def test_bad_parameters(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        ocv2.make(**kwargs)
+
+
+def test_bad_state_buffer():
+    env = ocv2.make("cramped_room")
+    good = ocv2.stack_states([env.reset_state(jax.random.PRNGKey(k)) for k in range(3)])
+    ocv2.make("cramped_room", initial_state_buffer=good)
+    with pytest.raises(ValueError, match=r"initial_state_buffer.grid has shape \(3, 5, 9, 3\), expected \(3, 4, 5, 3\)"):
+        other = ocv2.make("asymm_advantages")
+        ocv2.make("cramped_room", initial_state_buffer=ocv2.stack_states(
+            [other.reset_state(jax.random.PRNGKey(k)) for k in range(3)]))
+    with pytest.raises(ValueError, match="leading batch axis"):
+        ocv2.make("cramped_room", initial_state_buffer=env.reset_state(jax.random.PRNGKey(0)))
+    with pytest.raises(ValueError, match="different kitchen"):
+        ocv2.make("cramped_room", initial_state_buffer=good.replace(grid=good.grid.at[1, 0, 0, 0].set(0)))
+    with pytest.raises(TypeError, match="ocv2.State"):
+        ocv2.make("cramped_room", initial_state_buffer={"grid": jnp.zeros(3)})
+
+
+def test_missing_action_names_agent():
+    env = ocv2.make("cramped_room")
+    _, state = env.reset(jax.random.PRNGKey(0))
+    with pytest.raises(KeyError, match="agent_1"):
+        env.step(jax.random.PRNGKey(1), state, {"agent_0": 0})
