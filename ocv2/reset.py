@@ -145,9 +145,7 @@ def randomize_state(config: EnvConfig, state: State, key: jax.Array) -> State:
     key, sub = jax.random.split(key)
     state = randomize_positions(config, state, sub)
     key, sub = jax.random.split(key)
-    inventories = jnp.stack(
-        [_random_inventory(config, k) for k in jax.random.split(sub, config.num_agents)]
-    )
+    inventories = jax.vmap(lambda k: _random_inventory(config, k))(jax.random.split(sub, config.num_agents))
     key, sub = jax.random.split(key)
     height, width = state.grid.shape[:2]
     cell_keys = jax.random.split(sub, (height, width))
