@@ -167,20 +167,6 @@ def grid_observations(config: EnvConfig, state: State) -> jax.Array:
     return jnp.stack(out)
 
 
-def view_window(config: EnvConfig, obs: jax.Array, state: State) -> jax.Array:
-    """Cut each agent's (2v+1)^2 window centred on it; off-map cells are all zero."""
-    radius = config.view_radius
-    if radius is None:
-        return obs
-    padded = jnp.pad(obs, ((0, 0), (radius, radius), (radius, radius), (0, 0)))
-    side = 2 * radius + 1
-
-    def cut(agent_obs, y, x):
-        return jax.lax.dynamic_slice(agent_obs, (y, x, 0), (side, side, agent_obs.shape[-1]))
-
-    return jax.vmap(cut)(padded, state.agents.y, state.agents.x)
-
-
 def default_observations(config: EnvConfig, state: State) -> jax.Array:
     """Every agent's default observation: [N, h, w, C]."""
     obs = grid_observations(config, state)
