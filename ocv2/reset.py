@@ -32,7 +32,7 @@ def layout_state(config: EnvConfig, recipe: jax.Array, permutations: jax.Array) 
     agents = Agents(
         x=jnp.asarray(xs, dtype=jnp.int32),
         y=jnp.asarray(ys, dtype=jnp.int32),
-        dir=jnp.full((num_agents,), it.Direction.UP, dtype=jnp.int32),
+        dir=jnp.full((num_agents,), int(it.Direction.UP), dtype=jnp.int32),  # int(): an IntEnum fill is weak-typed
         inventory=jnp.zeros((num_agents,), dtype=jnp.int32),
     )
     return State(

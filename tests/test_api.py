@@ -1,0 +1,68 @@
+"""The public API contract: types stable across reset/step, spaces that tell the truth, dict form."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ocv2
+
+
+def _types(tree):
+    return [(jax.tree_util.keystr(p), jax.typeof(x), jax.typeof(x).weak_type)
+            for p, x in jax.tree_util.tree_leaves_with_path(tree)]
+
+
+@pytest.mark.parametrize("params", [
+    {}, {"random_reset": True}, {"random_agent_positions": True, "agent_view_size": 2},
+    {"op_ingredient_permutations": [0, 1], "layout": "cramped_room_v2"},
+])
+def test_reset_and_step_states_have_identical_types(params):
+    """Otherwise every jitted rollout recompiles on its second call (a weak-typed field did once)."""
+    params = dict(params)
+    env = ocv2.make(params.pop("layout", "cramped_room"), **params)
+    state = env.reset_state(jax.random.PRNGKey(0))
+    out = env.step_arrays(jax.random.PRNGKey(1), state, jnp.array([0, 5]))
+    assert _types(state) == _types(out.state)
+    buffered = env.reset_state(jax.random.PRNGKey(2), ocv2.stack_states([state, out.state]))
+    assert _types(buffered) == _types(state)
+
+
+def test_spaces_and_dict_api():
+    env = ocv2.make("grounded_coord_simple", agent_view_size=2, indicate_successful_delivery=True)
+    assert env.agents == ["agent_0", "agent_1"] and env.num_agents == 2 and env.num_actions == 6
+    assert env.action_space("agent_0").n == 6
+    space = env.observation_space("agent_1")
+    assert space.shape == (5, 5, 41) and space.dtype == jnp.uint8 and space.high == 20
+    obs, state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    step = jax.jit(env.step)
+    for t in range(30):
+        actions = {a: jax.random.randint(jax.random.PRNGKey(t * 2 + i), (), 0, 6) for i, a in enumerate(env.agents)}
+        obs, state, rewards, dones, infos = step(jax.random.PRNGKey(100 + t), state, actions)
+        for a in env.agents:
+            assert space.contains(obs[a])
+            assert rewards[a].dtype == jnp.float32 and infos["shaped_reward"][a].dtype == jnp.float32
+        assert set(dones) == {"agent_0", "agent_1", "__all__"}
+    featurized = ocv2.make("cramped_room", observation_type="featurized")
+    assert featurized.observation_space().shape == (96,) and featurized.observation_space().dtype == jnp.float32
+
+
+def test_int32_observations_have_the_same_values():
+    a = ocv2.make("cramped_room_v2", random_reset=True, agent_view_size=1)
+    b = ocv2.make("cramped_room_v2", random_reset=True, agent_view_size=1, obs_dtype="int32")
+    state = a.reset_state(jax.random.PRNGKey(4))
+    oa, ob = a.get_obs_arrays(state), b.get_obs_arrays(state)
+    assert oa.dtype == jnp.uint8 and ob.dtype == jnp.int32
+    np.testing.assert_array_equal(np.asarray(oa, np.int32), np.asarray(ob))
+
+
+def test_same_key_same_numbers():
+    env = ocv2.make("counter_circuit", random_reset=True)
+    run = jax.jit(lambda k: jax.lax.scan(
+        lambda s, k: (env.step_arrays(k, s, jax.random.randint(k, (2,), 0, 6)).state, None),
+        env.reset_state(k), jax.random.split(k, 50))[0])
+    first, second = run(jax.random.PRNGKey(9)), run(jax.random.PRNGKey(9))
+    for x, y in zip(jax.tree.leaves(first), jax.tree.leaves(second)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
