@@ -146,8 +146,9 @@ def _cmd_render(args) -> int:
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
     folder = os.path.dirname(os.path.abspath(args.out))
-    if not os.path.isdir(folder):
-        raise CLIError(f"--out: folder {folder!r} does not exist")
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise CLIError(f"--out: {folder!r} exists and is not a folder")
+    os.makedirs(folder, exist_ok=True)  # like the run directories to come: create what is missing
 
     import jax
 
