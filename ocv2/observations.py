@@ -23,10 +23,15 @@ from ocv2.state import State
 _STATIC_CHANNELS = (Static.WALL, Static.GOAL, Static.POT, Static.RECIPE_INDICATOR, Static.BUTTON, Static.PLATE_PILE)
 
 
+def full_channels(config: EnvConfig) -> int:
+    """C = 25 + 5n, +1 with the delivery indicator (the reference's full observation)."""
+    return 25 + 5 * config.num_ingredients + int(config.indicate_successful_delivery)
+
+
 def num_channels(config: EnvConfig) -> int:
     """Channels of the default observation, after the optional paper truncation."""
     n = config.num_ingredients
-    full = 25 + 5 * n + int(config.indicate_successful_delivery)
+    full = full_channels(config)
     if config.paper_obs_truncation and config.view_radius is not None:
         # The paper's environment version declared 18 + 4(n + 2) (+1) channels and its view window
         # sliced to that, silently dropping the last ones for n >= 2.
@@ -45,7 +50,7 @@ def grid_obs_shape(config: EnvConfig) -> tuple[int, int, int]:
 def _channel_permutation(config: EnvConfig, permutations: jax.Array) -> jax.Array:
     """Per-observer channel gather index applying its ingredient mapping (other-play): [N, C]."""
     n = config.num_ingredients
-    base = np.arange(25 + 5 * n + int(config.indicate_successful_delivery))
+    base = np.arange(full_channels(config))
     index = jnp.broadcast_to(jnp.asarray(base), (permutations.shape[0], base.size))
     # Ingredient channels of: ego inventory, others' inventories, piles, grid items, recipe.
     for start in (7, 14 + n, 20 + 2 * n, 22 + 3 * n, 24 + 4 * n):
@@ -75,7 +80,7 @@ def _item_chunk_tables(n: int, offset: int, total: int) -> list[np.ndarray]:
 def _shared_tables(config: EnvConfig):
     """Constant lookup tables for the channels every observer shares (before permutation)."""
     n = config.num_ingredients
-    total = 25 + 5 * n + int(config.indicate_successful_delivery)
+    total = full_channels(config)
     static = np.zeros((2 * (Static.INGREDIENT_PILE + 16), total), np.int32)  # second half: goal lit up
     for channel, static_id in enumerate(_STATIC_CHANNELS):
         static[static_id, 14 + 2 * n + channel] = 1
@@ -107,7 +112,7 @@ def grid_observations(config: EnvConfig, state: State) -> jax.Array:
     """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation)."""
     dtype = jnp.dtype(config.obs_dtype)
     n = config.num_ingredients
-    total = 25 + 5 * n + int(config.indicate_successful_delivery)
+    total = full_channels(config)
     static, items, timer = state.grid[:, :, 0], state.grid[:, :, 1], state.grid[:, :, 2]
     agents = state.agents
     num_agents = agents.x.shape[0]
