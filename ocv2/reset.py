@@ -96,20 +96,17 @@ def randomize_positions(config: EnvConfig, state: State, key: jax.Array) -> Stat
     return state.replace(agents=new_agents)
 
 
-def _random_dish(config: EnvConfig, key: jax.Array) -> jax.Array:
-    return sample_recipe(config, key) | it.PLATE | it.COOKED
-
-
-def _random_ingredient(config: EnvConfig, key: jax.Array) -> jax.Array:
-    return it.ingredient_unit(jax.random.randint(key, (), 0, config.num_ingredients))
+def _random_item(config: EnvConfig, k_pick, k_ing, k_dish, probabilities) -> jax.Array:
+    """One of [nothing, a plate, a random raw ingredient, a random finished dish] (inventories, counters)."""
+    ingredient = it.ingredient_unit(jax.random.randint(k_ing, (), 0, config.num_ingredients))
+    dish = sample_recipe(config, k_dish) | it.PLATE | it.COOKED
+    options = jnp.stack([jnp.int32(it.EMPTY), jnp.int32(it.PLATE), ingredient, dish]).astype(jnp.int32)
+    return options[jax.random.choice(k_pick, 4, (), p=jnp.array(probabilities))]
 
 
 def _random_inventory(config: EnvConfig, key: jax.Array) -> jax.Array:
-    k_dish, k_ing, k_pick = jax.random.split(key, 3)
-    options = jnp.stack(
-        [jnp.int32(it.EMPTY), jnp.int32(it.PLATE), _random_ingredient(config, k_ing), _random_dish(config, k_dish)]
-    ).astype(jnp.int32)
-    return options[jax.random.choice(k_pick, 4, (), p=jnp.array(_INVENTORY_P))]
+    k_dish, k_ing, k_pick = jax.random.split(key, 3)  # the reference's key order differs per use
+    return _random_item(config, k_pick, k_ing, k_dish, _INVENTORY_P)
 
 
 def _random_pot(config: EnvConfig, cell: jax.Array, key: jax.Array) -> jax.Array:
@@ -133,11 +130,7 @@ def _random_pot(config: EnvConfig, cell: jax.Array, key: jax.Array) -> jax.Array
 
 def _random_counter(config: EnvConfig, cell: jax.Array, key: jax.Array) -> jax.Array:
     k_pick, k_ing, k_dish = jax.random.split(key, 3)
-    options = jnp.stack(
-        [jnp.int32(it.EMPTY), jnp.int32(it.PLATE), _random_ingredient(config, k_ing), _random_dish(config, k_dish)]
-    ).astype(jnp.int32)
-    item = options[jax.random.choice(k_pick, 4, (), p=jnp.array(_COUNTER_P))]
-    return cell.at[1].set(item)
+    return cell.at[1].set(_random_item(config, k_pick, k_ing, k_dish, _COUNTER_P))
 
 
 def randomize_state(config: EnvConfig, state: State, key: jax.Array) -> State:
