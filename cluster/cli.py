@@ -42,15 +42,12 @@ def _console(stream=None):
 
 
 def _layout_or_error(name: str):
-    from ocv2.layouts import LAYOUTS
+    from ocv2.layouts import get_layout
 
-    if name not in LAYOUTS:
-        import difflib
-
-        close = difflib.get_close_matches(name, list(LAYOUTS), n=3)
-        hint = f" (did you mean {', '.join(close)}?)" if close else ""
-        raise CLIError(f"unknown layout {name!r}{hint}; run 'ocv2 layouts' to list them")
-    return LAYOUTS[name]
+    try:
+        return get_layout(name)
+    except ValueError as error:  # its message names the layout, lists the choices and suggests close ones
+        raise CLIError(str(error)) from None
 
 
 def _int_at_least(minimum: int, what: str):

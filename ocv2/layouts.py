@@ -9,6 +9,7 @@ error, and so is a map an agent could walk off (its room touches the map's edge)
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import itertools
 import types
 from collections import deque
@@ -270,6 +271,8 @@ def get_layout(layout) -> Layout:
         return layout
     if isinstance(layout, str):
         if layout not in LAYOUTS:
-            raise ValueError(f"unknown layout {layout!r}; choose one of: {', '.join(LAYOUTS)}")
+            close = difflib.get_close_matches(layout, list(LAYOUTS), n=3)
+            hint = f" (did you mean {', '.join(close)}?)" if close else ""
+            raise ValueError(f"unknown layout {layout!r}; choose one of: {', '.join(LAYOUTS)}{hint}")
         return LAYOUTS[layout]
     raise TypeError(f"layout must be a layout name or an ocv2.Layout, got {type(layout).__name__}")
