@@ -168,10 +168,21 @@ def _cmd_render(args) -> int:
 # entry point
 # ---------------------------------------------------------------------------------------------------
 
+def _add_button_game(sub):
+    from cluster.cmd_button_game import add_parser
+    return add_parser(sub)
+
+
+def _cmd_button_game(args):
+    from cluster.cmd_button_game import run
+    return run(args)
+
+
 #: (name, add-arguments function, run function); the order is the help listing's.
 COMMANDS: list[tuple[str, Callable, Callable]] = [
     ("layouts", _add_layouts, _cmd_layouts),
     ("render", _add_render, _cmd_render),
+    ("button-game", _add_button_game, _cmd_button_game),
 ]
 
 
