@@ -1,0 +1,412 @@
+"""Experiment configuration: YAML parsed once into frozen, typed, validated dataclasses.
+
+Sections: ``env`` (the ``ocv2.make`` parameters), ``model``, ``ppo`` (the paper's hyperparameter names in
+lower case), ``population`` (method and per-method settings), ``eval`` and ``run``. Every error names
+the offending key (``ppo.num_minibatches``) and, when loaded from a file, the file.
+
+    config = load_config("configs/quickstart.yaml", overrides=["ppo.total_timesteps=1e5"])
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import typing
+from typing import Any, Mapping, Sequence
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message names the key (and file) at fault."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# sections
+# ---------------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Network. ``cnn``: the classic-layout CNN; ``rnn``: 1x1-conv mixer + CNN + GRU (paper appendix B)."""
+
+    kind: str = "rnn"
+    # cnn: conv features / kernel sizes / dense width (Conv 5x5/32, 3x3/32, 3x3/32 -> Dense 64)
+    # rnn: 1x1 mixer (128,128,8) -> 3x3 convs (16,32,32) -> Dense 128 -> GRU 128
+    conv_features: tuple[int, ...] | None = None
+    conv_kernels: tuple[int, ...] | None = None
+    mixer_features: tuple[int, ...] = (128, 128, 8)
+    fc_dim: int | None = None
+    gru_dim: int = 128
+
+    @property
+    def recurrent(self) -> bool:
+        return self.kind == "rnn"
+
+
+_MODEL_DEFAULTS = {
+    "cnn": {"conv_features": (32, 32, 32), "conv_kernels": (5, 3, 3), "fc_dim": 64},
+    "rnn": {"conv_features": (16, 32, 32), "conv_kernels": (3, 3, 3), "fc_dim": 128},
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyperparameters (paper appendix D names). Defaults: the paper's RNN self-play column."""
+
+    lr: float = 2.5e-4
+    anneal_lr: bool = True
+    lr_warmup: float = 0.05  # fraction of all optimizer steps spent warming up from 0 to lr
+    clip_eps: float = 0.2
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    max_grad_norm: float = 0.25
+    num_envs: int = 256
+    num_steps: int = 256
+    num_minibatches: int = 64
+    update_epochs: int = 4
+    total_timesteps: int = 30_000_000
+    rew_shaping_horizon: int = 15_000_000
+    activation: str = "relu"
+    # Reproduce the paper code's recurrent bug (post-step done used as the replay's reset flag).
+    paper_done_bug: bool = False
+
+    @property
+    def steps_per_update(self) -> int:
+        """Environment steps (transitions of whole kitchens) per PPO update."""
+        return self.num_envs * self.num_steps
+
+    @property
+    def num_updates(self) -> int:
+        return self.total_timesteps // self.steps_per_update
+
+
+@dataclasses.dataclass(frozen=True)
+class SAConfig:
+    """State augmentation (paper Algorithm 1)."""
+
+    iterations: int = 10
+    rollouts_per_pair: int = 10
+    keep_every: int = 10
+
+
+@dataclasses.dataclass(frozen=True)
+class OPConfig:
+    """Other-play: ingredient indices each agent's view is permuted over, per episode."""
+
+    ingredients: tuple[int, ...] = (0, 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class FCPConfig:
+    """Fictitious co-play: a learner per seed against a frozen pool of SP checkpoints.
+
+    ``partners``: an SP run directory to take the pool from; None trains an SP stage first (same
+    env/model/ppo sections) with ``partner_seeds`` seeds. ``checkpoints``: which snapshots of each
+    partner seed join the pool ("init", "mid", "final" or an update number).
+    """
+
+    partners: str | None = None
+    partner_seeds: int = 8
+    checkpoints: tuple[str, ...] = ("mid", "final")
+
+
+@dataclasses.dataclass(frozen=True)
+class PopulationConfig:
+    method: str = "sp"
+    num_seeds: int = 10
+    seed: int = 0
+    sa: SAConfig = SAConfig()
+    op: OPConfig = OPConfig()
+    fcp: FCPConfig = FCPConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Cross-play evaluation: E episodes per ordered pair, stochastic actions, team sparse return."""
+
+    episodes: int = 500
+    gifs: int = 2  # episode GIFs of the first seeds' self-play written after training
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """How a run is driven: chunking, checkpoints."""
+
+    checkpoint_every: int = 50  # updates between atomic TrainState checkpoints (also the chunk size)
+    num_checkpoints: int = 3  # kept snapshots spread over training (0, mid, final), as the paper
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    env: tuple[tuple[str, Any], ...] = (("layout", "cramped_room"),)
+    model: ModelConfig = ModelConfig()
+    ppo: PPOConfig = PPOConfig()
+    population: PopulationConfig = PopulationConfig()
+    eval: EvalConfig = EvalConfig()
+    run: RunConfig = RunConfig()
+
+    @property
+    def env_kwargs(self) -> dict:
+        """Keyword arguments for ``ocv2.make``."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.env}
+
+    def to_dict(self) -> dict:
+        """Plain YAML/JSON-able form (round-trips through ``parse_config``)."""
+        out = {"env": self.env_kwargs}
+        for name in ("model", "ppo", "population", "eval", "run"):
+            out[name] = _plain(dataclasses.asdict(getattr(self, name)))
+        return out
+
+    def fingerprint(self, exclude: Sequence[str] = ("eval", "run")) -> str:
+        """A hash of everything that changes training numbers (checkpoints from another config are refused)."""
+        data = {k: v for k, v in self.to_dict().items() if k not in exclude}
+        return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _plain(value):
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return value
+
+
+# ---------------------------------------------------------------------------------------------------
+# parsing
+# ---------------------------------------------------------------------------------------------------
+
+METHODS = ("sp", "sa", "op", "fcp")
+ACTIVATIONS = ("relu", "tanh")
+SECTIONS = ("env", "model", "ppo", "population", "eval", "run")
+
+
+def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> Config:
+    """Read a YAML file, apply ``section.key=value`` overrides, validate. Errors name file and key."""
+    path = os.fspath(path)
+    try:
+        with open(path) as handle:
+            raw = yaml.safe_load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    try:
+        return parse_config(raw if raw is not None else {}, overrides)
+    except ConfigError as error:
+        raise ConfigError(f"{path}: {error}") from None
+
+
+def apply_overrides(raw: Mapping, overrides: Sequence[str]) -> dict:
+    """``["ppo.lr=1e-3", "env.layout=coord_ring"]`` -> a new nested dict; values are parsed as YAML."""
+    data = json.loads(json.dumps(raw))  # deep copy of plain data
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r}: expected section.key=value")
+        dotted, text = item.split("=", 1)
+        parts = dotted.strip().split(".")
+        if len(parts) < 2 or not all(parts):
+            raise ConfigError(f"override {item!r}: expected section.key=value")
+        node = data
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"override {item!r}: {part} is not a section")
+        node[parts[-1]] = yaml.safe_load(text) if text.strip() else None
+    return data
+
+
+def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
+    """Validate a nested mapping (e.g. from YAML) into a ``Config``."""
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"the config must be a mapping of sections {SECTIONS}, got {type(raw).__name__}")
+    raw = apply_overrides(raw, overrides)
+    unknown = sorted(set(raw) - set(SECTIONS))
+    if unknown:
+        raise ConfigError(f"unknown section {unknown[0]!r}; sections are {', '.join(SECTIONS)}")
+    env = _parse_env(raw.get("env") or {})
+    model = _parse_section("model", ModelConfig, raw.get("model"))
+    model = _resolve_model(model)
+    ppo = _parse_section("ppo", PPOConfig, raw.get("ppo"))
+    pop_raw = dict(raw.get("population") or {})
+    if not isinstance(raw.get("population") or {}, Mapping):
+        raise ConfigError("population: expected a mapping")
+    subs = {name: _parse_section(f"population.{name}", cls, pop_raw.pop(name, None))
+            for name, cls in (("sa", SAConfig), ("op", OPConfig), ("fcp", FCPConfig))}
+    population = dataclasses.replace(_parse_section("population", PopulationConfig, pop_raw), **subs)
+    config = Config(env=env, model=model, ppo=ppo, population=population,
+                    eval=_parse_section("eval", EvalConfig, raw.get("eval")),
+                    run=_parse_section("run", RunConfig, raw.get("run")))
+    _validate(config)
+    return config
+
+
+def _parse_section(name: str, cls, raw) -> Any:
+    if raw is None:
+        return cls()
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"{name}: expected a mapping of keys, got {type(raw).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for key, value in raw.items():
+        if key not in fields:
+            raise ConfigError(f"{name}.{key}: unknown key; valid keys are {', '.join(fields)}")
+        values[key] = _coerce(f"{name}.{key}", value, hints[key])
+    return cls(**values)
+
+
+def _coerce(key: str, value, hint):
+    """Check ``value`` against a field's type; ints given as 1e7 floats are accepted when integral."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(key, value, inner[0])
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        return tuple(_coerce(f"{key}[{i}]", v, args[0]) for i, v in enumerate(value))
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        if isinstance(value, str):
+            try:
+                as_float = float(value)
+            except ValueError:
+                as_float = math.nan
+            if as_float.is_integer():
+                return int(as_float)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, str):
+            try:
+                return float(value)  # YAML reads "1e-4" (no dot) as a string
+            except ValueError:
+                pass
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if isinstance(value, bool) or not isinstance(value, (str, int)):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return str(value)
+    return value
+
+
+def _parse_env(raw) -> tuple[tuple[str, Any], ...]:
+    from ocv2.config import build_config
+
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"env: expected a mapping of ocv2.make parameters, got {type(raw).__name__}")
+    if "initial_state_buffer" in raw:
+        raise ConfigError("env.initial_state_buffer: state buffers come from population.method=sa, not the config")
+    params = dict(raw)
+    params.setdefault("layout", "cramped_room")
+    try:
+        build_config(**params)
+    except TypeError as error:
+        raise ConfigError(f"env: {error}") from None
+    except ValueError as error:
+        raise ConfigError(f"env: {error}") from None
+    frozen = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in params.items()))
+    return frozen
+
+
+def _resolve_model(model: ModelConfig) -> ModelConfig:
+    if model.kind not in _MODEL_DEFAULTS:
+        raise ConfigError(f"model.kind: expected one of {', '.join(_MODEL_DEFAULTS)}, got {model.kind!r}")
+    fill = {k: v for k, v in _MODEL_DEFAULTS[model.kind].items() if getattr(model, k) is None}
+    return dataclasses.replace(model, **fill)
+
+
+def _positive(key: str, value, allow_zero: bool = False):
+    if value < 0 or (value == 0 and not allow_zero):
+        raise ConfigError(f"{key}: must be {'>= 0' if allow_zero else '> 0'}, got {value}")
+
+
+def _validate(config: Config) -> None:
+    model, ppo, pop = config.model, config.ppo, config.population
+    if ppo.activation not in ACTIVATIONS:
+        raise ConfigError(f"ppo.activation: expected one of {', '.join(ACTIVATIONS)}, got {ppo.activation!r}")
+    if len(model.conv_features) != len(model.conv_kernels):
+        raise ConfigError("model.conv_kernels: needs one kernel size per entry of model.conv_features")
+    for key in ("fc_dim", "gru_dim"):
+        _positive(f"model.{key}", getattr(model, key))
+    for key, values in (("conv_features", model.conv_features), ("conv_kernels", model.conv_kernels),
+                        ("mixer_features", model.mixer_features)):
+        for v in values:
+            _positive(f"model.{key}", v)
+    for key in ("lr", "clip_eps", "max_grad_norm", "num_envs", "num_steps", "num_minibatches",
+                "update_epochs", "total_timesteps"):
+        _positive(f"ppo.{key}", getattr(ppo, key))
+    for key in ("ent_coef", "vf_coef", "rew_shaping_horizon", "lr_warmup"):
+        _positive(f"ppo.{key}", getattr(ppo, key), allow_zero=True)
+    for key in ("gamma", "gae_lambda", "lr_warmup"):
+        if not 0.0 <= getattr(ppo, key) <= 1.0:
+            raise ConfigError(f"ppo.{key}: must lie in [0, 1], got {getattr(ppo, key)}")
+    if ppo.num_updates < 1:
+        raise ConfigError(f"ppo.total_timesteps: {ppo.total_timesteps} is less than one update "
+                          f"(num_envs x num_steps = {ppo.steps_per_update})")
+    from ocv2.config import build_config
+
+    env = build_config(**config.env_kwargs)
+    learner_actors = ppo.num_envs if pop.method == "fcp" else ppo.num_envs * env.num_agents
+    if learner_actors % ppo.num_minibatches:
+        raise ConfigError(f"ppo.num_minibatches: {ppo.num_minibatches} does not divide the {learner_actors} "
+                          f"learner sequences per update (num_envs x {'1 learner seat' if pop.method == 'fcp' else f'{env.num_agents} agents'})")
+    if pop.method not in METHODS:
+        raise ConfigError(f"population.method: expected one of {', '.join(METHODS)}, got {pop.method!r}")
+    _positive("population.num_seeds", pop.num_seeds)
+    _positive("population.seed", pop.seed, allow_zero=True)
+    for key in ("iterations", "rollouts_per_pair", "keep_every"):
+        _positive(f"population.sa.{key}", getattr(pop.sa, key))
+    if pop.method == "sa":
+        if pop.sa.iterations > ppo.num_updates:
+            raise ConfigError(f"population.sa.iterations: {pop.sa.iterations} iterations need at least as many "
+                              f"updates, the config has {ppo.num_updates}")
+        if pop.sa.keep_every > env.max_steps:
+            raise ConfigError(f"population.sa.keep_every: {pop.sa.keep_every} exceeds env.max_steps={env.max_steps}")
+    if pop.method == "op":
+        n = env.num_ingredients
+        if len(pop.op.ingredients) < 2 or len(set(pop.op.ingredients)) != len(pop.op.ingredients):
+            raise ConfigError("population.op.ingredients: needs at least two distinct ingredient indices")
+        if any(not 0 <= i < n for i in pop.op.ingredients):
+            raise ConfigError(f"population.op.ingredients: indices must lie in [0, {n}) for layout "
+                              f"{env.layout.name!r}, got {list(pop.op.ingredients)}")
+        if env.op_enabled:
+            raise ConfigError("env.op_ingredient_permutations: set population.op.ingredients instead "
+                              "(evaluation must run without permutations)")
+    if pop.method == "fcp":
+        _positive("population.fcp.partner_seeds", pop.fcp.partner_seeds)
+        if not pop.fcp.checkpoints:
+            raise ConfigError("population.fcp.checkpoints: needs at least one checkpoint")
+        for c in pop.fcp.checkpoints:
+            if c not in ("init", "mid", "final") and not str(c).isdigit():
+                raise ConfigError(f"population.fcp.checkpoints: {c!r} is not init, mid, final or an update number")
+        if env.num_agents != 2:
+            raise ConfigError("population.method: fcp needs a two-agent layout")
+    _positive("eval.episodes", config.eval.episodes)
+    _positive("eval.gifs", config.eval.gifs, allow_zero=True)
+    _positive("run.checkpoint_every", config.run.checkpoint_every)
+    if config.run.num_checkpoints < 2:
+        raise ConfigError(f"run.num_checkpoints: must be >= 2 (initial and final), got {config.run.num_checkpoints}")
+
+
+def dump_config(config: Config, path: str | os.PathLike) -> None:
+    """Write the resolved config as YAML (atomically)."""
+    tmp = f"{os.fspath(path)}.tmp"
+    with open(tmp, "w") as handle:
+        yaml.safe_dump(config.to_dict(), handle, sort_keys=False)
+    os.replace(tmp, path)
