@@ -1,0 +1,121 @@
+"""Atomic, config-checked checkpoints of one seed's ``TrainState``.
+
+Layout: ``<run>/checkpoints/seed_<i>/update_<n>.msgpack``, one msgpack file holding
+``{"meta": {...}, "state": <TrainState state dict>}`` (flax serialization). A file is written to a
+temporary name and renamed, so a reader never sees half a checkpoint. ``meta.fingerprint`` is the
+hash of the training-relevant config; loading into a different config is refused with a message.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import jax
+import numpy as np
+from flax import serialization
+
+FORMAT_VERSION = 1
+_NAME = re.compile(r"^update_(\d+)\.msgpack$")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used (missing, corrupt, or from another config)."""
+
+
+def seed_dir(run_dir, seed: int) -> Path:
+    return Path(run_dir) / "checkpoints" / f"seed_{seed}"
+
+
+def checkpoint_path(run_dir, seed: int, update: int) -> Path:
+    return seed_dir(run_dir, seed) / f"update_{update:07d}.msgpack"
+
+
+def save(path, state, fingerprint: str, **meta) -> Path:
+    """Write ``state`` (a pytree) atomically; extra ``meta`` (JSON-able) is stored beside it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {"meta": {"version": FORMAT_VERSION, "fingerprint": fingerprint, **meta},
+               "state": serialization.to_state_dict(jax.tree.map(np.asarray, state))}
+    data = serialization.msgpack_serialize(payload)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "wb") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:
+    """(meta, raw state dict) of a checkpoint; refuses another config's checkpoint if ``fingerprint``."""
+    path = Path(path)
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no such checkpoint") from None
+    except Exception as error:  # msgpack raises several types on truncated/corrupt data
+        raise CheckpointError(f"{path}: not a readable ocv2 checkpoint ({error})") from None
+    if not isinstance(payload, dict) or "meta" not in payload or "state" not in payload:
+        raise CheckpointError(f"{path}: not an ocv2 checkpoint (no meta/state)")
+    meta = payload["meta"]
+    if fingerprint is not None and meta.get("fingerprint") != fingerprint:
+        raise CheckpointError(
+            f"{path}: checkpoint was written by a different config (fingerprint {meta.get('fingerprint')}, "
+            f"this config {fingerprint}); use the run's own config.yaml or a new run directory")
+    return meta, payload["state"]
+
+
+def load(path, template, fingerprint: str | None = None):
+    """Restore a checkpoint into the structure of ``template``. Returns (meta, state)."""
+    meta, raw = read(path, fingerprint)
+    try:
+        state = serialization.from_state_dict(template, raw)
+    except (KeyError, ValueError, TypeError) as error:
+        raise CheckpointError(f"{path}: does not match the expected state structure ({error})") from None
+    _check_shapes(path, template, state)
+    return meta, jax.tree.map(lambda t, x: np.asarray(x, dtype=t.dtype), template, state)
+
+
+def _check_shapes(path, template, state):
+    """``template`` leaves may be arrays or ``jax.ShapeDtypeStruct`` (from ``jax.eval_shape``)."""
+    leaves, restored = jax.tree.leaves(template), jax.tree.leaves(state)
+    if len(leaves) != len(restored):
+        raise CheckpointError(f"{path}: holds {len(restored)} arrays where {len(leaves)} were expected")
+    for t, x in zip(leaves, restored):
+        if tuple(t.shape) != np.shape(x):
+            raise CheckpointError(f"{path}: array of shape {np.shape(x)} where {tuple(t.shape)} was expected")
+
+
+def list_updates(run_dir, seed: int) -> list[int]:
+    """Update numbers of the seed's checkpoints, ascending."""
+    directory = seed_dir(run_dir, seed)
+    if not directory.is_dir():
+        return []
+    found = (_NAME.match(p.name) for p in directory.iterdir())
+    return sorted(int(m.group(1)) for m in found if m)
+
+
+def latest(run_dir, seed: int) -> Path | None:
+    updates = list_updates(run_dir, seed)
+    return checkpoint_path(run_dir, seed, updates[-1]) if updates else None
+
+
+def snapshot_updates(num_updates: int, count: int) -> list[int]:
+    """The paper's NUM_CHECKPOINTS snapshots: ``count`` points evenly over [0, num_updates]."""
+    return sorted({int(round(x)) for x in np.linspace(0, num_updates, count)})
+
+
+def resolve_snapshot(name: str, snapshots: list[int]) -> int:
+    """'init' / 'mid' / 'final' / an update number -> an update number among ``snapshots``."""
+    if name == "init":
+        return snapshots[0]
+    if name == "final":
+        return snapshots[-1]
+    if name == "mid":
+        return snapshots[len(snapshots) // 2]
+    update = int(name)
+    if update not in snapshots:
+        raise CheckpointError(f"no snapshot at update {update}; snapshots are {snapshots}")
+    return update

@@ -1,0 +1,78 @@
+"""Pictures of results: training curves (mean +- std across seeds) and cross-play heatmaps."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only; never needs a display
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path) -> str:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    os.replace(tmp, path)
+    return str(path)
+
+
+def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, title: str = "") -> str:
+    """``curves[name]`` is [S, U] (seeds x updates, NaN where no episode had finished yet)."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(curves), figsize=(5 * len(curves), 3.6), squeeze=False)
+    for ax, (name, values) in zip(axes[0], curves.items()):
+        values = np.asarray(values, np.float64)
+        with np.errstate(all="ignore"):
+            valid = ~np.isnan(values)
+            count = valid.sum(0)
+            mean = np.where(count > 0, np.nansum(values, 0) / np.maximum(count, 1), np.nan)
+            std = np.sqrt(np.where(count > 0, np.nansum((values - mean) ** 2, 0) / np.maximum(count, 1), np.nan))
+        ax.plot(steps, mean, color="tab:blue", label=f"mean of {values.shape[0]} seeds")
+        ax.fill_between(steps, mean - std, mean + std, color="tab:blue", alpha=0.25, label="+- std")
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    out = _save(fig, path)
+    plt.close(fig)
+    return out
+
+
+def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: float | None = None) -> str:
+    """Cross-play heatmap like the paper's Figure 4: rows = seat 0, columns = seat 1, annotated cells."""
+    plt = _pyplot()
+    matrix = np.asarray(matrix, np.float64)
+    num = matrix.shape[0]
+    labels = labels or [str(i) for i in range(num)]
+    size = max(3.5, 0.55 * num + 2)
+    fig, ax = plt.subplots(figsize=(size, size * 0.85))
+    top = vmax if vmax is not None else max(float(np.nanmax(matrix)) if matrix.size else 1.0, 1.0)
+    image = ax.imshow(matrix, cmap="viridis", vmin=min(0.0, float(np.nanmin(matrix))), vmax=top)
+    fig.colorbar(image, ax=ax, label="mean team return")
+    ax.set_xticks(range(num), labels)
+    ax.set_yticks(range(num), labels)
+    ax.set_xlabel("policy in seat 1")
+    ax.set_ylabel("policy in seat 0")
+    if num <= 16:
+        for i in range(num):
+            for j in range(num):
+                value = matrix[i, j]
+                ax.text(j, i, f"{value:.0f}", ha="center", va="center", fontsize=8,
+                        color="white" if value < 0.6 * top else "black")
+    if title:
+        ax.set_title(title)
+    out = _save(fig, path)
+    plt.close(fig)
+    return out
