@@ -2,30 +2,23 @@
 
     ocv2 layouts [--show NAME]          the built-in kitchens (table, or one ASCII map)
     ocv2 render LAYOUT --steps N --out FILE.gif [--seed S] [--fps F] [--view-radius V] [--tile-size T]
+    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume]
+    ocv2 xp RUN_DIR [--episodes N]
+    ocv2 button-game [--buttons N] [--seeds S] [--out DIR]
 
-Each subcommand is one ``_add_<name>`` function that declares its arguments and one ``_cmd_<name>``
-function that runs it and returns an exit code; ``COMMANDS`` lists them, so adding ``train``, ``xp``,
-``report`` or ``play`` is one entry more. Errors the user can fix raise ``CLIError`` and become a
+Each subcommand is one function that declares its arguments and one that runs it and returns an exit
+code; ``COMMANDS`` lists them (the bigger ones live in ``cluster/cmd_*.py`` and are imported lazily). Errors the user can fix raise ``CLIError`` and become a
 one-line message on stderr and exit code 2 (usage) or 1 (failure), never a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from typing import Callable, Sequence
 
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
-
-
-class CLIError(Exception):
-    """A problem to report to the user as one line on stderr, with an exit code."""
-
-    def __init__(self, message: str, code: int = EXIT_USAGE):
-        super().__init__(message)
-        self.code = code
+from cluster.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -168,21 +161,22 @@ def _cmd_render(args) -> int:
 # entry point
 # ---------------------------------------------------------------------------------------------------
 
-def _add_button_game(sub):
-    from cluster.cmd_button_game import add_parser
-    return add_parser(sub)
+def _lazy(module: str, name: str) -> Callable:
+    """``module.name``, imported on first call: ``ocv2 layouts`` never pays for importing the trainer."""
 
+    def call(*args):
+        return getattr(importlib.import_module(module), name)(*args)
 
-def _cmd_button_game(args):
-    from cluster.cmd_button_game import run
-    return run(args)
+    return call
 
 
 #: (name, add-arguments function, run function); the order is the help listing's.
 COMMANDS: list[tuple[str, Callable, Callable]] = [
     ("layouts", _add_layouts, _cmd_layouts),
     ("render", _add_render, _cmd_render),
-    ("button-game", _add_button_game, _cmd_button_game),
+    ("train", _lazy("cluster.cmd_train", "add_train"), _lazy("cluster.cmd_train", "run_train")),
+    ("xp", _lazy("cluster.cmd_train", "add_xp"), _lazy("cluster.cmd_train", "run_xp")),
+    ("button-game", _lazy("cluster.cmd_button_game", "add_parser"), _lazy("cluster.cmd_button_game", "run")),
 ]
 
 

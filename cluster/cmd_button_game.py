@@ -5,7 +5,7 @@
 
 Writes ``DIR/button_game_xp.csv`` (labelled matrix, rows Alices, columns Bobs) and
 ``DIR/button_game_xp.png`` (annotated heatmap), and prints the SP, XP and BR means. Registered in
-``cluster.cli.COMMANDS`` through two small wrappers, so importing the CLI does not import JAX.
+``cluster.cli.COMMANDS`` lazily, so importing the CLI does not import JAX.
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def _configs(args):
     """Build the configs (argparse types have already range-checked every flag)."""
-    from cluster.cli import CLIError
+    from cluster.errors import CLIError
     from population.button_game import ButtonGameConfig, IQLConfig
 
     try:
@@ -84,7 +84,7 @@ def _configs(args):
 
 def run(args) -> int:
     """Train, evaluate, write CSV + PNG, print the means; returns the exit code."""
-    from cluster.cli import EXIT_FAILURE, EXIT_OK, CLIError
+    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
 
     game, iql = _configs(args)
     if os.path.exists(args.out) and not os.path.isdir(args.out):

@@ -1,0 +1,80 @@
+"""``ocv2 train`` and ``ocv2 xp``: the population commands.
+
+    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--backend local] [--resume]
+    ocv2 xp RUN_DIR [--episodes N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import os
+
+
+def add_train(sub) -> argparse.ArgumentParser:
+    parser = sub.add_parser("train", help="train a population from a YAML config",
+                            description="Train a population (SP, SA, OP or FCP) from a YAML config, then "
+                                        "evaluate cross-play and write plots and GIFs into the run directory.")
+    parser.add_argument("config", help="YAML config (see configs/)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override a config value (repeatable), e.g. --set ppo.total_timesteps=1e6")
+    parser.add_argument("--out", help="run directory (default runs/<layout>_<method>_<time>)")
+    parser.add_argument("--backend", choices=["local"], default="local",
+                        help="local: one process, seeds vmapped in one jitted program")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoints")
+    parser.add_argument("--no-eval", action="store_true", help="skip cross-play, plots and GIFs after training")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+    return parser
+
+
+def run_train(args) -> int:
+    from cluster.errors import EXIT_OK, CLIError
+    from cluster.local import train_population
+    from cluster.rundir import RunDirError
+    from population.checkpoints import CheckpointError
+    from population.config import ConfigError, load_config
+
+    try:
+        config = load_config(args.config, args.overrides)
+    except ConfigError as error:
+        raise CLIError(str(error)) from None
+    out = args.out or _default_run_dir(config)
+    if args.resume and not args.out:
+        raise CLIError("--resume needs --out RUN_DIR (the run to continue)")
+    try:
+        summary = train_population(config, out, resume=args.resume, show_progress=not args.quiet,
+                                   evaluate=not args.no_eval)
+    except (RunDirError, CheckpointError) as error:
+        raise CLIError(str(error)) from None
+    print(f"run directory: {summary['run_dir']}")
+    return EXIT_OK
+
+
+def _default_run_dir(config) -> str:
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    return os.path.join("runs", f"{config.env_kwargs['layout']}_{config.population.method}_{stamp}")
+
+
+def add_xp(sub) -> argparse.ArgumentParser:
+    parser = sub.add_parser("xp", help="cross-play matrix of a trained population",
+                            description="Evaluate every ordered pair of a run's final policies (diagonal = "
+                                        "self-play) and write xp/matrix.csv, episodes.csv, summary.json, heatmap.png.")
+    parser.add_argument("run_dir")
+    parser.add_argument("--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes)")
+    return parser
+
+
+def run_xp(args) -> int:
+    from cluster.errors import EXIT_OK, CLIError
+    from cluster.local import evaluate_run
+    from cluster.rundir import RunDirError
+    from population.checkpoints import CheckpointError
+
+    if args.episodes is not None and args.episodes < 1:
+        raise CLIError(f"--episodes must be >= 1, got {args.episodes}")
+    try:
+        evaluate_run(args.run_dir, episodes=args.episodes)
+    except (RunDirError, CheckpointError) as error:
+        raise CLIError(str(error)) from None
+    print(f"wrote {os.path.join(args.run_dir, 'xp')}/matrix.csv, episodes.csv, summary.json, heatmap.png")
+    return EXIT_OK

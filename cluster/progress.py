@@ -1,0 +1,79 @@
+"""One live progress view for a whole population: updates, env steps/s, recent return, ETA."""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+
+
+class PopulationProgress:
+    """A rich progress bar on a terminal; one plain line per chunk otherwise (logs, CI)."""
+
+    def __init__(self, label: str, num_seeds: int, total_updates: int, steps_per_update: int, enabled: bool = True):
+        self.label, self.num_seeds, self.total = label, num_seeds, total_updates
+        self.steps_per_update = steps_per_update
+        self.enabled = enabled
+        self.started = time.perf_counter()
+        self.first_update = None
+        self._bar = None
+        self._task = None
+
+    def __enter__(self):
+        if self.enabled and sys.stdout.isatty():
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self._bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TextColumn("{task.fields[info]}"), TimeRemainingColumn())
+            self._bar.__enter__()
+            self._task = self._bar.add_task(self.label, total=self.total, info="compiling...")
+        elif self.enabled:
+            print(f"{self.label}: {self.num_seeds} seeds x {self.total} updates "
+                  f"({self.steps_per_update} env steps each)", flush=True)
+        return self
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            self._bar.__exit__(*exc)
+        return False
+
+    def note(self, text: str) -> None:
+        if self._bar is not None:
+            self._bar.update(self._task, info=text)
+        elif self.enabled:
+            print(f"  {text}", flush=True)
+
+    def advance_to(self, update: int, metrics, steps_per_s: float | None = None) -> None:
+        if self.first_update is None:
+            self.first_update, self.started = update, time.perf_counter()
+        if metrics is None:
+            if self._bar is not None:
+                self._bar.update(self._task, completed=update)
+            return
+        sparse = np.asarray(metrics.sparse_return)[:, -1]
+        shaped = np.asarray(metrics.shaped_return)[:, -1]
+        ret = _fmt(sparse)
+        elapsed = time.perf_counter() - self.started
+        done = update - self.first_update
+        eta = elapsed / done * (self.total - update) if done else math.nan
+        info = (f"{steps_per_s or 0:,.0f} env steps/s  return {ret}  shaped {_fmt(shaped)}")
+        if self._bar is not None:
+            self._bar.update(self._task, completed=update, info=info)
+        elif self.enabled:
+            print(f"  update {update}/{self.total}  {info}  ETA {_duration(eta)}", flush=True)
+
+
+def _fmt(values: np.ndarray) -> str:
+    values = values[~np.isnan(values)]
+    if values.size == 0:
+        return "n/a (no episode finished yet)"
+    return f"{values.mean():.1f}+-{values.std():.1f}"
+
+
+def _duration(seconds: float) -> str:
+    if math.isnan(seconds):
+        return "?"
+    seconds = int(seconds)
+    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
