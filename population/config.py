@@ -232,9 +232,9 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     model = _parse_section("model", ModelConfig, raw.get("model"))
     model = _resolve_model(model)
     ppo = _parse_section("ppo", PPOConfig, raw.get("ppo"))
-    pop_raw = dict(raw.get("population") or {})
     if not isinstance(raw.get("population") or {}, Mapping):
         raise ConfigError("population: expected a mapping")
+    pop_raw = dict(raw.get("population") or {})
     subs = {name: _parse_section(f"population.{name}", cls, pop_raw.pop(name, None))
             for name, cls in (("sa", SAConfig), ("op", OPConfig), ("fcp", FCPConfig))}
     population = dataclasses.replace(_parse_section("population", PopulationConfig, pop_raw), **subs)

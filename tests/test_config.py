@@ -1,0 +1,268 @@
+"""The experiment config (population/config.py): parsing, round trips, fingerprints, errors naming the key."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import yaml
+
+from population.config import (
+    Config,
+    ConfigError,
+    ModelConfig,
+    PPOConfig,
+    apply_overrides,
+    dump_config,
+    load_config,
+    parse_config,
+)
+
+SMALL_PPO = {"num_envs": 4, "num_steps": 16, "num_minibatches": 2, "total_timesteps": 640}
+
+
+def _error(raw, overrides=()) -> str:
+    with pytest.raises(ConfigError) as info:
+        parse_config(raw, overrides)
+    return str(info.value)
+
+
+# ---------------------------------------------------------------------------------------------------
+# defaults, round trips, fingerprints
+# ---------------------------------------------------------------------------------------------------
+
+def test_defaults_parse_to_the_paper_settings():
+    config = parse_config({})
+    assert isinstance(config, Config)
+    assert config.env_kwargs == {"layout": "cramped_room"}
+    assert config.model.kind == "rnn"
+    # the rnn kind's sizes are filled in
+    assert config.model.conv_features == (16, 32, 32) and config.model.conv_kernels == (3, 3, 3)
+    assert config.model.fc_dim == 128 and config.model.gru_dim == 128
+    assert config.model.mixer_features == (128, 128, 8)
+    assert config.ppo == PPOConfig()
+    assert config.ppo.num_updates == 30_000_000 // (256 * 256)
+    assert config.population.method == "sp"
+    cnn = parse_config({"model": {"kind": "cnn"}}).model
+    assert (cnn.conv_features, cnn.conv_kernels, cnn.fc_dim) == ((32, 32, 32), (5, 3, 3), 64)
+    # an explicit size wins over the kind's default
+    assert parse_config({"model": {"kind": "cnn", "fc_dim": 16}}).model.fc_dim == 16
+
+
+@pytest.mark.parametrize("raw", [
+    {},
+    {"model": {"kind": "cnn"}},
+    {"env": {"layout": "grounded_coord_simple", "max_steps": 50, "agent_view_size": 2},
+     "model": {"conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8, "gru_dim": 8},
+     "ppo": dict(SMALL_PPO, lr=1e-3, paper_done_bug=True),
+     "population": {"method": "op", "num_seeds": 3, "op": {"ingredients": [0, 2]}}},
+    {"ppo": SMALL_PPO, "population": {"method": "fcp", "fcp": {"partners": "runs/sp", "checkpoints": ["init", "120"]}},
+     "eval": {"episodes": 7}, "run": {"checkpoint_every": 3}},
+])
+def test_round_trip_through_to_dict(raw):
+    config = parse_config(raw)
+    again = parse_config(config.to_dict())
+    assert again == config
+    assert again.fingerprint() == config.fingerprint()
+    # the plain form survives YAML too (as dump_config writes it)
+    assert parse_config(yaml.safe_load(yaml.safe_dump(config.to_dict()))) == config
+
+
+def test_dump_then_load(tmp_path):
+    config = parse_config({"ppo": SMALL_PPO, "env": {"max_steps": 30}})
+    path = tmp_path / "config.yaml"
+    dump_config(config, path)
+    assert load_config(path) == config
+
+
+def test_fingerprint_tracks_training_settings_only():
+    base = parse_config({"ppo": SMALL_PPO})
+    assert base.fingerprint() == parse_config({"ppo": SMALL_PPO}).fingerprint()
+    assert base.fingerprint() != parse_config({"ppo": dict(SMALL_PPO, lr=1e-3)}).fingerprint()
+    assert base.fingerprint() != parse_config({"ppo": dict(SMALL_PPO, paper_done_bug=True)}).fingerprint()
+    assert base.fingerprint() != parse_config({"ppo": SMALL_PPO, "env": {"max_steps": 30}}).fingerprint()
+    assert base.fingerprint() != parse_config({"ppo": SMALL_PPO, "model": {"gru_dim": 64}}).fingerprint()
+    assert base.fingerprint() == parse_config({"ppo": SMALL_PPO, "eval": {"episodes": 3}}).fingerprint()
+    assert base.fingerprint() == parse_config({"ppo": SMALL_PPO, "run": {"checkpoint_every": 1}}).fingerprint()
+
+
+# ---------------------------------------------------------------------------------------------------
+# errors name the key
+# ---------------------------------------------------------------------------------------------------
+
+def test_unknown_section():
+    message = _error({"ppoo": {"lr": 1e-3}})
+    assert "ppoo" in message and "section" in message
+
+
+def test_unknown_key():
+    message = _error({"ppo": {"lrr": 1e-3}})
+    assert "ppo.lrr" in message
+    assert "lr" in message.split("ppo.lrr", 1)[1]  # lists the valid keys
+    assert "population.sa.iters" in _error({"population": {"sa": {"iters": 3}}})
+    assert "model.gru" in _error({"model": {"gru": 3}})
+
+
+@pytest.mark.parametrize("raw, key", [
+    ({"ppo": {"num_envs": "abc"}}, "ppo.num_envs"),
+    ({"ppo": {"num_envs": 2.5}}, "ppo.num_envs"),
+    ({"ppo": {"num_envs": True}}, "ppo.num_envs"),
+    ({"ppo": {"lr": "fast"}}, "ppo.lr"),
+    ({"ppo": {"anneal_lr": "yes"}}, "ppo.anneal_lr"),
+    ({"model": {"conv_features": 4}}, "model.conv_features"),
+    ({"model": {"conv_features": [4, "x"]}}, "model.conv_features[1]"),
+    ({"population": {"method": ["sp"]}}, "population.method"),
+    ({"ppo": [1, 2]}, "ppo"),
+    ({"population": "x"}, "population"),  # was a ValueError from dict("x") before the mapping check
+    ({"population": 5}, "population"),  # was a TypeError
+    ({"population": ["ab"]}, "population"),
+    ({"population": {"fcp": "x"}}, "population.fcp"),
+])
+def test_wrong_type(raw, key):
+    assert _error(raw).startswith(key)
+
+
+def test_impossible_values_name_the_key():
+    message = _error({"ppo": {"num_envs": 4, "num_minibatches": 3, "num_steps": 16, "total_timesteps": 640}})
+    assert "ppo.num_minibatches" in message and "8" in message  # 4 envs x 2 agents
+    # FCP trains one learner seat per environment: 8 minibatches of 4 sequences is impossible there only
+    fine_for_sp = {"ppo": dict(SMALL_PPO, num_minibatches=8)}
+    parse_config(fine_for_sp)
+    assert "ppo.num_minibatches" in _error(dict(fine_for_sp, population={"method": "fcp"}))
+    assert "ppo.total_timesteps" in _error({"ppo": dict(SMALL_PPO, total_timesteps=63)})
+    parse_config({"ppo": dict(SMALL_PPO, total_timesteps=64)})  # exactly one update is fine
+    assert "ppo.gamma" in _error({"ppo": {"gamma": 1.5}})
+    assert "ppo.lr" in _error({"ppo": {"lr": 0}})
+    assert "ppo.activation" in _error({"ppo": {"activation": "gelu"}})
+    assert "model.kind" in _error({"model": {"kind": "transformer"}})
+    assert "model.conv_kernels" in _error({"model": {"conv_features": [4, 4], "conv_kernels": [3]}})
+    assert "model.gru_dim" in _error({"model": {"gru_dim": 0}})
+    assert "run.num_checkpoints" in _error({"run": {"num_checkpoints": 1}})
+    assert "population.fcp.checkpoints" in _error({"population": {"method": "fcp", "fcp": {"checkpoints": ["later"]}}})
+    assert "population.sa.iterations" in _error({"ppo": SMALL_PPO,
+                                                 "population": {"method": "sa", "sa": {"iterations": 11}}})
+
+
+def test_bad_method():
+    message = _error({"population": {"method": "selfplay"}})
+    assert "population.method" in message and "selfplay" in message
+
+
+def test_bad_env_parameters():
+    message = _error({"env": {"layout": "no_such_kitchen"}})
+    assert message.startswith("env") and "no_such_kitchen" in message
+    assert "env" in _error({"env": {"bogus": 1}}) and "bogus" in _error({"env": {"bogus": 1}})
+    assert "max_steps" in _error({"env": {"max_steps": -3}})
+    assert "env.initial_state_buffer" in _error({"env": {"initial_state_buffer": None}})
+    assert _error({"env": [1]}).startswith("env")
+
+
+def test_op_ingredients():
+    layout = {"layout": "grounded_coord_simple"}  # three ingredients
+    parse_config({"env": layout, "population": {"method": "op", "op": {"ingredients": [0, 2]}}})
+    for ingredients in ([0, 3], [-1, 0], [1], [1, 1]):
+        message = _error({"env": layout, "population": {"method": "op", "op": {"ingredients": ingredients}}})
+        assert "population.op.ingredients" in message, ingredients
+    # cramped_room has a single ingredient: the default [0, 1] is out of range there
+    assert "population.op.ingredients" in _error({"population": {"method": "op"}})
+    # the per-agent permutations belong to the method, not the env section
+    message = _error({"env": dict(layout, op_ingredient_permutations=[0, 1]), "population": {"method": "op"}})
+    assert "env.op_ingredient_permutations" in message
+
+
+def test_integral_floats_are_accepted_for_ints():
+    config = parse_config({"ppo": {"total_timesteps": 1e7, "num_envs": 256.0}})
+    assert config.ppo.total_timesteps == 10_000_000 and isinstance(config.ppo.total_timesteps, int)
+    assert isinstance(config.ppo.num_envs, int)
+    # YAML reads 1e7 (no dot) as a string; it is accepted too
+    raw = yaml.safe_load("ppo:\n  total_timesteps: 1e7\n  lr: 3e-4\n")
+    assert raw["ppo"]["total_timesteps"] == "1e7"
+    config = parse_config(raw)
+    assert config.ppo.total_timesteps == 10_000_000 and config.ppo.lr == pytest.approx(3e-4)
+    assert isinstance(config.ppo.lr, float)
+    assert isinstance(parse_config({"ppo": {"lr": 1}}).ppo.lr, float)
+
+
+# ---------------------------------------------------------------------------------------------------
+# overrides
+# ---------------------------------------------------------------------------------------------------
+
+def test_overrides():
+    raw = {"ppo": {"lr": 2e-4}}
+    data = apply_overrides(raw, ["ppo.lr=1e-3", "env.layout=coord_ring", "population.fcp.partner_seeds=4"])
+    assert data["ppo"]["lr"] == "1e-3"  # parsed as YAML; the config coerces
+    assert data["env"] == {"layout": "coord_ring"}
+    assert data["population"] == {"fcp": {"partner_seeds": 4}}
+    assert raw == {"ppo": {"lr": 2e-4}}  # the input is not modified
+    config = parse_config(raw, ["ppo.lr=1e-3", "ppo.total_timesteps=1e7", "model.conv_features=[4, 8]",
+                                "model.conv_kernels=[3, 3]", "env.max_steps=30", "ppo.anneal_lr=false"])
+    assert config.ppo.lr == pytest.approx(1e-3)
+    assert config.ppo.total_timesteps == 10_000_000
+    assert config.model.conv_features == (4, 8)
+    assert config.env_kwargs["max_steps"] == 30
+    assert config.ppo.anneal_lr is False
+    # overrides are validated like the file
+    assert "ppo.lrr" in _error({}, ["ppo.lrr=1"])
+    assert "ppo.num_envs" in _error({}, ["ppo.num_envs=many"])
+
+
+@pytest.mark.parametrize("item", ["ppo.lr", "lr=1e-3", "ppo..lr=1", ".lr=1", "=3", "ppo.lr.x=1"])
+def test_malformed_overrides(item):
+    with pytest.raises(ConfigError):
+        parse_config({}, [item])
+
+
+def test_override_through_a_non_section():
+    with pytest.raises(ConfigError) as info:
+        apply_overrides({"ppo": {"lr": 1e-3}}, ["ppo.lr.x=1"])
+    assert "lr" in str(info.value)
+
+
+# ---------------------------------------------------------------------------------------------------
+# files
+# ---------------------------------------------------------------------------------------------------
+
+def test_load_config_errors_name_the_file(tmp_path):
+    missing = tmp_path / "nope.yaml"
+    with pytest.raises(ConfigError) as info:
+        load_config(missing)
+    assert str(missing) in str(info.value)
+
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("ppo: [unclosed\n  lr: 1\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(broken)
+    assert str(broken) in str(info.value) and "YAML" in str(info.value)
+
+    bad_key = tmp_path / "bad_key.yaml"
+    bad_key.write_text("ppo:\n  lrr: 0.001\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(bad_key)
+    assert str(bad_key) in str(info.value) and "ppo.lrr" in str(info.value)
+
+    not_mapping = tmp_path / "list.yaml"
+    not_mapping.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(not_mapping)
+    assert str(not_mapping) in str(info.value)
+
+
+def test_load_config_with_overrides(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("ppo:\n  num_envs: 4\n  num_steps: 16\n  num_minibatches: 2\n  total_timesteps: 640\n")
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    assert load_config(empty) == parse_config({})
+    config = load_config(path, ["ppo.lr=5e-4", "eval.episodes=3"])
+    assert config.ppo.num_envs == 4 and config.ppo.lr == pytest.approx(5e-4) and config.eval.episodes == 3
+    with pytest.raises(ConfigError) as info:
+        load_config(path, ["ppo.num_minibatches=3"])
+    assert str(path) in str(info.value) and "ppo.num_minibatches" in str(info.value)
+
+
+def test_configs_are_frozen():
+    config = parse_config({})
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.ppo.lr = 1.0  # type: ignore[misc]
+    assert isinstance(config.model, ModelConfig)
+    assert hash(config) == hash(parse_config({}))

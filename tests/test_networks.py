@@ -1,0 +1,250 @@
+"""The paper's actor-critic networks (population/networks.py): sizes, initialisation, SameConv, GRU resets."""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ocv2
+from population.config import ModelConfig, parse_config
+from population.networks import ActorCritic, SameConv, count_params, init_params, make_network
+
+RNN_OBS = (5, 5, 40)
+SMALL_RNN = {"kind": "rnn", "mixer_features": [8], "conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8,
+             "gru_dim": 8}
+SMALL_CNN = {"kind": "cnn", "conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8}
+
+
+def _model(raw: dict) -> ModelConfig:
+    return parse_config({"model": raw}).model
+
+
+def _dense(n_in: int, n_out: int) -> int:
+    return n_in * n_out + n_out
+
+
+def _conv(k: int, c_in: int, c_out: int) -> int:
+    return k * k * c_in * c_out + c_out
+
+
+def _init(network, key, obs_shape):
+    """``init_params`` under one jit (much faster than op-by-op here; same values)."""
+    return jax.jit(lambda k: init_params(network, k, obs_shape))(key)
+
+
+def _shapes(params) -> dict:
+    return {jax.tree_util.keystr(path): tuple(leaf.shape)
+            for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]}
+
+
+@pytest.fixture(scope="module")
+def rnn():
+    network = make_network(parse_config({}).model)
+    return network, _init(network, jax.random.PRNGKey(0), RNN_OBS)
+
+
+@pytest.fixture(scope="module")
+def cnn():
+    obs_shape = ocv2.make("cramped_room").obs_shape
+    network = make_network(_model({"kind": "cnn"}))
+    # shapes only: no values needed here
+    return network, jax.eval_shape(lambda k: init_params(network, k, obs_shape), jax.random.PRNGKey(1)), obs_shape
+
+
+# ---------------------------------------------------------------------------------------------------
+# paper sizes
+# ---------------------------------------------------------------------------------------------------
+
+def test_rnn_paper_parameter_count_and_shapes(rnn):
+    network, params = rnn
+    h, w, c = RNN_OBS
+    mixer = _conv(1, c, 128) + _conv(1, 128, 128) + _conv(1, 128, 8)
+    convs = _conv(3, 8, 16) + _conv(3, 16, 32) + _conv(3, 32, 32)
+    fc = _dense(h * w * 32, 128) + 2 * 128  # Dense 800 -> 128, LayerNorm scale + bias
+    # flax GRUCell: input kernels ir/iz/in with biases, hidden kernels hr/hz without, hn with a bias
+    gru = 3 * _dense(128, 128) + 3 * 128 * 128 + 128
+    heads = _dense(128, 128) + _dense(128, 6) + _dense(128, 128) + _dense(128, 1)
+    expected = mixer + convs + fc + gru + heads
+    assert expected == 273_375
+    assert count_params(params) == expected
+
+    shapes = _shapes(params)
+    enc = "['params']['ConvEncoder_0']"
+    for i, kernel in enumerate([(1, 1, 40, 128), (1, 1, 128, 128), (1, 1, 128, 8),
+                                (3, 3, 8, 16), (3, 3, 16, 32), (3, 3, 32, 32)]):
+        assert shapes[f"{enc}['SameConv_{i}']['kernel']"] == kernel
+        assert shapes[f"{enc}['SameConv_{i}']['bias']"] == kernel[-1:]
+    assert shapes[f"{enc}['Dense_0']['kernel']"] == (800, 128)
+    assert shapes[f"{enc}['LayerNorm_0']['scale']"] == (128,)
+    gru_prefix = "['params']['ScanResetGRUCell_0']['GRUCell_0']"
+    gru_shapes = {k[len(gru_prefix):]: v for k, v in shapes.items() if k.startswith(gru_prefix)}
+    assert gru_shapes == {
+        "['ir']['kernel']": (128, 128), "['ir']['bias']": (128,),
+        "['iz']['kernel']": (128, 128), "['iz']['bias']": (128,),
+        "['in']['kernel']": (128, 128), "['in']['bias']": (128,),
+        "['hr']['kernel']": (128, 128), "['hz']['kernel']": (128, 128),
+        "['hn']['kernel']": (128, 128), "['hn']['bias']": (128,),
+    }
+    heads_shapes = {name: shapes[f"['params']['{name}']['kernel']"] for name in ("Dense_0", "Dense_1", "Dense_2", "Dense_3")}
+    assert heads_shapes == {"Dense_0": (128, 128), "Dense_1": (128, 6), "Dense_2": (128, 128), "Dense_3": (128, 1)}
+
+
+def test_cnn_paper_parameter_count_and_shapes(cnn):
+    network, params, (h, w, c) = cnn
+    assert not network.recurrent and network.mixer_features == ()
+    expected = (_conv(5, c, 32) + _conv(3, 32, 32) + _conv(3, 32, 32) + _dense(h * w * 32, 64) + 2 * 64
+                + _dense(64, 64) + _dense(64, 6) + _dense(64, 64) + _dense(64, 1))
+    assert count_params(params) == expected
+    shapes = _shapes(params)
+    enc = "['params']['ConvEncoder_0']"
+    assert shapes[f"{enc}['SameConv_0']['kernel']"] == (5, 5, c, 32)
+    assert shapes[f"{enc}['SameConv_1']['kernel']"] == (3, 3, 32, 32)
+    assert shapes[f"{enc}['SameConv_2']['kernel']"] == (3, 3, 32, 32)
+    assert shapes[f"{enc}['Dense_0']['kernel']"] == (h * w * 32, 64)
+    assert not any("GRU" in k for k in shapes)
+    assert not any("SameConv_3" in k for k in shapes)
+
+
+# ---------------------------------------------------------------------------------------------------
+# initialisation
+# ---------------------------------------------------------------------------------------------------
+
+def _gram(kernel) -> np.ndarray:
+    k = np.asarray(kernel, np.float64).reshape(-1, kernel.shape[-1])
+    return k.T @ k
+
+
+def test_initialisation_scales(rnn):
+    _, params = rnn
+    p = params["params"]
+    policy = p["Dense_1"]["kernel"]
+    assert policy.shape == (128, 6)
+    np.testing.assert_allclose(_gram(policy), 0.01 ** 2 * np.eye(6), atol=1e-9)
+    np.testing.assert_allclose(_gram(p["Dense_3"]["kernel"]), np.eye(1), atol=1e-5)
+    for name in ("Dense_0", "Dense_2"):
+        np.testing.assert_allclose(_gram(p[name]["kernel"]), 2.0 * np.eye(128), atol=1e-4)
+    enc = p["ConvEncoder_0"]
+    np.testing.assert_allclose(_gram(enc["Dense_0"]["kernel"]), 2.0 * np.eye(128), atol=1e-4)
+    # conv kernels: orthogonal sqrt(2) over the flattened (k*k*C, F) matrix (columns orthogonal when k*k*C >= F)
+    for name in ("SameConv_1", "SameConv_3", "SameConv_5"):
+        kernel = enc[name]["kernel"]
+        np.testing.assert_allclose(_gram(kernel), 2.0 * np.eye(kernel.shape[-1]), atol=1e-4)
+    for name in ("Dense_0", "Dense_1", "Dense_2", "Dense_3"):
+        assert not np.any(np.asarray(p[name]["bias"]))
+    for i in range(6):
+        assert not np.any(np.asarray(enc[f"SameConv_{i}"]["bias"]))
+    assert not np.any(np.asarray(enc["Dense_0"]["bias"]))
+    np.testing.assert_array_equal(enc["LayerNorm_0"]["scale"], np.ones(128))
+    # the policy really starts near uniform: logits are tiny compared to the value head's scale
+    assert float(jnp.abs(policy).max()) < 0.01
+
+
+# ---------------------------------------------------------------------------------------------------
+# SameConv == nn.Conv(padding="SAME")
+# ---------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kernel_size", [1, 3, 5, 4])
+def test_same_conv_matches_flax_conv(kernel_size):
+    x = jax.random.normal(jax.random.PRNGKey(kernel_size), (2, 5, 7, 3))
+    module = SameConv(6, kernel_size)
+    params = module.init(jax.random.PRNGKey(10 + kernel_size), x)
+    assert params["params"]["kernel"].shape == (kernel_size, kernel_size, 3, 6)
+    # a non-zero bias, so a dropped bias would be caught
+    params = {"params": dict(params["params"], bias=jnp.arange(6, dtype=jnp.float32) * 0.1)}
+    ours = module.apply(params, x)
+    reference = nn.Conv(6, (kernel_size, kernel_size), padding="SAME").apply(params, x)
+    assert ours.shape == reference.shape == (2, 5, 7, 6)
+    np.testing.assert_allclose(ours, reference, atol=1e-5, rtol=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------------
+# recurrence and the calling convention
+# ---------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def small_rnn():
+    obs_shape = (4, 5, 6)
+    network = make_network(_model(SMALL_RNN))
+    params = _init(network, jax.random.PRNGKey(2), obs_shape)
+    # a sharper policy head so logits carry the GRU's state visibly
+    params = jax.tree_util.tree_map_with_path(
+        lambda path, x: x * 100.0 if "Dense_1" in jax.tree_util.keystr(path) else x, params)
+    apply = jax.jit(network.apply)
+    steps, batch = 6, 3
+    obs = jax.random.randint(jax.random.PRNGKey(3), (steps, batch) + obs_shape, 0, 4).astype(jnp.uint8)
+    hidden = jax.random.normal(jax.random.PRNGKey(4), (batch, network.gru_dim))
+    return network, params, apply, obs, hidden
+
+
+def test_gru_reset_starts_a_fresh_sequence(small_rnn):
+    network, params, apply, obs, hidden = small_rnn
+    steps, batch = obs.shape[:2]
+    t = 3
+    reset = jnp.zeros((steps, batch), bool).at[t].set(True)
+    h_end, logits, value = apply(params, hidden, obs, reset)
+    fresh_h, fresh_logits, fresh_value = apply(params, network.initial_hidden(batch), obs[t:],
+                                               jnp.zeros((steps - t, batch), bool))
+    np.testing.assert_allclose(logits[t:], fresh_logits, atol=1e-6)
+    np.testing.assert_allclose(value[t:], fresh_value, atol=1e-6)
+    np.testing.assert_allclose(h_end, fresh_h, atol=1e-6)
+
+    # without the reset the carry matters
+    _, logits_nr, value_nr = apply(params, hidden, obs, jnp.zeros((steps, batch), bool))
+    np.testing.assert_allclose(logits_nr[:t], logits[:t], atol=1e-6)  # before the reset: unchanged
+    assert float(jnp.abs(logits_nr[t:] - fresh_logits).max()) > 1e-3
+    assert float(jnp.abs(value_nr[t:] - fresh_value).max()) > 1e-4
+
+
+def test_gru_reset_is_per_sequence_and_zeroes_before_reading(small_rnn):
+    network, params, apply, obs, hidden = small_rnn
+    steps, batch = obs.shape[:2]
+    no_reset = jnp.zeros((steps, batch), bool)
+    _, base_logits, _ = apply(params, hidden, obs, no_reset)
+    # reset only sequence 0 at step 2: other sequences are untouched
+    _, logits, _ = apply(params, hidden, obs, no_reset.at[2, 0].set(True))
+    np.testing.assert_array_equal(logits[:, 1:], base_logits[:, 1:])
+    assert float(jnp.abs(logits[2:, 0] - base_logits[2:, 0]).max()) > 1e-3
+    # reset at step 0 == starting from a zero carry (the carry is zeroed before the first observation)
+    _, reset0_logits, _ = apply(params, hidden, obs, no_reset.at[0].set(True))
+    _, zero_logits, _ = apply(params, network.initial_hidden(batch), obs, no_reset)
+    np.testing.assert_allclose(reset0_logits, zero_logits, atol=1e-6)
+
+
+def test_output_shapes_and_cnn_placeholder_hidden():
+    obs_shape = (4, 5, 6)
+    steps, batch = 5, 3
+    obs = jax.random.randint(jax.random.PRNGKey(5), (steps, batch) + obs_shape, 0, 4).astype(jnp.uint8)
+    reset = jnp.zeros((steps, batch), bool)
+    for raw in (SMALL_RNN, SMALL_CNN):
+        network = make_network(_model(raw), num_actions=6)
+        params = _init(network, jax.random.PRNGKey(6), obs_shape)
+        apply = jax.jit(network.apply)
+        hidden = network.initial_hidden(batch)
+        expected_hidden = (batch, 8) if network.recurrent else (batch, 0)
+        assert hidden.shape == expected_hidden
+        new_hidden, logits, value = apply(params, hidden, obs, reset)
+        assert new_hidden.shape == expected_hidden
+        assert logits.shape == (steps, batch, 6)
+        assert value.shape == (steps, batch)
+        assert logits.dtype == value.dtype == jnp.float32
+        if not network.recurrent:
+            # the CNN is feed-forward: reset flags change nothing, each step depends on its own obs only
+            _, logits_r, value_r = apply(params, hidden, obs, jnp.ones((steps, batch), bool))
+            np.testing.assert_array_equal(logits_r, logits)
+            np.testing.assert_array_equal(value_r, value)
+            _, logits_rev, _ = apply(params, hidden, obs[::-1], reset)
+            np.testing.assert_allclose(logits_rev[::-1], logits, atol=1e-6)
+
+
+def test_make_network_follows_the_config():
+    network = make_network(_model(SMALL_RNN), num_actions=4, activation="tanh")
+    assert isinstance(network, ActorCritic)
+    assert network.recurrent and network.num_actions == 4 and network.activation == "tanh"
+    assert network.mixer_features == (8,) and network.conv_features == (4, 4) and network.gru_dim == 8
+    params = jax.eval_shape(lambda k: init_params(network, k, (3, 3, 2)), jax.random.PRNGKey(7))
+    assert params["params"]["Dense_1"]["kernel"].shape == (8, 4)
+    assert params["params"]["ConvEncoder_0"]["SameConv_0"]["kernel"].shape == (1, 1, 2, 8)  # the 1x1 mixer
+    assert params["params"]["ScanResetGRUCell_0"]["GRUCell_0"]["hn"]["kernel"].shape == (8, 8)
