@@ -1,0 +1,403 @@
+"""``ocv2 train`` / ``ocv2 xp`` and the local driver: run directories, every method, resume, errors, determinism.
+
+Every run is configs/smoke.yaml (2 seeds x 4 updates, 40-step episodes, a [8, 8] CNN). Compilation dominates
+these tests, so the module turns on JAX's persistent compilation cache in a fresh per-session directory:
+runs that build the same programs (the SP run, its resume, its rerun, the FCP partner stage) compile once.
+Cached executables are the ones a fresh compile produces, so no result depends on the cache.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from cluster import local
+from cluster.cli import main
+from cluster.rundir import METRIC_FIELDS, RunDir, RunDirError
+from population import checkpoints as ckpt
+from population import ppo
+from population.config import dump_config, load_config
+
+SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
+NUM_SEEDS, NUM_UPDATES, SNAPSHOTS = 2, 4, [0, 2, 4]  # smoke.yaml: 512 steps / (4 envs x 32 steps); 3 snapshots
+TIMING_COLUMNS = {"steps_per_s", "wall_s"}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def compilation_cache(tmp_path_factory):
+    try:
+        from jax._src import compilation_cache
+
+        reset = compilation_cache.reset_cache  # private API: without it the tests just compile more
+    except (ImportError, AttributeError):
+        yield
+        return
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+             "jax_persistent_cache_min_entry_size_bytes")
+    saved = {name: getattr(jax.config, name) for name in names}
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("jax_cache")))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    reset()
+    yield
+    for name, value in saved.items():
+        jax.config.update(name, value)
+    reset()
+
+
+def train(out, *overrides, extra=()) -> int:
+    args = ["train", SMOKE, "--out", str(out), "--quiet", *extra]
+    for item in overrides:
+        args += ["--set", item]
+    return main(args)
+
+
+def read_csv(path) -> list[dict]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def manifest(run) -> dict:
+    return json.loads((Path(run) / "manifest.json").read_text())
+
+
+def seed_keys(rows) -> list[tuple[int, int]]:
+    return [(int(r["seed"]), int(r["update"])) for r in rows]
+
+
+def _assert_trees_equal(a, b):
+    assert jax.tree.structure(a) == jax.tree.structure(b)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def _raw_checkpoint(run, seed, update):
+    return ckpt.read(ckpt.checkpoint_path(run, seed, update))[1]
+
+
+SP_EVAL = "eval.episodes=3"  # the `ocv2 xp --episodes 3` test then reuses the compiled cross-play
+
+
+@pytest.fixture(scope="module")
+def sp_run(tmp_path_factory):
+    """One finished SP run with evaluation (shared, never modified: tests copy it)."""
+    out = tmp_path_factory.mktemp("runs") / "sp"
+    assert train(out, SP_EVAL) == 0
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# the run directory
+# ---------------------------------------------------------------------------------------------------
+
+def test_train_writes_the_whole_run_directory(sp_run):
+    config = load_config(SMOKE, [SP_EVAL])
+    assert (config.population.num_seeds, config.ppo.num_updates) == (NUM_SEEDS, NUM_UPDATES)
+    assert RunDir(sp_run).load_config() == config
+
+    info = manifest(sp_run)
+    assert info["status"] == "finished" and info["method"] == "sp"
+    assert info["update"] == info["num_updates"] == NUM_UPDATES
+    assert info["snapshots"] == SNAPSHOTS and info["seeds"] == [0, 1] and info["pool"] == []
+
+    rows = read_csv(sp_run / "metrics.csv")
+    assert len(rows) == NUM_SEEDS * NUM_UPDATES
+    assert sorted(seed_keys(rows)) == [(s, u) for s in range(NUM_SEEDS) for u in range(1, NUM_UPDATES + 1)]
+    assert list(rows[0]) == list(METRIC_FIELDS) + ["return_recipe_0+0+0"]
+    for r in rows:
+        assert int(r["env_steps"]) == int(r["update"]) * config.ppo.steps_per_update
+        assert float(r["entropy"]) > 0 and float(r["steps_per_s"]) > 0
+
+    for seed in range(NUM_SEEDS):
+        assert (sp_run / "checkpoints" / f"seed_{seed}").is_dir()
+        assert ckpt.list_updates(sp_run, seed) == SNAPSHOTS  # periodic ones replaced, snapshots + final kept
+        meta, _ = ckpt.read(ckpt.checkpoint_path(sp_run, seed, NUM_UPDATES), config.fingerprint())
+        assert meta["seed"] == seed and meta["update"] == NUM_UPDATES and meta["method"] == "sp"
+
+    matrix = read_csv(sp_run / "xp" / "matrix.csv")
+    assert [r["seat0\\seat1"] for r in matrix] == ["seed_0", "seed_1"] and list(matrix[0])[1:] == ["seed_0", "seed_1"]
+    values = np.array([[float(r[f"seed_{j}"]) for j in range(2)] for r in matrix])
+    summary = json.loads((sp_run / "xp" / "summary.json").read_text())
+    assert {"sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "num_policies", "episodes_per_pair"} <= set(summary)
+    assert summary["num_policies"] == NUM_SEEDS and summary["episodes_per_pair"] == config.eval.episodes
+    assert summary["sp_mean"] == pytest.approx(np.diag(values).mean(), abs=1e-3)
+    assert summary["xp_mean"] == pytest.approx((values[0, 1] + values[1, 0]) / 2, abs=1e-3)
+    assert len(read_csv(sp_run / "xp" / "episodes.csv")) == NUM_SEEDS ** 2 * config.eval.episodes
+    for image in ("xp/heatmap.png", "plots/training.png"):
+        assert (sp_run / image).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    gifs = sorted((sp_run / "gifs").glob("*.gif"))
+    assert len(gifs) == config.eval.gifs and gifs[0].read_bytes()[:4] == b"GIF8"
+    assert not list(sp_run.rglob(".*tmp*"))  # atomic writes left no temporaries
+
+
+def test_xp_command_rewrites_the_summary(sp_run, tmp_path):
+    run = tmp_path / "copy"
+    shutil.copytree(sp_run, run)
+    original = json.loads((run / "xp" / "summary.json").read_text())
+    assert original["episodes_per_pair"] == 3
+    # The config now asks for 5 episodes (eval is outside the fingerprint); --episodes 3 must win.
+    config = RunDir(run).load_config()
+    dump_config(dataclasses.replace(config, eval=dataclasses.replace(config.eval, episodes=5)), run / "config.yaml")
+    shutil.rmtree(run / "xp")
+    assert main(["xp", str(run), "--episodes", "3"]) == 0
+    summary = json.loads((run / "xp" / "summary.json").read_text())
+    assert summary["episodes_per_pair"] == 3 and summary["num_policies"] == NUM_SEEDS
+    assert len(read_csv(run / "xp" / "episodes.csv")) == NUM_SEEDS ** 2 * 3
+    assert (run / "xp" / "matrix.csv").exists() and (run / "xp" / "heatmap.png").exists()
+    # The same evaluation keys as after training: the same numbers.
+    for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "per_recipe"):
+        assert summary[key] == original[key]
+
+
+# ---------------------------------------------------------------------------------------------------
+# methods
+# ---------------------------------------------------------------------------------------------------
+
+def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp_path):
+    run = tmp_path / "sa"
+    assert train(run, "population.method=sa", extra=["--no-eval"]) == 0
+    assert manifest(run)["status"] == "finished" and manifest(run)["method"] == "sa"
+    buffers = sorted(p.name for p in (run / "sa").iterdir())
+    assert buffers == ["buffer_000.msgpack", "buffer_001.msgpack"]
+
+    config = RunDir(run).load_config()
+    trainer = ppo.make_trainer(config)
+    template = local._state_template(trainer, 0)
+    schedule = local.Schedule.of(config)
+    assert schedule.iteration_starts == (0, 2)
+
+    def params_at(update):
+        states = [ckpt.load(ckpt.checkpoint_path(run, s, update), template, config.fingerprint())[1]
+                  for s in range(NUM_SEEDS)]
+        return jax.tree.map(lambda *xs: np.stack(xs), *(s.params for s in states))
+
+    # The first buffer comes from the untrained networks (the update-0 checkpoint = fresh init) ...
+    untrained = params_at(0)
+    _assert_trees_equal(untrained, ppo.init_population(trainer, range(NUM_SEEDS)).params)
+    for iteration, update in enumerate(schedule.iteration_starts):  # ... the second from the update-2 policies
+        expected = local._collect(config, trainer, params_at(update), iteration)
+        meta, stored = ckpt.load(run / "sa" / f"buffer_{iteration:03d}.msgpack", expected, config.fingerprint())
+        assert meta["iteration"] == iteration and meta["states"] == NUM_SEEDS ** 2 * 2 * 4
+        _assert_trees_equal(stored, expected)
+    first = ckpt.read(run / "sa" / "buffer_000.msgpack")[1]
+    second = ckpt.read(run / "sa" / "buffer_001.msgpack")[1]
+    assert not np.array_equal(first["agents"]["x"], second["agents"]["x"])
+
+    # Resuming at the second iteration's start (its buffer lost too) recollects the same buffer and
+    # finishes bit for bit like the uninterrupted run.
+    resumed = tmp_path / "sa_resumed"
+    shutil.copytree(run, resumed)
+    for seed in range(NUM_SEEDS):
+        ckpt.checkpoint_path(resumed, seed, NUM_UPDATES).unlink()
+    (resumed / "sa" / "buffer_001.msgpack").unlink()
+    assert train(resumed, "population.method=sa", extra=["--resume", "--no-eval"]) == 0
+    _assert_trees_equal(ckpt.read(resumed / "sa" / "buffer_001.msgpack")[1], second)
+    for seed in range(NUM_SEEDS):
+        _assert_trees_equal(_raw_checkpoint(resumed, seed, NUM_UPDATES), _raw_checkpoint(run, seed, NUM_UPDATES))
+    _assert_same_metrics(read_csv(resumed / "metrics.csv"), read_csv(run / "metrics.csv"))
+
+
+def test_fcp_without_partners_trains_a_partner_stage(tmp_path):
+    run = tmp_path / "fcp"
+    assert train(run, "population.method=fcp", extra=["--no-eval"]) == 0
+    config = load_config(SMOKE, ["population.method=fcp"])
+    partners = run / "partners"
+    stage = RunDir(partners).load_config()
+    assert stage.population.method == "sp" and stage.population.num_seeds == config.population.fcp.partner_seeds
+    assert manifest(partners)["status"] == "finished"
+    for seed in range(config.population.fcp.partner_seeds):
+        assert ckpt.list_updates(partners, seed) == SNAPSHOTS
+    info = manifest(run)
+    assert info["status"] == "finished" and info["method"] == "fcp"
+    fcp = config.population.fcp
+    assert fcp.checkpoints == ("mid", "final")
+    assert len(info["pool"]) == fcp.partner_seeds * len(fcp.checkpoints)
+    assert info["pool"] == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
+    for seed in range(NUM_SEEDS):
+        assert NUM_UPDATES in ckpt.list_updates(run, seed)
+    assert len(read_csv(run / "metrics.csv")) == NUM_SEEDS * NUM_UPDATES
+
+
+def test_fcp_reuses_a_given_partner_run(sp_run, tmp_path):
+    run = tmp_path / "fcp"
+    assert train(run, "population.method=fcp", f"population.fcp.partners={sp_run}", extra=["--no-eval"]) == 0
+    assert not (run / "partners").exists()
+    assert manifest(run)["pool"] == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
+    # The pool is exactly those checkpoints' parameters.
+    config = RunDir(run).load_config()
+    pool, labels = local.load_pool(config, ppo.make_trainer(config), sp_run)
+    assert labels == manifest(run)["pool"]
+    for index, (seed, update) in enumerate([(0, 2), (0, 4), (1, 2), (1, 4)]):
+        stored = _raw_checkpoint(sp_run, seed, update)["params"]
+        member = jax.tree.map(lambda x: x[index], pool)
+        _assert_trees_equal(member, jax.tree.map(lambda t, x: np.asarray(x), member, stored))
+
+
+def test_fcp_partner_run_of_another_model_is_a_clear_error(tmp_path, capsys):
+    other = tmp_path / "other"
+    RunDir(other).create(load_config(SMOKE, ["model.fc_dim=32"]))
+    assert train(tmp_path / "fcp", "population.method=fcp", f"population.fcp.partners={other}",
+                 extra=["--no-eval"]) == 2
+    err = capsys.readouterr().err
+    assert "population.fcp.partners" in err and "different env or model" in err
+
+
+def test_fcp_partner_errors(tmp_path, sp_run, capsys):
+    assert train(tmp_path / "a", "population.method=fcp", f"population.fcp.partners={tmp_path / 'nothing'}") == 2
+    assert "population.fcp.partners" in capsys.readouterr().err
+    assert train(tmp_path / "b", "population.method=fcp", f"population.fcp.partners={sp_run}",
+                 "population.fcp.partner_seeds=3") == 2
+    assert "population.fcp.partner_seeds" in capsys.readouterr().err
+
+
+def test_op_runs(tmp_path):
+    run = tmp_path / "op"
+    assert train(run, "population.method=op", "env.layout=cramped_room_v2", extra=["--no-eval"]) == 0
+    info = manifest(run)
+    assert info["status"] == "finished" and info["method"] == "op"
+    config = RunDir(run).load_config()
+    assert ppo.train_env(config).config.op_enabled and not ppo.eval_env(config).config.op_enabled
+    assert len(read_csv(run / "metrics.csv")) == NUM_SEEDS * NUM_UPDATES
+    for seed in range(NUM_SEEDS):
+        assert ckpt.list_updates(run, seed) == SNAPSHOTS
+
+
+# ---------------------------------------------------------------------------------------------------
+# resume and determinism
+# ---------------------------------------------------------------------------------------------------
+
+def test_resume_after_an_interruption_matches_the_uninterrupted_run(sp_run, tmp_path):
+    run = tmp_path / "interrupted"
+    shutil.copytree(sp_run, run)
+    # As if killed after update 4's metrics were written but before its checkpoints were.
+    for seed in range(NUM_SEEDS):
+        ckpt.checkpoint_path(run, seed, NUM_UPDATES).unlink()
+    for sub in ("xp", "plots", "gifs"):
+        shutil.rmtree(run / sub)
+    RunDir(run).update_manifest(status="training", update=2)
+    assert len(read_csv(run / "metrics.csv")) == NUM_SEEDS * NUM_UPDATES  # rows 3..4 already there
+
+    assert train(run, extra=["--resume", "--no-eval"]) == 0
+    assert manifest(run)["status"] == "finished" and manifest(run)["update"] == NUM_UPDATES
+    for seed in range(NUM_SEEDS):  # whole TrainStates, bit for bit
+        _assert_trees_equal(_raw_checkpoint(run, seed, NUM_UPDATES), _raw_checkpoint(sp_run, seed, NUM_UPDATES))
+    _, _, resumed = local.final_params(run)
+    _, _, original = local.final_params(sp_run)
+    _assert_trees_equal(resumed, original)
+
+    rows = read_csv(run / "metrics.csv")
+    keys = seed_keys(rows)
+    assert len(keys) == len(set(keys)) == NUM_SEEDS * NUM_UPDATES
+    _assert_same_metrics(rows, read_csv(sp_run / "metrics.csv"))
+
+
+def _assert_same_metrics(rows, reference):
+    index = {(int(r["seed"]), int(r["update"])): r for r in reference}
+    assert len(rows) == len(index)
+    for row in rows:
+        other = index[(int(row["seed"]), int(row["update"]))]
+        assert set(row) == set(other)
+        for column in row:
+            if column not in TIMING_COLUMNS:
+                assert row[column] == other[column], (column, row, other)
+
+
+def test_two_fresh_runs_are_identical(sp_run, tmp_path):
+    run = tmp_path / "again"
+    assert train(run, extra=["--no-eval"]) == 0
+    _assert_same_metrics(read_csv(run / "metrics.csv"), read_csv(sp_run / "metrics.csv"))
+    for seed in range(NUM_SEEDS):
+        for update in SNAPSHOTS:
+            _assert_trees_equal(_raw_checkpoint(run, seed, update), _raw_checkpoint(sp_run, seed, update))
+
+
+# ---------------------------------------------------------------------------------------------------
+# errors
+# ---------------------------------------------------------------------------------------------------
+
+def test_existing_run_without_resume_is_refused(sp_run, capsys):
+    before = (sp_run / "manifest.json").read_text()
+    assert train(sp_run) == 2
+    assert "already holds a run" in capsys.readouterr().err
+    assert (sp_run / "manifest.json").read_text() == before
+
+
+def test_non_run_directory_is_refused(tmp_path, capsys):
+    (tmp_path / "stuff.txt").write_text("x")
+    assert train(tmp_path) == 2
+    assert "not an ocv2 run directory" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("override, key", [("ppo.num_minibatches=3", "ppo.num_minibatches"),
+                                           ("ppo.bogus=1", "ppo.bogus"),
+                                           ("population.method=xx", "population.method")])
+def test_config_errors_exit_2_naming_the_key(tmp_path, capsys, override, key):
+    assert train(tmp_path / "run", override) == 2
+    assert key in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
+def test_resume_with_a_different_config_is_refused(sp_run, capsys):
+    assert train(sp_run, "ppo.lr=2e-3", extra=["--resume"]) == 2
+    assert "different config" in capsys.readouterr().err
+
+
+def test_resume_needs_a_run(tmp_path, capsys):
+    assert train(tmp_path / "none", extra=["--resume"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+    assert main(["train", SMOKE, "--resume", "--quiet"]) == 2
+    assert "--resume needs --out" in capsys.readouterr().err
+
+
+def test_xp_on_a_non_run_directory_exits_2(tmp_path, capsys):
+    assert main(["xp", str(tmp_path)]) == 2
+    assert "not an ocv2 run directory" in capsys.readouterr().err
+    assert main(["xp", str(tmp_path / "missing")]) == 2
+    assert main(["xp", str(tmp_path), "--episodes", "0"]) == 2
+
+
+def test_checkpoint_of_another_config_is_refused(sp_run, tmp_path, capsys):
+    # A second run directory whose config differs only in ppo.lr, holding the first run's checkpoints.
+    other = tmp_path / "other"
+    config = load_config(SMOKE, ["ppo.lr=2e-3"])
+    RunDir(other).create(config)
+    shutil.copytree(sp_run / "checkpoints", other / "checkpoints")
+    with pytest.raises(ckpt.CheckpointError, match="different config"):
+        local.final_params(other)
+    with pytest.raises(ckpt.CheckpointError, match="different config"):
+        local.evaluate_run(other, episodes=1, show_progress=False)
+    assert main(["xp", str(other), "--episodes", "1"]) == 2
+    assert "different config" in capsys.readouterr().err
+    # Resuming it is refused the same way (the checkpoints, not the directory, are foreign).
+    assert train(other, "ppo.lr=2e-3", extra=["--resume", "--no-eval"]) == 2
+    assert "different config" in capsys.readouterr().err
+
+
+def test_unfinished_run_cannot_be_evaluated(sp_run, tmp_path, capsys):
+    run = tmp_path / "unfinished"
+    shutil.copytree(sp_run, run)
+    for seed in range(NUM_SEEDS):
+        ckpt.checkpoint_path(run, seed, NUM_UPDATES).unlink()
+    with pytest.raises(RunDirError, match="has not finished training"):
+        local.final_params(run)
+    assert main(["xp", str(run)]) == 2
+    assert "resume the run first" in capsys.readouterr().err
+
+
+def test_schedule_stops_at_snapshots_checkpoints_and_sa_iterations():
+    schedule = local.Schedule.of(load_config(SMOKE, ["population.method=sa", "run.checkpoint_every=3"]))
+    assert schedule.snapshots == (0, 2, 4) and schedule.iteration_starts == (0, 2)
+    stops, update = [], 0
+    while update < schedule.num_updates:
+        update = schedule.next_stop(update)
+        stops.append(update)
+    assert stops == [2, 3, 4]
+    assert [schedule.iteration_at(u) for u in range(4)] == [0, 0, 1, 1]
+    assert dataclasses.replace(schedule, iteration_starts=()).next_stop(0) == 2
