@@ -187,6 +187,7 @@ def train_population(config: Config, run_dir, *, resume: bool = False, show_prog
     recipe_labels = ["+".join(map(str, r)) for r in trainer.env.layout.possible_recipes]
     compiled = {}
     buffer = None
+    restart = jax.jit(jax.vmap(lambda s, k, b: ppo.restart_episodes(trainer, s, k, b), in_axes=(0, 0, None)))
     progress = PopulationProgress(label or f"{method.upper()} {config.env_kwargs['layout']}", len(seeds),
                                   schedule.num_updates, config.ppo.steps_per_update, enabled=show_progress)
     with progress:
@@ -201,7 +202,7 @@ def train_population(config: Config, run_dir, *, resume: bool = False, show_prog
                     if fresh:
                         keys = jnp.stack([jax.random.fold_in(ppo.seed_key(config, s), SA_KEY_OFFSET + iteration)
                                           for s in seeds])
-                        states = jax.jit(jax.vmap(lambda s, k: ppo.restart_episodes(trainer, s, k, buffer)))(states, keys)
+                        states = restart(states, keys, buffer)
             stop = schedule.next_stop(update)
             count = stop - update
             if count not in compiled:
