@@ -4,6 +4,8 @@
     ocv2 render LAYOUT --steps N --out FILE.gif [--seed S] [--fps F] [--view-radius V] [--tile-size T]
     ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume]
     ocv2 xp RUN_DIR [--episodes N]
+    ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
+    ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
     ocv2 button-game [--buttons N] [--seeds S] [--out DIR]
 
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
@@ -176,6 +178,8 @@ COMMANDS: list[tuple[str, Callable, Callable]] = [
     ("render", _add_render, _cmd_render),
     ("train", _lazy("cluster.cmd_train", "add_train"), _lazy("cluster.cmd_train", "run_train")),
     ("xp", _lazy("cluster.cmd_train", "add_xp"), _lazy("cluster.cmd_train", "run_xp")),
+    ("validate", _lazy("cluster.cmd_report", "add_validate"), _lazy("cluster.cmd_report", "run_validate")),
+    ("report", _lazy("cluster.cmd_report", "add_report"), _lazy("cluster.cmd_report", "run_report")),
     ("button-game", _lazy("cluster.cmd_button_game", "add_parser"), _lazy("cluster.cmd_button_game", "run")),
 ]
 

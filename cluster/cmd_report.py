@@ -1,0 +1,399 @@
+"""``ocv2 validate`` and ``ocv2 report``: check configs before a run, tabulate run directories after.
+
+    ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
+    ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
+
+``validate`` parses every config as ``ocv2 train`` would (same overrides) and runs nothing: one OK line
+per file, or the file and key at fault; every file is checked, and any bad one makes the exit code 1.
+
+``report`` reads run directories (``config.yaml``, ``xp/summary.json``, ``metrics.csv``, ``xp/matrix.csv``)
+and writes, into ``--out`` (default ``reports/``):
+
+* ``report.md`` / ``report.csv``: one row per run in the paper's Table 1 / Table 2 format -- layout,
+  method, SP mean +- std, XP mean +- std, gap. Runs of the same environment (identical ``env`` section)
+  are compared with that environment's self-play run: delta SP, delta XP and delta gap (the last is the
+  number in brackets in the paper's Table 1, "Gap (delta)").
+* ``curves_<layout>.png``: sparse return (mean +- std across seeds) against env steps, one line per run.
+* ``heatmap_<run>.png``: the cross-play matrix of every evaluated run, redrawn from ``xp/matrix.csv``.
+
+A run without ``xp/summary.json`` is listed with a note instead of numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+METHOD_ORDER = ("sp", "sa", "op", "fcp")
+METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
+NO_XP_NOTE = "no cross-play yet: run ocv2 xp {run}"
+CSV_FIELDS = ("layout", "method", "env", "run_dir", "status", "num_seeds", "updates_done", "num_updates",
+              "env_steps_per_seed", "sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "sp_ci95", "xp_ci95",
+              "num_policies", "episodes_per_pair", "baseline_run", "delta_sp", "delta_xp", "delta_gap", "note")
+
+
+# ---------------------------------------------------------------------------------------------------
+# ocv2 validate
+# ---------------------------------------------------------------------------------------------------
+
+def add_validate(sub) -> argparse.ArgumentParser:
+    parser = sub.add_parser("validate", help="check YAML configs without running anything",
+                            description="Parse and validate each config exactly as 'ocv2 train' would (with the "
+                                        "same --set overrides) and print what it would train. Exit 1 if any "
+                                        "config is invalid (every file is checked).")
+    parser.add_argument("configs", nargs="+", metavar="CONFIG", help="YAML config(s), e.g. configs/paper/*.yaml")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override a config value in every file (repeatable)")
+    return parser
+
+
+def describe_config(config) -> str:
+    """One line: method, layout, seeds, updates and env steps per seed (plus SA / FCP specifics)."""
+    ppo, pop = config.ppo, config.population
+    steps = ppo.num_updates * ppo.steps_per_update
+    view = config.env_kwargs.get("agent_view_size")
+    text = (f"{pop.method} on {config.env_kwargs['layout']} ({'full view' if view is None else f'view {view}'}, "
+            f"{config.model.kind}), {pop.num_seeds} seeds x {ppo.num_updates} updates x {ppo.steps_per_update:,} "
+            f"= {steps:,} env steps per seed")
+    if pop.method == "sa":
+        text += f"; {pop.sa.iterations} SA iterations"
+    if pop.method == "fcp":
+        pool = f"{pop.fcp.partner_seeds} partner seeds x {list(pop.fcp.checkpoints)}"
+        text += (f"; pool {pool} from {pop.fcp.partners}" if pop.fcp.partners
+                 else f"; first an SP partner stage of {pop.fcp.partner_seeds} seeds, pool {pool}")
+    return text
+
+
+def run_validate(args) -> int:
+    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
+    from population.config import ConfigError, load_config
+
+    bad = []
+    for path in args.configs:
+        try:
+            config = load_config(path, args.overrides)
+            partners = config.population.fcp.partners
+            if config.population.method == "fcp" and partners and not (Path(partners) / "config.yaml").is_file():
+                raise ConfigError(f"{path}: population.fcp.partners: {partners} is not an ocv2 run directory "
+                                  "(no config.yaml)")
+        except ConfigError as error:
+            print(f"FAIL {error}", file=sys.stderr)
+            bad.append(path)
+            continue
+        print(f"OK   {path}: {describe_config(config)}")
+    if bad:
+        raise CLIError(f"{len(bad)} of {len(args.configs)} config(s) invalid: {', '.join(bad)}", EXIT_FAILURE)
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------------
+# reading run directories
+# ---------------------------------------------------------------------------------------------------
+
+def _nan(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def load_run(path) -> dict:
+    """Everything ``report`` needs from one run directory; ``CLIError`` if it is not one."""
+    from cluster.errors import CLIError
+    from cluster.rundir import RunDir, RunDirError
+
+    run = RunDir(path)
+    if not run.path.is_dir():
+        raise CLIError(f"{path}: no such run directory")
+    if not run.config_path.is_file():
+        raise CLIError(f"{path}: not an ocv2 run directory (no config.yaml)")
+    try:
+        config = run.load_config()
+    except RunDirError as error:
+        raise CLIError(str(error)) from None
+    summary = None
+    summary_path = run.path / "xp" / "summary.json"
+    if summary_path.is_file():
+        try:
+            summary = json.loads(summary_path.read_text())
+        except (OSError, ValueError) as error:
+            raise CLIError(f"{summary_path}: unreadable cross-play summary: {error}") from None
+    try:
+        metrics = run.read_metrics()
+    except (OSError, csv.Error) as error:
+        raise CLIError(f"{run.metrics_path}: unreadable: {error}") from None
+    matrix = None
+    matrix_path = run.path / "xp" / "matrix.csv"
+    if matrix_path.is_file():
+        with open(matrix_path, newline="") as handle:
+            rows = list(csv.reader(handle))
+        matrix = [[_nan(v) for v in row[1:]] for row in rows[1:] if row]
+    return {"path": str(path), "name": run.path.resolve().name, "config": config, "summary": summary,
+            "metrics": metrics, "matrix": matrix, "status": run.read_manifest().get("status", "")}
+
+
+def env_label(config) -> str:
+    """Short description of the env section: view radius and the flags that are switched on."""
+    env = config.env_kwargs
+    parts = ["full view" if env.get("agent_view_size") is None else f"view {env['agent_view_size']}"]
+    flags = {"random_agent_positions": "random starts", "negative_rewards": "negative rewards",
+             "sample_recipe_on_delivery": "recipe resampling", "indicate_successful_delivery": "delivery indicator"}
+    parts += [label for key, label in flags.items() if env.get(key)]
+    others = sorted(k for k, v in env.items() if k not in flags and k not in ("layout", "agent_view_size")
+                    and not (k == "max_steps" and v == 400))
+    parts += [f"{k}={env[k]}" for k in others]
+    return ", ".join(parts)
+
+
+def report_rows(runs: list[dict]) -> list[dict]:
+    """One row per run, grouped by environment (same layout and env section), SP first; deltas vs SP."""
+    groups: dict = {}
+    for run in runs:
+        groups.setdefault(run["config"].env, []).append(run)
+    rows = []
+    for members in groups.values():
+        members = sorted(members, key=lambda r: METHOD_ORDER.index(r["config"].population.method))
+        baseline = next((r for r in members if r["config"].population.method == "sp" and r["summary"]), None)
+        for run in members:
+            config, summary = run["config"], run["summary"]
+            updates = [int(_nan(r.get("update"))) for r in run["metrics"] if not math.isnan(_nan(r.get("update")))]
+            steps = [_nan(r.get("env_steps")) for r in run["metrics"]]
+            steps = [s for s in steps if not math.isnan(s)]
+            row = {
+                "layout": config.env_kwargs["layout"], "method": config.population.method,
+                "env": env_label(config), "run_dir": run["path"], "status": run["status"],
+                "num_seeds": config.population.num_seeds, "updates_done": max(updates) if updates else 0,
+                "num_updates": config.ppo.num_updates, "env_steps_per_seed": int(max(steps)) if steps else 0,
+                "baseline_run": "", "delta_sp": math.nan, "delta_xp": math.nan, "delta_gap": math.nan, "note": "",
+            }
+            for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "sp_ci95", "xp_ci95"):
+                row[key] = _nan(summary.get(key)) if summary else math.nan
+            row["num_policies"] = int(summary.get("num_policies", 0)) if summary else 0
+            row["episodes_per_pair"] = int(summary.get("episodes_per_pair", 0)) if summary else 0
+            if not summary:
+                row["note"] = NO_XP_NOTE.format(run=run["path"])
+            elif baseline is not None and run is not baseline:
+                base = baseline["summary"]
+                row["baseline_run"] = baseline["path"]
+                row["delta_sp"] = row["sp_mean"] - _nan(base.get("sp_mean"))
+                row["delta_xp"] = row["xp_mean"] - _nan(base.get("xp_mean"))
+                row["delta_gap"] = row["gap"] - _nan(base.get("gap"))
+            rows.append(row)
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------------
+# formatting
+# ---------------------------------------------------------------------------------------------------
+
+def fmt(value, signed: bool = False) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    return f"{value:+.1f}" if signed else f"{value:.1f}"
+
+
+def fmt_pm(mean, std) -> str:
+    if math.isnan(mean):
+        return "n/a"
+    return f"{mean:.1f} ± {fmt(std)}"
+
+
+def _steps(value: int) -> str:
+    return f"{value / 1e6:.2f}M" if value >= 1e6 else f"{value:,}"
+
+
+def table_cells(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
+    """Header and string cells shared by the rich and the Markdown tables."""
+    deltas = any(not math.isnan(r["delta_gap"]) or not math.isnan(r["delta_xp"]) for r in rows)
+    header = ["Layout", "Env", "Method", "Seeds", "Env steps/seed", "SP", "XP", "Gap"]
+    if deltas:
+        header += ["Δ SP", "Δ XP", "Δ Gap"]
+    header.append("Run")
+    cells = []
+    for r in rows:
+        line = [r["layout"], r["env"], METHOD_NAMES.get(r["method"], r["method"]), str(r["num_seeds"]),
+                _steps(r["env_steps_per_seed"]) + ("" if r["updates_done"] >= r["num_updates"]
+                                                   else f" ({r['updates_done']}/{r['num_updates']} updates)")]
+        if r["note"]:
+            line += ["n/a", "n/a", "n/a"]
+        else:
+            line += [fmt_pm(r["sp_mean"], r["sp_std"]), fmt_pm(r["xp_mean"], r["xp_std"]), fmt(r["gap"])]
+        if deltas:
+            line += [fmt(r["delta_sp"], True), fmt(r["delta_xp"], True), fmt(r["delta_gap"], True)]
+        line.append(r["run_dir"] + (f" -- {r['note']}" if r["note"] else ""))
+        cells.append(line)
+    return header, cells
+
+
+def markdown_table(header: list[str], cells: list[list[str]]) -> str:
+    def esc(text: str) -> str:
+        return text.replace("|", "\\|")
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(esc(c) for c in row) + " |" for row in cells]
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------------
+# pictures
+# ---------------------------------------------------------------------------------------------------
+
+def curve(metrics: list[dict], field: str = "sparse_return"):
+    """(env steps, mean, std) across seeds per update; None if no finished episode was recorded."""
+    import numpy as np
+
+    by_update: dict[int, tuple[list[float], list[float]]] = {}
+    for row in metrics:
+        update = _nan(row.get("update"))
+        if math.isnan(update):
+            continue
+        steps, values = by_update.setdefault(int(update), ([], []))
+        steps.append(_nan(row.get("env_steps")))
+        value = _nan(row.get(field))
+        if not math.isnan(value):
+            values.append(value)
+    points = [(np.nanmax(s), float(np.mean(v)), float(np.std(v)))
+              for _, (s, v) in sorted(by_update.items()) if v]
+    if not points:
+        return None
+    x, mean, std = (np.asarray(col, np.float64) for col in zip(*points))
+    return x, mean, std
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> str:
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    os.replace(tmp, path)
+    return str(path)
+
+
+def write_curves(runs: list[dict], out: Path) -> list[str]:
+    by_layout: dict[str, list[dict]] = {}
+    for run in runs:
+        by_layout.setdefault(run["config"].env_kwargs["layout"], []).append(run)
+    paths = []
+    for layout, members in by_layout.items():
+        lines = [(run, curve(run["metrics"])) for run in members]
+        lines = [(run, c) for run, c in lines if c is not None]
+        if not lines:
+            continue
+        plt = _pyplot()
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+        for run, (x, mean, std) in lines:
+            config = run["config"]
+            label = (f"{config.population.method.upper()} ({env_label(config)}, {config.population.num_seeds} "
+                     f"seeds): {run['name']}")
+            (line,) = ax.plot(x, mean, label=label)
+            ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+        ax.set_xlabel("environment steps per seed")
+        ax.set_ylabel("sparse return (mean ± std across seeds)")
+        ax.set_title(layout)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize=7)
+        paths.append(_save(fig, out / f"curves_{layout}.png"))
+        plt.close(fig)
+    return paths
+
+
+def write_heatmaps(runs: list[dict], out: Path) -> dict[str, str]:
+    import numpy as np
+
+    from population.plots import xp_heatmap
+
+    paths, used = {}, set()
+    for run in runs:
+        if not run["matrix"]:
+            continue
+        config = run["config"]
+        stem = f"heatmap_{run['name']}"
+        name, k = stem, 2
+        while name in used:
+            name, k = f"{stem}_{k}", k + 1
+        used.add(name)
+        summary = run["summary"] or {}
+        title = f"{config.population.method.upper()} {config.env_kwargs['layout']}"
+        if summary:
+            title += f": SP {fmt(_nan(summary.get('sp_mean')))}, XP {fmt(_nan(summary.get('xp_mean')))}"
+        paths[run["path"]] = xp_heatmap(np.asarray(run["matrix"], np.float64), out / f"{name}.png", title=title)
+    return paths
+
+
+# ---------------------------------------------------------------------------------------------------
+# ocv2 report
+# ---------------------------------------------------------------------------------------------------
+
+def add_report(sub) -> argparse.ArgumentParser:
+    parser = sub.add_parser("report", help="paper-style SP/XP tables, curves and heatmaps of run directories",
+                            description="Read run directories and write report.md, report.csv (one row per run: "
+                                        "SP, XP, gap and, against the same environment's self-play run, the "
+                                        "deltas), curves_<layout>.png and heatmap_<run>.png into --out.")
+    parser.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
+    parser.add_argument("--out", default="reports", help="folder to write into (default reports/)")
+    return parser
+
+
+def run_report(args) -> int:
+    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
+
+    runs = [load_run(path) for path in args.run_dirs]
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--out: {out} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CLIError(f"--out: cannot create {out}: {error}", EXIT_FAILURE) from None
+    rows = report_rows(runs)
+    header, cells = table_cells(rows)
+    curves = write_curves(runs, out)
+    heatmaps = write_heatmaps(runs, out)
+
+    with open(out / "report.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CSV_FIELDS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: ("" if isinstance(row[k], float) and math.isnan(row[k]) else row[k])
+                             for k in CSV_FIELDS})
+    md = ["# ocv2 report", "",
+          "SP: mean ± std over the self-play cells (diagonal) of the cross-play matrix; XP: mean ± std over the "
+          "off-diagonal ordered pairs; Gap = SP - XP (the paper's Tables 1 and 2). Δ: this run minus the self-play "
+          "run of the same environment (Δ Gap is the paper's Table 1 bracket).", "",
+          markdown_table(header, cells), ""]
+    notes = [r for r in rows if r["note"]]
+    if notes:
+        md += ["## Notes", ""] + [f"- {r['run_dir']}: {r['note']}" for r in notes] + [""]
+    if curves:
+        md += ["## Training curves", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in curves] + [""]
+    if heatmaps:
+        md += ["## Cross-play matrices", ""]
+        md += [f"{run}:\n\n![{Path(p).stem}]({Path(p).name})\n" for run, p in heatmaps.items()]
+    (out / "report.md").write_text("\n".join(md))
+
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"{len(rows)} run(s)")
+    for name in header:
+        table.add_column(name, justify="right" if name not in ("Layout", "Env", "Method", "Run") else "left")
+    for line in cells:
+        table.add_row(*line)
+    stream = sys.stdout
+    Console(file=stream, width=None if stream.isatty() else 240, highlight=False, soft_wrap=False).print(table)
+    for row in notes:
+        print(f"{row['run_dir']}: {row['note']}")
+    print(f"wrote {out / 'report.md'}, {out / 'report.csv'}, {len(curves)} curve plot(s), {len(heatmaps)} heatmap(s)")
+    return EXIT_OK
