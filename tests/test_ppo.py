@@ -124,17 +124,19 @@ def _sharpen_policy(params, factor=100.0):
         lambda path, x: x * factor if "['params']['Dense_1']" in jax.tree_util.keystr(path) else x, params)
 
 
-def _replay(trainer, params, hidden, batch):
-    """Replay a stored rollout from its initial carry: (log-probs [T, B], ``ppo_loss`` info)."""
-    _, logits, _ = trainer.network.apply(params, hidden, batch.obs, ppo.replay_reset(trainer.config, batch))
-    log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), batch.action[..., None], axis=-1)[..., 0]
+def _replay_log_prob(network, params, hidden, batch, reset):
+    """Replay a stored rollout from its initial carry with the given reset flags: log-probs [T, B]."""
+    _, logits, _ = network.apply(params, hidden, batch.obs, reset)
+    return jnp.take_along_axis(jax.nn.log_softmax(logits), batch.action[..., None], axis=-1)[..., 0]
+
+
+_replay_jit = jax.jit(_replay_log_prob, static_argnums=0)
+
+
+def _loss_info(trainer, params, hidden, batch):
     adv, targets = ppo.compute_gae(batch.reward, batch.value, batch.terminal, jnp.zeros(batch.value.shape[1]),
                                    0.99, 0.95)
-    _, info = ppo.ppo_loss(trainer, params, hidden, batch, adv, targets)
-    return log_prob, info
-
-
-_replay_jit = jax.jit(_replay, static_argnums=0)
+    return ppo.ppo_loss(trainer, params, hidden, batch, adv, targets)[1]
 
 
 @pytest.fixture(scope="module")
@@ -156,10 +158,11 @@ def test_replay_reproduces_the_rollout_log_probs(replay_setup):
     assert not bool(batch.reset[0].any())
     assert batch.obs.shape == (NUM_STEPS, NUM_ENVS * 2) + trainer.env.obs_shape
 
-    log_prob, info = _replay_jit(trainer, params, initial_hidden, batch)
+    log_prob = _replay_jit(trainer.network, params, initial_hidden, batch, ppo.replay_reset(trainer.config, batch))
     np.testing.assert_allclose(log_prob, batch.log_prob, atol=1e-5)
     ratio = jnp.exp(log_prob - batch.log_prob)
     np.testing.assert_allclose(ratio, 1.0, atol=1e-4)
+    info = jax.jit(_loss_info, static_argnums=0)(trainer, params, initial_hidden, batch)  # ppo_loss's own replay
     assert abs(float(info.approx_kl)) < 1e-8
     assert float(info.clip_frac) == 0.0
     # the policy is not uniform, so a wrong replay could not match by accident
@@ -171,12 +174,11 @@ def test_paper_done_bug_replay_differs_after_episode_boundaries(replay_setup):
     buggy = ppo.make_trainer(_config(max_steps=20, paper_done_bug=True))
     np.testing.assert_array_equal(ppo.replay_reset(buggy.config, batch), batch.terminal)
     np.testing.assert_array_equal(ppo.replay_reset(trainer.config, batch), batch.reset)
-    log_prob, info = _replay_jit(buggy, params, initial_hidden, batch)
+    log_prob = _replay_jit(buggy.network, params, initial_hidden, batch, ppo.replay_reset(buggy.config, batch))
     diff = np.abs(np.asarray(log_prob - batch.log_prob))
     after_boundary = np.asarray(batch.reset)
     assert after_boundary.any()
     assert diff[after_boundary].max() > 1e-3
-    assert float(info.approx_kl) > 1e-4  # ppo_loss replays with the same (buggy) flags: ratio != 1
     # before the first boundary the replay still agrees
     first_terminal = int(np.argmax(np.asarray(batch.terminal).any(axis=1)))
     assert first_terminal > 0
