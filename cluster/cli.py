@@ -7,6 +7,7 @@
     ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
     ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
     ocv2 button-game [--buttons N] [--seeds S] [--out DIR]
+    ocv2 archive info|replay|recover FILE ...   MCAP trajectory archives (docs/archive.md)
 
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
 code; ``COMMANDS`` lists them (the bigger ones live in ``cluster/cmd_*.py`` and are imported lazily). Errors the user can fix raise ``CLIError`` and become a
@@ -181,6 +182,7 @@ COMMANDS: list[tuple[str, Callable, Callable]] = [
     ("validate", _lazy("cluster.cmd_report", "add_validate"), _lazy("cluster.cmd_report", "run_validate")),
     ("report", _lazy("cluster.cmd_report", "add_report"), _lazy("cluster.cmd_report", "run_report")),
     ("button-game", _lazy("cluster.cmd_button_game", "add_parser"), _lazy("cluster.cmd_button_game", "run")),
+    ("archive", _lazy("cluster.cmd_archive", "add_parser"), _lazy("cluster.cmd_archive", "run")),
 ]
 
 

@@ -1,0 +1,325 @@
+"""The MCAP trajectory archive (cluster/archive.py, population/record.py, ``ocv2 archive``)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import pickle
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from PIL import Image
+
+import ocv2
+from cluster.archive import (
+    ArchiveError, ArchiveReader, ArchiveWriter, record_episodes, record_pairs, recover, states_as_buffer,
+)
+from cluster.cli import main
+from population.evaluation import play_episodes
+from population.record import jitted_play_recorded
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+STEPS = 30
+EPISODES = 3
+KEY = jax.random.PRNGKey(0)  # episode 1 earns shaped reward
+META = {"method": "xp", "iteration": 2, "policies": ["sp_0", "sp_1"], "checkpoints": ["c0", "c1"], "seed": 7}
+
+
+def _apply(params, hidden, obs, reset):
+    """A scripted policy: fixed logits (the params), no memory."""
+    batch = obs.shape[1]
+    return hidden, jnp.broadcast_to(params, (1, batch, params.shape[0])), jnp.zeros((1, batch))
+
+
+PARAMS = (jnp.zeros(6), jnp.array([0.0, 0.0, 0.0, 0.0, 0.0, 2.0]))  # seat 0 uniform, seat 1 likes 'interact'
+
+
+@pytest.fixture(scope="module")
+def env():
+    return ocv2.make("cramped_room", max_steps=STEPS)
+
+
+@pytest.fixture(scope="module")
+def recorded(env):
+    return jax.device_get(jitted_play_recorded(_apply, 4, env, EPISODES)(PARAMS, KEY))
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory, env, recorded):
+    path = str(tmp_path_factory.mktemp("archive") / "xp.mcap")
+    with ArchiveWriter(path) as writer:
+        indices = record_episodes(writer, env, recorded, META)
+    assert indices == [0, 1, 2]
+    return path
+
+
+def _episode(recorded, e):
+    return (jax.tree.map(lambda x: x[e], recorded.states), recorded.actions[e], recorded.rewards[e],
+            recorded.shaped_rewards[e], recorded.dones[e])
+
+
+def _assert_same_episode(got, recorded, e):
+    states, actions, rewards, shaped, dones = _episode(recorded, e)
+    for name, a, b in [("actions", got.actions, actions), ("rewards", got.rewards, rewards),
+                       ("shaped", got.shaped_rewards, shaped), ("dones", got.dones, dones)]:
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), name
+    for a, b in zip(jax.tree.leaves(got.states), jax.tree.leaves(states)):
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b)
+
+
+def test_recorded_episodes_are_play_episodes(env, recorded):
+    """Same key, same episodes as the evaluation rollout (returns and every state)."""
+    assert recorded.actions.shape == (EPISODES, STEPS, 2) and recorded.actions.dtype == np.int32
+    assert recorded.dones[:, -1].all() and recorded.dones.sum() == EPISODES
+    assert jax.tree.leaves(recorded.states)[0].shape[:2] == (EPISODES, STEPS + 1)
+    played = play_episodes(_apply, 4, env, PARAMS, KEY, EPISODES, keep_every=1)
+    np.testing.assert_array_equal(recorded.returns, np.asarray(played.returns))
+    for a, b in zip(jax.tree.leaves(recorded.states), jax.tree.leaves(played.states)):
+        np.testing.assert_array_equal(a[:, :STEPS], np.asarray(b))
+    np.testing.assert_array_equal(recorded.returns, recorded.rewards.sum(axis=1))
+    assert (recorded.shaped_rewards != 0).any()  # the data is not trivially zero
+
+
+def test_round_trip(archive, recorded):
+    reader = ArchiveReader(archive)
+    assert reader.finished and len(reader) == EPISODES and not os.path.exists(archive + ".partial")
+    metas = reader.episodes()
+    for e, meta in enumerate(metas):
+        assert {k: meta[k] for k in META} == META
+        assert meta["episode"] == e and meta["pair_episode"] == e and meta["layout"] == "cramped_room"
+        assert meta["steps"] == STEPS and meta["num_agents"] == 2
+        assert meta["env_params"]["max_steps"] == STEPS
+        assert meta["return"] == pytest.approx(float(recorded.returns[e]))
+        assert meta["shaped_return"] == pytest.approx(recorded.shaped_rewards[e].sum(axis=0).tolist())
+        got = reader.episode(e)
+        assert got.meta == meta
+        _assert_same_episode(got, recorded, e)
+    assert reader.episode(-1).meta["episode"] == EPISODES - 1
+    for e, got in enumerate(reader.iter_episodes()):
+        _assert_same_episode(got, recorded, e)
+    assert reader.layout(0) is ocv2.LAYOUTS["cramped_room"]
+
+
+def test_record_pairs_writes_every_pair(tmp_path, env):
+    params_a = jnp.stack([PARAMS[0], PARAMS[1]])
+    params_b = jnp.stack([PARAMS[1], PARAMS[0]])
+    keys = jnp.stack([KEY, jax.random.PRNGKey(4)])
+    path = tmp_path / "pairs.mcap"
+    with ArchiveWriter(path) as writer:
+        indices = record_pairs(writer, _apply, 4, env, params_a, params_b, keys, 1,
+                               [{"policies": [0, 1]}, {"policies": [1, 0]}])
+    assert indices == [0, 1]
+    metas = ArchiveReader(path).episodes()
+    assert [m["policies"] for m in metas] == [[0, 1], [1, 0]]
+    played = play_episodes(_apply, 4, env, PARAMS, KEY, 1)
+    assert metas[0]["return"] == pytest.approx(float(played.returns[0]))
+
+
+_KILLED_WRITER = textwrap.dedent("""
+    import os, pickle, signal, sys
+    import jax
+    from cluster.archive import ArchiveWriter
+    recorded, path = pickle.load(open(sys.argv[1], "rb"))
+    writer = ArchiveWriter(path, foxglove_frames=True, frame_tile_size=8, chunk_size=512).open()
+    def episode(e):
+        states = jax.tree.map(lambda x: x[e], recorded.states)
+        writer.write_episode({"seed": e}, states, recorded.actions[e], recorded.rewards[e],
+                             recorded.shaped_rewards[e], recorded.dones[e], layout="cramped_room")
+    episode(0)
+    episode(1)
+    mcap_writer = writer._out.mcap
+    add_message = mcap_writer.add_message
+    count = [0]
+    def dying(*args, **kwargs):
+        count[0] += 1
+        if count[0] == 25:  # in the middle of episode 2: killed for real, no cleanup at all
+            os.kill(os.getpid(), signal.SIGKILL)
+        return add_message(*args, **kwargs)
+    mcap_writer.add_message = dying
+    episode(2)
+    print("not reached")
+""")
+
+
+def test_killed_writer_is_recovered(tmp_path, recorded, capsys):
+    path = str(tmp_path / "run.mcap")
+    data = tmp_path / "recorded.pkl"
+    data.write_bytes(pickle.dumps((recorded, path)))
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": REPO}
+    child = subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(data)], env=env, cwd=REPO,
+                           capture_output=True, text=True, timeout=120)
+    assert child.returncode == -9, child.stderr
+    assert not os.path.exists(path) and os.path.getsize(path + ".partial") > 0
+
+    partial = ArchiveReader(path + ".partial")  # readable as it is, without its summary
+    summary = partial.info()
+    assert not summary["finished"] and summary["episodes"] == 2
+    assert summary["uncommitted_messages"] > 0  # part of episode 2 reached the disk and is ignored
+
+    assert main(["archive", "recover", path + ".partial"]) == 0
+    out = capsys.readouterr().out
+    assert "recovered 2 complete episode(s)" in out and path in out and "dropped" in out
+    fixed = ArchiveReader(path)
+    assert fixed.finished and len(fixed) == 2 and fixed.info()["uncommitted_messages"] == 0
+    for e in range(2):
+        got = fixed.episode(e)
+        assert got.meta["seed"] == e
+        _assert_same_episode(got, recorded, e)
+        assert fixed.frames(e).shape == (STEPS + 1, 4 * 8, 5 * 8, 3)
+
+    report = recover(path + ".partial", tmp_path / "again.mcap")
+    assert (report.episodes, report.transitions, report.source_finished) == (2, 2 * STEPS, False)
+    assert report.dropped_messages > 0 and report.tail_error
+    assert main(["archive", "recover", path + ".partial"]) == 2  # the default --out exists now
+    assert "already exists" in capsys.readouterr().err
+
+
+def test_exception_inside_with_still_finishes(tmp_path, recorded):
+    path = tmp_path / "a.mcap"
+    states, actions, _, _, dones = _episode(recorded, 0)
+    rng = np.random.default_rng(0)  # arbitrary floats survive exactly
+    rewards, shaped = rng.normal(size=STEPS).astype(np.float32), rng.normal(size=(STEPS, 2)).astype(np.float32)
+    with pytest.raises(RuntimeError):
+        with ArchiveWriter(path) as writer:
+            writer.write_episode(META, states, actions, rewards, shaped, dones, layout="cramped_room")
+            raise RuntimeError("boom")
+    reader = ArchiveReader(path)
+    assert reader.finished and len(reader) == 1 and not os.path.exists(str(path) + ".partial")
+    got = reader.episode(0)
+    assert np.array_equal(got.rewards, rewards) and np.array_equal(got.shaped_rewards, shaped)
+    assert got.meta["return"] == pytest.approx(float(rewards.sum(dtype=np.float64)))
+    with pytest.raises(ArchiveError, match="already exists"):
+        ArchiveWriter(path).open()
+
+
+def test_write_episode_rejects_bad_input(tmp_path, recorded):
+    states, actions, rewards, shaped, dones = _episode(recorded, 0)
+    with ArchiveWriter(tmp_path / "bad.mcap") as writer:
+        with pytest.raises(ValueError, match="T \\+ 1"):
+            writer.write_episode({}, jax.tree.map(lambda x: x[:-1], states), actions, rewards, shaped, dones,
+                                 layout="cramped_room")
+        with pytest.raises(ValueError, match="reserved"):
+            writer.write_episode({"steps": 3}, states, actions, rewards, shaped, dones, layout="cramped_room")
+        with pytest.raises(ValueError, match="not layout 'asymm_advantages'"):
+            writer.write_episode({}, states, actions, rewards, shaped, dones, layout="asymm_advantages")
+        with pytest.raises(ValueError, match="needs the layout"):
+            writer.write_episode({}, states, actions, rewards, shaped, dones)
+        with pytest.raises(TypeError, match="JSON"):
+            writer.write_episode({"f": object()}, states, actions, rewards, shaped, dones, layout="cramped_room")
+    assert len(ArchiveReader(tmp_path / "bad.mcap")) == 0
+
+
+def test_replay_to_gif(archive, tmp_path, capsys):
+    out = tmp_path / "ep1.gif"
+    assert main(["archive", "replay", archive, "--episode", "1", "--out", str(out), "--tile-size", "8"]) == 0
+    assert f"{STEPS + 1} frames" in capsys.readouterr().out
+    with Image.open(out) as gif:
+        assert gif.n_frames == STEPS + 1 and gif.size == (5 * 8, 4 * 8)
+
+
+def test_archive_as_sa_buffer(archive, recorded, env):
+    buffer = states_as_buffer(archive, keep_every=10)
+    kept = list(range(0, STEPS, 10))
+    assert buffer.step.shape == (EPISODES * len(kept),)
+    expected = jax.tree.map(lambda x: x[:, kept].reshape((-1,) + x.shape[2:]), recorded.states)
+    for a, b in zip(jax.tree.leaves(buffer), jax.tree.leaves(expected)):
+        np.testing.assert_array_equal(np.asarray(a), b)
+    reset = jax.jit(env.reset_state)
+    for seed in range(4):
+        key = jax.random.PRNGKey(seed)
+        state = reset(key, buffer)
+        index = int(jax.random.randint(key, (), 0, buffer.step.shape[0]))  # the env's own draw
+        assert int(state.step) == 0 and not bool(state.done)
+        np.testing.assert_array_equal(state.grid, buffer.grid[index])
+        np.testing.assert_array_equal(state.agents.x, buffer.agents.x[index])
+        np.testing.assert_array_equal(state.recipe, buffer.recipe[index])
+    ocv2.make("cramped_room", max_steps=STEPS, initial_state_buffer=buffer)  # validates as an SA buffer
+    with pytest.raises(ArchiveError, match="not 'asymm_advantages'"):
+        states_as_buffer(archive, layout="asymm_advantages")
+
+
+def test_buffer_rejects_mixed_layouts(tmp_path, archive):
+    other = ocv2.make("asymm_advantages", max_steps=2)
+    state = other.reset_state(jax.random.PRNGKey(0))
+    states = jax.tree.map(lambda x: jnp.stack([x] * 3), state)
+    path = tmp_path / "mixed.mcap"
+    with ArchiveWriter(path) as writer:
+        writer.write_episode({}, states, np.zeros((2, 2), np.int32), np.zeros(2, np.float32),
+                             np.zeros((2, 2), np.float32), np.array([False, True]), layout="asymm_advantages")
+    assert states_as_buffer(path, keep_every=1).grid.shape == (2, 5, 9, 3)
+    with pytest.raises(ArchiveError, match="one kitchen"):
+        states_as_buffer([path, archive])
+
+
+def test_info_lists_episodes_layouts_returns(archive, recorded, capsys):
+    assert main(["archive", "info", archive]) == 0
+    out = capsys.readouterr().out
+    assert "finished ocv2 archive, 3 complete episode(s), 90 transitions" in out
+    assert "layouts: cramped_room (3)" in out and "policies: sp_0 + sp_1 (3)" in out and "methods: xp (3)" in out
+    assert f"mean {recorded.returns.mean():.2f}" in out
+    rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["0"], ["1"], ["2"])]
+    assert [r[:3] for r in rows] == [[str(e), "cramped_room", str(STEPS)] for e in range(EPISODES)]
+    assert main(["archive", "info", archive, "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["summary"]["episodes"] == 3 and data["summary"]["layouts"] == {"cramped_room": 3}
+    assert [m["episode"] for m in data["episodes"]] == [0, 1, 2]
+
+
+def test_bad_input_is_a_clear_error(tmp_path, archive, capsys):
+    text = tmp_path / "notes.mcap"
+    text.write_text("not an archive\n")
+    cases = [
+        (["archive", "info", str(text)], "not an MCAP file"),
+        (["archive", "info", str(tmp_path / "missing.mcap")], "no such file"),
+        (["archive", "replay", archive, "--episode", "3", "--out", str(tmp_path / "x.gif")], "out of range"),
+        (["archive", "replay", archive, "--out", str(tmp_path / "x.png")], ".gif"),
+        (["archive", "recover", str(text), "--out", str(tmp_path / "fixed.mcap")], "not an MCAP file"),
+        (["archive", "recover", archive, "--out", archive], "already exists"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, (argv, err)
+    assert not (tmp_path / "fixed.mcap").exists() and not (tmp_path / "x.gif").exists()
+    assert main(["archive"]) == 2  # no action: argparse usage
+
+
+def test_foxglove_channel_only_when_enabled(tmp_path, archive, recorded):
+    from mcap.reader import make_reader  # an independent reader: the file is standard MCAP
+
+    plain = ArchiveReader(archive)
+    assert "frames" not in plain.topics() and not plain.info()["foxglove_frames"]
+    with pytest.raises(ArchiveError, match="foxglove_frames"):
+        plain.frames(0)
+
+    path = tmp_path / "fox.mcap"
+    with ArchiveWriter(path, foxglove_frames=True, frame_tile_size=8) as writer:
+        writer.write_episode(META, *_episode(recorded, 0), layout="cramped_room")
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary.statistics.message_count == 2 * (STEPS + 1) + 1
+        images = []
+        for schema, channel, message in reader.iter_messages(topics=["frames"]):
+            assert schema.name == "foxglove.RawImage" and schema.encoding == "jsonschema"
+            assert channel.message_encoding == "json"
+            image = json.loads(message.data)
+            assert set(image) == {"timestamp", "frame_id", "width", "height", "encoding", "step", "data"}
+            assert image["encoding"] == "rgb8" and image["step"] == image["width"] * 3
+            assert image["timestamp"]["sec"] * 10**9 + image["timestamp"]["nsec"] == message.log_time
+            pixels = base64.b64decode(image["data"])
+            images.append(np.frombuffer(pixels, np.uint8).reshape(image["height"], image["width"], 3))
+        fields = json.loads(next(s for s in summary.schemas.values() if s.name == "foxglove.RawImage").data)
+        assert set(fields["properties"]) >= {"timestamp", "frame_id", "width", "height", "encoding", "step", "data"}
+    assert len(images) == STEPS + 1 and images[0].shape == (4 * 8, 5 * 8, 3)
+    from ocv2.render import render_frames
+
+    expected = render_frames(jax.tree.map(lambda x: x[0], recorded.states), "cramped_room", tile_size=8)
+    np.testing.assert_array_equal(np.stack(images), expected)
+    np.testing.assert_array_equal(ArchiveReader(path).frames(0), expected)
