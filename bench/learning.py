@@ -7,8 +7,9 @@ shaping annealed over 5M), stopping when ``--minutes`` are spent. Records the pe
 (team) return and shaped return, draws the curve, and writes the block between
 ``<!-- learning:start -->`` and ``<!-- learning:end -->`` of docs/BENCHMARKS.md.
 
-A uniformly random policy scores 0 on Cramped Room (measured below with the same evaluation code),
-so any sparse return above 0 means soups are being delivered. The paper reaches SP 259 at 10M steps.
+A uniformly random policy scores about 1 on Cramped Room (measured and printed with the same
+evaluation code), so a sparse return far above that means soups are being delivered on purpose.
+The paper reaches SP 259 at 10M steps.
 
     python bench/learning.py --minutes 60
     python bench/learning.py --minutes 2 --out ''      # smoke run, nothing written

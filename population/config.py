@@ -312,7 +312,8 @@ def _parse_env(raw) -> tuple[tuple[str, Any], ...]:
         raise ConfigError(f"env: expected a mapping of ocv2.make parameters, got {type(raw).__name__}")
     if "initial_state_buffer" in raw:
         raise ConfigError("env.initial_state_buffer: state buffers come from population.method=sa, not the config")
-    params = dict(raw)
+    # Integral floats (YAML reads 1e3 as a float) count as integers, as in the other sections.
+    params = {k: int(v) if isinstance(v, float) and v.is_integer() else v for k, v in raw.items()}
     params.setdefault("layout", "cramped_room")
     try:
         build_config(**params)
