@@ -20,7 +20,7 @@ from cluster.rundir import RunDir, RunDirError, metric_rows, write_json
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import Config
-from population.evaluation import play_episodes, stack_params
+from population.evaluation import gather_params, play_episodes, stack_params
 from population.sa import collect_buffer
 from population.xp import cross_play, recipe_names, summarize
 
@@ -223,6 +223,7 @@ def train_population(config: Config, run_dir, *, resume: bool = False, show_prog
         summary["xp"] = evaluate_run(run.path, show_progress=show_progress)
         summary["plot"] = write_training_plot(run.path)
         summary["gifs"] = write_gifs(run.path, config.eval.gifs)
+        summary["archive"] = archive_cross_play(run.path, config.eval.archive_episodes)
     run.update_manifest(status="finished")
     return summary
 
@@ -324,6 +325,32 @@ def write_gifs(run_dir, count: int) -> list[str]:
         path = RunDir(run_dir).sub("gifs", f"seed_{seed}_selfplay.gif")
         paths.append(write_gif(frames, path, fps=8))
     return paths
+
+
+def archive_cross_play(run_dir, episodes: int) -> str | None:
+    """Record ``episodes`` episodes of every ordered pair of final policies to ``archive/xp.mcap``.
+
+    These are fresh episodes (key ``fold_in(xp_key, 1)``), not the ones scored in ``xp/``; every
+    state, joint action and reward is kept, so they can be replayed, rendered or used as SA states.
+    """
+    from cluster.archive import ArchiveWriter, env_meta, record_pairs
+
+    if episodes <= 0:
+        return None
+    config, trainer, params = final_params(run_dir)
+    env = ppo.eval_env(config)
+    num = config.population.num_seeds
+    key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(config.population.seed), XP_KEY_OFFSET), 1)
+    path = RunDir(run_dir).sub("archive", "xp.mcap")
+    base = {**env_meta(env), "method": config.population.method, "kind": "cross-play",
+            "checkpoint_update": config.ppo.num_updates, "config_fingerprint": config.fingerprint()}
+    with ArchiveWriter(path, overwrite=True) as writer:
+        for i in range(num):  # one row of pairs per call: at most K parameter copies
+            keys = jnp.stack([jax.random.fold_in(key, i * num + j) for j in range(num)])
+            metas = [{**base, "policies": [f"seed_{i}", f"seed_{j}"], "seeds": [i, j]} for j in range(num)]
+            record_pairs(writer, trainer.network.apply, hidden_size(trainer), env,
+                         gather_params(params, [i] * num), params, keys, episodes, metas)
+    return str(path)
 
 
 def _write_csv(path: Path, header, rows) -> None:

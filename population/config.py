@@ -131,6 +131,7 @@ class EvalConfig:
 
     episodes: int = 500
     gifs: int = 2  # episode GIFs of the first seeds' self-play written after training
+    archive_episodes: int = 0  # episodes per ordered pair recorded to RUN_DIR/archive/xp.mcap (0: none)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -400,6 +401,7 @@ def _validate(config: Config) -> None:
             raise ConfigError("population.method: fcp needs a two-agent layout")
     _positive("eval.episodes", config.eval.episodes)
     _positive("eval.gifs", config.eval.gifs, allow_zero=True)
+    _positive("eval.archive_episodes", config.eval.archive_episodes, allow_zero=True)
     _positive("run.checkpoint_every", config.run.checkpoint_every)
     if config.run.num_checkpoints < 2:
         raise ConfigError(f"run.num_checkpoints: must be >= 2 (initial and final), got {config.run.num_checkpoints}")

@@ -409,7 +409,7 @@ def test_quickstart_completes_end_to_end_on_tiny_overrides(tmp_path):
     tiny = ["ppo.num_envs=4", "ppo.num_steps=16", "ppo.num_minibatches=2", "ppo.update_epochs=1",
             "ppo.total_timesteps=128", "env.max_steps=24", "model.conv_features=[4]", "model.conv_kernels=[3]",
             "model.fc_dim=8", "population.sa.rollouts_per_pair=1", "eval.episodes=2", "eval.gifs=1",
-            "run.checkpoint_every=1"]
+            "eval.archive_episodes=1", "run.checkpoint_every=1"]
     args = ["train", quickstart, "--out", str(tmp_path / "qs"), "--quiet"]
     for item in tiny:
         args += ["--set", item]
@@ -421,3 +421,9 @@ def test_quickstart_completes_end_to_end_on_tiny_overrides(tmp_path):
     assert summary["num_policies"] == 2 and summary["episodes_per_pair"] == 2
     assert (run / "plots" / "training.png").stat().st_size > 0
     assert [p.name for p in (run / "gifs").iterdir()] == ["seed_0_selfplay.gif"]
+    from cluster.archive import ArchiveReader
+
+    with ArchiveReader(run / "archive" / "xp.mcap") as reader:  # one episode per ordered pair
+        assert sorted(tuple(m["seeds"]) for m in reader.episodes()) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+        episode = reader.episode(0)
+        assert episode.actions.shape == (24, 2) and episode.meta["layout"] == "cramped_room"
