@@ -27,16 +27,38 @@ class PairEpisodes(NamedTuple):
     states: State | None  # [P, R, S, ...] every keep_every-th state (t = 0, k, 2k, ...), or None
 
 
-class _Carry(NamedTuple):
+class PlayCarry(NamedTuple):
+    """What a pair rollout carries from step to step."""
+
     state: State  # [R]
     obs: jax.Array  # [R, 2, ...]
     hidden: tuple  # per seat [R, H]
-    start: jax.Array  # bool[R]
-    total: jax.Array  # float32[R]
+    start: jax.Array  # bool[R] an episode starts at this step (the recurrent reset flag)
+    total: jax.Array  # float32[R] team sparse return so far
     key: jax.Array
 
 
-def _step(apply: PolicyApply, env, params: tuple, carry: _Carry, _unused):
+class StepRecord(NamedTuple):
+    """One transition of R environments (the scan output; unused outputs are dropped by XLA)."""
+
+    actions: jax.Array  # int32[R, N] joint action
+    reward: jax.Array  # float32[R] team reward
+    shaped_reward: jax.Array  # float32[R, N]
+    done: jax.Array  # bool[R]
+    reached: State  # [R] the state the transition reached, before any auto-reset
+
+
+def initial_carry(hidden_size: int, env, num_seats: int, key: jax.Array, episodes: int) -> PlayCarry:
+    """Reset ``episodes`` environments. Resets use ``fold_in(key, 0)``, play ``fold_in(key, 1)``."""
+    reset_keys = jax.random.split(jax.random.fold_in(key, 0), episodes)
+    state = jax.vmap(env.reset_state)(reset_keys)
+    zeros = jnp.zeros((episodes, hidden_size), jnp.float32)
+    return PlayCarry(state, jax.vmap(env.get_obs_arrays)(state), (zeros,) * num_seats, jnp.ones((episodes,), bool),
+                     jnp.zeros((episodes,), jnp.float32), jax.random.fold_in(key, 1))
+
+
+def play_step(apply: PolicyApply, env, params: tuple, carry: PlayCarry, _unused=None):
+    """Every seat samples an action from its own policy; all environments step once."""
     key, k_env, *k_seats = jax.random.split(carry.key, 2 + len(params))
     hidden, actions = [], []
     for seat, (p, k) in enumerate(zip(params, k_seats)):
@@ -46,23 +68,20 @@ def _step(apply: PolicyApply, env, params: tuple, carry: _Carry, _unused):
     joint = jnp.stack(actions, axis=1)
     keys = jax.random.split(k_env, joint.shape[0])
     out = jax.vmap(env.step_arrays)(keys, carry.state, joint)
-    return _Carry(out.state, out.obs, tuple(hidden), out.done, carry.total + out.reward[:, 0], key), None
+    reward = out.reward[:, 0]
+    record = StepRecord(joint, reward, out.shaped_reward, out.done, out.terminal_state)
+    return PlayCarry(out.state, out.obs, tuple(hidden), out.done, carry.total + reward, key), record
 
 
 def play_episodes(apply: PolicyApply, hidden_size: int, env, params: tuple, key: jax.Array, episodes: int,
                   keep_every: int | None = None) -> PairEpisodes:
     """One pair (one params per seat) plays ``episodes`` episodes. Result arrays have P = 1 squeezed out.
 
-    The key is consumed: resets use ``fold_in(key, 0)``, actions and transitions ``fold_in(key, 1)``.
+    The key is consumed (see ``initial_carry``).
     """
-    reset_keys = jax.random.split(jax.random.fold_in(key, 0), episodes)
-    state = jax.vmap(env.reset_state)(reset_keys)
-    obs = jax.vmap(env.get_obs_arrays)(state)
-    zeros = jnp.zeros((episodes, hidden_size), jnp.float32)
-    carry = _Carry(state, obs, (zeros,) * len(params), jnp.ones((episodes,), bool),
-                   jnp.zeros((episodes,), jnp.float32), jax.random.fold_in(key, 1))
-    start_recipe = state.recipe
-    step = lambda c, x: _step(apply, env, params, c, x)
+    carry = initial_carry(hidden_size, env, len(params), key, episodes)
+    start_recipe = carry.state.recipe
+    step = lambda c, x: play_step(apply, env, params, c, x)
     steps = env.max_steps
     if keep_every is None:
         carry, _ = jax.lax.scan(step, carry, None, length=steps)

@@ -7,9 +7,7 @@ MCAP writer is ``cluster.archive``).
 
 Same key use and same step logic as ``play_episodes``: for one key the episodes are identical, so
 returns equal ``play_episodes(...).returns`` and ``states[:, :T]`` equal its ``keep_every=1`` states
-(``tests/test_archive.py`` checks this). The per-step policy/env logic below repeats
-``population.evaluation._step`` (about ten lines) because that function drops the actions; keep them
-in step.
+(``tests/test_archive.py`` checks this): both run ``population.evaluation.play_step``.
 """
 
 from __future__ import annotations
@@ -21,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from ocv2.state import State
-from population.evaluation import PolicyApply
+from population.evaluation import PolicyApply, initial_carry, play_step
 
 __all__ = ["Recorded", "jitted_play_recorded", "jitted_play_recorded_pairs", "play_recorded", "play_recorded_pairs"]
 
@@ -37,29 +35,6 @@ class Recorded(NamedTuple):
     returns: jax.Array  # float32[E] sum of rewards
 
 
-class _Carry(NamedTuple):
-    state: State  # [E]
-    obs: jax.Array  # [E, N, ...]
-    hidden: tuple  # per seat [E, H]
-    start: jax.Array  # bool[E] (the recurrent reset flag)
-    key: jax.Array
-
-
-def _step(apply: PolicyApply, env, params: tuple, carry: _Carry, _unused):
-    # Mirrors population.evaluation._step (same key splits), and also returns the transition.
-    key, k_env, *k_seats = jax.random.split(carry.key, 2 + len(params))
-    hidden, actions = [], []
-    for seat, (p, k) in enumerate(zip(params, k_seats)):
-        h, logits, _ = apply(p, carry.hidden[seat], carry.obs[:, seat][None], carry.start[None])
-        hidden.append(h)
-        actions.append(jax.random.categorical(k, logits[0]).astype(jnp.int32))
-    joint = jnp.stack(actions, axis=1)
-    keys = jax.random.split(k_env, joint.shape[0])
-    out = jax.vmap(env.step_arrays)(keys, carry.state, joint)
-    transition = (joint, out.reward[:, 0], out.shaped_reward, out.done, out.terminal_state)
-    return _Carry(out.state, out.obs, tuple(hidden), out.done, key), transition
-
-
 def play_recorded(apply: PolicyApply, hidden_size: int, env, params: tuple, key: jax.Array,
                   episodes: int) -> Recorded:
     """One pair (one params per seat) plays ``episodes`` episodes; every transition is returned.
@@ -67,23 +42,20 @@ def play_recorded(apply: PolicyApply, hidden_size: int, env, params: tuple, key:
     The key is consumed exactly as ``play_episodes`` consumes it. Jit-compatible (``env``, ``apply``,
     ``hidden_size`` and ``episodes`` static); see ``jitted_play_recorded`` for a cached compiled copy.
     """
-    reset_keys = jax.random.split(jax.random.fold_in(key, 0), episodes)
-    state = jax.vmap(env.reset_state)(reset_keys)
-    obs = jax.vmap(env.get_obs_arrays)(state)
-    zeros = jnp.zeros((episodes, hidden_size), jnp.float32)
-    carry = _Carry(state, obs, (zeros,) * len(params), jnp.ones((episodes,), bool), jax.random.fold_in(key, 1))
-    step = lambda c, x: _step(apply, env, params, c, x)
-    _, (actions, rewards, shaped, dones, reached) = jax.lax.scan(step, carry, None, length=env.max_steps)
+    carry = initial_carry(hidden_size, env, len(params), key, episodes)
+    first = carry.state
+    step = lambda c, x: play_step(apply, env, params, c, x)
+    _, record = jax.lax.scan(step, carry, None, length=env.max_steps)
     # Episodes end only at max_steps, so the state reached by transition t is s_{t+1} of the same episode.
-    states = jax.tree.map(lambda first, later: jnp.concatenate([first[None], later]), state, reached)  # [T+1, E]
+    states = jax.tree.map(lambda s0, later: jnp.concatenate([s0[None], later]), first, record.reached)  # [T+1, E]
     time_second = lambda x: jnp.swapaxes(x, 0, 1)
     return Recorded(
         states=jax.tree.map(time_second, states),
-        actions=time_second(actions),
-        rewards=time_second(rewards).astype(jnp.float32),
-        shaped_rewards=time_second(shaped).astype(jnp.float32),
-        dones=time_second(dones),
-        returns=jnp.sum(rewards, axis=0).astype(jnp.float32),
+        actions=time_second(record.actions),
+        rewards=time_second(record.reward).astype(jnp.float32),
+        shaped_rewards=time_second(record.shaped_reward).astype(jnp.float32),
+        dones=time_second(record.done),
+        returns=jnp.sum(record.reward, axis=0).astype(jnp.float32),
     )
 
 
