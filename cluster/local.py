@@ -14,6 +14,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import serialization
 
 from cluster.progress import PopulationProgress
 from cluster.rundir import RunDir, RunDirError, metric_rows, write_json
@@ -69,6 +70,13 @@ def _params_template(trainer: ppo.Trainer):
     return _state_template(trainer, 1 if trainer.fcp else 0).params
 
 
+def _load_params(path, fingerprint: str, template):
+    """Only the network parameters of a seed's checkpoint (the rest of its TrainState is not needed)."""
+    _, raw = ckpt.read(path, fingerprint)
+    restored = serialization.from_state_dict(template, raw["params"])
+    return jax.tree.map(lambda t, x: jnp.asarray(x, t.dtype), template, restored)
+
+
 # ---------------------------------------------------------------------------------------------------
 # FCP partner pools
 # ---------------------------------------------------------------------------------------------------
@@ -93,16 +101,12 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[np.nda
         for name in fcp.checkpoints:
             update = ckpt.resolve_snapshot(name, snapshots)
             path = ckpt.checkpoint_path(partner_run, seed, update)
-            _, raw = ckpt.read(path, partner_config.fingerprint())
-            from flax import serialization
-
-            restored = serialization.from_state_dict(template, raw["params"])
-            params.append(jax.tree.map(lambda t, x: np.asarray(x, t.dtype), template, restored))
+            params.append(_load_params(path, partner_config.fingerprint(), template))
             labels.append(f"seed{seed}@{update}")
     return stack_params(params), labels
 
 
-def _fcp_pool(config: Config, trainer: ppo.Trainer, run: RunDir, resume: bool, show_progress: bool):
+def _fcp_pool(config: Config, trainer: ppo.Trainer, run: RunDir, show_progress: bool):
     fcp = config.population.fcp
     partner_run = Path(fcp.partners) if fcp.partners else run.path / "partners"
     if fcp.partners is None:
@@ -171,7 +175,7 @@ def train_population(config: Config, run_dir, *, resume: bool = False, show_prog
     schedule = Schedule.of(config)
     pool, pool_labels = None, []
     if method == "fcp":
-        pool, pool_labels = _fcp_pool(config, trainer, run, resume, show_progress)
+        pool, pool_labels = _fcp_pool(config, trainer, run, show_progress)
         pool = jax.tree.map(jnp.asarray, pool)
     pool_size = len(pool_labels)
     states, update = _restore(trainer, run, config, seeds, pool_size) if resuming else (None, 0)
@@ -246,11 +250,7 @@ def final_params(run_dir) -> tuple[Config, ppo.Trainer, object]:
         if not path.exists():
             raise RunDirError(f"{run_dir}: seed {seed} has not finished training (no {path.name}); "
                               "resume the run first")
-        _, raw = ckpt.read(path, config.fingerprint())
-        from flax import serialization
-
-        restored = serialization.from_state_dict(template, raw["params"])
-        params.append(jax.tree.map(lambda t, x: jnp.asarray(x, t.dtype), template, restored))
+        params.append(_load_params(path, config.fingerprint(), template))
     return config, trainer, stack_params(params)
 
 
