@@ -25,7 +25,6 @@ import argparse
 import csv
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -265,23 +264,9 @@ def curve(metrics: list[dict], field: str = "sparse_return"):
     return x, mean, std
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> str:
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=120, bbox_inches="tight")
-    os.replace(tmp, path)
-    return str(path)
-
-
 def write_curves(runs: list[dict], out: Path) -> list[str]:
+    from population.plots import pyplot, save_figure
+
     by_layout: dict[str, list[dict]] = {}
     for run in runs:
         by_layout.setdefault(run["config"].env_kwargs["layout"], []).append(run)
@@ -291,7 +276,7 @@ def write_curves(runs: list[dict], out: Path) -> list[str]:
         lines = [(run, c) for run, c in lines if c is not None]
         if not lines:
             continue
-        plt = _pyplot()
+        plt = pyplot()
         fig, ax = plt.subplots(figsize=(6.5, 4))
         for run, (x, mean, std) in lines:
             config = run["config"]
@@ -304,7 +289,7 @@ def write_curves(runs: list[dict], out: Path) -> list[str]:
         ax.set_title(layout)
         ax.grid(alpha=0.3)
         ax.legend(loc="upper left", fontsize=7)
-        paths.append(_save(fig, out / f"curves_{layout}.png"))
+        paths.append(save_figure(fig, out / f"curves_{layout}.png"))
         plt.close(fig)
     return paths
 

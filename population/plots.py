@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend."""
     import matplotlib
 
     matplotlib.use("Agg")  # files only; never needs a display
@@ -17,7 +18,8 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path) -> str:
+def save_figure(fig, path) -> str:
+    """Save atomically (temporary name, then rename); creates missing folders."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
@@ -28,7 +30,7 @@ def _save(fig, path) -> str:
 
 def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, title: str = "") -> str:
     """``curves[name]`` is [S, U] (seeds x updates, NaN where no episode had finished yet)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(curves), figsize=(5 * len(curves), 3.6), squeeze=False)
     for ax, (name, values) in zip(axes[0], curves.items()):
         values = np.asarray(values, np.float64)
@@ -45,14 +47,14 @@ def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, titl
         ax.legend(loc="upper left", fontsize=8)
     if title:
         fig.suptitle(title)
-    out = _save(fig, path)
+    out = save_figure(fig, path)
     plt.close(fig)
     return out
 
 
 def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: float | None = None) -> str:
     """Cross-play heatmap like the paper's Figure 4: rows = seat 0, columns = seat 1, annotated cells."""
-    plt = _pyplot()
+    plt = pyplot()
     matrix = np.asarray(matrix, np.float64)
     num = matrix.shape[0]
     labels = labels or [str(i) for i in range(num)]
@@ -73,6 +75,6 @@ def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: flo
                         color="white" if value < 0.6 * top else "black")
     if title:
         ax.set_title(title)
-    out = _save(fig, path)
+    out = save_figure(fig, path)
     plt.close(fig)
     return out
