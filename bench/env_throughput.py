@@ -38,7 +38,6 @@ import gc
 import json
 import os
 import platform
-import re
 import statistics
 import sys
 import time
@@ -46,6 +45,8 @@ from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
+
+from sections import write_section  # bench/ is sys.path[0] when a script runs
 
 DEFAULT_LAYOUTS = ["cramped_room", "counter_circuit", "grounded_coord_simple", "demo_cook_wide"]
 DEFAULT_VIEWS = ["none", "2"]
@@ -482,22 +483,6 @@ def build_markdown(info, args, command, table, summary, split_md, split_cfg, spl
     return "\n".join(out)
 
 
-def write_markdown(path: str, block: str) -> None:
-    if os.path.exists(path):
-        with open(path) as f:
-            text = f.read()
-        pattern = re.compile(re.escape(START_MARK) + r".*?" + re.escape(END_MARK), re.S)
-        if pattern.search(text):
-            text = pattern.sub(lambda _m: block, text, count=1)
-        else:
-            text = text.rstrip("\n") + "\n\n" + block + "\n"
-    else:
-        os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-        text = "# Benchmarks\n\n" + block + "\n"
-    with open(path, "w") as f:
-        f.write(text)
-
-
 # ---------------------------------------------------------------------------- main
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -622,7 +607,7 @@ def main(argv=None):
     if args.out:
         block = build_markdown(info, args, command, table, summary, split_md,
                                (args.split_layout, args.split_batch), split_results, rows_by_cfg, wall_s)
-        write_markdown(args.out, block)
+        write_section(args.out, block, START_MARK, END_MARK)
         log(f"wrote {args.out}")
     if args.json:
         payload = {

@@ -22,13 +22,14 @@ import csv
 import datetime as _dt
 import os
 import platform
-import re
 import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from sections import write_section  # bench/ is sys.path[0] when a script runs
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -92,7 +93,7 @@ def main(argv=None) -> int:
     if args.plot:
         _plot(rows, args.plot, random_return, config)
     if args.out:
-        _write_block(args.out, table)
+        write_section(args.out, table, START, END)
     return 0
 
 
@@ -154,14 +155,6 @@ def _plot(rows, path, random_return, config):
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
-
-
-def _write_block(path, block):
-    text = open(path).read() if os.path.exists(path) else "# Benchmarks\n"
-    pattern = re.compile(re.escape(START) + r".*?" + re.escape(END), re.S)
-    text = pattern.sub(lambda _m: block, text, count=1) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block + "\n"
-    with open(path, "w") as handle:
-        handle.write(text)
 
 
 if __name__ == "__main__":

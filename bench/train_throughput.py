@@ -28,13 +28,14 @@ import argparse
 import datetime as _dt
 import os
 import platform
-import re
 import statistics
 import sys
 import time
 
 import jax
 import jax.numpy as jnp
+
+from sections import write_section  # bench/ is sys.path[0] when a script runs
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -131,14 +132,6 @@ def table(results, repeats: int) -> str:
     return "\n".join(lines)
 
 
-def write_block(path: str, block: str) -> None:
-    text = open(path).read() if os.path.exists(path) else "# Benchmarks\n"
-    pattern = re.compile(re.escape(START) + r".*?" + re.escape(END), re.S)
-    text = pattern.sub(lambda _m: block, text, count=1) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block + "\n"
-    with open(path, "w") as handle:
-        handle.write(text)
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--configs", nargs="+", default=["rnn", "cnn"], choices=sorted(CONFIGS))
@@ -155,7 +148,7 @@ def main(argv=None) -> int:
     block = table(results, args.repeats)
     print(block)
     if args.out:
-        write_block(args.out, block)
+        write_section(args.out, block, START, END)
     return 0
 
 
