@@ -17,7 +17,7 @@ import numpy as np
 from flax import serialization
 
 from cluster.progress import PopulationProgress
-from cluster.rundir import RunDir, RunDirError, metric_rows, write_json
+from cluster.rundir import RunDir, RunDirError, metric_rows, write_csv, write_json
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import Config
@@ -268,10 +268,10 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     summary["wall_s"] = round(time.perf_counter() - started, 2)
     run = RunDir(run_dir)
     num = result.matrix.shape[0]
-    _write_csv(run.sub("xp", "matrix.csv"), ["seat0\\seat1"] + [f"seed_{j}" for j in range(num)],
+    write_csv(run.sub("xp", "matrix.csv"), ["seat0\\seat1"] + [f"seed_{j}" for j in range(num)],
                [[f"seed_{i}"] + [round(float(v), 4) for v in result.matrix[i]] for i in range(num)])
     names = recipe_names(env)
-    _write_csv(run.sub("xp", "episodes.csv"), ["seat0", "seat1", "episode", "return", "start_recipe"],
+    write_csv(run.sub("xp", "episodes.csv"), ["seat0", "seat1", "episode", "return", "start_recipe"],
                [[i, j, e, float(result.returns[i, j, e]), names.get(int(result.start_recipe[i, j, e]), "")]
                 for i in range(num) for j in range(num) for e in range(episodes)])
     write_json(run.sub("xp", "summary.json"), summary)
@@ -351,15 +351,3 @@ def archive_cross_play(run_dir, episodes: int) -> str | None:
             record_pairs(writer, trainer.network.apply, hidden_size(trainer), env,
                          gather_params(params, [i] * num), params, keys, episodes, metas)
     return str(path)
-
-
-def _write_csv(path: Path, header, rows) -> None:
-    import csv
-    import os
-
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(header)
-        writer.writerows(rows)
-    os.replace(tmp, path)

@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -111,12 +112,8 @@ class RunDir:
         if not rows:
             return
         kept = [r for r in rows if int(float(r["update"])) <= after_update]
-        tmp = self.metrics_path.with_suffix(".tmp")
-        with open(tmp, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0].keys()))
-            writer.writeheader()
-            writer.writerows(kept)
-        os.replace(tmp, self.metrics_path)
+        header = list(rows[0].keys())
+        write_csv(self.metrics_path, header, [[r[k] for k in header] for r in kept])
 
     def read_metrics(self) -> list[dict]:
         if not self.metrics_path.exists():
@@ -163,8 +160,18 @@ def _json_default(value):
 def _atomic_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
+    with open(tmp, "w", newline="") as handle:  # newline="": CSV rows keep their \r\n
+        handle.write(text)
     os.replace(tmp, path)
+
+
+def write_csv(path: Path, header, rows) -> None:
+    """A CSV file written atomically (a reader sees the old or the new file, never half of one)."""
+    buffer = io.StringIO(newline="")
+    writer = csv.writer(buffer)
+    writer.writerow(header)
+    writer.writerows(rows)
+    _atomic_text(Path(path), buffer.getvalue())
 
 
 def write_json(path: Path, data) -> None:
