@@ -66,7 +66,7 @@ def add_xp(sub) -> argparse.ArgumentParser:
 
 def run_xp(args) -> int:
     from cluster.errors import EXIT_OK, CLIError
-    from cluster.local import evaluate_run
+    from cluster.evaluate import evaluate_run
     from cluster.rundir import RunDirError
     from population.checkpoints import CheckpointError
 

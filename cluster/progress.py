@@ -1,4 +1,4 @@
-"""One live progress view for a whole population: updates, env steps/s, recent return, ETA."""
+"""One live progress view for a whole population: updates, env steps/s, recent return, ETA, restarts."""
 
 from __future__ import annotations
 
@@ -45,24 +45,33 @@ class PopulationProgress:
         elif self.enabled:
             print(f"  {text}", flush=True)
 
-    def advance_to(self, update: int, metrics, steps_per_s: float | None = None) -> None:
+    def advance_to(self, update: int, rows, steps_per_s: float | None = None, restarts: int = 0) -> None:
+        """``rows``: the metrics.csv rows of the chunk that ended at ``update`` (None: just move the bar)."""
         if self.first_update is None:
             self.first_update, self.started = update, time.perf_counter()
-        if metrics is None:
+        if rows is None:
             if self._bar is not None:
                 self._bar.update(self._task, completed=update)
             return
-        sparse = np.asarray(metrics.sparse_return)[:, -1]
-        shaped = np.asarray(metrics.shaped_return)[:, -1]
-        ret = _fmt(sparse)
+        sparse, shaped = _latest(rows, "sparse_return"), _latest(rows, "shaped_return")
         elapsed = time.perf_counter() - self.started
         done = update - self.first_update
         eta = elapsed / done * (self.total - update) if done else math.nan
-        info = (f"{steps_per_s or 0:,.0f} env steps/s  return {ret}  shaped {_fmt(shaped)}")
+        info = f"{steps_per_s or 0:,.0f} env steps/s  return {_fmt(sparse)}  shaped {_fmt(shaped)}"
+        if restarts:
+            info += f"  worker restarts {restarts}"
         if self._bar is not None:
             self._bar.update(self._task, completed=update, info=info)
         elif self.enabled:
             print(f"  update {update}/{self.total}  {info}  ETA {_duration(eta)}", flush=True)
+
+
+def _latest(rows, name: str) -> np.ndarray:
+    """Each seed's value of ``name`` at its last row ("" -- no episode finished yet -- is NaN)."""
+    last = {}
+    for row in rows:
+        last[row["seed"]] = row[name]
+    return np.asarray([np.nan if v == "" else float(v) for v in last.values()], np.float64)
 
 
 def _fmt(values: np.ndarray) -> str:

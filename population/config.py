@@ -1,7 +1,8 @@
 """Experiment configuration: YAML parsed once into frozen, typed, validated dataclasses.
 
 Sections: ``env`` (the ``ocv2.make`` parameters), ``model``, ``ppo`` (the paper's hyperparameter names in
-lower case), ``population`` (method and per-method settings), ``eval`` and ``run``. Every error names
+lower case), ``population`` (method and per-method settings), ``eval``, ``run``, ``archive`` (what goes
+into the MCAP trajectory archive) and ``cluster`` (Ray resources; ignored by the local backend). Every error names
 the offending key (``ppo.num_minibatches``) and, when loaded from a file, the file.
 
     config = load_config("configs/quickstart.yaml", overrides=["ppo.total_timesteps=1e5"])
@@ -143,6 +144,44 @@ class RunConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ArchiveConfig:
+    """The MCAP trajectory archive under RUN_DIR/archive/ (both backends; see docs/archive.md).
+
+    Cross-play episodes are set by ``eval.archive_episodes``. ``sa_collection``: every SA collection
+    episode (all states, not only the kept ones) -> ``archive/sa/iteration_<k>.mcap``. ``train_every``:
+    every N updates each seed's current policy plays one self-play episode -> ``archive/train/`` (0: off).
+    ``foxglove``: add a rendered-frame channel for Foxglove Studio (~10x larger files).
+    """
+
+    sa_collection: bool = True
+    train_every: int = 0
+    foxglove: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class ClusterConfig:
+    """The Ray backend (``ocv2 train`` default). Nothing here changes training numbers.
+
+    ``address``: None starts Ray on this machine; "auto" or "HOST:PORT" joins a running cluster.
+    ``seeds_per_actor`` seeds are vmapped in one actor (a GPU wants several); ``workers`` (0: as many
+    as needed) caps the number of actors instead, spreading seeds evenly. ``num_cpus``/``num_gpus`` are
+    per actor (fractional on a laptop: Ray's default of 1 CPU would leave actors pending on 2 cores).
+    ``gpu_memory_fraction``: 0 grows GPU memory on demand (several actors can share a GPU); otherwise
+    each actor preallocates that fraction. ``max_restarts``: Ray restarts of a dead worker actor.
+    ``local_cpus``: logical CPUs of a Ray started on this machine (0: Ray detects them).
+    """
+
+    address: str | None = None
+    workers: int = 0
+    seeds_per_actor: int = 1
+    num_cpus: float = 0.5
+    num_gpus: float = 0.0
+    gpu_memory_fraction: float = 0.0
+    max_restarts: int = 3
+    local_cpus: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     env: tuple[tuple[str, Any], ...] = (("layout", "cramped_room"),)
     model: ModelConfig = ModelConfig()
@@ -150,6 +189,8 @@ class Config:
     population: PopulationConfig = PopulationConfig()
     eval: EvalConfig = EvalConfig()
     run: RunConfig = RunConfig()
+    archive: ArchiveConfig = ArchiveConfig()
+    cluster: ClusterConfig = ClusterConfig()
 
     @property
     def env_kwargs(self) -> dict:
@@ -159,11 +200,11 @@ class Config:
     def to_dict(self) -> dict:
         """Plain YAML/JSON-able form (round-trips through ``parse_config``)."""
         out = {"env": self.env_kwargs}
-        for name in ("model", "ppo", "population", "eval", "run"):
+        for name in SECTIONS[1:]:
             out[name] = _plain(dataclasses.asdict(getattr(self, name)))
         return out
 
-    def fingerprint(self, exclude: Sequence[str] = ("eval", "run")) -> str:
+    def fingerprint(self, exclude: Sequence[str] = ("eval", "run", "archive", "cluster")) -> str:
         """A hash of everything that changes training numbers (checkpoints from another config are refused)."""
         data = {k: v for k, v in self.to_dict().items() if k not in exclude}
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
@@ -183,7 +224,7 @@ def _plain(value):
 
 METHODS = ("sp", "sa", "op", "fcp")
 ACTIVATIONS = ("relu", "tanh")
-SECTIONS = ("env", "model", "ppo", "population", "eval", "run")
+SECTIONS = ("env", "model", "ppo", "population", "eval", "run", "archive", "cluster")
 
 
 def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> Config:
@@ -241,7 +282,9 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     population = dataclasses.replace(_parse_section("population", PopulationConfig, pop_raw), **subs)
     config = Config(env=env, model=model, ppo=ppo, population=population,
                     eval=_parse_section("eval", EvalConfig, raw.get("eval")),
-                    run=_parse_section("run", RunConfig, raw.get("run")))
+                    run=_parse_section("run", RunConfig, raw.get("run")),
+                    archive=_parse_section("archive", ArchiveConfig, raw.get("archive")),
+                    cluster=_parse_cluster(raw.get("cluster")))
     _validate(config)
     return config
 
@@ -326,6 +369,13 @@ def _parse_env(raw) -> tuple[tuple[str, Any], ...]:
     return frozen
 
 
+def _parse_cluster(raw) -> ClusterConfig:
+    if isinstance(raw, Mapping) and "checkpoint_every" in raw:
+        raise ConfigError("cluster.checkpoint_every: checkpoints are set by run.checkpoint_every, which both "
+                          "backends use (it is also the chunk between coordinator steps)")
+    return _parse_section("cluster", ClusterConfig, raw)
+
+
 def _resolve_model(model: ModelConfig) -> ModelConfig:
     if model.kind not in _MODEL_DEFAULTS:
         raise ConfigError(f"model.kind: expected one of {', '.join(_MODEL_DEFAULTS)}, got {model.kind!r}")
@@ -403,8 +453,43 @@ def _validate(config: Config) -> None:
     _positive("eval.gifs", config.eval.gifs, allow_zero=True)
     _positive("eval.archive_episodes", config.eval.archive_episodes, allow_zero=True)
     _positive("run.checkpoint_every", config.run.checkpoint_every)
+    _positive("archive.train_every", config.archive.train_every, allow_zero=True)
+    _validate_cluster(config.cluster, pop.num_seeds)
     if config.run.num_checkpoints < 2:
         raise ConfigError(f"run.num_checkpoints: must be >= 2 (initial and final), got {config.run.num_checkpoints}")
+
+
+def _validate_cluster(cluster: ClusterConfig, num_seeds: int) -> None:
+    if cluster.address is not None:
+        address = cluster.address.strip()
+        host, _, port = address.rpartition(":")
+        if address != "auto" and not (host and port.isdigit()) and not address.startswith("ray://"):
+            raise ConfigError(f"cluster.address: expected auto, HOST:PORT or ray://HOST:PORT, got {cluster.address!r}")
+    _positive("cluster.workers", cluster.workers, allow_zero=True)
+    _positive("cluster.seeds_per_actor", cluster.seeds_per_actor)
+    if cluster.workers and cluster.seeds_per_actor != 1:
+        raise ConfigError("cluster.workers: set either workers or seeds_per_actor, not both")
+    if cluster.workers > num_seeds:
+        raise ConfigError(f"cluster.workers: {cluster.workers} actors for {num_seeds} seeds (at most one per seed)")
+    _positive("cluster.num_cpus", cluster.num_cpus)
+    _positive("cluster.num_gpus", cluster.num_gpus, allow_zero=True)
+    if not 0.0 <= cluster.gpu_memory_fraction < 1.0:
+        raise ConfigError(f"cluster.gpu_memory_fraction: must lie in [0, 1), got {cluster.gpu_memory_fraction}")
+    _positive("cluster.max_restarts", cluster.max_restarts, allow_zero=True)
+    _positive("cluster.local_cpus", cluster.local_cpus, allow_zero=True)
+
+
+def shards(config: Config) -> list[list[int]]:
+    """The seeds each Ray worker actor trains: consecutive blocks, as even as possible."""
+    seeds, cluster = list(range(config.population.num_seeds)), config.cluster
+    count = cluster.workers or math.ceil(len(seeds) / cluster.seeds_per_actor)
+    size, extra = divmod(len(seeds), count)
+    blocks, start = [], 0
+    for index in range(count):
+        end = start + size + (index < extra)
+        blocks.append(seeds[start:end])
+        start = end
+    return blocks
 
 
 def dump_config(config: Config, path: str | os.PathLike) -> None:

@@ -40,20 +40,41 @@ def pair_key(key: jax.Array, pair: tuple[int, int], num_policies: int) -> jax.Ar
 def collect_pair_states(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array, sa: SAConfig,
                         pairs: Sequence[tuple[int, int]] | None = None) -> PairStates:
     """Play the given ordered pairs of the K stacked ``params`` and keep every ``keep_every``-th state."""
+    return collect_pairs(apply, hidden_size, env, params, key, sa, pairs)[0]
+
+
+def collect_pairs(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array, sa: SAConfig,
+                  pairs: Sequence[tuple[int, int]] | None = None, record: bool = False):
+    """``(PairStates, Recorded | None)``: the kept states and, with ``record``, every transition.
+
+    Recording plays the very same episodes (same keys, same ``play_step``) and keeps everything; the
+    kept states are then its states at t = 0, k, 2k, ..., so the buffer does not depend on ``record``.
+    """
     num = jax.tree.leaves(params)[0].shape[0]
     pairs = tuple(all_pairs(num) if pairs is None else (tuple(p) for p in pairs))
     for i, j in pairs:
         if not (0 <= i < num and 0 <= j < num):
             raise ValueError(f"pair ({i}, {j}) is out of range for {num} policies")
-    play = _jitted_collect(apply, hidden_size, env, sa.rollouts_per_pair, sa.keep_every)
-    blocks = []
+    if record:
+        from population.record import jitted_play_recorded_pairs
+
+        play = jitted_play_recorded_pairs(apply, hidden_size, env, sa.rollouts_per_pair)
+        kept_steps = env.max_steps // sa.keep_every * sa.keep_every
+    else:
+        play = _jitted_collect(apply, hidden_size, env, sa.rollouts_per_pair, sa.keep_every)
+    blocks, records = [], []
     for start in range(0, len(pairs), max(num, 1)):  # at most K parameter copies per call
         chunk = pairs[start:start + num]
         keys = jnp.stack([pair_key(key, p, num) for p in chunk])
         result = play(gather_params(params, [p[0] for p in chunk]), gather_params(params, [p[1] for p in chunk]), keys)
-        blocks.append(jax.tree.map(lambda x: x.reshape((x.shape[0], -1) + x.shape[3:]), result.states))
-    states = jax.tree.map(lambda *xs: jnp.concatenate(xs), *blocks)
-    return PairStates(pairs, states)
+        if record:
+            records.append(result)
+            kept = jax.tree.map(lambda x: x[:, :, 0:kept_steps:sa.keep_every], result.states)
+        else:
+            kept = result.states
+        blocks.append(jax.tree.map(lambda x: x.reshape((x.shape[0], -1) + x.shape[3:]), kept))
+    concat = lambda parts: jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+    return PairStates(pairs, concat(blocks)), (concat(records) if record else None)
 
 
 @functools.lru_cache(maxsize=16)

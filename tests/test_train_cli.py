@@ -18,12 +18,13 @@ import jax
 import numpy as np
 import pytest
 
-from cluster import local
+from cluster import coordinator, evaluate, runstate
 from cluster.cli import main
 from cluster.rundir import METRIC_FIELDS, RunDir, RunDirError
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import dump_config, load_config
+from population.sa import collect_buffer
 
 SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
 NUM_SEEDS, NUM_UPDATES, SNAPSHOTS = 2, 4, [0, 2, 4]  # smoke.yaml: 512 steps / (4 envs x 32 steps); 3 snapshots
@@ -169,8 +170,8 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
 
     config = RunDir(run).load_config()
     trainer = ppo.make_trainer(config)
-    template = local._state_template(trainer, 0)
-    schedule = local.Schedule.of(config)
+    template = runstate.state_template(trainer, 0)
+    schedule = runstate.Schedule.of(config)
     assert schedule.iteration_starts == (0, 2)
 
     def params_at(update):
@@ -182,7 +183,9 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
     untrained = params_at(0)
     _assert_trees_equal(untrained, ppo.init_population(trainer, range(NUM_SEEDS)).params)
     for iteration, update in enumerate(schedule.iteration_starts):  # ... the second from the update-2 policies
-        expected = local._collect(config, trainer, params_at(update), iteration)
+        expected = collect_buffer(trainer.network.apply, runstate.hidden_size(trainer), ppo.eval_env(config),
+                                  params_at(update), runstate.population_key(config, runstate.SA_KEY_OFFSET + iteration),
+                                  config.population.sa)
         meta, stored = ckpt.load(run / "sa" / f"buffer_{iteration:03d}.msgpack", expected, config.fingerprint())
         assert meta["iteration"] == iteration and meta["states"] == NUM_SEEDS ** 2 * 2 * 4
         _assert_trees_equal(stored, expected)
@@ -232,7 +235,7 @@ def test_fcp_reuses_a_given_partner_run(sp_run, tmp_path):
     assert manifest(run)["pool"] == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
     # The pool is exactly those checkpoints' parameters.
     config = RunDir(run).load_config()
-    pool, labels = local.load_pool(config, ppo.make_trainer(config), sp_run)
+    pool, labels = coordinator.load_pool(config, ppo.make_trainer(config), sp_run)
     assert labels == manifest(run)["pool"]
     for index, (seed, update) in enumerate([(0, 2), (0, 4), (1, 2), (1, 4)]):
         stored = _raw_checkpoint(sp_run, seed, update)["params"]
@@ -288,8 +291,8 @@ def test_resume_after_an_interruption_matches_the_uninterrupted_run(sp_run, tmp_
     assert manifest(run)["status"] == "finished" and manifest(run)["update"] == NUM_UPDATES
     for seed in range(NUM_SEEDS):  # whole TrainStates, bit for bit
         _assert_trees_equal(_raw_checkpoint(run, seed, NUM_UPDATES), _raw_checkpoint(sp_run, seed, NUM_UPDATES))
-    _, _, resumed = local.final_params(run)
-    _, _, original = local.final_params(sp_run)
+    _, _, resumed = evaluate.final_params(run)
+    _, _, original = evaluate.final_params(sp_run)
     _assert_trees_equal(resumed, original)
 
     rows = read_csv(run / "metrics.csv")
@@ -370,9 +373,9 @@ def test_checkpoint_of_another_config_is_refused(sp_run, tmp_path, capsys):
     RunDir(other).create(config)
     shutil.copytree(sp_run / "checkpoints", other / "checkpoints")
     with pytest.raises(ckpt.CheckpointError, match="different config"):
-        local.final_params(other)
+        evaluate.final_params(other)
     with pytest.raises(ckpt.CheckpointError, match="different config"):
-        local.evaluate_run(other, episodes=1, show_progress=False)
+        evaluate.evaluate_run(other, episodes=1, show_progress=False)
     assert main(["xp", str(other), "--episodes", "1"]) == 2
     assert "different config" in capsys.readouterr().err
     # Resuming it is refused the same way (the checkpoints, not the directory, are foreign).
@@ -386,13 +389,13 @@ def test_unfinished_run_cannot_be_evaluated(sp_run, tmp_path, capsys):
     for seed in range(NUM_SEEDS):
         ckpt.checkpoint_path(run, seed, NUM_UPDATES).unlink()
     with pytest.raises(RunDirError, match="has not finished training"):
-        local.final_params(run)
+        evaluate.final_params(run)
     assert main(["xp", str(run)]) == 2
     assert "resume the run first" in capsys.readouterr().err
 
 
 def test_schedule_stops_at_snapshots_checkpoints_and_sa_iterations():
-    schedule = local.Schedule.of(load_config(SMOKE, ["population.method=sa", "run.checkpoint_every=3"]))
+    schedule = runstate.Schedule.of(load_config(SMOKE, ["population.method=sa", "run.checkpoint_every=3"]))
     assert schedule.snapshots == (0, 2, 4) and schedule.iteration_starts == (0, 2)
     stops, update = [], 0
     while update < schedule.num_updates:

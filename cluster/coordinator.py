@@ -1,0 +1,279 @@
+"""The coordinator: drives a population method over shards of seeds, whatever runs the shards.
+
+Both backends use this loop; they differ only in their ``Workers``: the local backend calls one
+in-process ``SeedShard`` holding every seed, the Ray backend one actor per shard (with retries when
+an actor dies and is restarted). Per chunk of updates (``run.checkpoint_every``, snapshots and SA
+iteration starts are stops too) the coordinator
+
+1. SA, at an iteration start: gathers every shard's params, spreads the all-pairs collection over
+   the shards, merges the pair results (keyed by pair, so a retried task cannot count twice), saves
+   the buffer to ``sa/buffer_<k>.msgpack`` (a resumed run reloads it) and shares it once;
+2. asks every shard to advance to the stop and merges the returned metrics rows keyed by
+   (seed, update) into ``metrics.csv``;
+3. updates the manifest, the progress view, and (``archive.train_every``) the training archive.
+
+FCP pools come from an SP run directory or an SP stage trained first with the same backend. After
+training, cross-play is spread over the shards too (``cluster.evaluate``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Callable, Protocol, Sequence
+
+import jax
+import numpy as np
+
+from cluster.progress import PopulationProgress
+from cluster.rundir import RunDir, RunDirError
+from cluster.runstate import SA_KEY_OFFSET, Schedule, load_params, params_template
+from cluster.shard import SABuffer
+from population import checkpoints as ckpt
+from population import ppo
+from population.config import Config
+from population.evaluation import stack_params
+from population.sa import PairStates, all_pairs, merge_buffers
+
+
+class Workers(Protocol):
+    """What the coordinator needs from a backend."""
+
+    shards: list[list[int]]  # seed indices of each shard
+
+    def call(self, method: str, jobs: Sequence[tuple[int, tuple]]) -> list:
+        """Run ``SeedShard.<method>(*args)`` for each (shard index, args); results in job order."""
+
+    def share(self, value):
+        """A handle to pass ``value`` to many calls without copying it per call (Ray: ``ray.put``)."""
+
+    def restarts(self) -> int:
+        """Worker restarts so far (0 for in-process shards)."""
+
+    def close(self) -> None: ...
+
+
+WorkersFactory = Callable[[Config, Path, object], Workers]  # (config, run_dir, FCP pool or None)
+
+
+def spread(items: Sequence, parts: int) -> list[list]:
+    """``items`` in ``parts`` consecutive blocks as even as possible (some empty if too few items)."""
+    size, extra = divmod(len(items), parts)
+    blocks, start = [], 0
+    for index in range(parts):
+        end = start + size + (index < extra)
+        blocks.append(list(items[start:end]))
+        start = end
+    return blocks
+
+
+def spread_jobs(workers: Workers, items: Sequence, make_args: Callable[[list], tuple]) -> list[tuple[int, tuple]]:
+    return [(shard, make_args(block)) for shard, block in enumerate(spread(items, len(workers.shards))) if block]
+
+
+def gather_params(workers: Workers):
+    """All seeds' current params stacked in seed order (numpy)."""
+    parts = workers.call("params", [(i, ()) for i in range(len(workers.shards))])
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
+
+
+# ---------------------------------------------------------------------------------------------------
+# SA buffer
+# ---------------------------------------------------------------------------------------------------
+
+def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, template) -> SABuffer:
+    """The iteration's buffer: loaded if this run already collected it (resume), else collected and saved.
+
+    Collection episodes go to ``archive/sa/iteration_<k>.mcap`` first (``archive.sa_collection``);
+    the buffer file is written last, so its presence means the iteration is complete.
+    """
+    path = run.path / "sa" / f"buffer_{iteration:03d}.msgpack"
+    if path.exists():
+        return SABuffer(iteration, ckpt.load(path, template, config.fingerprint())[1])
+    params = workers.share(gather_params(workers))
+    num = config.population.num_seeds
+    record = config.archive.sa_collection
+    results = workers.call("collect", spread_jobs(workers, all_pairs(num), lambda pairs: (params, pairs, iteration, record)))
+    by_pair = {}
+    for result in results:  # keyed by pair: a task that ran twice overwrites its own entry
+        for index, pair in enumerate(result.pairs):
+            recorded = None if result.recorded is None else jax.tree.map(lambda x: x[index], result.recorded)
+            by_pair[tuple(pair)] = (jax.tree.map(lambda x: x[index], result.states), recorded)
+    missing = [p for p in all_pairs(num) if p not in by_pair]
+    if missing:
+        raise RuntimeError(f"SA iteration {iteration}: no states for pairs {missing}")
+    if record:
+        _archive_collection(config, run, iteration, by_pair)
+    pairs = sorted(by_pair)
+    buffer = merge_buffers([PairStates(tuple(pairs), jax.tree.map(lambda *xs: np.stack(xs),
+                                                                   *[by_pair[p][0] for p in pairs]))])
+    buffer = jax.tree.map(np.asarray, buffer)
+    ckpt.save(path, buffer, config.fingerprint(), iteration=iteration, states=int(buffer.step.shape[0]))
+    return SABuffer(iteration, buffer)
+
+
+def _archive_collection(config: Config, run: RunDir, iteration: int, by_pair: dict) -> None:
+    from cluster.archive import ArchiveWriter, env_meta, record_episodes
+
+    env = ppo.eval_env(config)
+    base = {**env_meta(env), "method": config.population.method, "kind": "sa-collection", "iteration": iteration,
+            "config_fingerprint": config.fingerprint()}
+    path = run.sub("archive", "sa", f"iteration_{iteration:03d}.mcap")
+    with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:
+        for (i, j) in sorted(by_pair):
+            record_episodes(writer, env, by_pair[(i, j)][1],
+                            {**base, "policies": [f"seed_{i}", f"seed_{j}"], "seeds": [i, j]})
+
+
+def sa_template(config: Config, trainer: ppo.Trainer):
+    """Shapes of an iteration's buffer (to load a saved one) without playing anything."""
+    from population.sa import buffer_size
+
+    env = ppo.eval_env(config)
+    one = jax.eval_shape(env.reset_state, jax.random.PRNGKey(0))
+    size = buffer_size(config.population.num_seeds, config.population.sa, env.max_steps)
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct((size,) + x.shape, x.dtype), one)
+
+
+# ---------------------------------------------------------------------------------------------------
+# FCP partner pools
+# ---------------------------------------------------------------------------------------------------
+
+def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object, list[str]]:
+    """Stack the pool of frozen partners from an SP run directory: partner_seeds x checkpoints."""
+    fcp = config.population.fcp
+    source = RunDir(partner_run)
+    if not source.config_path.exists():
+        raise RunDirError(f"population.fcp.partners: {partner_run} is not an ocv2 run directory (no config.yaml)")
+    partner_config = source.load_config()
+    if partner_config.env != config.env or partner_config.model != config.model:
+        raise RunDirError(f"population.fcp.partners: {partner_run} was trained with a different env or model "
+                          "section; FCP partners must play the same game with the same network")
+    if partner_config.population.num_seeds < fcp.partner_seeds:
+        raise RunDirError(f"population.fcp.partner_seeds: {fcp.partner_seeds} requested but {partner_run} has "
+                          f"{partner_config.population.num_seeds} seeds")
+    snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
+    template = params_template(trainer)
+    params, labels = [], []
+    for seed in range(fcp.partner_seeds):
+        for name in fcp.checkpoints:
+            update = ckpt.resolve_snapshot(name, snapshots)
+            path = ckpt.checkpoint_path(partner_run, seed, update)
+            params.append(load_params(path, partner_config.fingerprint(), template))
+            labels.append(f"seed{seed}@{update}")
+    return jax.tree.map(np.asarray, stack_params(params)), labels
+
+
+def fcp_pool(config: Config, run: RunDir, factory: WorkersFactory, show_progress: bool):
+    """The FCP pool: from ``population.fcp.partners``, or an SP stage trained into RUN_DIR/partners first."""
+    fcp = config.population.fcp
+    partner_run = Path(fcp.partners) if fcp.partners else run.path / "partners"
+    if fcp.partners is None:
+        stage = dataclasses.replace(config, population=dataclasses.replace(
+            config.population, method="sp", num_seeds=fcp.partner_seeds, seed=config.population.seed + 7919))
+        stage_dir = RunDir(partner_run)
+        finished = stage_dir.config_path.exists() and stage_dir.read_manifest().get("status") == "finished"
+        if not finished:
+            train(stage, partner_run, factory, resume=stage_dir.config_path.exists(), show_progress=show_progress,
+                  evaluate=False, label="FCP partner stage (SP)")
+    return load_pool(config, ppo.make_trainer(config), partner_run)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the training loop
+# ---------------------------------------------------------------------------------------------------
+
+def merge_rows(results, since: int) -> list[dict]:
+    """Rows of (since, ...] from every shard, each (seed, update) once, ordered by seed then update."""
+    merged = {}
+    for result in results:
+        for row in result.rows:
+            if row["update"] > since:
+                merged[(row["seed"], row["update"])] = row
+    return [merged[k] for k in sorted(merged)]
+
+
+def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = False, show_progress: bool = True,
+          evaluate: bool = True, label: str | None = None, on_chunk: Callable | None = None) -> dict:
+    """Train (or resume) a population into ``run_dir`` with the given backend; then evaluate.
+
+    ``on_chunk(update, workers)`` is called after every merged chunk (tests use it to kill workers).
+    """
+    from cluster.evaluate import post_training
+
+    run = RunDir(run_dir)
+    resuming = run.create(config, resume=resume)
+    method = config.population.method
+    schedule = Schedule.of(config)
+    pool, pool_labels = (fcp_pool(config, run, factory, show_progress) if method == "fcp" else (None, []))
+    workers = factory(config, run.path, pool)
+    try:
+        # Shards restore themselves; the slowest decides where the population stands.
+        update = min(workers.call("position", [(i, ()) for i in range(len(workers.shards))]))
+        run.truncate_metrics(update)
+        run.update_manifest(status="training", method=method, num_updates=schedule.num_updates, update=update,
+                            snapshots=list(schedule.snapshots), pool=pool_labels,
+                            seeds=list(range(config.population.num_seeds)), shards=workers.shards,
+                            resumed_from=update if resuming else None)
+        _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk)
+        summary = {"run_dir": str(run.path), "updates": schedule.num_updates, "restarts": workers.restarts()}
+        if evaluate:
+            summary.update(post_training(run.path, workers, show_progress=show_progress))
+    finally:
+        workers.close()
+    run.update_manifest(status="finished", restarts=summary["restarts"])
+    return summary
+
+
+def _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk) -> None:
+    trainer = ppo.make_trainer(config)
+    num_shards = len(workers.shards)
+    template = sa_template(config, trainer) if schedule.iteration_starts else None
+    buffer, buffer_handle = None, None
+    progress = PopulationProgress(label or f"{config.population.method.upper()} {config.env_kwargs['layout']}",
+                                  config.population.num_seeds, schedule.num_updates, config.ppo.steps_per_update,
+                                  enabled=show_progress)
+    with progress:
+        progress.advance_to(update, None)
+        while update < schedule.num_updates:
+            if schedule.iteration_starts:
+                iteration = schedule.iteration_at(update)
+                if buffer is None or buffer.iteration != iteration:
+                    progress.note(f"SA iteration {iteration + 1}/{len(schedule.iteration_starts)}: collecting states")
+                    buffer = sa_buffer(config, run, workers, iteration, template)
+                    buffer_handle = workers.share(buffer)
+            stop = schedule.next_stop(update)
+            results = workers.call("advance", [(i, (stop, buffer_handle, update)) for i in range(num_shards)])
+            rows = merge_rows(results, update)
+            run.append_metrics(rows)
+            wall = max(r.wall_s for r in results)
+            trained = sum(r.trained_updates * len(workers.shards[i]) for i, r in enumerate(results))
+            steps_per_s = trained * config.ppo.steps_per_update / wall if wall > 0 else None
+            _archive_training(config, run, workers, update, stop)
+            update = stop
+            run.update_manifest(update=update, restarts=workers.restarts())
+            progress.advance_to(update, rows, steps_per_s, restarts=workers.restarts())
+            if on_chunk is not None:
+                on_chunk(update, workers)
+    run.update_manifest(status="trained", update=update)
+
+
+def _archive_training(config: Config, run: RunDir, workers: Workers, before: int, stop: int) -> None:
+    """``archive.train_every``: a self-play episode per seed whenever a multiple of it was passed."""
+    every = config.archive.train_every
+    if not every or stop // every == before // every:
+        return
+    from cluster.archive import ArchiveWriter, env_meta, record_episodes
+
+    env = ppo.eval_env(config)
+    results = workers.call("record_selfplay", [(i, ()) for i in range(len(workers.shards))])
+    base = {**env_meta(env), "method": config.population.method, "kind": "training", "checkpoint_update": stop,
+            "config_fingerprint": config.fingerprint()}
+    path = run.sub("archive", "train", f"update_{stop:07d}.mcap")
+    with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:
+        for seeds, (_, recorded) in zip(workers.shards, results):
+            for index, seed in enumerate(seeds):
+                record_episodes(writer, env, jax.tree.map(lambda x: x[index], recorded),
+                                {**base, "policies": [f"seed_{seed}", f"seed_{seed}"], "seeds": [seed, seed]})
+
+

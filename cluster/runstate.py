@@ -1,0 +1,120 @@
+"""What both backends agree on about a run's progress: the schedule of stops, PRNG key offsets and
+per-seed checkpoints (save all seeds, then prune; restore the latest update common to a set of seeds).
+
+A checkpoint's meta also carries the metrics rows of the chunk that ended there, so a worker that
+died after saving but before reporting can still hand the coordinator those rows (no gap in
+metrics.csv, no row counted twice).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from population import checkpoints as ckpt
+from population import ppo
+from population.config import Config
+
+# fold_in offsets of the population key: one stream per purpose, so adding one never shifts another.
+SA_KEY_OFFSET = 1 << 20
+XP_KEY_OFFSET = 1 << 21
+GIF_KEY_OFFSET = 1 << 22
+TRAIN_ARCHIVE_KEY_OFFSET = 1 << 23
+
+
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """Where training must stop: snapshots, SA iteration starts, periodic checkpoints."""
+
+    num_updates: int
+    snapshots: tuple[int, ...]
+    iteration_starts: tuple[int, ...]  # SA only; () otherwise
+    checkpoint_every: int
+
+    @staticmethod
+    def of(config: Config) -> "Schedule":
+        updates = config.ppo.num_updates
+        starts = ()
+        if config.population.method == "sa":
+            iterations = config.population.sa.iterations
+            starts = tuple(sorted({round(i * updates / iterations) for i in range(iterations)}))
+        return Schedule(updates, tuple(ckpt.snapshot_updates(updates, config.run.num_checkpoints)), starts,
+                        config.run.checkpoint_every)
+
+    def next_stop(self, update: int) -> int:
+        candidates = [b for b in (*self.snapshots, *self.iteration_starts) if b > update]
+        candidates.append((update // self.checkpoint_every + 1) * self.checkpoint_every)
+        return min(min(candidates), self.num_updates)
+
+    def iteration_at(self, update: int) -> int:
+        return max(i for i, start in enumerate(self.iteration_starts) if start <= update)
+
+    def kept(self, update: int) -> set[int]:
+        """Checkpoints to keep once ``update`` is saved: the paper's snapshots, SA iteration starts, the newest."""
+        return set(self.snapshots) | set(self.iteration_starts) | {update}
+
+
+def population_key(config: Config, offset: int) -> jax.Array:
+    return jax.random.fold_in(jax.random.PRNGKey(config.population.seed), offset)
+
+
+def hidden_size(trainer: ppo.Trainer) -> int:
+    return trainer.network.gru_dim if trainer.network.recurrent else 0
+
+
+def state_template(trainer: ppo.Trainer, pool_size: int):
+    return jax.eval_shape(lambda k: ppo.init_train_state(trainer, k, None, pool_size), jax.random.PRNGKey(0))
+
+
+def params_template(trainer: ppo.Trainer):
+    return state_template(trainer, 1 if trainer.fcp else 0).params
+
+
+def load_params(path, fingerprint: str, template):
+    """Only the network parameters of a seed's checkpoint (the rest of its TrainState is not needed)."""
+    _, raw = ckpt.read(path, fingerprint)
+    restored = serialization.from_state_dict(template, raw["params"])
+    return jax.tree.map(lambda t, x: jnp.asarray(x, t.dtype), template, restored)
+
+
+def restore(trainer: ppo.Trainer, run_dir, config: Config, seeds, pool_size: int):
+    """(stacked states, update, metrics rows stored with them) at the latest update every seed has, or None."""
+    common = set.intersection(*(set(ckpt.list_updates(run_dir, s)) for s in seeds))
+    if not common:
+        return None
+    update = max(common)
+    template = state_template(trainer, pool_size)
+    states, rows = [], []
+    for seed in seeds:
+        meta, state = ckpt.load(ckpt.checkpoint_path(run_dir, seed, update), template, config.fingerprint())
+        states.append(state)
+        rows += meta.get("metrics", [])
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *states), update, rows
+
+
+def save_checkpoints(run_dir, config: Config, seeds, states, update: int, schedule: Schedule,
+                     rows: list[dict] = ()) -> None:
+    """Every seed's checkpoint at ``update`` (with its metrics rows), then prune superseded ones.
+
+    All seeds are written before any old file is removed, so a kill at any moment leaves an update
+    that every seed of the shard still has.
+    """
+    host = jax.tree.map(np.asarray, states)
+    for index, seed in enumerate(seeds):
+        seed_rows = [r for r in rows if r["seed"] == seed]
+        ckpt.save(ckpt.checkpoint_path(run_dir, seed, update), ppo.take_seed(host, index), config.fingerprint(),
+                  seed=seed, update=update, method=config.population.method, metrics=seed_rows)
+    keep = schedule.kept(update)
+    for seed in seeds:
+        for old in ckpt.list_updates(run_dir, seed):
+            if old not in keep:
+                ckpt.checkpoint_path(run_dir, seed, old).unlink(missing_ok=True)
+
+
+def final_checkpoint(run_dir, config: Config, seed: int) -> Path:
+    return ckpt.checkpoint_path(run_dir, seed, config.ppo.num_updates)
