@@ -8,6 +8,7 @@
     ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
     ocv2 button-game [--buttons N] [--seeds S] [--out DIR]
     ocv2 archive info|replay|recover FILE ...   MCAP trajectory archives (docs/archive.md)
+    ocv2 play [LAYOUT] [--partner RUN_DIR/checkpoints/seed_i|human] [--seat S] [--port P]   human play (docs/play.md)
 
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
 code; ``COMMANDS`` lists them (the bigger ones live in ``cluster/cmd_*.py`` and are imported lazily). Errors the user can fix raise ``CLIError`` and become a
@@ -183,6 +184,7 @@ COMMANDS: list[tuple[str, Callable, Callable]] = [
     ("report", _lazy("cluster.cmd_report", "add_report"), _lazy("cluster.cmd_report", "run_report")),
     ("button-game", _lazy("cluster.cmd_button_game", "add_parser"), _lazy("cluster.cmd_button_game", "run")),
     ("archive", _lazy("cluster.cmd_archive", "add_parser"), _lazy("cluster.cmd_archive", "run")),
+    ("play", _lazy("cluster.cmd_play", "add_play"), _lazy("cluster.cmd_play", "run_play")),
 ]
 
 

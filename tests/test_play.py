@@ -1,0 +1,412 @@
+"""``ocv2 play`` without a browser: message validation, the game loop, recording, HTTP, partners, CLI errors.
+
+Sessions run with a fake clock and explicit ``tick()`` calls (no timing in the tests); the games are
+cramped_room with 6-step episodes and 8-pixel tiles, so each compiles in about a second.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import socket
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+import ocv2
+from cluster.archive import ArchiveReader, ArchiveWriter, states_as_buffer
+from cluster.cli import main
+from cluster.play_game import HIDDEN_RGB, PartnerError, human_partner, load_policy_partner, make_game, scripted_partner
+from cluster.play_server import PlayServer
+from cluster.play_session import GameSession, Message, ProtocolError, parse_message
+from population import checkpoints as ckpt
+from population import ppo
+from population.config import load_config
+from population.networks import init_params
+
+SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
+STEPS = 6
+UP, LEFT, STAY, INTERACT = 3, 2, 4, 5
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture(scope="module")
+def solo_game():
+    """One human (seat 0) with a view radius of 1, partner 'stay'."""
+    env = ocv2.make("cramped_room", max_steps=STEPS, agent_view_size=1)
+    return make_game(env, scripted_partner("stay"), [0], tile_size=8)
+
+
+@pytest.fixture(scope="module")
+def duo_game():
+    """Two humans, whole map in view."""
+    return make_game(ocv2.make("cramped_room", max_steps=STEPS), human_partner(), [0, 1], tile_size=8)
+
+
+@pytest.fixture
+def archive(tmp_path):
+    path = tmp_path / "play.mcap"
+    writer = ArchiveWriter(path).open()
+    yield writer
+    writer.close()
+
+
+def session_of(game, writer, **options):
+    clock = FakeClock()
+    return GameSession(game, writer, seed=0, fps=5, clock=clock, **options), clock
+
+
+def send(session, **fields):
+    return session.handle(parse_message(json.dumps(fields).encode()), poll_timeout=0)
+
+
+def join(session, **fields) -> str:
+    return send(session, type="join", **fields)["token"]
+
+
+def episodes(writer) -> list:
+    writer.close()
+    return list(ArchiveReader(writer.path).iter_episodes())
+
+
+# ---------------------------------------------------------------------------------------------------
+# messages
+# ---------------------------------------------------------------------------------------------------
+
+def test_valid_messages_parse():
+    assert parse_message(b'{"type": "join"}') == Message("join")
+    assert parse_message(b'{"type": "join", "seat": 1}').seat == 1
+    assert parse_message(b'{"type": "action", "token": "t", "action": "up"}').action == UP
+    assert parse_message(b'{"type": "action", "token": "t", "action": 5}').action == INTERACT
+    assert parse_message(b'{"type": "poll", "token": "t", "since": 7}').since == 7
+
+
+@pytest.mark.parametrize("body, status, words", [
+    (b"\xff\xfe", 400, "not UTF-8 JSON"),
+    (b"{nope", 400, "not UTF-8 JSON"),
+    (b"[1, 2]", 400, "JSON object"),
+    (b'{"type": "dance"}', 400, "unknown message type 'dance'"),
+    (b'{"action": "up"}', 400, "unknown message type None"),
+    (b'{"type": "action", "token": "t"}', 400, "missing ['action']"),
+    (b'{"type": "poll", "token": "t", "evil": 1}', 400, "unexpected ['evil']"),
+    (b'{"type": "action", "token": "t", "action": "jump"}', 400, "action must be one of"),
+    (b'{"type": "action", "token": "t", "action": 6}', 400, "action must be one of"),
+    (b'{"type": "action", "token": "t", "action": true}', 400, "action must be one of"),
+    (b'{"type": "poll", "token": "t", "since": -1}', 400, "since must be"),
+    (b'{"type": "poll", "token": 12}', 400, "token must be"),
+    (b'{"type": "join", "seat": "0"}', 400, "seat must be"),
+    (b" " * 5000, 413, "limit"),
+])
+def test_malformed_messages_are_rejected(body, status, words):
+    with pytest.raises(ProtocolError, match=words.replace("[", r"\[").replace("]", r"\]")) as info:
+        parse_message(body)
+    assert info.value.status == status
+
+
+# ---------------------------------------------------------------------------------------------------
+# the game loop
+# ---------------------------------------------------------------------------------------------------
+
+def test_an_episode_plays_tick_by_tick_and_is_archived_whole(solo_game, archive):
+    session, _ = session_of(solo_game, archive, meta={"participant": "P01"})
+    token = join(session)
+    first = send(session, type="poll", token=token, since=0)
+    assert first["phase"] == "waiting" and first["frame"].startswith("data:image/png;base64,")
+    assert first["seat"] == 0 and first["colour"] == "red" and first["step"] == 0 and first["max_steps"] == STEPS
+    assert "frame" not in send(session, type="poll", token=token, since=first["version"])  # nothing new: no frame
+    session.tick()
+    assert session.phase == "waiting"  # nobody pressed start
+    assert send(session, type="action", token=token, action="up") == {"ok": True, "applied": False}
+    send(session, type="ready", token=token)
+    session.tick()
+    assert session.phase == "playing"
+    send(session, type="action", token=token, action="up")
+    send(session, type="action", token=token, action="left")  # the latest action before a tick wins
+    session.tick()
+    state = send(session, type="poll", token=token, since=0)
+    assert state["step"] == 1 and state["steps_left"] == STEPS - 1 and state["phase"] == "playing"
+    for action in ("interact", None, "up", None, "interact"):
+        if action:
+            send(session, type="action", token=token, action=action)
+        session.tick()
+    over = send(session, type="poll", token=token, since=0)
+    assert over["phase"] == "over" and over["step"] == 0  # the next episode's kitchen is already shown
+    assert over["last_episode"]["steps"] == STEPS and not over["last_episode"]["cut_short"]
+    assert session.episodes_recorded == 1
+
+    (episode,) = episodes(archive)
+    np.testing.assert_array_equal(episode.actions[:, 0], [LEFT, INTERACT, STAY, UP, STAY, INTERACT])
+    np.testing.assert_array_equal(episode.actions[:, 1], [STAY] * STEPS)
+    meta = episode.meta
+    assert meta["steps"] == STEPS and meta["human_seats"] == [0] and meta["policies"] == ["human", "stay"]
+    assert meta["cut_short"] is False and meta["end_reason"] == "completed" and meta["participant"] == "P01"
+    assert meta["env_params"]["agent_view_size"] == 1 and meta["method"] == "play" and meta["seed"] == 0
+    assert episode.dones.tolist() == [False] * (STEPS - 1) + [True]
+    # The archive holds what was played: replaying the actions from each state gives the next one.
+    env = solo_game.env
+    step = jax.jit(lambda s, a: env.step_arrays(jax.random.PRNGKey(0), s, a).terminal_state)
+    for t in range(STEPS):
+        reached = step(jax.tree.map(lambda x: x[t], episode.states), episode.actions[t])
+        for got, want in zip(jax.tree.leaves(reached), jax.tree.leaves(jax.tree.map(lambda x: x[t + 1], episode.states))):
+            np.testing.assert_array_equal(np.asarray(got), want)
+    assert int(states_as_buffer(archive.path, keep_every=2).step.shape[0]) == 3
+
+
+def test_the_human_sees_only_their_view_window(solo_game):
+    carry = solo_game.reset(jax.random.PRNGKey(0))
+    views = solo_game.views(carry.state)
+    frame = np.asarray(views.frames[0])
+    x, y = int(carry.state.agents.x[0]), int(carry.state.agents.y[0])
+    tile = 8
+    cell = lambda cx, cy: frame[cy * tile:(cy + 1) * tile, cx * tile:(cx + 1) * tile]
+    assert not (cell(x, y) == HIDDEN_RGB).all()  # the own cell is drawn
+    far = [(cx, cy) for cy in range(4) for cx in range(5) if max(abs(cx - x), abs(cy - y)) > 1]
+    assert far and all((cell(cx, cy) == HIDDEN_RGB).all() for cx, cy in far)
+
+
+def test_a_silent_tab_is_dropped_and_its_episode_recorded_cut_short(solo_game, archive):
+    session, clock = session_of(solo_game, archive, disconnect_s=10)
+    token = join(session)
+    send(session, type="ready", token=token)
+    session.tick()
+    send(session, type="action", token=token, action="up")
+    session.tick()
+    session.tick()
+    clock.now += 10.5  # no poll, no message: the tab crashed or the network went away
+    session.tick()
+    assert session.phase == "waiting" and not session.players
+    with pytest.raises(ProtocolError) as info:
+        send(session, type="poll", token=token, since=0)
+    assert info.value.status == 403
+    (episode,) = episodes(archive)
+    assert episode.meta["steps"] == 2 and episode.meta["cut_short"] is True
+    assert episode.meta["end_reason"] == "disconnected" and not episode.dones.any()
+
+
+def test_leaving_and_stopping_record_what_was_played(solo_game, archive):
+    session, _ = session_of(solo_game, archive)
+    token = join(session)
+    send(session, type="ready", token=token)
+    session.tick()
+    send(session, type="leave", token=token)  # left before any step: nothing to record
+    token = join(session)
+    send(session, type="ready", token=token)
+    session.tick()
+    session.tick()
+    send(session, type="leave", token=token)
+    token = join(session)
+    send(session, type="ready", token=token)
+    for _ in range(4):
+        session.tick()
+    session.close()
+    session.close()  # idempotent
+    with pytest.raises(ProtocolError) as info:
+        send(session, type="poll", token=token, since=0)
+    assert info.value.status == 503
+    left, stopped = episodes(archive)
+    assert (left.meta["steps"], left.meta["end_reason"], left.meta["cut_short"]) == (1, "left", True)
+    assert (stopped.meta["steps"], stopped.meta["end_reason"]) == (3, "server stopped")
+    assert left.meta["play_episode"] == 1 and stopped.meta["play_episode"] == 2
+
+
+def test_two_people_play_one_game(duo_game, archive):
+    session, _ = session_of(duo_game, archive, first_seat=1, max_episodes=1)
+    second = join(session)
+    first = join(session)
+    assert session.players[second].seat == 1 and session.players[first].seat == 0
+    for fields, status in (({}, 409), ({"seat": 0}, 409), ({"seat": 2}, 409)):
+        with pytest.raises(ProtocolError) as info:
+            join(session, **fields)
+        assert info.value.status == status
+    with pytest.raises(ProtocolError) as info:
+        send(session, type="ready", token="not-a-token")
+    assert info.value.status == 403
+    send(session, type="ready", token=first)
+    session.tick()
+    assert session.phase == "waiting"  # the other person has not pressed start
+    poll = send(session, type="poll", token=second, since=0)
+    assert poll["joined"] == [0, 1] and poll["ready"] == [0] and poll["recipe"] is not None
+    send(session, type="ready", token=second)
+    session.tick()
+    assert session.phase == "playing"
+    send(session, type="action", token=first, action="interact")
+    send(session, type="action", token=second, action="left")
+    for _ in range(STEPS):
+        session.tick()
+    assert session.finished.is_set()
+    send(session, type="ready", token=first)
+    send(session, type="ready", token=second)
+    session.tick()
+    assert session.phase == "over"  # --episodes reached: no new episode starts
+    (episode,) = episodes(archive)
+    assert episode.actions[0].tolist() == [INTERACT, LEFT] and episode.meta["human_seats"] == [0, 1]
+    assert episode.meta["policies"] == ["human", "human"] and episode.meta["partner"] == "human"
+
+
+# ---------------------------------------------------------------------------------------------------
+# HTTP
+# ---------------------------------------------------------------------------------------------------
+
+def _request(port, method, path, body=None, headers=None):
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        connection.request(method, path, body=body, headers=headers or {})
+        response = connection.getresponse()
+        return response.status, dict(response.getheaders()), response.read()
+    finally:
+        connection.close()
+
+
+def _api(port, message) -> tuple[int, dict]:
+    body = message if isinstance(message, bytes) else json.dumps(message).encode()
+    status, _, data = _request(port, "POST", "/api", body)
+    return status, json.loads(data)
+
+
+def test_the_server_rejects_bad_requests_and_the_game_goes_on(solo_game, archive, monkeypatch):
+    session = GameSession(solo_game, archive, seed=1, fps=100, max_episodes=1)
+    server = PlayServer("127.0.0.1", 0)
+    assert server.url.startswith("http://127.0.0.1:")
+    server.start(session)
+    port = server.port
+    try:
+        status, headers, page = _request(port, "GET", "/")
+        assert status == 200 and b"ocv2 play" in page and "default-src 'none'" in headers["Content-Security-Policy"]
+        assert _request(port, "GET", "/secrets")[0] == 404
+        assert _request(port, "POST", "/elsewhere", b"{}")[0] == 404
+        assert _api(port, b"garbage") == (400, {"ok": False, "error": "message is not UTF-8 JSON"})
+        assert _request(port, "POST", "/api", b"x", {"Content-Length": "999999"})[0] == 413
+        status, reply = _api(port, {"type": "join"})
+        token = reply["token"]
+        assert status == 200 and reply["seat"] == 0
+        assert _api(port, {"type": "action", "token": token, "action": "fly"})[0] == 400
+        original = session.handle
+        monkeypatch.setattr(session, "handle", lambda message: 1 / 0)  # a bug in one request ...
+        assert _api(port, {"type": "ready", "token": token}) == (500, {"ok": False, "error": "internal error (ZeroDivisionError)"})
+        monkeypatch.setattr(session, "handle", original)  # ... and the game still plays
+        assert _api(port, {"type": "ready", "token": token})[0] == 200
+        since = 0
+        while not session.finished.wait(0):
+            status, poll = _api(port, {"type": "poll", "token": token, "since": since})
+            assert status == 200
+            since = poll["version"]
+            _api(port, {"type": "action", "token": token, "action": "up"})
+    finally:
+        server.stop()
+        server.stop()
+    (episode,) = episodes(archive)
+    assert episode.meta["steps"] == STEPS and not episode.meta["cut_short"]
+
+
+# ---------------------------------------------------------------------------------------------------
+# partners from run directories
+# ---------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def rnn_run(tmp_path_factory):
+    """A run directory with one RNN checkpoint (untrained parameters: only loading is tested)."""
+    from cluster.rundir import RunDir
+
+    run = tmp_path_factory.mktemp("runs") / "rnn"
+    config = load_config(SMOKE, ["model.kind=rnn", "model.gru_dim=8", "model.mixer_features=[8]",
+                                 "model.conv_features=[8]", "model.conv_kernels=[3]", "model.fc_dim=8",
+                                 f"env.max_steps={STEPS}"])
+    RunDir(run).create(config)
+    env = ppo.eval_env(config)
+    params = init_params(ppo.make_trainer(config).network, jax.random.PRNGKey(3), env.obs_shape)
+    for update in (0, 2):
+        ckpt.save(ckpt.checkpoint_path(run, 0, update), {"params": params}, config.fingerprint(), seed=0,
+                  update=update)
+    return run
+
+
+def test_a_policy_partner_acts_on_its_own_observation_and_keeps_its_hidden_state(rnn_run):
+    partner = load_policy_partner(rnn_run / "checkpoints" / "seed_0")
+    assert partner.label == "seed_0@update_2" and partner.hidden_size == 8
+    assert partner.checkpoint.endswith("update_0000002.msgpack")
+    assert load_policy_partner(ckpt.checkpoint_path(rnn_run, 0, 0)).label == "seed_0@update_0"
+    game = make_game(ppo.eval_env(partner.config), partner, [0], tile_size=8)
+    carry = game.reset(jax.random.PRNGKey(0))
+    stay = np.full((2,), STAY, np.int32)
+    after_one, record = game.step(partner.params, carry, stay, jax.random.PRNGKey(1))
+    after_two, _ = game.step(partner.params, after_one, stay, jax.random.PRNGKey(2))
+    # The same hidden states as the network applied by hand to seat 1's observations, reset flag first.
+    apply = partner.apply
+    hidden = np.zeros((1, 8), np.float32)
+    hidden, _, _ = apply(partner.params, hidden, carry.obs[1][None, None], np.ones((1, 1), bool))
+    np.testing.assert_allclose(after_one.hidden[1], hidden[0], rtol=1e-5, atol=1e-6)
+    hidden, _, _ = apply(partner.params, hidden, after_one.obs[1][None, None], np.zeros((1, 1), bool))
+    np.testing.assert_allclose(after_two.hidden[1], hidden[0], rtol=1e-5, atol=1e-6)
+    assert int(record.actions[0]) == STAY and np.abs(np.asarray(after_two.hidden[1])).sum() > 0
+
+
+def test_bad_partner_paths_are_clear_errors(rnn_run, tmp_path):
+    cases = [
+        (tmp_path / "missing", "does not exist"),
+        (rnn_run, "pick a seed, e.g."),
+        (rnn_run / "config.yaml", "is not RUN_DIR/checkpoints/seed_<i>"),
+    ]
+    empty = tmp_path / "empty" / "checkpoints" / "seed_0"
+    empty.mkdir(parents=True)
+    cases.append((empty, "holds no checkpoint"))
+    for path, words in cases:
+        with pytest.raises(PartnerError, match=words):
+            load_policy_partner(path)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "config.yaml").write_text((rnn_run / "config.yaml").read_text().replace("lr: 0.001", "lr: 0.002"))
+    copy = ckpt.checkpoint_path(other, 0, 0)
+    copy.parent.mkdir(parents=True)
+    copy.write_bytes(ckpt.checkpoint_path(rnn_run, 0, 0).read_bytes())
+    with pytest.raises(PartnerError, match="different config"):
+        load_policy_partner(copy)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the command line: errors before anything starts
+# ---------------------------------------------------------------------------------------------------
+
+def _cli_error(capsys, *args) -> tuple[int, str]:
+    code = main(["play", *args])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return code, err
+
+
+def test_command_line_errors(rnn_run, tmp_path, capsys):
+    seed = str(rnn_run / "checkpoints" / "seed_0")
+    out = ["--out", str(tmp_path / "x.mcap"), "--port", "0"]
+    cases = [
+        ((), 2, "give a LAYOUT"),
+        (("cramped_rom",), 2, "unknown layout 'cramped_rom'"),
+        (("cramped_room", "--partner", str(tmp_path / "nope")), 2, "does not exist"),
+        (("cramped_room", "--partner", str(rnn_run)), 2, "pick a seed"),
+        (("cramped_room", "--seat", "2"), 2, "has 2 seat(s)"),
+        (("long_room", "--partner", "human"), 2, "one cook"),
+        (("coord_ring", "--partner", seed), 2, "trained on layout 'cramped_room'"),
+        (("--partner", seed, "--agent-view-size", "2"), 2, "agent_view_size: the partner's run uses None"),
+        (("cramped_room", "--env", "bogus=1"), 2, "unknown environment parameter"),
+        (("cramped_room", "--meta", "seed=3"), 2, "set by ocv2 play itself"),
+        (("cramped_room", "--out", str(tmp_path / "x.txt"), "--port", "0"), 2, "must name a .mcap file"),
+    ]
+    for args, code, words in cases:
+        got, err = _cli_error(capsys, *args, *(out if "--out" not in args else ()))
+        assert (got, words) == (code, words) and words in err, (args, err)
+    assert main(["play", "cramped_room", "--port", "70000"]) == 2
+    assert "port number" in capsys.readouterr().err
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        code, err = _cli_error(capsys, "cramped_room", "--port", str(port), "--out", str(tmp_path / "y.mcap"))
+    assert code == 1 and f"port {port} on 127.0.0.1 is in use" in err
+    assert not list(tmp_path.glob("*.mcap*"))  # nothing was created
