@@ -22,7 +22,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from urllib.parse import urlsplit
 
-from cluster.play_session import MAX_MESSAGE_BYTES, GameSession, ProtocolError, parse_message
+from cluster.play_protocol import MAX_MESSAGE_BYTES, ProtocolError, parse_message
+from cluster.play_session import GameSession
 
 PAGE = "play.html"
 _SECURITY_HEADERS = {

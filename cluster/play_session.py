@@ -1,9 +1,9 @@
-"""A game of ``ocv2 play``: seats, the fixed tick, the browser message protocol and recording.
+"""A game of ``ocv2 play``: seats, the fixed tick, answering browser messages, and recording.
 
 Plain classes, no HTTP: ``cluster/play_server.py`` calls ``GameSession.handle`` from its request
 threads and ``GameSession.run`` (the clock) from one thread; tests call ``handle`` and ``tick``
 directly. One lock guards the session; JAX runs only in the constructor and in ``tick``, so on one
-thread at a time. The protocol is documented in ``docs/play.md``.
+thread at a time. Messages arrive validated (``cluster/play_protocol.py``; documented in ``docs/play.md``).
 
 Life of a session: humans ``join`` (one seat each) and press start (``ready``); when every human
 seat is ready an episode starts. Each tick takes every human's latest action (``stay`` if none
@@ -18,12 +18,11 @@ from __future__ import annotations
 
 import base64
 import io
-import json
 import secrets
 import sys
 import threading
 import time
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import jax
 import numpy as np
@@ -31,91 +30,17 @@ from PIL import Image
 
 from cluster.archive import RESERVED_KEYS, ArchiveError, ArchiveWriter, env_meta
 from cluster.play_game import Game, GameCarry, host, ingredient_colour, recipe_ingredients
+from cluster.play_protocol import Message, ProtocolError
 from ocv2 import items as it
 from ocv2.state import State, stack_states
 
-ACTIONS = {"right": it.Action.RIGHT, "down": it.Action.DOWN, "left": it.Action.LEFT, "up": it.Action.UP,
-           "stay": it.Action.STAY, "interact": it.Action.INTERACT}
 SEAT_COLOURS = ("red", "blue", "green", "purple", "yellow", "orange")  # ocv2.render.AGENT_COLORS' order
-MAX_MESSAGE_BYTES = 4096
-MAX_TOKEN_CHARS = 64
 POLL_TIMEOUT_S = 1.0  # a poll with nothing new answers after this long: it doubles as the heartbeat
-
-# message type -> (required keys, optional keys) besides "type"
-_FIELDS = {
-    "join": ((), ("seat",)),
-    "ready": (("token",), ()),
-    "action": (("token", "action"), ()),
-    "poll": (("token",), ("since",)),
-    "leave": (("token",), ()),
-}
-
 WAITING, PLAYING, OVER = "waiting", "playing", "over"
 #: Episode metadata keys a session writes itself (``docs/play.md`` explains each); extra ``meta`` may not use them.
 PLAY_META_KEYS = ("env_params", "method", "kind", "human_seats", "partner", "policies", "checkpoints", "partner_run",
                   "config_fingerprint", "seed", "tick_hz", "session", "play_episode", "cut_short", "end_reason",
                   "started_at", "wall_s")
-
-
-class ProtocolError(Exception):
-    """A message the session rejects; ``status`` is the HTTP status the server answers with."""
-
-    def __init__(self, message: str, status: int = 400):
-        super().__init__(message)
-        self.status = status
-
-
-class Message(NamedTuple):
-    """One validated browser message."""
-
-    type: str
-    token: str | None = None
-    action: int | None = None  # an ocv2 action index
-    since: int = 0  # poll: the last version the client has
-    seat: int | None = None  # join: the seat asked for (None: any free human seat)
-
-
-def parse_message(body: bytes) -> Message:
-    """Validate one message (a JSON object); anything else is a ``ProtocolError``, never a crash."""
-    if len(body) > MAX_MESSAGE_BYTES:
-        raise ProtocolError(f"message of {len(body)} bytes is over the {MAX_MESSAGE_BYTES}-byte limit", 413)
-    try:
-        data = json.loads(body.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError):
-        raise ProtocolError("message is not UTF-8 JSON") from None
-    if not isinstance(data, dict):
-        raise ProtocolError(f"message must be a JSON object, got {type(data).__name__}")
-    kind = data.get("type")
-    if kind not in _FIELDS:
-        raise ProtocolError(f"unknown message type {kind!r}; expected one of {', '.join(_FIELDS)}")
-    required, optional = _FIELDS[kind]
-    missing = [k for k in required if k not in data]
-    extra = sorted(set(data) - set(required) - set(optional) - {"type"})
-    if missing or extra:
-        raise ProtocolError(f"{kind!r} message: missing {missing}, unexpected {extra}")
-    token = data.get("token")
-    if token is not None and (not isinstance(token, str) or not 0 < len(token) <= MAX_TOKEN_CHARS):
-        raise ProtocolError("token must be the string the join reply gave")
-    return Message(kind, token, _action(data["action"]) if kind == "action" else None,
-                   _non_negative(data.get("since", 0), "since"), _seat(data.get("seat")))
-
-
-def _action(value) -> int:
-    if isinstance(value, str) and value in ACTIONS:
-        return int(ACTIONS[value])
-    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value < it.NUM_ACTIONS:
-        return value
-    raise ProtocolError(f"action must be one of {', '.join(ACTIONS)} (or 0..{it.NUM_ACTIONS - 1}), got {value!r}")
-
-
-def _non_negative(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise ProtocolError(f"{name} must be a non-negative integer, got {value!r}")
-    return value
-
-
-def _seat(value) -> int | None:
-    return None if value is None else _non_negative(value, "seat")
 
 
 class Player:

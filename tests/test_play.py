@@ -20,7 +20,8 @@ from cluster.archive import ArchiveReader, ArchiveWriter, states_as_buffer
 from cluster.cli import main
 from cluster.play_game import HIDDEN_RGB, PartnerError, human_partner, load_policy_partner, make_game, scripted_partner
 from cluster.play_server import PlayServer
-from cluster.play_session import GameSession, Message, ProtocolError, parse_message
+from cluster.play_protocol import Message, ProtocolError, parse_message
+from cluster.play_session import GameSession
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import load_config
