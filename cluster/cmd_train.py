@@ -1,6 +1,6 @@
 """``ocv2 train`` and ``ocv2 xp``: the population commands.
 
-    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--backend local] [--resume]
+    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--backend ray|local] [--address A] [--resume]
     ocv2 xp RUN_DIR [--episodes N]
 """
 
@@ -19,8 +19,11 @@ def add_train(sub) -> argparse.ArgumentParser:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override a config value (repeatable), e.g. --set ppo.total_timesteps=1e6")
     parser.add_argument("--out", help="run directory (default runs/<layout>_<method>_<time>)")
-    parser.add_argument("--backend", choices=["local"], default="local",
-                        help="local: one process, seeds vmapped in one jitted program")
+    parser.add_argument("--backend", choices=["ray", "local"], default="ray",
+                        help="ray (default): one Ray actor per shard of seeds (cluster: section); "
+                             "local: one process, seeds vmapped in one jitted program, no Ray")
+    parser.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT (default: cluster.address, "
+                                          "else start Ray on this machine)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoints")
     parser.add_argument("--no-eval", action="store_true", help="skip cross-play, plots and GIFs after training")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -29,7 +32,6 @@ def add_train(sub) -> argparse.ArgumentParser:
 
 def run_train(args) -> int:
     from cluster.errors import EXIT_OK, CLIError
-    from cluster.local import train_population
     from cluster.rundir import RunDirError
     from population.checkpoints import CheckpointError
     from population.config import ConfigError, load_config
@@ -38,13 +40,28 @@ def run_train(args) -> int:
         config = load_config(args.config, args.overrides)
     except ConfigError as error:
         raise CLIError(str(error)) from None
+    if args.address:
+        if args.backend != "ray":
+            raise CLIError("--address needs --backend ray")
+        try:
+            config = load_config(args.config, [*args.overrides, f"cluster.address={args.address}"])
+        except ConfigError as error:
+            raise CLIError(str(error).replace("cluster.address", "--address")) from None
     out = args.out or _default_run_dir(config)
     if args.resume and not args.out:
         raise CLIError("--resume needs --out RUN_DIR (the run to continue)")
+    if args.backend == "ray":
+        from cluster.ray_backend import RayBackendError, train_population
+
+        errors = (RunDirError, CheckpointError, RayBackendError)
+    else:
+        from cluster.local import train_population
+
+        errors = (RunDirError, CheckpointError)
     try:
         summary = train_population(config, out, resume=args.resume, show_progress=not args.quiet,
                                    evaluate=not args.no_eval)
-    except (RunDirError, CheckpointError) as error:
+    except errors as error:
         raise CLIError(str(error)) from None
     print(f"run directory: {summary['run_dir']}")
     return EXIT_OK

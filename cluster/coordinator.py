@@ -50,6 +50,8 @@ class Workers(Protocol):
     def restarts(self) -> int:
         """Worker restarts so far (0 for in-process shards)."""
 
+    events: list[dict]  # one per worker death: shard, seeds, method, restored_update
+
     def close(self) -> None: ...
 
 
@@ -183,12 +185,12 @@ def fcp_pool(config: Config, run: RunDir, factory: WorkersFactory, show_progress
 # the training loop
 # ---------------------------------------------------------------------------------------------------
 
-def merge_rows(results, since: int) -> list[dict]:
-    """Rows of (since, ...] from every shard, each (seed, update) once, ordered by seed then update."""
+def merge_rows(results, since: int, until: int | None = None) -> list[dict]:
+    """Rows of (since, until] from every shard, each (seed, update) once, ordered by seed then update."""
     merged = {}
     for result in results:
         for row in result.rows:
-            if row["update"] > since:
+            if since < row["update"] <= (until if until is not None else row["update"]):
                 merged[(row["seed"], row["update"])] = row
     return [merged[k] for k in sorted(merged)]
 
@@ -210,7 +212,13 @@ def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = Fa
     try:
         # Shards restore themselves; the slowest decides where the population stands.
         update = min(workers.call("position", [(i, ()) for i in range(len(workers.shards))]))
-        run.truncate_metrics(update)
+        # A driver killed after the shards saved a chunk but before it merged their rows: those rows
+        # live in the checkpoints' meta; collect them before training on.
+        since = min(update, max((int(r["update"]) for r in run.read_metrics()), default=0))
+        run.truncate_metrics(since)
+        if since < update:
+            caught_up = workers.call("advance", [(i, (update, None, since)) for i in range(len(workers.shards))])
+            run.append_metrics(merge_rows(caught_up, since, update))
         run.update_manifest(status="training", method=method, num_updates=schedule.num_updates, update=update,
                             snapshots=list(schedule.snapshots), pool=pool_labels,
                             seeds=list(range(config.population.num_seeds)), shards=workers.shards,
@@ -221,7 +229,7 @@ def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = Fa
             summary.update(post_training(run.path, workers, show_progress=show_progress))
     finally:
         workers.close()
-    run.update_manifest(status="finished", restarts=summary["restarts"])
+    run.update_manifest(status="finished", restarts=summary["restarts"], restart_events=workers.events)
     return summary
 
 
@@ -251,7 +259,7 @@ def _train_loop(config, run, workers, schedule, update, show_progress, label, on
             steps_per_s = trained * config.ppo.steps_per_update / wall if wall > 0 else None
             _archive_training(config, run, workers, update, stop)
             update = stop
-            run.update_manifest(update=update, restarts=workers.restarts())
+            run.update_manifest(update=update, restarts=workers.restarts(), restart_events=workers.events)
             progress.advance_to(update, rows, steps_per_s, restarts=workers.restarts())
             if on_chunk is not None:
                 on_chunk(update, workers)

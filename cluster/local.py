@@ -18,6 +18,7 @@ class LocalWorkers:
 
     def __init__(self, config: Config, run_dir: Path, pool=None):
         self.shards = [list(range(config.population.num_seeds))]
+        self.events: list[dict] = []
         self._shard = SeedShard(config, run_dir, self.shards[0], pool)
 
     def call(self, method: str, jobs):

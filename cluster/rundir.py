@@ -99,8 +99,13 @@ class RunDir:
     # metrics ----------------------------------------------------------------------------------------
     def append_metrics(self, rows: list[dict]) -> None:
         new = not self.metrics_path.exists()
+        if new:
+            fields = list(rows[0].keys()) if rows else list(METRIC_FIELDS)
+        else:  # the file's own column order (rows restored from checkpoint meta come back key-sorted)
+            with open(self.metrics_path, newline="") as handle:
+                fields = next(csv.reader(handle), None) or list(rows[0].keys())
         with open(self.metrics_path, "a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0].keys()) if rows else METRIC_FIELDS)
+            writer = csv.DictWriter(handle, fieldnames=fields)
             if new:
                 writer.writeheader()
             writer.writerows(rows)

@@ -268,7 +268,7 @@ SHRINK = ["ppo.num_envs=2", "ppo.num_steps=8", "ppo.num_minibatches=1", "ppo.upd
 @pytest.mark.parametrize("name", ["classic_counter_circuit_sa", "adapted_cramped_room_v2", "v2_test_time_wide_op"])
 def test_paper_config_trains_at_tiny_size(name, tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["train", str(PAPER / f"{name}.yaml"), "--out", str(run), "--quiet", "--no-eval"]
+    args = ["train", str(PAPER / f"{name}.yaml"), "--out", str(run), "--quiet", "--no-eval", "--backend", "local"]
     for item in SHRINK:
         args += ["--set", item]
     assert main(args) == 0

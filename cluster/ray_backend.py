@@ -1,0 +1,227 @@
+"""The Ray backend (``ocv2 train`` default): one actor per shard of seeds, driven by the coordinator.
+
+Actors are thin shells: ``ray.remote(SeedShard)``, the same class the local backend calls in-process.
+The driver is the coordinator; it connects to Ray (starting one on this machine when no address is
+given), checks that the requested resources exist, creates the actors and calls them through
+``RayWorkers.call``, which survives worker deaths:
+
+* an actor that dies (``os._exit``, ``kill -9``, its node removed) is restarted by Ray
+  (``cluster.max_restarts``); its constructor restores the shard from its last checkpoint;
+* the failed call is resubmitted once the actor answers again. Calls are idempotent (``SeedShard``),
+  so a call that ran although Ray reported it failed changes nothing.
+
+Only this module imports Ray.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import socket
+import time
+from pathlib import Path
+
+from cluster import coordinator
+from cluster.shard import SeedShard
+from population.config import ClusterConfig, Config, shards as seed_shards
+
+RESTART_TIMEOUT_S = 600.0  # how long a restarting actor may take to answer again
+
+
+class RayBackendError(RuntimeError):
+    """Ray cannot run this population as asked (unreachable address, impossible resources, dead worker)."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# connecting
+# ---------------------------------------------------------------------------------------------------
+
+def connect(cluster: ClusterConfig) -> bool:
+    """Join ``cluster.address`` or start Ray here. Returns True if this call started/joined (then shut down)."""
+    import ray
+
+    if ray.is_initialized():  # e.g. a test session or a notebook that already connected
+        return False
+    address = cluster.address
+    if address is None:
+        ray.init(num_cpus=cluster.local_cpus or None, include_dashboard=False, configure_logging=False)
+        return True
+    if address not in ("auto",) and not address.startswith("ray://"):
+        _check_reachable(address)
+    try:
+        ray.init(address=address, configure_logging=False)
+    except ConnectionError as error:
+        raise RayBackendError(f"cluster.address {address!r}: no Ray cluster found ({error}). Start one with "
+                              "`ray start --head` or leave cluster.address unset to run Ray on this machine") from None
+    except Exception as error:  # Ray raises its own types for auth problems; name the usual cause
+        if "auth" in str(error).lower():
+            raise RayBackendError(f"cluster.address {address!r}: authentication failed ({error}). Export the same "
+                                  "RAY_AUTH_MODE (and RAY_AUTH_TOKEN for token mode) as the cluster; see "
+                                  "docs/cluster.md") from None
+        raise
+    return True
+
+
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail in seconds with a clear message instead of Ray's long reconnect loop."""
+    host, _, port = address.rpartition(":")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s):
+            pass
+    except OSError as error:
+        raise RayBackendError(f"cluster.address {address!r}: cannot reach the Ray head ({error}); is "
+                              f"`ray start --head --port={port}` running there and the port open?") from None
+
+
+def check_resources(config: Config, num_actors: int) -> None:
+    """Refuse requests the cluster cannot place: all actors must run at once (the coordinator waits for all)."""
+    import ray
+
+    cluster = config.cluster
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    per_node = [n.get("Resources", {}) for n in nodes]
+    total = ray.cluster_resources()
+    for name, want in (("GPU", cluster.num_gpus), ("CPU", cluster.num_cpus)):
+        if want <= 0:
+            continue
+        key = "num_gpus" if name == "GPU" else "num_cpus"
+        largest = max((r.get(name, 0.0) for r in per_node), default=0.0)
+        if want > largest:
+            raise RayBackendError(f"cluster.{key}: each worker actor asks for {want:g} {name}s but no node has more "
+                                  f"than {largest:g} (the cluster has {total.get(name, 0.0):g} in all)")
+        if want * num_actors > total.get(name, 0.0) + 1e-9:
+            raise RayBackendError(
+                f"cluster.{key}: {num_actors} worker actors x {want:g} {name}s = {want * num_actors:g}, but the "
+                f"cluster has {total.get(name, 0.0):g}; lower cluster.{key} or raise cluster.seeds_per_actor")
+
+
+def actor_env(cluster: ClusterConfig) -> dict[str, str]:
+    """Environment of a worker process, set before it imports JAX (settings made later are ignored)."""
+    env = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"} if cluster.gpu_memory_fraction == 0 else {
+        "XLA_PYTHON_CLIENT_PREALLOCATE": "true", "XLA_CLIENT_MEM_FRACTION": f"{cluster.gpu_memory_fraction:.3f}"}
+    if cluster.num_gpus == 0:
+        env["JAX_PLATFORMS"] = "cpu"  # no GPU is visible to the actor anyway; skip the CUDA probe
+    return env
+
+
+# ---------------------------------------------------------------------------------------------------
+# workers
+# ---------------------------------------------------------------------------------------------------
+
+class _ShardActor(SeedShard):
+    """The actor: a SeedShard that can also say where it runs."""
+
+    def node_id(self) -> str:
+        import ray
+
+        return ray.get_runtime_context().get_node_id()
+
+
+@functools.lru_cache(maxsize=1)
+def _actor_class():
+    import ray
+
+    return ray.remote(_ShardActor)
+
+
+class RayWorkers:
+    """One ``SeedShard`` actor per shard; ``call`` resubmits a job whose actor died and came back."""
+
+    def __init__(self, config: Config, run_dir: Path, pool=None):
+        import ray
+
+        self.config, self.shards = config, seed_shards(config)
+        cluster = config.cluster
+        check_resources(config, len(self.shards))
+        self._pool = None if pool is None else ray.put(pool)  # held here so the object outlives restarts
+        options = dict(num_cpus=cluster.num_cpus, num_gpus=cluster.num_gpus, max_restarts=cluster.max_restarts,
+                       max_task_retries=0, scheduling_strategy="SPREAD",
+                       runtime_env={"env_vars": actor_env(cluster)})
+        self.actors = [_actor_class().options(**options).remote(config, str(run_dir), seeds, self._pool)
+                       for seeds in self.shards]
+        self.events: list[dict] = []  # one per observed worker death: shard, seeds, method, restored_update
+
+    def pids(self) -> list[int]:
+        import ray
+
+        return ray.get([actor.ping.remote() for actor in self.actors])
+
+    def node_ids(self) -> list[str]:
+        import ray
+
+        return ray.get([actor.node_id.remote() for actor in self.actors])
+
+    def share(self, value):
+        import ray
+
+        return ray.put(value)
+
+    def restarts(self) -> int:
+        return len(self.events)
+
+    def call(self, method: str, jobs):
+        import ray
+        from ray.exceptions import RayActorError
+
+        jobs = list(jobs)
+        results = [None] * len(jobs)
+        submit = lambda i: getattr(self.actors[jobs[i][0]], method).remote(*jobs[i][1])
+        pending = {submit(i): i for i in range(len(jobs))}
+        failures = [0] * len(jobs)
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            index = pending.pop(ready[0])
+            try:
+                results[index] = ray.get(ready[0])
+            except RayActorError as error:
+                shard = jobs[index][0]
+                failures[index] += 1
+                if failures[index] > self.config.cluster.max_restarts + 1:
+                    raise RayBackendError(f"worker for seeds {self.shards[shard]} kept dying during {method} "
+                                          f"({failures[index]} times): {error}") from None
+                restored = self._wait_until_back(shard, error)
+                self.events.append({"shard": shard, "seeds": self.shards[shard], "method": method,
+                                    "restored_update": restored, "time": time.time()})
+                pending[submit(index)] = index
+        return results
+
+    def _wait_until_back(self, shard: int, cause) -> int:
+        """Block until the restarted actor answers; returns the update it restored. Dead for good: error."""
+        import ray
+        from ray.exceptions import ActorDiedError, ActorUnavailableError, GetTimeoutError
+
+        deadline = time.monotonic() + RESTART_TIMEOUT_S
+        while time.monotonic() < deadline:
+            try:
+                return ray.get(self.actors[shard].position.remote(), timeout=30)
+            except (ActorUnavailableError, GetTimeoutError):
+                time.sleep(0.5)
+            except ActorDiedError as error:
+                raise RayBackendError(
+                    f"worker for seeds {self.shards[shard]} died and cannot be restarted (cluster.max_restarts="
+                    f"{self.config.cluster.max_restarts} used up, or no node can host it): {error}. Its checkpoints "
+                    "are in the run directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`") from None
+        raise RayBackendError(f"worker for seeds {self.shards[shard]} did not come back within "
+                              f"{RESTART_TIMEOUT_S:.0f} s after it died ({cause})")
+
+    def close(self) -> None:
+        import ray
+
+        for actor in self.actors:
+            ray.kill(actor)
+        self.actors = []
+
+
+def train_population(config: Config, run_dir, *, resume: bool = False, show_progress: bool = True,
+                     evaluate: bool = True, label: str | None = None, on_chunk=None) -> dict:
+    """Train (or resume) a population on Ray: join/start Ray, check resources, run the coordinator."""
+    import ray
+
+    started = connect(config.cluster)
+    try:
+        check_resources(config, len(seed_shards(config)))
+        return coordinator.train(config, run_dir, RayWorkers, resume=resume, show_progress=show_progress,
+                                 evaluate=evaluate, label=label, on_chunk=on_chunk)
+    finally:
+        if started:
+            ray.shutdown()

@@ -1,0 +1,204 @@
+"""The Ray backend on a real local Ray: SA, FCP, cross-play equal to the local backend, a worker
+killed with SIGKILL mid-training, a killed driver resumed, bad input, and the quickstart.
+
+Every run is configs/smoke.yaml (2 seeds, one actor each). One Ray instance serves the whole session
+(``tests/conftest.py``); actors compile their own programs, so each run costs ~10-20 s.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from cluster import evaluate, ray_backend, runstate
+from cluster.archive import ArchiveReader
+from cluster.cli import main
+from cluster.rundir import RunDir
+from population import checkpoints as ckpt
+from population import ppo
+from population.config import load_config
+from population.sa import collect_buffer
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = str(ROOT / "configs" / "smoke.yaml")
+LONGER = ["ppo.total_timesteps=1024", "run.checkpoint_every=2"]  # 8 updates, a checkpoint every 2
+TIMING = {"steps_per_s", "wall_s"}
+
+
+def train(out, *overrides, extra=()) -> int:
+    args = ["train", SMOKE, "--out", str(out), "--quiet", "--backend", "ray", *extra]
+    for item in overrides:
+        args += ["--set", item]
+    return main(args)
+
+
+def final_params(run):
+    return evaluate.final_params(run)[2]
+
+
+def metrics_without_timing(run):
+    return [{k: v for k, v in row.items() if k not in TIMING} for row in RunDir(run).read_metrics()]
+
+
+def assert_same_tree(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, _ray_tmp):
+    """An uninterrupted 8-update SP run on Ray: what the fault-tolerance tests must reproduce."""
+    from conftest import ensure_ray
+
+    ensure_ray(_ray_tmp)
+    run = tmp_path_factory.mktemp("ray") / "reference"
+    assert train(run, *LONGER, extra=["--no-eval"]) == 0
+    return run
+
+
+def test_cross_play_spread_over_ray_workers_equals_the_local_backend(reference, ray_session):
+    """Pairs spread over two actors give the matrix and archived episodes computed in one process."""
+    config = RunDir(reference).load_config()
+    workers = ray_backend.RayWorkers(config, reference)
+    try:
+        spread = evaluate.evaluate_run(reference, episodes=2, show_progress=False, workers=workers)
+        spread_csv = (reference / "xp" / "episodes.csv").read_text()
+        evaluate.archive_cross_play(reference, 1, workers=workers)
+    finally:
+        workers.close()
+    with ArchiveReader(reference / "archive" / "xp.mcap") as reader:
+        spread_actions = [reader.episode(i).actions for i in range(len(reader))]
+    here = evaluate.evaluate_run(reference, episodes=2, show_progress=False)
+    assert (reference / "xp" / "episodes.csv").read_text() == spread_csv
+    assert {k: v for k, v in here.items() if k != "wall_s"} == {k: v for k, v in spread.items() if k != "wall_s"}
+    evaluate.archive_cross_play(reference, 1)
+    with ArchiveReader(reference / "archive" / "xp.mcap") as reader:
+        assert sorted(tuple(m["seeds"]) for m in reader.episodes()) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+        for i in range(4):
+            np.testing.assert_array_equal(reader.episode(i).actions, spread_actions[i])
+
+
+def test_fcp_on_ray_trains_against_a_pool_from_an_sp_stage(tmp_path, ray_session):
+    run = tmp_path / "fcp"
+    assert train(run, "population.method=fcp", extra=["--no-eval"]) == 0
+    manifest = RunDir(run).read_manifest()
+    assert manifest["status"] == "finished"
+    assert manifest["pool"] == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
+    assert RunDir(run / "partners").read_manifest()["status"] == "finished"
+    assert jax.tree.leaves(final_params(run))[0].shape[0] == 2  # both learners finished
+
+
+def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_numbers(tmp_path, reference, ray_session):
+    config = load_config(SMOKE, LONGER)
+    run = tmp_path / "killed"
+    killed = {}
+
+    def kill_worker_0(update, workers):
+        if update == 2 and not killed:  # SIGKILL the process while it trains the next chunk
+            killed["pid"] = pid = workers.pids()[0]
+            threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
+
+    summary = ray_backend.train_population(config, run, show_progress=False, evaluate=False, on_chunk=kill_worker_0)
+    assert killed and summary["restarts"] >= 1
+    assert RunDir(run).read_manifest()["restarts"] >= 1
+    # At most one checkpoint interval was lost: the restarted actor came back at update >= 2.
+    events = RunDir(run).read_manifest()["restart_events"]
+    assert events and all(event["restored_update"] >= 2 for event in events)
+    assert_same_tree(final_params(run), final_params(reference))
+    assert metrics_without_timing(run) == metrics_without_timing(reference)
+
+
+def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray_session):
+    run = tmp_path / "driver"
+    address = ray_session.get_runtime_context().gcs_address
+    command = [sys.executable, "-c", "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
+               "train", SMOKE, "--out", str(run), "--quiet", "--no-eval", "--address", address]
+    for item in LONGER:
+        command += ["--set", item]
+    driver = subprocess.Popen(command, env={**os.environ, "RAY_AUTH_MODE": "disabled"}, cwd=ROOT)
+    deadline = time.monotonic() + 240
+    while not all(ckpt.checkpoint_path(run, s, 4).exists() for s in (0, 1)):
+        assert driver.poll() is None, "the driver exited before it could be killed"
+        assert time.monotonic() < deadline, "no checkpoint at update 4 within 240 s"
+        time.sleep(0.05)
+    driver.send_signal(signal.SIGKILL)
+    driver.wait()
+    assert RunDir(run).read_manifest()["status"] == "training"
+    assert train(run, *LONGER, extra=["--no-eval", "--resume"]) == 0
+    assert RunDir(run).read_manifest()["resumed_from"] >= 4
+    assert_same_tree(final_params(run), final_params(reference))
+    assert metrics_without_timing(run) == metrics_without_timing(reference)
+
+
+def test_bad_cluster_input_fails_before_any_work(tmp_path, capsys, ray_session):
+    assert train(tmp_path / "gpu", "cluster.num_gpus=1") == 2
+    assert "cluster.num_gpus" in capsys.readouterr().err
+    assert not (tmp_path / "gpu").exists()
+    assert train(tmp_path / "cpu", "cluster.num_cpus=3") == 2  # 2 actors x 3 CPUs > the session's 4
+    assert "cluster.num_cpus" in capsys.readouterr().err
+
+
+def test_an_unreachable_address_is_a_clear_error(tmp_path, capsys, monkeypatch):
+    import ray
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)  # as from a fresh driver
+    assert train(tmp_path / "x", extra=["--address", "127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert "127.0.0.1:1" in err and "cannot reach the Ray head" in err
+    assert main(["train", SMOKE, "--address", "nonsense", "--quiet"]) == 2
+    assert "--address" in capsys.readouterr().err
+
+
+def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ray_session):
+    """The README's main job (Ray backend, the default), shrunk with --set: a 2-seed SA population with
+    2 iterations; its buffers hold states of all 4 ordered pairs; cross-play, plot, GIF, archives."""
+    quickstart = str(ROOT / "configs" / "quickstart.yaml")
+    tiny = ["ppo.num_envs=4", "ppo.num_steps=16", "ppo.num_minibatches=2", "ppo.update_epochs=1",
+            "ppo.total_timesteps=128", "env.max_steps=24", "model.conv_features=[4]", "model.conv_kernels=[3]",
+            "model.fc_dim=8", "population.sa.rollouts_per_pair=1", "eval.episodes=2", "eval.gifs=1",
+            "eval.archive_episodes=1", "run.checkpoint_every=1"]
+    args = ["train", quickstart, "--out", str(tmp_path / "qs"), "--quiet"]
+    for item in tiny:
+        args += ["--set", item]
+    assert main(args) == 0
+    run = tmp_path / "qs"
+    assert RunDir(run).read_manifest()["status"] == "finished"
+    assert sorted(p.name for p in (run / "sa").iterdir()) == ["buffer_000.msgpack", "buffer_001.msgpack"]
+    import json
+
+    summary = json.loads((run / "xp" / "summary.json").read_text())
+    assert summary["num_policies"] == 2 and summary["episodes_per_pair"] == 2
+    assert (run / "plots" / "training.png").stat().st_size > 0
+    assert [p.name for p in (run / "gifs").iterdir()] == ["seed_0_selfplay.gif"]
+    with ArchiveReader(run / "archive" / "xp.mcap") as reader:  # one episode per ordered pair
+        assert sorted(tuple(m["seeds"]) for m in reader.episodes()) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+        episode = reader.episode(0)
+        assert episode.actions.shape == (24, 2) and episode.meta["layout"] == "cramped_room"
+    rows = RunDir(run).read_metrics()  # each (seed, update) exactly once, though two actors reported
+    assert sorted((int(r["seed"]), int(r["update"])) for r in rows) == [(s, u) for s in (0, 1) for u in (1, 2)]
+
+    config = RunDir(run).load_config()
+    trainer = ppo.make_trainer(config)
+    template = runstate.state_template(trainer, 0)
+    for iteration, update in enumerate((0, 1)):
+        # Rebuilt here in one process from the checkpointed policies: the Ray buffer is exactly this.
+        params = jax.tree.map(lambda *xs: np.stack(xs), *(
+            ckpt.load(ckpt.checkpoint_path(run, s, update), template, config.fingerprint())[1].params for s in (0, 1)))
+        key = runstate.population_key(config, runstate.SA_KEY_OFFSET + iteration)
+        expected = collect_buffer(trainer.network.apply, 0, ppo.eval_env(config), params, key, config.population.sa)
+        meta, stored = ckpt.load(run / "sa" / f"buffer_{iteration:03d}.msgpack", expected, config.fingerprint())
+        assert meta["states"] == 4 * 1 * 2  # 4 ordered pairs x 1 rollout x 24 // 10 kept states
+        assert_same_tree(stored, expected)
+        # Every collection episode is archived: all 4 ordered pairs.
+        with ArchiveReader(run / "archive" / "sa" / f"iteration_{iteration:03d}.mcap") as reader:
+            assert sorted(tuple(m["seeds"]) for m in reader.episodes()) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+            assert {m["iteration"] for m in reader.episodes()} == {iteration}
