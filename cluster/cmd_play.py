@@ -16,6 +16,8 @@ import errno
 import ipaddress
 import os
 import secrets
+import signal
+import threading
 import time
 
 DEFAULT_PORT = 8765
@@ -87,6 +89,7 @@ def run_play(args) -> int:
     meta = _meta(args.meta)
     server = _bind(args.host, args.port, args.verbose)
     writer = failure = None
+    previous = _interrupt_on_sigterm()
     try:
         writer, path = _writer(args.out, env.layout.name, args.fps)
         from cluster.play_game import make_game, warm_up
@@ -109,6 +112,8 @@ def run_play(args) -> int:
     finally:
         server.stop()  # records the episode in progress, cut short
         recorded = _finish(writer)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     if failure:
         raise CLIError(failure + (f"; {recorded} episode(s) were recorded to {path}" if recorded else ""),
                        EXIT_FAILURE)
@@ -269,6 +274,20 @@ def _announce(args, server, game, seed: int, path: str) -> None:
     if not _loopback(args.host):
         print(f"note: listening on {args.host}: anyone who can reach this machine on port {server.port} can join")
     print(f"open {server.url}   (Ctrl-C to stop)", flush=True)
+
+
+def _interrupt_on_sigterm():
+    """Make SIGTERM (``kill``, a service manager) stop like Ctrl-C: the episode in progress is recorded.
+
+    Returns the previous handler, or None where handlers cannot be set (not the main thread).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def interrupt(_signum, _frame):
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, interrupt)
 
 
 def _loopback(host: str) -> bool:

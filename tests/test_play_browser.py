@@ -1,5 +1,7 @@
 """``ocv2 play`` end to end: the real command, a real headless Chromium, real key presses, the archive.
 
+One session: a complete episode, one cut short by leaving the page, one cut short by SIGTERM.
+
 Needs Debian's ``chromium`` and ``chromium-driver`` (``.ci/run`` installs them) and ``selenium`` (the
 ``test`` extra). Without them this test fails, saying what to install; set ``OCV2_SKIP_BROWSER=1`` to
 skip it knowingly. ``OCV2_SAVE_SCREENSHOT=1`` also writes the screenshot it takes to
@@ -12,6 +14,7 @@ import os
 import queue
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -47,7 +50,7 @@ def _start_play(out: Path) -> tuple[subprocess.Popen, str, list[str]]:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     process = subprocess.Popen(
         [sys.executable, "-m", "cluster.cli", "play", "grounded_coord_simple", "--agent-view-size", "2",
-         "--max-steps", str(STEPS), "--fps", str(FPS), "--port", "0", "--seed", "0", "--episodes", "2",
+         "--max-steps", str(STEPS), "--fps", str(FPS), "--port", "0", "--seed", "0",
          "--disconnect-timeout", "30", "--tile-size", "40", "--out", str(out), "--meta", "participant=e2e"],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: queue.Queue = queue.Queue()
@@ -103,12 +106,12 @@ def test_play_in_a_real_browser(tmp_path):
         _wait(lambda: "Press space" in status(), "the page to join")
         first_frame = frame()
         assert first_frame.startswith("data:image/png;base64,") and "red cook (seat 0)" in browser.page_source
-        keys = browser.find_element(By.TAG_NAME, "body")
+        keys = lambda: browser.find_element(By.TAG_NAME, "body")  # found again after the page reloads
 
-        keys.send_keys(Keys.SPACE)  # start
+        keys().send_keys(Keys.SPACE)  # start
         _wait(lambda: phase() == "playing", "the episode to start")
         for key in (Keys.ARROW_UP, Keys.ARROW_LEFT, Keys.SPACE, Keys.ARROW_DOWN, Keys.ARROW_RIGHT):
-            keys.send_keys(key)
+            keys().send_keys(key)
             time.sleep(2 / FPS)  # one key per tick
         _wait(lambda: step() >= 6, "the game to advance")
         assert frame() != first_frame
@@ -119,20 +122,26 @@ def test_play_in_a_real_browser(tmp_path):
 
         _wait(lambda: phase() == "over", "the episode to end", timeout=STEPS / FPS + 30)
         assert "Episode over" in status()
-        keys.send_keys(Keys.SPACE)  # play again ...
+        keys().send_keys(Keys.SPACE)  # play again ...
         _wait(lambda: phase() == "playing", "the second episode to start")
-        keys.send_keys(Keys.ARROW_RIGHT)
+        keys().send_keys(Keys.ARROW_RIGHT)
         _wait(lambda: step() >= 2, "the second episode to advance")
         browser.get("about:blank")  # ... and close the page mid-episode
-        assert process.wait(timeout=60) == 0, "".join(output)  # --episodes 2: the cut-short one counts
+        browser.get(url)  # come back: the seat is free again
+        _wait(lambda: "cut short (left)" in status(), "the page to rejoin")
+        keys().send_keys(Keys.SPACE)
+        _wait(lambda: phase() == "playing", "the third episode to start")
+        _wait(lambda: step() >= 2, "the third episode to advance")
+        process.send_signal(signal.SIGTERM)  # stop the server mid-episode (as Ctrl-C does)
+        assert process.wait(timeout=60) == 0, "".join(output)
     finally:
         browser.quit()
         if process.poll() is None:
             process.kill()
-    assert "recorded 2 episode(s)" in "".join(output)
+    assert "recorded 3 episode(s)" in "".join(output)
     assert (tmp_path / "play.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
-    complete, cut = ArchiveReader(archive).iter_episodes()
+    complete, cut, stopped = ArchiveReader(archive).iter_episodes()
     assert complete.meta["steps"] == STEPS and not complete.meta["cut_short"] and complete.dones[-1]
     assert complete.meta["human_seats"] == [0] and complete.meta["policies"] == ["human", "stay"]
     assert complete.meta["participant"] == "e2e" and complete.meta["env_params"]["agent_view_size"] == 2
@@ -141,3 +150,4 @@ def test_play_in_a_real_browser(tmp_path):
     moved = np.abs(np.diff(complete.states.agents.x[:, 0])).sum() + np.abs(np.diff(complete.states.agents.dir[:, 0])).sum()
     assert moved > 0  # the human's cook turned or walked
     assert cut.meta["cut_short"] and cut.meta["end_reason"] == "left" and 1 <= cut.meta["steps"] < STEPS
+    assert stopped.meta["end_reason"] == "server stopped" and 1 <= stopped.meta["steps"] < STEPS
