@@ -16,6 +16,7 @@ state, n)`` runs n updates in one ``lax.scan``; a population is ``jax.vmap`` of 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import NamedTuple
 
 import jax
@@ -132,6 +133,9 @@ class Trainer:
         return ppo.num_envs if self.fcp else ppo.num_envs * self.env.num_agents
 
 
+# Cached: env objects compare by identity, and the jitted rollouts of population.sa/xp/record are
+# cached per env, so a fresh env per call would recompile them at every SA iteration or XP row block.
+@functools.lru_cache(maxsize=32)
 def train_env(config: Config) -> ocv2.OvercookedV2:
     """The environment learners train in (OP adds per-agent permutations)."""
     kwargs = config.env_kwargs
@@ -140,6 +144,7 @@ def train_env(config: Config) -> ocv2.OvercookedV2:
     return ocv2.make(**kwargs)
 
 
+@functools.lru_cache(maxsize=32)
 def eval_env(config: Config) -> ocv2.OvercookedV2:
     """The environment populations are evaluated and SA states collected in (never permuted)."""
     return ocv2.make(**config.env_kwargs)
