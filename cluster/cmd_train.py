@@ -31,7 +31,11 @@ def add_train(sub) -> argparse.ArgumentParser:
 
 
 def run_train(args) -> int:
+    # The driver runs JAX too (SA buffer merge, GIFs): on a GPU machine it must not take 75 % of the
+    # memory the seed actors need. Set before JAX initialises; an explicit user setting wins.
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     from cluster.errors import EXIT_OK, CLIError
+    from cluster.archive import ArchiveError
     from cluster.rundir import RunDirError
     from population.checkpoints import CheckpointError
     from population.config import ConfigError, load_config
@@ -53,11 +57,11 @@ def run_train(args) -> int:
     if args.backend == "ray":
         from cluster.ray_backend import RayBackendError, train_population
 
-        errors = (RunDirError, CheckpointError, RayBackendError)
+        errors = (RunDirError, CheckpointError, ArchiveError, RayBackendError)
     else:
         from cluster.local import train_population
 
-        errors = (RunDirError, CheckpointError)
+        errors = (RunDirError, CheckpointError, ArchiveError)
     try:
         summary = train_population(config, out, resume=args.resume, show_progress=not args.quiet,
                                    evaluate=not args.no_eval)

@@ -33,7 +33,7 @@ from population import checkpoints as ckpt
 from population import ppo
 from population.config import Config
 from population.evaluation import stack_params
-from population.sa import PairStates, all_pairs, merge_buffers
+from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
 
 
 class Workers(Protocol):
@@ -83,15 +83,17 @@ def gather_params(workers: Workers):
 # SA buffer
 # ---------------------------------------------------------------------------------------------------
 
-def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, template) -> SABuffer:
+def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, extra=None) -> SABuffer:
     """The iteration's buffer: loaded if this run already collected it (resume), else collected and saved.
 
     Collection episodes go to ``archive/sa/iteration_<k>.mcap`` first (``archive.sa_collection``);
-    the buffer file is written last, so its presence means the iteration is complete.
+    the buffer file is written last, so its presence means the iteration is complete. ``extra``:
+    states from ``population.sa.archives``, appended to the collected ones.
     """
     path = run.path / "sa" / f"buffer_{iteration:03d}.msgpack"
     if path.exists():
-        return SABuffer(iteration, ckpt.load(path, template, config.fingerprint())[1])
+        meta, _ = ckpt.read(path, config.fingerprint())
+        return SABuffer(iteration, ckpt.load(path, buffer_template(config, meta["states"]), config.fingerprint())[1])
     params = workers.share(gather_params(workers))
     num = config.population.num_seeds
     record = config.archive.sa_collection
@@ -109,9 +111,20 @@ def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, tem
     pairs = sorted(by_pair)
     buffer = merge_buffers([PairStates(tuple(pairs), jax.tree.map(lambda *xs: np.stack(xs),
                                                                    *[by_pair[p][0] for p in pairs]))])
-    buffer = jax.tree.map(np.asarray, buffer)
+    buffer = extend_buffer(jax.tree.map(np.asarray, buffer), extra)
     ckpt.save(path, buffer, config.fingerprint(), iteration=iteration, states=int(buffer.step.shape[0]))
     return SABuffer(iteration, buffer)
+
+
+def archived_states(config: Config):
+    """``population.sa.archives`` as one numpy state batch (None without archives). Raises ArchiveError."""
+    if config.population.method != "sa" or not config.population.sa.archives:
+        return None
+    from cluster.archive import states_as_buffer
+
+    states = states_as_buffer(list(config.population.sa.archives), config.population.sa.keep_every,
+                              layout=ppo.eval_env(config).layout)
+    return jax.tree.map(np.asarray, states)
 
 
 def _archive_collection(config: Config, run: RunDir, iteration: int, by_pair: dict) -> None:
@@ -127,13 +140,9 @@ def _archive_collection(config: Config, run: RunDir, iteration: int, by_pair: di
                             {**base, "policies": [f"seed_{i}", f"seed_{j}"], "seeds": [i, j]})
 
 
-def sa_template(config: Config, trainer: ppo.Trainer):
-    """Shapes of an iteration's buffer (to load a saved one) without playing anything."""
-    from population.sa import buffer_size
-
-    env = ppo.eval_env(config)
-    one = jax.eval_shape(env.reset_state, jax.random.PRNGKey(0))
-    size = buffer_size(config.population.num_seeds, config.population.sa, env.max_steps)
+def buffer_template(config: Config, size: int):
+    """Shapes of a saved buffer of ``size`` states (to load it) without playing anything."""
+    one = jax.eval_shape(ppo.eval_env(config).reset_state, jax.random.PRNGKey(0))
     return jax.tree.map(lambda x: jax.ShapeDtypeStruct((size,) + x.shape, x.dtype), one)
 
 
@@ -203,12 +212,15 @@ def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = Fa
     """
     from cluster.evaluate import post_training
 
-    run = RunDir(run_dir)
+    extra = archived_states(config)  # a bad archive fails here, before the run directory is touched
+    run = RunDir(Path(run_dir).resolve())  # absolute: actors on other nodes/working dirs get the same path
     resuming = run.create(config, resume=resume)
+    past_events = run.read_manifest().get("restart_events", []) if resuming else []
     method = config.population.method
     schedule = Schedule.of(config)
     pool, pool_labels = (fcp_pool(config, run, factory, show_progress) if method == "fcp" else (None, []))
     workers = factory(config, run.path, pool)
+    workers.events[:0] = past_events  # restarts of earlier drivers of this run stay on record
     try:
         # Shards restore themselves; the slowest decides where the population stands.
         update = min(workers.call("position", [(i, ()) for i in range(len(workers.shards))]))
@@ -223,7 +235,7 @@ def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = Fa
                             snapshots=list(schedule.snapshots), pool=pool_labels,
                             seeds=list(range(config.population.num_seeds)), shards=workers.shards,
                             resumed_from=update if resuming else None)
-        _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk)
+        _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra)
         summary = {"run_dir": str(run.path), "updates": schedule.num_updates, "restarts": workers.restarts()}
         if evaluate:
             summary.update(post_training(run.path, workers, show_progress=show_progress))
@@ -233,10 +245,8 @@ def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = Fa
     return summary
 
 
-def _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk) -> None:
-    trainer = ppo.make_trainer(config)
+def _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra) -> None:
     num_shards = len(workers.shards)
-    template = sa_template(config, trainer) if schedule.iteration_starts else None
     buffer, buffer_handle = None, None
     progress = PopulationProgress(label or f"{config.population.method.upper()} {config.env_kwargs['layout']}",
                                   config.population.num_seeds, schedule.num_updates, config.ppo.steps_per_update,
@@ -248,7 +258,7 @@ def _train_loop(config, run, workers, schedule, update, show_progress, label, on
                 iteration = schedule.iteration_at(update)
                 if buffer is None or buffer.iteration != iteration:
                     progress.note(f"SA iteration {iteration + 1}/{len(schedule.iteration_starts)}: collecting states")
-                    buffer = sa_buffer(config, run, workers, iteration, template)
+                    buffer = sa_buffer(config, run, workers, iteration, extra)
                     buffer_handle = workers.share(buffer)
             stop = schedule.next_stop(update)
             results = workers.call("advance", [(i, (stop, buffer_handle, update)) for i in range(num_shards)])

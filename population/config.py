@@ -93,6 +93,9 @@ class SAConfig:
     iterations: int = 10
     rollouts_per_pair: int = 10
     keep_every: int = 10
+    # MCAP archives (e.g. last month's cross-play, human play) whose every keep_every-th state joins
+    # each iteration's buffer; paths are relative to where ocv2 train runs.
+    archives: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -160,11 +163,13 @@ class ArchiveConfig:
 
 @dataclasses.dataclass(frozen=True)
 class ClusterConfig:
-    """The Ray backend (``ocv2 train`` default). Nothing here changes training numbers.
+    """The Ray backend (``ocv2 train`` default). Not part of the config fingerprint: a run may resume
+    with other resources or another split of seeds (which moves parameters only at float-rounding level,
+    ~1e-7, because XLA picks different kernels for different batch sizes; docs/cluster.md).
 
     ``address``: None starts Ray on this machine; "auto" or "HOST:PORT" joins a running cluster.
-    ``seeds_per_actor`` seeds are vmapped in one actor (a GPU wants several); ``workers`` (0: as many
-    as needed) caps the number of actors instead, spreading seeds evenly. ``num_cpus``/``num_gpus`` are
+    ``seeds_per_actor`` seeds are vmapped in one actor (a GPU wants several); ``workers`` (0: one actor
+    per ``seeds_per_actor`` seeds) sets the number of actors instead, spreading seeds evenly. ``num_cpus``/``num_gpus`` are
     per actor (fractional on a laptop: Ray's default of 1 CPU would leave actors pending on 2 cores).
     ``gpu_memory_fraction``: 0 grows GPU memory on demand (several actors can share a GPU); otherwise
     each actor preallocates that fraction. ``max_restarts``: Ray restarts of a dead worker actor.

@@ -97,6 +97,14 @@ def collect_buffer(apply: PolicyApply, hidden_size: int, env, params, key: jax.A
     return merge_buffers([collect_pair_states(apply, hidden_size, env, params, key, sa)])
 
 
+def extend_buffer(buffer: State, extra: State | None) -> State:
+    """The collected buffer followed by states from elsewhere (an archive: ``cluster.archive.states_as_buffer``)."""
+    if extra is None:
+        return buffer
+    return jax.tree.map(lambda a, b: np.concatenate([np.asarray(a), np.asarray(b, dtype=np.asarray(a).dtype)]),
+                        buffer, extra)
+
+
 def buffer_size(num_policies: int, sa: SAConfig, max_steps: int) -> int:
     return num_policies * num_policies * sa.rollouts_per_pair * (max_steps // sa.keep_every)
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from flax import serialization
 
 from cluster import coordinator, evaluate, runstate
 from cluster.cli import main
@@ -205,6 +206,27 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
     for seed in range(NUM_SEEDS):
         _assert_trees_equal(_raw_checkpoint(resumed, seed, NUM_UPDATES), _raw_checkpoint(run, seed, NUM_UPDATES))
     _assert_same_metrics(read_csv(resumed / "metrics.csv"), read_csv(run / "metrics.csv"))
+
+    # "Augment from last month's cross-play": archived states join every iteration's buffer.
+    from cluster.archive import states_as_buffer
+
+    archive = run / "archive" / "sa" / "iteration_001.mcap"
+    augmented = tmp_path / "sa_augmented"
+    assert train(augmented, "population.method=sa", f"population.sa.archives=[{archive}]", extra=["--no-eval"]) == 0
+    collected, extended = ckpt.read(run / "sa" / "buffer_000.msgpack"), ckpt.read(augmented / "sa" / "buffer_000.msgpack")
+    archived = states_as_buffer([archive], keep_every=10)
+    assert extended[0]["states"] == collected[0]["states"] + archived.step.shape[0] == 2 * collected[0]["states"]
+    head = jax.tree.map(lambda x: x[:collected[0]["states"]], extended[1])
+    tail = jax.tree.map(lambda x: x[collected[0]["states"]:], extended[1])
+    _assert_trees_equal(head, collected[1])
+    _assert_trees_equal(tail, jax.tree.map(np.asarray, serialization.to_state_dict(archived)))
+
+
+def test_sa_archives_that_do_not_exist_fail_before_the_run_starts(tmp_path, capsys):
+    run = tmp_path / "bad"
+    assert train(run, "population.method=sa", "population.sa.archives=[nowhere.mcap]") == 2
+    assert "nowhere.mcap" in capsys.readouterr().err
+    assert not run.exists()
 
 
 def test_fcp_without_partners_trains_a_partner_stage(tmp_path):
