@@ -40,6 +40,3 @@ def train_population(config: Config, run_dir, *, resume: bool = False, show_prog
     return coordinator.train(config, run_dir, LocalWorkers, resume=resume, show_progress=show_progress,
                              evaluate=evaluate, label=label)
 
-
-# TODO(remove): the play helper imports these old private names; they moved to cluster.runstate.
-from cluster.runstate import load_params as _load_params, params_template as _params_template  # noqa: E402,F401

@@ -44,7 +44,9 @@ def connect(cluster: ClusterConfig) -> bool:
         return False
     address = cluster.address
     if address is None:
-        ray.init(num_cpus=cluster.local_cpus or None, include_dashboard=False, configure_logging=False)
+        # "local": always a fresh instance here, never a cluster that RAY_ADDRESS or `ray start` left running.
+        ray.init(address="local", num_cpus=cluster.local_cpus or None, include_dashboard=False,
+                 configure_logging=False)
         return True
     if address not in ("auto",) and not address.startswith("ray://"):
         _check_reachable(address)
@@ -202,7 +204,8 @@ class RayWorkers:
                     f"{self.config.cluster.max_restarts} used up, or no node can host it): {error}. Its checkpoints "
                     "are in the run directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`") from None
         raise RayBackendError(f"worker for seeds {self.shards[shard]} did not come back within "
-                              f"{RESTART_TIMEOUT_S:.0f} s after it died ({cause})")
+                              f"{RESTART_TIMEOUT_S:.0f} s after it died ({cause}). Its checkpoints are in the run "
+                              "directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`")
 
     def close(self) -> None:
         import ray

@@ -19,7 +19,9 @@ from cluster.cmd_report import curve
 from population.config import dump_config, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parents[1]
-ALL_CONFIGS = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "configs").rglob("*.yaml"))
+LAUNCHER_MARK = "# NOT an ocv2 config"  # Ray cluster-launcher files (configs/cluster/ray-*.yaml) say so on line 1
+ALL_CONFIGS = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "configs").rglob("*.yaml")
+                     if not p.read_text().startswith(LAUNCHER_MARK))
 PAPER = ROOT / "configs" / "paper"
 CLASSIC = ("cramped_room", "asymm_advantages", "coord_ring", "forced_coord", "counter_circuit")
 V2 = ("grounded_coord_simple", "grounded_coord_ring", "test_time_simple", "test_time_wide", "demo_cook_simple",
