@@ -24,3 +24,10 @@ def write_section(path: str, block: str, start: str, end: str) -> None:
         text = "# Benchmarks\n\n" + block + "\n"
     with open(path, "w") as handle:
         handle.write(text)
+
+
+def publish(block: str, path: str, start: str, end: str) -> None:
+    """Print the block; write it into ``path`` unless ``path`` is empty (``--out ''``)."""
+    print(block)
+    if path:
+        write_section(path, block, start, end)

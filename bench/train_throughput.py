@@ -35,7 +35,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from sections import write_section  # bench/ is sys.path[0] when a script runs
+from sections import publish  # bench/ is sys.path[0] when a script runs
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -146,9 +146,7 @@ def main(argv=None) -> int:
               f"compile {r['compile_s']:.0f} s)", flush=True)
         results.append(r)
     block = table(results, args.repeats)
-    print(block)
-    if args.out:
-        write_section(args.out, block, START, END)
+    publish(block, args.out, START, END)
     return 0
 
 
