@@ -900,18 +900,18 @@ def _same_kitchen(a: Layout, b: Layout) -> bool:
             and a.num_agents == b.num_agents and a.num_ingredients == b.num_ingredients)
 
 
-def record_episodes(writer: ArchiveWriter, env, recorded, meta: dict | None = None) -> list[int]:
+def record_episodes(writer: ArchiveWriter, env, recorded, meta: dict | None = None, first_episode: int = 0) -> list[int]:
     """Write the E episodes of one pair's ``population.record.Recorded`` (no leading pair axis).
 
-    Each episode's metadata is ``env_meta(env)`` + ``meta`` + ``{"pair_episode": e}``. Returns the
-    archive indices.
+    Each episode's metadata is ``env_meta(env)`` + ``meta`` + ``{"pair_episode": first_episode + e}``.
+    Returns the archive indices.
     """
     host = jax.device_get(recorded)
     base = {**env_meta(env), **(meta or {})}
     indices = []
     for e in range(np.shape(host.actions)[0]):
         states = jax.tree.map(lambda x: x[e], host.states)
-        indices.append(writer.write_episode({**base, "pair_episode": e}, states, host.actions[e], host.rewards[e],
+        indices.append(writer.write_episode({**base, "pair_episode": first_episode + e}, states, host.actions[e], host.rewards[e],
                                             host.shaped_rewards[e], host.dones[e], layout=env.layout))
     return indices
 

@@ -1,13 +1,16 @@
-"""After training: cross-play matrix, training curves, self-play GIFs and the cross-play archive.
+"""After training: cross-play matrix (every scored episode archived), training curves, self-play GIFs.
 
-``evaluate_run`` and ``archive_cross_play`` spread their K x K pairs over a backend's workers when
-given some (one seat-0 row of pairs per job, which keeps every cell's episode keys what they are in
-one process: the matrix does not depend on the split); without workers they run here.
+``evaluate_run`` spreads the K x K pairs over a backend's workers when given some (seat-0 rows per
+job, which keeps every cell's episode keys what they are in one process: the matrix and the archive
+do not depend on the split); without workers it runs here. With ``archive.xp`` (default) every scored
+episode is recorded to ``archive/xp/seat0_seed_<i>.mcap``, one file per row, written by whoever
+played the row (so no trajectory crosses the object store).
 """
 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -43,21 +46,51 @@ def final_params(run_dir) -> tuple[Config, ppo.Trainer, object]:
 
 def post_training(run_dir, workers=None, show_progress: bool = True) -> dict:
     config = RunDir(run_dir).load_config()
-    return {"xp": evaluate_run(run_dir, show_progress=show_progress, workers=workers),
-            "plot": write_training_plot(run_dir),
-            "gifs": write_gifs(run_dir, config.eval.gifs),
-            "archive": archive_cross_play(run_dir, config.eval.archive_episodes, workers=workers)}
+    xp = evaluate_run(run_dir, show_progress=show_progress, workers=workers)
+    return {"xp": xp, "plot": write_training_plot(run_dir), "gifs": write_gifs(run_dir, config.eval.gifs),
+            "archive": xp.get("archive")}
 
 
-def _cross_play_spread(workers, params, key, episodes: int) -> CrossPlay:
+def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes: int, archive_dir=None) -> CrossPlay:
+    """Cross-play of seat-0 ``rows``; with ``archive_dir`` every episode also goes to its row's MCAP file."""
+    from contextlib import ExitStack
+
+    from cluster.archive import ArchiveWriter, env_meta, record_episodes
+
+    env = ppo.eval_env(config)
+    apply, hidden = trainer.network.apply, hidden_size(trainer)
+    params = jax.tree.map(jnp.asarray, params)
+    if archive_dir is None:
+        return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows)
+    base = {**env_meta(env), "method": config.population.method, "kind": "cross-play", "scored": True,
+            "checkpoint_update": config.ppo.num_updates, "config_fingerprint": config.fingerprint()}
+    num = jax.tree.leaves(params)[0].shape[0]
+    with ExitStack() as files:
+        writers = {i: files.enter_context(ArchiveWriter(xp_archive_path(archive_dir, i), overwrite=True,
+                                                        foxglove_frames=config.archive.foxglove)) for i in rows}
+
+        def write(row, first, recorded):
+            for j in range(num):
+                record_episodes(writers[row], env, jax.tree.map(lambda x: x[j], recorded),
+                                {**base, "policies": [f"seed_{row}", f"seed_{j}"], "seeds": [row, j]}, first)
+
+        return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows, on_block=write)
+
+
+def xp_archive_path(archive_dir, row: int) -> Path:
+    return Path(archive_dir) / f"seat0_seed_{row}.mcap"
+
+
+def _cross_play_spread(workers, params, key, episodes: int, archive_dir) -> CrossPlay:
     from cluster.coordinator import spread_jobs
 
     num = jax.tree.leaves(params)[0].shape[0]
     handle = workers.share(jax.tree.map(np.asarray, params))
+    directory = None if archive_dir is None else str(archive_dir)
     returns = np.full((num, num, episodes), np.nan, np.float32)
     recipes = np.zeros((num, num, episodes), np.int32)
-    for part in workers.call("cross_play", spread_jobs(workers, list(range(num)),
-                                                       lambda rows: (handle, rows, np.asarray(key), episodes))):
+    jobs = spread_jobs(workers, list(range(num)), lambda rows: (handle, rows, np.asarray(key), episodes, directory))
+    for part in workers.call("cross_play", jobs):
         returns[part.rows], recipes[part.rows] = part.returns, part.start_recipe  # by row: idempotent
     if np.isnan(returns).any():
         raise RuntimeError("cross-play: some pairs were not evaluated")
@@ -73,13 +106,16 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     env = ppo.eval_env(config)
     key = population_key(config, XP_KEY_OFFSET)
     started = time.perf_counter()
+    run = RunDir(run_dir)
+    archive_dir = run.sub("archive", "xp", "_").parent if config.archive.xp else None
     if workers is None:
-        result = cross_play(trainer.network.apply, hidden_size(trainer), env, params, key, episodes)
+        result = play_rows(config, trainer, params, range(config.population.num_seeds), key, episodes, archive_dir)
     else:
-        result = _cross_play_spread(workers, params, key, episodes)
+        result = _cross_play_spread(workers, params, key, episodes, archive_dir)
     summary = summarize(result, recipe_names(env))
     summary["wall_s"] = round(time.perf_counter() - started, 2)
-    run = RunDir(run_dir)
+    if archive_dir is not None:
+        summary["archive"] = str(archive_dir)
     num = result.matrix.shape[0]
     write_csv(run.sub("xp", "matrix.csv"), ["seat0\\seat1"] + [f"seed_{j}" for j in range(num)],
               [[f"seed_{i}"] + [round(float(v), 4) for v in result.matrix[i]] for i in range(num)])
@@ -138,47 +174,3 @@ def write_gifs(run_dir, count: int) -> list[str]:
         path = RunDir(run_dir).sub("gifs", f"seed_{seed}_selfplay.gif")
         paths.append(write_gif(frames, path, fps=8))
     return paths
-
-
-def archive_cross_play(run_dir, episodes: int, workers=None) -> str | None:
-    """Record ``episodes`` episodes of every ordered pair of final policies to ``archive/xp.mcap``.
-
-    These are fresh episodes (key ``fold_in(xp_key, 1)``), not the ones scored in ``xp/``; every
-    state, joint action and reward is kept, so they can be replayed, rendered or used as SA states.
-    Pairs are played row by row (at most K parameter copies at once), spread over ``workers`` if given.
-    """
-    from cluster.archive import ArchiveWriter, env_meta, record_episodes
-
-    if episodes <= 0:
-        return None
-    config, trainer, params = final_params(run_dir)
-    env = ppo.eval_env(config)
-    num = config.population.num_seeds
-    key = jax.random.fold_in(population_key(config, XP_KEY_OFFSET), 1)
-    rows = []  # (pairs, keys) of each seat-0 row
-    for i in range(num):
-        rows.append(([(i, j) for j in range(num)], np.stack([np.asarray(jax.random.fold_in(key, i * num + j))
-                                                              for j in range(num)])))
-    if workers is None:
-        from cluster.shard import record_pairs
-
-        recorded = [record_pairs(trainer, env, params, pairs, keys, episodes) for pairs, keys in rows]
-    else:
-        handle = workers.share(jax.tree.map(np.asarray, params))
-        from cluster.coordinator import spread
-
-        blocks = [b for b in spread(list(range(num)), len(workers.shards))]
-        jobs = [(s, (handle, [p for i in block for p in rows[i][0]], np.concatenate([rows[i][1] for i in block]),
-                     episodes)) for s, block in enumerate(blocks) if block]
-        parts = workers.call("record", jobs)
-        flat = jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
-        recorded = [jax.tree.map(lambda x: x[i * num:(i + 1) * num], flat) for i in range(num)]
-    path = RunDir(run_dir).sub("archive", "xp.mcap")
-    base = {**env_meta(env), "method": config.population.method, "kind": "cross-play",
-            "checkpoint_update": config.ppo.num_updates, "config_fingerprint": config.fingerprint()}
-    with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:
-        for i in range(num):
-            for j in range(num):
-                record_episodes(writer, env, jax.tree.map(lambda x: x[j], recorded[i]),
-                                {**base, "policies": [f"seed_{i}", f"seed_{j}"], "seeds": [i, j]})
-    return str(path)

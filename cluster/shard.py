@@ -7,7 +7,7 @@ checkpoints when constructed, which is what makes a restarted Ray actor resume w
 Every method is idempotent with respect to what the coordinator asked for: ``advance(target)`` trains
 only what is missing up to ``target`` and returns the metrics rows the coordinator has not merged yet
 (recovered from checkpoint meta if the shard had saved them before dying), ``collect``/``cross_play``
-/``record`` depend only on their arguments.
+depend only on their arguments.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from population import ppo
 from population.config import Config
 from population.evaluation import gather_params
 from population.sa import collect_pairs
-from population.xp import cross_play
 
 
 class SABuffer(NamedTuple):
@@ -167,23 +166,20 @@ class SeedShard:
         return CollectResult([tuple(p) for p in part.pairs], jax.tree.map(np.asarray, part.states),
                              None if recorded is None else jax.tree.map(np.asarray, recorded))
 
-    def cross_play(self, params, rows, key, episodes: int) -> CrossPlayRows:
-        env = ppo.eval_env(self.config)
-        result = cross_play(self.trainer.network.apply, hidden_size(self.trainer), env,
-                            jax.tree.map(jnp.asarray, params), key, episodes, rows=rows)
+    def cross_play(self, params, rows, key, episodes: int, archive_dir=None) -> CrossPlayRows:
+        """Cross-play of seat-0 ``rows``; with ``archive_dir`` their episodes are archived there, one file per row."""
+        from cluster.evaluate import play_rows
+
+        result = play_rows(self.config, self.trainer, params, rows, key, episodes, archive_dir)
         rows = list(rows)
         return CrossPlayRows(rows, result.returns[rows], result.start_recipe[rows])
-
-    def record(self, params, pairs, keys, episodes: int):
-        """Full episodes of ``pairs`` (one key each) for the archive: numpy ``Recorded`` [P, E, ...]."""
-        return record_pairs(self.trainer, ppo.eval_env(self.config), params, pairs, keys, episodes)
 
     def record_selfplay(self):
         """One self-play episode per seed of the current policies (``archive.train_every``)."""
         key = population_key(self.config, TRAIN_ARCHIVE_KEY_OFFSET + self.update)
         keys = np.stack([np.asarray(jax.random.fold_in(key, s)) for s in self.seeds])
         local = [(i, i) for i in range(len(self.seeds))]
-        return self.update, self.record(self.params(), local, keys, 1)
+        return self.update, record_pairs(self.trainer, ppo.eval_env(self.config), self.params(), local, keys, 1)
 
     def ping(self) -> int:
         import os

@@ -135,7 +135,6 @@ class EvalConfig:
 
     episodes: int = 500
     gifs: int = 2  # episode GIFs of the first seeds' self-play written after training
-    archive_episodes: int = 0  # episodes per ordered pair recorded to RUN_DIR/archive/xp.mcap (0: none)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,12 +149,13 @@ class RunConfig:
 class ArchiveConfig:
     """The MCAP trajectory archive under RUN_DIR/archive/ (both backends; see docs/archive.md).
 
-    Cross-play episodes are set by ``eval.archive_episodes``. ``sa_collection``: every SA collection
+    ``xp``: every scored cross-play episode -> ``archive/xp/seat0_seed_<i>.mcap``. ``sa_collection``: every SA collection
     episode (all states, not only the kept ones) -> ``archive/sa/iteration_<k>.mcap``. ``train_every``:
     every N updates each seed's current policy plays one self-play episode -> ``archive/train/`` (0: off).
     ``foxglove``: add a rendered-frame channel for Foxglove Studio (~10x larger files).
     """
 
+    xp: bool = True
     sa_collection: bool = True
     train_every: int = 0
     foxglove: bool = False
@@ -286,7 +286,7 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
             for name, cls in (("sa", SAConfig), ("op", OPConfig), ("fcp", FCPConfig))}
     population = dataclasses.replace(_parse_section("population", PopulationConfig, pop_raw), **subs)
     config = Config(env=env, model=model, ppo=ppo, population=population,
-                    eval=_parse_section("eval", EvalConfig, raw.get("eval")),
+                    eval=_parse_eval(raw.get("eval")),
                     run=_parse_section("run", RunConfig, raw.get("run")),
                     archive=_parse_section("archive", ArchiveConfig, raw.get("archive")),
                     cluster=_parse_cluster(raw.get("cluster")))
@@ -374,6 +374,13 @@ def _parse_env(raw) -> tuple[tuple[str, Any], ...]:
     return frozen
 
 
+def _parse_eval(raw) -> EvalConfig:
+    if isinstance(raw, Mapping) and "archive_episodes" in raw:
+        raise ConfigError("eval.archive_episodes: replaced by archive.xp (default true), which archives every "
+                          "scored cross-play episode to archive/xp/")
+    return _parse_section("eval", EvalConfig, raw)
+
+
 def _parse_cluster(raw) -> ClusterConfig:
     if isinstance(raw, Mapping) and "checkpoint_every" in raw:
         raise ConfigError("cluster.checkpoint_every: checkpoints are set by run.checkpoint_every, which both "
@@ -456,7 +463,6 @@ def _validate(config: Config) -> None:
             raise ConfigError("population.method: fcp needs a two-agent layout")
     _positive("eval.episodes", config.eval.episodes)
     _positive("eval.gifs", config.eval.gifs, allow_zero=True)
-    _positive("eval.archive_episodes", config.eval.archive_episodes, allow_zero=True)
     _positive("run.checkpoint_every", config.run.checkpoint_every)
     _positive("archive.train_every", config.archive.train_every, allow_zero=True)
     _validate_cluster(config.cluster, pop.num_seeds)

@@ -1,6 +1,7 @@
 """Cross-play: every ordered pair of K policies (diagonal included), E episodes each, team sparse return.
 
-``cross_play`` returns the per-episode returns [K, K, E] (row = seat 0, column = seat 1);
+``cross_play`` returns the per-episode returns [K, K, E] (row = seat 0, column = seat 1), optionally
+handing every transition to a callback (the trajectory archive);
 ``summarize`` turns them into the paper's numbers: SP = mean of the diagonal cells, XP = mean of the
 off-diagonal cells, each +- the std across cells, the gap SP - XP, 95 % confidence intervals and a
 per-recipe breakdown. Every pair uses the same episode keys (common random numbers), so differences
@@ -30,22 +31,50 @@ class CrossPlay:
         return self.returns.mean(axis=-1)
 
 
+EPISODE_BLOCK = 64  # episodes per pair per jitted call: bounds memory when every transition is kept
+
+
+def episode_blocks(episodes: int, block: int = EPISODE_BLOCK) -> tuple[int, int]:
+    """(number of blocks, episodes per block): as few equal blocks of at most ``block`` as cover ``episodes``."""
+    count = math.ceil(episodes / block)
+    return count, math.ceil(episodes / count)
+
+
 def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array, episodes: int,
-               rows=None) -> CrossPlay:
+               rows=None, on_block=None) -> CrossPlay:
     """Evaluate all ordered pairs of the K stacked ``params`` (or only the given seat-0 ``rows``).
 
-    One jitted call per row (K pairs at a time) bounds memory to K parameter copies.
+    One jitted call per row and block of episodes (K pairs x at most 64 episodes) bounds memory; block
+    b uses ``fold_in(key, b)`` for every pair. ``on_block(row, first_episode, recorded)``: if given,
+    every transition is kept (``population.record``, the same episodes) and handed over per block,
+    ``recorded`` trimmed to the episodes that count -- how the trajectory archive gets every scored
+    episode. Returns are the same with or without it.
     """
     num = jax.tree.leaves(params)[0].shape[0]
     rows = range(num) if rows is None else rows
-    play = _jitted_play(apply, hidden_size, env, episodes)
+    count, size = episode_blocks(episodes)
+    if on_block is None:
+        play = _jitted_play(apply, hidden_size, env, size)
+    else:
+        from population.record import jitted_play_recorded_pairs
+
+        play = jitted_play_recorded_pairs(apply, hidden_size, env, size)
     returns = np.full((num, num, episodes), np.nan, np.float32)
     recipes = np.zeros((num, num, episodes), np.int32)
-    keys = jnp.stack([key] * num)  # common random numbers across pairs
     for i in rows:
-        result = play(gather_params(params, [i] * num), params, keys)
-        returns[i] = np.asarray(result.returns)
-        recipes[i] = np.asarray(result.start_recipe)
+        seat0 = gather_params(params, [i] * num)
+        for block in range(count):
+            first, n = block * size, min(size, episodes - block * size)
+            keys = jnp.stack([jax.random.fold_in(key, block)] * num)  # common random numbers across pairs
+            result = jax.device_get(play(seat0, params, keys))
+            if on_block is None:
+                block_returns, block_recipes = result.returns, result.start_recipe
+            else:
+                result = jax.tree.map(lambda x: x[:, :n], result)
+                block_returns, block_recipes = result.returns, result.states.recipe[:, :, 0]
+                on_block(i, first, result)
+            returns[i, :, first:first + n] = np.asarray(block_returns)[:, :n]
+            recipes[i, :, first:first + n] = np.asarray(block_recipes)[:, :n]
     return CrossPlay(returns, recipes)
 
 

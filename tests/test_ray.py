@@ -7,6 +7,8 @@ Every run is configs/smoke.yaml (2 seeds, one actor each). One Ray instance serv
 
 from __future__ import annotations
 
+import csv
+import io
 import os
 import signal
 import subprocess
@@ -65,35 +67,51 @@ def reference(tmp_path_factory, _ray_tmp):
     return run
 
 
+def xp_archive(run):
+    """{(seat-0 seed, seat-1 seed, pair episode): (return, actions)} of every file in archive/xp/."""
+    episodes = {}
+    for path in sorted((run / "archive" / "xp").iterdir()):
+        with ArchiveReader(path) as reader:
+            for index in range(len(reader)):
+                episode = reader.episode(index)
+                key = (*episode.meta["seeds"], episode.meta["pair_episode"])
+                assert key not in episodes  # no episode stored twice
+                episodes[key] = (float(episode.rewards.sum()), episode.actions)
+    return episodes
+
+
 def test_cross_play_spread_over_ray_workers_equals_the_local_backend(reference, ray_session):
-    """Pairs spread over two actors give the matrix and archived episodes computed in one process."""
+    """Pairs spread over two actors give the matrix and archived episodes computed in one process,
+    and every scored episode is in the archive (once)."""
     config = RunDir(reference).load_config()
     workers = ray_backend.RayWorkers(config, reference)
     try:
-        spread = evaluate.evaluate_run(reference, episodes=2, show_progress=False, workers=workers)
-        spread_csv = (reference / "xp" / "episodes.csv").read_text()
-        evaluate.archive_cross_play(reference, 1, workers=workers)
+        spread = evaluate.evaluate_run(reference, episodes=3, show_progress=False, workers=workers)
     finally:
         workers.close()
-    with ArchiveReader(reference / "archive" / "xp.mcap") as reader:
-        spread_actions = [reader.episode(i).actions for i in range(len(reader))]
-    here = evaluate.evaluate_run(reference, episodes=2, show_progress=False)
+    spread_csv = (reference / "xp" / "episodes.csv").read_text()
+    spread_archive = xp_archive(reference)
+    here = evaluate.evaluate_run(reference, episodes=3, show_progress=False)
     assert (reference / "xp" / "episodes.csv").read_text() == spread_csv
     assert {k: v for k, v in here.items() if k != "wall_s"} == {k: v for k, v in spread.items() if k != "wall_s"}
-    evaluate.archive_cross_play(reference, 1)
-    with ArchiveReader(reference / "archive" / "xp.mcap") as reader:
-        assert sorted(tuple(m["seeds"]) for m in reader.episodes()) == [(0, 0), (0, 1), (1, 0), (1, 1)]
-        for i in range(4):
-            np.testing.assert_array_equal(reader.episode(i).actions, spread_actions[i])
+    archive = xp_archive(reference)
+    assert sorted(archive) == [(i, j, e) for i in (0, 1) for j in (0, 1) for e in range(3)]
+    scored = {(int(r["seat0"]), int(r["seat1"]), int(r["episode"])): float(r["return"])
+              for r in csv.DictReader(io.StringIO(spread_csv))}
+    for key, (ret, actions) in archive.items():
+        assert ret == scored[key]  # the archived episodes are the scored ones
+        np.testing.assert_array_equal(actions, spread_archive[key][1])
 
 
-def test_fcp_on_ray_trains_against_a_pool_from_an_sp_stage(tmp_path, ray_session):
+def test_fcp_on_ray_trains_against_a_pool_from_an_sp_run(tmp_path, reference, ray_session):
+    """FCP learners on two actors against the snapshots of an SP run (the pool is ray.put once and
+    reaches every actor's constructor). The SP-stage path (no partners given) is the same coordinator
+    code, tested in tests/test_train_cli.py."""
     run = tmp_path / "fcp"
-    assert train(run, "population.method=fcp", extra=["--no-eval"]) == 0
+    assert train(run, "population.method=fcp", f"population.fcp.partners={reference}", extra=["--no-eval"]) == 0
     manifest = RunDir(run).read_manifest()
-    assert manifest["status"] == "finished"
-    assert manifest["pool"] == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
-    assert RunDir(run / "partners").read_manifest()["status"] == "finished"
+    assert manifest["status"] == "finished" and manifest["shards"] == [[0], [1]]
+    assert manifest["pool"] == ["seed0@4", "seed0@8", "seed1@4", "seed1@8"]  # mid and final snapshots
     assert jax.tree.leaves(final_params(run))[0].shape[0] == 2  # both learners finished
 
 
@@ -165,7 +183,7 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
     tiny = ["ppo.num_envs=4", "ppo.num_steps=16", "ppo.num_minibatches=2", "ppo.update_epochs=1",
             "ppo.total_timesteps=128", "env.max_steps=24", "model.conv_features=[4]", "model.conv_kernels=[3]",
             "model.fc_dim=8", "population.sa.rollouts_per_pair=1", "eval.episodes=2", "eval.gifs=1",
-            "eval.archive_episodes=1", "run.checkpoint_every=1"]
+            "run.checkpoint_every=1"]
     args = ["train", quickstart, "--out", str(tmp_path / "qs"), "--quiet"]
     for item in tiny:
         args += ["--set", item]
@@ -179,8 +197,8 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
     assert summary["num_policies"] == 2 and summary["episodes_per_pair"] == 2
     assert (run / "plots" / "training.png").stat().st_size > 0
     assert [p.name for p in (run / "gifs").iterdir()] == ["seed_0_selfplay.gif"]
-    with ArchiveReader(run / "archive" / "xp.mcap") as reader:  # one episode per ordered pair
-        assert sorted(tuple(m["seeds"]) for m in reader.episodes()) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    assert sorted(xp_archive(run)) == [(i, j, e) for i in (0, 1) for j in (0, 1) for e in (0, 1)]
+    with ArchiveReader(run / "archive" / "xp" / "seat0_seed_0.mcap") as reader:
         episode = reader.episode(0)
         assert episode.actions.shape == (24, 2) and episode.meta["layout"] == "cramped_room"
     rows = RunDir(run).read_metrics()  # each (seed, update) exactly once, though two actors reported
