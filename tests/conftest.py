@@ -21,7 +21,8 @@ def ensure_ray(tmp_path_factory=None):
             os.environ.update(JAX_COMPILATION_CACHE_DIR=str(tmp_path_factory.mktemp("ray_jax_cache")),
                               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                               JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
-        ray.init(num_cpus=RAY_CPUS, include_dashboard=False, configure_logging=False)
+        # address="local": a fresh instance, never another test process's cluster (pytest-xdist).
+        ray.init(address="local", num_cpus=RAY_CPUS, include_dashboard=False, configure_logging=False)
     return ray
 
 
