@@ -27,7 +27,7 @@ import numpy as np
 
 from cluster.progress import PopulationProgress
 from cluster.rundir import RunDir, RunDirError
-from cluster.runstate import SA_KEY_OFFSET, Schedule, load_params, params_template
+from cluster.runstate import Schedule, load_params, params_template
 from cluster.shard import SABuffer
 from population import checkpoints as ckpt
 from population import ppo

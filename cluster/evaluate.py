@@ -20,7 +20,7 @@ from cluster.rundir import RunDir, RunDirError, write_csv, write_json
 from cluster.runstate import GIF_KEY_OFFSET, XP_KEY_OFFSET, hidden_size, load_params, params_template, population_key
 from population import ppo
 from population.config import Config
-from population.evaluation import gather_params, play_episodes, stack_params
+from population.evaluation import play_episodes, stack_params
 from population.xp import CrossPlay, cross_play, recipe_names, summarize
 
 

@@ -16,7 +16,6 @@ Only this module imports Ray.
 from __future__ import annotations
 
 import functools
-import os
 import socket
 import time
 from pathlib import Path

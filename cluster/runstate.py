@@ -9,7 +9,6 @@ metrics.csv, no row counted twice).
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -115,6 +114,3 @@ def save_checkpoints(run_dir, config: Config, seeds, states, update: int, schedu
             if old not in keep:
                 ckpt.checkpoint_path(run_dir, seed, old).unlink(missing_ok=True)
 
-
-def final_checkpoint(run_dir, config: Config, seed: int) -> Path:
-    return ckpt.checkpoint_path(run_dir, seed, config.ppo.num_updates)

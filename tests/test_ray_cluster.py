@@ -9,7 +9,6 @@ It needs its own Ray, so it shuts the session's down first (the next test that a
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest

@@ -282,9 +282,18 @@ def test_fcp_partner_errors(tmp_path, sp_run, capsys):
     assert "population.fcp.partner_seeds" in capsys.readouterr().err
 
 
-def test_op_runs(tmp_path):
+def test_op_runs_and_archives_training_episodes(tmp_path):
     run = tmp_path / "op"
-    assert train(run, "population.method=op", "env.layout=cramped_room_v2", extra=["--no-eval"]) == 0
+    assert train(run, "population.method=op", "env.layout=cramped_room_v2", "archive.train_every=2",
+                 extra=["--no-eval"]) == 0
+    from cluster.archive import ArchiveReader
+
+    assert sorted(p.name for p in (run / "archive" / "train").iterdir()) == ["update_0000002.mcap",
+                                                                               "update_0000004.mcap"]
+    with ArchiveReader(run / "archive" / "train" / "update_0000004.mcap") as reader:  # one self-play episode per seed
+        metas = reader.episodes()
+        assert [m["seeds"] for m in metas] == [[0, 0], [1, 1]]
+        assert {m["kind"] for m in metas} == {"training"} and {m["checkpoint_update"] for m in metas} == {4}
     info = manifest(run)
     assert info["status"] == "finished" and info["method"] == "op"
     config = RunDir(run).load_config()
