@@ -27,7 +27,7 @@ import numpy as np
 
 from cluster.progress import PopulationProgress
 from cluster.rundir import RunDir, RunDirError
-from cluster.runstate import Schedule, load_params, params_template
+from cluster.runstate import Schedule, archive_meta, load_params, pair_meta, params_template
 from cluster.shard import SABuffer
 from population import checkpoints as ckpt
 from population import ppo
@@ -128,16 +128,15 @@ def archived_states(config: Config):
 
 
 def _archive_collection(config: Config, run: RunDir, iteration: int, by_pair: dict) -> None:
-    from cluster.archive import ArchiveWriter, env_meta, record_episodes
+    from cluster.archive import ArchiveWriter, record_episodes
 
     env = ppo.eval_env(config)
-    base = {**env_meta(env), "method": config.population.method, "kind": "sa-collection", "iteration": iteration,
-            "config_fingerprint": config.fingerprint()}
+    base = archive_meta(config, "sa-collection", iteration=iteration)
     path = run.sub("archive", "sa", f"iteration_{iteration:03d}.mcap")
     with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:
         for (i, j) in sorted(by_pair):
             record_episodes(writer, env, by_pair[(i, j)][1],
-                            {**base, "policies": [f"seed_{i}", f"seed_{j}"], "seeds": [i, j]})
+                            {**base, **pair_meta(i, j)})
 
 
 def buffer_template(config: Config, size: int):
@@ -281,17 +280,16 @@ def _archive_training(config: Config, run: RunDir, workers: Workers, before: int
     every = config.archive.train_every
     if not every or stop // every == before // every:
         return
-    from cluster.archive import ArchiveWriter, env_meta, record_episodes
+    from cluster.archive import ArchiveWriter, record_episodes
 
     env = ppo.eval_env(config)
     results = workers.call("record_selfplay", [(i, ()) for i in range(len(workers.shards))])
-    base = {**env_meta(env), "method": config.population.method, "kind": "training", "checkpoint_update": stop,
-            "config_fingerprint": config.fingerprint()}
+    base = archive_meta(config, "training", checkpoint_update=stop)
     path = run.sub("archive", "train", f"update_{stop:07d}.mcap")
     with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:
         for seeds, (_, recorded) in zip(workers.shards, results):
             for index, seed in enumerate(seeds):
                 record_episodes(writer, env, jax.tree.map(lambda x: x[index], recorded),
-                                {**base, "policies": [f"seed_{seed}", f"seed_{seed}"], "seeds": [seed, seed]})
+                                {**base, **pair_meta(seed, seed)})
 
 

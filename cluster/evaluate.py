@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from cluster.rundir import RunDir, RunDirError, write_csv, write_json
-from cluster.runstate import GIF_KEY_OFFSET, XP_KEY_OFFSET, hidden_size, load_params, params_template, population_key
+from cluster.runstate import (GIF_KEY_OFFSET, XP_KEY_OFFSET, archive_meta, hidden_size, load_params, pair_meta,
+                              params_template, population_key)
 from population import ppo
 from population.config import Config
 from population.evaluation import play_episodes, stack_params
@@ -55,15 +56,14 @@ def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes:
     """Cross-play of seat-0 ``rows``; with ``archive_dir`` every episode also goes to its row's MCAP file."""
     from contextlib import ExitStack
 
-    from cluster.archive import ArchiveWriter, env_meta, record_episodes
+    from cluster.archive import ArchiveWriter, record_episodes
 
     env = ppo.eval_env(config)
     apply, hidden = trainer.network.apply, hidden_size(trainer)
     params = jax.tree.map(jnp.asarray, params)
     if archive_dir is None:
         return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows)
-    base = {**env_meta(env), "method": config.population.method, "kind": "cross-play", "scored": True,
-            "checkpoint_update": config.ppo.num_updates, "config_fingerprint": config.fingerprint()}
+    base = archive_meta(config, "cross-play", scored=True, checkpoint_update=config.ppo.num_updates)
     num = jax.tree.leaves(params)[0].shape[0]
     with ExitStack() as files:
         writers = {i: files.enter_context(ArchiveWriter(xp_archive_path(archive_dir, i), overwrite=True,
@@ -72,7 +72,7 @@ def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes:
         def write(row, first, recorded):
             for j in range(num):
                 record_episodes(writers[row], env, jax.tree.map(lambda x: x[j], recorded),
-                                {**base, "policies": [f"seed_{row}", f"seed_{j}"], "seeds": [row, j]}, first)
+                                {**base, **pair_meta(row, j)}, first)
 
         return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows, on_block=write)
 

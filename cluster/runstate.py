@@ -62,6 +62,15 @@ def population_key(config: Config, offset: int) -> jax.Array:
     return jax.random.fold_in(jax.random.PRNGKey(config.population.seed), offset)
 
 
+def archive_meta(config: Config, kind: str, **extra) -> dict:
+    """Metadata every episode a run archives carries (``record_episodes`` adds the env's own)."""
+    return {"method": config.population.method, "kind": kind, **extra, "config_fingerprint": config.fingerprint()}
+
+
+def pair_meta(seat0: int, seat1: int) -> dict:
+    return {"policies": [f"seed_{seat0}", f"seed_{seat1}"], "seeds": [seat0, seat1]}
+
+
 def hidden_size(trainer: ppo.Trainer) -> int:
     return trainer.network.gru_dim if trainer.network.recurrent else 0
 
