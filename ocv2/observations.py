@@ -108,54 +108,54 @@ def _agent_row(config: EnvConfig, direction, inventory, offset: int, total: int,
     return jnp.zeros((total,), dtype).at[offset:offset + 7 + n].set(features.astype(dtype))
 
 
-def grid_observations(config: EnvConfig, state: State) -> jax.Array:
-    """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation)."""
-    dtype = jnp.dtype(config.obs_dtype)
-    n = config.num_ingredients
-    total = full_channels(config)
+def _cell_codes(config: EnvConfig, state: State) -> jax.Array:
+    """Per-cell lookup codes [4, H, W]: static (+ lit goal), item, shown recipe, pot timer (0 -> zero row)."""
     static, items, timer = state.grid[:, :, 0], state.grid[:, :, 1], state.grid[:, :, 2]
-    agents = state.agents
-    num_agents = agents.x.shape[0]
-    tables = _shared_tables(config)
-
-    # Per-cell codes, one lookup table each (code 0 -> an all-zero row).
     lit = (static == Static.GOAL) & state.new_correct_delivery if config.indicate_successful_delivery else False
     static_code = jnp.clip(static, 0, Static.INGREDIENT_PILE + 15) + jnp.where(lit, Static.INGREDIENT_PILE + 16, 0)
     shows_recipe = (static == Static.RECIPE_INDICATOR) | ((static == Static.BUTTON) & (timer > 0))
-    codes = jnp.stack([
+    return jnp.stack([
         static_code, items, jnp.where(shows_recipe, state.recipe, 0),
         jnp.where(static == Static.POT, jnp.clip(timer, 0, 255), 0),
-    ])  # [4, H, W]
+    ])
 
-    def shared_obs(codes, channel_index):
-        def table(t):
-            t = jnp.asarray(t, dtype)
-            return t if channel_index is None else t[:, channel_index]
 
-        static_code, items, recipe, pot_timer = codes
-        obs = table(tables["static"])[static_code]
-        for chunk, (t_item, t_recipe) in enumerate(zip(tables["items"], tables["recipe"])):
-            obs = obs + table(t_item)[(items >> (8 * chunk)) & 0xFF] + table(t_recipe)[(recipe >> (8 * chunk)) & 0xFF]
-        return obs + table(tables["timer"])[pot_timer]
+def _lookup(tables, codes: jax.Array, dtype, channel_index=None) -> jax.Array:
+    """Sum of the shared-channel table rows for codes [4, h, w] -> [h, w, C]."""
+    def table(t):
+        t = jnp.asarray(t, dtype)
+        return t if channel_index is None else t[:, channel_index]
 
+    static_code, items, recipe, pot_timer = codes
+    obs = table(tables["static"])[static_code]
+    for chunk, (t_item, t_recipe) in enumerate(zip(tables["items"], tables["recipe"])):
+        obs = obs + table(t_item)[(items >> (8 * chunk)) & 0xFF] + table(t_recipe)[(recipe >> (8 * chunk)) & 0xFF]
+    return obs + table(tables["timer"])[pot_timer]
+
+
+def grid_observations(config: EnvConfig, state: State) -> jax.Array:
+    """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation)."""
+    if config.view_radius is None:
+        return _full_view(config, state)
+    return _windowed_view(config, state)
+
+
+def _full_view(config: EnvConfig, state: State) -> jax.Array:
+    """Whole-map observations: the shared channels once, then each agent's layers added at its cell."""
+    dtype = jnp.dtype(config.obs_dtype)
+    n = config.num_ingredients
+    agents = state.agents
+    num_agents = agents.x.shape[0]
+    tables = _shared_tables(config)
+    codes = _cell_codes(config, state)
     channel_index = None
     if config.op_enabled:
         channel_index = _channel_permutation(config, state.ingredient_permutations)
-        shared = jax.vmap(lambda m: shared_obs(codes, m))(channel_index)
+        shared = jax.vmap(lambda index: _lookup(tables, codes, dtype, index))(channel_index)
     else:
-        shared = jnp.broadcast_to(shared_obs(codes, None), (num_agents,) + static.shape + (total,))
-
-    radius = config.view_radius
-    if radius is not None:
-        side = 2 * radius + 1
-        padded = jnp.pad(shared, ((0, 0), (radius, radius), (radius, radius), (0, 0)))
-        shared = jax.vmap(lambda o, y, x: jax.lax.dynamic_slice(o, (y, x, 0), (side, side, total)))(
-            padded, agents.y, agents.x)
-        origin_y, origin_x = agents.y - radius, agents.x - radius  # window top-left in map coords
-    else:
-        origin_y = origin_x = jnp.zeros((num_agents,), jnp.int32)
-
-    # Add every agent's layers at its cell in each observer's frame (dropped when outside the window).
+        shared = _lookup(tables, codes, dtype)
+        shared = jnp.broadcast_to(shared, (num_agents,) + shared.shape)
+    total = shared.shape[-1]
     out = []
     for o in range(num_agents):
         obs = shared[o]
@@ -163,11 +163,44 @@ def grid_observations(config: EnvConfig, state: State) -> jax.Array:
             row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, total, dtype)
             if channel_index is not None:
                 row = row[channel_index[o]]
-            y, x = agents.y[b] - origin_y[o], agents.x[b] - origin_x[o]
-            # Explicit bounds: negative indices would wrap around before "drop" applies.
-            inside = (y >= 0) & (y < obs.shape[0]) & (x >= 0) & (x < obs.shape[1])
-            y, x = jnp.clip(y, 0, obs.shape[0] - 1), jnp.clip(x, 0, obs.shape[1] - 1)
-            obs = obs.at[y, x].add(jnp.where(inside, row, jnp.zeros_like(row)))
+            # A scatter into the materialised shared channels (measured faster here than a masked add).
+            obs = obs.at[agents.y[b], agents.x[b]].add(row)
+        out.append(obs)
+    return jnp.stack(out)
+
+
+def _windowed_view(config: EnvConfig, state: State) -> jax.Array:
+    """View-window observations, built from the window's cell codes rather than cut from a full one.
+
+    Cutting the [4, H, W] codes (zero outside the map, which looks up all-zero rows, like the
+    reference's zero padding) and looking up only the window's cells does a fraction of the work of
+    building every cell's C channels and slicing; agents' layers are masked adds (agents never share
+    a cell), not scatters.
+    """
+    dtype = jnp.dtype(config.obs_dtype)
+    n = config.num_ingredients
+    total = full_channels(config)
+    agents = state.agents
+    num_agents = agents.x.shape[0]
+    tables = _shared_tables(config)
+    radius = config.view_radius
+    side = 2 * radius + 1
+    codes = jnp.pad(_cell_codes(config, state), ((0, 0), (radius, radius), (radius, radius)))
+    windows = jax.vmap(lambda y, x: jax.lax.dynamic_slice(codes, (0, y, x), (4, side, side)))(agents.y, agents.x)
+    # Map coordinates of every window cell, per observer.
+    cell_y = agents.y[:, None, None] - radius + jnp.arange(side, dtype=jnp.int32)[None, :, None]
+    cell_x = agents.x[:, None, None] - radius + jnp.arange(side, dtype=jnp.int32)[None, None, :]
+    channel_index = _channel_permutation(config, state.ingredient_permutations) if config.op_enabled else None
+    out = []
+    for o in range(num_agents):
+        index = None if channel_index is None else channel_index[o]
+        obs = _lookup(tables, windows[o], dtype, index)
+        for b in range(num_agents):
+            row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, total, dtype)
+            if index is not None:
+                row = row[index]
+            on_cell = (cell_y[o] == agents.y[b]) & (cell_x[o] == agents.x[b])
+            obs = obs + on_cell.astype(dtype)[:, :, None] * row
         out.append(obs)
     return jnp.stack(out)
 
