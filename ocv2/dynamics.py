@@ -80,12 +80,29 @@ class _Interaction(NamedTuple):
     correct_delivery: jax.Array
 
 
-def interact(config: EnvConfig, cell, inventory, recipe, grid_items, grid_static, start_inventories) -> _Interaction:
-    """Result of one agent interacting with the cell it faces (spec section 8).
+class _PlateCounts(NamedTuple):
+    """What the plate-pickup bonus looks at: plates held at the step start, and over the grid as it is
+    when the agent acts (earlier agents' interactions applied) the non-empty pots and bare plates."""
 
-    ``grid_items``/``grid_static`` are the whole grid as it is when this agent acts (earlier agents'
-    interactions applied); ``start_inventories`` are every agent's inventories at the step start.
-    """
+    plates_held: jax.Array
+    busy_pots: jax.Array
+    loose_plates: jax.Array
+
+
+def _busy_pot(cell) -> jax.Array:
+    return (cell[..., 0] == Static.POT) & (cell[..., 1] != 0)
+
+
+def plate_counts(grid: jax.Array, inventories: jax.Array) -> _PlateCounts:
+    return _PlateCounts(
+        plates_held=jnp.sum(inventories == it.PLATE),
+        busy_pots=jnp.sum(_busy_pot(grid)),
+        loose_plates=jnp.sum(grid[:, :, 1] == it.PLATE),
+    )
+
+
+def interact(config: EnvConfig, cell, inventory, recipe, counts: _PlateCounts) -> _Interaction:
+    """Result of one agent interacting with the cell it faces (spec section 8)."""
     static, item, timer = cell[0], cell[1], cell[2]
     plated_recipe = recipe | it.PLATE | it.COOKED
     is_plate_pile = static == Static.PLATE_PILE
@@ -149,10 +166,8 @@ def interact(config: EnvConfig, cell, inventory, recipe, grid_items, grid_static
 
     # Plate pickup pays only if fewer plates are held (at step start) than pots are non-empty, and no
     # bare plate lies anywhere on the grid (the reference's anti-reward-hacking rule).
-    plates_held = jnp.sum(start_inventories == it.PLATE)
-    busy_pots = jnp.sum((grid_static == Static.POT) & (grid_items != 0))
-    no_loose_plates = ~jnp.any(grid_items == it.PLATE)
-    plate_pickup = pickup & (new_inventory == it.PLATE) & (plates_held < busy_pots) & no_loose_plates
+    plate_pickup = (pickup & (new_inventory == it.PLATE) & (counts.plates_held < counts.busy_pots)
+                    & (counts.loose_plates == 0))
     shaped = shaped + jnp.where(plate_pickup, float(it.SHAPED_PLATE_PICKUP), 0.0)
 
     new_cell = jnp.stack([static, new_item, new_timer]).astype(jnp.int32)
@@ -164,8 +179,10 @@ def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions:
     grid = state.grid
     height, width = grid.shape[:2]
     num_agents = agents.x.shape[0]
-    start_inventories = agents.inventory
     inventories = agents.inventory
+    # Grid-wide counts once per step, then updated by each write (one cell changes per agent): the
+    # same numbers as recounting the grid before every agent, for a fraction of the work.
+    counts = plate_counts(grid, agents.inventory)
     reward = jnp.zeros((), jnp.float32)
     shaped = []
     correct_delivery = jnp.zeros((), bool)
@@ -185,11 +202,15 @@ def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions:
         if config.fix_offmap_interaction:
             acting = acting & on_map
         cell = grid[ry, rx]
-        result = interact(
-            config, cell, inventories[a], state.recipe, grid[:, :, 1], grid[:, :, 0], start_inventories
-        )
+        result = interact(config, cell, inventories[a], state.recipe, counts)
         write = acting & writable
-        grid = grid.at[ry, rx].set(jnp.where(write, result.cell, cell))
+        written = jnp.where(write, result.cell, cell)
+        grid = grid.at[ry, rx].set(written)
+        counts = counts._replace(
+            busy_pots=counts.busy_pots + _busy_pot(written).astype(jnp.int32) - _busy_pot(cell).astype(jnp.int32),
+            loose_plates=counts.loose_plates + (written[1] == it.PLATE).astype(jnp.int32)
+            - (cell[1] == it.PLATE).astype(jnp.int32),
+        )
         inventories = inventories.at[a].set(jnp.where(acting, result.inventory, inventories[a]))
         reward = reward + jnp.where(acting, result.reward, 0.0)
         shaped.append(jnp.where(acting, result.shaped, 0.0))
