@@ -36,6 +36,7 @@ import argparse
 import datetime as _dt
 import gc
 import json
+import math
 import os
 import platform
 import statistics
@@ -145,6 +146,10 @@ class Case:
         out = jax.block_until_ready(self.rollout(k, self.obs, self.state))
         self.obs, self.state = out[0], out[1]
         return out
+
+    def repeats_for(self, repeats: int, min_time: float) -> int:
+        """At least ``repeats`` runs, and enough to fill ``min_time`` seconds (estimated from the warm-up)."""
+        return max(repeats, math.ceil(min_time / max(self.second_run_s, 1e-6)))
 
     def time(self, repeats: int) -> list[float]:
         new = []
@@ -425,9 +430,10 @@ def build_markdown(info, args, command, table, summary, split_md, split_cfg, spl
         "- Compile time and the first two runs are excluded (the second catches a recompile when the state"
         " `step` returns differs in type from the one `reset` made); every timed call ends in"
         " `block_until_ready`.",
-        f"- {args.rounds} round(s) x {args.repeats} timed repeats per case; rounds are interleaved across"
-        " all configurations and both implementations (which one goes first alternates per round)."
-        " Reported: median over all rounds x repeats.",
+        f"- {args.rounds} round(s) per case, each of at least {args.repeats} timed runs and at least"
+        f" {args.min_time:g} s of them (a batch-1 case makes hundreds of runs per round); rounds are"
+        " interleaved across all configurations and both implementations (which one goes first"
+        " alternates per round). Reported: median over all timed runs.",
         f"- env steps/s = {args.steps} x batch / median seconds (one env step = one transition of one"
         " kitchen, both agents). Ratio = ocv2 / jaxmarl. Target: >=3x for batch >= 64, >=1.5x for batch 1.",
         "- Both run on the CPU backend with XLA's default threading; the numbers are only comparable"
@@ -490,7 +496,10 @@ def main(argv=None):
     p.add_argument("--views", nargs="+", default=None, help="agent_view_size values, 'none' = full grid (default: none 2)")
     p.add_argument("--batches", nargs="+", type=int, default=None, help="default: 1 64 1024")
     p.add_argument("--steps", type=int, default=256, help="env steps per timed scan")
-    p.add_argument("--repeats", type=int, default=3, help="timed runs per case per round")
+    p.add_argument("--repeats", type=int, default=3, help="least timed runs per case per round")
+    p.add_argument("--min-time", type=float, default=0.5,
+                   help="least seconds of timed runs per case per round: short cases (batch 1) repeat more,"
+                        " so one noisy moment on a shared machine does not decide their median")
     p.add_argument("--rounds", type=int, default=None, help="interleaved sweeps (default 2; 1 with --quick)")
     p.add_argument("--quick", action="store_true",
                    help="smoke run: one layout (cramped_room), batches 1 and 64, 1 round, small time split")
@@ -517,7 +526,7 @@ def main(argv=None):
 
     t_start = time.perf_counter()
     info = environment_info()
-    info.update(steps=args.steps, repeats=args.repeats, rounds=args.rounds, command=command)
+    info.update(steps=args.steps, repeats=args.repeats, min_time=args.min_time, rounds=args.rounds, command=command)
     log("# environment: " + json.dumps(info))
 
     # ---- main sweep, interleaved
@@ -532,13 +541,14 @@ def main(argv=None):
                 if key not in cases:
                     cases[key] = Case(impl, *cfg, steps=args.steps)
                 case = cases[key]
-                new = case.time(args.repeats)
+                new = case.time(case.repeats_for(args.repeats, args.min_time))
                 med_new = statistics.median(new)
                 log(
                     f"[round {rnd + 1}/{args.rounds} case {ci * len(IMPLS) + order.index(impl) + 1}/{n_total}]"
                     f" {impl:8s} {cfg[0]:22s} view={view_str(cfg[1]):4s} batch={cfg[2]:5d}"
                     f"  this round: {args.steps * cfg[2] / med_new:>12,.0f} env steps/s"
-                    f"  (compile+1st {case.compile_s:.1f}s, 2nd {case.second_run_s:.2f}s, runs {[round(t, 4) for t in new]})"
+                    f"  (compile+1st {case.compile_s:.1f}s, 2nd {case.second_run_s:.3f}s, {len(new)} runs,"
+                    f" min/median/max {min(new):.4f}/{med_new:.4f}/{max(new):.4f}s)"
                 )
 
     rows_by_cfg: dict[tuple, dict] = {}
