@@ -11,6 +11,8 @@ Values equal the reference's; the dtype is uint8 by default (the reference uses 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -77,8 +79,9 @@ def _item_chunk_tables(n: int, offset: int, total: int) -> list[np.ndarray]:
     return tables
 
 
-def _shared_tables(config: EnvConfig):
-    """Constant lookup tables for the channels every observer shares (before permutation)."""
+@functools.lru_cache(maxsize=64)
+def _shared_tables(config: EnvConfig, lanes: int):
+    """Constant lookup tables for the channels every observer shares, packed ``lanes`` channels per word."""
     n = config.num_ingredients
     total = full_channels(config)
     static = np.zeros((2 * (Static.INGREDIENT_PILE + 16), total), np.int32)  # second half: goal lit up
@@ -92,20 +95,60 @@ def _shared_tables(config: EnvConfig):
     timer = np.zeros((256, total), np.int32)
     timer[:, 24 + 5 * n] = np.arange(256)
     return dict(
-        static=static,
-        items=_item_chunk_tables(n, 20 + 3 * n, total),
-        recipe=_item_chunk_tables(n, 22 + 4 * n, total),
-        timer=timer,
+        static=_pack_table(static, lanes),
+        items=[_pack_table(t, lanes) for t in _item_chunk_tables(n, 20 + 3 * n, total)],
+        recipe=[_pack_table(t, lanes) for t in _item_chunk_tables(n, 22 + 4 * n, total)],
+        timer=_pack_table(timer, lanes),
     )
 
 
-def _agent_row(config: EnvConfig, direction, inventory, offset: int, total: int, dtype) -> jax.Array:
-    """One agent's layer values at its own cell: position, direction one-hot, item block -> [C]."""
+# --- packing: with uint8 observations, four channels travel in one uint32 word ---------------------
+# Every channel value is < 256 and each channel of a cell gets a value from exactly one source (one
+# table, or the one agent on the cell), so adding packed words never carries from one byte into the
+# next: the packed sums are the channel sums. It makes the per-element gathers 4x fewer, which is
+# what the observation's time goes to on XLA:CPU (see docs/BENCHMARKS.md).
+
+def _lanes(config: EnvConfig) -> int:
+    return 4 if jnp.dtype(config.obs_dtype) == jnp.uint8 else 1
+
+
+def _pack_table(table: np.ndarray, lanes: int) -> np.ndarray:
+    """[K, C] small ints -> [K, ceil(C / lanes)] words; channel ``lanes * w + k`` is byte k of word w."""
+    if lanes == 1:
+        return table.astype(np.int32)
+    words = -(-table.shape[-1] // lanes)
+    padded = np.zeros(table.shape[:-1] + (words * lanes,), np.uint32)
+    padded[..., :table.shape[-1]] = table
+    shifts = 8 * np.arange(lanes, dtype=np.uint32)
+    return (padded.reshape(table.shape[:-1] + (words, lanes)) << shifts).sum(-1, dtype=np.uint32)
+
+
+def _pack_row(row: jax.Array, lanes: int) -> jax.Array:
+    """Traced version of ``_pack_table`` for one [C] row."""
+    if lanes == 1:
+        return row.astype(jnp.int32)
+    words = -(-row.shape[-1] // lanes)
+    padded = jnp.pad(row.astype(jnp.uint32), (0, words * lanes - row.shape[-1])).reshape(words, lanes)
+    return (padded << (8 * jnp.arange(lanes, dtype=jnp.uint32))).sum(-1, dtype=jnp.uint32)
+
+
+def _unpack(words: jax.Array, channels: int, config: EnvConfig) -> jax.Array:
+    """[..., W] words -> [..., channels] in the observation dtype (little-endian bytes, like the packing)."""
+    dtype = jnp.dtype(config.obs_dtype)
+    if words.dtype == jnp.uint32:
+        as_bytes = jax.lax.bitcast_convert_type(words, jnp.uint8)  # [..., W, 4], byte k = bits 8k..8k+7
+        return as_bytes.reshape(words.shape[:-1] + (-1,))[..., :channels]
+    return words[..., :channels].astype(dtype)
+
+
+def _agent_row(config: EnvConfig, direction, inventory, offset: int, lanes: int) -> jax.Array:
+    """One agent's layer values at its own cell (position, direction one-hot, item block), packed."""
     n = config.num_ingredients
     features = jnp.concatenate(
         [jnp.ones((1,), jnp.int32), jax.nn.one_hot(direction, 4, dtype=jnp.int32), it.item_channels(inventory, n)]
     )
-    return jnp.zeros((total,), dtype).at[offset:offset + 7 + n].set(features.astype(dtype))
+    row = jnp.zeros((full_channels(config),), jnp.int32).at[offset:offset + 7 + n].set(features)
+    return _pack_row(row, lanes)
 
 
 def _cell_codes(config: EnvConfig, state: State) -> jax.Array:
@@ -120,56 +163,52 @@ def _cell_codes(config: EnvConfig, state: State) -> jax.Array:
     ])
 
 
-def _lookup(tables, codes: jax.Array, dtype, channel_index=None) -> jax.Array:
-    """Sum of the shared-channel table rows for codes [4, h, w] -> [h, w, C]."""
-    def table(t):
-        t = jnp.asarray(t, dtype)
-        return t if channel_index is None else t[:, channel_index]
-
+def _lookup(tables, codes: jax.Array) -> jax.Array:
+    """Sum of the shared-channel table rows for codes [4, h, w] -> packed [h, w, words]."""
     static_code, items, recipe, pot_timer = codes
-    obs = table(tables["static"])[static_code]
+    obs = jnp.asarray(tables["static"])[static_code]
     for chunk, (t_item, t_recipe) in enumerate(zip(tables["items"], tables["recipe"])):
-        obs = obs + table(t_item)[(items >> (8 * chunk)) & 0xFF] + table(t_recipe)[(recipe >> (8 * chunk)) & 0xFF]
-    return obs + table(tables["timer"])[pot_timer]
+        obs = obs + jnp.asarray(t_item)[(items >> (8 * chunk)) & 0xFF] + jnp.asarray(t_recipe)[(recipe >> (8 * chunk)) & 0xFF]
+    return obs + jnp.asarray(tables["timer"])[pot_timer]
 
 
 def grid_observations(config: EnvConfig, state: State) -> jax.Array:
-    """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation)."""
+    """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation).
+
+    Built without other-play's channel permutation, which is applied last to the finished frames
+    (permuting every source table and agent row the same way, as the reference does, is equivalent).
+    """
     if config.view_radius is None:
-        return _full_view(config, state)
-    return _windowed_view(config, state)
+        words = _full_view(config, state, _lanes(config))
+    else:
+        # Unpacked: with packed words XLA:CPU turns the window's masked adds into a slow loop
+        # (5x slower at batch 1024, measured), while unpacked they fuse with the lookups.
+        words = _windowed_view(config, state, lanes=1)
+    obs = _unpack(words, full_channels(config), config)
+    if config.op_enabled:
+        index = _channel_permutation(config, state.ingredient_permutations)  # [N, C]
+        obs = jnp.take_along_axis(obs, index[:, None, None, :], axis=-1)
+    return obs
 
 
-def _full_view(config: EnvConfig, state: State) -> jax.Array:
+def _full_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
     """Whole-map observations: the shared channels once, then each agent's layers added at its cell."""
-    dtype = jnp.dtype(config.obs_dtype)
     n = config.num_ingredients
     agents = state.agents
     num_agents = agents.x.shape[0]
-    tables = _shared_tables(config)
-    codes = _cell_codes(config, state)
-    channel_index = None
-    if config.op_enabled:
-        channel_index = _channel_permutation(config, state.ingredient_permutations)
-        shared = jax.vmap(lambda index: _lookup(tables, codes, dtype, index))(channel_index)
-    else:
-        shared = _lookup(tables, codes, dtype)
-        shared = jnp.broadcast_to(shared, (num_agents,) + shared.shape)
-    total = shared.shape[-1]
+    shared = _lookup(_shared_tables(config, lanes), _cell_codes(config, state))
     out = []
     for o in range(num_agents):
-        obs = shared[o]
+        obs = shared
         for b in range(num_agents):
-            row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, total, dtype)
-            if channel_index is not None:
-                row = row[channel_index[o]]
+            row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, lanes)
             # A scatter into the materialised shared channels (measured faster here than a masked add).
             obs = obs.at[agents.y[b], agents.x[b]].add(row)
         out.append(obs)
     return jnp.stack(out)
 
 
-def _windowed_view(config: EnvConfig, state: State) -> jax.Array:
+def _windowed_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
     """View-window observations, built from the window's cell codes rather than cut from a full one.
 
     Cutting the [4, H, W] codes (zero outside the map, which looks up all-zero rows, like the
@@ -177,12 +216,10 @@ def _windowed_view(config: EnvConfig, state: State) -> jax.Array:
     building every cell's C channels and slicing; agents' layers are masked adds (agents never share
     a cell), not scatters.
     """
-    dtype = jnp.dtype(config.obs_dtype)
     n = config.num_ingredients
-    total = full_channels(config)
     agents = state.agents
     num_agents = agents.x.shape[0]
-    tables = _shared_tables(config)
+    tables = _shared_tables(config, lanes)
     radius = config.view_radius
     side = 2 * radius + 1
     codes = jnp.pad(_cell_codes(config, state), ((0, 0), (radius, radius), (radius, radius)))
@@ -190,17 +227,13 @@ def _windowed_view(config: EnvConfig, state: State) -> jax.Array:
     # Map coordinates of every window cell, per observer.
     cell_y = agents.y[:, None, None] - radius + jnp.arange(side, dtype=jnp.int32)[None, :, None]
     cell_x = agents.x[:, None, None] - radius + jnp.arange(side, dtype=jnp.int32)[None, None, :]
-    channel_index = _channel_permutation(config, state.ingredient_permutations) if config.op_enabled else None
     out = []
     for o in range(num_agents):
-        index = None if channel_index is None else channel_index[o]
-        obs = _lookup(tables, windows[o], dtype, index)
+        obs = _lookup(tables, windows[o])
         for b in range(num_agents):
-            row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, total, dtype)
-            if index is not None:
-                row = row[index]
+            row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, lanes)
             on_cell = (cell_y[o] == agents.y[b]) & (cell_x[o] == agents.x[b])
-            obs = obs + on_cell.astype(dtype)[:, :, None] * row
+            obs = obs + on_cell.astype(row.dtype)[:, :, None] * row
         out.append(obs)
     return jnp.stack(out)
 

@@ -49,13 +49,21 @@ def test_spaces_and_dict_api():
     assert featurized.observation_space().shape == (96,) and featurized.observation_space().dtype == jnp.float32
 
 
-def test_int32_observations_have_the_same_values():
-    a = ocv2.make("cramped_room_v2", random_reset=True, agent_view_size=1)
-    b = ocv2.make("cramped_room_v2", random_reset=True, agent_view_size=1, obs_dtype="int32")
-    state = a.reset_state(jax.random.PRNGKey(4))
-    oa, ob = a.get_obs_arrays(state), b.get_obs_arrays(state)
-    assert oa.dtype == jnp.uint8 and ob.dtype == jnp.int32
-    np.testing.assert_array_equal(np.asarray(oa, np.int32), np.asarray(ob))
+@pytest.mark.parametrize("layout, params", [
+    ("cramped_room_v2", dict(agent_view_size=1)),
+    # Full view: uint8 observations are built four channels per uint32 word, int32 ones unpacked.
+    ("cramped_room_v2", dict()),
+    ("grounded_coord_simple", dict(op_ingredient_permutations=[0, 1, 2], indicate_successful_delivery=True)),
+    ("demo_cook_wide", dict()),  # two 8-bit item chunks, C = 45 (not a multiple of 4)
+])
+def test_int32_observations_have_the_same_values(layout, params):
+    a = ocv2.make(layout, random_reset=True, **params)
+    b = ocv2.make(layout, random_reset=True, obs_dtype="int32", **params)
+    for seed in range(4):
+        state = a.reset_state(jax.random.PRNGKey(seed))
+        oa, ob = a.get_obs_arrays(state), b.get_obs_arrays(state)
+        assert oa.dtype == jnp.uint8 and ob.dtype == jnp.int32
+        np.testing.assert_array_equal(np.asarray(oa, np.int32), np.asarray(ob))
 
 
 def test_same_key_same_numbers():
