@@ -49,15 +49,30 @@ def grid_obs_shape(config: EnvConfig) -> tuple[int, int, int]:
     return (side, side, num_channels(config))
 
 
-def _channel_permutation(config: EnvConfig, permutations: jax.Array) -> jax.Array:
-    """Per-observer channel gather index applying its ingredient mapping (other-play): [N, C]."""
+def _permute_item(code: jax.Array, perm: jax.Array, n: int) -> jax.Array:
+    """An item or recipe code as an observer with ingredient mapping ``perm`` sees it (other-play).
+
+    Slot j of the observer's ingredient channels shows the true ingredient ``perm[j]``, so its 2-bit
+    counter takes ingredient ``perm[j]``'s count; the plate and cooked bits stay. Permuting the codes
+    before the lookups equals permuting the channels after them (how the reference does it), but
+    costs n shifts per cell instead of a gather per channel.
+    """
+    counts = (code[..., None] >> (2 + 2 * perm)) & 3
+    slots = counts << (2 + 2 * jnp.arange(n, dtype=jnp.int32))
+    return (code & 3) | slots.sum(axis=-1)  # the fields are disjoint: sum == or
+
+
+def _permute_codes(config: EnvConfig, codes: jax.Array, perm: jax.Array) -> jax.Array:
+    """Cell codes [4, h, w] as seen through ``perm``: piles, items and shown recipes move slot."""
     n = config.num_ingredients
-    base = np.arange(full_channels(config))
-    index = jnp.broadcast_to(jnp.asarray(base), (permutations.shape[0], base.size))
-    # Ingredient channels of: ego inventory, others' inventories, piles, grid items, recipe.
-    for start in (7, 14 + n, 20 + 2 * n, 22 + 3 * n, 24 + 4 * n):
-        index = index.at[:, start:start + n].set(start + permutations)
-    return index
+    static_code, items, recipe, pot_timer = codes
+    # The slot where the pile's ingredient shows: j with perm[j] == pile (a compare, not a sort).
+    pile = static_code - Static.INGREDIENT_PILE
+    slots = jnp.arange(n, dtype=jnp.int32)
+    slot = jnp.sum(jnp.where(perm[None, None, :] == pile[..., None], slots, 0), axis=-1)
+    is_pile = (pile >= 0) & (pile < n)
+    static_code = jnp.where(is_pile, Static.INGREDIENT_PILE + slot, static_code)
+    return jnp.stack([static_code, _permute_item(items, perm, n), _permute_item(recipe, perm, n), pot_timer])
 
 
 def _item_chunk_tables(n: int, offset: int, total: int) -> list[np.ndarray]:
@@ -151,6 +166,14 @@ def _agent_row(config: EnvConfig, direction, inventory, offset: int, lanes: int)
     return _pack_row(row, lanes)
 
 
+def _seen_inventory(config: EnvConfig, state: State, observer: int, agent: int) -> jax.Array:
+    """Agent ``agent``'s held item as ``observer`` sees it (ingredient order permuted under other-play)."""
+    inventory = state.agents.inventory[agent]
+    if not config.op_enabled:
+        return inventory
+    return _permute_item(inventory, state.ingredient_permutations[observer], config.num_ingredients)
+
+
 def _cell_codes(config: EnvConfig, state: State) -> jax.Array:
     """Per-cell lookup codes [4, H, W]: static (+ lit goal), item, shown recipe, pot timer (0 -> zero row)."""
     static, items, timer = state.grid[:, :, 0], state.grid[:, :, 1], state.grid[:, :, 2]
@@ -173,22 +196,14 @@ def _lookup(tables, codes: jax.Array) -> jax.Array:
 
 
 def grid_observations(config: EnvConfig, state: State) -> jax.Array:
-    """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation).
-
-    Built without other-play's channel permutation, which is applied last to the finished frames
-    (permuting every source table and agent row the same way, as the reference does, is equivalent).
-    """
+    """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation)."""
     if config.view_radius is None:
         words = _full_view(config, state, _lanes(config))
     else:
         # Unpacked: with packed words XLA:CPU turns the window's masked adds into a slow loop
         # (5x slower at batch 1024, measured), while unpacked they fuse with the lookups.
         words = _windowed_view(config, state, lanes=1)
-    obs = _unpack(words, full_channels(config), config)
-    if config.op_enabled:
-        index = _channel_permutation(config, state.ingredient_permutations)  # [N, C]
-        obs = jnp.take_along_axis(obs, index[:, None, None, :], axis=-1)
-    return obs
+    return _unpack(words, full_channels(config), config)
 
 
 def _full_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
@@ -196,12 +211,17 @@ def _full_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
     n = config.num_ingredients
     agents = state.agents
     num_agents = agents.x.shape[0]
-    shared = _lookup(_shared_tables(config, lanes), _cell_codes(config, state))
+    tables = _shared_tables(config, lanes)
+    codes = _cell_codes(config, state)
+    shared = None if config.op_enabled else _lookup(tables, codes)
     out = []
     for o in range(num_agents):
-        obs = shared
+        if shared is None:  # other-play: each observer sees its own ingredient order
+            obs = _lookup(tables, _permute_codes(config, codes, state.ingredient_permutations[o]))
+        else:
+            obs = shared
         for b in range(num_agents):
-            row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, lanes)
+            row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n, lanes)
             # A scatter into the materialised shared channels (measured faster here than a masked add).
             obs = obs.at[agents.y[b], agents.x[b]].add(row)
         out.append(obs)
@@ -229,9 +249,12 @@ def _windowed_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
     cell_x = agents.x[:, None, None] - radius + jnp.arange(side, dtype=jnp.int32)[None, None, :]
     out = []
     for o in range(num_agents):
-        obs = _lookup(tables, windows[o])
+        window = windows[o]
+        if config.op_enabled:
+            window = _permute_codes(config, window, state.ingredient_permutations[o])
+        obs = _lookup(tables, window)
         for b in range(num_agents):
-            row = _agent_row(config, agents.dir[b], agents.inventory[b], 0 if b == o else 7 + n, lanes)
+            row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n, lanes)
             on_cell = (cell_y[o] == agents.y[b]) & (cell_x[o] == agents.x[b])
             obs = obs + on_cell.astype(row.dtype)[:, :, None] * row
         out.append(obs)
