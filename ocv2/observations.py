@@ -95,8 +95,9 @@ def _item_chunk_tables(n: int, offset: int, total: int) -> list[np.ndarray]:
 
 
 @functools.lru_cache(maxsize=64)
-def _shared_tables(config: EnvConfig, lanes: int):
-    """Constant lookup tables for the channels every observer shares, packed ``lanes`` channels per word."""
+def _shared_tables(config: EnvConfig):
+    """Constant lookup tables (in the observation dtype) for the channels every observer shares."""
+    dtype = np.dtype(config.obs_dtype)
     n = config.num_ingredients
     total = full_channels(config)
     static = np.zeros((2 * (Static.INGREDIENT_PILE + 16), total), np.int32)  # second half: goal lit up
@@ -110,60 +111,21 @@ def _shared_tables(config: EnvConfig, lanes: int):
     timer = np.zeros((256, total), np.int32)
     timer[:, 24 + 5 * n] = np.arange(256)
     return dict(
-        static=_pack_table(static, lanes),
-        items=[_pack_table(t, lanes) for t in _item_chunk_tables(n, 20 + 3 * n, total)],
-        recipe=[_pack_table(t, lanes) for t in _item_chunk_tables(n, 22 + 4 * n, total)],
-        timer=_pack_table(timer, lanes),
+        static=static.astype(dtype),
+        items=[t.astype(dtype) for t in _item_chunk_tables(n, 20 + 3 * n, total)],
+        recipe=[t.astype(dtype) for t in _item_chunk_tables(n, 22 + 4 * n, total)],
+        timer=timer.astype(dtype),
     )
 
 
-# --- packing: with uint8 observations, four channels travel in one uint32 word ---------------------
-# Every channel value is < 256 and each channel of a cell gets a value from exactly one source (one
-# table, or the one agent on the cell), so adding packed words never carries from one byte into the
-# next: the packed sums are the channel sums. It makes the per-element gathers 4x fewer, which is
-# what the observation's time goes to on XLA:CPU (see docs/BENCHMARKS.md).
-
-def _lanes(config: EnvConfig) -> int:
-    return 4 if jnp.dtype(config.obs_dtype) == jnp.uint8 else 1
-
-
-def _pack_table(table: np.ndarray, lanes: int) -> np.ndarray:
-    """[K, C] small ints -> [K, ceil(C / lanes)] words; channel ``lanes * w + k`` is byte k of word w."""
-    if lanes == 1:
-        return table.astype(np.int32)
-    words = -(-table.shape[-1] // lanes)
-    padded = np.zeros(table.shape[:-1] + (words * lanes,), np.uint32)
-    padded[..., :table.shape[-1]] = table
-    shifts = 8 * np.arange(lanes, dtype=np.uint32)
-    return (padded.reshape(table.shape[:-1] + (words, lanes)) << shifts).sum(-1, dtype=np.uint32)
-
-
-def _pack_row(row: jax.Array, lanes: int) -> jax.Array:
-    """Traced version of ``_pack_table`` for one [C] row."""
-    if lanes == 1:
-        return row.astype(jnp.int32)
-    words = -(-row.shape[-1] // lanes)
-    padded = jnp.pad(row.astype(jnp.uint32), (0, words * lanes - row.shape[-1])).reshape(words, lanes)
-    return (padded << (8 * jnp.arange(lanes, dtype=jnp.uint32))).sum(-1, dtype=jnp.uint32)
-
-
-def _unpack(words: jax.Array, channels: int, config: EnvConfig) -> jax.Array:
-    """[..., W] words -> [..., channels] in the observation dtype (little-endian bytes, like the packing)."""
-    dtype = jnp.dtype(config.obs_dtype)
-    if words.dtype == jnp.uint32:
-        as_bytes = jax.lax.bitcast_convert_type(words, jnp.uint8)  # [..., W, 4], byte k = bits 8k..8k+7
-        return as_bytes.reshape(words.shape[:-1] + (-1,))[..., :channels]
-    return words[..., :channels].astype(dtype)
-
-
-def _agent_row(config: EnvConfig, direction, inventory, offset: int, lanes: int) -> jax.Array:
-    """One agent's layer values at its own cell (position, direction one-hot, item block), packed."""
+def _agent_row(config: EnvConfig, direction, inventory, offset: int) -> jax.Array:
+    """One agent's layer values at its own cell: position, direction one-hot, item block -> [C]."""
     n = config.num_ingredients
     features = jnp.concatenate(
         [jnp.ones((1,), jnp.int32), jax.nn.one_hot(direction, 4, dtype=jnp.int32), it.item_channels(inventory, n)]
     )
     row = jnp.zeros((full_channels(config),), jnp.int32).at[offset:offset + 7 + n].set(features)
-    return _pack_row(row, lanes)
+    return row.astype(config.obs_dtype)
 
 
 def _seen_inventory(config: EnvConfig, state: State, observer: int, agent: int) -> jax.Array:
@@ -187,7 +149,7 @@ def _cell_codes(config: EnvConfig, state: State) -> jax.Array:
 
 
 def _lookup(tables, codes: jax.Array) -> jax.Array:
-    """Sum of the shared-channel table rows for codes [4, h, w] -> packed [h, w, words]."""
+    """Sum of the shared-channel table rows for codes [4, h, w] -> [h, w, C]."""
     static_code, items, recipe, pot_timer = codes
     obs = jnp.asarray(tables["static"])[static_code]
     for chunk, (t_item, t_recipe) in enumerate(zip(tables["items"], tables["recipe"])):
@@ -198,20 +160,16 @@ def _lookup(tables, codes: jax.Array) -> jax.Array:
 def grid_observations(config: EnvConfig, state: State) -> jax.Array:
     """Every agent's default observation [N, h, w, C] (view window applied, before paper truncation)."""
     if config.view_radius is None:
-        words = _full_view(config, state, _lanes(config))
-    else:
-        # Unpacked: with packed words XLA:CPU turns the window's masked adds into a slow loop
-        # (5x slower at batch 1024, measured), while unpacked they fuse with the lookups.
-        words = _windowed_view(config, state, lanes=1)
-    return _unpack(words, full_channels(config), config)
+        return _full_view(config, state)
+    return _windowed_view(config, state)
 
 
-def _full_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
+def _full_view(config: EnvConfig, state: State) -> jax.Array:
     """Whole-map observations: the shared channels once, then each agent's layers added at its cell."""
     n = config.num_ingredients
     agents = state.agents
     num_agents = agents.x.shape[0]
-    tables = _shared_tables(config, lanes)
+    tables = _shared_tables(config)
     codes = _cell_codes(config, state)
     shared = None if config.op_enabled else _lookup(tables, codes)
     out = []
@@ -221,14 +179,14 @@ def _full_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
         else:
             obs = shared
         for b in range(num_agents):
-            row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n, lanes)
+            row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n)
             # A scatter into the materialised shared channels (measured faster here than a masked add).
             obs = obs.at[agents.y[b], agents.x[b]].add(row)
         out.append(obs)
     return jnp.stack(out)
 
 
-def _windowed_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
+def _windowed_view(config: EnvConfig, state: State) -> jax.Array:
     """View-window observations, built from the window's cell codes rather than cut from a full one.
 
     Cutting the [4, H, W] codes (zero outside the map, which looks up all-zero rows, like the
@@ -239,7 +197,7 @@ def _windowed_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
     n = config.num_ingredients
     agents = state.agents
     num_agents = agents.x.shape[0]
-    tables = _shared_tables(config, lanes)
+    tables = _shared_tables(config)
     radius = config.view_radius
     side = 2 * radius + 1
     codes = jnp.pad(_cell_codes(config, state), ((0, 0), (radius, radius), (radius, radius)))
@@ -254,7 +212,7 @@ def _windowed_view(config: EnvConfig, state: State, lanes: int) -> jax.Array:
             window = _permute_codes(config, window, state.ingredient_permutations[o])
         obs = _lookup(tables, window)
         for b in range(num_agents):
-            row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n, lanes)
+            row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n)
             on_cell = (cell_y[o] == agents.y[b]) & (cell_x[o] == agents.x[b])
             obs = obs + on_cell.astype(row.dtype)[:, :, None] * row
         out.append(obs)
