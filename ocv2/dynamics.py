@@ -31,7 +31,8 @@ def sample_recipe(config: EnvConfig, key: jax.Array) -> jax.Array:
     """Draw one of the layout's recipes uniformly (key consumed)."""
     recipes = jnp.asarray(config.layout.possible_recipes, dtype=jnp.int32)
     if recipes.shape[0] == 1:
-        # randint over one value is always 0: skip the draw (it costs ~15% of a step at batch 1).
+        # randint over one value is always 0: skip the draw (a threefry hash per env, and a reset
+        # state is drawn every step for auto-reset).
         return it.recipe_encoding(recipes[0])
     index = jax.random.randint(key, (), 0, recipes.shape[0])
     return it.recipe_encoding(recipes[index])

@@ -128,6 +128,13 @@ def _agent_row(config: EnvConfig, direction, inventory, offset: int) -> jax.Arra
     return row.astype(config.obs_dtype)
 
 
+def _seen_codes(config: EnvConfig, state: State, codes: jax.Array, observer: int) -> jax.Array:
+    """Cell codes [4, h, w] as ``observer`` sees them (ingredient order permuted under other-play)."""
+    if not config.op_enabled:
+        return codes
+    return _permute_codes(config, codes, state.ingredient_permutations[observer])
+
+
 def _seen_inventory(config: EnvConfig, state: State, observer: int, agent: int) -> jax.Array:
     """Agent ``agent``'s held item as ``observer`` sees it (ingredient order permuted under other-play)."""
     inventory = state.agents.inventory[agent]
@@ -174,10 +181,8 @@ def _full_view(config: EnvConfig, state: State) -> jax.Array:
     shared = None if config.op_enabled else _lookup(tables, codes)
     out = []
     for o in range(num_agents):
-        if shared is None:  # other-play: each observer sees its own ingredient order
-            obs = _lookup(tables, _permute_codes(config, codes, state.ingredient_permutations[o]))
-        else:
-            obs = shared
+        # Other-play: each observer sees its own ingredient order, so its own lookup.
+        obs = _lookup(tables, _seen_codes(config, state, codes, o)) if shared is None else shared
         for b in range(num_agents):
             row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n)
             # A scatter into the materialised shared channels (measured faster here than a masked add).
@@ -207,10 +212,7 @@ def _windowed_view(config: EnvConfig, state: State) -> jax.Array:
     cell_x = agents.x[:, None, None] - radius + jnp.arange(side, dtype=jnp.int32)[None, None, :]
     out = []
     for o in range(num_agents):
-        window = windows[o]
-        if config.op_enabled:
-            window = _permute_codes(config, window, state.ingredient_permutations[o])
-        obs = _lookup(tables, window)
+        obs = _lookup(tables, _seen_codes(config, state, windows[o], o))
         for b in range(num_agents):
             row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n)
             on_cell = (cell_y[o] == agents.y[b]) & (cell_x[o] == agents.x[b])
