@@ -107,7 +107,7 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     key = population_key(config, XP_KEY_OFFSET)
     started = time.perf_counter()
     run = RunDir(run_dir)
-    archive_dir = run.sub("archive", "xp", "_").parent if config.archive.xp else None
+    archive_dir = run.subdir("archive", "xp") if config.archive.xp else None
     if workers is None:
         result = play_rows(config, trainer, params, range(config.population.num_seeds), key, episodes, archive_dir)
     else:

@@ -52,6 +52,12 @@ class RunDir:
         out.parent.mkdir(parents=True, exist_ok=True)
         return out
 
+    def subdir(self, *parts) -> Path:
+        """A directory under the run directory, created if missing."""
+        out = self.path.joinpath(*parts)
+        out.mkdir(parents=True, exist_ok=True)
+        return out
+
     # lifecycle --------------------------------------------------------------------------------------
     def create(self, config: Config, resume: bool = False) -> bool:
         """Prepare the directory for ``config``. Returns True when resuming an existing run.
