@@ -43,11 +43,11 @@ def move_agents(state: State, actions: jax.Array) -> Agents:
     agents = state.agents
     height, width = state.grid.shape[:2]
     num_agents = agents.x.shape[0]
-    act_dir = jnp.asarray(it.ACTION_DIRECTION)[actions]
+    act_dir = it.action_direction(actions)
     moving = act_dir >= 0
-    vec = jnp.asarray(it.DIRECTION_VECTORS)[jnp.maximum(act_dir, 0)]
-    tx = jnp.clip(agents.x + vec[:, 0], 0, width - 1)
-    ty = jnp.clip(agents.y + vec[:, 1], 0, height - 1)
+    dx, dy = it.direction_vector(jnp.maximum(act_dir, 0))
+    tx = jnp.clip(agents.x + dx, 0, width - 1)
+    ty = jnp.clip(agents.y + dy, 0, height - 1)
     free = state.grid[ty, tx, 0] == Static.FLOOR
     new_x = jnp.where(moving & free, tx, agents.x)
     new_y = jnp.where(moving & free, ty, agents.y)
@@ -187,10 +187,10 @@ def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions:
     reward = jnp.zeros((), jnp.float32)
     shaped = []
     correct_delivery = jnp.zeros((), bool)
-    vectors = jnp.asarray(it.DIRECTION_VECTORS)
     for a in range(num_agents):
-        fx = agents.x[a] + vectors[agents.dir[a], 0]
-        fy = agents.y[a] + vectors[agents.dir[a], 1]
+        dx, dy = it.direction_vector(agents.dir[a])
+        fx = agents.x[a] + dx
+        fy = agents.y[a] + dy
         on_map = (fx >= 0) & (fx < width) & (fy >= 0) & (fy < height)
         # Reference quirk (default): the facing cell is not bounds-checked; a negative index wraps
         # to the opposite edge, a too-large one reads the clamped edge cell and its write is dropped.
@@ -220,15 +220,20 @@ def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions:
 
 
 def tick_timers(grid: jax.Array) -> jax.Array:
-    """Pots count down and finish cooking at 0 (COOKED bit set); buttons count down to 0."""
+    """Pots count down and finish cooking at 0 (COOKED bit set); buttons count down to 0.
+
+    The two changed channels are written in place rather than re-stacked with the static one: on
+    XLA:CPU a stack along the 3-wide last axis is an element-by-element concatenate, and the
+    auto-reset select fused it in a second time (cramped_room, full view, batch 1024: 396 -> 344
+    µs per batch step; see docs/BENCHMARKS.md for the layouts where it costs).
+    """
     static, item, timer = grid[:, :, 0], grid[:, :, 1], grid[:, :, 2]
-    is_pot = static == Static.POT
-    cooking = is_pot & (timer > 0)
+    cooking = (static == Static.POT) & (timer > 0)
     finished = cooking & (timer == 1)
     item = item | jnp.where(finished, it.COOKED, 0)
     timer = jnp.where(cooking, timer - 1, timer)
     timer = jnp.where(static == Static.BUTTON, jnp.maximum(timer - 1, 0), timer)
-    return jnp.stack([static, item, timer], axis=-1)
+    return grid.at[:, :, 1].set(item).at[:, :, 2].set(timer)
 
 
 def transition(config: EnvConfig, key: jax.Array, state: State, actions: jax.Array) -> Transition:

@@ -68,6 +68,30 @@ ACTION_DIRECTION = np.array(
     [Direction.RIGHT, Direction.DOWN, Direction.LEFT, Direction.UP, -1, -1], dtype=np.int32
 )
 
+
+
+def _select_table(index, table):
+    """``table[index]`` for a small constant table, as a chain of selects.
+
+    Under ``vmap`` a lookup in a constant array becomes a gather (its own XLA kernel, plus index
+    building); a few compares fuse into the surrounding elementwise code instead.
+    """
+    out = jnp.full(jnp.shape(index), int(table[-1]), jnp.int32)
+    for i in range(len(table) - 2, -1, -1):
+        out = jnp.where(index == i, int(table[i]), out)
+    return out
+
+
+def action_direction(action):
+    """``ACTION_DIRECTION[action]`` (the Direction an action moves in, -1 if none) for action in 0..5."""
+    return _select_table(action, ACTION_DIRECTION)
+
+
+def direction_vector(direction):
+    """``DIRECTION_VECTORS[direction]`` as (dx, dy) for direction in 0..3."""
+    return _select_table(direction, DIRECTION_VECTORS[:, 0]), _select_table(direction, DIRECTION_VECTORS[:, 1])
+
+
 # --- item encoding (layer 1 of the grid, inventories, recipes) ---
 EMPTY = 0
 PLATE = 1 << 0

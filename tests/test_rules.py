@@ -326,3 +326,24 @@ def test_paper_obs_truncation_drops_last_channels():
     assert ocv2.make("test_time_wide", agent_view_size=2, indicate_successful_delivery=True,
                      paper_obs_truncation=True).obs_shape[-1] == 43
     assert ocv2.make("cramped_room", paper_obs_truncation=True, agent_view_size=2).obs_shape[-1] == 30
+
+
+def test_action_and_direction_lookups_match_their_tables():
+    # The select-chain lookups (used instead of gathers from constant arrays) must equal the tables.
+    actions = jnp.arange(it.NUM_ACTIONS)
+    np.testing.assert_array_equal(np.asarray(it.action_direction(actions)), it.ACTION_DIRECTION)
+    dx, dy = it.direction_vector(jnp.arange(len(Direction)))
+    np.testing.assert_array_equal(np.stack([np.asarray(dx), np.asarray(dy)], axis=1), it.DIRECTION_VECTORS)
+
+
+def test_tick_timers_counts_pots_and_buttons_down():
+    from ocv2.dynamics import tick_timers
+
+    grid = np.zeros((1, 6, 3), np.int32)
+    grid[0, :, 0] = [Static.POT, Static.POT, Static.POT, Static.BUTTON, Static.BUTTON, Static.WALL]
+    grid[0, :, 1] = [it.ingredient_unit(0)] * 3 + [0, 0, it.PLATE]
+    grid[0, :, 2] = [5, 1, 0, 3, -2, 7]  # cooking, finishing, idle, active button, negative button, counter
+    out = np.asarray(tick_timers(jnp.asarray(grid)))
+    np.testing.assert_array_equal(out[0, :, 0], grid[0, :, 0])
+    np.testing.assert_array_equal(out[0, :, 2], [4, 0, 0, 2, 0, 7])
+    np.testing.assert_array_equal(out[0, :, 1], [grid[0, 0, 1], grid[0, 1, 1] | it.COOKED, grid[0, 2, 1], 0, 0, it.PLATE])
