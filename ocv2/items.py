@@ -69,7 +69,6 @@ ACTION_DIRECTION = np.array(
 )
 
 
-
 def _select_table(index, table):
     """``table[index]`` for a small constant table, as a chain of selects.
 
