@@ -51,7 +51,7 @@ def test_spaces_and_dict_api():
 
 @pytest.mark.parametrize("layout, params", [
     ("cramped_room_v2", dict(agent_view_size=1)),
-    # Full view: uint8 observations are built four channels per uint32 word, int32 ones unpacked.
+    # Full view: the shared lookup plus one scatter per agent layer, in each dtype.
     ("cramped_room_v2", dict()),
     ("grounded_coord_simple", dict(op_ingredient_permutations=[0, 1, 2], indicate_successful_delivery=True)),
     ("demo_cook_wide", dict()),  # two 8-bit item chunks, C = 45 (not a multiple of 4)

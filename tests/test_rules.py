@@ -12,7 +12,7 @@ import pytest
 
 import ocv2
 from ocv2 import items as it
-from ocv2.dynamics import transition
+from ocv2.dynamics import tick_timers, transition
 from ocv2.items import Action, Direction, Static
 
 KITCHEN = """
@@ -337,8 +337,6 @@ def test_action_and_direction_lookups_match_their_tables():
 
 
 def test_tick_timers_counts_pots_and_buttons_down():
-    from ocv2.dynamics import tick_timers
-
     grid = np.zeros((1, 6, 3), np.int32)
     grid[0, :, 0] = [Static.POT, Static.POT, Static.POT, Static.BUTTON, Static.BUTTON, Static.WALL]
     grid[0, :, 1] = [it.ingredient_unit(0)] * 3 + [0, 0, it.PLATE]
