@@ -53,24 +53,38 @@ def move_agents(state: State, actions: jax.Array) -> Agents:
     new_y = jnp.where(moving & free, ty, agents.y)
     direction = jnp.where(moving, act_dir, agents.dir)
 
+    # Agents are Python lists of scalars here (N is small and static), so every pairwise test stays
+    # elementwise. An [N, N] matrix reduced over an axis ended an XLA fusion at each reduction; at
+    # batch 1, where a step is a few dozen kernels, that cost ~8 % of the whole step.
+    ids = range(num_agents)
+    old_x, old_y, want_x, want_y = list(agents.x), list(agents.y), list(new_x), list(new_y)
+
     # Revert every agent standing on a shared cell until no cell is shared. Each round reverts at
     # least one more agent (start cells are distinct), so N rounds always reach the fixed point.
-    others = ~jnp.eye(num_agents, dtype=bool)
-    reverted = jnp.zeros(num_agents, dtype=bool)
-    for _ in range(num_agents):
-        px = jnp.where(reverted, agents.x, new_x)
-        py = jnp.where(reverted, agents.y, new_y)
-        shared = (px[:, None] == px[None, :]) & (py[:, None] == py[None, :]) & others
-        reverted = reverted | shared.any(axis=1)
-    px = jnp.where(reverted, agents.x, new_x)
-    py = jnp.where(reverted, agents.y, new_y)
+    reverted = [jnp.zeros((), bool) for _ in ids]
+    for _ in ids:
+        px = [jnp.where(reverted[i], old_x[i], want_x[i]) for i in ids]
+        py = [jnp.where(reverted[i], old_y[i], want_y[i]) for i in ids]
+        reverted = [_any(reverted[i], *((px[i] == px[j]) & (py[i] == py[j]) for j in ids if j != i)) for i in ids]
+    px = [jnp.where(reverted[i], old_x[i], want_x[i]) for i in ids]
+    py = [jnp.where(reverted[i], old_y[i], want_y[i]) for i in ids]
 
     # One pass of swap prevention: i took j's cell and j took i's -> both stay.
-    took = (px[:, None] == agents.x[None, :]) & (py[:, None] == agents.y[None, :]) & others
-    swapped = (took & took.T).any(axis=0)
-    px = jnp.where(swapped, agents.x, px)
-    py = jnp.where(swapped, agents.y, py)
+    def took(i, j):
+        return (px[i] == old_x[j]) & (py[i] == old_y[j])
+
+    swapped = [_any(*(took(i, j) & took(j, i) for j in ids if j != i)) for i in ids]
+    px = jnp.stack([jnp.where(swapped[i], old_x[i], px[i]) for i in ids])
+    py = jnp.stack([jnp.where(swapped[i], old_y[i], py[i]) for i in ids])
     return agents.replace(x=px, y=py, dir=direction)
+
+
+def _any(*flags) -> jax.Array:
+    """OR of a few boolean scalars (elementwise, where ``jnp.any`` would be a reduction)."""
+    out = jnp.zeros((), bool)
+    for flag in flags:
+        out = out | flag
+    return out
 
 
 class _Interaction(NamedTuple):
@@ -96,7 +110,8 @@ def _busy_pot(cell) -> jax.Array:
 
 def plate_counts(grid: jax.Array, inventories: jax.Array) -> _PlateCounts:
     return _PlateCounts(
-        plates_held=jnp.sum(inventories == it.PLATE),
+        # Summed per agent (elementwise), not reduced: see move_agents.
+        plates_held=sum((inventories[a] == it.PLATE).astype(jnp.int32) for a in range(inventories.shape[0])),
         busy_pots=jnp.sum(_busy_pot(grid)),
         loose_plates=jnp.sum(grid[:, :, 1] == it.PLATE),
     )
@@ -180,7 +195,7 @@ def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions:
     grid = state.grid
     height, width = grid.shape[:2]
     num_agents = agents.x.shape[0]
-    inventories = agents.inventory
+    inventories = list(agents.inventory)  # a list, stacked once at the end: no scatter per agent
     # Grid-wide counts once per step, then updated by each write (one cell changes per agent): the
     # same numbers as recounting the grid before every agent, for a fraction of the work.
     counts = plate_counts(grid, agents.inventory)
@@ -212,11 +227,11 @@ def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions:
             loose_plates=counts.loose_plates + (written[1] == it.PLATE).astype(jnp.int32)
             - (cell[1] == it.PLATE).astype(jnp.int32),
         )
-        inventories = inventories.at[a].set(jnp.where(acting, result.inventory, inventories[a]))
+        inventories[a] = jnp.where(acting, result.inventory, inventories[a])
         reward = reward + jnp.where(acting, result.reward, 0.0)
         shaped.append(jnp.where(acting, result.shaped, 0.0))
         correct_delivery = correct_delivery | (acting & result.correct_delivery)
-    return grid, agents.replace(inventory=inventories), reward, jnp.stack(shaped).astype(jnp.float32), correct_delivery
+    return grid, agents.replace(inventory=jnp.stack(inventories)), reward, jnp.stack(shaped).astype(jnp.float32), correct_delivery
 
 
 def tick_timers(grid: jax.Array) -> jax.Array:
