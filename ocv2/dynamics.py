@@ -231,7 +231,8 @@ def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions:
         reward = reward + jnp.where(acting, result.reward, 0.0)
         shaped.append(jnp.where(acting, result.shaped, 0.0))
         correct_delivery = correct_delivery | (acting & result.correct_delivery)
-    return grid, agents.replace(inventory=jnp.stack(inventories)), reward, jnp.stack(shaped).astype(jnp.float32), correct_delivery
+    agents = agents.replace(inventory=jnp.stack(inventories))
+    return grid, agents, reward, jnp.stack(shaped).astype(jnp.float32), correct_delivery
 
 
 def tick_timers(grid: jax.Array) -> jax.Array:

@@ -197,7 +197,7 @@ def _byte(code: jax.Array, chunk: int) -> jax.Array:
 
 
 def _lookup_raw(tables, codes: jax.Array) -> jax.Array:
-    """Shared channels [h, w, C] from raw codes [4, h, w]: four table rows per cell (one per item byte)."""
+    """Shared channels [h, w, C] from raw codes [4, h, w]: four table rows per cell (n <= 3)."""
     static_code, items, recipe, pot_timer = codes
     obs = jnp.asarray(tables["look"])[static_code] + jnp.asarray(tables["timer"])[pot_timer]
     for chunk, (t_item, t_recipe) in enumerate(zip(tables["items"], tables["recipe"])):
