@@ -81,9 +81,8 @@ def _item_chunk_tables(n: int, offset: int, total: int) -> list[np.ndarray]:
     Two-bit counters start at even bits, so none straddles a chunk; summing the chunk rows gives the
     whole item block. (Splitting keeps tables small for any number of ingredients.)
     """
-    bits = 2 + 2 * n
     tables = []
-    for chunk in range((bits + 7) // 8):
+    for chunk in range(_num_chunks(n)):
         table = np.zeros((256, total), np.int32)
         values = np.arange(256) << (8 * chunk)
         fields = [(0, 1), (1, 1)] + [(2 + 2 * i, 3) for i in range(n)]
@@ -183,13 +182,13 @@ def _look_codes(config: EnvConfig, codes: jax.Array) -> jax.Array:
     look = jnp.where(static_code == Static.RECIPE_INDICATOR, _INDICATOR + low_recipe, look)
     # An idle button shows recipe 0, whose row is the bare button's: the same either way.
     look = jnp.where(static_code == Static.BUTTON, _ACTIVE_BUTTON + low_recipe, look)
-    planes = [look, items] + ([recipe] if _num_chunks(config) > 1 else [])
+    planes = [look, items] + ([recipe] if _num_chunks(config.num_ingredients) > 1 else [])
     return jnp.stack(planes)
 
 
-def _num_chunks(config: EnvConfig) -> int:
+def _num_chunks(n: int) -> int:
     """8-bit chunks of an item or recipe code (2 + 2n bits)."""
-    return (2 + 2 * config.num_ingredients + 7) // 8
+    return (2 + 2 * n + 7) // 8
 
 
 def _byte(code: jax.Array, chunk: int) -> jax.Array:
