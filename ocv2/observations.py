@@ -237,10 +237,14 @@ def _full_view(config: EnvConfig, state: State) -> jax.Array:
     for o in range(num_agents):
         # Other-play: each observer sees its own ingredient order, so its own lookup.
         obs = _lookup_raw(tables, _seen_codes(config, state, codes, o)) if shared is None else shared
-        for b in range(num_agents):
-            row = _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n)
-            # A scatter into the materialised shared channels (measured faster here than a masked add).
-            obs = obs.at[agents.y[b], agents.x[b]].add(row)
+        rows = jnp.stack([
+            _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n)
+            for b in range(num_agents)
+        ])
+        # One scatter of every agent's row into the materialised shared channels: a masked add (or a
+        # lookup of agent codes) let XLA split the shared lookup into one materialised gather per
+        # table (2.5x slower at batch 64), and one scatter per agent cost ~4 kernels each at batch 1.
+        obs = obs.at[agents.y, agents.x].add(rows)
         out.append(obs)
     return jnp.stack(out)
 
