@@ -37,6 +37,17 @@ def ray_session(_ray_tmp):
     yield ensure_ray(_ray_tmp)
 
 
+# Files whose tests share nothing and are many: spread test by test over the xdist workers.
+_SPREAD_FILES = {"test_conformance.py"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name not in _SPREAD_FILES:
+            item.add_marker(pytest.mark.xdist_group(item.path.stem))
+
+
 def pytest_sessionfinish(session, exitstatus):
     import sys
 
