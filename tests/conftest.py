@@ -1,40 +1,65 @@
-"""Shared fixtures. Ray: one local instance for the whole session, started only by tests that ask."""
+"""Shared fixtures. One JAX compilation cache for the whole session; one local Ray instance per
+process, started only by tests that ask."""
 
 from __future__ import annotations
 
 import os
+import shutil
+import sys
+import tempfile
 
 import pytest
 
 RAY_CPUS = 4  # logical CPUs, pinned so scheduling does not depend on the CI machine (actors use 0.5 each)
 
+# Compilation dominates the training, cross-play and Ray tests, and many of them build the same
+# programs (the smoke run, its resume, its rerun; every Ray actor). JAX's persistent cache keys an
+# executable by the program it compiles, so a hit returns what a fresh compile would: no result
+# depends on the cache. One directory serves the pytest-xdist workers and the Ray actors they start
+# (both inherit the environment); a size cap turns on JAX's file lock, which makes that sharing safe.
+_CACHE_ENV = {
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.1",  # skip the tiny op-by-op programs
+    "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "-1",
+    "JAX_COMPILATION_CACHE_MAX_SIZE": str(8 << 30),
+}
 
-def ensure_ray(tmp_path_factory=None):
+
+def pytest_configure(config):
+    if hasattr(config, "workerinput") or "JAX_COMPILATION_CACHE_DIR" in os.environ:
+        return  # an xdist worker (inherits the controller's), or the caller chose a cache
+    config._ocv2_jax_cache = tempfile.mkdtemp(prefix="ocv2-tests-jax-cache-")
+    os.environ.update(_CACHE_ENV, JAX_COMPILATION_CACHE_DIR=config._ocv2_jax_cache)
+    if "jax" in sys.modules:  # imported before this hook (by a plugin): JAX read its env already
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", config._ocv2_jax_cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+        jax.config.update("jax_compilation_cache_max_size", 8 << 30)
+
+
+def pytest_unconfigure(config):
+    cache = getattr(config, "_ocv2_jax_cache", None)
+    if cache is not None:
+        shutil.rmtree(cache, ignore_errors=True)
+
+
+def ensure_ray():
     # Ray 2.59+ turns token auth on for local clusters; say which mode we want instead of inheriting it.
     os.environ["RAY_AUTH_MODE"] = "disabled"
     import ray
 
     if not ray.is_initialized():
-        if tmp_path_factory is not None and "JAX_COMPILATION_CACHE_DIR" not in os.environ:
-            # Worker processes inherit this: every actor compiling the same smoke programs compiles
-            # them once per session. A cached executable is the one a fresh compile produces.
-            os.environ.update(JAX_COMPILATION_CACHE_DIR=str(tmp_path_factory.mktemp("ray_jax_cache")),
-                              JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-                              JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
+        # Actors inherit the environment, so they share the session's compilation cache (above).
         # address="local": a fresh instance, never another test process's cluster (pytest-xdist).
         ray.init(address="local", num_cpus=RAY_CPUS, include_dashboard=False, configure_logging=False)
     return ray
 
 
-@pytest.fixture(scope="session")
-def _ray_tmp(tmp_path_factory):
-    return tmp_path_factory
-
-
 @pytest.fixture
-def ray_session(_ray_tmp):
+def ray_session():
     """The session's Ray (re-started if a multi-node test shut it down)."""
-    yield ensure_ray(_ray_tmp)
+    yield ensure_ray()
 
 
 # Files whose tests share nothing and are many: spread test by test over the xdist workers.
@@ -46,6 +71,10 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.path.name not in _SPREAD_FILES:
             item.add_marker(pytest.mark.xdist_group(item.path.stem))
+    # xdist hands out work in this order (pyproject: --no-loadscope-reorder): the whole files first,
+    # then the spread tests, which fill the workers' gaps at the end instead of leaving one idle
+    # while the other finishes a long file.
+    items.sort(key=lambda item: item.path.name in _SPREAD_FILES)
 
 
 def pytest_sessionfinish(session, exitstatus):

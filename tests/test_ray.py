@@ -57,11 +57,11 @@ def assert_same_tree(a, b):
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory, _ray_tmp):
+def reference(tmp_path_factory):
     """An uninterrupted 8-update SP run on Ray: what the fault-tolerance tests must reproduce."""
     from conftest import ensure_ray
 
-    ensure_ray(_ray_tmp)
+    ensure_ray()
     run = tmp_path_factory.mktemp("ray") / "reference"
     assert train(run, *LONGER, extra=["--no-eval"]) == 0
     return run

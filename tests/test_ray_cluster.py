@@ -21,13 +21,13 @@ SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
 
 
 @pytest.fixture
-def two_nodes(tmp_path_factory):
+def two_nodes():
     import ray
     from ray.cluster_utils import Cluster
 
     from conftest import ensure_ray
 
-    ensure_ray(tmp_path_factory)  # sets RAY_AUTH_MODE and the compilation cache the workers inherit
+    ensure_ray()  # sets RAY_AUTH_MODE (the compilation cache is in the environment the nodes inherit)
     ray.shutdown()
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
     worker_node = cluster.add_node(num_cpus=1)

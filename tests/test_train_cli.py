@@ -1,9 +1,8 @@
 """``ocv2 train`` / ``ocv2 xp`` and the local driver: run directories, every method, resume, errors, determinism.
 
 Every run is configs/smoke.yaml (2 seeds x 4 updates, 40-step episodes, a [8, 8] CNN). Compilation dominates
-these tests, so the module turns on JAX's persistent compilation cache in a fresh per-session directory:
-runs that build the same programs (the SP run, its resume, its rerun, the FCP partner stage) compile once.
-Cached executables are the ones a fresh compile produces, so no result depends on the cache.
+these tests; runs that build the same programs (the SP run, its resume, its rerun, the FCP partner stage)
+compile once, through the session's persistent compilation cache (tests/conftest.py).
 """
 
 from __future__ import annotations
@@ -30,28 +29,6 @@ from population.sa import collect_buffer
 SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
 NUM_SEEDS, NUM_UPDATES, SNAPSHOTS = 2, 4, [0, 2, 4]  # smoke.yaml: 512 steps / (4 envs x 32 steps); 3 snapshots
 TIMING_COLUMNS = {"steps_per_s", "wall_s"}
-
-
-@pytest.fixture(scope="module", autouse=True)
-def compilation_cache(tmp_path_factory):
-    try:
-        from jax._src import compilation_cache
-
-        reset = compilation_cache.reset_cache  # private API: without it the tests just compile more
-    except (ImportError, AttributeError):
-        yield
-        return
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-             "jax_persistent_cache_min_entry_size_bytes")
-    saved = {name: getattr(jax.config, name) for name in names}
-    jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("jax_cache")))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
-    reset()
-    yield
-    for name, value in saved.items():
-        jax.config.update(name, value)
-    reset()
 
 
 def train(out, *overrides, extra=()) -> int:
