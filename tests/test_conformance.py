@@ -93,6 +93,45 @@ def _assert_states_equal(ours, theirs, where):
         assert bad.size == 0, f"state.{name} differs in {where} at {bad[:5].tolist()}"
 
 
+# The longest tests first: xdist deals this file's tests out one by one after the whole-file groups
+# (tests/conftest.py), so the long ones start early and the short ones fill the gaps at the end.
+
+def test_rollouts_reach_every_kind_of_event():
+    """The sweep is only meaningful if deliveries, buttons, cooking and resets actually happen."""
+    totals = {}
+    for layout, params in [
+        ("cramped_room", dict(random_reset=True, max_steps=50)),
+        ("grounded_coord_simple", dict(random_reset=True, max_steps=50)),
+        ("cramped_room_v2", dict(random_reset=True, negative_rewards=True, max_steps=50)),
+    ]:
+        for k, v in compare(layout, seeds=2, steps=300, **params).items():
+            totals[k] = totals.get(k, 0) + v
+    assert totals["deliveries"] > 0, totals
+    assert totals["buttons"] > 0, totals
+    assert totals["cooking"] > 0, totals
+    assert totals["shaped"] > 0, totals
+    assert totals["resets"] > 0, totals
+
+
+def test_more_than_two_agents():
+    layout = ocv2.Layout.from_string("WWPWWW\nOA AAW\nW    X\nWBWRWW", possible_recipes=[[0, 0, 0]], name="three")
+    compare(layout, seeds=2, random_reset=True, max_steps=50)
+    compare(layout, seeds=1, agent_view_size=1, max_steps=50)
+
+
+def test_buffer_reset_matches_reference():
+    """Resets drawn from a state buffer (state augmentation) pick the same states as the reference."""
+    env, ref = make_pair("cramped_room_v2", random_reset=True)
+    keys = jax.random.split(jax.random.PRNGKey(7), 16)
+    buffer = jax.vmap(lambda k: env.reset(k)[1])(keys)
+    buffer = buffer.replace(step=buffer.step + 3)  # must be cleared by the reset
+    ref_buffer = to_ref(buffer, with_permutations=False)
+    compare("cramped_room_v2", ref_buffer=ref_buffer, initial_state_buffer=buffer, seeds=2, max_steps=30)
+    # With other-play the buffer reset re-draws permutations from the same key as the reference.
+    compare("cramped_room_v2", ref_buffer=ref_buffer, initial_state_buffer=buffer, op_ingredient_permutations=[0, 1],
+            seeds=2, max_steps=30)
+
+
 ALL_LAYOUTS = list(ocv2.REFERENCE_LAYOUT_NAMES)
 
 
@@ -130,42 +169,6 @@ FLAG_CASES = [
 @pytest.mark.parametrize("layout,params", FLAG_CASES, ids=[f"{l}-{i}" for i, (l, _) in enumerate(FLAG_CASES)])
 def test_flag_combinations(layout, params):
     compare(layout, **params)
-
-
-def test_rollouts_reach_every_kind_of_event():
-    """The sweep is only meaningful if deliveries, buttons, cooking and resets actually happen."""
-    totals = {}
-    for layout, params in [
-        ("cramped_room", dict(random_reset=True, max_steps=50)),
-        ("grounded_coord_simple", dict(random_reset=True, max_steps=50)),
-        ("cramped_room_v2", dict(random_reset=True, negative_rewards=True, max_steps=50)),
-    ]:
-        for k, v in compare(layout, seeds=2, steps=300, **params).items():
-            totals[k] = totals.get(k, 0) + v
-    assert totals["deliveries"] > 0, totals
-    assert totals["buttons"] > 0, totals
-    assert totals["cooking"] > 0, totals
-    assert totals["shaped"] > 0, totals
-    assert totals["resets"] > 0, totals
-
-
-def test_more_than_two_agents():
-    layout = ocv2.Layout.from_string("WWPWWW\nOA AAW\nW    X\nWBWRWW", possible_recipes=[[0, 0, 0]], name="three")
-    compare(layout, seeds=2, random_reset=True, max_steps=50)
-    compare(layout, seeds=1, agent_view_size=1, max_steps=50)
-
-
-def test_buffer_reset_matches_reference():
-    """Resets drawn from a state buffer (state augmentation) pick the same states as the reference."""
-    env, ref = make_pair("cramped_room_v2", random_reset=True)
-    keys = jax.random.split(jax.random.PRNGKey(7), 16)
-    buffer = jax.vmap(lambda k: env.reset(k)[1])(keys)
-    buffer = buffer.replace(step=buffer.step + 3)  # must be cleared by the reset
-    ref_buffer = to_ref(buffer, with_permutations=False)
-    compare("cramped_room_v2", ref_buffer=ref_buffer, initial_state_buffer=buffer, seeds=2, max_steps=30)
-    # With other-play the buffer reset re-draws permutations from the same key as the reference.
-    compare("cramped_room_v2", ref_buffer=ref_buffer, initial_state_buffer=buffer, op_ingredient_permutations=[0, 1],
-            seeds=2, max_steps=30)
 
 
 def test_mixed_observation_types_build():
