@@ -6,7 +6,6 @@ can feed identical keys and actions to both and compare every output.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest

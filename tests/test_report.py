@@ -105,7 +105,7 @@ def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
     def num(row, key):
         return float(row[key]) if row[key] != "" else math.nan
 
-    cr_sp, cr_sa, ring_sp, ring_sa = rows["cr_sp"], rows["cr_sa"], rows["ring_sp"], rows["ring_sa"]
+    cr_sp, cr_sa, ring_sa = rows["cr_sp"], rows["cr_sa"], rows["ring_sa"]
     assert (cr_sp["layout"], cr_sp["method"], num(cr_sp, "sp_mean"), num(cr_sp, "xp_std"), num(cr_sp, "gap")) == \
         ("cramped_room", "sp", 259.0, 2.0, 2.0)
     # deltas against the same environment's SP run; the gap delta is Table 1's bracket: 4 (2), 71 (-47)
