@@ -500,7 +500,9 @@ def main(argv=None):
     p.add_argument("--min-time", type=float, default=0.5,
                    help="least seconds of timed runs per case per round: short cases (batch 1) repeat more,"
                         " so one noisy moment on a shared machine does not decide their median")
-    p.add_argument("--rounds", type=int, default=None, help="interleaved sweeps (default 2; 1 with --quick)")
+    p.add_argument("--rounds", type=int, default=None,
+                   help="interleaved sweeps (default 5; 1 with --quick): the shared VMs this runs on swing by"
+                        " +-35 %% between minutes, and the median of fewer sweeps lets one slow minute decide a cell")
     p.add_argument("--quick", action="store_true",
                    help="smoke run: one layout (cramped_room), batches 1 and 64, 1 round, small time split")
     p.add_argument("--split-layout", default="grounded_coord_simple", help="layout for 'Where the time goes'")
@@ -518,7 +520,7 @@ def main(argv=None):
     args.layouts = args.layouts or DEFAULT_LAYOUTS
     args.views = args.views or DEFAULT_VIEWS
     args.batches = args.batches or DEFAULT_BATCHES
-    args.rounds = args.rounds or 2
+    args.rounds = args.rounds or 5
     args.split_batch = args.split_batch or 1024
     views = [None if str(v).lower() == "none" else int(v) for v in args.views]
     command = "python " + " ".join([os.path.relpath(sys.argv[0]) if sys.argv[0] else "bench/env_throughput.py"]
