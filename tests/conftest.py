@@ -17,10 +17,11 @@ RAY_CPUS = 4  # logical CPUs, pinned so scheduling does not depend on the CI mac
 # executable by the program it compiles, so a hit returns what a fresh compile would: no result
 # depends on the cache. One directory serves the pytest-xdist workers and the Ray actors they start
 # (both inherit the environment); a size cap turns on JAX's file lock, which makes that sharing safe.
-_CACHE_ENV = {
-    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.1",  # skip the tiny op-by-op programs
-    "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "-1",
-    "JAX_COMPILATION_CACHE_MAX_SIZE": str(8 << 30),
+# JAX options; each is also read from the environment variable of the same name in upper case.
+_CACHE_OPTIONS = {
+    "jax_persistent_cache_min_compile_time_secs": 0.1,  # skip the tiny op-by-op programs
+    "jax_persistent_cache_min_entry_size_bytes": -1,
+    "jax_compilation_cache_max_size": 8 << 30,
 }
 
 
@@ -40,14 +41,13 @@ def pytest_configure(config):
     if "JAX_COMPILATION_CACHE_DIR" in os.environ:
         return  # the caller chose a cache
     config._ocv2_jax_cache = tempfile.mkdtemp(prefix="ocv2-tests-jax-cache-")
-    os.environ.update(_CACHE_ENV, JAX_COMPILATION_CACHE_DIR=config._ocv2_jax_cache)
+    options = {**_CACHE_OPTIONS, "jax_compilation_cache_dir": config._ocv2_jax_cache}
+    os.environ.update({name.upper(): str(value) for name, value in options.items()})
     if "jax" in sys.modules:  # imported before this hook (by a plugin): JAX read its env already
         import jax
 
-        jax.config.update("jax_compilation_cache_dir", config._ocv2_jax_cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
-        jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
-        jax.config.update("jax_compilation_cache_max_size", 8 << 30)
+        for name, value in options.items():
+            jax.config.update(name, value)
 
 
 def pytest_unconfigure(config):
@@ -90,8 +90,6 @@ def pytest_collection_modifyitems(config, items):
 
 
 def pytest_sessionfinish(session, exitstatus):
-    import sys
-
     ray = sys.modules.get("ray")
     if ray is not None and ray.is_initialized():
         ray.shutdown()
