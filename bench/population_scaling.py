@@ -45,7 +45,7 @@ os.environ.setdefault("RAY_AUTH_MODE", "disabled")
 
 import jax  # noqa: E402
 
-from cluster import coordinator  # noqa: E402
+from cluster.runtime import coordinator  # noqa: E402
 from population.config import load_config  # noqa: E402
 
 START, END = "<!-- population_scaling:start -->", "<!-- population_scaling:end -->"
@@ -90,13 +90,13 @@ def run_population(backend: str, seeds: int, updates: int) -> dict:
     ray_start = 0.0
     try:
         if backend == "local":
-            from cluster.local import LocalWorkers
+            from cluster.runtime.local import LocalWorkers
 
             coordinator.train(config, out, LocalWorkers, show_progress=False, evaluate=False, on_chunk=timeline.on_chunk)
         else:
             import ray
 
-            from cluster.ray_backend import train_population
+            from cluster.runtime.ray_backend import train_population
 
             t = time.perf_counter()
             ray.init(include_dashboard=False, configure_logging=False)
@@ -124,7 +124,7 @@ def run_population(backend: str, seeds: int, updates: int) -> dict:
 def sa_at_paper_settings() -> dict:
     """One SA collection of 10 seeds (100 ordered pairs) with and without recording + MCAP writing."""
     from cluster.archive import ArchiveWriter, env_meta, record_episodes
-    from cluster.runstate import hidden_size
+    from cluster.runtime.runstate import hidden_size
     from population import ppo
     from population.sa import all_pairs, collect_pairs
 

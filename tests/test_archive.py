@@ -1,4 +1,4 @@
-"""The MCAP trajectory archive (cluster/archive.py, population/record.py, ``ocv2 archive``)."""
+"""The MCAP trajectory archive (cluster/archive/, population/record.py, ``ocv2 archive``)."""
 
 from __future__ import annotations
 

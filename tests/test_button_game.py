@@ -214,7 +214,7 @@ def test_cli_out_is_a_file(tmp_path, capsys):
 
 
 def test_cli_defaults_match_configs():
-    from cluster import cmd_button_game as cmd
+    from cluster.cli import button_game as cmd
 
     assert cmd.DEFAULT_BUTTONS == DEFAULT_GAME.num_buttons
     assert (cmd.DEFAULT_EPISODES, cmd.DEFAULT_EPSILON, cmd.DEFAULT_LR) == (

@@ -18,10 +18,10 @@ import pytest
 import ocv2
 from cluster.archive import ArchiveReader, ArchiveWriter, states_as_buffer
 from cluster.cli import main
-from cluster.play_game import HIDDEN_RGB, PartnerError, human_partner, load_policy_partner, make_game, scripted_partner
-from cluster.play_server import PlayServer
-from cluster.play_protocol import Message, ProtocolError, parse_message
-from cluster.play_session import GameSession
+from cluster.play.game import HIDDEN_RGB, PartnerError, human_partner, load_policy_partner, make_game, scripted_partner
+from cluster.play.server import PlayServer
+from cluster.play.protocol import Message, ProtocolError, parse_message
+from cluster.play.session import GameSession
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import load_config
@@ -315,7 +315,7 @@ def test_the_server_rejects_bad_requests_and_the_game_goes_on(solo_game, archive
 @pytest.fixture(scope="module")
 def rnn_run(tmp_path_factory):
     """A run directory with one RNN checkpoint (untrained parameters: only loading is tested)."""
-    from cluster.rundir import RunDir
+    from cluster.runtime.rundir import RunDir
 
     run = tmp_path_factory.mktemp("runs") / "rnn"
     config = load_config(SMOKE, ["model.kind=rnn", "model.gru_dim=8", "model.mixer_features=[8]",

@@ -21,10 +21,10 @@ import jax
 import numpy as np
 import pytest
 
-from cluster import evaluate, ray_backend, runstate
+from cluster.runtime import evaluate, ray_backend, runstate
 from cluster.archive import ArchiveReader
 from cluster.cli import main
-from cluster.rundir import RunDir
+from cluster.runtime.rundir import RunDir
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import load_config

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from cluster import ray_backend
-from cluster.rundir import RunDir
+from cluster.runtime import ray_backend
+from cluster.runtime.rundir import RunDir
 from population.config import load_config
 
 SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")

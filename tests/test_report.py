@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from cluster.cli import main
-from cluster.cmd_report import curve
+from cluster.cli.report import curve
 from population.config import dump_config, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,7 +144,7 @@ def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
 
 
 def test_training_curve_is_mean_and_std_across_seeds(runs):
-    from cluster.cmd_report import load_run
+    from cluster.cli.report import load_run
 
     x, mean, std = curve(load_run(runs["cr_sp"])["metrics"])
     assert x.tolist() == [100, 200, 300]

@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from cluster import coordinator, evaluate, runstate
+from cluster.runtime import coordinator, evaluate, runstate
 from cluster.cli import main
-from cluster.rundir import METRIC_FIELDS, RunDir, RunDirError
+from cluster.runtime.rundir import METRIC_FIELDS, RunDir, RunDirError
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import dump_config, load_config

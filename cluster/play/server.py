@@ -1,6 +1,6 @@
 """The HTTP side of ``ocv2 play``: a standard-library server with one page and one JSON endpoint.
 
-    GET  /      the game page (``cluster/static/play.html``, package data; no build step)
+    GET  /      the game page (``cluster/play/static/play.html``, package data; no build step)
     POST /api   one JSON message (``docs/play.md``). The answer is JSON: ``{"ok": true, ...}``, or
                 ``{"ok": false, "error": "..."}`` with status 400 (malformed), 403 (unknown token),
                 409 (seat taken), 413 (too large) or 503 (shutting down)
@@ -22,8 +22,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from urllib.parse import urlsplit
 
-from cluster.play_protocol import MAX_MESSAGE_BYTES, ProtocolError, parse_message
-from cluster.play_session import GameSession
+from cluster.play.protocol import MAX_MESSAGE_BYTES, ProtocolError, parse_message
+from cluster.play.session import GameSession
 
 PAGE = "play.html"
 _SECURITY_HEADERS = {
@@ -37,7 +37,7 @@ _SECURITY_HEADERS = {
 
 
 def page_html() -> bytes:
-    return resources.files("cluster").joinpath("static", PAGE).read_bytes()
+    return resources.files("cluster.play").joinpath("static", PAGE).read_bytes()
 
 
 class _Server(ThreadingHTTPServer):

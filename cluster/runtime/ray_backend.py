@@ -20,8 +20,8 @@ import socket
 import time
 from pathlib import Path
 
-from cluster import coordinator
-from cluster.shard import SeedShard
+from cluster.runtime import coordinator
+from cluster.runtime.shard import SeedShard
 from population.config import ClusterConfig, Config, shards as seed_shards
 
 RESTART_TIMEOUT_S = 600.0  # how long a restarting actor may take to answer again

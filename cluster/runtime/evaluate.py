@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cluster.rundir import RunDir, RunDirError, write_csv, write_json
-from cluster.runstate import (GIF_KEY_OFFSET, XP_KEY_OFFSET, archive_meta, hidden_size, load_params, pair_meta,
+from cluster.runtime.rundir import RunDir, RunDirError, write_csv, write_json
+from cluster.runtime.runstate import (GIF_KEY_OFFSET, XP_KEY_OFFSET, archive_meta, hidden_size, load_params, pair_meta,
                               params_template, population_key)
 from population import ppo
 from population.config import Config
@@ -82,7 +82,7 @@ def xp_archive_path(archive_dir, row: int) -> Path:
 
 
 def _cross_play_spread(workers, params, key, episodes: int, archive_dir) -> CrossPlay:
-    from cluster.coordinator import spread_jobs
+    from cluster.runtime.coordinator import spread_jobs
 
     num = jax.tree.leaves(params)[0].shape[0]
     handle = workers.share(jax.tree.map(np.asarray, params))

@@ -1,7 +1,7 @@
 """A shard of a population's seeds: the plain class both backends train with.
 
 The local backend runs one shard holding every seed; the Ray backend wraps the same class in an
-actor per shard (``cluster.ray_backend``). A shard restores itself from the run directory's
+actor per shard (``cluster.runtime.ray_backend``). A shard restores itself from the run directory's
 checkpoints when constructed, which is what makes a restarted Ray actor resume where it left off.
 
 Every method is idempotent with respect to what the coordinator asked for: ``advance(target)`` trains
@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cluster.rundir import metric_rows
-from cluster.runstate import (SA_KEY_OFFSET, TRAIN_ARCHIVE_KEY_OFFSET, Schedule, hidden_size, population_key, restore,
+from cluster.runtime.rundir import metric_rows
+from cluster.runtime.runstate import (SA_KEY_OFFSET, TRAIN_ARCHIVE_KEY_OFFSET, Schedule, hidden_size, population_key, restore,
                               save_checkpoints)
 from population import ppo
 from population.config import Config
@@ -168,7 +168,7 @@ class SeedShard:
 
     def cross_play(self, params, rows, key, episodes: int, archive_dir=None) -> CrossPlayRows:
         """Cross-play of seat-0 ``rows``; with ``archive_dir`` their episodes are archived there, one file per row."""
-        from cluster.evaluate import play_rows
+        from cluster.runtime.evaluate import play_rows
 
         result = play_rows(self.config, self.trainer, params, rows, key, episodes, archive_dir)
         rows = list(rows)

@@ -13,7 +13,7 @@ iteration starts are stops too) the coordinator
 3. updates the manifest, the progress view, and (``archive.train_every``) the training archive.
 
 FCP pools come from an SP run directory or an SP stage trained first with the same backend. After
-training, cross-play is spread over the shards too (``cluster.evaluate``).
+training, cross-play is spread over the shards too (``cluster.runtime.evaluate``).
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ from typing import Callable, Protocol, Sequence
 import jax
 import numpy as np
 
-from cluster.progress import PopulationProgress
-from cluster.rundir import RunDir, RunDirError
-from cluster.runstate import Schedule, archive_meta, load_params, pair_meta, params_template
-from cluster.shard import SABuffer
+from cluster.runtime.progress import PopulationProgress
+from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.runstate import Schedule, archive_meta, load_params, pair_meta, params_template
+from cluster.runtime.shard import SABuffer
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import Config
@@ -209,7 +209,7 @@ def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = Fa
 
     ``on_chunk(update, workers)`` is called after every merged chunk (tests use it to kill workers).
     """
-    from cluster.evaluate import post_training
+    from cluster.runtime.evaluate import post_training
 
     extra = archived_states(config)  # a bad archive fails here, before the run directory is touched
     run = RunDir(Path(run_dir).resolve())  # absolute: actors on other nodes/working dirs get the same path

@@ -1,7 +1,7 @@
 """The JAX side of ``ocv2 play``: partners, one jitted game step and the players' views.
 
 Everything here is a pure function of explicit arguments (state, parameters, PRNG keys); the
-session in ``cluster/play_session.py`` owns time, seats and recording. ``make_game`` jits the step
+session in ``cluster/play/session.py`` owns time, seats and recording. ``make_game`` jits the step
 (partner policies + environment) and the view renderer once per session, so a tick costs two
 compiled calls whatever the layout.
 
@@ -148,8 +148,8 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
 
 def load_policy_partner(path) -> Partner:
     """The policy of a checkpoint (or a seed's latest), with the run config it was trained under."""
-    from cluster.rundir import RunDir
-    from cluster.runstate import hidden_size, load_params, params_template
+    from cluster.runtime.rundir import RunDir
+    from cluster.runtime.runstate import hidden_size, load_params, params_template
     from population import checkpoints as ckpt
     from population import ppo
     from population.config import ConfigError

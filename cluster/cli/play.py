@@ -33,8 +33,8 @@ def _key_value(text: str) -> tuple[str, str]:
 
 
 def add_play(sub) -> argparse.ArgumentParser:
-    from cluster.cli import _fps, _int_at_least, _non_negative_int, _positive_int
-    from cluster.cmd_button_game import _bounded
+    from cluster.cli.main import _fps, _int_at_least, _non_negative_int, _positive_int
+    from cluster.cli.button_game import _bounded
 
     parser = sub.add_parser(
         "play", help="play in the browser with a trained agent or another person (recorded to MCAP)",
@@ -81,7 +81,7 @@ def add_play(sub) -> argparse.ArgumentParser:
 
 
 def run_play(args) -> int:
-    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
+    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 
     partner = _partner(args.partner)
     env = _env(args, partner)
@@ -92,8 +92,8 @@ def run_play(args) -> int:
     previous = _interrupt_on_sigterm()
     try:
         writer, path = _writer(args.out, env.layout.name, args.fps)
-        from cluster.play_game import make_game, warm_up
-        from cluster.play_session import GameSession
+        from cluster.play.game import make_game, warm_up
+        from cluster.play.session import GameSession
 
         seed = secrets.randbits(31) if args.seed is None else args.seed
         print(f"ocv2 play: preparing {env.layout.name} (compiling the game takes a few seconds)...", flush=True)
@@ -130,8 +130,8 @@ def run_play(args) -> int:
 # ---------------------------------------------------------------------------------------------------
 
 def _partner(text: str):
-    from cluster.errors import CLIError
-    from cluster.play_game import PartnerError, human_partner, load_policy_partner, scripted_partner
+    from cluster.cli.errors import CLIError
+    from cluster.play.game import PartnerError, human_partner, load_policy_partner, scripted_partner
 
     try:
         if text == "human":
@@ -146,7 +146,7 @@ def _partner(text: str):
 def _env_flags(args) -> dict:
     import yaml
 
-    from cluster.errors import CLIError
+    from cluster.cli.errors import CLIError
 
     flags = {}
     for key, text in args.env:
@@ -165,8 +165,8 @@ def _env_flags(args) -> dict:
 def _env(args, partner):
     """The env to play: the partner run's eval env (checked against LAYOUT and flags), else LAYOUT + flags."""
     import ocv2
-    from cluster.cli import _layout_or_error
-    from cluster.errors import CLIError
+    from cluster.cli.main import _layout_or_error
+    from cluster.cli.errors import CLIError
     from ocv2.config import build_config
 
     flags = _env_flags(args)
@@ -198,7 +198,7 @@ def _env(args, partner):
 
 
 def _human_seats(args, env, partner) -> list[int]:
-    from cluster.errors import CLIError
+    from cluster.cli.errors import CLIError
 
     seats = env.num_agents
     if args.seat >= seats:
@@ -210,8 +210,8 @@ def _human_seats(args, env, partner) -> list[int]:
 
 def _meta(pairs) -> dict:
     from cluster.archive import RESERVED_KEYS
-    from cluster.errors import CLIError
-    from cluster.play_session import PLAY_META_KEYS
+    from cluster.cli.errors import CLIError
+    from cluster.play.session import PLAY_META_KEYS
 
     meta = dict(pairs)
     taken = sorted(set(meta) & set(RESERVED_KEYS + PLAY_META_KEYS))
@@ -221,8 +221,8 @@ def _meta(pairs) -> dict:
 
 
 def _bind(host: str, port: int, verbose: bool):
-    from cluster.errors import EXIT_FAILURE, CLIError
-    from cluster.play_server import PlayServer
+    from cluster.cli.errors import EXIT_FAILURE, CLIError
+    from cluster.play.server import PlayServer
 
     try:
         return PlayServer(host, port, verbose)
@@ -235,7 +235,7 @@ def _bind(host: str, port: int, verbose: bool):
 
 def _writer(out: str | None, layout: str, fps: float):
     from cluster.archive import ArchiveError, ArchiveWriter
-    from cluster.errors import EXIT_FAILURE, CLIError
+    from cluster.cli.errors import EXIT_FAILURE, CLIError
 
     path = out or os.path.join("runs", "play", f"{layout}_{time.strftime('%Y%m%d-%H%M%S')}.mcap")
     if not path.endswith(".mcap"):
@@ -260,7 +260,7 @@ def _finish(writer) -> int:
 
 
 def _announce(args, server, game, seed: int, path: str) -> None:
-    from cluster.play_session import SEAT_COLOURS
+    from cluster.play.session import SEAT_COLOURS
 
     env, partner = game.env, game.partner
     view = "" if env.config.view_radius is None else f", view radius {env.config.view_radius}"

@@ -53,7 +53,7 @@ def run(args) -> int:
 
 def _reader(path: str):
     from cluster.archive import ArchiveError, ArchiveReader
-    from cluster.errors import CLIError
+    from cluster.cli.errors import CLIError
 
     try:
         return ArchiveReader(path)
@@ -64,7 +64,7 @@ def _reader(path: str):
 
 
 def _info(args) -> int:
-    from cluster.errors import EXIT_OK
+    from cluster.cli.errors import EXIT_OK
 
     reader = _reader(args.file)
     summary = reader.info()
@@ -109,7 +109,7 @@ def _info(args) -> int:
 
 def _replay(args) -> int:
     from cluster.archive import ArchiveError
-    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
+    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
@@ -143,7 +143,7 @@ def _replay(args) -> int:
 
 def _recover(args) -> int:
     from cluster.archive import PARTIAL_SUFFIX, ArchiveError, recover
-    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
+    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 
     out = args.out
     if out is None:

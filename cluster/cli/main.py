@@ -22,7 +22,7 @@ import importlib
 import sys
 from typing import Callable, Sequence
 
-from cluster.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -178,13 +178,13 @@ def _lazy(module: str, name: str) -> Callable:
 COMMANDS: list[tuple[str, Callable, Callable]] = [
     ("layouts", _add_layouts, _cmd_layouts),
     ("render", _add_render, _cmd_render),
-    ("train", _lazy("cluster.cmd_train", "add_train"), _lazy("cluster.cmd_train", "run_train")),
-    ("xp", _lazy("cluster.cmd_train", "add_xp"), _lazy("cluster.cmd_train", "run_xp")),
-    ("validate", _lazy("cluster.cmd_report", "add_validate"), _lazy("cluster.cmd_report", "run_validate")),
-    ("report", _lazy("cluster.cmd_report", "add_report"), _lazy("cluster.cmd_report", "run_report")),
-    ("button-game", _lazy("cluster.cmd_button_game", "add_parser"), _lazy("cluster.cmd_button_game", "run")),
-    ("archive", _lazy("cluster.cmd_archive", "add_parser"), _lazy("cluster.cmd_archive", "run")),
-    ("play", _lazy("cluster.cmd_play", "add_play"), _lazy("cluster.cmd_play", "run_play")),
+    ("train", _lazy("cluster.cli.train", "add_train"), _lazy("cluster.cli.train", "run_train")),
+    ("xp", _lazy("cluster.cli.train", "add_xp"), _lazy("cluster.cli.train", "run_xp")),
+    ("validate", _lazy("cluster.cli.report", "add_validate"), _lazy("cluster.cli.report", "run_validate")),
+    ("report", _lazy("cluster.cli.report", "add_report"), _lazy("cluster.cli.report", "run_report")),
+    ("button-game", _lazy("cluster.cli.button_game", "add_parser"), _lazy("cluster.cli.button_game", "run")),
+    ("archive", _lazy("cluster.cli.archive", "add_parser"), _lazy("cluster.cli.archive", "run")),
+    ("play", _lazy("cluster.cli.play", "add_play"), _lazy("cluster.cli.play", "run_play")),
 ]
 
 

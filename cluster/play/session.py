@@ -1,9 +1,9 @@
 """A game of ``ocv2 play``: seats, the fixed tick, answering browser messages, and recording.
 
-Plain classes, no HTTP: ``cluster/play_server.py`` calls ``GameSession.handle`` from its request
+Plain classes, no HTTP: ``cluster/play/server.py`` calls ``GameSession.handle`` from its request
 threads and ``GameSession.run`` (the clock) from one thread; tests call ``handle`` and ``tick``
 directly. One lock guards the session; JAX runs only in the constructor and in ``tick``, so on one
-thread at a time. Messages arrive validated (``cluster/play_protocol.py``; documented in ``docs/play.md``).
+thread at a time. Messages arrive validated (``cluster/play/protocol.py``; documented in ``docs/play.md``).
 
 Life of a session: humans ``join`` (one seat each) and press start (``ready``); when every human
 seat is ready an episode starts. Each tick takes every human's latest action (``stay`` if none
@@ -29,8 +29,8 @@ import numpy as np
 from PIL import Image
 
 from cluster.archive import RESERVED_KEYS, ArchiveError, ArchiveWriter, env_meta
-from cluster.play_game import Game, GameCarry, host, ingredient_colour, recipe_ingredients
-from cluster.play_protocol import Message, ProtocolError
+from cluster.play.game import Game, GameCarry, host, ingredient_colour, recipe_ingredients
+from cluster.play.protocol import Message, ProtocolError
 from ocv2 import items as it
 from ocv2.state import State, stack_states
 
@@ -83,7 +83,7 @@ class GameSession:
     """Seats, ticks and recording of one ``ocv2 play`` server.
 
     Args:
-        game: the compiled game (``cluster.play_game.make_game``); its human seats are the seats browsers take.
+        game: the compiled game (``cluster.play.game.make_game``); its human seats are the seats browsers take.
         writer: an open ``ArchiveWriter`` every finished or cut-short episode is written to.
         seed: root PRNG seed; episode e uses ``fold_in(PRNGKey(seed), e)`` (reset: fold_in 0, step t: fold_in t + 1).
         fps: ticks (environment steps) per second.

@@ -72,7 +72,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def _configs(args):
     """Build the configs (argparse types have already range-checked every flag)."""
-    from cluster.errors import CLIError
+    from cluster.cli.errors import CLIError
     from population.button_game import ButtonGameConfig, IQLConfig
 
     try:
@@ -84,7 +84,7 @@ def _configs(args):
 
 def run(args) -> int:
     """Train, evaluate, write CSV + PNG, print the means; returns the exit code."""
-    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
+    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 
     game, iql = _configs(args)
     if os.path.exists(args.out) and not os.path.isdir(args.out):

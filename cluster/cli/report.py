@@ -69,7 +69,7 @@ def describe_config(config) -> str:
 
 
 def run_validate(args) -> int:
-    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
+    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
     from population.config import ConfigError, load_config
 
     bad = []
@@ -103,8 +103,8 @@ def _nan(value) -> float:
 
 def load_run(path) -> dict:
     """Everything ``report`` needs from one run directory; ``CLIError`` if it is not one."""
-    from cluster.errors import CLIError
-    from cluster.rundir import RunDir, RunDirError
+    from cluster.cli.errors import CLIError
+    from cluster.runtime.rundir import RunDir, RunDirError
 
     run = RunDir(path)
     if not run.path.is_dir():
@@ -332,7 +332,7 @@ def add_report(sub) -> argparse.ArgumentParser:
 
 
 def run_report(args) -> int:
-    from cluster.errors import EXIT_FAILURE, EXIT_OK, CLIError
+    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 
     runs = [load_run(path) for path in args.run_dirs]
     out = Path(args.out)

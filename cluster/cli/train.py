@@ -34,9 +34,9 @@ def run_train(args) -> int:
     # The driver runs JAX too (SA buffer merge, GIFs): on a GPU machine it must not take 75 % of the
     # memory the seed actors need. Set before JAX initialises; an explicit user setting wins.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from cluster.errors import EXIT_OK, CLIError
+    from cluster.cli.errors import EXIT_OK, CLIError
     from cluster.archive import ArchiveError
-    from cluster.rundir import RunDirError
+    from cluster.runtime.rundir import RunDirError
     from population.checkpoints import CheckpointError
     from population.config import ConfigError, load_config
 
@@ -55,11 +55,11 @@ def run_train(args) -> int:
     if args.resume and not args.out:
         raise CLIError("--resume needs --out RUN_DIR (the run to continue)")
     if args.backend == "ray":
-        from cluster.ray_backend import RayBackendError, train_population
+        from cluster.runtime.ray_backend import RayBackendError, train_population
 
         errors = (RunDirError, CheckpointError, ArchiveError, RayBackendError)
     else:
-        from cluster.local import train_population
+        from cluster.runtime.local import train_population
 
         errors = (RunDirError, CheckpointError, ArchiveError)
     try:
@@ -86,9 +86,9 @@ def add_xp(sub) -> argparse.ArgumentParser:
 
 
 def run_xp(args) -> int:
-    from cluster.errors import EXIT_OK, CLIError
-    from cluster.evaluate import evaluate_run
-    from cluster.rundir import RunDirError
+    from cluster.cli.errors import EXIT_OK, CLIError
+    from cluster.runtime.evaluate import evaluate_run
+    from cluster.runtime.rundir import RunDirError
     from population.checkpoints import CheckpointError
 
     if args.episodes is not None and args.episodes < 1:

@@ -1,15 +1,15 @@
 """The local backend: every seed in one process, vmapped in one jitted program (``--backend local``).
 
 Its ``Workers`` is a single in-process ``SeedShard`` holding the whole population; the coordinator
-(``cluster.coordinator``) is the same one the Ray backend uses, so both write the same run directory.
+(``cluster.runtime.coordinator``) is the same one the Ray backend uses, so both write the same run directory.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from cluster import coordinator
-from cluster.shard import SeedShard
+from cluster.runtime import coordinator
+from cluster.runtime.shard import SeedShard
 from population.config import Config
 
 
