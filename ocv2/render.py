@@ -24,7 +24,6 @@ from __future__ import annotations
 import functools
 import math
 import os
-import uuid
 from typing import Callable
 
 import jax
@@ -32,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ocv2 import items as it
+from ocv2.atomic import atomic_path
 from ocv2.items import Static
 from ocv2.layouts import Layout, get_layout
 from ocv2.state import State
@@ -480,17 +480,9 @@ def write_gif(frames, path, fps: float = 5, loop: bool = True) -> str:
 
     frames = _mark_repeats(_limit_colours(frames))
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
     options = {"duration": 1000.0 / float(fps)}
     if loop:
         options["loop"] = 0
-    # A hidden sibling created with the process umask (mkstemp would make the GIF private).
-    tmp = os.path.join(folder, f".{os.path.basename(path)}.{uuid.uuid4().hex[:12]}.tmp")
-    try:
+    with atomic_path(path) as tmp:
         iio.imwrite(tmp, frames, plugin="pillow", extension=".gif", **options)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path

@@ -8,7 +8,6 @@ hash of the training-relevant config; loading into a different config is refused
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import jax
 import numpy as np
 from flax import serialization
 
+from ocv2.atomic import atomic_write
 FORMAT_VERSION = 1
 _NAME = re.compile(r"^update_(\d+)\.msgpack$")
 
@@ -35,17 +35,9 @@ def checkpoint_path(run_dir, seed: int, update: int) -> Path:
 def save(path, state, fingerprint: str, **meta) -> Path:
     """Write ``state`` (a pytree) atomically; extra ``meta`` (JSON-able) is stored beside it."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"meta": {"version": FORMAT_VERSION, "fingerprint": fingerprint, **meta},
                "state": serialization.to_state_dict(jax.tree.map(np.asarray, state))}
-    data = serialization.msgpack_serialize(payload)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
-    return path
+    return atomic_write(path, serialization.msgpack_serialize(payload))
 
 
 def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:

@@ -20,6 +20,7 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
+from ocv2.atomic import atomic_write
 
 class ConfigError(ValueError):
     """A configuration problem; the message names the key (and file) at fault."""
@@ -505,7 +506,4 @@ def shards(config: Config) -> list[list[int]]:
 
 def dump_config(config: Config, path: str | os.PathLike) -> None:
     """Write the resolved config as YAML (atomically)."""
-    tmp = f"{os.fspath(path)}.tmp"
-    with open(tmp, "w") as handle:
-        yaml.safe_dump(config.to_dict(), handle, sort_keys=False)
-    os.replace(tmp, path)
+    atomic_write(path, yaml.safe_dump(config.to_dict(), sort_keys=False))

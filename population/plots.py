@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 import numpy as np
 
+from ocv2.atomic import atomic_path
 
 def pyplot():
     """matplotlib.pyplot on the file-only Agg backend."""
@@ -20,11 +19,8 @@ def pyplot():
 
 def save_figure(fig, path) -> str:
     """Save atomically (temporary name, then rename); creates missing folders."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=120, bbox_inches="tight")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, bbox_inches="tight")
     return str(path)
 
 

@@ -14,12 +14,12 @@ import csv
 import io
 import json
 import math
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ocv2.atomic import atomic_write
 from population.config import Config, ConfigError, dump_config, load_config
 
 METRIC_FIELDS = ("seed", "update", "env_steps", "sparse_return", "shaped_return", "episodes", "loss", "actor_loss",
@@ -94,7 +94,7 @@ class RunDir:
             return {}
 
     def write_manifest(self, data: dict) -> None:
-        _atomic_text(self.manifest_path, json.dumps(data, indent=2, default=_json_default))
+        atomic_write(self.manifest_path, json.dumps(data, indent=2, default=_json_default))
 
     def update_manifest(self, **changes) -> dict:
         data = self.read_manifest()
@@ -168,22 +168,14 @@ def _json_default(value):
     raise TypeError(f"not JSON-serialisable: {type(value).__name__}")
 
 
-def _atomic_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as handle:  # newline="": CSV rows keep their \r\n
-        handle.write(text)
-    os.replace(tmp, path)
-
-
 def write_csv(path: Path, header, rows) -> None:
     """A CSV file written atomically (a reader sees the old or the new file, never half of one)."""
     buffer = io.StringIO(newline="")
     writer = csv.writer(buffer)
     writer.writerow(header)
     writer.writerows(rows)
-    _atomic_text(Path(path), buffer.getvalue())
+    atomic_write(path, buffer.getvalue())  # CSV rows keep their \r\n
 
 
 def write_json(path: Path, data) -> None:
-    _atomic_text(Path(path), json.dumps(data, indent=2, default=_json_default, allow_nan=True))
+    atomic_write(path, json.dumps(data, indent=2, default=_json_default, allow_nan=True))

@@ -1,0 +1,85 @@
+"""Atomic file writes: a reader sees the old file or the new one, never half of one.
+
+Every file ocv2 writes whole (checkpoints, configs, CSV/JSON results, plots, GIFs) goes through
+``atomic_path``: the content is written to a hidden sibling ``.<stem>.tmp-<pid>-<hex><suffix>``
+(same folder, so the rename cannot cross file systems; the suffix kept, so writers that pick a
+format from the extension still work), flushed to disk, renamed over the target, and the folder
+entry synced. A crash leaves at most a stale temporary, which ``remove_stale_temporaries`` deletes.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+TMP_MARK = ".tmp-"
+
+
+def _fsync_path(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, *, fsync: bool = True) -> Iterator[Path]:
+    """Yield a temporary path to write; on a clean exit it replaces ``path``, on an error it is removed.
+
+    ``fsync``: flush the file and its folder entry to disk (survives power loss, not only a killed
+    process). Missing parent folders are created.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}{TMP_MARK}{os.getpid()}-{uuid.uuid4().hex[:8]}{path.suffix}")
+    try:
+        yield tmp
+        if fsync:
+            _fsync_path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    if fsync:
+        try:
+            _fsync_path(path.parent)
+        except OSError:  # some file systems refuse to open folders; the rename itself is done
+            pass
+
+
+def atomic_write(path: str | os.PathLike, data: bytes | str, *, fsync: bool = True) -> Path:
+    """Write ``data`` (bytes, or text kept byte for byte: no newline translation) atomically."""
+    with atomic_path(path, fsync=fsync) as tmp:
+        if isinstance(data, str):
+            with open(tmp, "w", newline="", encoding="utf-8") as handle:
+                handle.write(data)
+        else:
+            tmp.write_bytes(data)
+    return Path(path)
+
+
+def is_temporary(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is one of ``atomic_path``'s temporaries."""
+    name = Path(path).name
+    return name.startswith(".") and TMP_MARK in name
+
+
+def remove_stale_temporaries(folder: str | os.PathLike, recursive: bool = True) -> list[Path]:
+    """Delete temporaries left by interrupted writes under ``folder``; returns what was removed.
+
+    Call it only where no other process is writing (e.g. with the run directory's lock held).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    candidates = folder.rglob(f".*{TMP_MARK}*") if recursive else folder.glob(f".*{TMP_MARK}*")
+    removed = []
+    for path in candidates:
+        if path.is_file() and is_temporary(path):
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
