@@ -89,8 +89,9 @@ def build_config(layout="cramped_room", **params) -> EnvConfig:
             raise TypeError(f"{name} must be True or False, got {params[name]!r}")
 
     max_steps = params.get("max_steps", 400)
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or not 1 <= max_steps < 2**31:
+        # the step counter in the state is int32
+        raise ValueError(f"max_steps must be an integer in [1, 2**31), got {max_steps!r}")
 
     obs_type = params.get("observation_type", "default")
     obs_type = _validate_observation_type(obs_type, layout)

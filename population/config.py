@@ -15,15 +15,40 @@ import hashlib
 import json
 import math
 import os
+import types
 import typing
 from typing import Any, Mapping, Sequence
 
 import yaml
 
 from ocv2.atomic import atomic_write
+from ocv2.config import build_config
+
+#: JAX's default PRNG keys are built from 32-bit seeds: a larger seed would silently wrap around.
+MAX_SEED = 2**32 - 1
+#: The SP stage of an FCP run without partners trains with ``population.seed + FCP_STAGE_SEED_OFFSET``.
+FCP_STAGE_SEED_OFFSET = 7919
+#: YAML nodes a config may expand to (aliases included): a config is a few hundred; this stops alias bombs.
+MAX_YAML_NODES = 100_000
+
 
 class ConfigError(ValueError):
-    """A configuration problem; the message names the key (and file) at fault."""
+    """Configuration problems; the message names the key (and file) at fault.
+
+    ``problems`` lists every problem found (``ocv2 validate`` prints them all); the message is the first
+    one, followed by how many more there are.
+    """
+
+    def __init__(self, message: str | Sequence[str]):
+        self.problems = [message] if isinstance(message, str) else list(message)
+        first = self.problems[0]
+        more = len(self.problems) - 1
+        super().__init__(first if not more else f"{first} (and {more} more problem{'s' * (more > 1)}; "
+                                                 "ocv2 validate lists them all)")
+
+    def prefixed(self, prefix: str) -> "ConfigError":
+        """The same problems with ``prefix`` (e.g. the file) in front of each."""
+        return ConfigError([f"{prefix}: {problem}" for problem in self.problems])
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -236,17 +261,74 @@ SECTIONS = ("env", "model", "ppo", "population", "eval", "run", "archive", "clus
 def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> Config:
     """Read a YAML file, apply ``section.key=value`` overrides, validate. Errors name file and key."""
     path = os.fspath(path)
-    try:
-        with open(path) as handle:
-            raw = yaml.safe_load(handle)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such config file") from None
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    raw = read_yaml(path)
     try:
         return parse_config(raw if raw is not None else {}, overrides)
     except ConfigError as error:
-        raise ConfigError(f"{path}: {error}") from None
+        raise error.prefixed(path) from None
+
+
+def read_yaml(path: str) -> Any:
+    """The plain data (mappings, lists, strings, numbers, booleans, null) of a YAML file, or a ConfigError."""
+    if os.path.isdir(path):
+        raise ConfigError(f"{path}: is a directory, not a config file")
+    try:
+        with open(path, encoding="utf-8") as handle:
+            raw = yaml.safe_load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file (not valid UTF-8)") from None
+    except OSError as error:
+        raise ConfigError(f"{path}: cannot read: {error.strerror or error}") from None
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {yaml_problem(error)}") from None
+    try:
+        check_plain_data(raw)
+    except ConfigError as error:
+        raise error.prefixed(path) from None
+    return raw
+
+
+def yaml_problem(error: yaml.YAMLError) -> str:
+    """A YAML error as one line: what went wrong and where (PyYAML's own message spans several lines)."""
+    mark = getattr(error, "problem_mark", None)
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return f"{problem}{where}"
+
+
+def check_plain_data(value, where: str = "") -> None:
+    """Refuse what YAML can express but a config cannot hold: dates, binary, sets, self-referencing
+    anchors, and alias chains that expand to more than ``MAX_YAML_NODES`` nodes."""
+    budget = [MAX_YAML_NODES]
+
+    def walk(node, key: str, parents: tuple[int, ...]) -> None:
+        budget[0] -= 1
+        if budget[0] < 0:
+            raise ConfigError(f"the YAML expands to more than {MAX_YAML_NODES} values (anchors and aliases "
+                              "repeated too often)")
+        name = key or "the config"
+        if isinstance(node, (dict, list)):
+            if id(node) in parents:
+                raise ConfigError(f"{name}: refers to itself through a YAML anchor")
+            inner = (*parents, id(node))
+            items = node.items() if isinstance(node, dict) else enumerate(node)
+            for child_key, child in items:
+                if isinstance(node, dict) and not isinstance(child_key, str):
+                    raise ConfigError(f"{name}: key {child_key!r} is not a string")
+                child_name = f"{key}.{child_key}" if isinstance(node, dict) and key else (
+                    str(child_key) if isinstance(node, dict) else f"{name}[{child_key}]")
+                walk(child, child_name, inner)
+            return
+        if node is None or isinstance(node, (bool, int, float, str)):
+            return
+        kind = {"date": "a date", "datetime": "a date and time", "bytes": "binary data (!!binary)",
+                "set": "a set (!!set)"}.get(type(node).__name__, f"a {type(node).__name__}")
+        hint = "; quote it to make it a string" if type(node).__name__ in ("date", "datetime") else ""
+        raise ConfigError(f"{name}: {kind} is not a config value, got {node!r}{hint}")
+
+    walk(value, where, ())
 
 
 def apply_overrides(raw: Mapping, overrides: Sequence[str]) -> dict:
@@ -264,34 +346,57 @@ def apply_overrides(raw: Mapping, overrides: Sequence[str]) -> dict:
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"override {item!r}: {part} is not a section")
-        node[parts[-1]] = yaml.safe_load(text) if text.strip() else None
+        try:
+            value = yaml.safe_load(text) if text.strip() else None
+        except yaml.YAMLError as error:
+            raise ConfigError(f"override {item!r}: the value is not valid YAML: {yaml_problem(error)}") from None
+        check_plain_data(value, dotted.strip())
+        node[parts[-1]] = value
     return data
 
 
 def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
-    """Validate a nested mapping (e.g. from YAML) into a ``Config``."""
+    """Validate a nested mapping (e.g. from YAML) into a ``Config``; a ConfigError lists every problem."""
     if not isinstance(raw, Mapping):
         raise ConfigError(f"the config must be a mapping of sections {SECTIONS}, got {type(raw).__name__}")
+    check_plain_data(raw)
     raw = apply_overrides(raw, overrides)
     unknown = sorted(set(raw) - set(SECTIONS))
     if unknown:
         raise ConfigError(f"unknown section {unknown[0]!r}; sections are {', '.join(SECTIONS)}")
-    env = _parse_env(raw.get("env") or {})
-    model = _parse_section("model", ModelConfig, raw.get("model"))
-    model = _resolve_model(model)
-    ppo = _parse_section("ppo", PPOConfig, raw.get("ppo"))
-    if not isinstance(raw.get("population") or {}, Mapping):
-        raise ConfigError("population: expected a mapping")
-    pop_raw = dict(raw.get("population") or {})
-    subs = {name: _parse_section(f"population.{name}", cls, pop_raw.pop(name, None))
+    problems: list[str] = []
+
+    def parsed(parse, *args, default):
+        try:
+            return parse(*args)
+        except ConfigError as error:
+            problems.extend(error.problems)
+            return default
+
+    env = parsed(_parse_env, raw.get("env") or {}, default=Config().env)
+    model = parsed(lambda: _resolve_model(_parse_section("model", ModelConfig, raw.get("model"))),
+                   default=_resolve_model(ModelConfig()))
+    ppo = parsed(_parse_section, "ppo", PPOConfig, raw.get("ppo"), default=PPOConfig())
+    pop_raw = raw.get("population") or {}
+    if not isinstance(pop_raw, Mapping):
+        problems.append(f"population: expected a mapping of keys, got {type(pop_raw).__name__}")
+        pop_raw = {}
+    pop_raw = dict(pop_raw)
+    subs = {name: parsed(_parse_section, f"population.{name}", cls, pop_raw.pop(name, None), default=cls())
             for name, cls in (("sa", SAConfig), ("op", OPConfig), ("fcp", FCPConfig))}
-    population = dataclasses.replace(_parse_section("population", PopulationConfig, pop_raw), **subs)
+    population = dataclasses.replace(
+        parsed(_parse_section, "population", PopulationConfig, pop_raw, default=PopulationConfig()), **subs)
     config = Config(env=env, model=model, ppo=ppo, population=population,
-                    eval=_parse_eval(raw.get("eval")),
-                    run=_parse_section("run", RunConfig, raw.get("run")),
-                    archive=_parse_section("archive", ArchiveConfig, raw.get("archive")),
-                    cluster=_parse_cluster(raw.get("cluster")))
-    _validate(config)
+                    eval=parsed(_parse_eval, raw.get("eval"), default=EvalConfig()),
+                    run=parsed(_parse_section, "run", RunConfig, raw.get("run"), default=RunConfig()),
+                    archive=parsed(_parse_section, "archive", ArchiveConfig, raw.get("archive"),
+                                   default=ArchiveConfig()),
+                    cluster=parsed(_parse_cluster, raw.get("cluster"), default=ClusterConfig()))
+    if problems:  # values checked against each other only once each one parsed
+        raise ConfigError(problems)
+    problems = _validate(config)
+    if problems:
+        raise ConfigError(problems)
     return config
 
 
@@ -302,18 +407,24 @@ def _parse_section(name: str, cls, raw) -> Any:
         raise ConfigError(f"{name}: expected a mapping of keys, got {type(raw).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
-    values = {}
+    values, problems = {}, []
     for key, value in raw.items():
         if key not in fields:
-            raise ConfigError(f"{name}.{key}: unknown key; valid keys are {', '.join(fields)}")
-        values[key] = _coerce(f"{name}.{key}", value, hints[key])
+            problems.append(f"{name}.{key}: unknown key; valid keys are {', '.join(fields)}")
+            continue
+        try:
+            values[key] = _coerce(f"{name}.{key}", value, hints[key])
+        except ConfigError as error:
+            problems.extend(error.problems)
+    if problems:
+        raise ConfigError(problems)
     return cls(**values)
 
 
 def _coerce(key: str, value, hint):
     """Check ``value`` against a field's type; ints given as 1e7 floats are accepted when integral."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+    if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
         inner = [a for a in args if a is not type(None)]
@@ -342,11 +453,13 @@ def _coerce(key: str, value, hint):
     if hint is float:
         if isinstance(value, str):
             try:
-                return float(value)  # YAML reads "1e-4" (no dot) as a string
+                value = float(value)  # YAML reads "1e-4" (no dot) as a string
             except ValueError:
                 pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
+        if not math.isfinite(value):  # a NaN learning rate would "train" to NaN parameters without a word
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
         return float(value)
     if hint is str:
         if isinstance(value, bool) or not isinstance(value, (str, int)):
@@ -356,8 +469,6 @@ def _coerce(key: str, value, hint):
 
 
 def _parse_env(raw) -> tuple[tuple[str, Any], ...]:
-    from ocv2.config import build_config
-
     if not isinstance(raw, Mapping):
         raise ConfigError(f"env: expected a mapping of ocv2.make parameters, got {type(raw).__name__}")
     if "initial_state_buffer" in raw:
@@ -396,99 +507,116 @@ def _resolve_model(model: ModelConfig) -> ModelConfig:
     return dataclasses.replace(model, **fill)
 
 
-def _positive(key: str, value, allow_zero: bool = False):
+def _positive(key: str, value, allow_zero: bool = False) -> list[str]:
     if value < 0 or (value == 0 and not allow_zero):
-        raise ConfigError(f"{key}: must be {'>= 0' if allow_zero else '> 0'}, got {value}")
+        return [f"{key}: must be {'>= 0' if allow_zero else '> 0'}, got {value}"]
+    return []
 
 
-def _validate(config: Config) -> None:
+def _validate(config: Config) -> list[str]:
+    """Every problem of values checked against each other (each value has the right type already)."""
     model, ppo, pop = config.model, config.ppo, config.population
+    problems: list[str] = []
     if ppo.activation not in ACTIVATIONS:
-        raise ConfigError(f"ppo.activation: expected one of {', '.join(ACTIVATIONS)}, got {ppo.activation!r}")
+        problems.append(f"ppo.activation: expected one of {', '.join(ACTIVATIONS)}, got {ppo.activation!r}")
     if len(model.conv_features) != len(model.conv_kernels):
-        raise ConfigError("model.conv_kernels: needs one kernel size per entry of model.conv_features")
+        problems.append("model.conv_kernels: needs one kernel size per entry of model.conv_features")
     for key in ("fc_dim", "gru_dim"):
-        _positive(f"model.{key}", getattr(model, key))
+        problems += _positive(f"model.{key}", getattr(model, key))
     for key, values in (("conv_features", model.conv_features), ("conv_kernels", model.conv_kernels),
                         ("mixer_features", model.mixer_features)):
         for v in values:
-            _positive(f"model.{key}", v)
+            problems += _positive(f"model.{key}", v)
     for key in ("lr", "clip_eps", "max_grad_norm", "num_envs", "num_steps", "num_minibatches",
                 "update_epochs", "total_timesteps"):
-        _positive(f"ppo.{key}", getattr(ppo, key))
-    for key in ("ent_coef", "vf_coef", "rew_shaping_horizon", "lr_warmup"):
-        _positive(f"ppo.{key}", getattr(ppo, key), allow_zero=True)
+        problems += _positive(f"ppo.{key}", getattr(ppo, key))
+    for key in ("ent_coef", "vf_coef", "rew_shaping_horizon"):
+        problems += _positive(f"ppo.{key}", getattr(ppo, key), allow_zero=True)
     for key in ("gamma", "gae_lambda", "lr_warmup"):
         if not 0.0 <= getattr(ppo, key) <= 1.0:
-            raise ConfigError(f"ppo.{key}: must lie in [0, 1], got {getattr(ppo, key)}")
-    if ppo.num_updates < 1:
-        raise ConfigError(f"ppo.total_timesteps: {ppo.total_timesteps} is less than one update "
-                          f"(num_envs x num_steps = {ppo.steps_per_update})")
-    from ocv2.config import build_config
-
+            problems.append(f"ppo.{key}: must lie in [0, 1], got {getattr(ppo, key)}")
+    sizes_ok = ppo.num_envs > 0 and ppo.num_steps > 0 and ppo.num_minibatches > 0
+    if sizes_ok and ppo.num_updates < 1:
+        problems.append(f"ppo.total_timesteps: {ppo.total_timesteps} is less than one update "
+                        f"(num_envs x num_steps = {ppo.steps_per_update})")
     env = build_config(**config.env_kwargs)
     learner_actors = ppo.num_envs if pop.method == "fcp" else ppo.num_envs * env.num_agents
-    if learner_actors % ppo.num_minibatches:
-        raise ConfigError(f"ppo.num_minibatches: {ppo.num_minibatches} does not divide the {learner_actors} "
-                          f"learner sequences per update (num_envs x {'1 learner seat' if pop.method == 'fcp' else f'{env.num_agents} agents'})")
+    if sizes_ok and learner_actors % ppo.num_minibatches:
+        seats = "1 learner seat" if pop.method == "fcp" else f"{env.num_agents} agents"
+        problems.append(f"ppo.num_minibatches: {ppo.num_minibatches} does not divide the {learner_actors} "
+                        f"learner sequences per update (num_envs x {seats})")
     if pop.method not in METHODS:
-        raise ConfigError(f"population.method: expected one of {', '.join(METHODS)}, got {pop.method!r}")
-    _positive("population.num_seeds", pop.num_seeds)
-    _positive("population.seed", pop.seed, allow_zero=True)
+        problems.append(f"population.method: expected one of {', '.join(METHODS)}, got {pop.method!r}")
+    problems += _positive("population.num_seeds", pop.num_seeds)
+    problems += _seed_problems(pop)
     for key in ("iterations", "rollouts_per_pair", "keep_every"):
-        _positive(f"population.sa.{key}", getattr(pop.sa, key))
+        problems += _positive(f"population.sa.{key}", getattr(pop.sa, key))
     if pop.method == "sa":
-        if pop.sa.iterations > ppo.num_updates:
-            raise ConfigError(f"population.sa.iterations: {pop.sa.iterations} iterations need at least as many "
-                              f"updates, the config has {ppo.num_updates}")
+        if sizes_ok and pop.sa.iterations > ppo.num_updates:
+            problems.append(f"population.sa.iterations: {pop.sa.iterations} iterations need at least as many "
+                            f"updates, the config has {ppo.num_updates}")
         if pop.sa.keep_every > env.max_steps:
-            raise ConfigError(f"population.sa.keep_every: {pop.sa.keep_every} exceeds env.max_steps={env.max_steps}")
+            problems.append(f"population.sa.keep_every: {pop.sa.keep_every} exceeds env.max_steps={env.max_steps}")
     if pop.method == "op":
         n = env.num_ingredients
         if len(pop.op.ingredients) < 2 or len(set(pop.op.ingredients)) != len(pop.op.ingredients):
-            raise ConfigError("population.op.ingredients: needs at least two distinct ingredient indices")
+            problems.append("population.op.ingredients: needs at least two distinct ingredient indices")
         if any(not 0 <= i < n for i in pop.op.ingredients):
-            raise ConfigError(f"population.op.ingredients: indices must lie in [0, {n}) for layout "
-                              f"{env.layout.name!r}, got {list(pop.op.ingredients)}")
+            problems.append(f"population.op.ingredients: indices must lie in [0, {n}) for layout "
+                            f"{env.layout.name!r}, got {list(pop.op.ingredients)}")
         if env.op_enabled:
-            raise ConfigError("env.op_ingredient_permutations: set population.op.ingredients instead "
-                              "(evaluation must run without permutations)")
+            problems.append("env.op_ingredient_permutations: set population.op.ingredients instead "
+                            "(evaluation must run without permutations)")
     if pop.method == "fcp":
-        _positive("population.fcp.partner_seeds", pop.fcp.partner_seeds)
+        problems += _positive("population.fcp.partner_seeds", pop.fcp.partner_seeds)
         if not pop.fcp.checkpoints:
-            raise ConfigError("population.fcp.checkpoints: needs at least one checkpoint")
+            problems.append("population.fcp.checkpoints: needs at least one checkpoint")
         for c in pop.fcp.checkpoints:
             if c not in ("init", "mid", "final") and not str(c).isdigit():
-                raise ConfigError(f"population.fcp.checkpoints: {c!r} is not init, mid, final or an update number")
+                problems.append(f"population.fcp.checkpoints: {c!r} is not init, mid, final or an update number")
         if env.num_agents != 2:
-            raise ConfigError("population.method: fcp needs a two-agent layout")
-    _positive("eval.episodes", config.eval.episodes)
-    _positive("eval.gifs", config.eval.gifs, allow_zero=True)
-    _positive("run.checkpoint_every", config.run.checkpoint_every)
-    _positive("archive.train_every", config.archive.train_every, allow_zero=True)
-    _validate_cluster(config.cluster, pop.num_seeds)
+            problems.append("population.method: fcp needs a two-agent layout")
+    problems += _positive("eval.episodes", config.eval.episodes)
+    problems += _positive("eval.gifs", config.eval.gifs, allow_zero=True)
+    problems += _positive("run.checkpoint_every", config.run.checkpoint_every)
+    problems += _positive("archive.train_every", config.archive.train_every, allow_zero=True)
+    problems += _cluster_problems(config.cluster, pop.num_seeds)
     if config.run.num_checkpoints < 2:
-        raise ConfigError(f"run.num_checkpoints: must be >= 2 (initial and final), got {config.run.num_checkpoints}")
+        problems.append(f"run.num_checkpoints: must be >= 2 (initial and final), got {config.run.num_checkpoints}")
+    return problems
 
 
-def _validate_cluster(cluster: ClusterConfig, num_seeds: int) -> None:
+def _seed_problems(pop: PopulationConfig) -> list[str]:
+    """Every seed a run derives must fit a 32-bit PRNG seed (larger ones would wrap onto small ones)."""
+    if pop.seed < 0:
+        return [f"population.seed: must be >= 0, got {pop.seed}"]
+    largest = MAX_SEED - (FCP_STAGE_SEED_OFFSET if pop.method == "fcp" and pop.fcp.partners is None else 0)
+    if pop.seed > largest:
+        why = " (the FCP partner stage trains with seed + 7919)" if largest < MAX_SEED else ""
+        return [f"population.seed: must be <= {largest}{why}, got {pop.seed}"]
+    return []
+
+
+def _cluster_problems(cluster: ClusterConfig, num_seeds: int) -> list[str]:
+    problems: list[str] = []
     if cluster.address is not None:
         address = cluster.address.strip()
         host, _, port = address.rpartition(":")
         if address != "auto" and not (host and port.isdigit()) and not address.startswith("ray://"):
-            raise ConfigError(f"cluster.address: expected auto, HOST:PORT or ray://HOST:PORT, got {cluster.address!r}")
-    _positive("cluster.workers", cluster.workers, allow_zero=True)
-    _positive("cluster.seeds_per_actor", cluster.seeds_per_actor)
+            problems.append(f"cluster.address: expected auto, HOST:PORT or ray://HOST:PORT, got {cluster.address!r}")
+    problems += _positive("cluster.workers", cluster.workers, allow_zero=True)
+    problems += _positive("cluster.seeds_per_actor", cluster.seeds_per_actor)
     if cluster.workers and cluster.seeds_per_actor != 1:
-        raise ConfigError("cluster.workers: set either workers or seeds_per_actor, not both")
+        problems.append("cluster.workers: set either workers or seeds_per_actor, not both")
     if cluster.workers > num_seeds:
-        raise ConfigError(f"cluster.workers: {cluster.workers} actors for {num_seeds} seeds (at most one per seed)")
-    _positive("cluster.num_cpus", cluster.num_cpus)
-    _positive("cluster.num_gpus", cluster.num_gpus, allow_zero=True)
+        problems.append(f"cluster.workers: {cluster.workers} actors for {num_seeds} seeds (at most one per seed)")
+    problems += _positive("cluster.num_cpus", cluster.num_cpus)
+    problems += _positive("cluster.num_gpus", cluster.num_gpus, allow_zero=True)
     if not 0.0 <= cluster.gpu_memory_fraction < 1.0:
-        raise ConfigError(f"cluster.gpu_memory_fraction: must lie in [0, 1), got {cluster.gpu_memory_fraction}")
-    _positive("cluster.max_restarts", cluster.max_restarts, allow_zero=True)
-    _positive("cluster.local_cpus", cluster.local_cpus, allow_zero=True)
+        problems.append(f"cluster.gpu_memory_fraction: must lie in [0, 1), got {cluster.gpu_memory_fraction}")
+    problems += _positive("cluster.max_restarts", cluster.max_restarts, allow_zero=True)
+    problems += _positive("cluster.local_cpus", cluster.local_cpus, allow_zero=True)
+    return problems
 
 
 def shards(config: Config) -> list[list[int]]:

@@ -266,3 +266,103 @@ def test_configs_are_frozen():
         config.ppo.lr = 1.0  # type: ignore[misc]
     assert isinstance(config.model, ModelConfig)
     assert hash(config) == hash(parse_config({}))
+
+
+# ---------------------------------------------------------------------------------------------------
+# bad input: one line naming the file and key, never a traceback, never a silent "run"
+# ---------------------------------------------------------------------------------------------------
+
+def _file_error(tmp_path, text: str, overrides=()) -> str:
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path, overrides)
+    message = str(info.value)
+    assert message.startswith(str(path)) and "\n" not in message
+    return message
+
+
+def test_override_with_broken_yaml_is_one_line(tmp_path):
+    message = _file_error(tmp_path, "", ["ppo.lr=[1,"])
+    assert "override 'ppo.lr=[1,'" in message and "not valid YAML" in message and "line 1" in message
+
+
+def test_broken_yaml_file_is_one_line(tmp_path):
+    assert "line 2, column 11" in _file_error(tmp_path, "ppo:\n  lr: [1, }\n")
+
+
+def test_config_path_that_is_a_directory(tmp_path):
+    with pytest.raises(ConfigError, match="is a directory"):
+        load_config(tmp_path)
+
+
+def test_config_file_that_is_not_text(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(ConfigError, match="not a text file"):
+        load_config(path)
+
+
+@pytest.mark.parametrize("text, key, what", [
+    ("run: {checkpoint_every: 2020-01-01}\n", "run.checkpoint_every", "a date"),
+    ("population: {fcp: {partners: 2024-05-01 10:00:00}}\n", "population.fcp.partners", "a date and time"),
+    ("env: {layout: !!binary aGVsbG8=}\n", "env.layout", "binary data"),
+    ("population: {sa: {archives: !!set {a.mcap}}}\n", "population.sa.archives", "a set"),
+    ("env: &a {layout: cramped_room, again: *a}\n", "env.again", "refers to itself"),
+])
+def test_yaml_values_a_config_cannot_hold(tmp_path, text, key, what):
+    message = _file_error(tmp_path, text)
+    assert key in message and what in message
+
+
+def test_yaml_alias_bomb_is_refused(tmp_path):
+    lines = ["a: &l0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    lines += [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]" for i in range(1, 8)]
+    assert "expands to more than" in _file_error(tmp_path, "\n".join(lines) + "\n")
+
+
+def test_plain_anchors_still_work(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("model: {kind: cnn, conv_features: &sizes [8, 8], conv_kernels: [3, 3], mixer_features: *sizes}\n")
+    assert load_config(path).model.mixer_features == (8, 8)
+
+
+@pytest.mark.parametrize("item, key", [
+    ("ppo.lr=.nan", "ppo.lr"), ("ppo.lr=nan", "ppo.lr"), ("ppo.ent_coef=.inf", "ppo.ent_coef"),
+    ("ppo.gamma=-.inf", "ppo.gamma"), ("cluster.num_cpus=inf", "cluster.num_cpus"),
+])
+def test_non_finite_floats_are_refused(item, key):
+    message = _error({}, [item])
+    assert message.startswith(key) and "finite" in message
+
+
+def test_seeds_must_fit_32_bits():
+    assert parse_config({"population": {"seed": 2**32 - 1}}).population.seed == 2**32 - 1
+    assert _error({"population": {"seed": 2**32}}).startswith("population.seed")
+    # an FCP run without partners trains its SP stage with seed + 7919
+    fcp = {"ppo": SMALL_PPO, "population": {"method": "fcp", "seed": 2**32 - 100}}
+    assert "7919" in _error(fcp)
+
+
+def test_max_steps_must_fit_the_int32_step_counter():
+    assert parse_config({"env": {"max_steps": 2**31 - 1}}).env_kwargs["max_steps"] == 2**31 - 1
+    assert "max_steps" in _error({"env": {"max_steps": 2**31}})
+
+
+def test_every_problem_is_listed():
+    with pytest.raises(ConfigError) as info:
+        parse_config({"ppo": {"lr": -1, "lrr": 3, "num_envs": "many"}, "eval": {"episodes": 0}})
+    problems = info.value.problems
+    assert [p.split(":")[0] for p in problems] == ["ppo.lrr", "ppo.num_envs"]  # types first: values need them
+    assert "and 1 more problem" in str(info.value)
+    with pytest.raises(ConfigError) as info:
+        parse_config({"ppo": dict(SMALL_PPO, lr=-1), "eval": {"episodes": 0}, "run": {"num_checkpoints": 1}})
+    assert [p.split(":")[0] for p in info.value.problems] == ["ppo.lr", "eval.episodes", "run.num_checkpoints"]
+
+
+def test_file_prefix_on_every_problem(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("ppo: {lrr: 1, clip: 2}\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert all(p.startswith(f"{path}: ppo.") for p in info.value.problems) and len(info.value.problems) == 2
