@@ -29,6 +29,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from PIL import Image
 
 from ocv2 import items as it
 from ocv2.atomic import atomic_path
@@ -428,8 +429,6 @@ def _limit_colours(frames: np.ndarray) -> np.ndarray:
     packed = (frames[..., 0].astype(np.uint32) << 16) | (frames[..., 1].astype(np.uint32) << 8) | frames[..., 2]
     if np.unique(packed).size <= _GIF_MAX_COLOURS:
         return frames
-    from PIL import Image
-
     count, height, width, _ = frames.shape
     sheet = Image.fromarray(frames.reshape(count * height, width, 3))
     quantised = sheet.quantize(colors=_GIF_MAX_COLOURS, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
@@ -476,13 +475,14 @@ def write_gif(frames, path, fps: float = 5, loop: bool = True) -> str:
             raise ValueError(f"frames must be uint8 RGB (integers 0..255), got dtype {frames.dtype}")
         frames = frames.astype(np.uint8)
 
-    import imageio.v3 as iio
-
     frames = _mark_repeats(_limit_colours(frames))
     path = os.fspath(path)
     options = {"duration": 1000.0 / float(fps)}
     if loop:
         options["loop"] = 0
+    first, *rest = [Image.fromarray(frame) for frame in frames]
+    if rest:
+        options.update(save_all=True, append_images=rest)
     with atomic_path(path) as tmp:
-        iio.imwrite(tmp, frames, plugin="pillow", extension=".gif", **options)
+        first.save(tmp, format="GIF", **options)
     return path
