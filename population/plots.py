@@ -1,15 +1,30 @@
-"""Pictures of results: training curves (mean +- std across seeds) and cross-play heatmaps."""
+"""Pictures of results: training curves (mean +- std across seeds) and cross-play heatmaps.
+
+matplotlib is an optional extra (``ocv2[plots]``). Without it ``training_curves`` and ``xp_heatmap``
+draw nothing, say so on stderr and return None, so a training run still finishes with its numbers.
+"""
 
 from __future__ import annotations
 
+import sys
 
 import numpy as np
 
 from ocv2.atomic import atomic_path
 
+MISSING_MATPLOTLIB = "matplotlib is not installed: pip install 'ocv2[plots]'"
+
+
+class PlotsUnavailable(ImportError):
+    """matplotlib (the ``plots`` extra) is not installed."""
+
+
 def pyplot():
-    """matplotlib.pyplot on the file-only Agg backend."""
-    import matplotlib
+    """matplotlib.pyplot on the file-only Agg backend; ``PlotsUnavailable`` without matplotlib."""
+    try:
+        import matplotlib
+    except ImportError:
+        raise PlotsUnavailable(MISSING_MATPLOTLIB) from None
 
     matplotlib.use("Agg")  # files only; never needs a display
     import matplotlib.pyplot as plt
@@ -24,9 +39,17 @@ def save_figure(fig, path) -> str:
     return str(path)
 
 
-def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, title: str = "") -> str:
+def skipped(path, error: PlotsUnavailable) -> None:
+    print(f"warning: {path} not drawn: {error}", file=sys.stderr)
+
+
+def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, title: str = "") -> str | None:
     """``curves[name]`` is [S, U] (seeds x updates, NaN where no episode had finished yet)."""
-    plt = pyplot()
+    try:
+        plt = pyplot()
+    except PlotsUnavailable as error:
+        skipped(path, error)
+        return None
     fig, axes = plt.subplots(1, len(curves), figsize=(5 * len(curves), 3.6), squeeze=False)
     for ax, (name, values) in zip(axes[0], curves.items()):
         values = np.asarray(values, np.float64)
@@ -48,9 +71,13 @@ def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, titl
     return out
 
 
-def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: float | None = None) -> str:
+def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: float | None = None) -> str | None:
     """Cross-play heatmap like the paper's Figure 4: rows = seat 0, columns = seat 1, annotated cells."""
-    plt = pyplot()
+    try:
+        plt = pyplot()
+    except PlotsUnavailable as error:
+        skipped(path, error)
+        return None
     matrix = np.asarray(matrix, np.float64)
     num = matrix.shape[0]
     labels = labels or [str(i) for i in range(num)]

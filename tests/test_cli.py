@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import argparse
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 from PIL import Image
 
 from cluster.cli import main
+from cluster.cli.main import COMMANDS, build_parser, version
 from ocv2 import LAYOUTS
 
 
@@ -72,3 +77,43 @@ def test_render_creates_missing_output_folder(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
     assert main(["render", "cramped_room", "--steps", "3", "--out", str(blocker / "demo.gif")]) == 2
+
+
+def test_version(capsys):
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"ocv2 {version()}"
+    assert version()[0].isdigit()  # the test environment has the package installed
+
+
+def test_layouts_show_has_a_legend_of_the_characters_used(capsys):
+    assert main(["layouts", "--show", "grounded_coord_ring"]) == 0
+    legend_lines = capsys.readouterr().out.split("legend:\n", 1)[1].splitlines()
+    meanings = {line.split()[0]: line.split(None, 1)[1] for line in legend_lines}
+    assert meanings["W"] == "counter" and meanings["L"] == "button recipe indicator"
+    assert meanings["(space)"] == "floor" and meanings["2"] == "pile of ingredient 2"
+    assert "O" not in meanings and "3" not in meanings  # only what the map uses
+    for char in set(LAYOUTS["grounded_coord_ring"].to_string()) - {" ", "\n"}:
+        assert char in meanings
+
+
+def test_render_refuses_an_episode_too_big_for_memory(tmp_path, capsys):
+    out = tmp_path / "huge.gif"
+    assert main(["render", "cramped_room", "--steps", "10000000000", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--steps 10000000000" in err and "GiB" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_command_help_in_the_table_matches_each_command_parser():
+    """``ocv2 --help`` lists the table's one-liners without importing the command modules."""
+    full = build_parser(full=True)
+    sub = next(a for a in full._actions if isinstance(a, argparse._SubParsersAction))
+    assert {action.dest: action.help for action in sub._choices_actions} == {c.name: c.help for c in COMMANDS}
+
+
+def test_layouts_does_not_import_the_trainer():
+    code = ("import sys; from cluster.cli import main; main(['layouts']); "
+            "print(sorted(m for m in ('cluster.api', 'cluster.runtime.coordinator', 'optax', 'ray', 'population.ppo') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stdout
+    assert out.strip().splitlines()[-1] == "[]"

@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
+
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 
 DEFAULT_OUT = os.path.join("runs", "button_game")
 # The configs' defaults, repeated so that building the parser does not import JAX (every ``ocv2``
@@ -72,7 +75,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def _configs(args):
     """Build the configs (argparse types have already range-checked every flag)."""
-    from cluster.cli.errors import CLIError
+    # population.button_game imports JAX: here, not at the top, because every ``ocv2`` command builds
+    # this module's parser.
     from population.button_game import ButtonGameConfig, IQLConfig
 
     try:
@@ -84,7 +88,6 @@ def _configs(args):
 
 def run(args) -> int:
     """Train, evaluate, write CSV + PNG, print the means; returns the exit code."""
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 
     game, iql = _configs(args)
     if os.path.exists(args.out) and not os.path.isdir(args.out):
@@ -104,9 +107,13 @@ def run(args) -> int:
     png_path = os.path.join(args.out, PNG_NAME)
     title = (f"Button Game cross-play (N={game.num_buttons}, {args.seeds} SP pairs, "
              f"{iql.episodes} games, eps={DEFAULT_EPSILON:g})")
+    written = [csv_path]
     try:
         write_csv(csv_path, result.matrix, result.labels)
         plot_heatmap(png_path, result.matrix, result.labels, title=title)
+        written.append(png_path)
+    except ImportError as error:  # matplotlib is the optional plots extra: the numbers stand without the picture
+        print(f"warning: {png_path} not drawn: {error}; pip install 'ocv2[plots]'", file=sys.stderr)
     except OSError as error:
         raise CLIError(f"could not write to {args.out!r}: {error}", EXIT_FAILURE) from None
 
@@ -118,5 +125,5 @@ def run(args) -> int:
     print(f"  XP  (off-diagonal, SP pairs)      {xp}")
     print(f"  BR  (BR Bob with every SP Alice)  {result.br_mean:+.2f}")
     print(f"  BR Bob with the random Alice      {result.br_random_alice:+.2f}")
-    print(f"wrote {csv_path} and {png_path}")
+    print(f"wrote {' and '.join(written)}")
     return EXIT_OK

@@ -1,8 +1,9 @@
 """The ``ocv2`` command line.
 
-    ocv2 layouts [--show NAME]          the built-in kitchens (table, or one ASCII map)
+    ocv2 --version
+    ocv2 layouts [--show NAME]          the built-in kitchens (table, or one ASCII map with a legend)
     ocv2 render LAYOUT --steps N --out FILE.gif [--seed S] [--fps F] [--view-radius V] [--tile-size T]
-    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume]
+    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume] [--logger tensorboard|wandb]
     ocv2 xp RUN_DIR [--episodes N]
     ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
     ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
@@ -11,27 +12,35 @@
     ocv2 play [LAYOUT] [--partner RUN_DIR/checkpoints/seed_i|human] [--seat S] [--port P]   human play (docs/play.md)
 
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
-code; ``COMMANDS`` lists them (the bigger ones live in ``cluster/cmd_*.py`` and are imported lazily). Errors the user can fix raise ``CLIError`` and become a
-one-line message on stderr and exit code 2 (usage) or 1 (failure), never a traceback.
+code; ``COMMANDS`` lists them. The bigger ones live in ``cluster/cli/<group>.py`` and are named by
+string: a command's module is imported only when that command runs (``ocv2 layouts`` never imports the
+trainer, Ray or the play server). Errors the user can fix raise ``CLIError`` and become a one-line
+message on stderr and exit code 2 (usage) or 1 (failure), never a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
+import os
 import sys
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
+import jax
+from rich.console import Console
+from rich.table import Table
+
+import ocv2
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
-
+from ocv2.layouts import LAYOUTS, Layout, get_layout
+from ocv2.render import render_frames, rollout_states, write_gif
 
 # ---------------------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------------------
 
 def _console(stream=None):
-    from rich.console import Console
-
     stream = sys.stdout if stream is None else stream
     # Not a terminal (pipes, tests): wide enough that layout names are never wrapped.
     width = None if stream.isatty() else 200
@@ -39,8 +48,6 @@ def _console(stream=None):
 
 
 def _layout_or_error(name: str):
-    from ocv2.layouts import get_layout
-
     try:
         return get_layout(name)
     except ValueError as error:  # its message names the layout, lists the choices and suggests close ones
@@ -87,17 +94,29 @@ def _add_layouts(sub) -> argparse.ArgumentParser:
     return parser
 
 
-def _cmd_layouts(args) -> int:
-    from ocv2.layouts import LAYOUTS
+#: What each character of ``Layout.to_string`` stands for (``ocv2.layouts`` builds maps from the same).
+LEGEND = {"W": "counter", "X": "delivery", "B": "plate pile", "P": "pot", "R": "recipe indicator",
+          "L": "button recipe indicator", "A": "agent start", " ": "floor"}
 
+
+def legend(layout: Layout) -> list[str]:
+    """One line per character the map uses (ingredient piles named by ingredient index)."""
+    used = set(layout.to_string())
+    lines = [f"  {char if char != ' ' else '(space)':7} {meaning}" for char, meaning in LEGEND.items() if char in used]
+    piles = sorted(char for char in used if char.isdigit())
+    lines += [f"  {char:7} pile of ingredient {char}" for char in piles]
+    return lines
+
+
+def _cmd_layouts(args) -> int:
     if args.show is not None:
         layout = _layout_or_error(args.show)
         print(f"{layout.name}: {layout.height}x{layout.width}, {layout.num_agents} agents, "
               f"{layout.num_ingredients} ingredients, recipes {[list(r) for r in layout.possible_recipes]}")
         print(layout.to_string())
+        print("legend:")
+        print("\n".join(legend(layout)))
         return EXIT_OK
-
-    from rich.table import Table
 
     table = Table(title=f"{len(LAYOUTS)} OvercookedV2 layouts")
     table.add_column("name", no_wrap=True)
@@ -132,22 +151,27 @@ def _add_render(sub) -> argparse.ArgumentParser:
     return parser
 
 
-def _cmd_render(args) -> int:
-    import os
+#: Frames of one GIF live in memory together: beyond this, ``ocv2 render`` refuses rather than swaps.
+MAX_GIF_BYTES = 2 << 30
 
+
+def gif_bytes(layout: Layout, steps: int, tile_size: int) -> int:
+    """Bytes of the RGB frames of a ``steps``-step episode (the reset state plus one per step)."""
+    return (steps + 1) * layout.height * layout.width * tile_size * tile_size * 3
+
+
+def _cmd_render(args) -> int:
     layout = _layout_or_error(args.layout)
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
+    needed = gif_bytes(layout, args.steps, args.tile_size)
+    if needed > MAX_GIF_BYTES:
+        raise CLIError(f"--steps {args.steps} with --tile-size {args.tile_size} needs {needed / 2**30:.1f} GiB of "
+                       f"frames (at most {MAX_GIF_BYTES / 2**30:.0f} GiB); use fewer steps or a smaller tile size")
     folder = os.path.dirname(os.path.abspath(args.out))
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise CLIError(f"--out: {folder!r} exists and is not a folder")
     os.makedirs(folder, exist_ok=True)  # like the run directories to come: create what is missing
-
-    import jax
-
-    import ocv2
-    from ocv2.render import render_frames, rollout_states, write_gif
-
     env = ocv2.make(layout)
     states = rollout_states(env, jax.random.PRNGKey(args.seed), args.steps)
     frames = render_frames(states, layout, agent_view_size=args.view_radius, tile_size=args.tile_size)
@@ -165,47 +189,78 @@ def _cmd_render(args) -> int:
 # entry point
 # ---------------------------------------------------------------------------------------------------
 
-def _lazy(module: str, name: str) -> Callable:
-    """``module.name``, imported on first call: ``ocv2 layouts`` never pays for importing the trainer."""
-
-    def call(*args):
-        return getattr(importlib.import_module(module), name)(*args)
-
-    return call
+class Command(NamedTuple):
+    name: str
+    help: str  # the one-liner of ``ocv2 --help`` (the command's own parser repeats it; a test checks)
+    add: Callable | str  # declares the subparser; "module:function" names one imported when needed
+    run: Callable | str
 
 
-#: (name, add-arguments function, run function); the order is the help listing's.
-COMMANDS: list[tuple[str, Callable, Callable]] = [
-    ("layouts", _add_layouts, _cmd_layouts),
-    ("render", _add_render, _cmd_render),
-    ("train", _lazy("cluster.cli.train", "add_train"), _lazy("cluster.cli.train", "run_train")),
-    ("xp", _lazy("cluster.cli.train", "add_xp"), _lazy("cluster.cli.train", "run_xp")),
-    ("validate", _lazy("cluster.cli.report", "add_validate"), _lazy("cluster.cli.report", "run_validate")),
-    ("report", _lazy("cluster.cli.report", "add_report"), _lazy("cluster.cli.report", "run_report")),
-    ("button-game", _lazy("cluster.cli.button_game", "add_parser"), _lazy("cluster.cli.button_game", "run")),
-    ("archive", _lazy("cluster.cli.archive", "add_parser"), _lazy("cluster.cli.archive", "run")),
-    ("play", _lazy("cluster.cli.play", "add_play"), _lazy("cluster.cli.play", "run_play")),
+#: The order is the help listing's.
+COMMANDS: list[Command] = [
+    Command("layouts", "list the built-in kitchen layouts", _add_layouts, _cmd_layouts),
+    Command("render", "render a random-action episode to a GIF", _add_render, _cmd_render),
+    Command("train", "train a population from a YAML config", "cluster.cli.train:add_train",
+            "cluster.cli.train:run_train"),
+    Command("xp", "cross-play matrix of a trained population", "cluster.cli.train:add_xp", "cluster.cli.train:run_xp"),
+    Command("validate", "check YAML configs without running anything", "cluster.cli.report:add_validate",
+            "cluster.cli.report:run_validate"),
+    Command("report", "paper-style SP/XP tables, curves and heatmaps of run directories",
+            "cluster.cli.report:add_report", "cluster.cli.report:run_report"),
+    Command("button-game", "the paper's Button Game: IQL self-play pairs, a best response, cross-play",
+            "cluster.cli.button_game:add_parser", "cluster.cli.button_game:run"),
+    Command("archive", "inspect, replay or recover an MCAP trajectory archive", "cluster.cli.archive:add_parser",
+            "cluster.cli.archive:run"),
+    Command("play", "play in the browser with a trained agent or another person (recorded to MCAP)",
+            "cluster.cli.play:add_play", "cluster.cli.play:run_play"),
 ]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def resolve(target: Callable | str) -> Callable:
+    """A function, or the one a "module:function" string names (importing its module now)."""
+    if callable(target):
+        return target
+    module, _, name = target.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def version() -> str:
+    try:
+        return importlib.metadata.version("ocv2")
+    except importlib.metadata.PackageNotFoundError:  # run from a checkout that was never pip-installed
+        return "unknown (not installed; pip install -e .)"
+
+
+def _chosen_command(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names (the top-level parser has no option that takes a value)."""
+    return next((arg for arg in argv if not arg.startswith("-")), None)
+
+
+def build_parser(argv: Sequence[str] = (), full: bool = False) -> argparse.ArgumentParser:
+    """The parser, with the arguments of the command ``argv`` names only (``full``: of every command)."""
     parser = argparse.ArgumentParser(prog="ocv2", description="OvercookedV2 in pure JAX: layouts, rendering, training.")
+    parser.add_argument("--version", action="version", version=f"ocv2 {version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for _name, add, run in COMMANDS:
-        add(sub).set_defaults(func=run)
+    chosen = _chosen_command(argv)
+    for command in COMMANDS:
+        if full or command.name == chosen:
+            resolve(command.add)(sub).set_defaults(func=command.run)
+        else:
+            sub.add_parser(command.name, help=command.help)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``ocv2`` command line; returns the exit code (0 ok, 1 failure, 2 usage error)."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     try:
-        args = parser.parse_args(None if argv is None else list(argv))
+        args = parser.parse_args(argv)
     except SystemExit as exit_:  # argparse already printed usage / help
         return exit_.code if isinstance(exit_.code, int) else EXIT_USAGE
     try:
-        return int(args.func(args))
+        return int(resolve(args.func)(args))
     except CLIError as error:
         print(f"ocv2 {args.command}: error: {error}", file=sys.stderr)
         return error.code

@@ -10,6 +10,16 @@ import argparse
 import datetime as _dt
 import os
 
+from cluster.api import require_backend, train_population
+from cluster.archive import ArchiveError
+from cluster.cli.errors import EXIT_OK, CLIError
+from cluster.runtime.evaluate import evaluate_run
+from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers
+from cluster.runtime.ray_backend import RayBackendError
+from cluster.runtime.rundir import RunDirError
+from population.checkpoints import CheckpointError
+from population.config import ConfigError, load_config
+
 
 def add_train(sub) -> argparse.ArgumentParser:
     parser = sub.add_parser("train", help="train a population from a YAML config",
@@ -25,6 +35,9 @@ def add_train(sub) -> argparse.ArgumentParser:
     parser.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT (default: cluster.address, "
                                           "else start Ray on this machine)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoints")
+    parser.add_argument("--logger", dest="loggers", action="append", default=[], choices=LOGGERS,
+                        help="also log metrics, cross-play and heatmap to tensorboard (RUN_DIR/tensorboard/) or "
+                             "wandb (repeatable; needs ocv2[tensorboard] / ocv2[wandb])")
     parser.add_argument("--no-eval", action="store_true", help="skip cross-play, plots and GIFs after training")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser
@@ -34,12 +47,6 @@ def run_train(args) -> int:
     # The driver runs JAX too (SA buffer merge, GIFs): on a GPU machine it must not take 75 % of the
     # memory the seed actors need. Set before JAX initialises; an explicit user setting wins.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from cluster.cli.errors import EXIT_OK, CLIError
-    from cluster.archive import ArchiveError
-    from cluster.runtime.rundir import RunDirError
-    from population.checkpoints import CheckpointError
-    from population.config import ConfigError, load_config
-
     try:
         config = load_config(args.config, args.overrides)
     except ConfigError as error:
@@ -54,18 +61,15 @@ def run_train(args) -> int:
     out = args.out or _default_run_dir(config)
     if args.resume and not args.out:
         raise CLIError("--resume needs --out RUN_DIR (the run to continue)")
-    if args.backend == "ray":
-        from cluster.runtime.ray_backend import RayBackendError, train_population
-
-        errors = (RunDirError, CheckpointError, ArchiveError, RayBackendError)
-    else:
-        from cluster.runtime.local import train_population
-
-        errors = (RunDirError, CheckpointError, ArchiveError)
+    try:  # missing extras are reported before the run directory is touched
+        require_backend(args.backend)
+        check_loggers(args.loggers)
+    except MissingExtraError as error:
+        raise CLIError(str(error)) from None
     try:
-        summary = train_population(config, out, resume=args.resume, show_progress=not args.quiet,
-                                   evaluate=not args.no_eval)
-    except errors as error:
+        summary = train_population(config, out, backend=args.backend, resume=args.resume,
+                                   show_progress=not args.quiet, evaluate=not args.no_eval, loggers=args.loggers)
+    except (RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     print(f"run directory: {summary['run_dir']}")
     return EXIT_OK
@@ -86,11 +90,6 @@ def add_xp(sub) -> argparse.ArgumentParser:
 
 
 def run_xp(args) -> int:
-    from cluster.cli.errors import EXIT_OK, CLIError
-    from cluster.runtime.evaluate import evaluate_run
-    from cluster.runtime.rundir import RunDirError
-    from population.checkpoints import CheckpointError
-
     if args.episodes is not None and args.episodes < 1:
         raise CLIError(f"--episodes must be >= 1, got {args.episodes}")
     try:

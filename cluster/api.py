@@ -1,0 +1,105 @@
+"""The Python entry point for population runs: what ``ocv2 train`` does, callable from a script.
+
+    import cluster
+
+    def show(event):
+        print(event.update, "/", event.num_updates, len(event.rows), "new metrics rows")
+
+    summary = cluster.train_population("configs/smoke.yaml", "runs/demo", backend="local",
+                                       on_chunk=show, loggers=["tensorboard"])
+
+``on_chunk`` is called after every chunk of updates the coordinator merged (``run.checkpoint_every``)
+with a ``ChunkEvent``: the population's update, the run's total, the metrics rows that chunk added to
+``metrics.csv`` and the run directory. ``loggers`` names experiment loggers fed with the same rows and,
+after evaluation, the cross-play summary and heatmap (``cluster.runtime.loggers``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from pathlib import Path
+from typing import Callable, NamedTuple, Sequence
+
+from cluster.runtime import coordinator, ray_backend
+from cluster.runtime.local import LocalWorkers
+from cluster.runtime.loggers import MetricsLogger, MissingExtraError, check_loggers, make_loggers
+from cluster.runtime.rundir import RunDir
+from population.config import Config, load_config
+
+BACKENDS = ("ray", "local")
+
+
+class ChunkEvent(NamedTuple):
+    update: int  # updates every seed has finished
+    num_updates: int  # updates of the whole run
+    rows: list[dict]  # metrics.csv rows added since the previous event (values as read back from the CSV)
+    run_dir: Path
+
+
+def require_backend(backend: str) -> None:
+    """A one-line error for an unknown backend, or the Ray backend without Ray installed."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
+    if backend == "ray" and importlib.util.find_spec("ray") is None:
+        raise MissingExtraError("the Ray backend needs Ray: pip install 'ocv2[ray]', or use --backend local")
+
+
+def train_population(config: Config | str | os.PathLike, run_dir, *, backend: str = "ray", resume: bool = False,
+                     show_progress: bool = True, evaluate: bool = True,
+                     on_chunk: Callable[[ChunkEvent], None] | None = None,
+                     loggers: Sequence[str] = ()) -> dict:
+    """Train (or resume) a population into ``run_dir``, then (``evaluate``) cross-play, plots, GIFs.
+
+    ``config``: a ``Config`` or a YAML path. ``backend``: "ray" (one actor per shard of seeds; needs
+    ``ocv2[ray]``) or "local" (one process). ``loggers``: any of "tensorboard", "wandb". Returns the
+    summary ``ocv2 train`` prints from (run_dir, updates, restarts and, after evaluation, xp).
+    """
+    if not isinstance(config, Config):
+        config = load_config(config)
+    require_backend(backend)
+    check_loggers(loggers)  # before the run directory is touched
+    run_dir = Path(run_dir).resolve()
+    previous = _last_update(run_dir) if resume else 0
+    active: list[MetricsLogger] = []
+    state = {"logged": previous, "started": False}
+
+    def start_loggers() -> None:
+        # Once the coordinator has made the run directory: a folder the loggers made first would not
+        # be a run directory it may use.
+        if not state["started"]:
+            state["started"] = True
+            active.extend(make_loggers(loggers, run_dir, config))
+
+    def chunk_done(update: int, _workers) -> None:
+        rows = [r for r in RunDir(run_dir).read_metrics() if int(float(r["update"])) > state["logged"]]
+        state["logged"] = max([state["logged"], *(int(float(r["update"])) for r in rows)])
+        start_loggers()
+        for logger in active:
+            logger.log_rows(rows)
+        if on_chunk is not None:
+            on_chunk(ChunkEvent(update, config.ppo.num_updates, rows, run_dir))
+
+    try:
+        summary = _train(config, run_dir, backend, resume=resume, show_progress=show_progress,
+                         evaluate=evaluate, on_chunk=chunk_done)
+        if "xp" in summary:
+            start_loggers()
+            heatmap = run_dir / "xp" / "heatmap.png"
+            for logger in active:
+                logger.log_xp(summary["xp"], heatmap if heatmap.is_file() else None)
+    finally:
+        for logger in active:
+            logger.close()
+    return summary
+
+
+def _train(config: Config, run_dir: Path, backend: str, **options) -> dict:
+    if backend == "local":
+        return coordinator.train(config, run_dir, LocalWorkers, **options)
+    return ray_backend.train_population(config, run_dir, **options)
+
+
+def _last_update(run_dir: Path) -> int:
+    """The last update already in a run's metrics.csv (a resumed run logs only what comes after it)."""
+    return max((int(float(r["update"])) for r in RunDir(run_dir).read_metrics()), default=0)

@@ -1,0 +1,159 @@
+"""Experiment loggers people already use: TensorBoard and Weights & Biases, fed by the training hook.
+
+Each logger gets every row of ``metrics.csv`` as it is merged (one row per seed and update), then the
+cross-play summary and heatmap after evaluation. Both are optional extras (``ocv2[tensorboard]``,
+``ocv2[wandb]``); asking for one that is not installed is a ``MissingExtraError`` before anything runs.
+
+* ``tensorboard``: event files in ``RUN_DIR/tensorboard/`` (``tensorboard --logdir RUN_DIR``). Scalars
+  are tagged ``<metric>/seed_<i>`` so each metric's chart shows every seed, plotted against
+  environment steps; cross-play numbers are ``xp/<name>`` and the heatmap an image ``xp/heatmap``.
+* ``wandb``: one W&B run per run directory (its id is the run directory's name, so a resumed run
+  continues the same W&B run), files under ``RUN_DIR/wandb/``; project from ``$WANDB_PROJECT``
+  (default ``ocv2``). ``WANDB_MODE=offline`` works without a network.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Iterable, Mapping, Protocol, Sequence
+
+import numpy as np
+from PIL import Image
+
+from population.config import Config
+
+LOGGERS = ("tensorboard", "wandb")
+#: Row columns that say where a row belongs rather than what was measured.
+_INDEX_FIELDS = ("seed", "update", "env_steps")
+
+
+class MissingExtraError(RuntimeError):
+    """An optional dependency that the requested feature needs is not installed."""
+
+
+class MetricsLogger(Protocol):
+    def log_rows(self, rows: Sequence[Mapping]) -> None:
+        """Rows of metrics.csv (values may be strings as read back from the CSV; "" = no value)."""
+
+    def log_xp(self, summary: Mapping, heatmap: Path | None) -> None:
+        """The cross-play summary (xp/summary.json) and heatmap image after evaluation."""
+
+    def close(self) -> None: ...
+
+
+def require(module: str, extra: str, feature: str):
+    """Import ``module`` or raise a one-line ``MissingExtraError`` naming the extra to install."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise MissingExtraError(f"{feature} needs {module}: pip install 'ocv2[{extra}]'") from None
+
+
+def measurements(row: Mapping) -> dict[str, float]:
+    """The numeric measurements of a metrics row (index columns and empty cells left out)."""
+    out = {}
+    for key, value in row.items():
+        if key in _INDEX_FIELDS or value is None or value == "":
+            continue
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            continue
+        if math.isfinite(number):
+            out[key] = number
+    return out
+
+
+def xp_scalars(summary: Mapping) -> dict[str, float]:
+    """The top-level numbers of a cross-play summary (sp_mean, xp_mean, gap, ...)."""
+    return {k: float(v) for k, v in summary.items()
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))}
+
+
+def _image(path: Path | None) -> np.ndarray | None:
+    if path is None or not Path(path).is_file():
+        return None
+    with Image.open(path) as image:
+        return np.asarray(image.convert("RGB"))
+
+
+class TensorBoardLogger:
+    def __init__(self, run_dir: Path, config: Config):
+        tensorboardx = require("tensorboardX", "tensorboard", "--logger tensorboard")
+        self.writer = tensorboardx.SummaryWriter(logdir=str(Path(run_dir) / "tensorboard"))
+        self.steps_per_update = config.ppo.steps_per_update
+        self.last_step = 0
+
+    def log_rows(self, rows: Sequence[Mapping]) -> None:
+        for row in rows:
+            step = int(float(row["env_steps"]))
+            self.last_step = max(self.last_step, step)
+            for name, value in measurements(row).items():
+                self.writer.add_scalar(f"{name}/seed_{int(float(row['seed']))}", value, global_step=step)
+        self.writer.flush()
+
+    def log_xp(self, summary: Mapping, heatmap: Path | None) -> None:
+        for name, value in xp_scalars(summary).items():
+            self.writer.add_scalar(f"xp/{name}", value, global_step=self.last_step)
+        image = _image(heatmap)
+        if image is not None:
+            self.writer.add_image("xp/heatmap", image, global_step=self.last_step, dataformats="HWC")
+        self.writer.flush()
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+class WandbLogger:
+    def __init__(self, run_dir: Path, config: Config):
+        self.wandb = require("wandb", "wandb", "--logger wandb")
+        run_dir = Path(run_dir)
+        self.run = self.wandb.init(project=os.environ.get("WANDB_PROJECT", "ocv2"), dir=str(run_dir), name=run_dir.name, id=_wandb_id(run_dir.name),
+                                   resume="allow", config=config.to_dict())
+
+    def log_rows(self, rows: Sequence[Mapping]) -> None:
+        # W&B steps must grow: one log call per update, holding every seed's numbers.
+        by_update: dict[int, dict] = defaultdict(dict)
+        for row in rows:
+            update, seed = int(float(row["update"])), int(float(row["seed"]))
+            entry = by_update[update]
+            entry["env_steps"] = int(float(row["env_steps"]))
+            entry.update({f"{name}/seed_{seed}": value for name, value in measurements(row).items()})
+        for update in sorted(by_update):
+            self.run.log(by_update[update], step=update)
+
+    def log_xp(self, summary: Mapping, heatmap: Path | None) -> None:
+        self.run.summary.update({f"xp/{k}": v for k, v in xp_scalars(summary).items()})
+        if heatmap is not None and Path(heatmap).is_file():
+            self.run.log({"xp/heatmap": self.wandb.Image(str(heatmap))})
+
+    def close(self) -> None:
+        self.run.finish()
+
+
+def _wandb_id(name: str) -> str:
+    """W&B run ids may not contain / \\ # ? % : and are at most 64 characters."""
+    cleaned = "".join(c if c.isalnum() or c in "-_." else "-" for c in name)
+    return cleaned[:64] or "ocv2-run"
+
+
+_CLASSES = {"tensorboard": TensorBoardLogger, "wandb": WandbLogger}
+
+
+def check_loggers(names: Iterable[str]) -> list[str]:
+    """Validate logger names and that their packages are installed (before a run starts)."""
+    names = list(dict.fromkeys(names))  # once each, in the order given
+    for name in names:
+        if name not in _CLASSES:
+            raise ValueError(f"unknown logger {name!r}; choose from {', '.join(LOGGERS)}")
+    for name in names:
+        require({"tensorboard": "tensorboardX", "wandb": "wandb"}[name], name, f"--logger {name}")
+    return names
+
+
+def make_loggers(names: Iterable[str], run_dir: Path, config: Config) -> list[MetricsLogger]:
+    return [_CLASSES[name](run_dir, config) for name in check_loggers(names)]
