@@ -16,7 +16,7 @@ after evaluation, the cross-play summary and heatmap (``cluster.runtime.loggers`
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import os
 from pathlib import Path
 from typing import Callable, NamedTuple, Sequence
@@ -41,8 +41,11 @@ def require_backend(backend: str) -> None:
     """A one-line error for an unknown backend, or the Ray backend without Ray installed."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
-    if backend == "ray" and importlib.util.find_spec("ray") is None:
-        raise MissingExtraError("the Ray backend needs Ray: pip install 'ocv2[ray]', or use --backend local")
+    if backend == "ray":
+        try:
+            importlib.import_module("ray")
+        except ImportError:
+            raise MissingExtraError("the Ray backend needs Ray: pip install 'ocv2[ray]', or use --backend local") from None
 
 
 def train_population(config: Config | str | os.PathLike, run_dir, *, backend: str = "ray", resume: bool = False,

@@ -5,7 +5,7 @@ cross-play summary and heatmap after evaluation. Both are optional extras (``ocv
 ``ocv2[wandb]``); asking for one that is not installed is a ``MissingExtraError`` before anything runs.
 
 * ``tensorboard``: event files in ``RUN_DIR/tensorboard/`` (``tensorboard --logdir RUN_DIR``). Scalars
-  are tagged ``<metric>/seed_<i>`` so each metric's chart shows every seed, plotted against
+  are tagged ``<metric>/seed_<i>`` (``scalar_tag``) so each metric's chart shows every seed, plotted against
   environment steps; cross-play numbers are ``xp/<name>`` and the heatmap an image ``xp/heatmap``.
 * ``wandb``: one W&B run per run directory (its id is the run directory's name, so a resumed run
   continues the same W&B run), files under ``RUN_DIR/wandb/``; project from ``$WANDB_PROJECT``
@@ -17,6 +17,7 @@ from __future__ import annotations
 import importlib
 import math
 import os
+import re
 from collections import defaultdict
 from pathlib import Path
 from typing import Iterable, Mapping, Protocol, Sequence
@@ -68,6 +69,12 @@ def measurements(row: Mapping) -> dict[str, float]:
     return out
 
 
+def scalar_tag(name: str, seed) -> str:
+    """``<metric>/seed_<i>``, with characters TensorBoard does not allow in tags (the ``+`` of recipe
+    columns such as ``return_recipe_0+0+1``) replaced by ``_``."""
+    return re.sub(r"[^\w./-]", "_", f"{name}/seed_{int(float(seed))}")
+
+
 def xp_scalars(summary: Mapping) -> dict[str, float]:
     """The top-level numbers of a cross-play summary (sp_mean, xp_mean, gap, ...)."""
     return {k: float(v) for k, v in summary.items()
@@ -93,7 +100,7 @@ class TensorBoardLogger:
             step = int(float(row["env_steps"]))
             self.last_step = max(self.last_step, step)
             for name, value in measurements(row).items():
-                self.writer.add_scalar(f"{name}/seed_{int(float(row['seed']))}", value, global_step=step)
+                self.writer.add_scalar(scalar_tag(name, row["seed"]), value, global_step=step)
         self.writer.flush()
 
     def log_xp(self, summary: Mapping, heatmap: Path | None) -> None:
@@ -119,10 +126,9 @@ class WandbLogger:
         # W&B steps must grow: one log call per update, holding every seed's numbers.
         by_update: dict[int, dict] = defaultdict(dict)
         for row in rows:
-            update, seed = int(float(row["update"])), int(float(row["seed"]))
-            entry = by_update[update]
+            entry = by_update[int(float(row["update"]))]
             entry["env_steps"] = int(float(row["env_steps"]))
-            entry.update({f"{name}/seed_{seed}": value for name, value in measurements(row).items()})
+            entry.update({scalar_tag(name, row["seed"]): value for name, value in measurements(row).items()})
         for update in sorted(by_update):
             self.run.log(by_update[update], step=update)
 

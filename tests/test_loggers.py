@@ -1,0 +1,151 @@
+"""``cluster.train_population``: the on_chunk events and the TensorBoard / W&B loggers it feeds; missing extras.
+
+One smoke run (configs/smoke.yaml, 2 seeds x 4 updates, 3 cross-play episodes per pair: the same programs
+as tests/test_train_cli.py's run, so they come from the session's compilation cache) with both loggers.
+W&B is a stand-in module recording its calls (no network, no account); TensorBoard's event files are
+read back from disk.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+from tensorboardX.proto import event_pb2
+
+import cluster
+from cluster.cli import main
+from cluster.runtime import evaluate
+from cluster.runtime.loggers import MissingExtraError, measurements, scalar_tag
+from cluster.runtime.rundir import RunDir
+from population.config import load_config
+
+SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
+
+
+class FakeWandbRun:
+    def __init__(self, **init):
+        self.init, self.logged, self.summary, self.finished = init, [], {}, False
+
+    def log(self, data, step=None):
+        self.logged.append((step, data))
+
+    def finish(self):
+        self.finished = True
+
+
+def fake_wandb() -> types.ModuleType:
+    module = types.ModuleType("wandb")
+    module.runs = []
+
+    def init(**kwargs):
+        module.runs.append(FakeWandbRun(**kwargs))
+        return module.runs[-1]
+
+    module.init = init
+    module.Image = lambda path: ("image", path)
+    return module
+
+
+def read_events(folder: Path) -> list:
+    """Every event of a TensorBoard event file (TFRecord framing: length, crc, payload, crc)."""
+    (path,) = folder.glob("events.out.tfevents.*")
+    data, offset, events = path.read_bytes(), 0, []
+    while offset < len(data):
+        (length,) = struct.unpack("<Q", data[offset:offset + 8])
+        event = event_pb2.Event()
+        event.ParseFromString(data[offset + 12:offset + 12 + length])
+        events.append(event)
+        offset += 12 + length + 4
+    return events
+
+
+@pytest.fixture(scope="module")
+def logged_run(tmp_path_factory):
+    wandb = fake_wandb()
+    events = []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(sys.modules, "wandb", wandb)
+        run_dir = tmp_path_factory.mktemp("runs") / "logged"
+        summary = cluster.train_population(load_config(SMOKE, ["eval.episodes=3"]), run_dir, backend="local",
+                                           show_progress=False, on_chunk=events.append,
+                                           loggers=["tensorboard", "wandb"])
+    (run,) = wandb.runs
+    return run_dir, summary, events, run
+
+
+def test_on_chunk_sees_every_metrics_row_once(logged_run):
+    run_dir, summary, events, _ = logged_run
+    assert [(e.update, e.num_updates) for e in events] == [(2, 4), (4, 4)]  # run.checkpoint_every=2
+    rows = RunDir(run_dir).read_metrics()
+    assert [r for e in events for r in e.rows] == rows and len(rows) == 2 * 4
+    assert all(e.run_dir == run_dir.resolve() for e in events)
+    assert summary["updates"] == 4 and "xp" in summary
+
+
+def test_tensorboard_holds_every_metric_of_every_row_and_the_cross_play(logged_run):
+    run_dir, summary, _, _ = logged_run
+    scalars, images = {}, []
+    for event in read_events(run_dir / "tensorboard"):
+        for value in event.summary.value:
+            if value.WhichOneof("value") == "simple_value":
+                scalars[(value.tag, event.step)] = value.simple_value
+            elif value.WhichOneof("value") == "image":
+                images.append(value.tag)
+    expected = {(scalar_tag(name, row["seed"]), int(row["env_steps"])): number
+                for row in RunDir(run_dir).read_metrics() for name, number in measurements(row).items()}
+    assert {k: v for k, v in scalars.items() if not k[0].startswith("xp/")} == pytest.approx(expected)
+    assert {"sparse_return/seed_1", "return_recipe_0_0_0/seed_0"} <= {tag for tag, _ in expected}
+    written = json.loads((run_dir / "xp" / "summary.json").read_text())
+    assert scalars[("xp/sp_mean", 512)] == pytest.approx(written["sp_mean"])
+    assert scalars[("xp/xp_mean", 512)] == pytest.approx(written["xp_mean"])
+    assert images == ["xp/heatmap"]
+
+
+def test_wandb_gets_one_step_per_update_and_the_cross_play(logged_run):
+    run_dir, _, _, run = logged_run
+    assert run.init["id"] == run_dir.name and run.init["resume"] == "allow"
+    assert run.init["config"]["ppo"]["num_envs"] == 4 and run.finished
+    steps = [step for step, _ in run.logged if step is not None]
+    assert steps == [1, 2, 3, 4]
+    by_step = {step: data for step, data in run.logged if step is not None}
+    for row in RunDir(run_dir).read_metrics():
+        logged = by_step[int(row["update"])]
+        assert logged["env_steps"] == int(row["env_steps"])
+        for name, number in measurements(row).items():
+            assert logged[scalar_tag(name, row["seed"])] == pytest.approx(number)
+    assert run.summary["xp/gap"] == pytest.approx(json.loads((run_dir / "xp" / "summary.json").read_text())["gap"])
+    assert run.logged[-1] == (None, {"xp/heatmap": ("image", str(run_dir / "xp" / "heatmap.png"))})
+
+
+@pytest.mark.parametrize("blocked, argv, message", [
+    ("ray", [], "pip install 'ocv2[ray]', or use --backend local"),
+    ("tensorboardX", ["--backend", "local", "--logger", "tensorboard"], "pip install 'ocv2[tensorboard]'"),
+    ("wandb", ["--backend", "local", "--logger", "wandb"], "pip install 'ocv2[wandb]'"),
+])
+def test_missing_extra_is_one_line_before_the_run_starts(tmp_path, capsys, monkeypatch, blocked, argv, message):
+    monkeypatch.setitem(sys.modules, blocked, None)  # import raises ImportError, as when not installed
+    out = tmp_path / "run"
+    assert main(["train", SMOKE, "--out", str(out), "--quiet", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    with pytest.raises(MissingExtraError):
+        cluster.train_population(SMOKE, out, backend="ray" if blocked == "ray" else "local",
+                                 loggers=[] if blocked == "ray" else [argv[-1]])
+
+
+def test_without_matplotlib_plots_are_skipped_with_a_warning(logged_run, tmp_path, capsys, monkeypatch):
+    run_dir, _, _, _ = logged_run
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    assert evaluate.write_training_plot(run_dir) is None
+    assert "pip install 'ocv2[plots]'" in capsys.readouterr().err
+    from population.plots import xp_heatmap
+
+    assert xp_heatmap(np.eye(2), tmp_path / "h.png") is None
+    assert not (tmp_path / "h.png").exists()
