@@ -39,8 +39,9 @@ class ConfigError(ValueError):
     one, followed by how many more there are.
     """
 
-    def __init__(self, message: str | Sequence[str]):
+    def __init__(self, message: str | Sequence[str], partial: Any = None):
         self.problems = [message] if isinstance(message, str) else list(message)
+        self.partial = partial  # what could be parsed (bad keys at their defaults), to check the rest against
         first = self.problems[0]
         more = len(self.problems) - 1
         super().__init__(first if not more else f"{first} (and {more} more problem{'s' * (more > 1)}; "
@@ -360,22 +361,22 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     if not isinstance(raw, Mapping):
         raise ConfigError(f"the config must be a mapping of sections {SECTIONS}, got {type(raw).__name__}")
     check_plain_data(raw)
+    if is_ray_launcher_config(raw):
+        raise ConfigError("a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config")
     raw = apply_overrides(raw, overrides)
-    unknown = sorted(set(raw) - set(SECTIONS))
-    if unknown:
-        raise ConfigError(f"unknown section {unknown[0]!r}; sections are {', '.join(SECTIONS)}")
-    problems: list[str] = []
+    problems = [f"unknown section {name!r}; sections are {', '.join(SECTIONS)}"
+                for name in sorted(set(raw) - set(SECTIONS), key=str)]
 
     def parsed(parse, *args, default):
         try:
             return parse(*args)
         except ConfigError as error:
             problems.extend(error.problems)
-            return default
+            return default if error.partial is None else error.partial
 
     env = parsed(_parse_env, raw.get("env") or {}, default=Config().env)
-    model = parsed(lambda: _resolve_model(_parse_section("model", ModelConfig, raw.get("model"))),
-                   default=_resolve_model(ModelConfig()))
+    model = _resolve_model(parsed(_parse_section, "model", ModelConfig, raw.get("model"), default=ModelConfig()),
+                           problems)
     ppo = parsed(_parse_section, "ppo", PPOConfig, raw.get("ppo"), default=PPOConfig())
     pop_raw = raw.get("population") or {}
     if not isinstance(pop_raw, Mapping):
@@ -392,12 +393,21 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
                     archive=parsed(_parse_section, "archive", ArchiveConfig, raw.get("archive"),
                                    default=ArchiveConfig()),
                     cluster=parsed(_parse_cluster, raw.get("cluster"), default=ClusterConfig()))
-    if problems:  # values checked against each other only once each one parsed
-        raise ConfigError(problems)
-    problems = _validate(config)
+    # Values are checked with every key that did not parse at its default; a key already reported is
+    # not reported again.
+    reported = {problem.split(":", 1)[0] for problem in problems}
+    problems += [p for p in _validate(config) if p.split(":", 1)[0] not in reported]
     if problems:
         raise ConfigError(problems)
     return config
+
+
+#: Keys every Ray cluster launcher YAML has (``ray up``); configs/cluster/ holds one beside ocv2 configs.
+RAY_LAUNCHER_KEYS = frozenset({"cluster_name", "provider"})
+
+
+def is_ray_launcher_config(raw) -> bool:
+    return isinstance(raw, Mapping) and RAY_LAUNCHER_KEYS <= set(raw) and not set(raw) & set(SECTIONS[:-1])
 
 
 def _parse_section(name: str, cls, raw) -> Any:
@@ -417,7 +427,7 @@ def _parse_section(name: str, cls, raw) -> Any:
         except ConfigError as error:
             problems.extend(error.problems)
     if problems:
-        raise ConfigError(problems)
+        raise ConfigError(problems, partial=cls(**values))
     return cls(**values)
 
 
@@ -500,9 +510,10 @@ def _parse_cluster(raw) -> ClusterConfig:
     return _parse_section("cluster", ClusterConfig, raw)
 
 
-def _resolve_model(model: ModelConfig) -> ModelConfig:
+def _resolve_model(model: ModelConfig, problems: list[str]) -> ModelConfig:
     if model.kind not in _MODEL_DEFAULTS:
-        raise ConfigError(f"model.kind: expected one of {', '.join(_MODEL_DEFAULTS)}, got {model.kind!r}")
+        problems.append(f"model.kind: expected one of {', '.join(_MODEL_DEFAULTS)}, got {model.kind!r}")
+        model = dataclasses.replace(model, kind=ModelConfig.kind)
     fill = {k: v for k, v in _MODEL_DEFAULTS[model.kind].items() if getattr(model, k) is None}
     return dataclasses.replace(model, **fill)
 

@@ -353,11 +353,20 @@ def test_every_problem_is_listed():
     with pytest.raises(ConfigError) as info:
         parse_config({"ppo": {"lr": -1, "lrr": 3, "num_envs": "many"}, "eval": {"episodes": 0}})
     problems = info.value.problems
-    assert [p.split(":")[0] for p in problems] == ["ppo.lrr", "ppo.num_envs"]  # types first: values need them
-    assert "and 1 more problem" in str(info.value)
+    # keys that do not parse first, then values (checked with the bad keys at their defaults)
+    assert [p.split(":")[0] for p in problems] == ["ppo.lrr", "ppo.num_envs", "ppo.lr", "eval.episodes"]
+    assert "and 3 more problems" in str(info.value)
     with pytest.raises(ConfigError) as info:
         parse_config({"ppo": dict(SMALL_PPO, lr=-1), "eval": {"episodes": 0}, "run": {"num_checkpoints": 1}})
     assert [p.split(":")[0] for p in info.value.problems] == ["ppo.lr", "eval.episodes", "run.num_checkpoints"]
+
+
+def test_a_problem_is_reported_once():
+    with pytest.raises(ConfigError) as info:
+        parse_config({"model": {"kind": "mlp"}, "ppo": {"lr": "fast"}, "bogus": {}})
+    problems = info.value.problems
+    assert problems[0].startswith("unknown section 'bogus'")
+    assert [p.split(":")[0] for p in problems[1:]] == ["model.kind", "ppo.lr"]
 
 
 def test_file_prefix_on_every_problem(tmp_path):

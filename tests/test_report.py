@@ -205,6 +205,24 @@ def test_validate_reports_every_bad_file_and_exits_1(tmp_path, capsys):
     assert "2 of 3 config(s) invalid" in captured.err
 
 
+def test_validate_lists_every_problem_of_a_file(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("ppo: {lr: -1, lrr: 2}\nbogus: 1\neval: {episodes: 0}\n")
+    assert main(["validate", str(bad)]) == 1
+    failed = [line for line in capsys.readouterr().err.splitlines() if line.startswith("FAIL")]
+    assert failed[0].startswith(f"FAIL {bad}: unknown section 'bogus'")
+    assert [line.split(":")[1].strip() for line in failed[1:]] == ["ppo.lrr", "ppo.lr", "eval.episodes"]
+    assert all(line.startswith(f"FAIL {bad}: ") for line in failed)
+
+
+def test_validate_skips_ray_launcher_configs(capsys):
+    launcher = str(ROOT / "configs" / "cluster" / "ray-cluster-aws.yaml")
+    assert main(["validate", launcher, str(ROOT / "configs" / "smoke.yaml")]) == 0
+    assert f"SKIP {launcher}: a Ray cluster launcher config" in capsys.readouterr().out
+    assert main(["train", launcher, "--backend", "local"]) == 2
+    assert "Ray cluster launcher config" in capsys.readouterr().err
+
+
 def test_validate_applies_overrides(capsys):
     smoke = str(ROOT / "configs" / "smoke.yaml")
     assert main(["validate", smoke, "--set", "population.num_seeds=3", "--set", "ppo.total_timesteps=1280"]) == 0

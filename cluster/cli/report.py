@@ -23,10 +23,21 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import math
 import sys
 from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from cluster.runtime.rundir import RunDir, RunDirError
+from ocv2.atomic import atomic_write
+from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
+from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
 
 METHOD_ORDER = ("sp", "sa", "op", "fcp")
 METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
@@ -68,23 +79,34 @@ def describe_config(config) -> str:
     return text
 
 
-def run_validate(args) -> int:
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-    from population.config import ConfigError, load_config
+def check_config_file(path: str, overrides) -> tuple[str, object]:
+    """("ok", Config), ("skip", reason) for a Ray launcher YAML, or ("fail", [every problem])."""
+    try:
+        raw = read_yaml(path)
+        if is_ray_launcher_config(raw):
+            return "skip", "a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config"
+        config = parse_config(raw if raw is not None else {}, overrides)
+    except ConfigError as error:
+        problems = error.problems
+        return "fail", [p if p.startswith(f"{path}:") else f"{path}: {p}" for p in problems]
+    partners = config.population.fcp.partners
+    if config.population.method == "fcp" and partners and not (Path(partners) / "config.yaml").is_file():
+        return "fail", [f"{path}: population.fcp.partners: {partners} is not an ocv2 run directory (no config.yaml)"]
+    return "ok", config
 
+
+def run_validate(args) -> int:
     bad = []
     for path in args.configs:
-        try:
-            config = load_config(path, args.overrides)
-            partners = config.population.fcp.partners
-            if config.population.method == "fcp" and partners and not (Path(partners) / "config.yaml").is_file():
-                raise ConfigError(f"{path}: population.fcp.partners: {partners} is not an ocv2 run directory "
-                                  "(no config.yaml)")
-        except ConfigError as error:
-            print(f"FAIL {error}", file=sys.stderr)
+        status, result = check_config_file(path, args.overrides)
+        if status == "skip":
+            print(f"SKIP {path}: {result}")
+        elif status == "fail":
+            for problem in result:
+                print(f"FAIL {problem}", file=sys.stderr)
             bad.append(path)
-            continue
-        print(f"OK   {path}: {describe_config(config)}")
+        else:
+            print(f"OK   {path}: {describe_config(result)}")
     if bad:
         raise CLIError(f"{len(bad)} of {len(args.configs)} config(s) invalid: {', '.join(bad)}", EXIT_FAILURE)
     return EXIT_OK
@@ -103,9 +125,6 @@ def _nan(value) -> float:
 
 def load_run(path) -> dict:
     """Everything ``report`` needs from one run directory; ``CLIError`` if it is not one."""
-    from cluster.cli.errors import CLIError
-    from cluster.runtime.rundir import RunDir, RunDirError
-
     run = RunDir(path)
     if not run.path.is_dir():
         raise CLIError(f"{path}: no such run directory")
@@ -244,8 +263,6 @@ def markdown_table(header: list[str], cells: list[list[str]]) -> str:
 
 def curve(metrics: list[dict], field: str = "sparse_return"):
     """(env steps, mean, std) across seeds per update; None if no finished episode was recorded."""
-    import numpy as np
-
     by_update: dict[int, tuple[list[float], list[float]]] = {}
     for row in metrics:
         update = _nan(row.get("update"))
@@ -265,8 +282,6 @@ def curve(metrics: list[dict], field: str = "sparse_return"):
 
 
 def write_curves(runs: list[dict], out: Path) -> list[str]:
-    from population.plots import pyplot, save_figure
-
     by_layout: dict[str, list[dict]] = {}
     for run in runs:
         by_layout.setdefault(run["config"].env_kwargs["layout"], []).append(run)
@@ -276,7 +291,11 @@ def write_curves(runs: list[dict], out: Path) -> list[str]:
         lines = [(run, c) for run, c in lines if c is not None]
         if not lines:
             continue
-        plt = pyplot()
+        try:
+            plt = pyplot()
+        except PlotsUnavailable as error:
+            skipped(out / f"curves_{layout}.png", error)
+            continue
         fig, ax = plt.subplots(figsize=(6.5, 4))
         for run, (x, mean, std) in lines:
             config = run["config"]
@@ -295,10 +314,6 @@ def write_curves(runs: list[dict], out: Path) -> list[str]:
 
 
 def write_heatmaps(runs: list[dict], out: Path) -> dict[str, str]:
-    import numpy as np
-
-    from population.plots import xp_heatmap
-
     paths, used = {}, set()
     for run in runs:
         if not run["matrix"]:
@@ -313,7 +328,9 @@ def write_heatmaps(runs: list[dict], out: Path) -> dict[str, str]:
         title = f"{config.population.method.upper()} {config.env_kwargs['layout']}"
         if summary:
             title += f": SP {fmt(_nan(summary.get('sp_mean')))}, XP {fmt(_nan(summary.get('xp_mean')))}"
-        paths[run["path"]] = xp_heatmap(np.asarray(run["matrix"], np.float64), out / f"{name}.png", title=title)
+        path = xp_heatmap(np.asarray(run["matrix"], np.float64), out / f"{name}.png", title=title)
+        if path is not None:  # None: matplotlib missing (xp_heatmap said so)
+            paths[run["path"]] = path
     return paths
 
 
@@ -332,8 +349,6 @@ def add_report(sub) -> argparse.ArgumentParser:
 
 
 def run_report(args) -> int:
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-
     runs = [load_run(path) for path in args.run_dirs]
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -347,12 +362,12 @@ def run_report(args) -> int:
     curves = write_curves(runs, out)
     heatmaps = write_heatmaps(runs, out)
 
-    with open(out / "report.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=CSV_FIELDS)
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: ("" if isinstance(row[k], float) and math.isnan(row[k]) else row[k])
-                             for k in CSV_FIELDS})
+    buffer = io.StringIO(newline="")
+    writer = csv.DictWriter(buffer, fieldnames=CSV_FIELDS)
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("" if isinstance(row[k], float) and math.isnan(row[k]) else row[k]) for k in CSV_FIELDS})
+    atomic_write(out / "report.csv", buffer.getvalue())
     md = ["# ocv2 report", "",
           "SP: mean ± std over the self-play cells (diagonal) of the cross-play matrix; XP: mean ± std over the "
           "off-diagonal ordered pairs; Gap = SP - XP (the paper's Tables 1 and 2). Δ: this run minus the self-play "
@@ -366,10 +381,7 @@ def run_report(args) -> int:
     if heatmaps:
         md += ["## Cross-play matrices", ""]
         md += [f"{run}:\n\n![{Path(p).stem}]({Path(p).name})\n" for run, p in heatmaps.items()]
-    (out / "report.md").write_text("\n".join(md))
-
-    from rich.console import Console
-    from rich.table import Table
+    atomic_write(out / "report.md", "\n".join(md))
 
     table = Table(title=f"{len(rows)} run(s)")
     for name in header:
