@@ -9,14 +9,20 @@ trajectories are then compared.
 from __future__ import annotations
 
 import functools
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from reference_adapter import make_pair, to_ours, to_ref
+from reference_adapter import MISSING_REFERENCE, make_pair, to_ours, to_ref
 import ocv2
+
+TESTS = Path(__file__).resolve().parent
 
 STEPS = 200
 SEEDS = 3
@@ -177,3 +183,11 @@ def test_mixed_observation_types_build():
     obs, _ = jax.jit(env.reset)(jax.random.PRNGKey(0))
     assert obs["agent_0"].shape == (4, 5, 30)
     assert obs["agent_1"].ndim == 1
+
+
+def test_missing_reference_fails_instead_of_skipping():
+    """Without jaxmarl, importing the adapter is an error naming the test dependency (no silent skip)."""
+    code = "import sys; sys.modules['jaxmarl'] = None; import reference_adapter"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=TESTS,
+                            env={**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), str(TESTS.parent)])})
+    assert result.returncode != 0 and MISSING_REFERENCE in result.stderr
