@@ -11,6 +11,10 @@ import argparse
 import json
 import os
 
+from cluster.archive import PARTIAL_SUFFIX, ArchiveError, ArchiveReader, recover
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from ocv2.render import render_frames, write_gif
+
 
 def add_parser(sub) -> argparse.ArgumentParser:
     parser = sub.add_parser("archive", help="inspect, replay or recover an MCAP trajectory archive",
@@ -52,9 +56,6 @@ def run(args) -> int:
 
 
 def _reader(path: str):
-    from cluster.archive import ArchiveError, ArchiveReader
-    from cluster.cli.errors import CLIError
-
     try:
         return ArchiveReader(path)
     except ArchiveError as error:
@@ -64,8 +65,6 @@ def _reader(path: str):
 
 
 def _info(args) -> int:
-    from cluster.cli.errors import EXIT_OK
-
     reader = _reader(args.file)
     summary = reader.info()
     metas = reader.episodes()
@@ -108,9 +107,6 @@ def _info(args) -> int:
 
 
 def _replay(args) -> int:
-    from cluster.archive import ArchiveError
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
     if not 0 < args.fps <= 100:
@@ -126,8 +122,6 @@ def _replay(args) -> int:
     except ArchiveError as error:
         raise CLIError(str(error)) from None
 
-    from ocv2.render import render_frames, write_gif
-
     frames = render_frames(episode.states, layout, agent_view_size=args.view_radius, tile_size=args.tile_size)
     folder = os.path.dirname(os.path.abspath(args.out))
     try:
@@ -142,9 +136,6 @@ def _replay(args) -> int:
 
 
 def _recover(args) -> int:
-    from cluster.archive import PARTIAL_SUFFIX, ArchiveError, recover
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-
     out = args.out
     if out is None:
         if args.file.endswith(PARTIAL_SUFFIX):

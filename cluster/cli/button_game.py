@@ -4,8 +4,8 @@
                      [--epsilon EPS] [--lr LR]
 
 Writes ``DIR/button_game_xp.csv`` (labelled matrix, rows Alices, columns Bobs) and
-``DIR/button_game_xp.png`` (annotated heatmap), and prints the SP, XP and BR means. Registered in
-``cluster.cli.COMMANDS`` lazily, so importing the CLI does not import JAX.
+``DIR/button_game_xp.png`` (annotated heatmap), and prints the SP, XP and BR means.
+``cluster.cli.main.COMMANDS`` names this module by string: it is imported only when the command runs.
 """
 
 from __future__ import annotations
@@ -16,14 +16,13 @@ import sys
 import time
 
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from population.button_game import ButtonGameConfig, IQLConfig, plot_heatmap, run_button_game, write_csv
 
 DEFAULT_OUT = os.path.join("runs", "button_game")
-# The configs' defaults, repeated so that building the parser does not import JAX (every ``ocv2``
-# command builds every parser); tests/test_button_game.py checks they agree.
-DEFAULT_BUTTONS = 8
-DEFAULT_EPISODES = 200
-DEFAULT_EPSILON = 0.01
-DEFAULT_LR = 0.1
+DEFAULT_BUTTONS = ButtonGameConfig().num_buttons
+DEFAULT_EPISODES = IQLConfig().episodes
+DEFAULT_EPSILON = IQLConfig().epsilon
+DEFAULT_LR = IQLConfig().learning_rate
 CSV_NAME = "button_game_xp.csv"
 PNG_NAME = "button_game_xp.png"
 
@@ -75,10 +74,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def _configs(args):
     """Build the configs (argparse types have already range-checked every flag)."""
-    # population.button_game imports JAX: here, not at the top, because every ``ocv2`` command builds
-    # this module's parser.
-    from population.button_game import ButtonGameConfig, IQLConfig
-
     try:
         return (ButtonGameConfig(num_buttons=args.buttons),
                 IQLConfig(episodes=args.episodes, epsilon=args.epsilon, learning_rate=args.lr))
@@ -96,8 +91,6 @@ def run(args) -> int:
         os.makedirs(args.out, exist_ok=True)
     except OSError as error:
         raise CLIError(f"could not create {args.out!r}: {error}", EXIT_FAILURE) from None
-
-    from population.button_game import plot_heatmap, run_button_game, write_csv
 
     start = time.perf_counter()
     result = run_button_game(seed=args.seed, num_seeds=args.seeds, game=game, iql=iql)

@@ -5,8 +5,8 @@
               [--env KEY=VALUE ...] [--out FILE.mcap] [--seed S] [--episodes N] [--meta KEY=VALUE ...]
 
 Starts a local web server, prints its URL and records every played episode to an MCAP archive
-(``docs/archive.md``) until Ctrl-C (or ``--episodes`` episodes). Registered lazily in
-``cluster.cli.COMMANDS``: building the parser imports neither JAX nor the server.
+(``docs/archive.md``) until Ctrl-C (or ``--episodes`` episodes). ``cluster.cli.main.COMMANDS`` names
+this module by string: it is imported only when ``ocv2 play`` runs.
 """
 
 from __future__ import annotations
@@ -19,6 +19,19 @@ import secrets
 import signal
 import threading
 import time
+
+import yaml
+
+import ocv2
+from cluster.archive import RESERVED_KEYS, ArchiveError, ArchiveWriter
+from cluster.cli.button_game import _bounded
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from cluster.cli.main import _fps, _int_at_least, _layout_or_error, _non_negative_int, _positive_int
+from cluster.play.game import PartnerError, human_partner, load_policy_partner, make_game, scripted_partner, warm_up
+from cluster.play.server import PlayServer
+from cluster.play.session import PLAY_META_KEYS, SEAT_COLOURS, GameSession
+from ocv2.config import build_config
+from population import ppo
 
 DEFAULT_PORT = 8765
 DEFAULT_HOST = "127.0.0.1"
@@ -33,9 +46,6 @@ def _key_value(text: str) -> tuple[str, str]:
 
 
 def add_play(sub) -> argparse.ArgumentParser:
-    from cluster.cli.main import _fps, _int_at_least, _non_negative_int, _positive_int
-    from cluster.cli.button_game import _bounded
-
     parser = sub.add_parser(
         "play", help="play in the browser with a trained agent or another person (recorded to MCAP)",
         description="Start a local web server for human play: arrow keys move, space interacts, the game "
@@ -81,8 +91,6 @@ def add_play(sub) -> argparse.ArgumentParser:
 
 
 def run_play(args) -> int:
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-
     partner = _partner(args.partner)
     env = _env(args, partner)
     human_seats = _human_seats(args, env, partner)
@@ -92,8 +100,6 @@ def run_play(args) -> int:
     previous = _interrupt_on_sigterm()
     try:
         writer, path = _writer(args.out, env.layout.name, args.fps)
-        from cluster.play.game import make_game, warm_up
-        from cluster.play.session import GameSession
 
         seed = secrets.randbits(31) if args.seed is None else args.seed
         print(f"ocv2 play: preparing {env.layout.name} (compiling the game takes a few seconds)...", flush=True)
@@ -130,9 +136,6 @@ def run_play(args) -> int:
 # ---------------------------------------------------------------------------------------------------
 
 def _partner(text: str):
-    from cluster.cli.errors import CLIError
-    from cluster.play.game import PartnerError, human_partner, load_policy_partner, scripted_partner
-
     try:
         if text == "human":
             return human_partner()
@@ -144,10 +147,6 @@ def _partner(text: str):
 
 
 def _env_flags(args) -> dict:
-    import yaml
-
-    from cluster.cli.errors import CLIError
-
     flags = {}
     for key, text in args.env:
         if key == "layout":
@@ -164,11 +163,6 @@ def _env_flags(args) -> dict:
 
 def _env(args, partner):
     """The env to play: the partner run's eval env (checked against LAYOUT and flags), else LAYOUT + flags."""
-    import ocv2
-    from cluster.cli.main import _layout_or_error
-    from cluster.cli.errors import CLIError
-    from ocv2.config import build_config
-
     flags = _env_flags(args)
     if partner.kind == "policy":
         trained = partner.config.env_kwargs
@@ -185,8 +179,6 @@ def _env(args, partner):
         if differ:
             raise CLIError("the partner plays the environment it was evaluated in (its run's config.yaml); "
                            + "; ".join(differ) + ". Omit those flags")
-        from population import ppo
-
         return ppo.eval_env(partner.config)
     if args.layout is None:
         raise CLIError("give a LAYOUT (see 'ocv2 layouts'), or a trained --partner whose run fixes it")
@@ -198,8 +190,6 @@ def _env(args, partner):
 
 
 def _human_seats(args, env, partner) -> list[int]:
-    from cluster.cli.errors import CLIError
-
     seats = env.num_agents
     if args.seat >= seats:
         raise CLIError(f"--seat {args.seat}: layout {env.layout.name!r} has {seats} seat(s) (0..{seats - 1})")
@@ -209,10 +199,6 @@ def _human_seats(args, env, partner) -> list[int]:
 
 
 def _meta(pairs) -> dict:
-    from cluster.archive import RESERVED_KEYS
-    from cluster.cli.errors import CLIError
-    from cluster.play.session import PLAY_META_KEYS
-
     meta = dict(pairs)
     taken = sorted(set(meta) & set(RESERVED_KEYS + PLAY_META_KEYS))
     if taken:
@@ -221,9 +207,6 @@ def _meta(pairs) -> dict:
 
 
 def _bind(host: str, port: int, verbose: bool):
-    from cluster.cli.errors import EXIT_FAILURE, CLIError
-    from cluster.play.server import PlayServer
-
     try:
         return PlayServer(host, port, verbose)
     except OSError as error:
@@ -234,9 +217,6 @@ def _bind(host: str, port: int, verbose: bool):
 
 
 def _writer(out: str | None, layout: str, fps: float):
-    from cluster.archive import ArchiveError, ArchiveWriter
-    from cluster.cli.errors import EXIT_FAILURE, CLIError
-
     path = out or os.path.join("runs", "play", f"{layout}_{time.strftime('%Y%m%d-%H%M%S')}.mcap")
     if not path.endswith(".mcap"):
         raise CLIError(f"--out must name a .mcap file, got {path!r}")
@@ -260,8 +240,6 @@ def _finish(writer) -> int:
 
 
 def _announce(args, server, game, seed: int, path: str) -> None:
-    from cluster.play.session import SEAT_COLOURS
-
     env, partner = game.env, game.partner
     view = "" if env.config.view_radius is None else f", view radius {env.config.view_radius}"
     if partner.kind == "human":
