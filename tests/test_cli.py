@@ -64,6 +64,7 @@ def test_usage_errors_return_2(tmp_path, capsys):
     assert main(["render", "cramped_room", "--steps", "2"]) == 2  # --out missing
     assert main(["render", "cramped_room", "--out", str(tmp_path / "x.gif"), "--fps", "0"]) == 2
     assert main(["render", "cramped_room", "--out", str(tmp_path / "x.txt")]) == 2
+    assert main(["render", "cramped_room", "--out", str(tmp_path / "x.gif"), "--seed", str(2**32)]) == 2  # would wrap
     assert main(["--help"]) == 0
     capsys.readouterr()
     assert os.listdir(tmp_path) == []

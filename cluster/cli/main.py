@@ -35,6 +35,7 @@ import ocv2
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
 from ocv2.layouts import LAYOUTS, Layout, get_layout
 from ocv2.render import render_frames, rollout_states, write_gif
+from population.config import MAX_SEED
 
 # ---------------------------------------------------------------------------------------------------
 # helpers
@@ -71,6 +72,14 @@ def _int_at_least(minimum: int, what: str):
 
 _positive_int = _int_at_least(1, "positive")
 _non_negative_int = _int_at_least(0, "non-negative")
+
+
+def _seed(text: str) -> int:
+    """A PRNG seed: JAX's keys hold 32 bits, so a larger seed would silently wrap onto a small one."""
+    value = _non_negative_int(text)
+    if value > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected a seed in [0, {MAX_SEED}], got {value}")
+    return value
 
 
 def _fps(text: str) -> float:
@@ -143,7 +152,7 @@ def _add_render(sub) -> argparse.ArgumentParser:
     parser.add_argument("layout", help="layout name (see 'ocv2 layouts')")
     parser.add_argument("--steps", type=_non_negative_int, default=50, help="transitions to play (default 50)")
     parser.add_argument("--out", required=True, help="GIF file to write")
-    parser.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
+    parser.add_argument("--seed", type=_seed, default=0, help="PRNG seed (default 0)")
     parser.add_argument("--fps", type=_fps, default=5.0, help="frames per second (default 5)")
     parser.add_argument("--view-radius", type=_non_negative_int, default=None,
                         help="highlight every cell within this radius of an agent (default: none)")
