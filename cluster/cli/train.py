@@ -96,5 +96,8 @@ def run_xp(args) -> int:
         evaluate_run(args.run_dir, episodes=args.episodes)
     except (RunDirError, CheckpointError) as error:
         raise CLIError(str(error)) from None
-    print(f"wrote {os.path.join(args.run_dir, 'xp')}/matrix.csv, episodes.csv, summary.json, heatmap.png")
+    folder = os.path.join(args.run_dir, "xp")
+    written = [name for name in ("matrix.csv", "episodes.csv", "summary.json", "heatmap.png")
+               if os.path.exists(os.path.join(folder, name))]  # no heatmap without matplotlib
+    print(f"wrote {folder}/{', '.join(written)}")
     return EXIT_OK
