@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import ast
 import os
 import subprocess
 import sys
@@ -118,3 +119,32 @@ def test_layouts_does_not_import_the_trainer():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stdout
     assert out.strip().splitlines()[-1] == "[]"
+
+
+def _imports(path: Path):
+    """(module imported, whether inside a function) for every import statement of a source file."""
+    tree = ast.parse(path.read_text())
+    local = {id(node) for fn in ast.walk(tree) if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
+             for node in ast.walk(fn) if isinstance(node, (ast.Import, ast.ImportFrom))}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            yield from ((alias.name, id(node) in local) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            yield node.module, id(node) in local
+
+
+def test_imports_point_down_and_the_cli_imports_at_module_top():
+    """ocv2 <- population <- cluster; nothing imports cluster.cli; cluster/cli imports project code at the top."""
+    root = Path(__file__).resolve().parents[1]
+    forbidden = {"ocv2": ("population", "cluster"), "population": ("cluster",), "cluster": ("cluster.cli",)}
+    problems = []
+    for package, banned in forbidden.items():
+        for path in (root / package).rglob("*.py"):
+            inside_cli = path.is_relative_to(root / "cluster" / "cli")
+            for module, in_function in _imports(path):
+                if any(module == b or module.startswith(b + ".") for b in banned) and not inside_cli:
+                    problems.append(f"{path.relative_to(root)} imports {module}")
+                project = module.split(".")[0] in ("ocv2", "population", "cluster")
+                if inside_cli and in_function and project:
+                    problems.append(f"{path.relative_to(root)} imports {module} inside a function")
+    assert problems == []
