@@ -148,3 +148,12 @@ def test_imports_point_down_and_the_cli_imports_at_module_top():
                 if inside_cli and in_function and project:
                     problems.append(f"{path.relative_to(root)} imports {module} inside a function")
     assert problems == []
+
+
+def test_button_game_without_matplotlib_writes_the_numbers(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # as when the plots extra is not installed
+    out = tmp_path / "bg"
+    assert main(["button-game", "--seeds", "2", "--out", str(out), "--buttons", "2", "--episodes", "20"]) == 0
+    captured = capsys.readouterr()
+    assert "pip install 'ocv2[plots]'" in captured.err and "button_game_xp.png" not in captured.out
+    assert os.listdir(out) == ["button_game_xp.csv"]
