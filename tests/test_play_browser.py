@@ -49,7 +49,7 @@ def _start_play(out: Path) -> tuple[subprocess.Popen, str, list[str]]:
     """``ocv2 play`` as a user runs it; returns the process, the URL it printed and its output so far."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     process = subprocess.Popen(
-        [sys.executable, "-m", "cluster.cli", "play", "grounded_coord_simple", "--agent-view-size", "2",
+        [sys.executable, "-m", "cluster.cli.main", "play", "grounded_coord_simple", "--agent-view-size", "2",
          "--max-steps", str(STEPS), "--fps", str(FPS), "--port", "0", "--seed", "0",
          "--disconnect-timeout", "30", "--tile-size", "40", "--out", str(out), "--meta", "participant=e2e"],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
