@@ -22,11 +22,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cluster.runtime.rundir import RunDir
+from cluster.runtime.runstate import hidden_size, load_params, params_template
 from ocv2 import items as it
 from ocv2.dynamics import transition
 from ocv2.items import Static
 from ocv2.render import INGREDIENT_COLORS, render
 from ocv2.state import State
+from population import checkpoints as ckpt
+from population import ppo
+from population.config import ConfigError
 
 #: Cells outside a human's view window are painted this colour: the human sees what their agent sees.
 HIDDEN_RGB = (24, 24, 24)
@@ -121,8 +126,6 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
 
     A seed folder means its latest checkpoint.
     """
-    from population import checkpoints as ckpt
-
     path = Path(path)
     if not path.exists():
         raise PartnerError(f"--partner: {str(path)!r} does not exist (expected RUN_DIR/checkpoints/seed_<i>, "
@@ -148,12 +151,6 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
 
 def load_policy_partner(path) -> Partner:
     """The policy of a checkpoint (or a seed's latest), with the run config it was trained under."""
-    from cluster.runtime.rundir import RunDir
-    from cluster.runtime.runstate import hidden_size, load_params, params_template
-    from population import checkpoints as ckpt
-    from population import ppo
-    from population.config import ConfigError
-
     run_dir, seed, checkpoint = resolve_checkpoint(path)
     run = RunDir(run_dir)
     if not run.config_path.exists():
