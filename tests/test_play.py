@@ -24,9 +24,11 @@ from cluster.archive import ArchiveReader, ArchiveWriter, states_as_buffer
 from cluster.cli import main
 from cluster.play.game import HIDDEN_RGB, PartnerError, human_partner, load_policy_partner, make_game, scripted_partner
 from cluster.play.server import PlayServer
+from cluster.runtime.rundir import RunDir
 from cluster.play.protocol import Message, ProtocolError, parse_message
 from cluster.play.session import GameSession
 from population import checkpoints as ckpt
+from population import policy as policies
 from population import ppo
 from population.config import load_config
 from population.networks import init_params
@@ -472,8 +474,6 @@ def test_a_client_leaving_mid_answer_costs_one_log_line(served, capsys):
 @pytest.fixture(scope="module")
 def rnn_run(tmp_path_factory):
     """A run directory with one RNN checkpoint (untrained parameters: only loading is tested)."""
-    from cluster.runtime.rundir import RunDir
-
     run = tmp_path_factory.mktemp("runs") / "rnn"
     config = load_config(SMOKE, ["model.kind=rnn", "model.gru_dim=8", "model.mixer_features=[8]",
                                  "model.conv_features=[8]", "model.conv_kernels=[3]", "model.fc_dim=8",
@@ -492,7 +492,9 @@ def test_a_policy_partner_acts_on_its_own_observation_and_keeps_its_hidden_state
     assert partner.label == "seed_0@update_2" and partner.hidden_size == 8
     assert partner.checkpoint.endswith("update_0000002.msgpack")
     assert load_policy_partner(ckpt.checkpoint_path(rnn_run, 0, 0)).label == "seed_0@update_0"
-    game = make_game(ppo.eval_env(partner.config), partner, [0], tile_size=8)
+    assert partner.env_kwargs == load_config(rnn_run / "config.yaml").env_kwargs
+    assert partner.config_fingerprint == load_config(rnn_run / "config.yaml").fingerprint()
+    game = make_game(ocv2.make(**partner.env_kwargs), partner, [0], tile_size=8)
     carry = game.reset(jax.random.PRNGKey(0))
     stay = np.full((2,), STAY, np.int32)
     after_one, record = game.step(partner.params, carry, stay, jax.random.PRNGKey(1))
@@ -505,6 +507,21 @@ def test_a_policy_partner_acts_on_its_own_observation_and_keeps_its_hidden_state
     hidden, _, _ = apply(partner.params, hidden, after_one.obs[1][None, None], np.zeros((1, 1), bool))
     np.testing.assert_allclose(after_two.hidden[1], hidden[0], rtol=1e-5, atol=1e-6)
     assert int(record.actions[0]) == STAY and np.abs(np.asarray(after_two.hidden[1])).sum() > 0
+
+
+def test_an_exported_policy_file_is_a_partner(rnn_run, tmp_path, capsys):
+    exported = policies.export_checkpoint(rnn_run, tmp_path / "cook.ocv2policy", checkpoint="latest",
+                                          meta={"name": "cook"})
+    partner = load_policy_partner(exported)
+    original = load_policy_partner(rnn_run / "checkpoints" / "seed_0")
+    assert (partner.kind, partner.label, partner.run_dir, partner.config_fingerprint) == ("policy", "cook", None, None)
+    assert partner.env_kwargs == original.env_kwargs and partner.hidden_size == 8
+    for got, want in zip(jax.tree.leaves(partner.params), jax.tree.leaves(original.params)):
+        np.testing.assert_array_equal(got, want)
+    # the command plays the file's environment and refuses flags that change it, like a run's
+    code, err = _cli_error(capsys, "--partner", str(exported), "--agent-view-size", "2", "--port", "0",
+                           "--out", str(tmp_path / "x.mcap"))
+    assert code == 2 and "agent_view_size: the partner's run uses None" in err
 
 
 def test_bad_partner_paths_are_clear_errors(rnn_run, tmp_path):

@@ -171,7 +171,7 @@ def _env(args, partner):
 
     flags = _env_flags(args)
     if partner.kind == "policy":
-        trained = partner.config.env_kwargs
+        trained = partner.env_kwargs
         if args.layout is not None and _layout_or_error(args.layout).name != trained["layout"]:
             raise CLIError(f"the partner was trained on layout {trained['layout']!r}, not {args.layout!r}; "
                            "omit LAYOUT or pick a partner trained on it")
@@ -183,11 +183,9 @@ def _env(args, partner):
         differ = [f"{key}: the partner's run uses {getattr(reference, key)!r}, you asked for {getattr(wanted, key)!r}"
                   for key in flags if getattr(wanted, key) != getattr(reference, key)]
         if differ:
-            raise CLIError("the partner plays the environment it was evaluated in (its run's config.yaml); "
-                           + "; ".join(differ) + ". Omit those flags")
-        from population import ppo
-
-        return ppo.eval_env(partner.config)
+            raise CLIError("the partner plays the environment it was evaluated in (its run's config.yaml, or "
+                           "the exported file's); " + "; ".join(differ) + ". Omit those flags")
+        return ocv2.make(**trained)
     if args.layout is None:
         raise CLIError("give a LAYOUT (see 'ocv2 layouts'), or a trained --partner whose run fixes it")
     layout = _layout_or_error(args.layout)
