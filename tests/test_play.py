@@ -423,8 +423,18 @@ def _handler_threads() -> int:
     return sum(1 for thread in threading.enumerate() if "process_request_thread" in thread.name)
 
 
-def test_a_flood_of_connections_is_capped(served):
+@pytest.fixture
+def patient(solo_game, archive):
+    """A running server that waits long for requests (idle connections stay open), four connections at most."""
+    server = PlayServer("127.0.0.1", 0, request_timeout=60, max_connections=4)
+    server.start(GameSession(solo_game, archive, seed=1, fps=5))
+    yield server
+    server.stop()
+
+
+def test_a_flood_of_connections_is_capped(patient):
     """Connections beyond ``max_connections`` get 503 at once and no thread; a freed slot serves again."""
+    served = patient
     before = _handler_threads()
     held = [_connect(served) for _ in range(4)]
     try:

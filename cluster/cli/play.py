@@ -20,6 +20,14 @@ import signal
 import threading
 import time
 
+import yaml
+
+from cluster.cli.button_game import _bounded
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from cluster.cli.main import _fps, _int_at_least, _layout_or_error, _non_negative_int, _positive_int
+
+# JAX, the archive and the server are imported inside the functions that use them: every ``ocv2``
+# command builds this module's parser, and ``ocv2 layouts`` must not pay for importing JAX.
 DEFAULT_PORT = 8765
 DEFAULT_HOST = "127.0.0.1"
 PARTNER_KINDS = ("human", "stay", "random")
@@ -33,8 +41,6 @@ def _key_value(text: str) -> tuple[str, str]:
 
 
 def add_play(sub) -> argparse.ArgumentParser:
-    from cluster.cli.main import _fps, _int_at_least, _non_negative_int, _positive_int
-    from cluster.cli.button_game import _bounded
 
     parser = sub.add_parser(
         "play", help="play in the browser with a trained agent or another person (recorded to MCAP)",
@@ -81,8 +87,6 @@ def add_play(sub) -> argparse.ArgumentParser:
 
 
 def run_play(args) -> int:
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-
     partner = _partner(args.partner)
     env = _env(args, partner)
     human_seats = _human_seats(args, env, partner)
@@ -130,7 +134,6 @@ def run_play(args) -> int:
 # ---------------------------------------------------------------------------------------------------
 
 def _partner(text: str):
-    from cluster.cli.errors import CLIError
     from cluster.play.game import PartnerError, human_partner, load_policy_partner, scripted_partner
 
     try:
@@ -144,9 +147,6 @@ def _partner(text: str):
 
 
 def _env_flags(args) -> dict:
-    import yaml
-
-    from cluster.cli.errors import CLIError
 
     flags = {}
     for key, text in args.env:
@@ -165,8 +165,6 @@ def _env_flags(args) -> dict:
 def _env(args, partner):
     """The env to play: the partner run's eval env (checked against LAYOUT and flags), else LAYOUT + flags."""
     import ocv2
-    from cluster.cli.main import _layout_or_error
-    from cluster.cli.errors import CLIError
     from ocv2.config import build_config
 
     flags = _env_flags(args)
@@ -196,7 +194,6 @@ def _env(args, partner):
 
 
 def _human_seats(args, env, partner) -> list[int]:
-    from cluster.cli.errors import CLIError
 
     seats = env.num_agents
     if args.seat >= seats:
@@ -208,7 +205,6 @@ def _human_seats(args, env, partner) -> list[int]:
 
 def _meta(pairs) -> dict:
     from cluster.archive import RESERVED_KEYS
-    from cluster.cli.errors import CLIError
     from cluster.play.session import PLAY_META_KEYS
 
     meta = dict(pairs)
@@ -219,7 +215,6 @@ def _meta(pairs) -> dict:
 
 
 def _bind(host: str, port: int, verbose: bool):
-    from cluster.cli.errors import EXIT_FAILURE, CLIError
     from cluster.play.server import PlayServer
 
     try:
@@ -233,7 +228,6 @@ def _bind(host: str, port: int, verbose: bool):
 
 def _writer(out: str | None, layout: str, fps: float):
     from cluster.archive import ArchiveError, ArchiveWriter
-    from cluster.cli.errors import EXIT_FAILURE, CLIError
 
     path = out or os.path.join("runs", "play", f"{layout}_{time.strftime('%Y%m%d-%H%M%S')}.mcap")
     if not path.endswith(".mcap"):
@@ -270,7 +264,9 @@ def _announce(args, server, game, seed: int, path: str) -> None:
     print(f"ocv2 play: {env.layout.name}, {who}, {env.max_steps} steps at {args.fps:g} steps/s{view}, seed {seed}")
     print(f"recording to {path}")
     if not _loopback(args.host):
-        print(f"note: listening on {args.host}: anyone who can reach this machine on port {server.port} can join")
+        print(f"note: listening on {args.host}: other machines join at "
+              f"http://<this machine's name or address>:{server.port}/?key={server.key}; give that address only to "
+              "your players (the key is the only password)")
     print(f"open {server.url}   (Ctrl-C to stop)", flush=True)
 
 
