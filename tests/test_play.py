@@ -419,10 +419,6 @@ def wait_readable(client: socket.socket, seconds: float) -> bool:
     return bool(select.select([client], [], [], seconds)[0])
 
 
-def _handler_threads() -> int:
-    return sum(1 for thread in threading.enumerate() if "process_request_thread" in thread.name)
-
-
 @pytest.fixture
 def patient(solo_game, archive):
     """A running server that waits long for requests (idle connections stay open), four connections at most."""
@@ -435,19 +431,19 @@ def patient(solo_game, archive):
 def test_a_flood_of_connections_is_capped(patient):
     """Connections beyond ``max_connections`` get 503 at once and no thread; a freed slot serves again."""
     served = patient
-    before = _handler_threads()
+    threads = threading.active_count()
     held = [_connect(served) for _ in range(4)]
     try:
-        _wait_for(lambda: _handler_threads() - before == 4)
+        _wait_for(lambda: served.http.open_connections == 4)
         extra = [_connect(served) for _ in range(6)]
         for client in extra:
             assert client.recv(1024).startswith(b"HTTP/1.1 503"), "a connection over the cap was not refused"
             client.close()
-        assert _handler_threads() - before <= 4
+        assert served.http.open_connections == 4 and threading.active_count() <= threads + 4
     finally:
         for client in held:
             client.close()
-    _wait_for(lambda: _handler_threads() - before == 0)
+    _wait_for(lambda: served.http.open_connections == 0)
     assert _api(served, {"type": "join"})[0] == 200
 
 

@@ -120,6 +120,8 @@ class _Server(ThreadingHTTPServer):
         self.request_timeout = float(request_timeout)
         self.max_connections = int(max_connections)
         self.slots = threading.BoundedSemaphore(self.max_connections)
+        self.open_connections = 0  # served now, each on its own thread
+        self._count = threading.Lock()
         self._refusing = False  # a flood is logged once, not once per connection
         super().__init__(address, _Handler)
         self.hosts = host_names(address[0]) | host_names(self.server_address[0])  # as given, and as bound
@@ -143,16 +145,23 @@ class _Server(ThreadingHTTPServer):
             self._refuse(request)
             return
         self._refusing = False
+        self._opened(+1)
         try:
             super().process_request(request, client_address)
         except BaseException:
-            self.slots.release()
+            self._opened(-1)
             raise
 
     def process_request_thread(self, request, client_address):
         try:
             super().process_request_thread(request, client_address)
         finally:
+            self._opened(-1)
+
+    def _opened(self, change: int) -> None:
+        with self._count:
+            self.open_connections += change
+        if change < 0:
             self.slots.release()
 
     def _refuse(self, request) -> None:
