@@ -41,7 +41,6 @@ def _key_value(text: str) -> tuple[str, str]:
 
 
 def add_play(sub) -> argparse.ArgumentParser:
-
     parser = sub.add_parser(
         "play", help="play in the browser with a trained agent or another person (recorded to MCAP)",
         description="Start a local web server for human play: arrow keys move, space interacts, the game "
@@ -147,7 +146,6 @@ def _partner(text: str):
 
 
 def _env_flags(args) -> dict:
-
     flags = {}
     for key, text in args.env:
         if key == "layout":
@@ -194,7 +192,6 @@ def _env(args, partner):
 
 
 def _human_seats(args, env, partner) -> list[int]:
-
     seats = env.num_agents
     if args.seat >= seats:
         raise CLIError(f"--seat {args.seat}: layout {env.layout.name!r} has {seats} seat(s) (0..{seats - 1})")

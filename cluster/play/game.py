@@ -161,7 +161,6 @@ def load_policy_partner(path) -> Partner:
         policy = policies.load(path)
     except policies.PolicyError as error:
         raise PartnerError(f"--partner: {error}") from None
-    meta = policy.meta
     if exported:
         return Partner("policy", policy.name, policy.apply, policy.params, policy.hidden_size, str(path),
                        env_kwargs=policy.env)
@@ -169,7 +168,8 @@ def load_policy_partner(path) -> Partner:
         fingerprint = load_config(run_dir / "config.yaml").fingerprint()  # policy.load read the same file
     except ConfigError as error:
         raise PartnerError(f"--partner: {error}") from None
-    return Partner("policy", f"seed_{meta['seed']}@update_{meta['update']}", policy.apply, policy.params,
+    label = f"seed_{policy.meta['seed']}@update_{policy.meta['update']}"
+    return Partner("policy", label, policy.apply, policy.params,
                    policy.hidden_size, str(path), str(run_dir), policy.env, fingerprint)
 
 
