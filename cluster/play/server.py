@@ -119,7 +119,6 @@ class _Server(ThreadingHTTPServer):
         self.verbose, self.page, self.key = verbose, page_html(), key
         self.request_timeout = float(request_timeout)
         self.max_connections = int(max_connections)
-        self.slots = threading.BoundedSemaphore(self.max_connections)
         self.open_connections = 0  # served now, each on its own thread
         self._count = threading.Lock()
         self._refusing = False  # a flood is logged once, not once per connection
@@ -141,28 +140,28 @@ class _Server(ThreadingHTTPServer):
         return name in self.hosts or (self.wildcard and _is_ip(name))
 
     def process_request(self, request, client_address):
-        if not self.slots.acquire(blocking=False):
+        with self._count:
+            full = self.open_connections >= self.max_connections
+            self.open_connections += not full
+        if full:
             self._refuse(request)
             return
         self._refusing = False
-        self._opened(+1)
         try:
             super().process_request(request, client_address)
         except BaseException:
-            self._opened(-1)
+            self._closed()
             raise
 
     def process_request_thread(self, request, client_address):
         try:
             super().process_request_thread(request, client_address)
         finally:
-            self._opened(-1)
+            self._closed()
 
-    def _opened(self, change: int) -> None:
+    def _closed(self) -> None:
         with self._count:
-            self.open_connections += change
-        if change < 0:
-            self.slots.release()
+            self.open_connections -= 1
 
     def _refuse(self, request) -> None:
         """Answer 503 without a thread (best effort, never blocking the accept loop) and close."""
