@@ -116,20 +116,17 @@ def _state_treedef_and_names():
 
 
 STATE_TREEDEF, STATE_NAMES = _state_treedef_and_names()
-#: The transition fields after the state fields of every ``step`` message.
-TRANSITION_FIELDS = ("action", "reward", "shaped_reward", "done")
+#: The transition fields after the state fields of every ``step`` message, with their dtypes.
+TRANSITION_DTYPES = {"action": "<i4", "reward": "<f4", "shaped_reward": "<f4", "done": "|b1"}
+TRANSITION_FIELDS = tuple(TRANSITION_DTYPES)
 
 
 def field_table(state_leaves: Sequence[np.ndarray], num_agents: int) -> list[dict]:
     """(name, little-endian dtype, per-step shape) of every field of a step message, in order."""
     table = [{"name": "state." + name, "dtype": leaf.dtype.newbyteorder("<").str, "shape": list(leaf.shape[1:])}
              for name, leaf in zip(STATE_NAMES, state_leaves)]
-    table += [
-        {"name": "action", "dtype": "<i4", "shape": [num_agents]},
-        {"name": "reward", "dtype": "<f4", "shape": []},
-        {"name": "shaped_reward", "dtype": "<f4", "shape": [num_agents]},
-        {"name": "done", "dtype": "|b1", "shape": []},
-    ]
+    shapes = {"action": [num_agents], "reward": [], "shaped_reward": [num_agents], "done": []}
+    table += [{"name": name, "dtype": dtype, "shape": shapes[name]} for name, dtype in TRANSITION_DTYPES.items()]
     return table
 
 

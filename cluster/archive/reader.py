@@ -27,7 +27,7 @@ from mcap.stream_reader import breakup_chunk
 
 from cluster.archive.format import (
     EPISODE_TOPIC, FRAMES_TOPIC, MAGIC, MAX_CHUNK_BYTES, PROFILE, STATE_NAMES, STATE_TREEDEF, STEP_TOPIC,
-    TRANSITION_FIELDS, ArchiveError, Episode, field_sizes, layout_from_spec,
+    TRANSITION_DTYPES, TRANSITION_FIELDS, ArchiveError, Episode, field_sizes, layout_from_spec,
 )
 from ocv2.config import build_config
 from ocv2.layouts import Layout
@@ -134,12 +134,13 @@ def _summary_definitions(data, size: int, status: ScanStatus) -> None:
         end = offset + _RECORD_HEAD.size + length
         if end > footer:
             return
-        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
-            try:
-                record = _parse(opcode, bytes(data[offset + _RECORD_HEAD.size:end]))
-            except Exception:  # noqa: BLE001 -- a damaged summary only means no fallback definitions
-                return
-            (status.schemas if opcode == Opcode.SCHEMA else status.channels).setdefault(record.id, record)
+        if opcode not in (Opcode.SCHEMA, Opcode.CHANNEL):
+            return  # the summary lists schemas and channels first; chunk indexes and the rest follow
+        try:
+            record = _parse(opcode, bytes(data[offset + _RECORD_HEAD.size:end]))
+        except Exception:  # noqa: BLE001 -- a damaged summary only means no fallback definitions
+            return
+        (status.schemas if opcode == Opcode.SCHEMA else status.channels).setdefault(record.id, record)
         offset = end
 
 
@@ -310,7 +311,8 @@ def scan(path: str, status: ScanStatus, time_range: tuple[int, int] | None = Non
             if previous is not None and meta["episode"] > previous + 1:
                 lost = (f"episode {previous + 1}" if meta["episode"] == previous + 2
                         else f"episodes {previous + 1}..{meta['episode'] - 1}")
-                status.warnings.append(f"{lost} lost (in a skipped part of the file)")
+                status.warnings.append(f"{lost} missing (in a skipped part of this file, or of the file it "
+                                       "was recovered from)")
             previous = meta["episode"]
         others = [m for m in mine if _topic(status, m) != STEP_TOPIC]
         yield Group(meta, record, steps, others)
@@ -344,11 +346,16 @@ def _step_table(path: str, meta: dict, channel: Channel) -> list[dict]:
     for field in table:
         try:
             dtype = np.dtype(field["dtype"])
-        except TypeError:
+        except (TypeError, ValueError):
             dtype = None
-        if dtype is None or dtype.kind not in "biuf" or dtype.itemsize > 8:
-            raise ArchiveError(f"{where} 'fields': {field['name']} has dtype {field['dtype']!r}, not a plain "
-                               "numeric one")
+        name = field["name"]
+        wanted = TRANSITION_DTYPES.get(name)
+        if wanted is not None and field["dtype"] != wanted:
+            raise ArchiveError(f"{where} 'fields': {name} has dtype {field['dtype']!r}, not {wanted!r}")
+        plain = dtype is not None and dtype.kind in "biu" and dtype.itemsize <= 8  # ocv2.State: ints, bools
+        if wanted is None and not plain:
+            raise ArchiveError(f"{where} 'fields': {name} has dtype {field['dtype']!r}, not an integer or "
+                               "boolean one")
         shape = field["shape"]
         if (not isinstance(shape, list) or len(shape) > 4
                 or not all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n <= 4096 for n in shape)):

@@ -160,7 +160,7 @@ def _recover(args) -> int:
     except OSError as error:
         raise CLIError(f"could not recover {args.file!r} into {out!r}: {error}", EXIT_FAILURE) from None
     _warn(args.file, report.warnings)
-    if report.source_finished:
+    if report.source_finished and not report.warnings:
         print(f"{args.file} was a finished archive; copied its {report.episodes} episode(s) to {report.path}")
         return EXIT_OK
     dropped = (f"; dropped {report.dropped_messages} message(s) of an incomplete episode"
