@@ -519,8 +519,10 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
         (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", dtype="|O")}), "dtype '|O'"),
         (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[4, 5, 2])}),
          "step message 0 has 311 bytes"),
-        (dict(step_metadata={"fields": _field_table_with(archive, "action", dtype="<f4")}), "action has dtype '<f4', not '<i4'"),
-        (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[5, 4, 3])}), "states do not fit"),
+        (dict(step_metadata={"fields": _field_table_with(archive, "action", dtype="<f4")}),
+         "action has dtype '<f4', not '<i4'"),
+        (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[5, 4, 3])}),
+         "states do not fit"),
         (dict(step_metadata={"layout": "{}"}), "key 'layout'"),
     ]
     for n, (edit, message) in enumerate(opening + decoding):

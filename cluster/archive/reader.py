@@ -13,7 +13,6 @@ import base64
 import dataclasses
 import io
 import json
-import mmap
 import os
 import struct
 from typing import Iterator, NamedTuple, Sequence
@@ -78,6 +77,40 @@ def check_file(path: str) -> int:
 # Records
 # ---------------------------------------------------------------------------------------------------
 
+class _FileBytes:
+    """An open file indexed like bytes, read on demand with ``pread``.
+
+    Not an mmap: a file truncated under a mapping (a failed writer cutting its ``.partial`` back)
+    would kill the reading process with SIGBUS. The size is fixed at opening; a file that shrinks
+    while it is read gives short reads, which end the scan like a torn tail.
+    """
+
+    def __init__(self, file):
+        self._fd = file.fileno()
+        self._size = os.fstat(self._fd).st_size
+
+    def __len__(self) -> int:
+        return self._size
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            start, stop, _ = index.indices(self._size)
+            return os.pread(self._fd, stop - start, start) if stop > start else b""
+        return os.pread(self._fd, 1, index)[0]
+
+    def find(self, needle: bytes, start: int) -> int:
+        """Offset of the next ``needle`` (one byte) at or after ``start``, or -1."""
+        while start < self._size:
+            block = self[start:start + (1 << 20)]
+            if not block:
+                return -1
+            found = block.find(needle)
+            if found >= 0:
+                return start + found
+            start += len(block)
+        return -1
+
+
 def _parse(opcode: int, content: bytes):
     stream = ReadDataStream(io.BytesIO(content))
     if opcode == Opcode.MESSAGE:
@@ -89,21 +122,21 @@ def _chunk_at(data, offset: int, size: int) -> tuple[Chunk, list, int] | None:
     """The chunk record at ``offset`` and its records, if one is there whole and checks out; else None."""
     if offset + _RECORD_HEAD.size + _CHUNK_HEAD.size > size or data[offset] != Opcode.CHUNK:
         return None
-    _, length = _RECORD_HEAD.unpack_from(data, offset)
+    _, length = _RECORD_HEAD.unpack(data[offset:offset + _RECORD_HEAD.size])
     end = offset + _RECORD_HEAD.size + length
     if end > size:
         return None
     start = offset + _RECORD_HEAD.size
-    *_, uncompressed, _, name_length = _CHUNK_HEAD.unpack_from(data, start)
+    *_, uncompressed, _, name_length = _CHUNK_HEAD.unpack(data[start:start + _CHUNK_HEAD.size])
     if name_length > 4 or uncompressed > MAX_CHUNK_BYTES:
         return None
     name_end = start + _CHUNK_HEAD.size + name_length
-    if bytes(data[start + _CHUNK_HEAD.size:name_end]) not in (b"", b"zstd", b"lz4"):
+    if data[start + _CHUNK_HEAD.size:name_end] not in (b"", b"zstd", b"lz4"):
         return None
-    if name_end + 8 > end or struct.unpack_from("<Q", data, name_end)[0] != end - name_end - 8:
+    if name_end + 8 > end or struct.unpack("<Q", data[name_end:name_end + 8])[0] != end - name_end - 8:
         return None
     try:
-        chunk = Chunk.read(ReadDataStream(io.BytesIO(bytes(data[start:end]))))
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(data[start:end])))
         return chunk, breakup_chunk(chunk, validate_crc=True), end
     except Exception:  # noqa: BLE001 -- any failure to decode means: not a whole, valid chunk here
         return None
@@ -124,20 +157,27 @@ def _resync(data, offset: int, size: int):
 def _summary_definitions(data, size: int, status: ScanStatus) -> None:
     """Schemas and channels from a finished file's summary: messages keep their channel even when the
     chunk that first defined it is the one that was skipped."""
+    try:
+        _read_summary_definitions(data, size, status)
+    except (struct.error, IndexError):  # a file that shrank meanwhile: no fallback definitions
+        pass
+
+
+def _read_summary_definitions(data, size: int, status: ScanStatus) -> None:
     footer = size - len(MAGIC) - _FOOTER_BYTES
-    if footer <= len(MAGIC) or bytes(data[size - len(MAGIC):]) != MAGIC or data[footer] != Opcode.FOOTER:
+    if footer <= len(MAGIC) or data[size - len(MAGIC):size] != MAGIC or data[footer] != Opcode.FOOTER:
         return
-    summary_start = struct.unpack_from("<Q", data, footer + _RECORD_HEAD.size)[0]
+    summary_start = struct.unpack("<Q", data[footer + _RECORD_HEAD.size:footer + _RECORD_HEAD.size + 8])[0]
     offset = summary_start if len(MAGIC) <= summary_start < footer else footer
     while offset + _RECORD_HEAD.size <= footer:
-        opcode, length = _RECORD_HEAD.unpack_from(data, offset)
+        opcode, length = _RECORD_HEAD.unpack(data[offset:offset + _RECORD_HEAD.size])
         end = offset + _RECORD_HEAD.size + length
         if end > footer:
             return
         if opcode not in (Opcode.SCHEMA, Opcode.CHANNEL):
             return  # the summary lists schemas and channels first; chunk indexes and the rest follow
         try:
-            record = _parse(opcode, bytes(data[offset + _RECORD_HEAD.size:end]))
+            record = _parse(opcode, data[offset + _RECORD_HEAD.size:end])
         except Exception:  # noqa: BLE001 -- a damaged summary only means no fallback definitions
             return
         (status.schemas if opcode == Opcode.SCHEMA else status.channels).setdefault(record.id, record)
@@ -150,52 +190,58 @@ def _records(path: str, status: ScanStatus, time_range: tuple[int, int] | None) 
     Corrupt chunks and records are skipped with a warning in ``status.warnings``; the scan ends at
     the footer or at a tail that holds no further valid chunk.
     """
-    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+    with open(path, "rb") as f:
+        data = _FileBytes(f)
         size = len(data)
         fallback = ScanStatus()
         _summary_definitions(data, size, fallback)
         offset = len(MAGIC)
-        while offset < size:
-            if offset + _RECORD_HEAD.size > size:
-                status.tail_error = f"truncated record at byte {offset} (the file ends inside it)"
-                return
-            opcode, length = _RECORD_HEAD.unpack_from(data, offset)
-            end = offset + _RECORD_HEAD.size + length
-            if opcode not in _KNOWN_OPCODES or end > size:
-                found = _resync(data, offset, size)
-                what = (f"unknown record type {opcode:#x}" if opcode not in _KNOWN_OPCODES
-                        else f"record of {length} bytes that runs past the end of the file")
-                if found is None:
-                    status.tail_error = f"truncated or corrupt record at byte {offset} ({what})"
+        try:
+            while offset < size:
+                if offset + _RECORD_HEAD.size > size:
+                    status.tail_error = f"truncated record at byte {offset} (the file ends inside it)"
                     return
-                position, _ = found
-                status.warnings.append(f"skipped bytes {offset}..{position} (corrupt: {what} at byte {offset})")
-                offset = position
-                continue
-            if opcode == Opcode.CHUNK:
-                if time_range is not None and _outside(data, offset, size, time_range):
-                    offset = end  # another episode's chunk: not even decompressed
+                opcode, length = _RECORD_HEAD.unpack(data[offset:offset + _RECORD_HEAD.size])
+                end = offset + _RECORD_HEAD.size + length
+                if opcode not in _KNOWN_OPCODES or end > size:
+                    found = _resync(data, offset, size)
+                    what = (f"unknown record type {opcode:#x}" if opcode not in _KNOWN_OPCODES
+                            else f"record of {length} bytes that runs past the end of the file")
+                    if found is None:
+                        status.tail_error = f"truncated or corrupt record at byte {offset} ({what})"
+                        return
+                    position, _ = found
+                    status.warnings.append(f"skipped bytes {offset}..{position} (corrupt: {what} at byte "
+                                           f"{offset})")
+                    offset = position
                     continue
-                found = _chunk_at(data, offset, size)
-                if found is None:
-                    status.warnings.append(f"skipped corrupt {_describe_chunk(data, offset, end)}")
-                else:
-                    for record in found[1]:
+                if opcode == Opcode.CHUNK:
+                    if time_range is not None and _outside(data, offset, size, time_range):
+                        offset = end  # another episode's chunk: not even decompressed
+                        continue
+                    found = _chunk_at(data, offset, size)
+                    if found is None:
+                        status.warnings.append(f"skipped corrupt {_describe_chunk(data, offset, end)}")
+                    else:
+                        for record in found[1]:
+                            _learn(record, status, fallback)
+                            yield record
+                elif opcode == Opcode.FOOTER:
+                    status.finished = True
+                    return
+                elif opcode in (Opcode.HEADER, Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+                    try:
+                        record = _parse(opcode, data[offset + _RECORD_HEAD.size:end])
+                    except Exception as error:  # noqa: BLE001 -- mcap raises assorted errors on garbage
+                        status.warnings.append(f"skipped corrupt {Opcode(opcode).name.lower()} record at byte "
+                                               f"{offset} ({type(error).__name__}: {error})")
+                    else:
                         _learn(record, status, fallback)
                         yield record
-            elif opcode == Opcode.FOOTER:
-                status.finished = True
-                return
-            elif opcode in (Opcode.HEADER, Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-                try:
-                    record = _parse(opcode, bytes(data[offset + _RECORD_HEAD.size:end]))
-                except Exception as error:  # noqa: BLE001 -- mcap raises assorted errors on garbage
-                    status.warnings.append(f"skipped corrupt {Opcode(opcode).name.lower()} record at byte "
-                                           f"{offset} ({type(error).__name__}: {error})")
-                else:
-                    _learn(record, status, fallback)
-                    yield record
-            offset = end  # indexes, statistics and the like: not needed to read episodes
+                offset = end  # indexes, statistics and the like: not needed to read episodes
+        except (struct.error, IndexError):  # short reads: the file shrank under the reader
+            status.tail_error = f"the file ended at byte {offset} while it was read (truncated meanwhile)"
+            return
         if not status.finished:
             status.tail_error = status.tail_error or "the file ends without a footer"
 
@@ -203,7 +249,8 @@ def _records(path: str, status: ScanStatus, time_range: tuple[int, int] | None) 
 def _outside(data, offset: int, size: int, time_range: tuple[int, int]) -> bool:
     if offset + _RECORD_HEAD.size + _CHUNK_HEAD.size > size:
         return False
-    start, end, *_ = _CHUNK_HEAD.unpack_from(data, offset + _RECORD_HEAD.size)
+    head = offset + _RECORD_HEAD.size
+    start, end, *_ = _CHUNK_HEAD.unpack(data[head:head + _CHUNK_HEAD.size])
     return end < time_range[0] or start > time_range[1]
 
 
@@ -211,7 +258,7 @@ def _describe_chunk(data, offset: int, end: int) -> str:
     """Which chunk failed (byte offset, time range when readable) and why, for the warning."""
     name = f"chunk at byte {offset}"
     try:
-        chunk = Chunk.read(ReadDataStream(io.BytesIO(bytes(data[offset + _RECORD_HEAD.size:end]))))
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(data[offset + _RECORD_HEAD.size:end])))
         name = f"{name} (messages at log times {chunk.message_start_time}..{chunk.message_end_time})"
         if chunk.uncompressed_size > MAX_CHUNK_BYTES:
             return f"{name}: it claims {chunk.uncompressed_size} bytes uncompressed (at most {MAX_CHUNK_BYTES})"

@@ -70,7 +70,8 @@ def _same_kitchen(a: Layout, b: Layout) -> bool:
             and a.num_agents == b.num_agents and a.num_ingredients == b.num_ingredients)
 
 
-def record_episodes(writer: ArchiveWriter, env, recorded, meta: dict | None = None, first_episode: int = 0) -> list[int]:
+def record_episodes(writer: ArchiveWriter, env, recorded, meta: dict | None = None,
+                    first_episode: int = 0) -> list[int]:
     """Write the E episodes of one pair's ``population.record.Recorded`` (no leading pair axis).
 
     Each episode's metadata is ``env_meta(env)`` + ``meta`` + ``{"pair_episode": first_episode + e}``.
@@ -81,8 +82,9 @@ def record_episodes(writer: ArchiveWriter, env, recorded, meta: dict | None = No
     indices = []
     for e in range(np.shape(host.actions)[0]):
         states = jax.tree.map(lambda x: x[e], host.states)
-        indices.append(writer.write_episode({**base, "pair_episode": first_episode + e}, states, host.actions[e], host.rewards[e],
-                                            host.shaped_rewards[e], host.dones[e], layout=env.layout))
+        meta_e = {**base, "pair_episode": first_episode + e}
+        indices.append(writer.write_episode(meta_e, states, host.actions[e], host.rewards[e], host.shaped_rewards[e],
+                                            host.dones[e], layout=env.layout))
     return indices
 
 
