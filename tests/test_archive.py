@@ -402,6 +402,13 @@ def test_write_error_fails_the_writer_and_keeps_earlier_episodes(tmp_path, recor
     _assert_same_episode(ArchiveReader(path).episode(0), recorded, 0)
 
 
+def test_a_disk_full_at_opening_leaves_no_file(tmp_path, monkeypatch):
+    path = tmp_path / "none.mcap"
+    with pytest.raises(OSError, match="No space left"):
+        _open_on_full_disk(monkeypatch, ArchiveWriter(path), [0])
+    assert os.listdir(tmp_path) == []  # not even an empty .partial that looks like a killed writer's
+
+
 def test_play_archives_fsync_every_episode(tmp_path, recorded, monkeypatch):
     """A human's episode is on disk (fsynced) once written, not only at the end of the session."""
     synced = []
@@ -525,6 +532,12 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
          "states do not fit"),
         (dict(step_metadata={"layout": "{}"}), "key 'layout'"),
     ]
+    # A crafted record after good episodes: recover stops with the error and leaves no half-copied file.
+    path, out = str(tmp_path / "late.mcap"), tmp_path / "late_fixed.mcap"
+    _rewrite(archive, path, commit=lambda meta: b"{" if meta["episode"] == 2 else json.dumps(meta).encode())
+    assert main(["archive", "recover", path, "--out", str(out)]) == 2
+    assert "episode record at log time" in capsys.readouterr().err
+    assert not out.exists() and not os.path.exists(str(out) + ".recovering")
     for n, (edit, message) in enumerate(opening + decoding):
         path = str(tmp_path / f"crafted_{n}.mcap")
         _rewrite(archive, path, **edit)
