@@ -38,6 +38,7 @@ _RECORD_HEAD = struct.Struct("<BQ")  # opcode, content length
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start time, end time, uncompressed size, crc, compression length
 _FOOTER_BYTES = _RECORD_HEAD.size + 20  # opcode, length, summary start, summary offset start, crc
 _KNOWN_OPCODES = {int(op) for op in Opcode}
+_RESYNC_BLOCK = 1 << 20  # bytes read at a time while looking for the next valid chunk
 
 
 @dataclasses.dataclass
@@ -98,18 +99,6 @@ class _FileBytes:
             return os.pread(self._fd, stop - start, start) if stop > start else b""
         return os.pread(self._fd, 1, index)[0]
 
-    def find(self, needle: bytes, start: int) -> int:
-        """Offset of the next ``needle`` (one byte) at or after ``start``, or -1."""
-        while start < self._size:
-            block = self[start:start + (1 << 20)]
-            if not block:
-                return -1
-            found = block.find(needle)
-            if found >= 0:
-                return start + found
-            start += len(block)
-        return -1
-
 
 def _parse(opcode: int, content: bytes):
     stream = ReadDataStream(io.BytesIO(content))
@@ -143,15 +132,25 @@ def _chunk_at(data, offset: int, size: int) -> tuple[Chunk, list, int] | None:
 
 
 def _resync(data, offset: int, size: int):
-    """The next whole, valid chunk after ``offset`` (None if there is none: a torn tail)."""
-    position = offset
-    while True:
-        position = data.find(bytes([Opcode.CHUNK]), position + 1)
-        if position < 0:
+    """The next whole, valid chunk after ``offset`` (None if there is none: a torn tail).
+
+    Every chunk opcode byte is a candidate; almost all fail the header checks of ``_chunk_at`` at
+    once, and the CRC settles the rest.
+    """
+    opcode = bytes([Opcode.CHUNK])
+    block_start = offset + 1
+    while block_start < size:
+        block = data[block_start:block_start + _RESYNC_BLOCK]
+        if not block:
             return None
-        found = _chunk_at(data, position, size)
-        if found is not None:
-            return position, found
+        hit = block.find(opcode)
+        while hit >= 0:
+            found = _chunk_at(data, block_start + hit, size)
+            if found is not None:
+                return block_start + hit, found
+            hit = block.find(opcode, hit + 1)
+        block_start += len(block)
+    return None
 
 
 def _summary_definitions(data, size: int, status: ScanStatus) -> None:
