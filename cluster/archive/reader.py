@@ -325,7 +325,7 @@ def scan(path: str, status: ScanStatus, time_range: tuple[int, int] | None = Non
         return
     pending: list[Message] = []
     first = True
-    previous = None  # index of the last episode yielded: a gap means episodes were lost
+    previous = -1  # index of the last episode yielded: a gap means episodes were lost
     for record in _records(path, status, time_range):
         if first:
             first = False
@@ -352,9 +352,10 @@ def scan(path: str, status: ScanStatus, time_range: tuple[int, int] | None = Non
             status.bad_episodes += 1
             status.warnings.append(f"episode {meta['episode']}: {len(steps)} of its {meta['steps'] + 1} step "
                                    "messages are readable; skipped")
+            previous = max(previous, meta["episode"])  # reported here, not again as missing
             continue
         if time_range is None:
-            if previous is not None and meta["episode"] > previous + 1:
+            if meta["episode"] > previous + 1:
                 lost = (f"episode {previous + 1}" if meta["episode"] == previous + 2
                         else f"episodes {previous + 1}..{meta['episode'] - 1}")
                 status.warnings.append(f"{lost} missing (in a skipped part of this file, or of the file it "
