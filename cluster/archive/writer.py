@@ -9,6 +9,8 @@ import time
 
 import jax
 import numpy as np
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, Schema
 from mcap.writer import IndexType, Writer
 
 from cluster.archive.format import (
@@ -65,13 +67,25 @@ class Output:
         key = (name, encoding, data)
         if key not in self._schemas:
             self._schemas[key] = self.mcap.register_schema(name, encoding, data)
+            self._outside_chunks(Schema(id=self._schemas[key], name=name, encoding=encoding, data=data))
         return self._schemas[key]
 
     def channel(self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]) -> int:
         key = (topic, encoding, schema_id, tuple(sorted(metadata.items())))
         if key not in self._channels:
             self._channels[key] = self.mcap.register_channel(topic, encoding, schema_id, metadata)
+            self._outside_chunks(Channel(id=self._channels[key], topic=topic, message_encoding=encoding,
+                                         schema_id=schema_id, metadata=metadata))
         return self._channels[key]
+
+    def _outside_chunks(self, record) -> None:
+        """Also write a schema or channel definition as a record of its own, ahead of the chunk that
+        holds it: MCAP writes it only inside that chunk, so a corrupt chunk would take the channel of
+        every later episode with it (a finished file's summary repeats it; a ``.partial`` has none).
+        MCAP allows identical repeats; the chunks' byte offsets stay right (same stream)."""
+        builder = RecordBuilder()
+        record.write(builder)
+        self._file.write(builder.end())
 
     def commit(self):
         """End the chunk in progress and push everything to the OS (and the disk if ``fsync``)."""
