@@ -10,6 +10,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
+
+from cluster.archive import PARTIAL_SUFFIX, ArchiveError, ArchiveReader, recover
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from ocv2.render import render_frames, write_gif
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -51,21 +56,24 @@ def run(args) -> int:
     return {"info": _info, "replay": _replay, "recover": _recover}[args.archive_command](args)
 
 
-def _reader(path: str):
-    from cluster.archive import ArchiveError, ArchiveReader
-    from cluster.cli.errors import CLIError
-
+def _reader(path: str) -> ArchiveReader:
+    """The archive, its damage (skipped chunks, lost episodes) warned about on stderr."""
     try:
-        return ArchiveReader(path)
+        reader = ArchiveReader(path)
     except ArchiveError as error:
         raise CLIError(str(error)) from None
     except OSError as error:
         raise CLIError(f"cannot read {path!r}: {error}") from None
+    _warn(path, reader.warnings)
+    return reader
+
+
+def _warn(path: str, warnings) -> None:
+    for warning in warnings:
+        print(f"warning: {path}: {warning}", file=sys.stderr)
 
 
 def _info(args) -> int:
-    from cluster.cli.errors import EXIT_OK
-
     reader = _reader(args.file)
     summary = reader.info()
     metas = reader.episodes()
@@ -108,9 +116,6 @@ def _info(args) -> int:
 
 
 def _replay(args) -> int:
-    from cluster.archive import ArchiveError
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
     if not 0 < args.fps <= 100:
@@ -125,9 +130,6 @@ def _replay(args) -> int:
         layout = reader.layout(args.episode)
     except ArchiveError as error:
         raise CLIError(str(error)) from None
-
-    from ocv2.render import render_frames, write_gif
-
     frames = render_frames(episode.states, layout, agent_view_size=args.view_radius, tile_size=args.tile_size)
     folder = os.path.dirname(os.path.abspath(args.out))
     try:
@@ -142,9 +144,6 @@ def _replay(args) -> int:
 
 
 def _recover(args) -> int:
-    from cluster.archive import PARTIAL_SUFFIX, ArchiveError, recover
-    from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-
     out = args.out
     if out is None:
         if args.file.endswith(PARTIAL_SUFFIX):
@@ -160,7 +159,8 @@ def _recover(args) -> int:
         raise CLIError(str(error)) from None
     except OSError as error:
         raise CLIError(f"could not recover {args.file!r} into {out!r}: {error}", EXIT_FAILURE) from None
-    if report.source_finished:
+    _warn(args.file, report.warnings)
+    if report.source_finished and not report.warnings:
         print(f"{args.file} was a finished archive; copied its {report.episodes} episode(s) to {report.path}")
         return EXIT_OK
     dropped = (f"; dropped {report.dropped_messages} message(s) of an incomplete episode"

@@ -231,7 +231,7 @@ def _writer(out: str | None, layout: str, fps: float):
         raise CLIError(f"--out must name a .mcap file, got {path!r}")
     try:
         # Message times a tick apart: Foxglove and other MCAP players replay the episode at the speed it was played.
-        return ArchiveWriter(path, step_ns=round(1e9 / fps)).open(), path
+        return ArchiveWriter(path, step_ns=round(1e9 / fps), fsync=True).open(), path
     except ArchiveError as error:
         raise CLIError(f"--out: {error}") from None
     except OSError as error:
