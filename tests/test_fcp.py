@@ -105,32 +105,28 @@ def _random_pool(trainer, key, members: int = 2):
 
 
 def test_per_seed_advance_gives_each_learner_its_own_pool_only():
-    """Learners [0, 1] with pools [A, B] stacked per seed train exactly as each alone against its own pool.
+    """Replacing learner j's pool changes learner j and leaves learner i exactly as it was.
 
-    Shapes are those of the runs below (2 updates a chunk, 2 pool members), so the compiled programs
-    are shared with them through the compilation cache.
+    Shapes are those of the runs below (2 learners, 2 updates a chunk, 2 pool members), so they reuse
+    this compiled program through the compilation cache.
     """
     config = smoke()
     trainer = ppo.make_trainer(config)
-    pools = [_random_pool(trainer, jax.random.PRNGKey(k)) for k in (1, 2)]
-    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *pools)
+    a, b, c = (_random_pool(trainer, jax.random.PRNGKey(k)) for k in (1, 2, 3))
     advance = ppo.make_advance_population(trainer, 2, pool_per_seed=True)
-    states, metrics = advance(ppo.init_population(trainer, [0, 1], None, 2), None, stacked)
 
-    def alone(seed, pool):
-        single, metrics = advance(ppo.init_population(trainer, [seed], None, 2), None,
-                                  jax.tree.map(lambda x: x[None], pool))
-        return jax.tree.leaves((ppo.take_seed(single, 0), ppo.take_seed(metrics, 0)))
+    def learners(pool0, pool1):
+        pools = jax.tree.map(lambda *xs: jnp.stack(xs), pool0, pool1)
+        states, metrics = advance(ppo.init_population(trainer, [0, 1], None, 2), None, pools)
+        return [jax.tree.leaves((ppo.take_seed(states, s), ppo.take_seed(metrics, s))) for s in (0, 1)]
 
-    def close(a, b) -> bool:  # the whole TrainState (env states, partner carries, ...) and the metrics
-        return all(np.allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6, equal_nan=True)
-                   for x, y in zip(a, b, strict=True))
+    def same(x, y) -> bool:  # the whole TrainState (env states, partner carries, ...) and the metrics
+        return all(np.allclose(np.asarray(u), np.asarray(v), rtol=1e-6, atol=1e-7, equal_nan=True)
+                   for u, v in zip(x, y, strict=True))
 
-    together = [jax.tree.leaves((ppo.take_seed(states, s), ppo.take_seed(metrics, s))) for s in (0, 1)]
-    for seed in (0, 1):
-        assert close(together[seed], alone(seed, pools[seed]))
-    # the other learner's pool leads elsewhere, so the comparison above can fail
-    assert not close(together[0], alone(0, pools[1]))
+    ab, ac, cb = learners(a, b), learners(a, c), learners(c, b)
+    assert same(ab[0], ac[0]) and not same(ab[1], ac[1])
+    assert same(ab[1], cb[1]) and not same(ab[0], cb[0])
 
 
 class Recorder:
@@ -151,21 +147,6 @@ class Recorder:
             return run
 
         monkeypatch.setattr(ppo, "make_advance_population", make)
-
-
-class ShardPerSeed(LocalWorkers):
-    """In-process workers with one ``SeedShard`` per seed: the Ray backend's split, without Ray."""
-
-    def __init__(self, config, run_dir, pool=None):
-        self.shards = [[s] for s in range(config.population.num_seeds)]
-        self.events = []
-        self._shard_list = [SeedShard(config, run_dir, seeds, pool) for seeds in self.shards]
-
-    def call(self, method, jobs):
-        return [getattr(self._shard_list[index], method)(*args) for index, args in jobs]
-
-    def close(self):
-        self._shard_list = []
 
 
 def _partner_params(run, seed, update, trainer, config):
@@ -212,15 +193,13 @@ def test_per_seed_pools_hold_only_each_learners_own_partners(per_seed_run):
     assert not np.array_equal(first[0], first[1])
 
 
-def test_per_seed_pools_survive_sharding_and_resume(per_seed_run, tmp_path, monkeypatch):
-    """One shard per seed (as on Ray) and a driver that dies after the first chunk: each shard gets only
-    its learner's pool, and the resumed run ends where the uninterrupted one did."""
+def test_per_seed_run_resumes_where_it_stopped(per_seed_run, tmp_path, monkeypatch):
+    """A driver that dies after the first chunk: the resumed run rebuilds the same per-seed pools and
+    ends where the uninterrupted one did."""
     reference, reference_calls = per_seed_run
-    # The reference's partner stage (a partner stage of its own would be trained one seed per shard,
-    # which moves its parameters at float-rounding level and the pools with them).
-    config = smoke(f"population.fcp.partners={reference / 'partners'}")
+    config = smoke(f"population.fcp.partners={reference / 'partners'}")  # the reference's partner stage
     recorder = Recorder(monkeypatch)
-    run = tmp_path / "sharded"
+    run = tmp_path / "resumed"
 
     class Stop(Exception):
         pass
@@ -230,24 +209,35 @@ def test_per_seed_pools_survive_sharding_and_resume(per_seed_run, tmp_path, monk
             raise Stop
 
     with pytest.raises(Stop):
-        coordinator.train(config, run, ShardPerSeed, show_progress=False, evaluate=False, on_chunk=die)
-    coordinator.train(config, run, ShardPerSeed, resume=True, show_progress=False, evaluate=False)
-    full = reference_calls[0][1]
-    assert len(recorder.calls) == 2 * NUM_SEEDS  # 2 chunks x 2 shards
-    for index, (per_seed, pool) in enumerate(recorder.calls):
-        learner = index % NUM_SEEDS
-        assert per_seed and jax.tree.leaves(pool)[0].shape[0] == 1
-        for x, y in zip(jax.tree.leaves(pool), jax.tree.leaves(full), strict=True):
-            np.testing.assert_array_equal(x[0], y[learner])
+        coordinator.train(config, run, LocalWorkers, show_progress=False, evaluate=False, on_chunk=die)
+    coordinator.train(config, run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
     assert RunDir(run).read_manifest()["status"] == "finished"
-    trainer = ppo.make_trainer(config)
-    template = runstate.params_template(trainer)
+    assert len(recorder.calls) == 2  # one chunk before the stop, one after
+    for (per_seed, pool), (_, expected) in zip(recorder.calls, reference_calls, strict=True):
+        assert per_seed
+        for x, y in zip(jax.tree.leaves(pool), jax.tree.leaves(expected), strict=True):
+            np.testing.assert_array_equal(x, y)
+    template = runstate.params_template(ppo.make_trainer(config))
     for seed in range(NUM_SEEDS):
-        path = lambda r: ckpt.checkpoint_path(r, seed, NUM_UPDATES)
-        ours = runstate.load_params(path(run), config.fingerprint(), template)
-        theirs = runstate.load_params(path(reference), smoke().fingerprint(), template)
-        for x, y in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs)):
-            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-5)
+        ours = runstate.load_params(ckpt.checkpoint_path(run, seed, NUM_UPDATES), config.fingerprint(), template)
+        theirs = runstate.load_params(ckpt.checkpoint_path(reference, seed, NUM_UPDATES), smoke().fingerprint(),
+                                      template)
+        for x, y in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_a_shard_keeps_only_its_seeds_pools(per_seed_run, tmp_path):
+    """The Ray backend hands every actor the run's per-seed pools; a shard of seed 1 keeps row 1 only."""
+    reference, reference_calls = per_seed_run
+    config = smoke(f"population.fcp.partners={reference / 'partners'}")
+    pools = reference_calls[0][1]
+    RunDir(tmp_path / "run").create(config)
+    shard = SeedShard(config, tmp_path / "run", [1], pools)
+    assert shard.pool_per_seed
+    for x, y in zip(jax.tree.leaves(shard.pool), jax.tree.leaves(pools), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), y[1:2])
+    with pytest.raises(ValueError, match="per_seed pool has 1 learner pools for 2 seeds"):
+        SeedShard(config, tmp_path / "run", [1], jax.tree.map(lambda x: x[:1], pools))
 
 
 def test_per_seed_partner_run_needs_a_pool_of_seeds_per_learner(per_seed_run, tmp_path):
