@@ -166,7 +166,8 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
                           "section; FCP partners must play the same game with the same network")
     needed = fcp.stage_seeds(config.population.num_seeds)
     if partner_config.population.num_seeds < needed:
-        per_learner = f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed)" if fcp.per_seed else ""
+        per_learner = (f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed; "
+                       "population.fcp.pool=shared needs partner_seeds)") if fcp.per_seed else ""
         raise RunDirError(f"population.fcp.partner_seeds: {needed} partner seeds needed{per_learner} but {partner_run} has "
                           f"{partner_config.population.num_seeds} seeds")
     snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
