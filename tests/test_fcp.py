@@ -149,7 +149,7 @@ class Recorder:
         monkeypatch.setattr(ppo, "make_advance_population", make)
 
 
-def _partner_params(run, seed, update, trainer, config):
+def _partner_params(run, seed, update, trainer):
     stage = RunDir(run / "partners").load_config()
     return runstate.load_params(ckpt.checkpoint_path(run / "partners", seed, update), stage.fingerprint(),
                                 runstate.params_template(trainer))
@@ -188,7 +188,7 @@ def test_per_seed_pools_hold_only_each_learners_own_partners(per_seed_run):
         assert jax.tree.leaves(pool)[0].shape[:2] == (NUM_SEEDS, 2)
         for learner in range(NUM_SEEDS):
             _assert_pool_is(jax.tree.map(lambda x: x[learner], pool),
-                            [_partner_params(run, learner, u, trainer, config) for u in (2, 4)])
+                            [_partner_params(run, learner, u, trainer) for u in (2, 4)])
     first = jax.tree.leaves(calls[0][1])[0]
     assert not np.array_equal(first[0], first[1])
 
