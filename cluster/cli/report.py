@@ -62,9 +62,11 @@ def describe_config(config) -> str:
     if pop.method == "sa":
         text += f"; {pop.sa.iterations} SA iterations"
     if pop.method == "fcp":
-        pool = f"{pop.fcp.partner_seeds} partner seeds x {list(pop.fcp.checkpoints)}"
-        text += (f"; pool {pool} from {pop.fcp.partners}" if pop.fcp.partners
-                 else f"; first an SP partner stage of {pop.fcp.partner_seeds} seeds, pool {pool}")
+        fcp = pop.fcp
+        pool = f"{fcp.partner_seeds} partner seeds x {list(fcp.checkpoints)} {'per learner' if fcp.per_seed else 'shared'}"
+        text += (f"; pool {pool} from {fcp.partners}" if fcp.partners
+                 else f"; first an SP partner stage of {fcp.stage_seeds(pop.num_seeds)} seeds x "
+                      f"{fcp.partner_ppo.num_updates} updates, pool {pool}")
     return text
 
 

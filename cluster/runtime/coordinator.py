@@ -31,7 +31,7 @@ from cluster.runtime.runstate import Schedule, archive_meta, load_params, pair_m
 from cluster.runtime.shard import SABuffer
 from population import checkpoints as ckpt
 from population import ppo
-from population.config import Config
+from population.config import Config, shards as seed_shards
 from population.evaluation import stack_params
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
 
@@ -149,8 +149,13 @@ def buffer_template(config: Config, size: int):
 # FCP partner pools
 # ---------------------------------------------------------------------------------------------------
 
-def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object, list[str]]:
-    """Stack the pool of frozen partners from an SP run directory: partner_seeds x checkpoints."""
+def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object, list]:
+    """Stack the frozen partners from an SP run directory: partner_seeds x checkpoints per pool.
+
+    ``population.fcp.pool`` shared: one pool [P, ...] of partner seeds [0, k) and its labels;
+    per_seed: a pool per learner [num_seeds, P, ...], learner i's from partner seeds [i*k, (i+1)*k),
+    and a list of labels per learner (P = k x checkpoints).
+    """
     fcp = config.population.fcp
     source = RunDir(partner_run)
     if not source.config_path.exists():
@@ -159,28 +164,52 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
     if partner_config.env != config.env or partner_config.model != config.model:
         raise RunDirError(f"population.fcp.partners: {partner_run} was trained with a different env or model "
                           "section; FCP partners must play the same game with the same network")
-    if partner_config.population.num_seeds < fcp.partner_seeds:
-        raise RunDirError(f"population.fcp.partner_seeds: {fcp.partner_seeds} requested but {partner_run} has "
+    needed = fcp.stage_seeds(config.population.num_seeds)
+    if partner_config.population.num_seeds < needed:
+        per_learner = (f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed; "
+                       "population.fcp.pool=shared needs partner_seeds)") if fcp.per_seed else ""
+        raise RunDirError(f"population.fcp.partner_seeds: {needed} partner seeds needed{per_learner} but {partner_run} has "
                           f"{partner_config.population.num_seeds} seeds")
     snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
     template = params_template(trainer)
-    params, labels = [], []
-    for seed in range(fcp.partner_seeds):
-        for name in fcp.checkpoints:
-            update = ckpt.resolve_snapshot(name, snapshots)
-            path = ckpt.checkpoint_path(partner_run, seed, update)
-            params.append(load_params(path, partner_config.fingerprint(), template))
-            labels.append(f"seed{seed}@{update}")
-    return jax.tree.map(np.asarray, stack_params(params)), labels
+
+    def pool_of(seeds) -> tuple[object, list[str]]:
+        params, labels = [], []
+        for seed in seeds:
+            for name in fcp.checkpoints:
+                update = ckpt.resolve_snapshot(name, snapshots)
+                path = ckpt.checkpoint_path(partner_run, seed, update)
+                params.append(load_params(path, partner_config.fingerprint(), template))
+                labels.append(f"seed{seed}@{update}")
+        return jax.tree.map(np.asarray, stack_params(params)), labels
+
+    if not fcp.per_seed:
+        return pool_of(fcp.pool_seeds(0))
+    pools = [pool_of(fcp.pool_seeds(learner)) for learner in range(config.population.num_seeds)]
+    return jax.tree.map(lambda *xs: np.stack(xs), *[p for p, _ in pools]), [labels for _, labels in pools]
+
+
+def partner_stage(config: Config) -> Config:
+    """The SP run FCP trains its partners in when ``population.fcp.partners`` is unset.
+
+    Same env and model; ``population.fcp.partner_ppo`` hyperparameters; enough seeds for every pool
+    (per_seed: num_seeds x partner_seeds); as many workers as the FCP run itself uses.
+    """
+    fcp, pop = config.population.fcp, config.population
+    seeds = fcp.stage_seeds(pop.num_seeds)
+    workers = min(len(seed_shards(config)), seeds)
+    return dataclasses.replace(
+        config, ppo=fcp.partner_ppo,
+        population=dataclasses.replace(pop, method="sp", num_seeds=seeds, seed=pop.seed + 7919),
+        cluster=dataclasses.replace(config.cluster, workers=workers, seeds_per_actor=1))
 
 
 def fcp_pool(config: Config, run: RunDir, factory: WorkersFactory, show_progress: bool):
-    """The FCP pool: from ``population.fcp.partners``, or an SP stage trained into RUN_DIR/partners first."""
+    """The FCP pool(s): from ``population.fcp.partners``, or an SP stage trained into RUN_DIR/partners first."""
     fcp = config.population.fcp
     partner_run = Path(fcp.partners) if fcp.partners else run.path / "partners"
     if fcp.partners is None:
-        stage = dataclasses.replace(config, population=dataclasses.replace(
-            config.population, method="sp", num_seeds=fcp.partner_seeds, seed=config.population.seed + 7919))
+        stage = partner_stage(config)
         stage_dir = RunDir(partner_run)
         finished = stage_dir.config_path.exists() and stage_dir.read_manifest().get("status") == "finished"
         if not finished:

@@ -72,15 +72,18 @@ class SeedShard:
         config: the run's config.
         run_dir: the run directory (an existing one: the coordinator creates it).
         seeds: this shard's seed indices.
-        pool: FCP only, the stacked frozen partner params (numpy or jax).
+        pool: FCP only, the stacked frozen partner params (numpy or jax): one pool [P, ...] shared by
+            all seeds, or with ``population.fcp.pool: per_seed`` one per seed of the run [num_seeds, P, ...]
+            (the shard keeps its own seeds' rows).
     """
 
     def __init__(self, config: Config, run_dir, seeds: Sequence[int], pool=None):
         self.config, self.run_dir, self.seeds = config, str(run_dir), [int(s) for s in seeds]
         self.trainer = ppo.make_trainer(config)
         self.schedule = Schedule.of(config)
-        self.pool = None if pool is None else jax.tree.map(jnp.asarray, pool)
-        pool_size = 0 if pool is None else int(jax.tree.leaves(pool)[0].shape[0])
+        self.pool_per_seed = config.population.fcp.per_seed
+        self.pool = None if pool is None else jax.tree.map(jnp.asarray, self._own_pool(pool))
+        pool_size = 0 if pool is None else int(jax.tree.leaves(self.pool)[0].shape[int(self.pool_per_seed)])
         restored = restore(self.trainer, self.run_dir, config, self.seeds, pool_size)
         if restored is None:
             self.states, self.update, self._saved_rows = ppo.init_population(self.trainer, self.seeds, None,
@@ -96,6 +99,15 @@ class SeedShard:
                                          in_axes=(0, 0, None)))
         env = self.trainer.env
         self._recipe_labels = ["+".join(map(str, r)) for r in env.layout.possible_recipes]
+
+    def _own_pool(self, pool):
+        """FCP per_seed: the pools of this shard's seeds (``pool`` holds one per learner of the run)."""
+        if not self.pool_per_seed:
+            return pool
+        learners = int(jax.tree.leaves(pool)[0].shape[0])
+        if learners != self.config.population.num_seeds:
+            raise ValueError(f"FCP per_seed pool has {learners} learner pools for {self.config.population.num_seeds} seeds")
+        return jax.tree.map(lambda x: np.asarray(x)[self.seeds], pool)
 
     # -- training
     def position(self) -> int:
@@ -115,7 +127,7 @@ class SeedShard:
             stop = self.schedule.next_stop(self.update)
             count = stop - self.update
             if count not in self._compiled:
-                self._compiled[count] = ppo.make_advance_population(self.trainer, count)
+                self._compiled[count] = ppo.make_advance_population(self.trainer, count, self.pool_per_seed)
             chunk_start = time.perf_counter()
             self.states, metrics = self._compiled[count](self.states, self._device_buffer(buffer), self.pool)
             metrics = jax.tree.map(np.asarray, metrics)
