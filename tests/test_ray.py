@@ -28,6 +28,7 @@ from cluster.runtime.rundir import RunDir
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import load_config
+from population.keys import derive_key
 from population.sa import collect_buffer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -211,7 +212,7 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
         # Rebuilt here in one process from the checkpointed policies: the Ray buffer is exactly this.
         params = jax.tree.map(lambda *xs: np.stack(xs), *(
             ckpt.load(ckpt.checkpoint_path(run, s, update), template, config.fingerprint())[1].params for s in (0, 1)))
-        key = runstate.population_key(config, runstate.SA_KEY_OFFSET + iteration)
+        key = derive_key(config.population.seed, "sa", iteration)
         expected = collect_buffer(trainer.network.apply, 0, ppo.eval_env(config), params, key, config.population.sa)
         meta, stored = ckpt.load(run / "sa" / f"buffer_{iteration:03d}.msgpack", expected, config.fingerprint())
         assert meta["states"] == 4 * 1 * 2  # 4 ordered pairs x 1 rollout x 24 // 10 kept states

@@ -186,8 +186,7 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
         update = min(workers.call("position", on_every_shard(workers)))
         # A driver killed after the shards saved a chunk but before it merged their rows: those rows
         # live in the checkpoints' meta; collect them before training on.
-        since = min(update, max((int(r["update"]) for r in run.read_metrics()), default=0))
-        run.truncate_metrics(since)
+        since = max((int(r["update"]) for r in run.truncate_metrics(update)), default=0)
         if since < update:
             caught_up = workers.call("advance", [(i, (update, None, since)) for i in range(len(workers.shards))])
             run.append_metrics(merge_rows(caught_up, since, update))

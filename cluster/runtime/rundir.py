@@ -232,12 +232,16 @@ class RunDir:
             fields = list(rows[0].keys()) if rows else list(METRIC_FIELDS)
         _write_rows(self.metrics_path, fields, existing + list(rows))
 
-    def truncate_metrics(self, after_update: int) -> None:
-        """Drop rows past ``after_update`` (resume replays them from the checkpoint) and torn rows."""
+    def truncate_metrics(self, after_update: int) -> list[dict]:
+        """Drop rows past ``after_update`` (resume replays them from the checkpoint) and torn rows;
+        returns the rows kept."""
         rows, torn = self._read_metrics()
         kept = [r for r in rows if int(float(r["update"])) <= after_update]
         if rows and (torn or len(kept) != len(rows)):
             _write_rows(self.metrics_path, list(rows[0].keys()), kept)
+        elif torn:  # not one complete row: start the file again
+            self.metrics_path.unlink()
+        return kept
 
     def read_metrics(self) -> list[dict]:
         return self._read_metrics()[0]
