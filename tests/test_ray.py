@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -136,7 +137,7 @@ def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_number
     assert metrics_without_timing(run) == metrics_without_timing(reference)
 
 
-def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray_session):
+def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray_session, capsys):
     run = tmp_path / "driver"
     address = ray_session.get_runtime_context().gcs_address
     command = [sys.executable, "-c", "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
@@ -149,13 +150,28 @@ def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray
         assert driver.poll() is None, "the driver exited before it could be killed"
         assert time.monotonic() < deadline, "no checkpoint at update 4 within 240 s"
         time.sleep(0.05)
-    driver.send_signal(signal.SIGKILL)
+    driver.send_signal(signal.SIGSTOP)  # frozen mid-run, still holding the run directory's lock
+    assert train(run, *LONGER, extra=["--no-eval", "--resume"]) == 2
+    assert f"in use by another ocv2 process (pid {driver.pid})" in capsys.readouterr().err
+    driver.send_signal(signal.SIGKILL)  # the kernel releases its lock
     driver.wait()
     assert RunDir(run).read_manifest()["status"] == "training"
     assert train(run, *LONGER, extra=["--no-eval", "--resume"]) == 0
     assert RunDir(run).read_manifest()["resumed_from"] >= 4
     assert_same_tree(final_params(run), final_params(reference))
     assert metrics_without_timing(run) == metrics_without_timing(reference)
+
+
+def test_a_worker_whose_checkpoints_cannot_load_reports_that(tmp_path, reference, ray_session, capsys):
+    run = tmp_path / "broken"
+    shutil.copytree(reference, run)
+    for update in ckpt.list_updates(run, 1):  # every checkpoint of seed 1 truncated: nothing to fall back to
+        path = ckpt.checkpoint_path(run, 1, update)
+        path.write_bytes(path.read_bytes()[:100])
+    assert train(run, *LONGER, extra=["--no-eval", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "not a readable ocv2 checkpoint" in err and "no older checkpoint" in err
+    assert "max_restarts" not in err and len(err.strip().splitlines()) == 1
 
 
 def test_bad_cluster_input_fails_before_any_work(tmp_path, capsys, ray_session):
