@@ -19,7 +19,7 @@ import numpy as np
 
 from cluster.archive import ArchiveWriter, record_episodes
 from cluster.runtime.jobs import spread_jobs
-from cluster.runtime.rundir import RunDir, RunDirError, write_csv, write_json
+from cluster.runtime.rundir import RunDir, RunDirError, seed_curves, write_csv, write_json
 from cluster.runtime.runstate import archive_meta, hidden_size, load_params, pair_meta, params_template
 from ocv2.render import render_frames, write_gif
 from population import checkpoints as ckpt
@@ -134,18 +134,11 @@ def write_training_plot(run_dir) -> str | None:
     if not rows:
         return None
     config = run.load_config()
-    seeds = sorted({int(r["seed"]) for r in rows})
-    updates = sorted({int(r["update"]) for r in rows})
-    index = {u: k for k, u in enumerate(updates)}
-    curves = {name: np.full((len(seeds), len(updates)), np.nan) for name in ("sparse_return", "shaped_return")}
-    for r in rows:
-        for name in curves:
-            if r[name] != "":
-                curves[name][seeds.index(int(r["seed"])), index[int(r["update"])]] = float(r[name])
-    steps = np.asarray(updates) * config.ppo.steps_per_update
-    return training_curves(steps, curves, run.sub("plots", "training.png"),
+    curves = seed_curves(rows, ("sparse_return", "shaped_return"))
+    steps = np.asarray(curves.updates) * config.ppo.steps_per_update
+    return training_curves(steps, curves.values, run.sub("plots", "training.png"),
                            title=f"{config.population.method.upper()} {config.env_kwargs['layout']} "
-                                 f"({len(seeds)} seeds)")
+                                 f"({len(curves.seeds)} seeds)")
 
 
 def write_gifs(run_dir, count: int) -> list[str]:

@@ -25,7 +25,9 @@ import math
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -282,6 +284,43 @@ def _is_int(text) -> bool:
 
 def _write_rows(path: Path, fields: list, rows: list[dict]) -> None:
     write_csv(path, fields, [[row.get(k, "") for k in fields] for row in rows])
+
+
+class SeedCurves(NamedTuple):
+    """``metrics.csv`` columns as seeds x updates arrays (NaN where a seed has no value, e.g. no episode
+    had finished yet): what the training plot and ``ocv2 report`` draw."""
+
+    seeds: list[int]
+    updates: list[int]
+    env_steps: np.ndarray  # [U]: the largest env_steps any seed reported at the update
+    values: dict[str, np.ndarray]  # field -> [S, U]
+
+
+def seed_curves(rows: list[dict], fields=("sparse_return",)) -> SeedCurves:
+    """The one aggregation of per-seed metrics rows into curves (rows whose seed or update is not a
+    number are skipped)."""
+    rows = [r for r in rows if _is_int(r.get("seed")) and _is_int(r.get("update"))]
+    seeds = sorted({int(float(r["seed"])) for r in rows})
+    updates = sorted({int(float(r["update"])) for r in rows})
+    seed_index, update_index = {s: k for k, s in enumerate(seeds)}, {u: k for k, u in enumerate(updates)}
+    values = {field: np.full((len(seeds), len(updates)), np.nan) for field in fields}
+    env_steps = np.full((len(seeds), len(updates)), np.nan)
+    for r in rows:
+        at = seed_index[int(float(r["seed"]))], update_index[int(float(r["update"]))]
+        env_steps[at] = _float(r.get("env_steps"))
+        for field in fields:
+            values[field][at] = _float(r.get(field))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an update no seed reported env_steps for: NaN
+        steps = np.nanmax(env_steps, axis=0) if rows else np.zeros(0)
+    return SeedCurves(seeds, updates, steps, values)
+
+
+def _float(text) -> float:
+    try:
+        return float(text)
+    except (TypeError, ValueError):  # "" (no episode finished yet) or a missing column
+        return math.nan
 
 
 def metric_rows(seeds, metrics, steps_per_s: float, wall_s: float, recipe_labels: list[str]) -> list[dict]:
