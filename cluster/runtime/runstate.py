@@ -19,7 +19,7 @@ from flax import serialization
 
 from population import checkpoints as ckpt
 from population import ppo
-from population.config import Config, ConfigError, load_config
+from population.config import Config, load_config
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,10 +66,8 @@ class Schedule:
 
 
 def _created_config(run_dir) -> Config | None:
-    try:
-        return load_config(Path(run_dir) / "config.yaml")
-    except (FileNotFoundError, ConfigError):  # not created yet; a broken one is reported by RunDir.open
-        return None
+    path = Path(run_dir) / "config.yaml"
+    return load_config(path) if path.exists() else None  # None: a shard built outside a run directory
 
 
 def archive_meta(config: Config, kind: str, **extra) -> dict:
