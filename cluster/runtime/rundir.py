@@ -50,6 +50,7 @@ class RunDir:
     def __init__(self, path):
         self.path = Path(path)
         self._lock_fd: int | None = None
+        self._metrics: tuple[list[str], list[list]] | None = None  # (columns, rows) of metrics.csv
 
     # opening ----------------------------------------------------------------------------------------
     @classmethod
@@ -86,6 +87,7 @@ class RunDir:
         self.lock()
         try:
             resuming = self._prepare(config, resume)
+            self._record_environment(resuming)
         except BaseException:
             if not self.config_path.exists():  # refused before it became a run: leave nothing behind
                 (self.path / LOCK_NAME).unlink(missing_ok=True)
@@ -94,7 +96,6 @@ class RunDir:
                         self.path.rmdir()
             self.close()
             raise
-        self._record_environment(resuming)
         return resuming
 
     def _prepare(self, config: Config, resume: bool) -> bool:
@@ -226,17 +227,30 @@ class RunDir:
 
     # metrics ----------------------------------------------------------------------------------------
     def append_metrics(self, rows: list[dict]) -> None:
-        """Add ``rows`` to ``metrics.csv``, rewriting the file atomically (a kill never leaves a torn row)."""
-        existing = self.read_metrics()
-        if existing:  # the file's own column order (rows restored from checkpoint meta come back key-sorted)
-            fields = list(existing[0].keys())
-        else:
-            fields = list(rows[0].keys()) if rows else list(METRIC_FIELDS)
-        _write_rows(self.metrics_path, fields, existing + list(rows))
+        """Add ``rows`` to ``metrics.csv``, rewriting the file atomically (a kill never leaves a torn row).
+
+        The table is kept here after the first call (the driver holding the lock is the only writer),
+        so each chunk costs one write, not a read and a write.
+        """
+        if self._metrics is None:
+            existing = self.read_metrics()
+            if existing:  # the file's own column order (rows restored from checkpoint meta come back key-sorted)
+                fields = list(existing[0].keys())
+            else:
+                fields = list(rows[0].keys()) if rows else list(METRIC_FIELDS)
+            self._metrics = (fields, [[row.get(k, "") for k in fields] for row in existing])
+        fields, table = self._metrics
+        unknown = sorted({key for row in rows for key in row} - set(fields))
+        if unknown:
+            raise RunDirError(f"{self.metrics_path}: rows with columns {unknown} that the file does not have")
+        table = table + [[row.get(k, "") for k in fields] for row in rows]
+        write_csv(self.metrics_path, fields, table)
+        self._metrics = (fields, table)
 
     def truncate_metrics(self, after_update: int) -> list[dict]:
         """Drop rows past ``after_update`` (resume replays them from the checkpoint) and torn rows;
         returns the rows kept."""
+        self._metrics = None
         rows, torn = self._read_metrics()
         kept = [r for r in rows if int(float(r["update"])) <= after_update]
         if rows and (torn or len(kept) != len(rows)):
