@@ -106,12 +106,10 @@ def load_run(path) -> dict:
     from cluster.cli.errors import CLIError
     from cluster.runtime.rundir import RunDir, RunDirError
 
-    run = RunDir(path)
-    if not run.path.is_dir():
+    if not Path(path).exists():
         raise CLIError(f"{path}: no such run directory")
-    if not run.config_path.is_file():
-        raise CLIError(f"{path}: not an ocv2 run directory (no config.yaml)")
     try:
+        run = RunDir.existing(path)
         config = run.load_config()
     except RunDirError as error:
         raise CLIError(str(error)) from None

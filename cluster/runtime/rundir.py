@@ -79,7 +79,7 @@ class RunDir:
 
         A new run needs a missing or empty directory; ``resume`` needs the same config fingerprint.
         """
-        self._check_not_a_file()
+        self._check_not_a_file("; choose another --out")
         if resume and not self.config_path.exists():
             raise RunDirError(f"{self.path}: nothing to resume (no config.yaml)")
         made = not self.path.exists()
@@ -119,9 +119,9 @@ class RunDir:
         self.write_manifest({"status": "created", "created": time.time()})
         return False
 
-    def _check_not_a_file(self) -> None:
+    def _check_not_a_file(self, advice: str = "") -> None:
         if self.path.exists() and not self.path.is_dir():
-            raise RunDirError(f"{self.path}: is a file, not a run directory; choose another --out")
+            raise RunDirError(f"{self.path}: is a file, not a run directory{advice}")
 
     # the lock -----------------------------------------------------------------------------------------
     def lock(self) -> None:
