@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from cluster.cli import main
+from cluster.runtime.environment import git_state
 from cluster.runtime.rundir import LOCK_NAME, RunDir, RunDirError
 from population import checkpoints as ckpt
 from population.config import load_config
@@ -152,6 +153,7 @@ def test_every_run_dir_records_versions_commit_devices_and_argv(tmp_path, config
     assert record["devices"] == [str(d) for d in jax.devices()]
     git = record["git"]
     assert git is None or (len(git["commit"]) == 40 and isinstance(git["dirty"], bool))
+    assert git_state(tmp_path) is None  # not a checkout (nor the root of one)
 
 
 def test_every_key_is_the_derivation_results_were_made_with():

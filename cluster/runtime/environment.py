@@ -32,6 +32,8 @@ def package_versions() -> dict[str, str | None]:
 
 def git_state(directory: Path = _CHECKOUT) -> dict | None:
     """``{"commit", "dirty"}`` of the checkout ocv2 runs from; None when it is not a git checkout."""
+    if not (directory / ".git").exists():  # e.g. installed into a virtualenv that lives inside another repo
+        return None
     try:
         commit = _git(directory, "rev-parse", "HEAD")
         dirty = bool(_git(directory, "status", "--porcelain", "--untracked-files=no"))
