@@ -108,12 +108,10 @@ def load_run(path) -> dict:
     from cluster.cli.errors import CLIError
     from cluster.runtime.rundir import RunDir, RunDirError
 
-    run = RunDir(path)
-    if not run.path.is_dir():
+    if not Path(path).exists():
         raise CLIError(f"{path}: no such run directory")
-    if not run.config_path.is_file():
-        raise CLIError(f"{path}: not an ocv2 run directory (no config.yaml)")
     try:
+        run = RunDir.existing(path)
         config = run.load_config()
     except RunDirError as error:
         raise CLIError(str(error)) from None
@@ -248,22 +246,15 @@ def curve(metrics: list[dict], field: str = "sparse_return"):
     """(env steps, mean, std) across seeds per update; None if no finished episode was recorded."""
     import numpy as np
 
-    by_update: dict[int, tuple[list[float], list[float]]] = {}
-    for row in metrics:
-        update = _nan(row.get("update"))
-        if math.isnan(update):
-            continue
-        steps, values = by_update.setdefault(int(update), ([], []))
-        steps.append(_nan(row.get("env_steps")))
-        value = _nan(row.get(field))
-        if not math.isnan(value):
-            values.append(value)
-    points = [(np.nanmax(s), float(np.mean(v)), float(np.std(v)))
-              for _, (s, v) in sorted(by_update.items()) if v]
-    if not points:
+    from cluster.runtime.rundir import seed_curves
+    from population.plots import across_seeds
+
+    curves = seed_curves(metrics, (field,))
+    mean, std = across_seeds(curves.values[field])
+    recorded = ~np.isnan(mean)
+    if not recorded.any():
         return None
-    x, mean, std = (np.asarray(col, np.float64) for col in zip(*points))
-    return x, mean, std
+    return curves.env_steps[recorded], mean[recorded], std[recorded]
 
 
 def write_curves(runs: list[dict], out: Path) -> list[str]:
