@@ -237,9 +237,23 @@ class Config:
         return out
 
     def fingerprint(self, exclude: Sequence[str] = ("eval", "run", "archive", "cluster")) -> str:
-        """A hash of everything that changes training numbers (checkpoints from another config are refused)."""
+        """A hash of everything that changes training numbers (checkpoints from another config are refused).
+
+        Keys added after a release are left out at their default value (``_LATER_KEYS``), so runs made
+        before the key existed keep their fingerprint and still resume.
+        """
         data = {k: v for k, v in self.to_dict().items() if k not in exclude}
+        for *path, key in _LATER_KEYS:
+            section = data
+            for name in path:
+                section = section.get(name, {})
+            if key in section and section[key] == _LATER_KEYS[(*path, key)]:
+                del section[key]
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+#: Keys added after 0.1.0 and their defaults, left out of the fingerprint at those defaults.
+_LATER_KEYS = {("population", "fcp", "pool"): "shared", ("population", "fcp", "partner_ppo"): None}
 
 
 def _plain(value):

@@ -250,3 +250,13 @@ def test_per_seed_partner_run_needs_a_pool_of_seeds_per_learner(per_seed_run, tm
     pool, labels = coordinator.load_pool(shared, ppo.make_trainer(shared), run / "partners")
     assert labels == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
     assert jax.tree.leaves(pool)[0].shape[0] == 4
+
+
+@pytest.mark.parametrize("path, before", [("configs/quickstart.yaml", "c6bf8ae599d8439c"),
+                                          ("configs/paper/v2_grounded_coord_simple_sa.yaml", "f172112564c9ffd6"),
+                                          ("configs/paper/classic_cramped_room_sp.yaml", "e25c665575963c70")])
+def test_runs_made_before_the_pool_keys_keep_their_fingerprint(path, before):
+    # Values recorded with the code before population.fcp.pool / partner_ppo existed: such runs must resume.
+    config = load_config(path)
+    assert config.fingerprint() == before
+    assert load_config(path, ["population.fcp.pool=per_seed"]).fingerprint() != before
