@@ -1,13 +1,16 @@
 """Atomic, config-checked checkpoints of one seed's ``TrainState``.
 
 Layout: ``<run>/checkpoints/seed_<i>/update_<n>.msgpack``, one msgpack file holding
-``{"meta": {...}, "state": <TrainState state dict>}`` (flax serialization). A file is written to a
-temporary name and renamed, so a reader never sees half a checkpoint. ``meta.fingerprint`` is the
-hash of the training-relevant config; loading into a different config is refused with a message.
+``{"meta": {...}, "state": <msgpack bytes of the TrainState state dict>}`` (flax serialization).
+A file is written to a temporary name and renamed, so a reader never sees half a checkpoint;
+``meta.sha256`` is the checksum of the state bytes, so a file damaged later (disk, copy) is refused
+instead of restored. ``meta.fingerprint`` is the hash of the training-relevant config; loading into
+a different config is refused with a message. Version-1 files (state inline, no checksum) still load.
 """
 
 from __future__ import annotations
 
+import hashlib
 import re
 from pathlib import Path
 
@@ -16,12 +19,17 @@ import numpy as np
 from flax import serialization
 
 from ocv2.atomic import atomic_write
-FORMAT_VERSION = 1
+
+FORMAT_VERSION = 2
 _NAME = re.compile(r"^update_(\d+)\.msgpack$")
 
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be used (missing, corrupt, or from another config)."""
+
+
+class CorruptCheckpointError(CheckpointError):
+    """A checkpoint whose bytes are damaged (truncated, checksum mismatch): an older one may stand in."""
 
 
 def seed_dir(run_dir, seed: int) -> Path:
@@ -34,10 +42,11 @@ def checkpoint_path(run_dir, seed: int, update: int) -> Path:
 
 def save(path, state, fingerprint: str, **meta) -> Path:
     """Write ``state`` (a pytree) atomically; extra ``meta`` (JSON-able) is stored beside it."""
-    path = Path(path)
-    payload = {"meta": {"version": FORMAT_VERSION, "fingerprint": fingerprint, **meta},
-               "state": serialization.to_state_dict(jax.tree.map(np.asarray, state))}
-    return atomic_write(path, serialization.msgpack_serialize(payload))
+    state_bytes = serialization.msgpack_serialize(serialization.to_state_dict(jax.tree.map(np.asarray, state)))
+    payload = {"meta": {"version": FORMAT_VERSION, "fingerprint": fingerprint,
+                        "sha256": hashlib.sha256(state_bytes).hexdigest(), **meta},
+               "state": state_bytes}
+    return atomic_write(Path(path), serialization.msgpack_serialize(payload))
 
 
 def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:
@@ -48,15 +57,22 @@ def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:
     except FileNotFoundError:
         raise CheckpointError(f"{path}: no such checkpoint") from None
     except Exception as error:  # msgpack raises several types on truncated/corrupt data
-        raise CheckpointError(f"{path}: not a readable ocv2 checkpoint ({error})") from None
+        raise CorruptCheckpointError(f"{path}: not a readable ocv2 checkpoint ({error})") from None
     if not isinstance(payload, dict) or "meta" not in payload or "state" not in payload:
-        raise CheckpointError(f"{path}: not an ocv2 checkpoint (no meta/state)")
-    meta = payload["meta"]
+        raise CorruptCheckpointError(f"{path}: not an ocv2 checkpoint (no meta/state)")
+    meta, state = payload["meta"], payload["state"]
     if fingerprint is not None and meta.get("fingerprint") != fingerprint:
         raise CheckpointError(
             f"{path}: checkpoint was written by a different config (fingerprint {meta.get('fingerprint')}, "
             f"this config {fingerprint}); use the run's own config.yaml or a new run directory")
-    return meta, payload["state"]
+    if isinstance(state, bytes):  # version 2: checksummed state bytes
+        if hashlib.sha256(state).hexdigest() != meta.get("sha256"):
+            raise CorruptCheckpointError(f"{path}: checksum mismatch (the file was damaged after it was written)")
+        try:
+            state = serialization.msgpack_restore(state)
+        except Exception as error:
+            raise CorruptCheckpointError(f"{path}: not a readable ocv2 checkpoint ({error})") from None
+    return meta, state
 
 
 def load(path, template, fingerprint: str | None = None):

@@ -11,6 +11,7 @@ the offending key (``ppo.num_minibatches``) and, when loaded from a file, the fi
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -136,14 +137,39 @@ class OPConfig:
 class FCPConfig:
     """Fictitious co-play: a learner per seed against a frozen pool of SP checkpoints.
 
-    ``partners``: an SP run directory to take the pool from; None trains an SP stage first (same
-    env/model/ppo sections) with ``partner_seeds`` seeds. ``checkpoints``: which snapshots of each
-    partner seed join the pool ("init", "mid", "final" or an update number).
+    ``partners``: an SP run directory to take the pools from; None trains an SP stage first (same
+    env/model sections, ``partner_ppo`` hyperparameters). ``partner_seeds``: SP seeds per pool.
+    ``checkpoints``: which snapshots of each partner seed join the pool ("init", "mid", "final" or an
+    update number). ``pool``: "shared" (every learner plays partner seeds [0, k)) or "per_seed" (the
+    paper: learner i plays its own partner seeds [i*k, (i+1)*k), so the SP stage trains num_seeds x k
+    seeds). ``partner_ppo``: the SP stage's ppo section; unset, the paper's self-play hyperparameters
+    for this layout and model kind (``configs/paper``); keys given replace single values of that.
     """
 
     partners: str | None = None
     partner_seeds: int = 8
     checkpoints: tuple[str, ...] = ("mid", "final")
+    pool: str = "shared"
+    partner_ppo: PPOConfig | None = None
+
+    @property
+    def per_seed(self) -> bool:
+        return self.pool == "per_seed"
+
+    def pool_seeds(self, learner: int) -> range:
+        """The partner-run seeds whose checkpoints make up learner ``learner``'s pool."""
+        k = self.partner_seeds
+        return range(learner * k, (learner + 1) * k) if self.per_seed else range(k)
+
+    def stage_seeds(self, num_learners: int) -> int:
+        """SP seeds the partner run needs for ``num_learners`` learners."""
+        return self.partner_seeds * (num_learners if self.per_seed else 1)
+
+
+FCP_POOLS = ("shared", "per_seed")
+# The paper's configs; the partner stage's default ppo section is the self-play config's of the same
+# layout and model kind (the paper trained FCP partners as ordinary self-play runs).
+PAPER_CONFIGS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "configs", "paper")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,9 +263,23 @@ class Config:
         return out
 
     def fingerprint(self, exclude: Sequence[str] = ("eval", "run", "archive", "cluster")) -> str:
-        """A hash of everything that changes training numbers (checkpoints from another config are refused)."""
+        """A hash of everything that changes training numbers (checkpoints from another config are refused).
+
+        Keys added after a release are left out at their default value (``_LATER_KEYS``), so runs made
+        before the key existed keep their fingerprint and still resume.
+        """
         data = {k: v for k, v in self.to_dict().items() if k not in exclude}
+        for *path, key in _LATER_KEYS:
+            section = data
+            for name in path:
+                section = section.get(name, {})
+            if key in section and section[key] == _LATER_KEYS[(*path, key)]:
+                del section[key]
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+#: Keys added after 0.1.0 and their defaults, left out of the fingerprint at those defaults.
+_LATER_KEYS = {("population", "fcp", "pool"): "shared", ("population", "fcp", "partner_ppo"): None}
 
 
 def _plain(value):
@@ -383,10 +423,19 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
         problems.append(f"population: expected a mapping of keys, got {type(pop_raw).__name__}")
         pop_raw = {}
     pop_raw = dict(pop_raw)
+    fcp_raw = pop_raw.pop("fcp", None)
+    if fcp_raw is not None and not isinstance(fcp_raw, Mapping):
+        problems.append(f"population.fcp: expected a mapping of keys, got {type(fcp_raw).__name__}")
+        fcp_raw = None
+    fcp_raw = dict(fcp_raw or {})
+    partner_raw = fcp_raw.pop("partner_ppo", None)
     subs = {name: parsed(_parse_section, f"population.{name}", cls, pop_raw.pop(name, None), default=cls())
-            for name, cls in (("sa", SAConfig), ("op", OPConfig), ("fcp", FCPConfig))}
+            for name, cls in (("sa", SAConfig), ("op", OPConfig))}
+    subs["fcp"] = parsed(_parse_section, "population.fcp", FCPConfig, fcp_raw, default=FCPConfig())
     population = dataclasses.replace(
         parsed(_parse_section, "population", PopulationConfig, pop_raw, default=PopulationConfig()), **subs)
+    partner_ppo = parsed(_partner_ppo, partner_raw, env, model, population, default=None)
+    population = dataclasses.replace(population, fcp=dataclasses.replace(population.fcp, partner_ppo=partner_ppo))
     config = Config(env=env, model=model, ppo=ppo, population=population,
                     eval=parsed(_parse_eval, raw.get("eval"), default=EvalConfig()),
                     run=parsed(_parse_section, "run", RunConfig, raw.get("run"), default=RunConfig()),
@@ -518,18 +567,103 @@ def _resolve_model(model: ModelConfig, problems: list[str]) -> ModelConfig:
     return dataclasses.replace(model, **fill)
 
 
+def _partner_ppo(raw, env, model: ModelConfig, population: PopulationConfig) -> PPOConfig | None:
+    """The FCP partner stage's ppo section: ``raw`` keys over the paper's self-play section for this layout."""
+    key = "population.fcp.partner_ppo"
+    if raw is not None and not isinstance(raw, Mapping):
+        raise ConfigError(f"{key}: expected a mapping of ppo keys, got {type(raw).__name__}")
+    trains_partners = population.method == "fcp" and population.fcp.partners is None
+    if not trains_partners:
+        # Not used (another method, or partners from a finished SP run): only checked, never looked up.
+        return None if raw is None else _parse_section(key, PPOConfig, raw)
+    layout = dict(env)["layout"]
+    base = paper_sp_ppo(layout, model.kind)
+    if base is None and raw is None:
+        raise ConfigError(f"{key}: no paper self-play config for layout {layout!r} with model.kind={model.kind} "
+                          "to take the partner stage's hyperparameters from; set it (a ppo mapping)")
+    values = dataclasses.asdict(base) if base is not None else {}
+    values.update(raw or {})
+    return _parse_section(key, PPOConfig, values)
+
+
+@functools.lru_cache(maxsize=None)
+def paper_sp_ppo(layout: str, model_kind: str) -> PPOConfig | None:
+    """The ppo section of the paper's self-play config for ``layout`` and ``model_kind`` (None: there is none)."""
+    found = {}
+    if os.path.isdir(PAPER_CONFIGS):
+        for name in sorted(os.listdir(PAPER_CONFIGS)):
+            if not name.endswith(".yaml"):
+                continue
+            with open(os.path.join(PAPER_CONFIGS, name)) as handle:
+                raw = yaml.safe_load(handle) or {}
+            pop, env, model = raw.get("population") or {}, raw.get("env") or {}, raw.get("model") or {}
+            if pop.get("method") == "sp" and env.get("layout") == layout and model.get("kind") == model_kind:
+                found[name] = _parse_section(f"{name}: ppo", PPOConfig, raw.get("ppo"))
+    if len(set(found.values())) > 1:
+        raise ConfigError(f"population.fcp.partner_ppo: paper self-play configs {', '.join(found)} disagree "
+                          f"for layout {layout!r}; set population.fcp.partner_ppo")
+    return next(iter(found.values()), None)
+
+
 def _positive(key: str, value, allow_zero: bool = False) -> list[str]:
     if value < 0 or (value == 0 and not allow_zero):
         return [f"{key}: must be {'>= 0' if allow_zero else '> 0'}, got {value}"]
     return []
 
 
+def _validate_ppo(prefix: str, ppo: PPOConfig) -> list[str]:
+    """Range checks of a ppo section (``prefix``: where it sits, e.g. ppo or population.fcp.partner_ppo)."""
+    problems: list[str] = []
+    if ppo.activation not in ACTIVATIONS:
+        problems.append(f"{prefix}.activation: expected one of {', '.join(ACTIVATIONS)}, got {ppo.activation!r}")
+    for key in ("lr", "clip_eps", "max_grad_norm", "num_envs", "num_steps", "num_minibatches",
+                "update_epochs", "total_timesteps"):
+        problems += _positive(f"{prefix}.{key}", getattr(ppo, key))
+    for key in ("ent_coef", "vf_coef", "rew_shaping_horizon"):
+        problems += _positive(f"{prefix}.{key}", getattr(ppo, key), allow_zero=True)
+    for key in ("gamma", "gae_lambda", "lr_warmup"):
+        if not 0.0 <= getattr(ppo, key) <= 1.0:
+            problems.append(f"{prefix}.{key}: must lie in [0, 1], got {getattr(ppo, key)}")
+    if ppo.num_envs > 0 and ppo.num_steps > 0 and ppo.num_updates < 1:
+        problems.append(f"{prefix}.total_timesteps: {ppo.total_timesteps} is less than one update "
+                        f"(num_envs x num_steps = {ppo.steps_per_update})")
+    return problems
+
+
+def _validate_fcp(fcp: FCPConfig, num_agents: int) -> list[str]:
+    problems = _positive("population.fcp.partner_seeds", fcp.partner_seeds)
+    if fcp.pool not in FCP_POOLS:
+        problems.append(f"population.fcp.pool: expected one of {', '.join(FCP_POOLS)}, got {fcp.pool!r}")
+    if not fcp.checkpoints:
+        problems.append("population.fcp.checkpoints: needs at least one checkpoint")
+    for c in fcp.checkpoints:
+        if c not in ("init", "mid", "final") and not str(c).isdigit():
+            problems.append(f"population.fcp.checkpoints: {c!r} is not init, mid, final or an update number")
+    if num_agents != 2:
+        problems.append("population.method: fcp needs a two-agent layout")
+    partner = fcp.partner_ppo
+    if partner is None:
+        return problems
+    key = "population.fcp.partner_ppo"
+    partner_problems = _validate_ppo(key, partner)
+    problems += partner_problems
+    if partner_problems:  # the checks below divide by these sizes
+        return problems
+    if (partner.num_envs * num_agents) % partner.num_minibatches:
+        problems.append(f"{key}.num_minibatches: {partner.num_minibatches} does not divide the "
+                        f"{partner.num_envs * num_agents} self-play sequences per update of the partner stage "
+                        f"(num_envs x {num_agents} agents)")
+    late = [c for c in fcp.checkpoints if str(c).isdigit() and int(c) > partner.num_updates]
+    if late:
+        problems.append(f"population.fcp.checkpoints: update {late[0]} is past the partner stage's "
+                        f"{partner.num_updates} updates ({key}.total_timesteps)")
+    return problems
+
+
 def _validate(config: Config) -> list[str]:
     """Every problem of values checked against each other (each value has the right type already)."""
     model, ppo, pop = config.model, config.ppo, config.population
     problems: list[str] = []
-    if ppo.activation not in ACTIVATIONS:
-        problems.append(f"ppo.activation: expected one of {', '.join(ACTIVATIONS)}, got {ppo.activation!r}")
     if len(model.conv_features) != len(model.conv_kernels):
         problems.append("model.conv_kernels: needs one kernel size per entry of model.conv_features")
     for key in ("fc_dim", "gru_dim"):
@@ -538,18 +672,8 @@ def _validate(config: Config) -> list[str]:
                         ("mixer_features", model.mixer_features)):
         for v in values:
             problems += _positive(f"model.{key}", v)
-    for key in ("lr", "clip_eps", "max_grad_norm", "num_envs", "num_steps", "num_minibatches",
-                "update_epochs", "total_timesteps"):
-        problems += _positive(f"ppo.{key}", getattr(ppo, key))
-    for key in ("ent_coef", "vf_coef", "rew_shaping_horizon"):
-        problems += _positive(f"ppo.{key}", getattr(ppo, key), allow_zero=True)
-    for key in ("gamma", "gae_lambda", "lr_warmup"):
-        if not 0.0 <= getattr(ppo, key) <= 1.0:
-            problems.append(f"ppo.{key}: must lie in [0, 1], got {getattr(ppo, key)}")
+    problems += _validate_ppo("ppo", ppo)
     sizes_ok = ppo.num_envs > 0 and ppo.num_steps > 0 and ppo.num_minibatches > 0
-    if sizes_ok and ppo.num_updates < 1:
-        problems.append(f"ppo.total_timesteps: {ppo.total_timesteps} is less than one update "
-                        f"(num_envs x num_steps = {ppo.steps_per_update})")
     env = build_config(**config.env_kwargs)
     learner_actors = ppo.num_envs if pop.method == "fcp" else ppo.num_envs * env.num_agents
     if sizes_ok and learner_actors % ppo.num_minibatches:
@@ -579,14 +703,7 @@ def _validate(config: Config) -> list[str]:
             problems.append("env.op_ingredient_permutations: set population.op.ingredients instead "
                             "(evaluation must run without permutations)")
     if pop.method == "fcp":
-        problems += _positive("population.fcp.partner_seeds", pop.fcp.partner_seeds)
-        if not pop.fcp.checkpoints:
-            problems.append("population.fcp.checkpoints: needs at least one checkpoint")
-        for c in pop.fcp.checkpoints:
-            if c not in ("init", "mid", "final") and not str(c).isdigit():
-                problems.append(f"population.fcp.checkpoints: {c!r} is not init, mid, final or an update number")
-        if env.num_agents != 2:
-            problems.append("population.method: fcp needs a two-agent layout")
+        problems += _validate_fcp(pop.fcp, env.num_agents)
     problems += _positive("eval.episodes", config.eval.episodes)
     problems += _positive("eval.gifs", config.eval.gifs, allow_zero=True)
     problems += _positive("run.checkpoint_every", config.run.checkpoint_every)

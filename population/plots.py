@@ -43,6 +43,16 @@ def skipped(path, error: PlotsUnavailable) -> None:
     print(f"warning: {path} not drawn: {error}", file=sys.stderr)
 
 
+def across_seeds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std) of [S, U] ``values`` over the seeds that have a value at each update; NaN where none has."""
+    values = np.asarray(values, np.float64)
+    count = (~np.isnan(values)).sum(0)
+    with np.errstate(all="ignore"):
+        mean = np.where(count > 0, np.nansum(values, 0) / np.maximum(count, 1), np.nan)
+        std = np.sqrt(np.where(count > 0, np.nansum((values - mean) ** 2, 0) / np.maximum(count, 1), np.nan))
+    return mean, std
+
+
 def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, title: str = "") -> str | None:
     """``curves[name]`` is [S, U] (seeds x updates, NaN where no episode had finished yet)."""
     try:
@@ -53,11 +63,7 @@ def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, titl
     fig, axes = plt.subplots(1, len(curves), figsize=(5 * len(curves), 3.6), squeeze=False)
     for ax, (name, values) in zip(axes[0], curves.items()):
         values = np.asarray(values, np.float64)
-        with np.errstate(all="ignore"):
-            valid = ~np.isnan(values)
-            count = valid.sum(0)
-            mean = np.where(count > 0, np.nansum(values, 0) / np.maximum(count, 1), np.nan)
-            std = np.sqrt(np.where(count > 0, np.nansum((values - mean) ** 2, 0) / np.maximum(count, 1), np.nan))
+        mean, std = across_seeds(values)
         ax.plot(steps, mean, color="tab:blue", label=f"mean of {values.shape[0]} seeds")
         ax.fill_between(steps, mean - std, mean + std, color="tab:blue", alpha=0.25, label="+- std")
         ax.set_xlabel("environment steps")

@@ -28,6 +28,7 @@ import ocv2
 from ocv2.items import recipe_encoding_np
 from ocv2.state import State
 from population.config import Config
+from population.keys import derive_key
 from population.networks import ActorCritic, init_params, make_network
 
 
@@ -180,7 +181,7 @@ def make_trainer(config: Config) -> Trainer:
 
 def seed_key(config: Config, index: int) -> jax.Array:
     """Seed ``index`` of a population: independent of how many seeds train beside it."""
-    return jax.random.fold_in(jax.random.PRNGKey(config.population.seed), index)
+    return derive_key(config.population.seed, "seed", index)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import base64
+import builtins
+import errno
+import io
 import json
 import os
+import shutil
 import pickle
 import subprocess
 import sys
@@ -14,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
 from PIL import Image
 
 import ocv2
@@ -21,6 +27,7 @@ from cluster.archive import (
     ArchiveError, ArchiveReader, ArchiveWriter, record_episodes, record_pairs, recover, states_as_buffer,
 )
 from cluster.cli import main
+from cluster.cli.play import _writer as play_writer
 from population.evaluation import play_episodes
 from population.record import jitted_play_recorded
 
@@ -323,3 +330,225 @@ def test_foxglove_channel_only_when_enabled(tmp_path, archive, recorded):
     expected = render_frames(jax.tree.map(lambda x: x[0], recorded.states), "cramped_room", tile_size=8)
     np.testing.assert_array_equal(np.stack(images), expected)
     np.testing.assert_array_equal(ArchiveReader(path).frames(0), expected)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Faults: full disks, corrupt chunks, crafted records
+# ---------------------------------------------------------------------------------------------------
+
+class _FullDisk(io.FileIO):
+    """A file on a disk that fills up after ``budget[0]`` more bytes (the last write is torn)."""
+
+    def __init__(self, path, mode, budget):
+        super().__init__(path, mode)
+        self.budget = budget
+
+    def write(self, data):
+        if len(data) > self.budget[0]:
+            if self.budget[0]:
+                super().write(bytes(data)[:self.budget[0]])
+            self.budget[0] = 0
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.budget[0] -= len(data)
+        return super().write(data)
+
+
+def _open_on_full_disk(monkeypatch, writer, budget):
+    """Open ``writer`` with its ``.partial`` on a disk that has ``budget[0]`` bytes left."""
+    real_open = builtins.open
+
+    def fake_open(file, mode="r", *args, **kwargs):
+        if str(file).endswith(".partial") and mode == "wb":
+            return io.BufferedWriter(_FullDisk(file, mode, budget))
+        return real_open(file, mode, *args, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(builtins, "open", fake_open)
+        return writer.open()
+
+
+@pytest.mark.parametrize("fault", ["ENOSPC", "fsync EIO"])
+def test_write_error_fails_the_writer_and_keeps_earlier_episodes(tmp_path, recorded, monkeypatch, fault, capsys):
+    """A full disk (or a failed fsync) mid-episode: the caller sees the error, later episodes are
+    refused, and every episode completed before it stays readable and recoverable."""
+    path = str(tmp_path / "full.mcap")
+    budget = [1 << 30]
+    writer = _open_on_full_disk(monkeypatch, ArchiveWriter(path, fsync=True), budget)
+    try:
+        assert writer.write_episode(META, *_episode(recorded, 0), layout="cramped_room") == 0
+        if fault == "ENOSPC":
+            budget[0] = 100  # the disk fills up inside episode 1's chunk
+        else:
+            def failing_fsync(fd):
+                raise OSError(errno.EIO, "Input/output error")
+            monkeypatch.setattr(os, "fsync", failing_fsync)
+        with pytest.raises(OSError) as raised:
+            writer.write_episode(META, *_episode(recorded, 1), layout="cramped_room")
+    finally:
+        monkeypatch.undo()
+        writer.close()  # as a with block would: a failed writer is left unfinished
+    assert raised.value.errno == (errno.ENOSPC if fault == "ENOSPC" else errno.EIO)
+    assert writer.failed is raised.value
+    with pytest.raises(ArchiveError, match="failed earlier.*1 episode.*ocv2 archive recover"):
+        writer.write_episode(META, *_episode(recorded, 2), layout="cramped_room")
+    assert not os.path.exists(path)  # never renamed: an unfinished archive is not passed off as whole
+
+    partial = ArchiveReader(path + ".partial")
+    assert len(partial) == 1 and not partial.finished and partial.warnings == []
+    assert partial.info()["uncommitted_messages"] == 0  # cut back to the last complete episode
+    _assert_same_episode(partial.episode(0), recorded, 0)
+    assert main(["archive", "recover", path + ".partial"]) == 0
+    assert "recovered 1 complete episode(s)" in capsys.readouterr().out
+    _assert_same_episode(ArchiveReader(path).episode(0), recorded, 0)
+
+
+def test_a_disk_full_at_opening_leaves_no_file(tmp_path, monkeypatch):
+    path = tmp_path / "none.mcap"
+    with pytest.raises(OSError, match="No space left"):
+        _open_on_full_disk(monkeypatch, ArchiveWriter(path), [0])
+    assert os.listdir(tmp_path) == []  # not even an empty .partial that looks like a killed writer's
+
+
+def test_play_archives_fsync_every_episode(tmp_path, recorded, monkeypatch):
+    """A human's episode is on disk (fsynced) once written, not only at the end of the session."""
+    synced = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: synced.append(fd) or real_fsync(fd))
+    writer, path = play_writer(str(tmp_path / "play.mcap"), "cramped_room", 5.0)
+    try:
+        writer.write_episode({}, *_episode(recorded, 0), layout="cramped_room")
+        assert synced, "the play archive was not fsynced at the episode's end"
+    finally:
+        writer.close()
+    assert len(ArchiveReader(path)) == 1
+
+
+def _chunks(path) -> list:
+    with open(path, "rb") as f:
+        return sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+
+
+def _damage(path, offset, data: bytes):
+    with open(path, "r+b") as f:
+        f.seek(offset)
+        f.write(data)
+
+
+@pytest.mark.parametrize("where", ["data of chunk 1", "data of chunk 0 (holds the channels)",
+                                   "data of chunk 0 of an unfinished file", "length of chunk 1"])
+def test_corrupt_chunk_is_skipped(tmp_path, archive, recorded, where, capsys):
+    """One bad chunk costs its own episode only: info, recover and replay keep every later episode."""
+    path = str(tmp_path / "damaged.mcap")
+    shutil.copyfile(archive, path)
+    chunks = _chunks(path)
+    assert len(chunks) == EPISODES  # one chunk per episode (a chunk ends at every episode end)
+    bad = 0 if "chunk 0" in where else 1
+    chunk = chunks[bad]
+    if where.startswith("data"):  # flip bytes in the middle of the compressed data
+        middle = chunk.chunk_start_offset + chunk.chunk_length // 2
+        _damage(path, middle, bytes(b ^ 0xFF for b in open(path, "rb").read()[middle:middle + 16]))
+    else:  # the record's length field: the records after it no longer line up
+        _damage(path, chunk.chunk_start_offset + 1, (10**15).to_bytes(8, "little"))
+    kept = [e for e in range(EPISODES) if e != bad]
+    unfinished = "unfinished" in where
+    if unfinished:  # what a killed writer leaves: the data section without the summary
+        last = chunks[-1]
+        os.truncate(path, last.chunk_start_offset + last.chunk_length + last.message_index_length)
+
+    reader = ArchiveReader(path)
+    assert [m["episode"] for m in reader.episodes()] == kept and reader.finished != unfinished
+    assert any(f"at byte {chunk.chunk_start_offset}" in w for w in reader.warnings), reader.warnings
+    assert any(f"episode {bad} missing" in w for w in reader.warnings), reader.warnings
+    for index, e in enumerate(kept):
+        _assert_same_episode(reader.episode(index), recorded, e)
+
+    assert main(["archive", "info", path]) == 0
+    captured = capsys.readouterr()
+    assert f"{len(kept)} complete episode(s)" in captured.out
+    assert f"warning: {path}: skipped" in captured.err and "Traceback" not in captured.err
+    gif = tmp_path / "last.gif"
+    assert main(["archive", "replay", path, "--episode", str(len(kept) - 1), "--out", str(gif)]) == 0
+    capsys.readouterr()
+    fixed = tmp_path / "fixed.mcap"
+    assert main(["archive", "recover", path, "--out", str(fixed)]) == 0
+    captured = capsys.readouterr()
+    assert f"{len(kept)} complete episode(s)" in captured.out and "skipped" in captured.err
+    again = ArchiveReader(fixed)
+    assert [m["episode"] for m in again.episodes()] == kept
+    _assert_same_episode(again.episode(len(kept) - 1), recorded, kept[-1])
+
+
+def _rewrite(src, dst, commit=None, step_metadata=None):
+    """Copy an archive message for message, editing its commit records or step channel metadata."""
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="ocv2-archive")
+        ids, schemas = {}, {}
+        for schema, channel, message in make_reader(f).iter_messages():
+            if channel.id not in ids:
+                schema_id = 0
+                if schema is not None:
+                    schemas.setdefault(schema.id, writer.register_schema(schema.name, schema.encoding, schema.data))
+                    schema_id = schemas[schema.id]
+                metadata = dict(channel.metadata)
+                if channel.topic == "step" and step_metadata:
+                    metadata.update(step_metadata)
+                ids[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schema_id, metadata)
+            data = message.data
+            if channel.topic == "episode" and commit is not None:
+                data = commit(json.loads(data))
+            writer.add_message(ids[channel.id], message.log_time, data, message.publish_time, message.sequence)
+        writer.finish()
+
+
+def _field_table_with(path, name, **changes):
+    with open(path, "rb") as f:
+        channel = next(c for c in make_reader(f).get_summary().channels.values() if c.topic == "step")
+    table = json.loads(channel.metadata["fields"])
+    next(field for field in table if field["name"] == name).update(changes)
+    return json.dumps(table)
+
+
+def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
+    """Commit records or step metadata that do not follow the format: a one-line error naming file,
+    episode and key -- never a traceback, never a huge allocation."""
+    def edited(**changes):
+        return lambda meta: json.dumps({**meta, **changes}).encode()
+
+    def without(key):
+        return lambda meta: json.dumps({k: v for k, v in meta.items() if k != key}).encode()
+
+    opening = [  # refused when the file is opened (info)
+        (dict(commit=lambda meta: b"{not json"), "is not JSON"),
+        (dict(commit=lambda meta: b"[1, 2]"), "not an object"),
+        (dict(commit=without("steps")), "episode 0: the episode record has no 'steps'"),
+        (dict(commit=edited(steps=10**12)), "key 'steps' is 1000000000000"),
+        (dict(commit=edited(steps=-3)), "key 'steps' is -3"),
+        (dict(commit=edited(num_agents="two")), "key 'num_agents' is 'two'"),
+    ]
+    decoding = [  # refused when an episode is decoded (replay)
+        (dict(step_metadata={"fields": "[not json"}), "key 'fields' is not JSON"),
+        (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", dtype="|O")}), "dtype '|O'"),
+        (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[4, 5, 2])}),
+         "step message 0 has 311 bytes"),
+        (dict(step_metadata={"fields": _field_table_with(archive, "action", dtype="<f4")}),
+         "action has dtype '<f4', not '<i4'"),
+        (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[5, 4, 3])}),
+         "states do not fit"),
+        (dict(step_metadata={"layout": "{}"}), "key 'layout'"),
+    ]
+    # A crafted record after good episodes: recover stops with the error and leaves no half-copied file.
+    path, out = str(tmp_path / "late.mcap"), tmp_path / "late_fixed.mcap"
+    _rewrite(archive, path, commit=lambda meta: b"{" if meta["episode"] == 2 else json.dumps(meta).encode())
+    assert main(["archive", "recover", path, "--out", str(out)]) == 2
+    assert "episode record at log time" in capsys.readouterr().err
+    assert not out.exists() and not os.path.exists(str(out) + ".recovering")
+    for n, (edit, message) in enumerate(opening + decoding):
+        path = str(tmp_path / f"crafted_{n}.mcap")
+        _rewrite(archive, path, **edit)
+        argv = (["archive", "info", path] if n < len(opening)
+                else ["archive", "replay", path, "--out", str(tmp_path / f"crafted_{n}.gif")])
+        assert main(argv) == 2, (argv, edit)
+        err = capsys.readouterr().err
+        assert message in err and path in err and "Traceback" not in err, (message, err)
+        assert len(err.strip().splitlines()) == 1, err

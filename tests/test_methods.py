@@ -445,7 +445,7 @@ def test_failed_checkpoint_write_keeps_the_previous_file(tmp_path, train_state, 
     def fail(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(ckpt.os, "replace", fail)
+    monkeypatch.setattr("ocv2.atomic.os.replace", fail)  # the rename of the atomic write
     changed = state.replace(update=np.int32(99))
     with pytest.raises(OSError):
         ckpt.save(path, changed, config.fingerprint(), update=99)

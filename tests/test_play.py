@@ -8,7 +8,11 @@ from __future__ import annotations
 
 import http.client
 import json
+import select
 import socket
+import struct
+import threading
+import time
 from pathlib import Path
 
 import jax
@@ -20,9 +24,11 @@ from cluster.archive import ArchiveReader, ArchiveWriter, states_as_buffer
 from cluster.cli import main
 from cluster.play.game import HIDDEN_RGB, PartnerError, human_partner, load_policy_partner, make_game, scripted_partner
 from cluster.play.server import PlayServer
+from cluster.runtime.rundir import RunDir
 from cluster.play.protocol import Message, ProtocolError, parse_message
 from cluster.play.session import GameSession
 from population import checkpoints as ckpt
+from population import policy as policies
 from population import ppo
 from population.config import load_config
 from population.networks import init_params
@@ -257,8 +263,11 @@ def test_two_people_play_one_game(duo_game, archive):
 # HTTP
 # ---------------------------------------------------------------------------------------------------
 
-def _request(port, method, path, body=None, headers=None):
-    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+def _request(server, method, path, body=None, headers=None, key=True):
+    """One request to ``server`` as its page sends it (its key in the query), unless told otherwise."""
+    if key:
+        path += ("&" if "?" in path else "?") + f"key={server.key}"
+    connection = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
     try:
         connection.request(method, path, body=body, headers=headers or {})
         response = connection.getresponse()
@@ -267,45 +276,201 @@ def _request(port, method, path, body=None, headers=None):
         connection.close()
 
 
-def _api(port, message) -> tuple[int, dict]:
+def _api(server, message, **headers) -> tuple[int, dict]:
     body = message if isinstance(message, bytes) else json.dumps(message).encode()
-    status, _, data = _request(port, "POST", "/api", body)
+    status, _, data = _request(server, "POST", "/api", body, {"Content-Type": "application/json", **headers})
     return status, json.loads(data)
+
+
+@pytest.fixture
+def served(solo_game, archive):
+    """A running server (short request timeout, four connections at most) whose session nobody joined."""
+    server = PlayServer("127.0.0.1", 0, request_timeout=0.5, max_connections=4)
+    server.start(GameSession(solo_game, archive, seed=1, fps=5))
+    yield server
+    server.stop()
 
 
 def test_the_server_rejects_bad_requests_and_the_game_goes_on(solo_game, archive, monkeypatch):
     session = GameSession(solo_game, archive, seed=1, fps=100, max_episodes=1)
     server = PlayServer("127.0.0.1", 0)
-    assert server.url.startswith("http://127.0.0.1:")
+    assert server.url.startswith("http://127.0.0.1:") and server.url.endswith(f"/?key={server.key}")
     server.start(session)
-    port = server.port
     try:
-        status, headers, page = _request(port, "GET", "/")
+        status, headers, page = _request(server, "GET", "/")
         assert status == 200 and b"ocv2 play" in page and "default-src 'none'" in headers["Content-Security-Policy"]
-        assert _request(port, "GET", "/secrets")[0] == 404
-        assert _request(port, "POST", "/elsewhere", b"{}")[0] == 404
-        assert _api(port, b"garbage") == (400, {"ok": False, "error": "message is not UTF-8 JSON"})
-        assert _request(port, "POST", "/api", b"x", {"Content-Length": "999999"})[0] == 413
-        status, reply = _api(port, {"type": "join"})
+        assert _request(server, "GET", "/secrets")[0] == 404
+        assert _request(server, "POST", "/elsewhere", b"{}")[0] == 404
+        assert _api(server, b"garbage") == (400, {"ok": False, "error": "message is not UTF-8 JSON"})
+        assert _request(server, "POST", "/api", b"x", {"Content-Length": "999999",
+                                                       "Content-Type": "application/json"})[0] == 413
+        status, reply = _api(server, {"type": "join"})
         token = reply["token"]
         assert status == 200 and reply["seat"] == 0
-        assert _api(port, {"type": "action", "token": token, "action": "fly"})[0] == 400
+        assert _api(server, {"type": "action", "token": token, "action": "fly"})[0] == 400
         original = session.handle
         monkeypatch.setattr(session, "handle", lambda message: 1 / 0)  # a bug in one request ...
-        assert _api(port, {"type": "ready", "token": token}) == (500, {"ok": False, "error": "internal error (ZeroDivisionError)"})
+        assert _api(server, {"type": "ready", "token": token}) == (500, {"ok": False, "error": "internal error (ZeroDivisionError)"})
         monkeypatch.setattr(session, "handle", original)  # ... and the game still plays
-        assert _api(port, {"type": "ready", "token": token})[0] == 200
+        assert _api(server, {"type": "ready", "token": token})[0] == 200
         since = 0
         while not session.finished.wait(0):
-            status, poll = _api(port, {"type": "poll", "token": token, "since": since})
+            status, poll = _api(server, {"type": "poll", "token": token, "since": since})
             assert status == 200
             since = poll["version"]
-            _api(port, {"type": "action", "token": token, "action": "up"})
+            _api(server, {"type": "action", "token": token, "action": "up"})
     finally:
         server.stop()
         server.stop()
     (episode,) = episodes(archive)
     assert episode.meta["steps"] == STEPS and not episode.meta["cut_short"]
+
+
+JOIN = {"type": "join"}
+
+
+@pytest.mark.parametrize("origin", ["http://evil.example", "null", "http://localhost:{port}"])
+def test_a_post_from_another_origin_is_refused(served, origin):
+    """Another page (elsewhere, sandboxed, or another origin on this machine) posting a "simple" request."""
+    status, reply = _api(served, JOIN, Origin=origin.format(port=served.port))
+    assert status == 403 and "not accepted" in reply["error"]
+    assert not served.session.players
+
+
+@pytest.mark.parametrize("host", ["evil.example:{port}", "127.0.0.1:{next_port}", ""])
+def test_a_request_for_another_host_is_refused(served, host):
+    """DNS rebinding: the attacker's name resolves to this machine, but the Host header still says it."""
+    status, reply = _api(served, JOIN, Host=host.format(port=served.port, next_port=served.port + 1))
+    assert status == 403 and "not this server's address" in reply["error"]
+    assert not served.session.players
+
+
+def test_requests_without_the_key_are_refused(served):
+    for query in ("", "?key=wrong", f"?key={served.key[:-1]}"):
+        status, _, data = _request(served, "POST", "/api" + query, json.dumps(JOIN).encode(),
+                                   {"Content-Type": "application/json"}, key=False)
+        assert status == 403 and "wrong key" in json.loads(data)["error"], query
+        assert _request(served, "GET", "/" + query, key=False)[0] == 403
+    assert not served.session.players
+
+
+@pytest.mark.parametrize("content_type", ["text/plain", "application/x-www-form-urlencoded", "multipart/form-data", None])
+def test_a_message_that_is_not_json_typed_is_refused(served, content_type):
+    """The content types a cross-site form or a preflight-free fetch can send."""
+    status, _, data = _request(served, "POST", "/api", json.dumps(JOIN).encode(),
+                               {"Content-Type": content_type} if content_type else {})
+    assert status == 415 and "application/json" in json.loads(data)["error"]
+    assert not served.session.players
+
+
+def test_the_page_itself_is_served(served):
+    """Its own Host and Origin, the key, JSON with a charset."""
+    status, _, page = _request(served, "GET", "/", headers={"Host": f"localhost:{served.port}"})
+    assert status == 200 and b"encodeURIComponent" in page
+    status, reply = _api(served, JOIN, Origin=f"http://127.0.0.1:{served.port}",
+                         **{"Content-Type": "application/json; charset=utf-8"})
+    assert status == 200 and reply["seat"] == 0
+
+
+def test_host_names_of_a_wildcard_bind(solo_game, archive):
+    server = PlayServer("0.0.0.0", 0)
+    try:
+        port = server.port
+        allowed = server.http.host_allowed
+        assert allowed(f"127.0.0.1:{port}") and allowed(f"localhost:{port}") and allowed(f"192.168.1.20:{port}")
+        assert allowed(f"[::1]:{port}") and allowed(f"{socket.gethostname()}:{port}")
+        assert not allowed(f"evil.example:{port}") and not allowed(f"192.168.1.20:{port + 1}")
+        assert not allowed(f"user@127.0.0.1:{port}") and not allowed("127.0.0.1:notaport") and not allowed(None)
+    finally:
+        server.stop()
+
+
+def _connect(server) -> socket.socket:
+    client = socket.create_connection(("127.0.0.1", server.port), timeout=5)
+    client.settimeout(5)
+    return client
+
+
+def test_a_slow_client_is_cut_off(served):
+    """A request trickling in a byte at a time (slowloris) gets ``request_timeout`` in all, not per byte."""
+    client = _connect(served)
+    request = f"POST /api?key={served.key} HTTP/1.1\r\nHost: 127.0.0.1:{served.port}\r\n".encode()
+    cut = False
+    try:
+        for byte in request:  # 0.1 s a byte, far below the 0.5 s timeout, over several seconds
+            client.sendall(bytes([byte]))
+            if not wait_readable(client, 0.1):
+                continue
+            cut = client.recv(1024) == b""
+            break
+    except (BrokenPipeError, ConnectionResetError):
+        cut = True
+    finally:
+        client.close()
+    assert cut, "the server still waited for the rest of the request"
+    idle = _connect(served)  # a connection that sends nothing is closed too
+    try:
+        assert idle.recv(1024) == b""
+    finally:
+        idle.close()
+
+
+def wait_readable(client: socket.socket, seconds: float) -> bool:
+    return bool(select.select([client], [], [], seconds)[0])
+
+
+@pytest.fixture
+def patient(solo_game, archive):
+    """A running server that waits long for requests (idle connections stay open), four connections at most."""
+    server = PlayServer("127.0.0.1", 0, request_timeout=60, max_connections=4)
+    server.start(GameSession(solo_game, archive, seed=1, fps=5))
+    yield server
+    server.stop()
+
+
+def test_a_flood_of_connections_is_capped(patient):
+    """Connections beyond ``max_connections`` get 503 at once and no thread; a freed slot serves again."""
+    served = patient
+    threads = threading.active_count()
+    held = [_connect(served) for _ in range(4)]
+    try:
+        _wait_for(lambda: served.http.open_connections == 4)
+        extra = [_connect(served) for _ in range(6)]
+        for client in extra:
+            assert client.recv(1024).startswith(b"HTTP/1.1 503"), "a connection over the cap was not refused"
+            client.close()
+        assert served.http.open_connections == 4 and threading.active_count() <= threads + 4
+    finally:
+        for client in held:
+            client.close()
+    _wait_for(lambda: served.http.open_connections == 0)
+    assert _api(served, {"type": "join"})[0] == 200
+
+
+def _wait_for(condition, seconds: float = 10.0):
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.02)
+
+
+def test_a_client_leaving_mid_answer_costs_one_log_line(served, capsys):
+    token = _api(served, {"type": "join"})[1]["token"]
+    client = _connect(served)
+    body = json.dumps({"type": "poll", "token": token, "since": 10 ** 9}).encode()  # answered after a second
+    client.sendall(f"POST /api?key={served.key} HTTP/1.1\r\nHost: 127.0.0.1:{served.port}\r\n"
+                   f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n".encode() + body)
+    time.sleep(0.2)  # the server has read the request and waits in the poll
+    client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    client.close()  # a reset: the answer cannot be written
+    err = ""
+    deadline = time.monotonic() + 10
+    while "ended mid-request" not in err and time.monotonic() < deadline:
+        time.sleep(0.05)
+        err += capsys.readouterr().err
+    time.sleep(0.2)
+    err += capsys.readouterr().err
+    assert "Traceback" not in err and err.count("\n") == 1 and "ended mid-request" in err, err
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -315,8 +480,6 @@ def test_the_server_rejects_bad_requests_and_the_game_goes_on(solo_game, archive
 @pytest.fixture(scope="module")
 def rnn_run(tmp_path_factory):
     """A run directory with one RNN checkpoint (untrained parameters: only loading is tested)."""
-    from cluster.runtime.rundir import RunDir
-
     run = tmp_path_factory.mktemp("runs") / "rnn"
     config = load_config(SMOKE, ["model.kind=rnn", "model.gru_dim=8", "model.mixer_features=[8]",
                                  "model.conv_features=[8]", "model.conv_kernels=[3]", "model.fc_dim=8",
@@ -335,7 +498,9 @@ def test_a_policy_partner_acts_on_its_own_observation_and_keeps_its_hidden_state
     assert partner.label == "seed_0@update_2" and partner.hidden_size == 8
     assert partner.checkpoint.endswith("update_0000002.msgpack")
     assert load_policy_partner(ckpt.checkpoint_path(rnn_run, 0, 0)).label == "seed_0@update_0"
-    game = make_game(ppo.eval_env(partner.config), partner, [0], tile_size=8)
+    assert partner.env_kwargs == load_config(rnn_run / "config.yaml").env_kwargs
+    assert partner.config_fingerprint == load_config(rnn_run / "config.yaml").fingerprint()
+    game = make_game(ocv2.make(**partner.env_kwargs), partner, [0], tile_size=8)
     carry = game.reset(jax.random.PRNGKey(0))
     stay = np.full((2,), STAY, np.int32)
     after_one, record = game.step(partner.params, carry, stay, jax.random.PRNGKey(1))
@@ -348,6 +513,21 @@ def test_a_policy_partner_acts_on_its_own_observation_and_keeps_its_hidden_state
     hidden, _, _ = apply(partner.params, hidden, after_one.obs[1][None, None], np.zeros((1, 1), bool))
     np.testing.assert_allclose(after_two.hidden[1], hidden[0], rtol=1e-5, atol=1e-6)
     assert int(record.actions[0]) == STAY and np.abs(np.asarray(after_two.hidden[1])).sum() > 0
+
+
+def test_an_exported_policy_file_is_a_partner(rnn_run, tmp_path, capsys):
+    exported = policies.export_checkpoint(rnn_run, tmp_path / "cook.ocv2policy", checkpoint="latest",
+                                          meta={"name": "cook"})
+    partner = load_policy_partner(exported)
+    original = load_policy_partner(rnn_run / "checkpoints" / "seed_0")
+    assert (partner.kind, partner.label, partner.run_dir, partner.config_fingerprint) == ("policy", "cook", None, None)
+    assert partner.env_kwargs == original.env_kwargs and partner.hidden_size == 8
+    for got, want in zip(jax.tree.leaves(partner.params), jax.tree.leaves(original.params)):
+        np.testing.assert_array_equal(got, want)
+    # the command plays the file's environment and refuses flags that change it, like a run's
+    code, err = _cli_error(capsys, "--partner", str(exported), "--agent-view-size", "2", "--port", "0",
+                           "--out", str(tmp_path / "x.mcap"))
+    assert code == 2 and "agent_view_size: the partner's run uses None" in err
 
 
 def test_bad_partner_paths_are_clear_errors(rnn_run, tmp_path):

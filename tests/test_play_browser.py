@@ -72,9 +72,9 @@ def _start_play(out: Path) -> tuple[subprocess.Popen, str, list[str]]:
     """``ocv2 play`` as a user runs it; returns the process, the URL it printed and its output so far."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     process = subprocess.Popen(
-        [sys.executable, "-m", "cluster.cli", "play", "grounded_coord_simple", "--agent-view-size", "2",
-         "--max-steps", str(STEPS), "--fps", str(FPS), "--port", "0", "--seed", "0",
-         "--disconnect-timeout", "30", "--tile-size", "40", "--out", str(out), "--meta", "participant=e2e"],
+        [sys.executable, "-c", "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
+         "play", "grounded_coord_simple", "--agent-view-size", "2", "--max-steps", str(STEPS), "--fps", str(FPS),
+         "--port", "0", "--seed", "0", "--disconnect-timeout", "30", "--tile-size", "40", "--out", str(out), "--meta", "participant=e2e"],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: queue.Queue = queue.Queue()
     threading.Thread(target=lambda: [lines.put(line) for line in process.stdout], daemon=True).start()
@@ -121,6 +121,9 @@ def test_play_in_a_real_browser(tmp_path):
         options.add_argument(flag)
     browser = webdriver.Chrome(options=options, service=Service(driver_path))
     try:
+        assert "?key=" in url
+        browser.get(url.split("?")[0])  # the address without its per-launch key: refused
+        assert "open the whole address" in browser.page_source
         browser.get(url)
         status = lambda: browser.find_element(By.ID, "status").text
         phase = lambda: browser.find_element(By.TAG_NAME, "body").get_attribute("data-phase")
@@ -161,7 +164,7 @@ def test_play_in_a_real_browser(tmp_path):
         browser.quit()
         if process.poll() is None:
             process.kill()
-    assert "recorded 3 episode(s)" in "".join(output)
+    assert "recorded 3 episode(s)" in "".join(output) and "Traceback" not in "".join(output)
     assert (tmp_path / "play.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     complete, cut, stopped = ArchiveReader(archive).iter_episodes()

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -28,6 +29,7 @@ from cluster.runtime.rundir import RunDir
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import load_config
+from population.keys import derive_key
 from population.sa import collect_buffer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -135,7 +137,7 @@ def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_number
     assert metrics_without_timing(run) == metrics_without_timing(reference)
 
 
-def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray_session):
+def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray_session, capsys):
     run = tmp_path / "driver"
     address = ray_session.get_runtime_context().gcs_address
     command = [sys.executable, "-c", "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
@@ -148,13 +150,29 @@ def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray
         assert driver.poll() is None, "the driver exited before it could be killed"
         assert time.monotonic() < deadline, "no checkpoint at update 4 within 240 s"
         time.sleep(0.05)
-    driver.send_signal(signal.SIGKILL)
+    driver.send_signal(signal.SIGSTOP)  # frozen mid-run, still holding the run directory's lock
+    assert train(run, *LONGER, extra=["--no-eval", "--resume"]) == 2
+    assert f"in use by another ocv2 process (pid {driver.pid})" in capsys.readouterr().err
+    driver.send_signal(signal.SIGKILL)  # the kernel releases its lock
     driver.wait()
     assert RunDir(run).read_manifest()["status"] == "training"
     assert train(run, *LONGER, extra=["--no-eval", "--resume"]) == 0
     assert RunDir(run).read_manifest()["resumed_from"] >= 4
     assert_same_tree(final_params(run), final_params(reference))
     assert metrics_without_timing(run) == metrics_without_timing(reference)
+
+
+def test_a_worker_whose_checkpoints_cannot_load_reports_that(tmp_path, reference, ray_session, capsys):
+    run = tmp_path / "broken"
+    shutil.copytree(reference, run)
+    for update in ckpt.list_updates(run, 1):  # every checkpoint of seed 1 truncated: nothing to fall back to
+        path = ckpt.checkpoint_path(run, 1, update)
+        path.write_bytes(path.read_bytes()[:100])
+    assert train(run, *LONGER, extra=["--no-eval", "--resume"]) == 2
+    err = capsys.readouterr().err  # also the actor's "falling back" lines, forwarded by Ray
+    errors = [line for line in err.splitlines() if line.startswith("ocv2 train: error:")]
+    assert len(errors) == 1 and "not a readable ocv2 checkpoint" in errors[0] and "no older checkpoint" in errors[0]
+    assert "max_restarts" not in err
 
 
 def test_bad_cluster_input_fails_before_any_work(tmp_path, capsys, ray_session):
@@ -211,7 +229,7 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
         # Rebuilt here in one process from the checkpointed policies: the Ray buffer is exactly this.
         params = jax.tree.map(lambda *xs: np.stack(xs), *(
             ckpt.load(ckpt.checkpoint_path(run, s, update), template, config.fingerprint())[1].params for s in (0, 1)))
-        key = runstate.population_key(config, runstate.SA_KEY_OFFSET + iteration)
+        key = derive_key(config.population.seed, "sa", iteration)
         expected = collect_buffer(trainer.network.apply, 0, ppo.eval_env(config), params, key, config.population.sa)
         meta, stored = ckpt.load(run / "sa" / f"buffer_{iteration:03d}.msgpack", expected, config.fingerprint())
         assert meta["states"] == 4 * 1 * 2  # 4 ordered pairs x 1 rollout x 24 // 10 kept states

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import errno
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -18,12 +20,15 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from cluster.runtime import coordinator, evaluate, runstate
+import ocv2.atomic
 from cluster.cli import main
+from cluster.runtime import coordinator, evaluate, runstate
 from cluster.runtime.rundir import METRIC_FIELDS, RunDir, RunDirError
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import dump_config, load_config
+from population.keys import derive_key
+from ocv2.atomic import is_temporary
 from population.sa import collect_buffer
 
 SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
@@ -162,7 +167,7 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
     _assert_trees_equal(untrained, ppo.init_population(trainer, range(NUM_SEEDS)).params)
     for iteration, update in enumerate(schedule.iteration_starts):  # ... the second from the update-2 policies
         expected = collect_buffer(trainer.network.apply, runstate.hidden_size(trainer), ppo.eval_env(config),
-                                  params_at(update), runstate.population_key(config, runstate.SA_KEY_OFFSET + iteration),
+                                  params_at(update), derive_key(config.population.seed, "sa", iteration),
                                   config.population.sa)
         meta, stored = ckpt.load(run / "sa" / f"buffer_{iteration:03d}.msgpack", expected, config.fingerprint())
         assert meta["iteration"] == iteration and meta["states"] == NUM_SEEDS ** 2 * 2 * 4
@@ -307,6 +312,75 @@ def test_resume_after_an_interruption_matches_the_uninterrupted_run(sp_run, tmp_
     keys = seed_keys(rows)
     assert len(keys) == len(set(keys)) == NUM_SEEDS * NUM_UPDATES
     _assert_same_metrics(rows, read_csv(sp_run / "metrics.csv"))
+
+
+def _interrupted_at_update_2(sp_run, run):
+    """A copy of the SP run as if its driver was killed after update 2's chunk was complete."""
+    shutil.copytree(sp_run, run)
+    for seed in range(NUM_SEEDS):
+        ckpt.checkpoint_path(run, seed, NUM_UPDATES).unlink()
+    for sub in ("xp", "plots", "gifs"):
+        shutil.rmtree(run / sub)
+    RunDir(run).update_manifest(status="training", update=2)
+    RunDir(run).truncate_metrics(2)
+
+
+def _assert_same_run(run, reference):
+    for seed in range(NUM_SEEDS):
+        _assert_trees_equal(_raw_checkpoint(run, seed, NUM_UPDATES), _raw_checkpoint(reference, seed, NUM_UPDATES))
+    _assert_same_metrics(read_csv(run / "metrics.csv"), read_csv(reference / "metrics.csv"))
+
+
+def test_a_full_disk_is_a_one_line_error_and_the_run_resumes(sp_run, tmp_path, capsys, monkeypatch):
+    run = tmp_path / "full"
+    _interrupted_at_update_2(sp_run, run)
+    metrics_before = (run / "metrics.csv").read_bytes()
+    writes = []
+    fsync = ocv2.atomic._fsync_path
+
+    def disk_fills_at_the_metrics_write(path):
+        # The update-4 checkpoints fit; the metrics.csv write after them (and all after it) does not.
+        if Path(path).name.startswith(".") and (writes or Path(path).name.startswith(".metrics")):
+            writes.append(path)
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        fsync(path)
+
+    monkeypatch.setattr(ocv2.atomic, "_fsync_path", disk_fills_at_the_metrics_write)
+    assert train(run, extra=["--resume", "--no-eval"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "No space left on device" in err and "--resume" in err
+    assert (run / "metrics.csv").read_bytes() == metrics_before  # untouched, not half-written
+    assert all(ckpt.list_updates(run, seed) == SNAPSHOTS for seed in range(NUM_SEEDS))
+    assert not [p for p in run.rglob("*") if is_temporary(p)]
+    monkeypatch.setattr(ocv2.atomic, "_fsync_path", fsync)  # space freed
+    assert train(run, extra=["--resume", "--no-eval"]) == 0
+    assert manifest(run)["status"] == "finished"
+    _assert_same_run(run, sp_run)  # update 3-4 rows come back from the update-4 checkpoints' meta
+
+
+def test_a_corrupt_latest_checkpoint_falls_back_to_the_previous_one(sp_run, tmp_path, capsys):
+    run = tmp_path / "corrupt"
+    shutil.copytree(sp_run, run)
+    path = ckpt.checkpoint_path(run, 1, NUM_UPDATES)
+    data = bytearray(path.read_bytes())
+    data[-100] ^= 0xFF  # inside the state bytes: the file still parses, only the checksum tells
+    path.write_bytes(bytes(data))
+    assert train(run, extra=["--resume", "--no-eval"]) == 0
+    err = capsys.readouterr().err
+    assert f"{path}: checksum mismatch" in err and "falling back to update 2" in err
+    _assert_same_run(run, sp_run)  # updates 3-4 trained again, to the same numbers
+
+
+def test_resuming_with_fewer_snapshots_keeps_those_the_run_was_created_with(sp_run, tmp_path):
+    run = tmp_path / "fewer"
+    _interrupted_at_update_2(sp_run, run)
+    assert train(run, "run.num_checkpoints=2", extra=["--resume", "--no-eval"]) == 0
+    assert manifest(run)["snapshots"] == [0, 4]
+    assert all(ckpt.list_updates(run, seed) == SNAPSHOTS for seed in range(NUM_SEEDS))
+    # An FCP run reads the snapshots this run's config.yaml names ("mid" = update 2): still there.
+    config = load_config(SMOKE, ["population.method=fcp", f"population.fcp.partners={run}"])
+    _, labels = coordinator.load_pool(config, ppo.make_trainer(config), run)
+    assert labels == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
 
 
 def _assert_same_metrics(rows, reference):

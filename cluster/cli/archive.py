@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 from cluster.archive import PARTIAL_SUFFIX, ArchiveError, ArchiveReader, recover
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
@@ -55,13 +56,21 @@ def run(args) -> int:
     return {"info": _info, "replay": _replay, "recover": _recover}[args.archive_command](args)
 
 
-def _reader(path: str):
+def _reader(path: str) -> ArchiveReader:
+    """The archive, its damage (skipped chunks, lost episodes) warned about on stderr."""
     try:
-        return ArchiveReader(path)
+        reader = ArchiveReader(path)
     except ArchiveError as error:
         raise CLIError(str(error)) from None
     except OSError as error:
         raise CLIError(f"cannot read {path!r}: {error}") from None
+    _warn(path, reader.warnings)
+    return reader
+
+
+def _warn(path: str, warnings) -> None:
+    for warning in warnings:
+        print(f"warning: {path}: {warning}", file=sys.stderr)
 
 
 def _info(args) -> int:
@@ -121,7 +130,6 @@ def _replay(args) -> int:
         layout = reader.layout(args.episode)
     except ArchiveError as error:
         raise CLIError(str(error)) from None
-
     frames = render_frames(episode.states, layout, agent_view_size=args.view_radius, tile_size=args.tile_size)
     folder = os.path.dirname(os.path.abspath(args.out))
     try:
@@ -151,7 +159,8 @@ def _recover(args) -> int:
         raise CLIError(str(error)) from None
     except OSError as error:
         raise CLIError(f"could not recover {args.file!r} into {out!r}: {error}", EXIT_FAILURE) from None
-    if report.source_finished:
+    _warn(args.file, report.warnings)
+    if report.source_finished and not report.warnings:
         print(f"{args.file} was a finished archive; copied its {report.episodes} episode(s) to {report.path}")
         return EXIT_OK
     dropped = (f"; dropped {report.dropped_messages} message(s) of an incomplete episode"

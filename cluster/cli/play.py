@@ -5,8 +5,8 @@
               [--env KEY=VALUE ...] [--out FILE.mcap] [--seed S] [--episodes N] [--meta KEY=VALUE ...]
 
 Starts a local web server, prints its URL and records every played episode to an MCAP archive
-(``docs/archive.md``) until Ctrl-C (or ``--episodes`` episodes). ``cluster.cli.main.COMMANDS`` names
-this module by string: it is imported only when ``ocv2 play`` runs.
+(``docs/archive.md``) until Ctrl-C (or ``--episodes`` episodes). ``cluster.cli.main`` imports this
+module only when ``ocv2 play`` runs.
 """
 
 from __future__ import annotations
@@ -31,7 +31,6 @@ from cluster.play.game import PartnerError, human_partner, load_policy_partner, 
 from cluster.play.server import PlayServer
 from cluster.play.session import PLAY_META_KEYS, SEAT_COLOURS, GameSession
 from ocv2.config import build_config
-from population import ppo
 
 DEFAULT_PORT = 8765
 DEFAULT_HOST = "127.0.0.1"
@@ -136,6 +135,7 @@ def run_play(args) -> int:
 # ---------------------------------------------------------------------------------------------------
 
 def _partner(text: str):
+
     try:
         if text == "human":
             return human_partner()
@@ -163,9 +163,10 @@ def _env_flags(args) -> dict:
 
 def _env(args, partner):
     """The env to play: the partner run's eval env (checked against LAYOUT and flags), else LAYOUT + flags."""
+
     flags = _env_flags(args)
     if partner.kind == "policy":
-        trained = partner.config.env_kwargs
+        trained = partner.env_kwargs
         if args.layout is not None and _layout_or_error(args.layout).name != trained["layout"]:
             raise CLIError(f"the partner was trained on layout {trained['layout']!r}, not {args.layout!r}; "
                            "omit LAYOUT or pick a partner trained on it")
@@ -177,9 +178,9 @@ def _env(args, partner):
         differ = [f"{key}: the partner's run uses {getattr(reference, key)!r}, you asked for {getattr(wanted, key)!r}"
                   for key in flags if getattr(wanted, key) != getattr(reference, key)]
         if differ:
-            raise CLIError("the partner plays the environment it was evaluated in (its run's config.yaml); "
-                           + "; ".join(differ) + ". Omit those flags")
-        return ppo.eval_env(partner.config)
+            raise CLIError("the partner plays the environment it was evaluated in (its run's config.yaml, or "
+                           "the exported file's); " + "; ".join(differ) + ". Omit those flags")
+        return ocv2.make(**trained)
     if args.layout is None:
         raise CLIError("give a LAYOUT (see 'ocv2 layouts'), or a trained --partner whose run fixes it")
     layout = _layout_or_error(args.layout)
@@ -199,6 +200,7 @@ def _human_seats(args, env, partner) -> list[int]:
 
 
 def _meta(pairs) -> dict:
+
     meta = dict(pairs)
     taken = sorted(set(meta) & set(RESERVED_KEYS + PLAY_META_KEYS))
     if taken:
@@ -207,6 +209,7 @@ def _meta(pairs) -> dict:
 
 
 def _bind(host: str, port: int, verbose: bool):
+
     try:
         return PlayServer(host, port, verbose)
     except OSError as error:
@@ -217,12 +220,13 @@ def _bind(host: str, port: int, verbose: bool):
 
 
 def _writer(out: str | None, layout: str, fps: float):
+
     path = out or os.path.join("runs", "play", f"{layout}_{time.strftime('%Y%m%d-%H%M%S')}.mcap")
     if not path.endswith(".mcap"):
         raise CLIError(f"--out must name a .mcap file, got {path!r}")
     try:
         # Message times a tick apart: Foxglove and other MCAP players replay the episode at the speed it was played.
-        return ArchiveWriter(path, step_ns=round(1e9 / fps)).open(), path
+        return ArchiveWriter(path, step_ns=round(1e9 / fps), fsync=True).open(), path
     except ArchiveError as error:
         raise CLIError(f"--out: {error}") from None
     except OSError as error:
@@ -240,6 +244,7 @@ def _finish(writer) -> int:
 
 
 def _announce(args, server, game, seed: int, path: str) -> None:
+
     env, partner = game.env, game.partner
     view = "" if env.config.view_radius is None else f", view radius {env.config.view_radius}"
     if partner.kind == "human":
@@ -250,7 +255,9 @@ def _announce(args, server, game, seed: int, path: str) -> None:
     print(f"ocv2 play: {env.layout.name}, {who}, {env.max_steps} steps at {args.fps:g} steps/s{view}, seed {seed}")
     print(f"recording to {path}")
     if not _loopback(args.host):
-        print(f"note: listening on {args.host}: anyone who can reach this machine on port {server.port} can join")
+        print(f"note: listening on {args.host}: other machines join at "
+              f"http://<this machine's name or address>:{server.port}/?key={server.key}; give that address only to "
+              "your players (the key is the only password)")
     print(f"open {server.url}   (Ctrl-C to stop)", flush=True)
 
 

@@ -34,10 +34,10 @@ from rich.console import Console
 from rich.table import Table
 
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.rundir import RunDir, RunDirError, seed_curves
 from ocv2.atomic import atomic_write
 from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
-from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
+from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
 
 METHOD_ORDER = ("sp", "sa", "op", "fcp")
 METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
@@ -73,9 +73,11 @@ def describe_config(config) -> str:
     if pop.method == "sa":
         text += f"; {pop.sa.iterations} SA iterations"
     if pop.method == "fcp":
-        pool = f"{pop.fcp.partner_seeds} partner seeds x {list(pop.fcp.checkpoints)}"
-        text += (f"; pool {pool} from {pop.fcp.partners}" if pop.fcp.partners
-                 else f"; first an SP partner stage of {pop.fcp.partner_seeds} seeds, pool {pool}")
+        fcp = pop.fcp
+        pool = f"{fcp.partner_seeds} partner seeds x {list(fcp.checkpoints)} {'per learner' if fcp.per_seed else 'shared'}"
+        text += (f"; pool {pool} from {fcp.partners}" if fcp.partners
+                 else f"; first an SP partner stage of {fcp.stage_seeds(pop.num_seeds)} seeds x "
+                      f"{fcp.partner_ppo.num_updates} updates, pool {pool}")
     return text
 
 
@@ -125,12 +127,10 @@ def _nan(value) -> float:
 
 def load_run(path) -> dict:
     """Everything ``report`` needs from one run directory; ``CLIError`` if it is not one."""
-    run = RunDir(path)
-    if not run.path.is_dir():
+    if not Path(path).exists():
         raise CLIError(f"{path}: no such run directory")
-    if not run.config_path.is_file():
-        raise CLIError(f"{path}: not an ocv2 run directory (no config.yaml)")
     try:
+        run = RunDir.existing(path)
         config = run.load_config()
     except RunDirError as error:
         raise CLIError(str(error)) from None
@@ -263,22 +263,12 @@ def markdown_table(header: list[str], cells: list[list[str]]) -> str:
 
 def curve(metrics: list[dict], field: str = "sparse_return"):
     """(env steps, mean, std) across seeds per update; None if no finished episode was recorded."""
-    by_update: dict[int, tuple[list[float], list[float]]] = {}
-    for row in metrics:
-        update = _nan(row.get("update"))
-        if math.isnan(update):
-            continue
-        steps, values = by_update.setdefault(int(update), ([], []))
-        steps.append(_nan(row.get("env_steps")))
-        value = _nan(row.get(field))
-        if not math.isnan(value):
-            values.append(value)
-    points = [(np.nanmax(s), float(np.mean(v)), float(np.std(v)))
-              for _, (s, v) in sorted(by_update.items()) if v]
-    if not points:
+    curves = seed_curves(metrics, (field,))
+    mean, std = across_seeds(curves.values[field])
+    recorded = ~np.isnan(mean)
+    if not recorded.any():
         return None
-    x, mean, std = (np.asarray(col, np.float64) for col in zip(*points))
-    return x, mean, std
+    return curves.env_steps[recorded], mean[recorded], std[recorded]
 
 
 def write_curves(runs: list[dict], out: Path) -> list[str]:

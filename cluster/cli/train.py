@@ -71,8 +71,16 @@ def run_train(args) -> int:
                                    show_progress=not args.quiet, evaluate=not args.no_eval, loggers=args.loggers)
     except (RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
+    except OSError as error:  # a full disk, a read-only or vanished directory: every write is atomic
+        raise CLIError(_os_error_message(error, out)) from None
     print(f"run directory: {summary['run_dir']}")
     return EXIT_OK
+
+
+def _os_error_message(error: OSError, out: str) -> str:
+    where = f" writing {error.filename}" if error.filename else ""
+    return (f"{error.strerror or error}{where}. {out} keeps its last complete checkpoint and metrics; fix the "
+            f"cause (e.g. free disk space) and continue with `ocv2 train CONFIG --out {out} --resume`")
 
 
 def _default_run_dir(config) -> str:

@@ -27,6 +27,9 @@ from ocv2.dynamics import transition
 from ocv2.items import Static
 from ocv2.render import INGREDIENT_COLORS, render
 from ocv2.state import State
+from population import checkpoints as ckpt
+from population import policy as policies
+from population.config import ConfigError, load_config
 
 #: Cells outside a human's view window are painted this colour: the human sees what their agent sees.
 HIDDEN_RGB = (24, 24, 24)
@@ -45,9 +48,10 @@ class Partner(NamedTuple):
     apply: Callable  # network calling convention (see the module docstring)
     params: Any  # the policy's parameters (None for scripted partners)
     hidden_size: int  # GRU width (0 for the CNN and scripted partners)
-    checkpoint: str | None = None  # the checkpoint file a policy was loaded from
-    run_dir: str | None = None
-    config: Any = None  # the run's ``population.config.Config``: its eval env is the env to play
+    checkpoint: str | None = None  # the checkpoint (or exported policy) file a policy was loaded from
+    run_dir: str | None = None  # the run a checkpoint belongs to (None for an exported file)
+    env_kwargs: dict | None = None  # the ``ocv2.make`` arguments of the env a policy plays (its run's eval env)
+    config_fingerprint: str | None = None  # the run config's fingerprint (None for an exported file)
 
 
 class GameCarry(NamedTuple):
@@ -121,12 +125,11 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
 
     A seed folder means its latest checkpoint.
     """
-    from population import checkpoints as ckpt
-
     path = Path(path)
     if not path.exists():
         raise PartnerError(f"--partner: {str(path)!r} does not exist (expected RUN_DIR/checkpoints/seed_<i>, "
-                           "a checkpoint file in it, 'human', 'stay' or 'random')")
+                           f"a checkpoint file in it, an exported *{policies.SUFFIX} file, 'human', 'stay' or "
+                           "'random')")
     seed_folder = path if path.is_dir() else path.parent
     match = _SEED_DIR.match(seed_folder.name)
     if match is None or seed_folder.parent.name != "checkpoints":
@@ -135,8 +138,8 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
             seeds = sorted(p.name for p in (path / "checkpoints").iterdir() if _SEED_DIR.match(p.name))
             hint = f"; this looks like a run directory: pick a seed, e.g. {path / 'checkpoints' / seeds[0]}" \
                 if seeds else "; its checkpoints/ folder holds no seed"
-        raise PartnerError(f"--partner: {str(path)!r} is not RUN_DIR/checkpoints/seed_<i> or a checkpoint file "
-                           f"in one{hint}")
+        raise PartnerError(f"--partner: {str(path)!r} is not RUN_DIR/checkpoints/seed_<i>, a checkpoint file "
+                           f"in one or an exported *{policies.SUFFIX} file{hint}")
     run_dir, seed = seed_folder.parent.parent, int(match.group(1))
     if path.is_dir():
         latest = ckpt.latest(run_dir, seed)
@@ -147,30 +150,27 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
 
 
 def load_policy_partner(path) -> Partner:
-    """The policy of a checkpoint (or a seed's latest), with the run config it was trained under."""
-    from cluster.runtime.rundir import RunDir
-    from cluster.runtime.runstate import hidden_size, load_params, params_template
-    from population import checkpoints as ckpt
-    from population import ppo
-    from population.config import ConfigError
-
-    run_dir, seed, checkpoint = resolve_checkpoint(path)
-    run = RunDir(run_dir)
-    if not run.config_path.exists():
-        raise PartnerError(f"--partner: {str(run_dir)!r} is not an ocv2 run directory (no config.yaml)")
+    """The policy of a checkpoint (or a seed's latest) or of an exported policy file (``population.policy``)."""
+    path = Path(path)
+    exported = path.is_file() and path.suffix == policies.SUFFIX
+    if not exported:
+        run_dir, _, path = resolve_checkpoint(path)
+        if not (run_dir / "config.yaml").is_file():
+            raise PartnerError(f"--partner: {str(run_dir)!r} is not an ocv2 run directory (no config.yaml)")
     try:
-        config = run.load_config()
-    except (ConfigError, OSError, ValueError) as error:
-        raise PartnerError(f"--partner: cannot read {run.config_path}: {error}") from None
-    trainer = ppo.make_trainer(config)
-    try:
-        meta, _ = ckpt.read(checkpoint, config.fingerprint())
-        params = load_params(checkpoint, config.fingerprint(), params_template(trainer))
-    except (ckpt.CheckpointError, KeyError, ValueError, TypeError) as error:
+        policy = policies.load(path)
+    except policies.PolicyError as error:
         raise PartnerError(f"--partner: {error}") from None
-    update = meta.get("update", checkpoint.stem.removeprefix("update_"))
-    return Partner("policy", f"seed_{seed}@update_{int(update)}", trainer.network.apply, params, hidden_size(trainer),
-                   str(checkpoint), str(run_dir), config)
+    if exported:
+        return Partner("policy", policy.name, policy.apply, policy.params, policy.hidden_size, str(path),
+                       env_kwargs=policy.env)
+    try:
+        fingerprint = load_config(run_dir / "config.yaml").fingerprint()  # policy.load read the same file
+    except ConfigError as error:
+        raise PartnerError(f"--partner: {error}") from None
+    label = f"seed_{policy.meta['seed']}@update_{policy.meta['update']}"
+    return Partner("policy", label, policy.apply, policy.params,
+                   policy.hidden_size, str(path), str(run_dir), policy.env, fingerprint)
 
 
 # ---------------------------------------------------------------------------------------------------

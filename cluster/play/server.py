@@ -1,35 +1,61 @@
 """The HTTP side of ``ocv2 play``: a standard-library server with one page and one JSON endpoint.
 
-    GET  /      the game page (``cluster/play/static/play.html``, package data; no build step)
-    POST /api   one JSON message (``docs/play.md``). The answer is JSON: ``{"ok": true, ...}``, or
-                ``{"ok": false, "error": "..."}`` with status 400 (malformed), 403 (unknown token),
-                409 (seat taken), 413 (too large) or 503 (shutting down)
+    GET  /?key=K      the game page (``cluster/play/static/play.html``, package data; no build step)
+    POST /api?key=K   one JSON message (``docs/play.md``). The answer is JSON: ``{"ok": true, ...}``, or
+                      ``{"ok": false, "error": "..."}`` with status 400 (malformed), 403 (refused: see
+                      below, or an unknown player token), 409 (seat taken), 413 (too large),
+                      415 (not ``application/json``) or 503 (shutting down)
+
+Only the person given the printed URL drives the game, not any web page their browser has open:
+
+* ``K`` is a per-launch secret (``secrets.token_urlsafe``) in the printed URL; the page passes it on.
+* The ``Host`` header must name the bound address (a loopback name for a loopback or wildcard bind; an
+  IP literal or this machine's name for a wildcard bind) and the port: a DNS-rebinding page's
+  requests carry its own domain name and are refused.
+* An ``Origin`` header, when present (browsers send one with every POST), must be ``http://`` + Host:
+  another page's requests are refused even though a "simple" POST needs no CORS preflight.
+* ``POST /api`` must say ``Content-Type: application/json``: a cross-site form or ``text/plain`` fetch
+  cannot, without a preflight this server never grants.
+* A connection gets ``request_timeout`` seconds to deliver each request (request line, headers and
+  body, however slowly it trickles; an idle keep-alive connection counts as slow), and at most
+  ``max_connections`` connections are served at once (one thread each); more are answered 503 and
+  closed. A client that goes away mid-answer costs one log line, not a traceback.
 
 Why no websockets: the standard library has none, and at a few ticks per second a long poll (the
 page asks for anything newer than the version it has; the server answers as soon as there is, or
-after a second) is as responsive on one machine or a LAN and needs no dependency. Each request
-runs on its own thread; the session's lock serialises them with the clock thread, so a bad or
-failing request gets an error answer and the game goes on.
+after a second) is as responsive on one machine or a LAN and needs no dependency. The session's
+lock serialises the request threads with the clock thread, so a bad or failing request gets an
+error answer and the game goes on.
 """
 
 from __future__ import annotations
 
+import hmac
+import io
+import ipaddress
 import json
+import secrets
 import socket
 import sys
 import threading
+import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
-from urllib.parse import urlsplit
+from urllib.parse import parse_qs, urlsplit
 
 from cluster.play.protocol import MAX_MESSAGE_BYTES, ProtocolError, parse_message
 from cluster.play.session import GameSession
 
 PAGE = "play.html"
+REQUEST_TIMEOUT_S = 10.0  # to deliver one whole request; the page's requests take milliseconds
+WRITE_TIMEOUT_S = 10.0  # to take one answer (a few KiB: normally the socket buffer takes it at once)
+MAX_CONNECTIONS = 32  # two players' tabs use about six each
+_LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 _SECURITY_HEADERS = {
     "Cache-Control": "no-store",
     "X-Content-Type-Options": "nosniff",
     "X-Frame-Options": "DENY",
+    "Referrer-Policy": "no-referrer",  # the page's URL holds the key
     # One self-contained page: inline script and style, frames as data: URLs, requests to itself only.
     "Content-Security-Policy": "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; "
                                "img-src data:; connect-src 'self'",
@@ -40,15 +66,123 @@ def page_html() -> bytes:
     return resources.files("cluster.play").joinpath("static", PAGE).read_bytes()
 
 
-class _Server(ThreadingHTTPServer):
-    daemon_threads = True  # a tab's open keep-alive connection never blocks shutdown
+def _is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
 
-    def __init__(self, address, verbose: bool):
+
+def _is_wildcard(host: str) -> bool:
+    return host in ("", "0.0.0.0", "::")
+
+
+def host_names(bound: str) -> frozenset[str]:
+    """The host names (lower case) a request may address a server bound to ``bound`` by."""
+    names = {bound.lower()}
+    loopback = bound.lower() == "localhost" or (_is_ip(bound) and ipaddress.ip_address(bound).is_loopback)
+    if loopback or _is_wildcard(bound):
+        names |= _LOOPBACK_NAMES
+    if _is_wildcard(bound):
+        names |= {socket.gethostname().lower(), socket.getfqdn().lower()}
+    return frozenset(names)
+
+
+class _DeadlineSocketIO(socket.SocketIO):
+    """A socket reader whose every ``recv`` waits only until the request's deadline.
+
+    A plain socket timeout bounds each ``recv``, so a client trickling one byte per timeout keeps a
+    thread forever (slowloris); arming the timeout with the time left bounds the whole request.
+    """
+
+    def __init__(self, sock: socket.socket):
+        super().__init__(sock, "rb")
+        self.deadline = time.monotonic() + REQUEST_TIMEOUT_S
+
+    def readinto(self, buffer) -> int:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("the request did not arrive in time")
+        self._sock.settimeout(left)
+        return super().readinto(buffer)
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True  # a tab's open keep-alive connection never blocks shutdown ...
+    block_on_close = False  # ... nor does server_close wait for it (its thread ends at its timeout)
+
+    def __init__(self, address, verbose: bool, key: str, request_timeout: float, max_connections: int):
         if ":" in address[0]:
             self.address_family = socket.AF_INET6
         self.session: GameSession | None = None  # set by PlayServer.start, before serving
-        self.verbose, self.page = verbose, page_html()
+        self.verbose, self.page, self.key = verbose, page_html(), key
+        self.request_timeout = float(request_timeout)
+        self.max_connections = int(max_connections)
+        self.open_connections = 0  # served now, each on its own thread
+        self._count = threading.Lock()
+        self._refusing = False  # a flood is logged once, not once per connection
         super().__init__(address, _Handler)
+        self.hosts = host_names(address[0]) | host_names(self.server_address[0])  # as given, and as bound
+        self.wildcard = _is_wildcard(address[0])
+
+    def host_allowed(self, header: str | None) -> bool:
+        """``Host`` names this server: an allowed name (any IP literal on a wildcard bind) and its port."""
+        if not header:
+            return False
+        try:
+            parts = urlsplit("//" + header)
+            name, port = parts.hostname, parts.port or 80
+        except ValueError:
+            return False
+        if not name or parts.username is not None or parts.path or port != self.server_address[1]:
+            return False
+        return name in self.hosts or (self.wildcard and _is_ip(name))
+
+    def process_request(self, request, client_address):
+        with self._count:
+            full = self.open_connections >= self.max_connections
+            self.open_connections += not full
+        if full:
+            self._refuse(request)
+            return
+        self._refusing = False
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._closed()
+            raise
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._closed()
+
+    def _closed(self) -> None:
+        with self._count:
+            self.open_connections -= 1
+
+    def _refuse(self, request) -> None:
+        """Answer 503 without a thread (best effort, never blocking the accept loop) and close."""
+        if not self._refusing:
+            self._refusing = True
+            print(f"ocv2 play: {self.max_connections} connections are open; refusing more until one closes",
+                  file=sys.stderr)
+        try:
+            request.setblocking(False)
+            request.send(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\nConnection: close\r\n\r\n")
+        except OSError:
+            pass
+        self.shutdown_request(request)
+
+    def handle_error(self, request, client_address):
+        error = sys.exc_info()[1]
+        if isinstance(error, (ConnectionError, TimeoutError)):  # the client went away: nothing to debug
+            print(f"ocv2 play: connection from {client_address[0]} ended mid-request ({type(error).__name__})",
+                  file=sys.stderr)
+            return
+        super().handle_error(request, client_address)
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -56,28 +190,50 @@ class _Handler(BaseHTTPRequestHandler):
     server_version = "ocv2-play"
     protocol_version = "HTTP/1.1"  # keep-alive: a poll every tick reuses one connection
 
+    def setup(self):
+        super().setup()
+        self.rfile.close()  # the plain reader is replaced by one that keeps the request deadline
+        self._reader = _DeadlineSocketIO(self.connection)
+        self.rfile = io.BufferedReader(self._reader)
+
+    def handle_one_request(self):
+        # The deadline covers the wait for the request line too: an idle keep-alive connection is closed.
+        self._reader.deadline = time.monotonic() + self.server.request_timeout
+        super().handle_one_request()
+
     def do_GET(self):
+        if self._refused():
+            return
         path = urlsplit(self.path).path
-        if path in ("/", "/index.html"):
-            self._send(200, self.server.page, "text/html; charset=utf-8")
-        elif path == "/favicon.ico":
+        if path == "/favicon.ico":
             self._send(204, b"", "image/x-icon")
-        else:
+        elif path not in ("/", "/index.html"):
             self._json(404, {"ok": False, "error": f"no page {path!r} here; the game is at /"})
+        elif not self._key_given():
+            self._send(403, b"ocv2 play: open the whole address 'ocv2 play' printed (it ends with ?key=...)\n",
+                       "text/plain; charset=utf-8")
+        else:
+            self._send(200, self.server.page, "text/html; charset=utf-8")
 
     def do_POST(self):
+        if self._refused():
+            return
         if urlsplit(self.path).path != "/api":
-            self._json(404, {"ok": False, "error": "messages go to POST /api"})
+            self._reject(404, "messages go to POST /api")
+            return
+        if not self._key_given():
+            self._reject(403, "missing or wrong key: open the whole address 'ocv2 play' printed")
+            return
+        if _media_type(self.headers.get("Content-Type")) != "application/json":
+            self._reject(415, "a message must be sent as Content-Type: application/json")
             return
         try:
             length = int(self.headers.get("Content-Length", ""))
         except ValueError:
-            self.close_connection = True  # the body's end is unknown: the connection cannot be reused
-            self._json(411, {"ok": False, "error": "a message needs a Content-Length"})
+            self._reject(411, "a message needs a Content-Length")
             return
         if not 0 <= length <= MAX_MESSAGE_BYTES:
-            self.close_connection = True  # not read: the connection cannot be reused
-            self._json(413, {"ok": False, "error": f"messages are at most {MAX_MESSAGE_BYTES} bytes"})
+            self._reject(413, f"messages are at most {MAX_MESSAGE_BYTES} bytes")
             return
         body = self.rfile.read(length)
         try:
@@ -91,15 +247,37 @@ class _Handler(BaseHTTPRequestHandler):
             return
         self._json(200, reply)
 
+    def _refused(self) -> bool:
+        """Refuse (403) a request not addressed to this server by its own name, or sent by another page."""
+        host, origin = self.headers.get("Host"), self.headers.get("Origin")
+        if not self.server.host_allowed(host):
+            self._reject(403, f"Host {host!r} is not this server's address")
+            return True
+        if origin is not None and origin.lower() != f"http://{host}".lower():
+            self._reject(403, f"requests from {origin!r} are not accepted; only the game page's own")
+            return True
+        return False
+
+    def _key_given(self) -> bool:
+        given = parse_qs(urlsplit(self.path).query).get("key", [""])[-1]
+        return hmac.compare_digest(given.encode(), self.server.key.encode())
+
+    def _reject(self, status: int, error: str):
+        self.close_connection = True  # the body (if any) is not read: the connection cannot be reused
+        self._json(status, {"ok": False, "error": error})
+
     def _json(self, status: int, payload: dict):
         self._send(status, json.dumps(payload).encode(), "application/json")
 
     def _send(self, status: int, body: bytes, content_type: str):
+        self.connection.settimeout(WRITE_TIMEOUT_S)  # the read deadline must not cut the answer
         self.send_response(status)
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(body)))
         for name, value in _SECURITY_HEADERS.items():
             self.send_header(name, value)
+        if self.close_connection:
+            self.send_header("Connection", "close")
         self.end_headers()
         self.wfile.write(body)
 
@@ -108,15 +286,22 @@ class _Handler(BaseHTTPRequestHandler):
             super().log_message(format, *args)
 
 
+def _media_type(header: str | None) -> str:
+    """``application/json`` of ``application/json; charset=utf-8`` (lower case; "" when absent)."""
+    return (header or "").split(";", 1)[0].strip().lower()
+
+
 class PlayServer:
     """The HTTP server and a session's clock, each on a thread; ``stop`` ends both and the session.
 
-    The constructor binds (an ``OSError`` for a port in use comes before anything slow happens);
-    ``start(session)`` starts serving and ticking.
+    The constructor binds (an ``OSError`` for a port in use comes before anything slow happens) and
+    draws the per-launch ``key`` (``url`` carries it); ``start(session)`` starts serving and ticking.
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0, verbose: bool = False):
-        self.http = _Server((host, port), verbose)
+    def __init__(self, host: str = "127.0.0.1", port: int = 0, verbose: bool = False, *,
+                 request_timeout: float = REQUEST_TIMEOUT_S, max_connections: int = MAX_CONNECTIONS):
+        self.key = secrets.token_urlsafe(16)
+        self.http = _Server((host, port), verbose, self.key, request_timeout, max_connections)
         self.session: GameSession | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -129,7 +314,8 @@ class PlayServer:
     def url(self) -> str:
         host = self.http.server_address[0]
         host = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)  # every interface: loopback is one of them
-        return f"http://[{host}]:{self.port}/" if ":" in host else f"http://{host}:{self.port}/"
+        address = f"[{host}]:{self.port}" if ":" in host else f"{host}:{self.port}"
+        return f"http://{address}/?key={self.key}"
 
     def start(self, session: GameSession) -> "PlayServer":
         self.session = self.http.session = session

@@ -330,7 +330,7 @@ def _session_meta(game: Game, seed: int, fps: float) -> dict:
         "policies": ["human" if s in humans else partner.label for s in seats],
         "checkpoints": [None if s in humans else partner.checkpoint for s in seats],
         "partner_run": partner.run_dir,
-        "config_fingerprint": None if partner.config is None else partner.config.fingerprint(),
+        "config_fingerprint": partner.config_fingerprint,
         "seed": seed,
         "tick_hz": fps,
         "session": secrets.token_hex(6),

@@ -20,63 +20,23 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Callable, Protocol, Sequence
+from typing import Callable
 
 import jax
 import numpy as np
 
+from cluster.archive import ArchiveWriter, record_episodes, states_as_buffer
+from cluster.runtime.evaluate import post_training
+from cluster.runtime.jobs import Workers, WorkersFactory, gather_params, on_every_shard, spread_jobs
 from cluster.runtime.progress import PopulationProgress
 from cluster.runtime.rundir import RunDir, RunDirError
 from cluster.runtime.runstate import Schedule, archive_meta, load_params, pair_meta, params_template
 from cluster.runtime.shard import SABuffer
 from population import checkpoints as ckpt
 from population import ppo
-from population.config import Config
+from population.config import Config, shards as seed_shards
 from population.evaluation import stack_params
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
-
-
-class Workers(Protocol):
-    """What the coordinator needs from a backend."""
-
-    shards: list[list[int]]  # seed indices of each shard
-
-    def call(self, method: str, jobs: Sequence[tuple[int, tuple]]) -> list:
-        """Run ``SeedShard.<method>(*args)`` for each (shard index, args); results in job order."""
-
-    def share(self, value):
-        """A handle to pass ``value`` to many calls without copying it per call (Ray: ``ray.put``)."""
-
-    def restarts(self) -> int:
-        """Worker restarts so far (0 for in-process shards)."""
-
-    events: list[dict]  # one per worker death: shard, seeds, method, restored_update
-
-    def close(self) -> None: ...
-
-
-WorkersFactory = Callable[[Config, Path, object], Workers]  # (config, run_dir, FCP pool or None)
-
-
-def spread(items: Sequence, parts: int) -> list[list]:
-    """``items`` in ``parts`` consecutive blocks as even as possible (some empty if too few items)."""
-    size, extra = divmod(len(items), parts)
-    blocks, start = [], 0
-    for index in range(parts):
-        end = start + size + (index < extra)
-        blocks.append(list(items[start:end]))
-        start = end
-    return blocks
-
-
-def spread_jobs(workers: Workers, items: Sequence, make_args: Callable[[list], tuple]) -> list[tuple[int, tuple]]:
-    return [(shard, make_args(block)) for shard, block in enumerate(spread(items, len(workers.shards))) if block]
-
-
-def gather_params(workers: Workers):
-    """All seeds' current params stacked in seed order (numpy)."""
-    parts = workers.call("params", [(i, ()) for i in range(len(workers.shards))])
-    return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -120,16 +80,12 @@ def archived_states(config: Config):
     """``population.sa.archives`` as one numpy state batch (None without archives). Raises ArchiveError."""
     if config.population.method != "sa" or not config.population.sa.archives:
         return None
-    from cluster.archive import states_as_buffer
-
     states = states_as_buffer(list(config.population.sa.archives), config.population.sa.keep_every,
                               layout=ppo.eval_env(config).layout)
     return jax.tree.map(np.asarray, states)
 
 
 def _archive_collection(config: Config, run: RunDir, iteration: int, by_pair: dict) -> None:
-    from cluster.archive import ArchiveWriter, record_episodes
-
     env = ppo.eval_env(config)
     base = archive_meta(config, "sa-collection", iteration=iteration)
     path = run.sub("archive", "sa", f"iteration_{iteration:03d}.mcap")
@@ -149,42 +105,71 @@ def buffer_template(config: Config, size: int):
 # FCP partner pools
 # ---------------------------------------------------------------------------------------------------
 
-def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object, list[str]]:
-    """Stack the pool of frozen partners from an SP run directory: partner_seeds x checkpoints."""
+def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object, list]:
+    """Stack the frozen partners from an SP run directory: partner_seeds x checkpoints per pool.
+
+    ``population.fcp.pool`` shared: one pool [P, ...] of partner seeds [0, k) and its labels;
+    per_seed: a pool per learner [num_seeds, P, ...], learner i's from partner seeds [i*k, (i+1)*k),
+    and a list of labels per learner (P = k x checkpoints).
+    """
     fcp = config.population.fcp
-    source = RunDir(partner_run)
-    if not source.config_path.exists():
-        raise RunDirError(f"population.fcp.partners: {partner_run} is not an ocv2 run directory (no config.yaml)")
-    partner_config = source.load_config()
+    try:
+        partner_config = RunDir.existing(partner_run).load_config()
+    except RunDirError as error:
+        raise RunDirError(f"population.fcp.partners: {error}") from None
     if partner_config.env != config.env or partner_config.model != config.model:
         raise RunDirError(f"population.fcp.partners: {partner_run} was trained with a different env or model "
                           "section; FCP partners must play the same game with the same network")
-    if partner_config.population.num_seeds < fcp.partner_seeds:
-        raise RunDirError(f"population.fcp.partner_seeds: {fcp.partner_seeds} requested but {partner_run} has "
+    needed = fcp.stage_seeds(config.population.num_seeds)
+    if partner_config.population.num_seeds < needed:
+        per_learner = (f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed; "
+                       "population.fcp.pool=shared needs partner_seeds)") if fcp.per_seed else ""
+        raise RunDirError(f"population.fcp.partner_seeds: {needed} partner seeds needed{per_learner} but {partner_run} has "
                           f"{partner_config.population.num_seeds} seeds")
     snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
     template = params_template(trainer)
-    params, labels = [], []
-    for seed in range(fcp.partner_seeds):
-        for name in fcp.checkpoints:
-            update = ckpt.resolve_snapshot(name, snapshots)
-            path = ckpt.checkpoint_path(partner_run, seed, update)
-            params.append(load_params(path, partner_config.fingerprint(), template))
-            labels.append(f"seed{seed}@{update}")
-    return jax.tree.map(np.asarray, stack_params(params)), labels
+
+    def pool_of(seeds) -> tuple[object, list[str]]:
+        params, labels = [], []
+        for seed in seeds:
+            for name in fcp.checkpoints:
+                update = ckpt.resolve_snapshot(name, snapshots)
+                path = ckpt.checkpoint_path(partner_run, seed, update)
+                params.append(load_params(path, partner_config.fingerprint(), template))
+                labels.append(f"seed{seed}@{update}")
+        return jax.tree.map(np.asarray, stack_params(params)), labels
+
+    if not fcp.per_seed:
+        return pool_of(fcp.pool_seeds(0))
+    pools = [pool_of(fcp.pool_seeds(learner)) for learner in range(config.population.num_seeds)]
+    return jax.tree.map(lambda *xs: np.stack(xs), *[p for p, _ in pools]), [labels for _, labels in pools]
+
+
+def partner_stage(config: Config) -> Config:
+    """The SP run FCP trains its partners in when ``population.fcp.partners`` is unset.
+
+    Same env and model; ``population.fcp.partner_ppo`` hyperparameters; enough seeds for every pool
+    (per_seed: num_seeds x partner_seeds); as many workers as the FCP run itself uses.
+    """
+    fcp, pop = config.population.fcp, config.population
+    seeds = fcp.stage_seeds(pop.num_seeds)
+    workers = min(len(seed_shards(config)), seeds)
+    return dataclasses.replace(
+        config, ppo=fcp.partner_ppo,
+        population=dataclasses.replace(pop, method="sp", num_seeds=seeds, seed=pop.seed + 7919),
+        cluster=dataclasses.replace(config.cluster, workers=workers, seeds_per_actor=1))
 
 
 def fcp_pool(config: Config, run: RunDir, factory: WorkersFactory, show_progress: bool):
-    """The FCP pool: from ``population.fcp.partners``, or an SP stage trained into RUN_DIR/partners first."""
+    """The FCP pool(s): from ``population.fcp.partners``, or an SP stage trained into RUN_DIR/partners first."""
     fcp = config.population.fcp
     partner_run = Path(fcp.partners) if fcp.partners else run.path / "partners"
     if fcp.partners is None:
-        stage = dataclasses.replace(config, population=dataclasses.replace(
-            config.population, method="sp", num_seeds=fcp.partner_seeds, seed=config.population.seed + 7919))
+        stage = partner_stage(config)
         stage_dir = RunDir(partner_run)
-        finished = stage_dir.config_path.exists() and stage_dir.read_manifest().get("status") == "finished"
-        if not finished:
-            train(stage, partner_run, factory, resume=stage_dir.config_path.exists(), show_progress=show_progress,
+        started = stage_dir.config_path.exists()
+        if not (started and stage_dir.read_manifest().get("status") == "finished"):
+            train(stage, partner_run, factory, resume=started, show_progress=show_progress,
                   evaluate=False, label="FCP partner stage (SP)")
     return load_pool(config, ppo.make_trainer(config), partner_run)
 
@@ -207,26 +192,30 @@ def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = Fa
           evaluate: bool = True, label: str | None = None, on_chunk: Callable | None = None) -> dict:
     """Train (or resume) a population into ``run_dir`` with the given backend; then evaluate.
 
+    The run directory stays locked until this returns (a second driver of the same run is refused).
     ``on_chunk(update, workers)`` is called after every merged chunk (tests use it to kill workers).
     """
-    from cluster.runtime.evaluate import post_training
-
     extra = archived_states(config)  # a bad archive fails here, before the run directory is touched
-    run = RunDir(Path(run_dir).resolve())  # absolute: actors on other nodes/working dirs get the same path
-    resuming = run.create(config, resume=resume)
+    run, resuming = RunDir.open(run_dir, config, resume=resume)
+    try:
+        return _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra)
+    finally:
+        run.close()
+
+
+def _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra) -> dict:
     past_events = run.read_manifest().get("restart_events", []) if resuming else []
     method = config.population.method
-    schedule = Schedule.of(config)
+    schedule = Schedule.of(config, run.path)
     pool, pool_labels = (fcp_pool(config, run, factory, show_progress) if method == "fcp" else (None, []))
     workers = factory(config, run.path, pool)
     workers.events[:0] = past_events  # restarts of earlier drivers of this run stay on record
     try:
         # Shards restore themselves; the slowest decides where the population stands.
-        update = min(workers.call("position", [(i, ()) for i in range(len(workers.shards))]))
+        update = min(workers.call("position", on_every_shard(workers)))
         # A driver killed after the shards saved a chunk but before it merged their rows: those rows
         # live in the checkpoints' meta; collect them before training on.
-        since = min(update, max((int(r["update"]) for r in run.read_metrics()), default=0))
-        run.truncate_metrics(since)
+        since = max((int(r["update"]) for r in run.truncate_metrics(update)), default=0)
         if since < update:
             caught_up = workers.call("advance", [(i, (update, None, since)) for i in range(len(workers.shards))])
             run.append_metrics(merge_rows(caught_up, since, update))
@@ -280,10 +269,8 @@ def _archive_training(config: Config, run: RunDir, workers: Workers, before: int
     every = config.archive.train_every
     if not every or stop // every == before // every:
         return
-    from cluster.archive import ArchiveWriter, record_episodes
-
     env = ppo.eval_env(config)
-    results = workers.call("record_selfplay", [(i, ()) for i in range(len(workers.shards))])
+    results = workers.call("record_selfplay", on_every_shard(workers))
     base = archive_meta(config, "training", checkpoint_update=stop)
     path = run.sub("archive", "train", f"update_{stop:07d}.mcap")
     with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:

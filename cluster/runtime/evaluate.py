@@ -10,28 +10,30 @@ played the row (so no trajectory crosses the object store).
 from __future__ import annotations
 
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cluster.runtime.rundir import RunDir, RunDirError, write_csv, write_json
-from cluster.runtime.runstate import (GIF_KEY_OFFSET, XP_KEY_OFFSET, archive_meta, hidden_size, load_params, pair_meta,
-                              params_template, population_key)
+from cluster.archive import ArchiveWriter, record_episodes
+from cluster.runtime.jobs import spread_jobs
+from cluster.runtime.rundir import RunDir, RunDirError, seed_curves, write_csv, write_json
+from cluster.runtime.runstate import archive_meta, hidden_size, load_params, pair_meta, params_template
+from ocv2.render import render_frames, write_gif
+from population import checkpoints as ckpt
 from population import ppo
 from population.config import Config
 from population.evaluation import play_episodes, stack_params
+from population.keys import derive_key
+from population.plots import training_curves, xp_heatmap
 from population.xp import CrossPlay, cross_play, recipe_names, summarize
 
 
 def final_params(run_dir) -> tuple[Config, ppo.Trainer, object]:
     """Config, trainer and stacked final params of every seed of a finished run."""
-    from population import checkpoints as ckpt
-
-    run = RunDir(run_dir)
-    if not run.config_path.exists():
-        raise RunDirError(f"{run_dir}: not an ocv2 run directory (no config.yaml)")
+    run = RunDir.existing(run_dir)
     config = run.load_config()
     trainer = ppo.make_trainer(config)
     template = params_template(trainer)
@@ -54,10 +56,6 @@ def post_training(run_dir, workers=None, show_progress: bool = True) -> dict:
 
 def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes: int, archive_dir=None) -> CrossPlay:
     """Cross-play of seat-0 ``rows``; with ``archive_dir`` every episode also goes to its row's MCAP file."""
-    from contextlib import ExitStack
-
-    from cluster.archive import ArchiveWriter, record_episodes
-
     env = ppo.eval_env(config)
     apply, hidden = trainer.network.apply, hidden_size(trainer)
     params = jax.tree.map(jnp.asarray, params)
@@ -82,8 +80,6 @@ def xp_archive_path(archive_dir, row: int) -> Path:
 
 
 def _cross_play_spread(workers, params, key, episodes: int, archive_dir) -> CrossPlay:
-    from cluster.runtime.coordinator import spread_jobs
-
     num = jax.tree.leaves(params)[0].shape[0]
     handle = workers.share(jax.tree.map(np.asarray, params))
     directory = None if archive_dir is None else str(archive_dir)
@@ -99,12 +95,10 @@ def _cross_play_spread(workers, params, key, episodes: int, archive_dir) -> Cros
 
 def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = True, workers=None) -> dict:
     """Cross-play of the run's final policies -> xp/matrix.csv, episodes.csv, summary.json, heatmap.png."""
-    from population.plots import xp_heatmap
-
     config, trainer, params = final_params(run_dir)
     episodes = episodes or config.eval.episodes
     env = ppo.eval_env(config)
-    key = population_key(config, XP_KEY_OFFSET)
+    key = derive_key(config.population.seed, "xp")
     started = time.perf_counter()
     run = RunDir(run_dir)
     archive_dir = run.subdir("archive", "xp") if config.archive.xp else None
@@ -135,40 +129,28 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
 
 
 def write_training_plot(run_dir) -> str | None:
-    from population.plots import training_curves
-
     run = RunDir(run_dir)
     rows = run.read_metrics()
     if not rows:
         return None
     config = run.load_config()
-    seeds = sorted({int(r["seed"]) for r in rows})
-    updates = sorted({int(r["update"]) for r in rows})
-    index = {u: k for k, u in enumerate(updates)}
-    curves = {name: np.full((len(seeds), len(updates)), np.nan) for name in ("sparse_return", "shaped_return")}
-    for r in rows:
-        for name in curves:
-            if r[name] != "":
-                curves[name][seeds.index(int(r["seed"])), index[int(r["update"])]] = float(r[name])
-    steps = np.asarray(updates) * config.ppo.steps_per_update
-    return training_curves(steps, curves, run.sub("plots", "training.png"),
+    curves = seed_curves(rows, ("sparse_return", "shaped_return"))
+    steps = np.asarray(curves.updates) * config.ppo.steps_per_update
+    return training_curves(steps, curves.values, run.sub("plots", "training.png"),
                            title=f"{config.population.method.upper()} {config.env_kwargs['layout']} "
-                                 f"({len(seeds)} seeds)")
+                                 f"({len(curves.seeds)} seeds)")
 
 
 def write_gifs(run_dir, count: int) -> list[str]:
     """Self-play episode GIFs of the first ``count`` seeds' final policies."""
-    from ocv2.render import render_frames, write_gif
-
     if count <= 0:
         return []
     config, trainer, params = final_params(run_dir)
     env = ppo.eval_env(config)
-    key = population_key(config, GIF_KEY_OFFSET)
     play = jax.jit(lambda p, k: play_episodes(trainer.network.apply, hidden_size(trainer), env, (p, p), k, 1, 1))
     paths = []
     for seed in range(min(count, config.population.num_seeds)):
-        episode = play(ppo.take_seed(params, seed), jax.random.fold_in(key, seed))
+        episode = play(ppo.take_seed(params, seed), derive_key(config.population.seed, "gif", member=seed))
         states = jax.tree.map(lambda x: x[0], episode.states)
         frames = render_frames(states, env.layout, agent_view_size=env.config.view_radius, tile_size=24)
         path = RunDir(run_dir).sub("gifs", f"seed_{seed}_selfplay.gif")

@@ -20,8 +20,13 @@ import socket
 import time
 from pathlib import Path
 
+import ray
+from ray.exceptions import ActorDiedError, ActorUnavailableError, GetTimeoutError, RayActorError, RayTaskError
+
 from cluster.runtime import coordinator
+from cluster.runtime.rundir import RunDirError
 from cluster.runtime.shard import SeedShard
+from population.checkpoints import CheckpointError
 from population.config import ClusterConfig, Config, shards as seed_shards
 
 RESTART_TIMEOUT_S = 600.0  # how long a restarting actor may take to answer again
@@ -37,7 +42,6 @@ class RayBackendError(RuntimeError):
 
 def connect(cluster: ClusterConfig) -> bool:
     """Join ``cluster.address`` or start Ray here. Returns True if this call started/joined (then shut down)."""
-    import ray
 
     if ray.is_initialized():  # e.g. a test session or a notebook that already connected
         return False
@@ -76,7 +80,6 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
 
 def check_resources(config: Config, num_actors: int) -> None:
     """Refuse requests the cluster cannot place: all actors must run at once (the coordinator waits for all)."""
-    import ray
 
     cluster = config.cluster
     nodes = [n for n in ray.nodes() if n.get("Alive")]
@@ -109,19 +112,36 @@ def actor_env(cluster: ClusterConfig) -> dict[str, str]:
 # workers
 # ---------------------------------------------------------------------------------------------------
 
+# A shard's own errors (a checkpoint that cannot load, a full disk) reach the driver as themselves.
+SHARD_ERRORS = (CheckpointError, RunDirError, OSError)
+
+
 class _ShardActor(SeedShard):
-    """The actor: a SeedShard that can also say where it runs."""
+    """The actor: a SeedShard that can also say where it runs.
+
+    An exception in an actor's constructor reaches the driver only as "the actor died" (and Ray does
+    not restart it), which reads like a crash. A shard that cannot restore keeps its error instead and
+    raises it from ``position``, the first call the coordinator and every restart check make.
+    """
+
+    def __init__(self, *args):
+        self._load_error = None
+        try:
+            super().__init__(*args)
+        except SHARD_ERRORS as error:
+            self._load_error = error
+
+    def position(self) -> int:
+        if self._load_error is not None:
+            raise self._load_error
+        return super().position()
 
     def node_id(self) -> str:
-        import ray
-
         return ray.get_runtime_context().get_node_id()
 
 
 @functools.lru_cache(maxsize=1)
 def _actor_class():
-    import ray
-
     return ray.remote(_ShardActor)
 
 
@@ -129,8 +149,6 @@ class RayWorkers:
     """One ``SeedShard`` actor per shard; ``call`` resubmits a job whose actor died and came back."""
 
     def __init__(self, config: Config, run_dir: Path, pool=None):
-        import ray
-
         self.config, self.shards = config, seed_shards(config)
         cluster = config.cluster
         check_resources(config, len(self.shards))
@@ -143,27 +161,18 @@ class RayWorkers:
         self.events: list[dict] = []  # one per observed worker death: shard, seeds, method, restored_update
 
     def pids(self) -> list[int]:
-        import ray
-
         return ray.get([actor.ping.remote() for actor in self.actors])
 
     def node_ids(self) -> list[str]:
-        import ray
-
         return ray.get([actor.node_id.remote() for actor in self.actors])
 
     def share(self, value):
-        import ray
-
         return ray.put(value)
 
     def restarts(self) -> int:
         return len(self.events)
 
     def call(self, method: str, jobs):
-        import ray
-        from ray.exceptions import RayActorError
-
         jobs = list(jobs)
         results = [None] * len(jobs)
         submit = lambda i: getattr(self.actors[jobs[i][0]], method).remote(*jobs[i][1])
@@ -173,7 +182,7 @@ class RayWorkers:
             ready, _ = ray.wait(list(pending), num_returns=1)
             index = pending.pop(ready[0])
             try:
-                results[index] = ray.get(ready[0])
+                results[index] = _get(ready[0])
             except RayActorError as error:
                 shard = jobs[index][0]
                 failures[index] += 1
@@ -188,13 +197,11 @@ class RayWorkers:
 
     def _wait_until_back(self, shard: int, cause) -> int:
         """Block until the restarted actor answers; returns the update it restored. Dead for good: error."""
-        import ray
-        from ray.exceptions import ActorDiedError, ActorUnavailableError, GetTimeoutError
 
         deadline = time.monotonic() + RESTART_TIMEOUT_S
         while time.monotonic() < deadline:
             try:
-                return ray.get(self.actors[shard].position.remote(), timeout=30)
+                return _get(self.actors[shard].position.remote(), timeout=30)
             except (ActorUnavailableError, GetTimeoutError):
                 time.sleep(0.5)
             except ActorDiedError as error:
@@ -207,17 +214,25 @@ class RayWorkers:
                               "directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`")
 
     def close(self) -> None:
-        import ray
-
         for actor in self.actors:
             ray.kill(actor)
         self.actors = []
 
 
+def _get(ref, timeout: float | None = None):
+    """``ray.get``, raising a shard's own error as itself (its message names the file; Ray's wrapper
+    would add a remote traceback and hide the type from the CLI's error handling)."""
+    try:
+        return ray.get(ref, timeout=timeout)
+    except RayTaskError as error:
+        if isinstance(error.cause, SHARD_ERRORS):
+            raise error.cause from None
+        raise
+
+
 def train_population(config: Config, run_dir, *, resume: bool = False, show_progress: bool = True,
                      evaluate: bool = True, label: str | None = None, on_chunk=None) -> dict:
     """Train (or resume) a population on Ray: join/start Ray, check resources, run the coordinator."""
-    import ray
 
     started = connect(config.cluster)
     try:

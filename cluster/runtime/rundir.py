@@ -1,29 +1,43 @@
 """The run directory every backend writes (issue 3/4 layout):
 
-    RUN_DIR/config.yaml     resolved config (the run's identity: its fingerprint guards checkpoints)
-            manifest.json   progress for --resume: status, updates done, snapshots, stage
-            metrics.csv     one row per seed per update
+    RUN_DIR/config.yaml       resolved config (the run's identity: its fingerprint guards checkpoints)
+            manifest.json     progress for --resume: status, updates done, snapshots, stage
+            environment.json  versions, git commit, devices and argv of every driver that ran it
+            metrics.csv       one row per seed per update
+            .lock             held (flock) by the one driver writing the run
             checkpoints/seed_<i>/update_<n>.msgpack
             xp/matrix.csv  xp/episodes.csv  xp/summary.json  xp/heatmap.png
             plots/training.png   gifs/*.gif
+
+``RunDir.open`` is the one way in for a driver that writes (checks, lock, stale temporaries);
+``RunDir.existing`` the one way in for a reader (checks only).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import errno
+import fcntl
 import io
 import json
 import math
+import os
+import sys
 import time
+import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from ocv2.atomic import atomic_write
+from cluster.runtime.environment import environment_record
+from ocv2.atomic import atomic_write, is_temporary, remove_stale_temporaries
 from population.config import Config, ConfigError, dump_config, load_config
 
 METRIC_FIELDS = ("seed", "update", "env_steps", "sparse_return", "shaped_return", "episodes", "loss", "actor_loss",
                  "value_loss", "entropy", "approx_kl", "clip_frac", "lr", "shaping_coef", "steps_per_s", "wall_s")
+LOCK_NAME = ".lock"
 
 
 class RunDirError(ValueError):
@@ -31,8 +45,115 @@ class RunDirError(ValueError):
 
 
 class RunDir:
+    """Paths and files of one run directory. ``RunDir(path)`` checks nothing; use ``open``/``existing``."""
+
     def __init__(self, path):
         self.path = Path(path)
+        self._lock_fd: int | None = None
+        self._metrics: tuple[list[str], list[list]] | None = None  # (columns, rows) of metrics.csv
+
+    # opening ----------------------------------------------------------------------------------------
+    @classmethod
+    def open(cls, path, config: Config, resume: bool = False) -> tuple["RunDir", bool]:
+        """(the run directory, resuming?) for a driver that trains ``config`` into ``path``.
+
+        Takes the run's lock (held until ``close``), then checks the directory (see ``create``) and
+        removes temporaries that an interrupted write left behind.
+        """
+        run = cls(Path(path).resolve())  # absolute: actors on other nodes/working dirs get the same path
+        resuming = run.create(config, resume=resume)
+        return run, resuming
+
+    @classmethod
+    def existing(cls, path) -> "RunDir":
+        """A run directory to read (``ocv2 xp``, reports, FCP partners): it must hold a usable run."""
+        run = cls(path)
+        run._check_not_a_file()
+        if not run.config_path.exists():
+            raise RunDirError(f"{path}: not an ocv2 run directory (no config.yaml)")
+        run.read_manifest()  # an empty or corrupt manifest is reported here, not deep in a later step
+        return run
+
+    def create(self, config: Config, resume: bool = False) -> bool:
+        """Lock the directory and prepare it for ``config``. Returns True when resuming an existing run.
+
+        A new run needs a missing or empty directory; ``resume`` needs the same config fingerprint.
+        """
+        self._check_not_a_file("; choose another --out")
+        if resume and not self.config_path.exists():
+            raise RunDirError(f"{self.path}: nothing to resume (no config.yaml)")
+        made = not self.path.exists()
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.lock()
+        try:
+            resuming = self._prepare(config, resume)
+            self._record_environment(resuming)
+        except BaseException:
+            if not self.config_path.exists():  # refused before it became a run: leave nothing behind
+                (self.path / LOCK_NAME).unlink(missing_ok=True)
+                if made:
+                    with contextlib.suppress(OSError):  # only if empty; the original error matters more
+                        self.path.rmdir()
+            self.close()
+            raise
+        return resuming
+
+    def _prepare(self, config: Config, resume: bool) -> bool:
+        if self.config_path.exists():
+            existing = self.load_config()
+            if existing.fingerprint() != config.fingerprint():
+                raise RunDirError(f"{self.path}: holds a run of a different config (fingerprint "
+                                  f"{existing.fingerprint()} vs {config.fingerprint()}); choose another --out")
+            if not resume:
+                raise RunDirError(f"{self.path}: already holds a run; pass --resume to continue it or choose another --out")
+            self.read_manifest()
+            for path in remove_stale_temporaries(self.path):  # safe: the lock keeps other writers out
+                _warn(f"{self.path}: removed {path.relative_to(self.path)} (left by an interrupted write)")
+            return True
+        if any(p.name != LOCK_NAME and not is_temporary(p) for p in self.path.iterdir()):
+            raise RunDirError(f"{self.path}: exists and is not an ocv2 run directory (no config.yaml); choose another --out")
+        if resume:
+            raise RunDirError(f"{self.path}: nothing to resume (no config.yaml)")
+        remove_stale_temporaries(self.path)
+        dump_config(config, self.config_path)  # first: a directory with a config.yaml can be resumed
+        self.write_manifest({"status": "created", "created": time.time()})
+        return False
+
+    def _check_not_a_file(self, advice: str = "") -> None:
+        if self.path.exists() and not self.path.is_dir():
+            raise RunDirError(f"{self.path}: is a file, not a run directory{advice}")
+
+    # the lock -----------------------------------------------------------------------------------------
+    def lock(self) -> None:
+        """Take the run's exclusive lock, or fail naming the process that holds it.
+
+        ``flock`` on ``RUN_DIR/.lock``: advisory, released by the kernel when the holder exits or dies
+        (no stale lock after a kill). NFS and some other network file systems may not honour it.
+        """
+        if self._lock_fd is not None:
+            return
+        fd = os.open(self.path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            if error.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise RunDirError(f"{self.path}: in use by another ocv2 process (pid {holder}); wait for it to "
+                                  "finish or stop it before resuming") from None
+            raise
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._lock_fd = fd
+
+    def close(self) -> None:
+        """Release the lock (also released when the process exits)."""
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    def __del__(self):
+        self.close()
 
     # paths ------------------------------------------------------------------------------------------
     @property
@@ -47,6 +168,10 @@ class RunDir:
     def metrics_path(self) -> Path:
         return self.path / "metrics.csv"
 
+    @property
+    def environment_path(self) -> Path:
+        return self.path / "environment.json"
+
     def sub(self, *parts) -> Path:
         out = self.path.joinpath(*parts)
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -58,29 +183,7 @@ class RunDir:
         out.mkdir(parents=True, exist_ok=True)
         return out
 
-    # lifecycle --------------------------------------------------------------------------------------
-    def create(self, config: Config, resume: bool = False) -> bool:
-        """Prepare the directory for ``config``. Returns True when resuming an existing run.
-
-        A new run needs a missing or empty directory; ``resume`` needs the same config fingerprint.
-        """
-        if self.config_path.exists():
-            existing = self.load_config()
-            if existing.fingerprint() != config.fingerprint():
-                raise RunDirError(f"{self.path}: holds a run of a different config (fingerprint "
-                                  f"{existing.fingerprint()} vs {config.fingerprint()}); choose another --out")
-            if not resume:
-                raise RunDirError(f"{self.path}: already holds a run; pass --resume to continue it or choose another --out")
-            return True
-        if self.path.exists() and any(self.path.iterdir()):
-            raise RunDirError(f"{self.path}: exists and is not an ocv2 run directory (no config.yaml); choose another --out")
-        if resume:
-            raise RunDirError(f"{self.path}: nothing to resume (no config.yaml)")
-        self.path.mkdir(parents=True, exist_ok=True)
-        dump_config(config, self.config_path)
-        self.write_manifest({"status": "created", "created": time.time()})
-        return False
-
+    # config, manifest, environment ------------------------------------------------------------------
     def load_config(self) -> Config:
         try:
             return load_config(self.config_path)
@@ -89,12 +192,21 @@ class RunDir:
 
     def read_manifest(self) -> dict:
         try:
-            return json.loads(self.manifest_path.read_text())
+            text = self.manifest_path.read_text()
         except FileNotFoundError:
             return {}
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as error:
+            what = "is empty" if not text.strip() else f"is not valid JSON ({error})"
+            raise RunDirError(f"{self.manifest_path}: {what}; restore it from a backup or delete it to resume "
+                              "from the checkpoints") from None
+        if not isinstance(data, dict):
+            raise RunDirError(f"{self.manifest_path}: holds a JSON {type(data).__name__}, not an object")
+        return data
 
     def write_manifest(self, data: dict) -> None:
-        atomic_write(self.manifest_path, json.dumps(data, indent=2, default=_json_default))
+        atomic_write(self.manifest_path, json.dumps(data, indent=2, default=_json_default))  # fsynced
 
     def update_manifest(self, **changes) -> dict:
         data = self.read_manifest()
@@ -102,35 +214,127 @@ class RunDir:
         self.write_manifest(data)
         return data
 
+    def _record_environment(self, resuming: bool) -> None:
+        """Append this driver's versions, commit, devices and argv to ``environment.json``."""
+        history = []
+        if resuming and self.environment_path.exists():
+            try:
+                history = json.loads(self.environment_path.read_text()).get("drivers", [])
+            except (json.JSONDecodeError, AttributeError):
+                _warn(f"{self.environment_path}: unreadable; starting a new record")
+        history.append(environment_record())
+        write_json(self.environment_path, {"drivers": history})
+
     # metrics ----------------------------------------------------------------------------------------
     def append_metrics(self, rows: list[dict]) -> None:
-        new = not self.metrics_path.exists()
-        if new:
-            fields = list(rows[0].keys()) if rows else list(METRIC_FIELDS)
-        else:  # the file's own column order (rows restored from checkpoint meta come back key-sorted)
-            with open(self.metrics_path, newline="") as handle:
-                fields = next(csv.reader(handle), None) or list(rows[0].keys())
-        with open(self.metrics_path, "a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=fields)
-            if new:
-                writer.writeheader()
-            writer.writerows(rows)
-            handle.flush()
+        """Add ``rows`` to ``metrics.csv``, rewriting the file atomically (a kill never leaves a torn row).
 
-    def truncate_metrics(self, after_update: int) -> None:
-        """Drop rows past ``after_update`` (resume replays them from the checkpoint)."""
-        rows = self.read_metrics()
-        if not rows:
-            return
+        The table is kept here after the first call (the driver holding the lock is the only writer),
+        so each chunk costs one write, not a read and a write.
+        """
+        if self._metrics is None:
+            existing = self.read_metrics()
+            if existing:  # the file's own column order (rows restored from checkpoint meta come back key-sorted)
+                fields = list(existing[0].keys())
+            else:
+                fields = list(rows[0].keys()) if rows else list(METRIC_FIELDS)
+            self._metrics = (fields, [[row.get(k, "") for k in fields] for row in existing])
+        fields, table = self._metrics
+        unknown = sorted({key for row in rows for key in row} - set(fields))
+        if unknown:
+            raise RunDirError(f"{self.metrics_path}: rows with columns {unknown} that the file does not have")
+        table = table + [[row.get(k, "") for k in fields] for row in rows]
+        write_csv(self.metrics_path, fields, table)
+        self._metrics = (fields, table)
+
+    def truncate_metrics(self, after_update: int) -> list[dict]:
+        """Drop rows past ``after_update`` (resume replays them from the checkpoint) and torn rows;
+        returns the rows kept."""
+        self._metrics = None
+        rows, torn = self._read_metrics()
         kept = [r for r in rows if int(float(r["update"])) <= after_update]
-        header = list(rows[0].keys())
-        write_csv(self.metrics_path, header, [[r[k] for k in header] for r in kept])
+        if rows and (torn or len(kept) != len(rows)):
+            _write_rows(self.metrics_path, list(rows[0].keys()), kept)
+        elif torn:  # not one complete row: start the file again
+            self.metrics_path.unlink()
+        return kept
 
     def read_metrics(self) -> list[dict]:
-        if not self.metrics_path.exists():
-            return []
-        with open(self.metrics_path, newline="") as handle:
-            return list(csv.DictReader(handle))
+        return self._read_metrics()[0]
+
+    def _read_metrics(self) -> tuple[list[dict], bool]:
+        """(complete rows, whether a torn row was dropped). Torn rows come from a kill in the middle of a
+        write by an appending writer (older versions; this one rewrites the file atomically)."""
+        try:
+            text = self.metrics_path.read_text()
+        except FileNotFoundError:
+            return [], False
+        lines = text.splitlines(keepends=True)
+        torn = bool(lines) and not lines[-1].endswith("\n")  # the last row was cut short
+        if torn:
+            _warn(f"{self.metrics_path}: line {len(lines)} is incomplete (an interrupted write); dropped")
+            lines = lines[:-1]
+        rows = []
+        for number, row in enumerate(csv.DictReader(io.StringIO("".join(lines), newline="")), start=2):
+            if None in row or None in row.values() or not _is_int(row.get("update")) or not _is_int(row.get("seed")):
+                _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped")
+                torn = True
+                continue
+            rows.append(row)
+        return rows, torn
+
+
+def _warn(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def _is_int(text) -> bool:
+    try:
+        int(float(text))
+        return True
+    except (TypeError, ValueError):
+        return False
+
+
+def _write_rows(path: Path, fields: list, rows: list[dict]) -> None:
+    write_csv(path, fields, [[row.get(k, "") for k in fields] for row in rows])
+
+
+class SeedCurves(NamedTuple):
+    """``metrics.csv`` columns as seeds x updates arrays (NaN where a seed has no value, e.g. no episode
+    had finished yet): what the training plot and ``ocv2 report`` draw."""
+
+    seeds: list[int]
+    updates: list[int]
+    env_steps: np.ndarray  # [U]: the largest env_steps any seed reported at the update
+    values: dict[str, np.ndarray]  # field -> [S, U]
+
+
+def seed_curves(rows: list[dict], fields=("sparse_return",)) -> SeedCurves:
+    """The one aggregation of per-seed metrics rows into curves (rows whose seed or update is not a
+    number are skipped)."""
+    rows = [r for r in rows if _is_int(r.get("seed")) and _is_int(r.get("update"))]
+    seeds = sorted({int(float(r["seed"])) for r in rows})
+    updates = sorted({int(float(r["update"])) for r in rows})
+    seed_index, update_index = {s: k for k, s in enumerate(seeds)}, {u: k for k, u in enumerate(updates)}
+    values = {field: np.full((len(seeds), len(updates)), np.nan) for field in fields}
+    env_steps = np.full((len(seeds), len(updates)), np.nan)
+    for r in rows:
+        at = seed_index[int(float(r["seed"]))], update_index[int(float(r["update"]))]
+        env_steps[at] = _float(r.get("env_steps"))
+        for field in fields:
+            values[field][at] = _float(r.get(field))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an update no seed reported env_steps for: NaN
+        steps = np.nanmax(env_steps, axis=0) if rows else np.zeros(0)
+    return SeedCurves(seeds, updates, steps, values)
+
+
+def _float(text) -> float:
+    try:
+        return float(text)
+    except (TypeError, ValueError):  # "" (no episode finished yet) or a missing column
+        return math.nan
 
 
 def metric_rows(seeds, metrics, steps_per_s: float, wall_s: float, recipe_labels: list[str]) -> list[dict]:

@@ -1,5 +1,5 @@
-"""What both backends agree on about a run's progress: the schedule of stops, PRNG key offsets and
-per-seed checkpoints (save all seeds, then prune; restore the latest update common to a set of seeds).
+"""What both backends agree on about a run's progress: the schedule of stops and per-seed checkpoints
+(save all seeds, then prune; restore the latest readable update common to a set of seeds).
 
 A checkpoint's meta also carries the metrics rows of the chunk that ended there, so a worker that
 died after saving but before reporting can still hand the coordinator those rows (no gap in
@@ -9,6 +9,8 @@ metrics.csv, no row counted twice).
 from __future__ import annotations
 
 import dataclasses
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -17,13 +19,7 @@ from flax import serialization
 
 from population import checkpoints as ckpt
 from population import ppo
-from population.config import Config
-
-# fold_in offsets of the population key: one stream per purpose, so adding one never shifts another.
-SA_KEY_OFFSET = 1 << 20
-XP_KEY_OFFSET = 1 << 21
-GIF_KEY_OFFSET = 1 << 22
-TRAIN_ARCHIVE_KEY_OFFSET = 1 << 23
+from population.config import Config, load_config
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,16 +30,27 @@ class Schedule:
     snapshots: tuple[int, ...]
     iteration_starts: tuple[int, ...]  # SA only; () otherwise
     checkpoint_every: int
+    protected: tuple[int, ...] = ()  # never pruned: snapshots of the config the run was created with
 
     @staticmethod
-    def of(config: Config) -> "Schedule":
+    def of(config: Config, run_dir=None) -> "Schedule":
+        """``config``'s schedule; with ``run_dir``, the snapshots its ``config.yaml`` names stay protected.
+
+        ``run.num_checkpoints`` may change on ``--resume`` (it is not part of the fingerprint), but FCP
+        runs and ``ocv2 play`` find snapshots through the run's own config.yaml: those must survive.
+        """
         updates = config.ppo.num_updates
         starts = ()
         if config.population.method == "sa":
             iterations = config.population.sa.iterations
             starts = tuple(sorted({round(i * updates / iterations) for i in range(iterations)}))
+        protected = ()
+        if run_dir is not None:
+            created = _created_config(run_dir)
+            if created is not None:
+                protected = tuple(ckpt.snapshot_updates(created.ppo.num_updates, created.run.num_checkpoints))
         return Schedule(updates, tuple(ckpt.snapshot_updates(updates, config.run.num_checkpoints)), starts,
-                        config.run.checkpoint_every)
+                        config.run.checkpoint_every, protected)
 
     def next_stop(self, update: int) -> int:
         candidates = [b for b in (*self.snapshots, *self.iteration_starts) if b > update]
@@ -55,11 +62,12 @@ class Schedule:
 
     def kept(self, update: int) -> set[int]:
         """Checkpoints to keep once ``update`` is saved: the paper's snapshots, SA iteration starts, the newest."""
-        return set(self.snapshots) | set(self.iteration_starts) | {update}
+        return set(self.snapshots) | set(self.protected) | set(self.iteration_starts) | {update}
 
 
-def population_key(config: Config, offset: int) -> jax.Array:
-    return jax.random.fold_in(jax.random.PRNGKey(config.population.seed), offset)
+def _created_config(run_dir) -> Config | None:
+    path = Path(run_dir) / "config.yaml"
+    return load_config(path) if path.exists() else None  # None: a shard built outside a run directory
 
 
 def archive_meta(config: Config, kind: str, **extra) -> dict:
@@ -91,18 +99,32 @@ def load_params(path, fingerprint: str, template):
 
 
 def restore(trainer: ppo.Trainer, run_dir, config: Config, seeds, pool_size: int):
-    """(stacked states, update, metrics rows stored with them) at the latest update every seed has, or None."""
-    common = set.intersection(*(set(ckpt.list_updates(run_dir, s)) for s in seeds))
+    """(stacked states, update, metrics rows stored with them) at the latest update every seed has, or None.
+
+    A damaged checkpoint (truncated, checksum mismatch) falls back to the previous common update, with
+    a message; the updates after it are trained again (same numbers: training is deterministic).
+    """
+    common = sorted(set.intersection(*(set(ckpt.list_updates(run_dir, s)) for s in seeds)), reverse=True)
     if not common:
         return None
-    update = max(common)
     template = state_template(trainer, pool_size)
-    states, rows = [], []
-    for seed in seeds:
-        meta, state = ckpt.load(ckpt.checkpoint_path(run_dir, seed, update), template, config.fingerprint())
-        states.append(state)
-        rows += meta.get("metrics", [])
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *states), update, rows
+
+    def at(update):
+        loaded = [ckpt.load(ckpt.checkpoint_path(run_dir, seed, update), template, config.fingerprint())
+                  for seed in seeds]
+        rows = [row for meta, _ in loaded for row in meta.get("metrics", [])]
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *[state for _, state in loaded]), update, rows
+
+    for update, older in zip(common, common[1:]):
+        try:
+            return at(update)
+        except ckpt.CorruptCheckpointError as error:
+            print(f"{error}; falling back to update {older}", file=sys.stderr, flush=True)
+    try:
+        return at(common[-1])
+    except ckpt.CorruptCheckpointError as error:
+        raise ckpt.CheckpointError(f"{error}; no older checkpoint of seeds {list(seeds)} to fall back to: "
+                                   "start a new run") from None
 
 
 def save_checkpoints(run_dir, config: Config, seeds, states, update: int, schedule: Schedule,

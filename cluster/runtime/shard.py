@@ -12,6 +12,7 @@ depend only on their arguments.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import NamedTuple, Sequence
 
@@ -19,12 +20,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cluster.runtime.evaluate import play_rows
 from cluster.runtime.rundir import metric_rows
-from cluster.runtime.runstate import (SA_KEY_OFFSET, TRAIN_ARCHIVE_KEY_OFFSET, Schedule, hidden_size, population_key, restore,
-                              save_checkpoints)
+from cluster.runtime.runstate import Schedule, hidden_size, restore, save_checkpoints
 from population import ppo
 from population.config import Config
 from population.evaluation import gather_params
+from population.keys import derive_key
+from population.record import jitted_play_recorded_pairs
 from population.sa import collect_pairs
 
 
@@ -56,8 +59,6 @@ class CrossPlayRows(NamedTuple):
 
 def record_pairs(trainer: ppo.Trainer, env, params, pairs, keys, episodes: int):
     """``pairs`` of the K stacked ``params`` play ``episodes`` each with every transition kept (numpy)."""
-    from population.record import jitted_play_recorded_pairs
-
     params = jax.tree.map(jnp.asarray, params)
     play = jitted_play_recorded_pairs(trainer.network.apply, hidden_size(trainer), env, episodes)
     recorded = play(gather_params(params, [p[0] for p in pairs]), gather_params(params, [p[1] for p in pairs]),
@@ -72,15 +73,18 @@ class SeedShard:
         config: the run's config.
         run_dir: the run directory (an existing one: the coordinator creates it).
         seeds: this shard's seed indices.
-        pool: FCP only, the stacked frozen partner params (numpy or jax).
+        pool: FCP only, the stacked frozen partner params (numpy or jax): one pool [P, ...] shared by
+            all seeds, or with ``population.fcp.pool: per_seed`` one per seed of the run [num_seeds, P, ...]
+            (the shard keeps its own seeds' rows).
     """
 
     def __init__(self, config: Config, run_dir, seeds: Sequence[int], pool=None):
         self.config, self.run_dir, self.seeds = config, str(run_dir), [int(s) for s in seeds]
         self.trainer = ppo.make_trainer(config)
-        self.schedule = Schedule.of(config)
-        self.pool = None if pool is None else jax.tree.map(jnp.asarray, pool)
-        pool_size = 0 if pool is None else int(jax.tree.leaves(pool)[0].shape[0])
+        self.schedule = Schedule.of(config, run_dir)
+        self.pool_per_seed = config.population.fcp.per_seed
+        self.pool = None if pool is None else jax.tree.map(jnp.asarray, self._own_pool(pool))
+        pool_size = 0 if pool is None else int(jax.tree.leaves(self.pool)[0].shape[int(self.pool_per_seed)])
         restored = restore(self.trainer, self.run_dir, config, self.seeds, pool_size)
         if restored is None:
             self.states, self.update, self._saved_rows = ppo.init_population(self.trainer, self.seeds, None,
@@ -96,6 +100,15 @@ class SeedShard:
                                          in_axes=(0, 0, None)))
         env = self.trainer.env
         self._recipe_labels = ["+".join(map(str, r)) for r in env.layout.possible_recipes]
+
+    def _own_pool(self, pool):
+        """FCP per_seed: the pools of this shard's seeds (``pool`` holds one per learner of the run)."""
+        if not self.pool_per_seed:
+            return pool
+        learners = int(jax.tree.leaves(pool)[0].shape[0])
+        if learners != self.config.population.num_seeds:
+            raise ValueError(f"FCP per_seed pool has {learners} learner pools for {self.config.population.num_seeds} seeds")
+        return jax.tree.map(lambda x: np.asarray(x)[self.seeds], pool)
 
     # -- training
     def position(self) -> int:
@@ -115,7 +128,7 @@ class SeedShard:
             stop = self.schedule.next_stop(self.update)
             count = stop - self.update
             if count not in self._compiled:
-                self._compiled[count] = ppo.make_advance_population(self.trainer, count)
+                self._compiled[count] = ppo.make_advance_population(self.trainer, count, self.pool_per_seed)
             chunk_start = time.perf_counter()
             self.states, metrics = self._compiled[count](self.states, self._device_buffer(buffer), self.pool)
             metrics = jax.tree.map(np.asarray, metrics)
@@ -138,7 +151,7 @@ class SeedShard:
             raise ValueError(f"SA shard at update {self.update} needs the buffer of iteration {iteration}, got "
                              f"{None if buffer is None else buffer.iteration}")
         if self.update == starts[iteration] and self._restarted_iteration != iteration:
-            keys = jnp.stack([jax.random.fold_in(ppo.seed_key(self.config, s), SA_KEY_OFFSET + iteration)
+            keys = jnp.stack([derive_key(self.config.population.seed, "sa_restart", iteration, member=s)
                               for s in self.seeds])
             self.states = self._restart(self.states, keys, self._device_buffer(buffer))
         self._restarted_iteration = iteration
@@ -158,7 +171,7 @@ class SeedShard:
     # -- population-wide work handed out by the coordinator
     def collect(self, params, pairs, iteration: int, record: bool) -> CollectResult:
         """SA collection for ``pairs`` of the K stacked ``params``; with ``record``, the full episodes too."""
-        key = population_key(self.config, SA_KEY_OFFSET + iteration)
+        key = derive_key(self.config.population.seed, "sa", iteration)
         env = ppo.eval_env(self.config)
         params = jax.tree.map(jnp.asarray, params)
         part, recorded = collect_pairs(self.trainer.network.apply, hidden_size(self.trainer), env, params, key,
@@ -168,20 +181,16 @@ class SeedShard:
 
     def cross_play(self, params, rows, key, episodes: int, archive_dir=None) -> CrossPlayRows:
         """Cross-play of seat-0 ``rows``; with ``archive_dir`` their episodes are archived there, one file per row."""
-        from cluster.runtime.evaluate import play_rows
-
         result = play_rows(self.config, self.trainer, params, rows, key, episodes, archive_dir)
         rows = list(rows)
         return CrossPlayRows(rows, result.returns[rows], result.start_recipe[rows])
 
     def record_selfplay(self):
         """One self-play episode per seed of the current policies (``archive.train_every``)."""
-        key = population_key(self.config, TRAIN_ARCHIVE_KEY_OFFSET + self.update)
-        keys = np.stack([np.asarray(jax.random.fold_in(key, s)) for s in self.seeds])
+        keys = np.stack([np.asarray(derive_key(self.config.population.seed, "train_archive", self.update, member=s))
+                         for s in self.seeds])
         local = [(i, i) for i in range(len(self.seeds))]
         return self.update, record_pairs(self.trainer, ppo.eval_env(self.config), self.params(), local, keys, 1)
 
     def ping(self) -> int:
-        import os
-
         return os.getpid()

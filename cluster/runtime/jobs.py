@@ -1,0 +1,66 @@
+"""What the coordinator and the evaluation ask of a backend, and how they split work into jobs.
+
+A backend's ``Workers`` runs ``SeedShard`` methods on its shards (``cluster.runtime.local``: one
+in-process shard; ``cluster.runtime.ray_backend``: one actor per shard). Population-wide work (SA
+collection pairs, cross-play rows) is spread over the shards in consecutive blocks; each job's
+result depends only on its arguments, so the split never changes a number.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Protocol, Sequence
+
+import jax
+import numpy as np
+
+from population.config import Config
+
+
+class Workers(Protocol):
+    """What the coordinator needs from a backend."""
+
+    shards: list[list[int]]  # seed indices of each shard
+
+    def call(self, method: str, jobs: Sequence[tuple[int, tuple]]) -> list:
+        """Run ``SeedShard.<method>(*args)`` for each (shard index, args); results in job order."""
+
+    def share(self, value):
+        """A handle to pass ``value`` to many calls without copying it per call (Ray: ``ray.put``)."""
+
+    def restarts(self) -> int:
+        """Worker restarts so far (0 for in-process shards)."""
+
+    events: list[dict]  # one per worker death: shard, seeds, method, restored_update
+
+    def close(self) -> None: ...
+
+
+WorkersFactory = Callable[[Config, Path, object], Workers]  # (config, run_dir, FCP pool or None)
+
+
+def spread(items: Sequence, parts: int) -> list[list]:
+    """``items`` in ``parts`` consecutive blocks as even as possible (some empty if too few items)."""
+    size, extra = divmod(len(items), parts)
+    blocks, start = [], 0
+    for index in range(parts):
+        end = start + size + (index < extra)
+        blocks.append(list(items[start:end]))
+        start = end
+    return blocks
+
+
+def spread_jobs(workers: Workers, items: Sequence, make_args: Callable[[list], tuple]) -> list[tuple[int, tuple]]:
+    """One job per non-empty block of ``items``: (shard index, ``make_args(block)``)."""
+    return [(shard, make_args(block)) for shard, block in enumerate(spread(items, len(workers.shards))) if block]
+
+
+def on_every_shard(workers: Workers, *args) -> list[tuple[int, tuple]]:
+    """The same arguments for every shard."""
+    return [(shard, args) for shard in range(len(workers.shards))]
+
+
+def gather_params(workers: Workers):
+    """All seeds' current params stacked in seed order (numpy)."""
+    parts = workers.call("params", on_every_shard(workers))
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)

@@ -1,0 +1,262 @@
+"""FCP as the paper did it: a partner pool per learner (``population.fcp.pool: per_seed``) and partner
+stages trained with the self-play hyperparameters of the layout (``population.fcp.partner_ppo``).
+
+Runs are configs/smoke.yaml with 2 learners x 4 updates and one partner seed per learner (the partner
+stage is then 2 SP seeds, the same programs as the smoke SP run).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cluster.runtime import coordinator, runstate
+from cluster.runtime.local import LocalWorkers
+from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.shard import SeedShard
+from population import checkpoints as ckpt
+from population import ppo
+from population.config import ConfigError, load_config, parse_config
+from population.networks import init_params
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "configs" / "smoke.yaml"
+PAPER = ROOT / "configs" / "paper"
+V2 = ("grounded_coord_simple", "grounded_coord_ring", "test_time_simple", "test_time_wide", "demo_cook_simple",
+      "demo_cook_wide")
+PER_SEED = ["population.method=fcp", "population.fcp.pool=per_seed", "population.fcp.partner_seeds=1"]
+NUM_SEEDS, NUM_UPDATES = 2, 4
+
+
+def smoke(*overrides):
+    return load_config(SMOKE, [*PER_SEED, *overrides])
+
+
+# ---------------------------------------------------------------------------------------------------
+# configuration
+# ---------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("layout", V2)
+def test_paper_fcp_partners_default_to_the_self_play_hyperparameters(layout):
+    fcp_config = load_config(PAPER / f"v2_{layout}_fcp.yaml")
+    sp_config = load_config(PAPER / f"v2_{layout}_sp.yaml")
+    fcp = fcp_config.population.fcp
+    assert fcp.partners is None and fcp.pool == "per_seed" and fcp.partner_seeds == 8
+    assert fcp.partner_ppo == sp_config.ppo  # not the FCP column (LR 7e-4, GAE 0.9, entropy 0.04)
+    assert fcp_config.ppo != sp_config.ppo
+    stage = coordinator.partner_stage(fcp_config)
+    assert stage.ppo == sp_config.ppo and stage.env == sp_config.env and stage.model == sp_config.model
+    assert stage.population.method == "sp" and stage.population.num_seeds == 80  # 10 learners x 8
+
+
+def test_partner_ppo_keys_replace_single_self_play_values():
+    path = PAPER / "v2_grounded_coord_simple_fcp.yaml"
+    sp = load_config(PAPER / "v2_grounded_coord_simple_sp.yaml").ppo
+    config = load_config(path, ["population.fcp.partner_ppo.total_timesteps=65536"])
+    partner = config.population.fcp.partner_ppo
+    assert partner.total_timesteps == 65536 and partner.num_updates == 1
+    assert (partner.lr, partner.ent_coef, partner.gae_lambda) == (sp.lr, sp.ent_coef, sp.gae_lambda)
+    # the resolved section is written into the run's config.yaml and reads back the same
+    assert parse_config(config.to_dict()) == config
+
+
+def test_partner_ppo_is_not_used_with_a_partner_run():
+    config = load_config(PAPER / "v2_grounded_coord_simple_fcp.yaml", ["population.fcp.partners=runs/sp"])
+    assert config.population.fcp.partner_ppo is None
+
+
+BAD = [
+    (["population.fcp.pool=each"], "population.fcp.pool"),
+    (["population.fcp.partner_ppo=3"], "population.fcp.partner_ppo"),
+    (["population.fcp.partner_ppo.learning_rate=0.1"], "population.fcp.partner_ppo.learning_rate"),
+    (["population.fcp.partner_ppo.num_minibatches=3"], "population.fcp.partner_ppo.num_minibatches"),
+    (["population.fcp.partner_ppo.total_timesteps=10"], "population.fcp.partner_ppo.total_timesteps"),
+    (["population.fcp.partner_ppo.gamma=2"], "population.fcp.partner_ppo.gamma"),
+    (["population.fcp.checkpoints=[mid, '9']"], "population.fcp.checkpoints"),
+    # no paper self-play config for this layout and model kind: the key must be set
+    (["population.fcp.partner_ppo=null", "env.layout=cramped_room_v2", "model.kind=cnn"],
+     "population.fcp.partner_ppo"),
+]
+
+
+@pytest.mark.parametrize("overrides,key", BAD)
+def test_fcp_config_errors_are_one_line_naming_the_key(overrides, key):
+    with pytest.raises(ConfigError) as error:
+        load_config(SMOKE, [*PER_SEED, *overrides])
+    message = str(error.value)
+    assert f"{key}:" in message and "\n" not in message and "smoke.yaml" in message
+
+
+# ---------------------------------------------------------------------------------------------------
+# per-seed pools
+# ---------------------------------------------------------------------------------------------------
+
+def _random_pool(trainer, key, members: int = 2):
+    """``members`` freshly initialised partners stacked [members, ...] (each pool differs by its key)."""
+    keys = jax.random.split(key, members)
+    params = [init_params(trainer.network, k, trainer.env.obs_shape) for k in keys]
+    # Scaled up: freshly initialised policies are near uniform (tiny logits), so any two would sample
+    # the same actions from the same key; these act near deterministically, each in its own way.
+    return jax.tree.map(lambda *xs: 30.0 * jnp.stack(xs), *params)
+
+
+def test_per_seed_advance_gives_each_learner_its_own_pool_only():
+    """Replacing learner j's pool changes learner j and leaves learner i exactly as it was.
+
+    Shapes are those of the runs below (2 learners, 2 updates a chunk, 2 pool members), so they reuse
+    this compiled program through the compilation cache.
+    """
+    config = smoke()
+    trainer = ppo.make_trainer(config)
+    a, b, c = (_random_pool(trainer, jax.random.PRNGKey(k)) for k in (1, 2, 3))
+    advance = ppo.make_advance_population(trainer, 2, pool_per_seed=True)
+
+    def learners(pool0, pool1):
+        pools = jax.tree.map(lambda *xs: jnp.stack(xs), pool0, pool1)
+        states, metrics = advance(ppo.init_population(trainer, [0, 1], None, 2), None, pools)
+        return [jax.tree.leaves((ppo.take_seed(states, s), ppo.take_seed(metrics, s))) for s in (0, 1)]
+
+    def same(x, y) -> bool:  # the whole TrainState (env states, partner carries, ...) and the metrics
+        return all(np.allclose(np.asarray(u), np.asarray(v), rtol=1e-6, atol=1e-7, equal_nan=True)
+                   for u, v in zip(x, y, strict=True))
+
+    ab, ac, cb = learners(a, b), learners(a, c), learners(c, b)
+    assert same(ab[0], ac[0]) and not same(ab[1], ac[1])
+    assert same(ab[1], cb[1]) and not same(ab[0], cb[0])
+
+
+class Recorder:
+    """Wraps ``ppo.make_advance_population`` to keep every pool a shard hands to the trainer."""
+
+    def __init__(self, monkeypatch):
+        self.calls = []  # (pool_per_seed, numpy pool)
+        original = ppo.make_advance_population
+
+        def make(trainer, num_updates, pool_per_seed=False):
+            compiled = original(trainer, num_updates, pool_per_seed)
+
+            def run(states, buffer, pool):
+                if trainer.fcp:
+                    self.calls.append((pool_per_seed, jax.tree.map(np.asarray, pool)))
+                return compiled(states, buffer, pool)
+
+            return run
+
+        monkeypatch.setattr(ppo, "make_advance_population", make)
+
+
+def _partner_params(run, seed, update, trainer):
+    stage = RunDir(run / "partners").load_config()
+    return runstate.load_params(ckpt.checkpoint_path(run / "partners", seed, update), stage.fingerprint(),
+                                runstate.params_template(trainer))
+
+
+def _assert_pool_is(pool_row, members):
+    for index, member in enumerate(members):
+        for x, y in zip(jax.tree.leaves(pool_row), jax.tree.leaves(member), strict=True):
+            np.testing.assert_array_equal(x[index], np.asarray(y))
+
+
+@pytest.fixture(scope="module")
+def per_seed_run(tmp_path_factory):
+    """A per_seed FCP run on the local backend (partner stage included), and the pools its trainer saw."""
+    monkeypatch = pytest.MonkeyPatch()
+    recorder = Recorder(monkeypatch)
+    run = tmp_path_factory.mktemp("fcp") / "per_seed"
+    try:
+        coordinator.train(smoke(), run, LocalWorkers, show_progress=False, evaluate=False)
+    finally:
+        monkeypatch.undo()
+    return run, recorder.calls
+
+
+def test_per_seed_pools_hold_only_each_learners_own_partners(per_seed_run):
+    run, calls = per_seed_run
+    config = smoke()
+    trainer = ppo.make_trainer(config)
+    stage = RunDir(run / "partners").load_config()
+    assert stage.population.method == "sp" and stage.population.num_seeds == NUM_SEEDS  # 2 learners x 1
+    assert stage.ppo == config.population.fcp.partner_ppo
+    info = RunDir(run).read_manifest()
+    assert info["status"] == "finished" and info["pool"] == [["seed0@2", "seed0@4"], ["seed1@2", "seed1@4"]]
+    assert calls and all(per_seed for per_seed, _ in calls)
+    for _, pool in calls:  # every chunk: pool [2 learners, 2 members]; row i = partner seed i only
+        assert jax.tree.leaves(pool)[0].shape[:2] == (NUM_SEEDS, 2)
+        for learner in range(NUM_SEEDS):
+            _assert_pool_is(jax.tree.map(lambda x: x[learner], pool),
+                            [_partner_params(run, learner, u, trainer) for u in (2, 4)])
+    first = jax.tree.leaves(calls[0][1])[0]
+    assert not np.array_equal(first[0], first[1])
+
+
+def test_per_seed_run_resumes_where_it_stopped(per_seed_run, tmp_path, monkeypatch):
+    """A driver that dies after the first chunk: the resumed run rebuilds the same per-seed pools and
+    ends where the uninterrupted one did."""
+    reference, reference_calls = per_seed_run
+    config = smoke(f"population.fcp.partners={reference / 'partners'}")  # the reference's partner stage
+    recorder = Recorder(monkeypatch)
+    run = tmp_path / "resumed"
+
+    class Stop(Exception):
+        pass
+
+    def die(update, workers):
+        if update == 2:
+            raise Stop
+
+    with pytest.raises(Stop):
+        coordinator.train(config, run, LocalWorkers, show_progress=False, evaluate=False, on_chunk=die)
+    coordinator.train(config, run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    assert RunDir(run).read_manifest()["status"] == "finished"
+    assert len(recorder.calls) == 2  # one chunk before the stop, one after
+    for (per_seed, pool), (_, expected) in zip(recorder.calls, reference_calls, strict=True):
+        assert per_seed
+        for x, y in zip(jax.tree.leaves(pool), jax.tree.leaves(expected), strict=True):
+            np.testing.assert_array_equal(x, y)
+    template = runstate.params_template(ppo.make_trainer(config))
+    for seed in range(NUM_SEEDS):
+        ours = runstate.load_params(ckpt.checkpoint_path(run, seed, NUM_UPDATES), config.fingerprint(), template)
+        theirs = runstate.load_params(ckpt.checkpoint_path(reference, seed, NUM_UPDATES), smoke().fingerprint(),
+                                      template)
+        for x, y in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_a_shard_keeps_only_its_seeds_pools(per_seed_run, tmp_path):
+    """The Ray backend hands every actor the run's per-seed pools; a shard of seed 1 keeps row 1 only."""
+    reference, reference_calls = per_seed_run
+    config = smoke(f"population.fcp.partners={reference / 'partners'}")
+    pools = reference_calls[0][1]
+    RunDir(tmp_path / "run").create(config)
+    shard = SeedShard(config, tmp_path / "run", [1], pools)
+    assert shard.pool_per_seed
+    for x, y in zip(jax.tree.leaves(shard.pool), jax.tree.leaves(pools), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), y[1:2])
+    with pytest.raises(ValueError, match="per_seed pool has 1 learner pools for 2 seeds"):
+        SeedShard(config, tmp_path / "run", [1], jax.tree.map(lambda x: x[:1], pools))
+
+
+def test_per_seed_partner_run_needs_a_pool_of_seeds_per_learner(per_seed_run, tmp_path):
+    run, _ = per_seed_run
+    config = smoke("population.fcp.partner_seeds=2", f"population.fcp.partners={run / 'partners'}")
+    with pytest.raises(RunDirError, match=r"population.fcp.partner_seeds: 4 partner seeds needed .*has 2 seeds"):
+        coordinator.load_pool(config, ppo.make_trainer(config), run / "partners")
+    shared = smoke("population.fcp.pool=shared", "population.fcp.partner_seeds=2",
+                   f"population.fcp.partners={run / 'partners'}")
+    pool, labels = coordinator.load_pool(shared, ppo.make_trainer(shared), run / "partners")
+    assert labels == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
+    assert jax.tree.leaves(pool)[0].shape[0] == 4
+
+
+@pytest.mark.parametrize("path, before", [("configs/quickstart.yaml", "c6bf8ae599d8439c"),
+                                          ("configs/paper/v2_grounded_coord_simple_sa.yaml", "f172112564c9ffd6"),
+                                          ("configs/paper/classic_cramped_room_sp.yaml", "e25c665575963c70")])
+def test_runs_made_before_the_pool_keys_keep_their_fingerprint(path, before):
+    # Values recorded with the code before population.fcp.pool / partner_ppo existed: such runs must resume.
+    config = load_config(path)
+    assert config.fingerprint() == before
+    assert load_config(path, ["population.fcp.pool=per_seed"]).fingerprint() != before

@@ -1,0 +1,211 @@
+"""The run directory without training: the lock, bad directories and manifests, stale temporaries,
+torn metrics rows, checksummed checkpoints, the environment record, the key derivations, and the
+import rules of ``cluster/runtime/``. (Resume, fallback and full-disk runs: tests/test_train_cli.py.)
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from cluster.cli import main
+from cluster.runtime.environment import git_state
+from cluster.runtime.rundir import LOCK_NAME, RunDir, RunDirError
+from population import checkpoints as ckpt
+from population.config import load_config
+from population.keys import OFFSETS, derive_key
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = str(ROOT / "configs" / "smoke.yaml")
+
+
+@pytest.fixture(scope="module")
+def config():
+    return load_config(SMOKE)
+
+
+def test_a_second_opener_is_refused_naming_the_holder(tmp_path, config):
+    first, resuming = RunDir.open(tmp_path / "run", config)
+    assert not resuming
+    with pytest.raises(RunDirError, match=rf"in use by another ocv2 process \(pid {os.getpid()}\)"):
+        RunDir.open(tmp_path / "run", config, resume=True)
+    first.close()  # (a killed holder releases it the same way: the kernel closes its file)
+    second, resuming = RunDir.open(tmp_path / "run", config, resume=True)
+    assert resuming
+    second.close()
+
+
+def test_a_run_dir_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
+    target = tmp_path / "run"
+    target.write_text("not a directory")
+    assert main(["train", SMOKE, "--out", str(target), "--quiet", "--backend", "local"]) == 2
+    err = capsys.readouterr().err
+    assert "is a file, not a run directory" in err and len(err.strip().splitlines()) == 1
+    assert target.read_text() == "not a directory"
+    assert main(["xp", str(target)]) == 2
+    assert "is a file" in capsys.readouterr().err
+
+
+def test_a_refused_directory_is_left_as_it_was(tmp_path, config):
+    (tmp_path / "stuff.txt").write_text("x")
+    with pytest.raises(RunDirError, match="not an ocv2 run directory"):
+        RunDir.open(tmp_path, config)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stuff.txt"]  # no .lock left behind
+    with pytest.raises(RunDirError, match="nothing to resume"):
+        RunDir.open(tmp_path / "missing", config, resume=True)
+    assert not (tmp_path / "missing").exists()
+
+
+@pytest.mark.parametrize("text, message", [("", "is empty"), ("{\"status\": ", "is not valid JSON"),
+                                           ("[1, 2]", "holds a JSON list, not an object")])
+def test_an_empty_or_invalid_manifest_is_reported(tmp_path, config, capsys, text, message):
+    run, _ = RunDir.open(tmp_path / "run", config)
+    run.close()
+    run.manifest_path.write_text(text)
+    with pytest.raises(RunDirError, match=message) as error:
+        RunDir.open(tmp_path / "run", config, resume=True)
+    assert "manifest.json" in str(error.value)
+    assert main(["xp", str(tmp_path / "run")]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_stale_temporaries_are_removed_when_a_run_is_opened(tmp_path, config, capsys):
+    run, _ = RunDir.open(tmp_path / "run", config)
+    run.close()
+    stale = [run.path / ".manifest.tmp-123-abcdef01.json",
+             run.path / "checkpoints" / "seed_0" / ".update_0000002.tmp-123-abcdef01.msgpack"]
+    for path in stale:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"half")
+    keep = run.path / "checkpoints" / "seed_0" / "notes.txt"
+    keep.write_text("mine")
+    run, _ = RunDir.open(run.path, config, resume=True)
+    run.close()
+    assert not any(path.exists() for path in stale) and keep.exists()
+    assert "interrupted write" in capsys.readouterr().err
+
+
+def test_torn_metrics_rows_are_dropped_and_the_file_repaired(tmp_path, capsys):
+    run = RunDir(tmp_path)
+    header = "seed,update,sparse_return"
+    # an appending writer killed twice: once mid-row (then appended again), once mid-last-row
+    (tmp_path / "metrics.csv").write_text(f"{header}\n0,1,0.5\n0,2\n1,1,0.25\n1,2,0.")
+    assert [(r["seed"], r["update"]) for r in run.read_metrics()] == [("0", "1"), ("1", "1")]
+    err = capsys.readouterr().err
+    assert "line 3 is incomplete" in err and "line 5 is incomplete" in err
+    assert [r["update"] for r in run.truncate_metrics(after_update=1)] == ["1", "1"]
+    capsys.readouterr()
+    assert (tmp_path / "metrics.csv").read_text().splitlines() == [header, "0,1,0.5", "1,1,0.25"]
+    run.append_metrics([{"seed": 0, "update": 2, "sparse_return": 1.0}, {"seed": 1, "update": 2, "sparse_return": ""}])
+    assert [(r["seed"], r["update"]) for r in run.read_metrics()] == [("0", "1"), ("1", "1"), ("0", "2"), ("1", "2")]
+    assert capsys.readouterr().err == ""
+
+
+def test_metrics_are_not_touched_by_a_write_that_fails(tmp_path, monkeypatch):
+    run = RunDir(tmp_path)
+    run.append_metrics([{"seed": 0, "update": 1, "loss": 0.5}])
+    before = run.metrics_path.read_bytes()
+
+    def full_disk(path):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr("ocv2.atomic._fsync_path", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        run.append_metrics([{"seed": 0, "update": 2, "loss": 0.25}])
+    assert run.metrics_path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["metrics.csv"]  # the temporary is gone too
+
+
+def test_a_damaged_checkpoint_fails_its_checksum(tmp_path):
+    state = {"w": np.arange(64, dtype=np.float32), "step": np.int32(3)}
+    path = ckpt.save(tmp_path / "update_0000001.msgpack", state, "fp", update=1)
+    meta, raw = ckpt.read(path, "fp")
+    assert meta["version"] == 2 and len(meta["sha256"]) == 64
+    np.testing.assert_array_equal(raw["w"], state["w"])
+    data = bytearray(path.read_bytes())
+    data[-20] ^= 0xFF  # one flipped bit pattern inside the array bytes: msgpack still parses it
+    path.write_bytes(bytes(data))
+    with pytest.raises(ckpt.CorruptCheckpointError, match="checksum mismatch"):
+        ckpt.read(path, "fp")
+    path.write_bytes(bytes(data[: len(data) // 2]))
+    with pytest.raises(ckpt.CorruptCheckpointError, match="not a readable ocv2 checkpoint"):
+        ckpt.read(path, "fp")
+
+
+def test_every_run_dir_records_versions_commit_devices_and_argv(tmp_path, config):
+    run, _ = RunDir.open(tmp_path / "run", config)
+    run.close()
+    run, _ = RunDir.open(tmp_path / "run", config, resume=True)
+    run.close()
+    drivers = json.loads(run.environment_path.read_text())["drivers"]
+    assert len(drivers) == 2  # the creating driver and the resuming one
+    record = drivers[-1]
+    assert {"python", "ocv2", "jax", "jaxlib", "flax", "optax", "numpy", "ray"} <= set(record["versions"])
+    assert record["versions"]["jax"] == jax.__version__
+    assert record["argv"] == sys.argv
+    assert record["devices"] == [str(d) for d in jax.devices()]
+    git = record["git"]
+    assert git is None or (len(git["commit"]) == 40 and isinstance(git["dirty"], bool))
+    assert git_state(tmp_path) is None  # not a checkout (nor the root of one)
+
+
+def test_every_key_is_the_derivation_results_were_made_with():
+    """Stored runs and published numbers depend on these exact keys: the one function must keep them."""
+    fold, root = jax.random.fold_in, jax.random.PRNGKey(7)
+    same = lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    same(derive_key(7, "seed", 3), fold(root, 3))
+    same(derive_key(7, "sa_restart", 1, member=3), fold(fold(root, 3), (1 << 20) + 1))
+    same(derive_key(7, "sa", 1), fold(root, (1 << 20) + 1))
+    same(derive_key(7, "xp"), fold(root, 1 << 21))
+    same(derive_key(7, "gif", member=2), fold(fold(root, 1 << 22), 2))
+    same(derive_key(7, "train_archive", 40, member=1), fold(fold(root, (1 << 23) + 40), 1))
+    assert sorted(OFFSETS.values()) == [0, 1 << 20, 1 << 21, 1 << 22, 1 << 23]
+    with pytest.raises(ValueError, match="unknown key purpose 'bogus'"):
+        derive_key(7, "bogus")
+
+
+RUNTIME = ROOT / "cluster" / "runtime"
+PROJECT = ("ocv2", "population", "cluster")
+
+
+def _project_imports(tree) -> list[tuple[str, int, bool]]:
+    """(module, line, at module level?) of every project import in a parsed module."""
+    top = {id(node) for node in tree.body}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module == "cluster.runtime":  # its submodules
+            names = [f"cluster.runtime.{alias.name}" for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            names = [node.module or ""]
+        else:
+            continue
+        for name in names:
+            if name.split(".")[0] in PROJECT:
+                found.append((name, node.lineno, id(node) in top))
+    return found
+
+
+def test_runtime_imports_are_one_way_and_at_module_top():
+    graph = {}
+    for path in sorted(RUNTIME.glob("*.py")):
+        imports = _project_imports(ast.parse(path.read_text()))
+        local = [f"{path.name}:{line} {name}" for name, line, at_top in imports if not at_top]
+        assert not local, f"function-local project imports: {local}"
+        graph[f"cluster.runtime.{path.stem}"] = {name for name, _, _ in imports if name.startswith("cluster.runtime.")}
+
+    def visit(module, trail):
+        assert module not in trail, f"import cycle: {' -> '.join([*trail, module])}"
+        for target in graph.get(module, ()):
+            visit(target, [*trail, module])
+
+    for module in graph:
+        visit(module, [])
