@@ -1,0 +1,271 @@
+"""Behaviour cloning: a human proxy policy from the 2019 human trials (Carroll et al. 2019).
+
+Every recorded (state, action) of both seats becomes one sample: the seat's ocv2 default observation
+of the recorded state and the action the human took. A feed-forward network of
+``population.networks`` (the classic-layout CNN by default) is fitted by cross-entropy with optax's
+Adam on minibatches drawn with an explicit key; training is one jitted ``lax.scan`` per evaluation
+chunk, so the same config and seed give the same parameters.
+
+The proxy is scored as the issue asks: action accuracy on the held-out test trials (against a uniform
+policy, 1/6, and the majority action of the training data) and the team return of the proxy playing
+with itself (sampled actions, ``population.evaluation.play_episodes``).
+
+A proxy is saved as one msgpack file (``save_proxy``; ``ocv2.atomic``) holding its parameters, the
+``ModelConfig``, the env parameters and its scores; ``load_proxy`` reads it back, and
+``proxy_path(layout)`` is where ``ocv2 human proxy`` caches it by default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import serialization
+
+import ocv2
+from ocv2 import items as it
+from ocv2.items import Action
+from ocv2.atomic import atomic_write
+from population.config import _MODEL_DEFAULTS, ModelConfig
+from population.evaluation import play_episodes
+from population.human import Trial
+from population.networks import ActorCritic, init_params, make_network
+
+FORMAT = "ocv2-human-proxy/1"
+CACHE_ENV = "OCV2_CACHE"
+
+
+@dataclasses.dataclass(frozen=True)
+class BCConfig:
+    """Behaviour-cloning hyperparameters (defaults: the run reported in docs/human.md)."""
+
+    kind: str = "cnn"  # population ModelConfig kind; only feed-forward 'cnn' (samples are single steps)
+    steps: int = 3000
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    eval_every: int = 500
+    seed: int = 0
+    selfplay_episodes: int = 16
+    max_steps: int = 400  # episode length of the self-play score (ocv2's default)
+
+    def __post_init__(self):
+        if self.kind != "cnn":
+            raise ValueError(f"BCConfig.kind: only 'cnn' (feed-forward) is supported, got {self.kind!r}")
+        for name in ("steps", "batch_size", "eval_every", "selfplay_episodes", "max_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"BCConfig.{name} must be a positive integer, got {value!r}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"BCConfig.learning_rate must be > 0, got {self.learning_rate!r}")
+
+    @property
+    def model(self) -> ModelConfig:
+        return ModelConfig(kind=self.kind, **_MODEL_DEFAULTS[self.kind])
+
+
+class BCData(NamedTuple):
+    obs: np.ndarray  # [S, H, W, C] a seat's default observation of a recorded state
+    actions: np.ndarray  # int32[S] the action that seat's human took
+
+
+class BCResult(NamedTuple):
+    params: dict
+    model: ModelConfig
+    layout: str
+    history: list  # [{"step", "loss", "test_accuracy"}] at every eval_every steps
+    scores: dict  # test_accuracy, uniform_accuracy, majority_accuracy, train_accuracy, selfplay_return...
+
+
+def proxy_env(layout: str, max_steps: int = 400) -> ocv2.OvercookedV2:
+    """The environment a proxy observes and plays: the layout's default observations, 2019 rules."""
+    return ocv2.make(layout, max_steps=max_steps)
+
+
+def dataset(trials: Sequence[Trial], env: ocv2.OvercookedV2) -> BCData:
+    """Both seats' (observation, action) samples of every transition of ``trials`` (one layout)."""
+    if not trials:
+        raise ValueError("no trials to build a dataset from")
+    layouts = sorted({t.layout for t in trials})
+    if layouts != [env.layout.name]:
+        raise ValueError(f"trials are on {layouts}, the env on {env.layout.name!r}: one layout per dataset")
+    observe = jax.jit(jax.vmap(env.get_obs_arrays))
+    obs, actions = [], []
+    for trial in trials:
+        states = jax.tree.map(lambda x: x[:-1], trial.states)
+        per_seat = np.asarray(observe(states))  # [T, N, H, W, C]
+        obs.append(per_seat.reshape((-1,) + per_seat.shape[2:]))
+        actions.append(trial.actions.reshape(-1))
+    return BCData(np.concatenate(obs), np.concatenate(actions).astype(np.int32))
+
+
+def _logits(network: ActorCritic, params, obs: jax.Array) -> jax.Array:
+    hidden = network.initial_hidden(obs.shape[0])
+    _, logits, _ = network.apply(params, hidden, obs[None], jnp.zeros((1, obs.shape[0]), bool))
+    return logits[0]
+
+
+def _loss(network: ActorCritic, params, obs, actions):
+    logits = _logits(network, params, obs)
+    return optax.softmax_cross_entropy_with_integer_labels(logits, actions).mean()
+
+
+def make_train_chunk(network: ActorCritic, optimizer: optax.GradientTransformation, batch_size: int, length: int):
+    """A jitted function running ``length`` minibatch steps: (params, opt_state, key, obs, actions) ->
+    (params, opt_state, key, mean loss)."""
+
+    def step(carry, _):
+        params, opt_state, key, obs, actions = carry
+        key, sub = jax.random.split(key)
+        index = jax.random.randint(sub, (batch_size,), 0, actions.shape[0])
+        loss, grads = jax.value_and_grad(lambda p: _loss(network, p, obs[index], actions[index]))(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state, key, obs, actions), loss
+
+    @jax.jit
+    def chunk(params, opt_state, key, obs, actions):
+        (params, opt_state, key, _, _), losses = jax.lax.scan(step, (params, opt_state, key, obs, actions), None,
+                                                             length=length)
+        return params, opt_state, key, losses.mean()
+
+    return chunk
+
+
+def accuracy(network: ActorCritic, params, data: BCData, chunk: int = 4096) -> float:
+    """Share of samples whose most likely action is the human's."""
+    predict = jax.jit(lambda p, o: jnp.argmax(_logits(network, p, o), axis=-1))
+    hits = 0
+    for start in range(0, len(data.actions), chunk):
+        predicted = np.asarray(predict(params, jnp.asarray(data.obs[start:start + chunk])))
+        hits += int((predicted == data.actions[start:start + chunk]).sum())
+    return hits / max(len(data.actions), 1)
+
+
+def _active(data: BCData) -> BCData:
+    keep = data.actions != int(Action.STAY)
+    return BCData(data.obs[keep], data.actions[keep])
+
+
+def baselines(train: BCData, test: BCData) -> dict:
+    """Held-out accuracy of a uniform policy (1/6) and of always playing the training majority action."""
+    majority = int(np.bincount(train.actions, minlength=it.NUM_ACTIONS).argmax())
+    return {"uniform_accuracy": 1.0 / it.NUM_ACTIONS, "majority_action": int(majority),
+            "majority_accuracy": float((test.actions == majority).mean()),
+            "active_share": float((test.actions != int(Action.STAY)).mean())}
+
+
+def selfplay_return(network: ActorCritic, params, env: ocv2.OvercookedV2, key: jax.Array, episodes: int) -> float:
+    """Mean team return (20 per soup) of the proxy in both seats, sampled actions, from the layout start."""
+    returns = jax.jit(lambda k: play_episodes(network.apply, 0, env, (params, params), k, episodes).returns)(key)
+    return float(np.mean(np.asarray(returns)))
+
+
+def train(config: BCConfig, train_trials: Sequence[Trial], test_trials: Sequence[Trial], log=None) -> BCResult:
+    """Fit the proxy on ``train_trials`` and score it on ``test_trials`` (all on one layout)."""
+    layout = train_trials[0].layout if train_trials else "?"
+    env = proxy_env(layout, config.max_steps)
+    train_data, test_data = dataset(train_trials, env), dataset(test_trials, env)
+    model = config.model
+    network = make_network(model, it.NUM_ACTIONS)
+    key = jax.random.PRNGKey(config.seed)
+    key, init_key, play_key = jax.random.split(key, 3)
+    params = init_params(network, init_key, train_data.obs.shape[1:])
+    optimizer = optax.adam(config.learning_rate)
+    opt_state = optimizer.init(params)
+    obs, actions = jnp.asarray(train_data.obs), jnp.asarray(train_data.actions)
+    history, done = [], 0
+    chunks = {}
+    while done < config.steps:
+        length = min(config.eval_every, config.steps - done)
+        if length not in chunks:
+            chunks[length] = make_train_chunk(network, optimizer, config.batch_size, length)
+        params, opt_state, key, loss = chunks[length](params, opt_state, key, obs, actions)
+        done += length
+        entry = {"step": done, "loss": float(loss), "test_accuracy": accuracy(network, params, test_data)}
+        history.append(entry)
+        if log is not None:
+            log(entry)
+    scores = {
+        "train_samples": int(len(train_data.actions)), "test_samples": int(len(test_data.actions)),
+        "train_accuracy": accuracy(network, params, train_data), "test_accuracy": history[-1]["test_accuracy"],
+        # STAY dominates the recordings (the game ticks faster than people press keys); accuracy on
+        # the held-out samples where the human did something else is where a policy shows.
+        "test_accuracy_active": accuracy(network, params, _active(test_data)),
+        **baselines(train_data, test_data),
+        "selfplay_return": selfplay_return(network, params, env, play_key, config.selfplay_episodes),
+        "selfplay_episodes": config.selfplay_episodes, "selfplay_max_steps": config.max_steps,
+    }
+    return BCResult(params, model, layout, history, scores)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Saving and loading a proxy
+# ---------------------------------------------------------------------------------------------------
+
+def proxy_path(layout: str) -> Path:
+    """Default cache file of the proxy for ``layout``: ``$OCV2_CACHE/human_proxy/LAYOUT.msgpack``
+    (``OCV2_CACHE`` defaults to ``$XDG_CACHE_HOME/ocv2``, else ``~/.cache/ocv2``)."""
+    base = os.environ.get(CACHE_ENV)
+    if not base:
+        base = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(Path.home(), ".cache"), "ocv2")
+    return Path(base) / "human_proxy" / f"{ocv2.layouts.get_layout(layout).name}.msgpack"
+
+
+def save_proxy(path, result: BCResult, config: BCConfig, meta: dict | None = None) -> Path:
+    """Write the proxy (params + model + env + scores + ``meta``) atomically as msgpack."""
+    header = {"format": FORMAT, "layout": result.layout, "model": dataclasses.asdict(result.model),
+              "env": {"layout": result.layout, "max_steps": config.max_steps},
+              "bc": dataclasses.asdict(config), "scores": result.scores, "history": result.history,
+              "meta": meta or {}}
+    payload = {"header": json.dumps(header), "params": serialization.to_state_dict(jax.tree.map(np.asarray,
+                                                                                              result.params))}
+    return atomic_write(path, serialization.msgpack_serialize(payload))
+
+
+class Proxy(NamedTuple):
+    params: dict
+    model: ModelConfig
+    network: ActorCritic
+    header: dict  # format, layout, model, env, bc, scores, history, meta
+
+    @property
+    def layout(self) -> str:
+        return self.header["layout"]
+
+    @property
+    def hidden_size(self) -> int:
+        return 0  # feed-forward: the network calling convention's [B, 0] placeholder carry
+
+
+def load_proxy(path) -> Proxy:
+    """Read a ``save_proxy`` file; a clear ``ValueError`` naming the file if it is not one."""
+    path = Path(path)
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+        header = json.loads(payload["header"])
+        if header.get("format") != FORMAT:
+            raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
+        model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in header["model"].items()})
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such human proxy file (train one with `ocv2 human proxy LAYOUT`)") from None
+    except Exception as error:
+        raise ValueError(f"{path}: not an ocv2 human proxy: {type(error).__name__}: {error}") from None
+    network = make_network(model, it.NUM_ACTIONS)
+    env = proxy_env(header["layout"])
+    template = init_params(network, jax.random.PRNGKey(0), env.obs_shape)
+    try:
+        params = serialization.from_state_dict(template, payload["params"])
+        wrong = [np.shape(b) for a, b in zip(jax.tree.leaves(template), jax.tree.leaves(params))
+                 if np.shape(a) != np.shape(b)]
+        if wrong:
+            raise ValueError(f"parameter shapes {wrong[:3]} differ from the model's")
+    except Exception as error:
+        raise ValueError(f"{path}: its parameters do not fit its model {header['model']}: {error}") from None
+    params = jax.tree.map(jnp.asarray, params)
+    return Proxy(params, model, network, header)
