@@ -287,6 +287,7 @@ def _trial(source_layout: str, worker: int, split: str, rows: list[dict]) -> Tri
         states.append(state_from_record(layout, _parse(last, f"{where}, last next_state"), len(rows), delivered))
     if not actions:
         raise HumanDataError(f"{where}: needs at least two rows")
+    states[-1] = states[-1].replace(done=np.asarray(True))  # the game ended here, as ocv2's max_steps would
     stacked = jax.tree.map(lambda *xs: np.stack(xs), *states)
     return Trial(layout.name, source_layout, worker, split, stacked, np.asarray(actions, np.int32),
                  np.asarray(rewards, np.float32))
@@ -321,7 +322,7 @@ def _stepper(layout_name: str):
     @jax.jit
     def step(states, actions):
         out = jax.vmap(lambda s, a: transition(config, jax.random.PRNGKey(0), s, a))(states, actions)
-        return out.state, out.reward
+        return out.state, out.reward, out.shaped_reward
     return step
 
 
@@ -329,12 +330,13 @@ _STEPPERS: dict = {}
 
 
 def step_recorded(trial: Trial):
-    """ocv2's next state and reward from every recorded state with the recorded joint action."""
+    """ocv2's next states, rewards and shaped rewards [T] from every recorded state with the recorded
+    joint action (the recipe key is irrelevant: one recipe, no resampling)."""
     if trial.layout not in _STEPPERS:
         _STEPPERS[trial.layout] = _stepper(trial.layout)
     before = jax.tree.map(lambda x: x[:-1], trial.states)
-    states, rewards = _STEPPERS[trial.layout](before, jnp.asarray(trial.actions))
-    return jax.tree.map(np.asarray, states), np.asarray(rewards)
+    states, rewards, shaped = _STEPPERS[trial.layout](before, jnp.asarray(trial.actions))
+    return jax.tree.map(np.asarray, states), np.asarray(rewards), np.asarray(shaped)
 
 
 def field_mismatches(layout: Layout, predicted: State, recorded: State, predicted_reward, recorded_reward) -> dict:
@@ -366,7 +368,7 @@ def reproduce(trials: Sequence[Trial], max_examples: int = 3) -> Reproduction:
     by_class = collections.Counter()
     examples: dict = collections.defaultdict(list)
     for trial in trials:
-        predicted, rewards = step_recorded(trial)
+        predicted, rewards, _ = step_recorded(trial)
         recorded = jax.tree.map(lambda x: x[1:], trial.states)
         diff = field_mismatches(get_layout(trial.layout), predicted, recorded, rewards, trial.rewards)
         bad = np.zeros(len(trial.actions), bool)

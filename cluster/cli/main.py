@@ -185,6 +185,7 @@ COMMANDS: list[tuple[str, Callable, Callable]] = [
     ("button-game", _lazy("cluster.cli.button_game", "add_parser"), _lazy("cluster.cli.button_game", "run")),
     ("archive", _lazy("cluster.cli.archive", "add_parser"), _lazy("cluster.cli.archive", "run")),
     ("play", _lazy("cluster.cli.play", "add_play"), _lazy("cluster.cli.play", "run_play")),
+    ("human", _lazy("cluster.cli.human", "add_parser"), _lazy("cluster.cli.human", "run")),
 ]
 
 
