@@ -47,7 +47,7 @@ class BCConfig:
     """Behaviour-cloning hyperparameters (defaults: the run reported in docs/human.md)."""
 
     kind: str = "cnn"  # population ModelConfig kind; only feed-forward 'cnn' (samples are single steps)
-    steps: int = 3000
+    steps: int = 1500
     batch_size: int = 256
     learning_rate: float = 1e-3
     eval_every: int = 500
