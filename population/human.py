@@ -90,14 +90,14 @@ def read_frame(source: str | os.PathLike, split: str):
     """
     if split not in SPLITS:
         raise HumanDataError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
-    try:
-        import pandas as pd  # optional dependency: the [human] extra
-    except ImportError:
-        raise HumanDataError("reading the human data needs pandas: pip install 'ocv2[human]'") from None
     path = Path(source)
     name = PICKLE_NAMES[split]
     if not path.exists():
         raise HumanDataError(f"{path}: no such file or folder (expected {SDIST_NAME}, a folder with {name}, or {name})")
+    try:
+        import pandas as pd  # optional dependency: the [human] extra
+    except ImportError:
+        raise HumanDataError("reading the human data needs pandas: pip install 'ocv2[human]'") from None
     try:
         if path.is_dir():
             found = sorted(path.rglob(name))
@@ -383,3 +383,47 @@ def reproduce(trials: Sequence[Trial], max_examples: int = 3) -> Reproduction:
             if len(examples[label]) < max_examples:
                 examples[label].append((f"{trial.split}:{trial.source_layout}/{trial.worker}", int(t)))
     return Reproduction(total, exact, dict(by_field), dict(by_class), dict(examples))
+
+
+# ---------------------------------------------------------------------------------------------------
+# Which rules the recordings exercise
+# ---------------------------------------------------------------------------------------------------
+
+def rule_events(trials: Sequence[Trial]) -> dict:
+    """Count what happens in the recorded transitions (per agent and step), read off the recorded
+    states: which parts of the rules an exact reproduction has actually checked."""
+    counts = collections.Counter()
+    for trial in trials:
+        s = trial.states
+        static = np.asarray(get_layout(trial.layout).static_objects)
+        x, y, d, inv = (np.asarray(v) for v in (s.agents.x, s.agents.y, s.agents.dir, s.agents.inventory))
+        grid = np.asarray(s.grid)
+        dx, dy = it.DIRECTION_VECTORS[d, 0], it.DIRECTION_VECTORS[d, 1]
+        for t, joint in enumerate(trial.actions):
+            for a, action in enumerate(joint):
+                if action <= Action.UP:
+                    vx, vy = it.DIRECTION_VECTORS[it.ACTION_DIRECTION[action]]
+                    moved = (x[t + 1, a], y[t + 1, a]) != (x[t, a], y[t, a])
+                    target = static[y[t, a] + vy, x[t, a] + vx]
+                    counts["move" if moved else "move blocked by a counter/object" if target != Static.FLOOR
+                           else "move blocked by the other agent"] += 1
+                elif action == Action.INTERACT:
+                    fx, fy = x[t + 1, a] + dx[t + 1, a], y[t + 1, a] + dy[t + 1, a]
+                    counts[_interaction(static[fy, fx], inv[t, a], inv[t + 1, a])] += 1
+            pots = static == Static.POT
+            counts["pot starts cooking (3rd onion)"] += int((pots & (grid[t, ..., 2] == 0) & (grid[t + 1, ..., 2] > 0)).sum())
+            counts["soup finishes cooking"] += int((pots & ((grid[t + 1, ..., 1] & ~grid[t, ..., 1] & it.COOKED) != 0)).sum())
+            counts["transitions with a delivery reward"] += int(trial.rewards[t] > 0)
+    return dict(sorted(counts.items()))
+
+
+def _interaction(cell: int, before: int, after: int) -> str:
+    if before == after:
+        return "interact without effect"
+    names = {Static.PLATE_PILE: "dish pile", Static.POT: "pot", Static.GOAL: "serving window", Static.WALL: "counter"}
+    where = "onion pile" if cell >= Static.INGREDIENT_PILE else names.get(int(cell), "cell")
+    if before == it.EMPTY:
+        return f"pick up from {where}"
+    if after == it.EMPTY:
+        return f"put down on {where}" if cell != Static.GOAL else "deliver at serving window"
+    return f"exchange at {where}"  # a dish becomes a soup at the pot

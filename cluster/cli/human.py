@@ -136,8 +136,9 @@ def run_import(args) -> int:
     for split, trials in loaded.items():
         report["splits"][split] = {}
         for layout in dict.fromkeys(t.layout for t in trials):
-            result = human.reproduce([t for t in trials if t.layout == layout])
-            report["splits"][split][layout] = result._asdict()
+            games = [t for t in trials if t.layout == layout]
+            report["splits"][split][layout] = {**human.reproduce(games)._asdict(), "games": len(games),
+                                               "events": human.rule_events(games)}
     try:
         for path, trials in targets:
             write_trials(path, trials, overwrite=args.overwrite)
