@@ -180,7 +180,8 @@ def run_proxy(args) -> int:
         raise CLIError(f"could not write {out}: {error}", EXIT_FAILURE) from None
     s = result.scores
     print(f"{layout}: held-out accuracy {s['test_accuracy']:.3f} (uniform {s['uniform_accuracy']:.3f}, majority "
-          f"{s['majority_accuracy']:.3f}); on non-stay actions {s['test_accuracy_active']:.3f}; "
+          f"{s['majority_accuracy']:.3f}); which action when the person acted {s['test_accuracy_active']:.3f} "
+          f"(uniform {s['active_uniform_accuracy']:.3f}, majority {s['active_majority_accuracy']:.3f}); "
           f"self-play return {s['selfplay_return']:.1f} over {s['selfplay_episodes']} episodes of "
           f"{s['selfplay_max_steps']} steps")
     print(f"wrote {path}")
