@@ -204,7 +204,7 @@ class RayPlayers(RayWorkers):
         self.config = Config(cluster=cluster)  # RayWorkers.call reads cluster.max_restarts
         self.shards = [[i] for i in range(num_workers)]
         self._pool = None
-        options = dict(num_cpus=max(cluster.num_cpus, 1), max_restarts=cluster.max_restarts, max_task_retries=0,
+        options = dict(num_cpus=cluster.num_cpus or 1, max_restarts=cluster.max_restarts, max_task_retries=0,
                        scheduling_strategy="SPREAD", runtime_env={"env_vars": actor_env(cluster)})
         actor = ray.remote(CrossPlayPlayer)
         self.actors = [actor.options(**options).remote() for _ in range(num_workers)]
