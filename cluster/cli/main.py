@@ -3,7 +3,9 @@
     ocv2 layouts [--show NAME]          the built-in kitchens (table, or one ASCII map)
     ocv2 render LAYOUT --steps N --out FILE.gif [--seed S] [--fps F] [--view-radius V] [--tile-size T]
     ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume]
-    ocv2 xp RUN_DIR [--episodes N]
+    ocv2 xp RUN_DIR [--episodes N]      cross-play of one run
+    ocv2 xp --rows SRC ... [--cols SRC ...] [--checkpoint C] [--greedy] [--out DIR]   across runs (docs/evaluation.md)
+    ocv2 export SRC --out FILE [--seed I] [--checkpoint C]   one policy to one file
     ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
     ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
     ocv2 button-game [--buttons N] [--seeds S] [--out DIR]
@@ -179,7 +181,8 @@ COMMANDS: list[tuple[str, Callable, Callable]] = [
     ("layouts", _add_layouts, _cmd_layouts),
     ("render", _add_render, _cmd_render),
     ("train", _lazy("cluster.cli.train", "add_train"), _lazy("cluster.cli.train", "run_train")),
-    ("xp", _lazy("cluster.cli.train", "add_xp"), _lazy("cluster.cli.train", "run_xp")),
+    ("xp", _lazy("cluster.cli.xp", "add_xp"), _lazy("cluster.cli.xp", "run_xp")),
+    ("export", _lazy("cluster.cli.xp", "add_export"), _lazy("cluster.cli.xp", "run_export")),
     ("validate", _lazy("cluster.cli.report", "add_validate"), _lazy("cluster.cli.report", "run_validate")),
     ("report", _lazy("cluster.cli.report", "add_report"), _lazy("cluster.cli.report", "run_report")),
     ("button-game", _lazy("cluster.cli.button_game", "add_parser"), _lazy("cluster.cli.button_game", "run")),

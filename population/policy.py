@@ -1,0 +1,340 @@
+"""One trained policy as a value: load it from a run, a checkpoint or an exported file, act with it.
+
+    policy = load("runs/my_run")                       # seed 0, final checkpoint
+    policy = load("runs/my_run", seed=3, checkpoint="mid")
+    policy = load("runs/my_run/checkpoints/seed_3")    # that seed's final checkpoint
+    policy = load("runs/my_run/checkpoints/seed_3/update_0000004.msgpack")
+    policy = load("cook.ocv2policy")                   # written by export()
+
+    hidden = policy.initial_hidden(batch)
+    actions, hidden = policy.act(key, obs, hidden, reset)   # obs [B, H, W, C], reset bool[B]
+
+An exported file is one msgpack file (flax serialization) holding a JSON header -- format name and
+version, the network (``ModelConfig`` + activation + number of actions), the ``ocv2.make`` keyword
+arguments of the environment it plays, free ``meta`` -- and the network parameters. Nothing of the
+training run (optimizer state, PPO settings, metrics) is in it, so it can be shared on its own.
+
+``Policy.apply`` follows the network calling convention of ``population.networks``, which is what
+``population.evaluation`` pairs seat by seat: policies of different runs, CNN with RNN, or
+hand-written ones play together through the same rollout.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import re
+from pathlib import Path
+from typing import Any, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+import ocv2
+from ocv2.atomic import atomic_write
+from population import checkpoints as ckpt
+from population.config import Config, ConfigError, ModelConfig, load_config, parse_config
+from population.networks import init_params, make_network
+
+FORMAT_NAME = "ocv2-policy"
+FORMAT_VERSION = 1
+SUFFIX = ".ocv2policy"
+CHECKPOINT_CHOICES = ("init", "mid", "final", "latest")
+_SEED_DIR = re.compile(r"^seed_(\d+)$")
+
+
+class PolicyError(ValueError):
+    """A policy source that cannot be loaded or exported (the message names the file)."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Policy:
+    """A network with its parameters and the environment it plays (``env``: ``ocv2.make`` kwargs)."""
+
+    name: str
+    apply: Any  # (params, hidden [B, H], obs [T, B, ...], reset bool[T, B]) -> (hidden, logits, value)
+    params: Any
+    hidden_size: int
+    model: ModelConfig
+    env: dict
+    activation: str = "relu"
+    source: str = ""
+    meta: dict = dataclasses.field(default_factory=dict)
+
+    def initial_hidden(self, batch: int) -> jax.Array:
+        """float32[batch, hidden_size] zeros (the CNN's is [batch, 0])."""
+        return jnp.zeros((batch, self.hidden_size), jnp.float32)
+
+    def act(self, key: jax.Array, obs: jax.Array, hidden: jax.Array, reset: jax.Array, greedy: bool = False):
+        """One step for B agents: (int32[B] actions, new hidden). ``reset[b]``: agent b's episode starts
+        at this observation (its recurrent state is zeroed first). Sampled unless ``greedy`` (argmax).
+        Jittable; the same key gives the same actions as ``population.evaluation.play_step``."""
+        return act(self.apply, self.params, key, obs, hidden, reset, greedy)
+
+    def make_env(self) -> ocv2.OvercookedV2:
+        """The environment this policy was trained/evaluated in (one shared object per settings)."""
+        return policy_env(self.env)
+
+    @property
+    def seat(self) -> tuple:
+        """(apply, params, hidden_size): what ``population.evaluation`` takes per seat."""
+        return self.apply, self.params, self.hidden_size
+
+
+@functools.partial(jax.jit, static_argnames=("apply", "greedy"))
+def act(apply, params, key: jax.Array, obs: jax.Array, hidden: jax.Array, reset: jax.Array, greedy: bool = False):
+    """``Policy.act`` as a function of (apply, params): one network step for a batch of agents."""
+    hidden, logits, _ = apply(params, hidden, obs[None], jnp.asarray(reset, bool)[None])
+    logits = logits[0]
+    actions = jnp.argmax(logits, axis=-1) if greedy else jax.random.categorical(key, logits)
+    return actions.astype(jnp.int32), hidden
+
+
+# ---------------------------------------------------------------------------------------------------
+# export
+# ---------------------------------------------------------------------------------------------------
+
+def export(path, *, params, model: ModelConfig, env, meta: dict | None = None, activation: str = "relu") -> Path:
+    """Write ``params`` of a network ``model`` playing ``env`` to one file, atomically.
+
+    ``env``: ``ocv2.make`` keyword arguments (a mapping, e.g. ``Config.env_kwargs``) or a run ``Config``.
+    ``meta``: JSON-able extras (origin, layout notes, ...), returned as ``Policy.meta``. The parameters
+    are checked against the network before anything is written.
+    """
+    path = Path(path)
+    env_kwargs = _env_kwargs(env)
+    header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "model": _plain(dataclasses.asdict(model)),
+              "activation": activation, "env": _plain(env_kwargs), "meta": meta or {}}
+    try:
+        header_text = json.dumps(header, sort_keys=True)
+    except TypeError as error:
+        raise PolicyError(f"{path}: meta must be JSON-able ({error})") from None
+    params = jax.tree.map(np.asarray, params)
+    config = _validated(header, str(path))
+    _restore_params(str(path), _template(config), serialization.to_state_dict(params))
+    payload = {"header": header_text, "params": serialization.to_state_dict(params)}
+    return atomic_write(path, serialization.msgpack_serialize(payload))
+
+
+def export_checkpoint(source, out, *, seed: int | None = None, checkpoint: str | int = "final", meta: dict | None = None) -> Path:
+    """Export the policy ``load(source, seed=..., checkpoint=...)`` finds (a run, seed dir or checkpoint)."""
+    policy = load(source, seed=seed, checkpoint=checkpoint)
+    return export(out, params=policy.params, model=policy.model, env=policy.env, activation=policy.activation,
+                  meta={"exported_from": policy.source, "name": policy.name, **policy.meta, **(meta or {})})
+
+
+# ---------------------------------------------------------------------------------------------------
+# load
+# ---------------------------------------------------------------------------------------------------
+
+def load(source, *, seed: int | None = None, checkpoint: str | int = "final") -> Policy:
+    """A ``Policy`` from an exported file, a checkpoint file, a seed directory or a run directory.
+
+    ``seed`` (run directory only; default 0) and ``checkpoint`` ("final", "mid", "init", "latest" or an
+    update number; run or seed directory) pick the checkpoint. Bad input raises ``PolicyError``.
+    """
+    path = Path(source)
+    if path.is_file():
+        if seed is not None:
+            raise PolicyError(f"{path}: seed= applies to a run directory, not a file")
+        return _load_file(path)
+    if path.is_dir():
+        if (path / "config.yaml").is_file():
+            return _load_from_run(path, 0 if seed is None else seed, checkpoint)
+        match = _SEED_DIR.match(path.name)
+        if match and path.parent.name == "checkpoints" and (path.parent.parent / "config.yaml").is_file():
+            if seed is not None and seed != int(match.group(1)):
+                raise PolicyError(f"{path}: is seed {match.group(1)}'s directory, but seed={seed} was asked")
+            return _load_from_run(path.parent.parent, int(match.group(1)), checkpoint)
+        raise PolicyError(f"{path}: not a run directory (no config.yaml) nor a run's checkpoints/seed_<i> directory")
+    raise PolicyError(f"{path}: no such file or directory")
+
+
+def _load_file(path: Path) -> Policy:
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+    except OSError as error:
+        raise PolicyError(f"{path}: cannot read ({error.strerror or error})") from None
+    except Exception as error:  # msgpack raises several types on truncated or foreign data
+        raise PolicyError(f"{path}: not an ocv2 policy or checkpoint file ({type(error).__name__})") from None
+    if isinstance(payload, dict) and "header" in payload and "params" in payload:
+        return _load_exported(path, payload)
+    if isinstance(payload, dict) and "meta" in payload and "state" in payload:
+        return _load_checkpoint_file(path)
+    raise PolicyError(f"{path}: not an ocv2 policy or checkpoint file")
+
+
+def _load_exported(path: Path, payload: dict) -> Policy:
+    try:
+        header = json.loads(payload["header"])
+    except (TypeError, ValueError):
+        raise PolicyError(f"{path}: corrupt policy header") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
+        raise PolicyError(f"{path}: not an {FORMAT_NAME} file")
+    if header.get("version") != FORMAT_VERSION:
+        raise PolicyError(f"{path}: {FORMAT_NAME} version {header.get('version')!r}; this ocv2 reads version "
+                          f"{FORMAT_VERSION}")
+    config = _validated(header, str(path))
+    params = _restore_params(str(path), _template(config), payload["params"])
+    meta = header.get("meta") or {}
+    return _policy(config, params, name=str(meta.get("name") or path.stem), source=str(path), meta=meta)
+
+
+def _load_checkpoint_file(path: Path) -> Policy:
+    seed_dir = path.parent
+    match = _SEED_DIR.match(seed_dir.name)
+    run_dir = seed_dir.parent.parent
+    if not match or seed_dir.parent.name != "checkpoints" or not (run_dir / "config.yaml").is_file():
+        raise PolicyError(f"{path}: a checkpoint must lie in RUN_DIR/checkpoints/seed_<i>/ next to its run's "
+                          "config.yaml (or export it with 'ocv2 export')")
+    config = _run_config(run_dir)
+    return _from_checkpoint(config, path, run_dir, int(match.group(1)))
+
+
+def _load_from_run(run_dir: Path, seed: int, checkpoint) -> Policy:
+    config = _run_config(run_dir)
+    if not 0 <= seed < config.population.num_seeds:
+        raise PolicyError(f"{run_dir}: has seeds 0..{config.population.num_seeds - 1}, not seed {seed}")
+    update = _pick_update(run_dir, config, seed, checkpoint)
+    return _from_checkpoint(config, ckpt.checkpoint_path(run_dir, seed, update), run_dir, seed)
+
+
+def _pick_update(run_dir: Path, config: Config, seed: int, checkpoint) -> int:
+    available = ckpt.list_updates(run_dir, seed)
+    if not available:
+        raise PolicyError(f"{ckpt.seed_dir(run_dir, seed)}: no checkpoints")
+    choice = str(checkpoint)
+    if choice == "latest":
+        return available[-1]
+    if choice in ("init", "mid", "final"):
+        snapshots = ckpt.snapshot_updates(config.ppo.num_updates, config.run.num_checkpoints)
+        update = ckpt.resolve_snapshot(choice, snapshots)
+    elif choice.isdigit():
+        update = int(choice)
+    else:
+        raise PolicyError(f"checkpoint {checkpoint!r}: expected one of {', '.join(CHECKPOINT_CHOICES)} or an "
+                          "update number")
+    if update not in available:
+        raise PolicyError(f"{ckpt.seed_dir(run_dir, seed)}: no checkpoint at update {update} ({choice}); "
+                          f"it has updates {available}")
+    return update
+
+
+def _run_config(run_dir: Path) -> Config:
+    try:
+        return load_config(run_dir / "config.yaml")
+    except ConfigError as error:
+        raise PolicyError(str(error)) from None
+
+
+def _from_checkpoint(config: Config, path: Path, run_dir: Path, seed: int) -> Policy:
+    try:
+        meta, raw = ckpt.read(path, config.fingerprint())
+    except ckpt.CheckpointError as error:
+        raise PolicyError(str(error)) from None
+    if not isinstance(raw, dict) or "params" not in raw:
+        raise PolicyError(f"{path}: checkpoint holds no network parameters")
+    params = _restore_params(str(path), _template(config), raw["params"])
+    update = int(meta.get("update", -1))
+    return _policy(config, params, name=f"{run_dir.name}/seed_{seed}@{update}", source=str(path),
+                   meta={"run_dir": str(run_dir), "seed": seed, "update": update,
+                         "method": config.population.method})
+
+
+# ---------------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------------
+
+def policy_env(env_kwargs: Mapping) -> ocv2.OvercookedV2:
+    """``ocv2.make(**env_kwargs)``, one object per distinct settings: jitted rollouts are cached per env
+    object, so policies (or worker calls) with equal settings share compiled programs."""
+    return _env_from_items(_freeze(env_kwargs))
+
+
+@functools.lru_cache(maxsize=32)
+def _env_from_items(items: tuple) -> ocv2.OvercookedV2:
+    return ocv2.make(**{k: list(v) if isinstance(v, tuple) else v for k, v in items})
+
+
+@functools.lru_cache(maxsize=32)
+def network(model: ModelConfig, activation: str, num_actions: int):
+    """The network of ``model``, one object per distinct settings (so equal networks share ``apply``
+    and with it jit caches)."""
+    return make_network(model, num_actions, activation)
+
+
+def hidden_size_of(model: ModelConfig) -> int:
+    return model.gru_dim if model.recurrent else 0
+
+
+def _policy(config: Config, params, *, name: str, source: str, meta: dict) -> Policy:
+    return Policy(name=name, apply=_network(config).apply, params=params, hidden_size=hidden_size_of(config.model),
+                  model=config.model, env=config.env_kwargs, activation=config.ppo.activation, source=source,
+                  meta=meta)
+
+
+def _network(config: Config):
+    return network(config.model, config.ppo.activation, policy_env(config.env_kwargs).num_actions)
+
+
+def _freeze(env_kwargs: Mapping) -> tuple:
+    return tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in env_kwargs.items()))
+
+
+@functools.lru_cache(maxsize=32)
+def _template(config: Config):
+    """Shapes and dtypes of the network's parameters (nothing is computed)."""
+    env = policy_env(config.env_kwargs)
+    if not isinstance(env.obs_shape, tuple):
+        raise PolicyError(f"layout {config.env_kwargs['layout']!r}: agents with different observation shapes "
+                          "cannot share one network")
+    network = _network(config)
+    return jax.eval_shape(lambda k: init_params(network, k, env.obs_shape), jax.random.PRNGKey(0))
+
+
+def _restore_params(where: str, template, raw):
+    try:
+        params = serialization.from_state_dict(template, raw)
+    except (KeyError, ValueError, TypeError) as error:
+        raise PolicyError(f"{where}: parameters do not fit the network ({error})") from None
+    leaves, restored = jax.tree.leaves(template), jax.tree.leaves(params)
+    if len(leaves) != len(restored):
+        raise PolicyError(f"{where}: holds {len(restored)} parameter arrays where the network has {len(leaves)}")
+    for t, x in zip(leaves, restored):
+        if tuple(t.shape) != np.shape(x):
+            raise PolicyError(f"{where}: parameter array of shape {np.shape(x)} where the network has {tuple(t.shape)}")
+    return jax.tree.map(lambda t, x: jnp.asarray(x, t.dtype), template, params)
+
+
+def _validated(header: dict, where: str) -> Config:
+    """The header's network and environment as a (default-trained) ``Config``: validated like a run's."""
+    model, env = header.get("model"), header.get("env")
+    if not isinstance(model, dict) or not isinstance(env, dict):
+        raise PolicyError(f"{where}: header needs 'model' and 'env' mappings")
+    try:
+        return parse_config({"env": env, "model": model, "ppo": {"activation": header.get("activation", "relu")}})
+    except ConfigError as error:
+        raise PolicyError(f"{where}: {error}") from None
+
+
+def _env_kwargs(env) -> dict:
+    if isinstance(env, Config):
+        return env.env_kwargs
+    if isinstance(env, Mapping):
+        return dict(env)
+    raise PolicyError(f"env must be ocv2.make keyword arguments (a mapping) or a run Config, got {type(env).__name__}")
+
+
+def _plain(value):
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return value
+
+
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "Policy", "PolicyError", "SUFFIX", "act", "export", "export_checkpoint",
+           "hidden_size_of", "load", "network", "policy_env"]
