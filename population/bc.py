@@ -10,16 +10,14 @@ The proxy is scored as the issue asks: action accuracy on the held-out test tria
 policy, 1/6, and the majority action of the training data) and the team return of the proxy playing
 with itself (sampled actions, ``population.evaluation.play_episodes``).
 
-A proxy is saved as one msgpack file (``save_proxy``; ``ocv2.atomic``) holding its parameters, the
-``ModelConfig``, the env parameters and its scores; ``load_proxy`` reads it back, and
-``proxy_path(layout)`` is where ``ocv2 human proxy`` caches it by default.
+A proxy is saved as an exported policy (``population.policy.export``; ``save_proxy``) whose metadata
+holds its scores, so anything that loads policies plays with it; ``proxy_path(layout)``
+(``population.human``) is where ``ocv2 human proxy`` caches it by default.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -27,19 +25,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from flax import serialization
 
 import ocv2
 from ocv2 import items as it
 from ocv2.items import Action
-from ocv2.atomic import atomic_write
 from population.config import _MODEL_DEFAULTS, ModelConfig
 from population.evaluation import play_episodes
+from population import policy
 from population.human import Trial
 from population.networks import ActorCritic, init_params, make_network
 
-FORMAT = "ocv2-human-proxy/1"
-CACHE_ENV = "OCV2_CACHE"
+PROXY_KIND = "human-proxy"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,67 +210,22 @@ def train(config: BCConfig, train_trials: Sequence[Trial], test_trials: Sequence
 
 
 # ---------------------------------------------------------------------------------------------------
-# Saving and loading a proxy
+# Saving and loading a proxy: an ordinary exported policy (population.policy) marked as a human proxy
 # ---------------------------------------------------------------------------------------------------
 
-def proxy_path(layout: str) -> Path:
-    """Default cache file of the proxy for ``layout``: ``$OCV2_CACHE/human_proxy/LAYOUT.msgpack``
-    (``OCV2_CACHE`` defaults to ``$XDG_CACHE_HOME/ocv2``, else ``~/.cache/ocv2``)."""
-    base = os.environ.get(CACHE_ENV)
-    if not base:
-        base = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(Path.home(), ".cache"), "ocv2")
-    return Path(base) / "human_proxy" / f"{ocv2.layouts.get_layout(layout).name}.msgpack"
-
-
 def save_proxy(path, result: BCResult, config: BCConfig, meta: dict | None = None) -> Path:
-    """Write the proxy (params + model + env + scores + ``meta``) atomically as msgpack."""
-    header = {"format": FORMAT, "layout": result.layout, "model": dataclasses.asdict(result.model),
-              "env": {"layout": result.layout, "max_steps": config.max_steps},
-              "bc": dataclasses.asdict(config), "scores": result.scores, "history": result.history,
-              "meta": meta or {}}
-    payload = {"header": json.dumps(header), "params": serialization.to_state_dict(jax.tree.map(np.asarray,
-                                                                                              result.params))}
-    return atomic_write(path, serialization.msgpack_serialize(payload))
+    """Export the proxy with ``population.policy.export``: ``policy.load`` (and so ``ocv2 xp``) reads it;
+    its ``meta`` holds ``kind: human-proxy``, the layout, the BC settings, scores and history."""
+    info = {"name": f"human-proxy:{result.layout}", "kind": PROXY_KIND, "layout": result.layout,
+            "bc": dataclasses.asdict(config), "scores": result.scores, "history": result.history, **(meta or {})}
+    return policy.export(path, params=result.params, model=result.model,
+                         env={"layout": result.layout, "max_steps": config.max_steps}, meta=info)
 
 
-class Proxy(NamedTuple):
-    params: dict
-    model: ModelConfig
-    network: ActorCritic
-    header: dict  # format, layout, model, env, bc, scores, history, meta
-
-    @property
-    def layout(self) -> str:
-        return self.header["layout"]
-
-    @property
-    def hidden_size(self) -> int:
-        return 0  # feed-forward: the network calling convention's [B, 0] placeholder carry
-
-
-def load_proxy(path) -> Proxy:
-    """Read a ``save_proxy`` file; a clear ``ValueError`` naming the file if it is not one."""
-    path = Path(path)
-    try:
-        payload = serialization.msgpack_restore(path.read_bytes())
-        header = json.loads(payload["header"])
-        if header.get("format") != FORMAT:
-            raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
-        model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in header["model"].items()})
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such human proxy file (train one with `ocv2 human proxy LAYOUT`)") from None
-    except Exception as error:
-        raise ValueError(f"{path}: not an ocv2 human proxy: {type(error).__name__}: {error}") from None
-    network = make_network(model, it.NUM_ACTIONS)
-    env = proxy_env(header["layout"])
-    template = init_params(network, jax.random.PRNGKey(0), env.obs_shape)
-    try:
-        params = serialization.from_state_dict(template, payload["params"])
-        wrong = [np.shape(b) for a, b in zip(jax.tree.leaves(template), jax.tree.leaves(params))
-                 if np.shape(a) != np.shape(b)]
-        if wrong:
-            raise ValueError(f"parameter shapes {wrong[:3]} differ from the model's")
-    except Exception as error:
-        raise ValueError(f"{path}: its parameters do not fit its model {header['model']}: {error}") from None
-    params = jax.tree.map(jnp.asarray, params)
-    return Proxy(params, model, network, header)
+def load_proxy(path) -> policy.Policy:
+    """A proxy file as a ``population.policy.Policy``; ``PolicyError`` (a ValueError) naming the file if
+    it is not a policy, or a policy that is not a human proxy."""
+    loaded = policy.load(path)
+    if loaded.meta.get("kind") != PROXY_KIND:
+        raise policy.PolicyError(f"{path}: an ocv2 policy, but not a human proxy (made by `ocv2 human proxy`)")
+    return loaded

@@ -44,6 +44,7 @@ LAYOUT_MAP = {
 SPLITS = ("train", "test")
 PICKLE_NAMES = {"train": "clean_train_trials.pickle", "test": "clean_test_trials.pickle"}
 SDIST_NAME = "overcooked_ai-1.1.0.tar.gz"
+CACHE_ENV = "OCV2_CACHE"
 
 #: The 2019 game paid 5 points per soup; ocv2 (like overcooked-ai's MDP) pays DELIVERY_REWARD = 20.
 RECORDED_SOUP_REWARD = 5.0
@@ -275,7 +276,7 @@ def _trial(source_layout: str, worker: int, split: str, rows: list[dict]) -> Tri
             states.append(state_from_record(layout, record, t, delivered))
             joint = _parse(row["joint_action"], f"{where}, row {t} joint_action")
             actions.append([action_index(a) for a in joint])
-        except (HumanDataError, KeyError, TypeError, ValueError) as error:
+        except (KeyError, TypeError, ValueError) as error:  # HumanDataError is a ValueError
             raise HumanDataError(f"{where}, row {t}: {error}") from None
         reward = float(row["reward"]) * REWARD_SCALE
         rewards.append(reward)
@@ -291,6 +292,19 @@ def _trial(source_layout: str, worker: int, split: str, rows: list[dict]) -> Tri
     stacked = jax.tree.map(lambda *xs: np.stack(xs), *states)
     return Trial(layout.name, source_layout, worker, split, stacked, np.asarray(actions, np.int32),
                  np.asarray(rewards, np.float32))
+
+
+def proxy_path(layout: str) -> Path:
+    """Default file of the BC human proxy for ``layout`` (``ocv2 human proxy`` writes it, ``ocv2 xp
+    --cols human-proxy:LAYOUT`` reads it): ``$OCV2_CACHE/human_proxy/LAYOUT.ocv2policy``, where
+    ``OCV2_CACHE`` defaults to ``$XDG_CACHE_HOME/ocv2``, else ``~/.cache/ocv2``."""
+    name = get_layout(layout).name
+    if name not in LAYOUT_MAP.values():
+        raise HumanDataError(f"layout {name!r} has no human data; choose one of {', '.join(LAYOUT_MAP.values())}")
+    base = os.environ.get(CACHE_ENV)
+    if not base:
+        base = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(Path.home(), ".cache"), "ocv2")
+    return Path(base) / "human_proxy" / f"{name}.ocv2policy"
 
 
 def human_env_config(layout: str | Layout, max_steps: int) -> EnvConfig:

@@ -20,8 +20,9 @@ from cluster.archive import ArchiveReader, states_as_buffer
 from cluster.cli.human import write_trials
 from cluster.cli.main import main
 from cluster.runtime.coordinator import archived_states
-from population import bc, human
+from population import bc, human, policy
 from population.config import load_config
+from population.networks import make_network
 
 FIXTURE = Path(__file__).parent / "data" / "human_slice.json.gz"
 CONFIGS = Path(__file__).parent.parent / "configs"
@@ -110,20 +111,22 @@ def test_bc_beats_uniform_on_held_out_actions_and_round_trips(trials, tmp_path):
     scores = result.scores
     assert scores["test_samples"] == 180 and scores["train_samples"] == 300
     assert scores["test_accuracy"] > scores["uniform_accuracy"] + 0.2
-    path = bc.save_proxy(tmp_path / "proxy.msgpack", result, config)
-    proxy = bc.load_proxy(path)
-    assert proxy.layout == "cramped_room" and proxy.header["scores"] == scores
-    env = bc.proxy_env("cramped_room")
-    data = bc.dataset(trials["test"], env)
-    assert bc.accuracy(proxy.network, proxy.params, data) == scores["test_accuracy"]
-    (tmp_path / "junk.msgpack").write_bytes(b"\x00junk")
-    with pytest.raises(ValueError, match="junk.msgpack: not an ocv2 human proxy"):
-        bc.load_proxy(tmp_path / "junk.msgpack")
+    path = bc.save_proxy(tmp_path / "proxy.ocv2policy", result, config)
+    proxy = policy.load(path)  # an ordinary exported policy: cross-play loads it like any other
+    assert proxy.meta["layout"] == "cramped_room" and proxy.meta["scores"] == scores
+    assert bc.load_proxy(path).meta["kind"] == "human-proxy" and proxy.hidden_size == 0
+    data = bc.dataset(trials["test"], bc.proxy_env("cramped_room"))
+    assert bc.accuracy(make_network(proxy.model), proxy.params, data) == scores["test_accuracy"]
+    policy.export(tmp_path / "other.ocv2policy", params=proxy.params, model=proxy.model, env=proxy.env)
+    with pytest.raises(ValueError, match="other.ocv2policy: an ocv2 policy, but not a human proxy"):
+        bc.load_proxy(tmp_path / "other.ocv2policy")
 
 
 def test_proxy_path_is_in_the_cache(monkeypatch, tmp_path):
     monkeypatch.setenv("OCV2_CACHE", str(tmp_path))
-    assert bc.proxy_path("coord_ring") == tmp_path / "human_proxy" / "coord_ring.msgpack"
+    assert human.proxy_path("coord_ring") == tmp_path / "human_proxy" / "coord_ring.ocv2policy"
+    with pytest.raises(ValueError, match="'two_rooms' has no human data"):
+        human.proxy_path("two_rooms")
 
 
 def test_cli_import_writes_archives_and_report(rows, tmp_path, capsys):

@@ -8,7 +8,7 @@ SOURCE is the ``overcooked_ai-1.1.0.tar.gz`` source distribution (``pip download
 pickle. ``import`` writes ``DIR/human_<split>_<layout>.mcap`` (one kitchen per file, so each is a
 state-augmentation archive) and ``DIR/reproduction.json``: how many recorded transitions ocv2's
 dynamics reproduce exactly. ``proxy`` trains the BC human proxy (``population.bc``) and saves it,
-by default at ``population.bc.proxy_path(LAYOUT)``. See docs/human.md.
+by default at ``population.human.proxy_path(LAYOUT)``. See docs/human.md.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     proxy.add_argument("layout", metavar="LAYOUT", help="ocv2 layout: " + ", ".join(human.LAYOUT_MAP.values()))
     proxy.add_argument("--source", metavar="SOURCE", required=True, help="as for `ocv2 human import`")
     proxy.add_argument("--out", metavar="FILE", default=None,
-                       help="proxy file (default: the cache, population.bc.proxy_path(LAYOUT))")
+                       help="proxy file (default: the cache, population.human.proxy_path(LAYOUT))")
     defaults = bc.BCConfig()
     proxy.add_argument("--steps", metavar="N", type=_positive, default=defaults.steps, help="optimizer steps")
     proxy.add_argument("--batch-size", metavar="B", type=_positive, default=defaults.batch_size)
@@ -172,7 +172,7 @@ def run_proxy(args) -> int:
     test = _load(args.source, "test", [layout], args.max_trials)
     result = bc.train(config, train, test, log=lambda e: print(
         f"step {e['step']:>6}  loss {e['loss']:.4f}  held-out accuracy {e['test_accuracy']:.3f}", flush=True))
-    out = args.out or bc.proxy_path(layout)
+    out = args.out or human.proxy_path(layout)
     try:
         path = bc.save_proxy(out, result, config, meta={"source": os.fspath(args.source),
                                                         "train_games": len(train), "test_games": len(test)})
