@@ -11,6 +11,7 @@
     ocv2 button-game [--buttons N] [--seeds S] [--out DIR]
     ocv2 archive info|replay|recover FILE ...   MCAP trajectory archives (docs/archive.md)
     ocv2 play [LAYOUT] [--partner RUN_DIR/checkpoints/seed_i|human] [--seat S] [--port P]   human play (docs/play.md)
+    ocv2 human import SOURCE | proxy LAYOUT --source SOURCE   2019 human games, BC human proxy (docs/human.md)
 
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
 code; ``COMMANDS`` lists them (the bigger ones live in ``cluster/cmd_*.py`` and are imported lazily). Errors the user can fix raise ``CLIError`` and become a
