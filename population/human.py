@@ -283,7 +283,7 @@ def _trial(source_layout: str, worker: int, split: str, rows: list[dict]) -> Tri
         delivered = reward > 0
     last = rows[-1].get("next_state")
     if last is None:  # a fixture may omit it: the last row's state ends the game
-        states, actions, rewards = states, actions[:-1], rewards[:-1]
+        actions, rewards = actions[:-1], rewards[:-1]
     else:
         states.append(state_from_record(layout, _parse(last, f"{where}, last next_state"), len(rows), delivered))
     if not actions:
@@ -425,8 +425,10 @@ def rule_events(trials: Sequence[Trial]) -> dict:
                     fx, fy = x[t + 1, a] + dx[t + 1, a], y[t + 1, a] + dy[t + 1, a]
                     counts[_interaction(static[fy, fx], inv[t, a], inv[t + 1, a])] += 1
             pots = static == Static.POT
-            counts["pot starts cooking (3rd onion)"] += int((pots & (grid[t, ..., 2] == 0) & (grid[t + 1, ..., 2] > 0)).sum())
-            counts["soup finishes cooking"] += int((pots & ((grid[t + 1, ..., 1] & ~grid[t, ..., 1] & it.COOKED) != 0)).sum())
+            starts = pots & (grid[t, ..., 2] == 0) & (grid[t + 1, ..., 2] > 0)
+            finishes = pots & ((grid[t + 1, ..., 1] & ~grid[t, ..., 1] & it.COOKED) != 0)
+            counts["pot starts cooking (3rd onion)"] += int(starts.sum())
+            counts["soup finishes cooking"] += int(finishes.sum())
             counts["transitions with a delivery reward"] += int(trial.rewards[t] > 0)
     return dict(sorted(counts.items()))
 

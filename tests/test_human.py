@@ -49,6 +49,10 @@ def test_slice_converts_to_ocv2_states(trials):
     assert (trial.states.agents.inventory == human.ONION).any()
     assert (trial.states.agents.inventory == human.ONION_SOUP_DISH).any()
     assert trial.states.done[-1] and not trial.states.done[:-1].any()
+    events = human.rule_events([trial])  # what this slice exercises: two whole soups, start to serving
+    assert events["pot starts cooking (3rd onion)"] == events["soup finishes cooking"] == 2
+    assert events["deliver at serving window"] == events["transitions with a delivery reward"] == 2
+    assert events["move blocked by the other agent"] > 0
 
 
 def test_import_of_slice_reproduces_recorded_rewards(trials):

@@ -36,7 +36,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="human_command", metavar="{import,proxy}")
     commands.required = True
     imp = commands.add_parser("import", help="write the trials as MCAP archives + a dynamics reproduction report")
-    imp.add_argument("source", metavar="SOURCE", help="overcooked_ai-1.1.0.tar.gz, a folder with the pickles, or one pickle")
+    imp.add_argument("source", metavar="SOURCE",
+                     help="overcooked_ai-1.1.0.tar.gz, a folder with the pickles, or one pickle")
     imp.add_argument("--out", metavar="DIR", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
     imp.add_argument("--splits", metavar="S", default="train,test", type=_splits,
                      help="comma-separated splits to import (default train,test)")
@@ -57,7 +58,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     proxy.add_argument("--eval-every", metavar="K", type=_positive, default=defaults.eval_every,
                        help="held-out accuracy every K steps")
     proxy.add_argument("--lr", metavar="LR", type=float, default=defaults.learning_rate)
-    proxy.add_argument("--seed", metavar="S", type=int, default=defaults.seed)
+    proxy.add_argument("--seed", metavar="S", type=_non_negative, default=defaults.seed)
     proxy.add_argument("--episodes", metavar="E", type=_positive, default=defaults.selfplay_episodes,
                        help="self-play episodes for the proxy's own return")
     proxy.add_argument("--max-trials", metavar="N", type=_positive, default=None,
@@ -72,6 +73,16 @@ def _positive(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _non_negative(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
     return value
 
 
