@@ -71,7 +71,7 @@ class Trial(NamedTuple):
 
     layout: str  # ocv2 layout name
     source_layout: str  # overcooked-ai name
-    worker: int  # workerid_num: the pair of humans
+    worker: int  # workerid_num: which recorded session (one game per layout)
     split: str  # train | test
     states: State  # [T + 1] s_0 .. s_T (s_T is the last row's next_state)
     actions: np.ndarray  # int32[T, 2] ocv2 action indices
