@@ -146,7 +146,7 @@ def check_layout(source_layout: str, grid_text: str) -> Layout:
         same = False
     if not same:
         raise HumanDataError(f"layout {source_layout!r}: the recorded map {rows} is not ocv2's {layout.name!r} "
-                             f"kitchen:\n{layout.to_string()}")
+                             f"kitchen {layout.to_string().splitlines()}")
     return layout
 
 

@@ -83,6 +83,9 @@ def test_bad_rows_name_the_problem(rows):
     bad[3]["joint_action"] = "[[0, 0], 'DANCE']"
     with pytest.raises(human.HumanDataError, match=r"row 3: unknown action 'DANCE'"):
         human.trials_from_rows(bad, "test")
+    moved = [dict(r, layout="['XXPXX', 'O  2O', 'X1  X', 'XSXDX']") for r in rows["test"][:5]]  # pile/window swapped
+    with pytest.raises(human.HumanDataError, match=r"recorded map .* is not ocv2's 'cramped_room' kitchen \["):
+        human.trials_from_rows(moved, "test")
     with pytest.raises(human.HumanDataError, match="has no human data"):
         human.trials_from_rows(rows["test"], "test", layouts=["two_rooms"])
     with pytest.raises(human.HumanDataError, match="no such file"):
