@@ -19,6 +19,7 @@ import ocv2
 from cluster.archive import ArchiveReader, states_as_buffer
 from cluster.cli.human import write_trials
 from cluster.cli.main import main
+from cluster.runtime import crossplay
 from cluster.runtime.coordinator import archived_states
 from population import bc, human, policy
 from population.config import load_config
@@ -112,7 +113,7 @@ def test_imported_archive_is_a_state_augmentation_source(trials, tmp_path):
     assert matches.any() and int(state.step) == 0
 
 
-def test_bc_beats_uniform_on_held_out_actions_and_round_trips(trials, tmp_path):
+def test_bc_beats_uniform_on_held_out_actions_and_round_trips(trials, tmp_path, monkeypatch):
     config = bc.BCConfig(steps=60, batch_size=64, eval_every=60, learning_rate=3e-3, selfplay_episodes=1, max_steps=20)
     result = bc.train(config, trials["train"], trials["test"])
     scores = result.scores
@@ -124,6 +125,11 @@ def test_bc_beats_uniform_on_held_out_actions_and_round_trips(trials, tmp_path):
     assert bc.load_proxy(path).meta["kind"] == "human-proxy" and proxy.hidden_size == 0
     data = bc.dataset(trials["test"], bc.proxy_env("cramped_room"))
     assert bc.accuracy(make_network(proxy.model), proxy.params, data) == scores["test_accuracy"]
+    # saved at proxy_path, it is what `ocv2 xp --cols human-proxy:LAYOUT` plays with
+    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
+    bc.save_proxy(human.proxy_path("cramped_room"), result, config)
+    group = crossplay.resolve_source("human-proxy:cramped_room")
+    assert group.names == ("human-proxy:cramped_room",) and group.env["layout"] == "cramped_room"
     policy.export(tmp_path / "other.ocv2policy", params=proxy.params, model=proxy.model, env=proxy.env)
     with pytest.raises(ValueError, match="other.ocv2policy: an ocv2 policy, but not a human proxy"):
         bc.load_proxy(tmp_path / "other.ocv2policy")
