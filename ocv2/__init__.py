@@ -1,4 +1,10 @@
-"""ocv2: OvercookedV2 in pure JAX, transition-for-transition equal to ``jaxmarl==0.2.0``."""
+"""ocv2: OvercookedV2 in pure JAX, transition-for-transition equal to ``jaxmarl==0.2.0``.
+
+``ocv2.policy`` (load, export, Policy) is ``population.policy``, looked up only when first used: the
+environment package itself never imports the learning code (see docs/evaluation.md).
+"""
+
+import importlib
 
 from ocv2.config import EnvConfig
 from ocv2.env import OvercookedV2, StepArrays, make
@@ -10,3 +16,9 @@ __all__ = [
     "Action", "Agents", "Direction", "EnvConfig", "LAYOUTS", "Layout", "OvercookedV2",
     "REFERENCE_LAYOUT_NAMES", "State", "Static", "StepArrays", "make", "stack_states",
 ]
+
+
+def __getattr__(name: str):
+    if name == "policy":  # lazy: `import ocv2` stays free of flax/optax and of population/
+        return importlib.import_module("population.policy")
+    raise AttributeError(f"module 'ocv2' has no attribute {name!r}")

@@ -2,9 +2,12 @@
 
 A policy is anything with the network calling convention
 ``apply(params, hidden [B, H], obs [1, B, ...], reset [1, B]) -> (hidden, logits [1, B, A], value)``,
-so trained networks and hand-written test policies go through the same code. Actions are sampled
-(stochastic evaluation, as the paper). Episodes start from ``env.reset_state`` (no state buffer) and
-run exactly ``env.max_steps`` steps, the only way an OvercookedV2 episode ends.
+so trained networks and hand-written test policies go through the same code. Every seat has its own
+policy: ``apply``, ``hidden_size`` and ``greedy`` are either one value shared by all seats or a tuple
+with one per seat, and ``params`` is always a tuple per seat -- so a CNN can play with an RNN, or a
+policy of one run with one of another run (``population.policy``). Actions are sampled (stochastic
+evaluation, as the paper) unless a seat is ``greedy`` (argmax). Episodes start from
+``env.reset_state`` (no state buffer) and run exactly ``env.max_steps`` steps, the only way an OvercookedV2 episode ends.
 """
 
 from __future__ import annotations
@@ -48,23 +51,34 @@ class StepRecord(NamedTuple):
     reached: State  # [R] the state the transition reached, before any auto-reset
 
 
-def initial_carry(hidden_size: int, env, num_seats: int, key: jax.Array, episodes: int) -> PlayCarry:
+def per_seat(value, num_seats: int) -> tuple:
+    """``value`` for every seat: a tuple/list is taken as one entry per seat, anything else is shared."""
+    if isinstance(value, (tuple, list)):
+        if len(value) != num_seats:
+            raise ValueError(f"expected one entry per seat ({num_seats}), got {len(value)}")
+        return tuple(value)
+    return (value,) * num_seats
+
+
+def initial_carry(hidden_size, env, num_seats: int, key: jax.Array, episodes: int) -> PlayCarry:
     """Reset ``episodes`` environments. Resets use ``fold_in(key, 0)``, play ``fold_in(key, 1)``."""
     reset_keys = jax.random.split(jax.random.fold_in(key, 0), episodes)
     state = jax.vmap(env.reset_state)(reset_keys)
-    zeros = jnp.zeros((episodes, hidden_size), jnp.float32)
-    return PlayCarry(state, jax.vmap(env.get_obs_arrays)(state), (zeros,) * num_seats, jnp.ones((episodes,), bool),
+    hidden = tuple(jnp.zeros((episodes, h), jnp.float32) for h in per_seat(hidden_size, num_seats))
+    return PlayCarry(state, jax.vmap(env.get_obs_arrays)(state), hidden, jnp.ones((episodes,), bool),
                      jnp.zeros((episodes,), jnp.float32), jax.random.fold_in(key, 1))
 
 
-def play_step(apply: PolicyApply, env, params: tuple, carry: PlayCarry, _unused=None):
-    """Every seat samples an action from its own policy; all environments step once."""
+def play_step(apply, env, params: tuple, carry: PlayCarry, _unused=None, greedy=False):
+    """Every seat picks an action with its own policy (sampled, or argmax if greedy); all environments step once."""
     key, k_env, *k_seats = jax.random.split(carry.key, 2 + len(params))
+    applies, greedies = per_seat(apply, len(params)), per_seat(greedy, len(params))
     hidden, actions = [], []
     for seat, (p, k) in enumerate(zip(params, k_seats)):
-        h, logits, _ = apply(p, carry.hidden[seat], carry.obs[:, seat][None], carry.start[None])
+        h, logits, _ = applies[seat](p, carry.hidden[seat], carry.obs[:, seat][None], carry.start[None])
         hidden.append(h)
-        actions.append(jax.random.categorical(k, logits[0]).astype(jnp.int32))
+        chosen = jnp.argmax(logits[0], axis=-1) if greedies[seat] else jax.random.categorical(k, logits[0])
+        actions.append(chosen.astype(jnp.int32))
     joint = jnp.stack(actions, axis=1)
     keys = jax.random.split(k_env, joint.shape[0])
     out = jax.vmap(env.step_arrays)(keys, carry.state, joint)
@@ -73,15 +87,15 @@ def play_step(apply: PolicyApply, env, params: tuple, carry: PlayCarry, _unused=
     return PlayCarry(out.state, out.obs, tuple(hidden), out.done, carry.total + reward, key), record
 
 
-def play_episodes(apply: PolicyApply, hidden_size: int, env, params: tuple, key: jax.Array, episodes: int,
-                  keep_every: int | None = None) -> PairEpisodes:
+def play_episodes(apply, hidden_size, env, params: tuple, key: jax.Array, episodes: int,
+                  keep_every: int | None = None, greedy=False) -> PairEpisodes:
     """One pair (one params per seat) plays ``episodes`` episodes. Result arrays have P = 1 squeezed out.
 
-    The key is consumed (see ``initial_carry``).
+    The key is consumed (see ``initial_carry``). ``apply``/``hidden_size``/``greedy``: shared or per seat.
     """
     carry = initial_carry(hidden_size, env, len(params), key, episodes)
     start_recipe = carry.state.recipe
-    step = lambda c, x: play_step(apply, env, params, c, x)
+    step = lambda c, x: play_step(apply, env, params, c, x, greedy)
     steps = env.max_steps
     if keep_every is None:
         carry, _ = jax.lax.scan(step, carry, None, length=steps)
@@ -99,10 +113,16 @@ def play_episodes(apply: PolicyApply, hidden_size: int, env, params: tuple, key:
     return PairEpisodes(carry.total, start_recipe, kept)
 
 
-def play_pairs(apply: PolicyApply, hidden_size: int, env, params_a, params_b, keys: jax.Array, episodes: int,
-               keep_every: int | None = None) -> PairEpisodes:
+def play_seats(seats, env, key: jax.Array, episodes: int, keep_every: int | None = None, greedy=False) -> PairEpisodes:
+    """``play_episodes`` for seats given as (apply, params, hidden_size) each, e.g. ``Policy.seat``."""
+    applies, params, hiddens = zip(*seats)
+    return play_episodes(applies, hiddens, env, tuple(params), key, episodes, keep_every, greedy)
+
+
+def play_pairs(apply, hidden_size, env, params_a, params_b, keys: jax.Array, episodes: int,
+               keep_every: int | None = None, greedy=False) -> PairEpisodes:
     """P pairs at once: ``params_a``/``params_b`` have a leading [P] axis (seat 0 / seat 1), keys [P]."""
-    run = lambda pa, pb, k: play_episodes(apply, hidden_size, env, (pa, pb), k, episodes, keep_every)
+    run = lambda pa, pb, k: play_episodes(apply, hidden_size, env, (pa, pb), k, episodes, keep_every, greedy)
     return jax.vmap(run)(params_a, params_b, keys)
 
 

@@ -77,28 +77,32 @@ def training_curves(steps: np.ndarray, curves: dict[str, np.ndarray], path, titl
     return out
 
 
-def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: float | None = None) -> str | None:
-    """Cross-play heatmap like the paper's Figure 4: rows = seat 0, columns = seat 1, annotated cells."""
+def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: float | None = None,
+               col_labels=None) -> str | None:
+    """Cross-play heatmap like the paper's Figure 4: rows = seat 0, columns = seat 1, annotated cells.
+
+    ``labels`` name the rows (and the columns, unless ``col_labels`` is given: a rectangular matrix)."""
     try:
         plt = pyplot()
     except PlotsUnavailable as error:
         skipped(path, error)
         return None
     matrix = np.asarray(matrix, np.float64)
-    num = matrix.shape[0]
-    labels = labels or [str(i) for i in range(num)]
-    size = max(3.5, 0.55 * num + 2)
+    rows, cols = matrix.shape
+    labels = labels or [str(i) for i in range(rows)]
+    col_labels = col_labels or (labels if cols == rows else [str(j) for j in range(cols)])
+    size = max(3.5, 0.55 * max(rows, cols) + 2)
     fig, ax = plt.subplots(figsize=(size, size * 0.85))
     top = vmax if vmax is not None else max(float(np.nanmax(matrix)) if matrix.size else 1.0, 1.0)
     image = ax.imshow(matrix, cmap="viridis", vmin=min(0.0, float(np.nanmin(matrix))), vmax=top)
     fig.colorbar(image, ax=ax, label="mean team return")
-    ax.set_xticks(range(num), labels)
-    ax.set_yticks(range(num), labels)
+    ax.set_xticks(range(cols), col_labels, rotation=90 if cols > 8 else 0)
+    ax.set_yticks(range(rows), labels)
     ax.set_xlabel("policy in seat 1")
     ax.set_ylabel("policy in seat 0")
-    if num <= 16:
-        for i in range(num):
-            for j in range(num):
+    if max(rows, cols) <= 16:
+        for i in range(rows):
+            for j in range(cols):
                 value = matrix[i, j]
                 ax.text(j, i, f"{value:.0f}", ha="center", va="center", fontsize=8,
                         color="white" if value < 0.6 * top else "black")

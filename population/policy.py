@@ -75,8 +75,8 @@ class Policy:
         return act(self.apply, self.params, key, obs, hidden, reset, greedy)
 
     def make_env(self) -> ocv2.OvercookedV2:
-        """The environment this policy was trained/evaluated in."""
-        return ocv2.make(**self.env)
+        """The environment this policy was trained/evaluated in (one shared object per settings)."""
+        return policy_env(self.env)
 
     @property
     def seat(self) -> tuple:
@@ -119,7 +119,7 @@ def export(path, *, params, model: ModelConfig, env, meta: dict | None = None, a
     return atomic_write(path, serialization.msgpack_serialize(payload))
 
 
-def export_checkpoint(source, out, *, seed: int = 0, checkpoint: str | int = "final", meta: dict | None = None) -> Path:
+def export_checkpoint(source, out, *, seed: int | None = None, checkpoint: str | int = "final", meta: dict | None = None) -> Path:
     """Export the policy ``load(source, seed=..., checkpoint=...)`` finds (a run, seed dir or checkpoint)."""
     policy = load(source, seed=seed, checkpoint=checkpoint)
     return export(out, params=policy.params, model=policy.model, env=policy.env, activation=policy.activation,
@@ -248,21 +248,46 @@ def _from_checkpoint(config: Config, path: Path, run_dir: Path, seed: int) -> Po
 # helpers
 # ---------------------------------------------------------------------------------------------------
 
+def policy_env(env_kwargs: Mapping) -> ocv2.OvercookedV2:
+    """``ocv2.make(**env_kwargs)``, one object per distinct settings: jitted rollouts are cached per env
+    object, so policies (or worker calls) with equal settings share compiled programs."""
+    return _env_from_items(_freeze(env_kwargs))
+
+
+@functools.lru_cache(maxsize=32)
+def _env_from_items(items: tuple) -> ocv2.OvercookedV2:
+    return ocv2.make(**{k: list(v) if isinstance(v, tuple) else v for k, v in items})
+
+
+@functools.lru_cache(maxsize=32)
+def network(model: ModelConfig, activation: str, num_actions: int):
+    """The network of ``model``, one object per distinct settings (so equal networks share ``apply``
+    and with it jit caches)."""
+    return make_network(model, num_actions, activation)
+
+
+def hidden_size_of(model: ModelConfig) -> int:
+    return model.gru_dim if model.recurrent else 0
+
+
 def _policy(config: Config, params, *, name: str, source: str, meta: dict) -> Policy:
-    network = _network(config)
-    return Policy(name=name, apply=network.apply, params=params,
-                  hidden_size=network.gru_dim if network.recurrent else 0, model=config.model,
-                  env=config.env_kwargs, activation=config.ppo.activation, source=source, meta=meta)
+    return Policy(name=name, apply=_network(config).apply, params=params, hidden_size=hidden_size_of(config.model),
+                  model=config.model, env=config.env_kwargs, activation=config.ppo.activation, source=source,
+                  meta=meta)
 
 
 def _network(config: Config):
-    return make_network(config.model, ocv2.make(**config.env_kwargs).num_actions, config.ppo.activation)
+    return network(config.model, config.ppo.activation, policy_env(config.env_kwargs).num_actions)
+
+
+def _freeze(env_kwargs: Mapping) -> tuple:
+    return tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in env_kwargs.items()))
 
 
 @functools.lru_cache(maxsize=32)
 def _template(config: Config):
     """Shapes and dtypes of the network's parameters (nothing is computed)."""
-    env = ocv2.make(**config.env_kwargs)
+    env = policy_env(config.env_kwargs)
     if not isinstance(env.obs_shape, tuple):
         raise PolicyError(f"layout {config.env_kwargs['layout']!r}: agents with different observation shapes "
                           "cannot share one network")
@@ -312,4 +337,4 @@ def _plain(value):
 
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "Policy", "PolicyError", "SUFFIX", "act", "export", "export_checkpoint",
-           "load"]
+           "hidden_size_of", "load", "network", "policy_env"]

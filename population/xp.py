@@ -1,11 +1,16 @@
 """Cross-play: every ordered pair of K policies (diagonal included), E episodes each, team sparse return.
 
 ``cross_play`` returns the per-episode returns [K, K, E] (row = seat 0, column = seat 1), optionally
-handing every transition to a callback (the trajectory archive);
-``summarize`` turns them into the paper's numbers: SP = mean of the diagonal cells, XP = mean of the
-off-diagonal cells, each +- the std across cells, the gap SP - XP, 95 % confidence intervals and a
-per-recipe breakdown. Every pair uses the same episode keys (common random numbers), so differences
-between cells come from the policies, not from luck of the draw.
+handing every transition to a callback (the trajectory archive); with ``partners`` the columns are
+another group of policies (another run, another network), giving a rectangular [K, C, E] block.
+``summarize`` turns a population's matrix into the paper's numbers: SP = mean of the diagonal cells,
+XP = mean of the off-diagonal cells, each +- the std across cells, the gap SP - XP, 95 % confidence
+intervals and a per-recipe breakdown. Every pair uses the same episode keys (common random numbers),
+so differences between cells come from the policies, not from luck of the draw.
+
+Confidence intervals come from a bootstrap over seeds (``bootstrap_square``, ``bootstrap_block``):
+the training seeds are the independent samples, while the cells of one matrix share policies and are
+not independent, so resampling cells (or a normal interval over cells) claims too much certainty.
 """
 
 from __future__ import annotations
@@ -13,12 +18,18 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ocv2.items import recipe_encoding_np
 from population.evaluation import PolicyApply, gather_params, play_pairs
+from population.record import jitted_play_recorded_pairs
+
+BOOTSTRAP_RESAMPLES = 2000
+BOOTSTRAP_SEED = 0  # fixed: the same matrix always gives the same interval
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,6 +42,14 @@ class CrossPlay:
         return self.returns.mean(axis=-1)
 
 
+class Side(NamedTuple):
+    """K policies that share one network: ``apply``, its hidden size, params stacked on a leading [K] axis."""
+
+    apply: Any
+    hidden_size: int
+    params: Any
+
+
 EPISODE_BLOCK = 64  # episodes per pair per jitted call: bounds memory when every transition is kept
 
 
@@ -41,32 +60,40 @@ def episode_blocks(episodes: int, block: int = EPISODE_BLOCK) -> tuple[int, int]
 
 
 def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array, episodes: int,
-               rows=None, on_block=None) -> CrossPlay:
+               rows=None, on_block=None, partners: Side | None = None, greedy: bool = False) -> CrossPlay:
     """Evaluate all ordered pairs of the K stacked ``params`` (or only the given seat-0 ``rows``).
 
-    One jitted call per row and block of episodes (K pairs x at most 64 episodes) bounds memory; block
+    One jitted call per row and block of episodes (C pairs x at most 64 episodes) bounds memory; block
     b uses ``fold_in(key, b)`` for every pair. ``on_block(row, first_episode, recorded)``: if given,
     every transition is kept (``population.record``, the same episodes) and handed over per block,
     ``recorded`` trimmed to the episodes that count -- how the trajectory archive gets every scored
     episode. Returns are the same with or without it.
+
+    ``partners``: the seat-1 policies (default: the same K); the result is then [K, C, E]. With
+    ``greedy`` both seats take their most likely action instead of sampling one.
     """
     num = jax.tree.leaves(params)[0].shape[0]
     rows = range(num) if rows is None else rows
+    if partners is None:
+        cols, seat_apply, seat_hidden = params, apply, hidden_size
+    else:
+        cols, seat_apply, seat_hidden = partners.params, (apply, partners.apply), (hidden_size, partners.hidden_size)
+    num_cols = jax.tree.leaves(cols)[0].shape[0]
     count, size = episode_blocks(episodes)
     if on_block is None:
-        play = _jitted_play(apply, hidden_size, env, size)
+        play = _jitted_play(seat_apply, seat_hidden, env, size, greedy)
+    elif greedy:
+        raise ValueError("cross_play: recording (on_block) plays sampled actions only")
     else:
-        from population.record import jitted_play_recorded_pairs
-
-        play = jitted_play_recorded_pairs(apply, hidden_size, env, size)
-    returns = np.full((num, num, episodes), np.nan, np.float32)
-    recipes = np.zeros((num, num, episodes), np.int32)
+        play = jitted_play_recorded_pairs(seat_apply, seat_hidden, env, size)
+    returns = np.full((num, num_cols, episodes), np.nan, np.float32)
+    recipes = np.zeros((num, num_cols, episodes), np.int32)
     for i in rows:
-        seat0 = gather_params(params, [i] * num)
+        seat0 = gather_params(params, [i] * num_cols)
         for block in range(count):
             first, n = block * size, min(size, episodes - block * size)
-            keys = jnp.stack([jax.random.fold_in(key, block)] * num)  # common random numbers across pairs
-            result = jax.device_get(play(seat0, params, keys))
+            keys = jnp.stack([jax.random.fold_in(key, block)] * num_cols)  # common random numbers across pairs
+            result = jax.device_get(play(seat0, cols, keys))
             if on_block is None:
                 block_returns, block_recipes = result.returns, result.start_recipe
             else:
@@ -79,29 +106,94 @@ def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array
 
 
 @functools.lru_cache(maxsize=16)
-def _jitted_play(apply, hidden_size, env, episodes):
-    return jax.jit(lambda a, b, k: play_pairs(apply, hidden_size, env, a, b, k, episodes))
+def _jitted_play(apply, hidden_size, env, episodes, greedy=False):
+    return jax.jit(lambda a, b, k: play_pairs(apply, hidden_size, env, a, b, k, episodes, greedy=greedy))
 
 
-def _mean_std_ci(values: np.ndarray):
+def _mean_std(values: np.ndarray) -> tuple[float, float]:
     values = np.asarray(values, np.float64)
     if values.size == 0:
-        return math.nan, math.nan, math.nan
-    std = float(values.std(ddof=1)) if values.size > 1 else 0.0
-    return float(values.mean()), std, 1.96 * std / math.sqrt(values.size)
+        return math.nan, math.nan
+    return float(values.mean()), float(values.std(ddof=1)) if values.size > 1 else 0.0
+
+
+def _interval(samples: np.ndarray) -> tuple[float, float]:
+    """The central 95 % of bootstrap ``samples`` (NaN where a resample had nothing to average)."""
+    samples = samples[~np.isnan(samples)]
+    if samples.size == 0:
+        return math.nan, math.nan
+    low, high = np.percentile(samples, [2.5, 97.5])
+    return float(low), float(high)
+
+
+def _resample_chunks(cells: int, resamples: int):
+    """Resample counts per chunk so that a chunk's gathered [B, R, C] stays near 2M numbers."""
+    per = max(1, 2_000_000 // max(cells, 1))
+    return [min(per, resamples - start) for start in range(0, resamples, per)]
+
+
+def bootstrap_block(matrix: np.ndarray, row_ids=None, col_ids=None, resamples: int = BOOTSTRAP_RESAMPLES,
+                    seed: int = BOOTSTRAP_SEED) -> dict:
+    """95 % percentile intervals of the SP and XP means of a [R, C] matrix by bootstrap over seeds.
+
+    ``row_ids``/``col_ids`` name the policy of each row/column (default: rows and columns are the same
+    K policies, as in one population's matrix). A cell is self-play when its two policies are the same
+    policy, cross-play otherwise. When rows and columns are the same policies, one resample of the
+    seeds serves both sides (a seed drawn twice does not cross-play with itself); otherwise rows and
+    columns are resampled independently. Returns {"sp": (low, high), "xp": (low, high), "gap": (low, high)}.
+    """
+    matrix = np.asarray(matrix, np.float64)
+    rows, cols = matrix.shape
+    row_ids = list(range(rows)) if row_ids is None else list(row_ids)
+    col_ids = list(range(cols)) if col_ids is None else list(col_ids)
+    shared = row_ids == col_ids
+    codes = {name: index for index, name in enumerate(dict.fromkeys(row_ids + col_ids))}
+    row_code, col_code = np.asarray([codes[r] for r in row_ids]), np.asarray([codes[c] for c in col_ids])
+    rng = np.random.default_rng(seed)
+    sp, xp = [], []
+    for size in _resample_chunks(rows * cols, resamples):
+        ri = rng.integers(0, rows, size=(size, rows))
+        ci = ri if shared else rng.integers(0, cols, size=(size, cols))
+        cells = matrix[ri[:, :, None], ci[:, None, :]]
+        same = row_code[ri][:, :, None] == col_code[ci][:, None, :]
+        for mask, out in ((same, sp), (~same, xp)):
+            count = mask.sum(axis=(1, 2))
+            total = np.where(mask, cells, 0.0).sum(axis=(1, 2))
+            out.append(np.where(count > 0, total / np.maximum(count, 1), np.nan))
+    sp, xp = np.concatenate(sp), np.concatenate(xp)
+    return {"sp": _interval(sp), "xp": _interval(xp), "gap": _interval(sp - xp)}
+
+
+def block_summary(matrix: np.ndarray, row_ids, col_ids) -> dict:
+    """SP/XP means, std across cells and seed-bootstrap 95 % intervals of one [R, C] block."""
+    matrix = np.asarray(matrix, np.float64)
+    same = np.asarray(row_ids)[:, None] == np.asarray(col_ids)[None, :]
+    sp_mean, sp_std = _mean_std(matrix[same])
+    xp_mean, xp_std = _mean_std(matrix[~same])
+    ci = bootstrap_block(matrix, row_ids, col_ids)
+    return {"sp_mean": sp_mean, "sp_std": sp_std, "xp_mean": xp_mean, "xp_std": xp_std,
+            "gap": sp_mean - xp_mean if same.any() and (~same).any() else math.nan,
+            "sp_ci95_interval": list(ci["sp"]), "xp_ci95_interval": list(ci["xp"]),
+            "gap_ci95_interval": list(ci["gap"]), "rows": len(row_ids), "cols": len(col_ids)}
+
+
+def _half_width(interval) -> float:
+    return (interval[1] - interval[0]) / 2
 
 
 def summarize(result: CrossPlay, recipe_names: dict[int, str] | None = None) -> dict:
     """Paper-style summary. Keys: sp_mean, sp_std, xp_mean, xp_std, gap, sp_ci95, xp_ci95,
-    num_policies, episodes_per_pair, per_recipe {name: {sp_mean, xp_mean, episodes}}.
+    sp_ci95_interval, xp_ci95_interval, gap_ci95_interval, ci_method, num_policies, episodes_per_pair,
+    per_recipe {name: {sp_mean, xp_mean, episodes}}.
 
-    Std and CI are across cells (policies for SP, ordered pairs for XP), as the paper's tables.
+    Std is across cells (policies for SP, ordered pairs for XP), as the paper's tables. The 95 %
+    intervals are a percentile bootstrap over seeds (``bootstrap_block``); ``sp_ci95``/``xp_ci95`` are
+    their half-widths.
     """
     matrix = result.matrix
     num = matrix.shape[0]
-    diagonal = np.eye(num, dtype=bool)
-    sp_mean, sp_std, sp_ci = _mean_std_ci(matrix[diagonal])
-    xp_mean, xp_std, xp_ci = _mean_std_ci(matrix[~diagonal])
+    ids = list(range(num))
+    block = block_summary(matrix, ids, ids)
     per_recipe = {}
     for code in np.unique(result.start_recipe):
         name = (recipe_names or {}).get(int(code), str(int(code)))
@@ -109,12 +201,15 @@ def summarize(result: CrossPlay, recipe_names: dict[int, str] | None = None) -> 
         sp_cells = [result.returns[i, i][mask[i, i]].mean() for i in range(num) if mask[i, i].any()]
         xp_cells = [result.returns[i, j][mask[i, j]].mean() for i in range(num) for j in range(num)
                     if i != j and mask[i, j].any()]
-        per_recipe[name] = {"sp_mean": _mean_std_ci(sp_cells)[0], "xp_mean": _mean_std_ci(xp_cells)[0],
+        per_recipe[name] = {"sp_mean": _mean_std(sp_cells)[0], "xp_mean": _mean_std(xp_cells)[0],
                             "episodes": int(mask.sum())}
     return {
-        "sp_mean": sp_mean, "sp_std": sp_std, "xp_mean": xp_mean, "xp_std": xp_std,
-        "gap": sp_mean - xp_mean if num > 1 else math.nan,
-        "sp_ci95": sp_ci, "xp_ci95": xp_ci,
+        "sp_mean": block["sp_mean"], "sp_std": block["sp_std"], "xp_mean": block["xp_mean"],
+        "xp_std": block["xp_std"], "gap": block["gap"] if num > 1 else math.nan,
+        "sp_ci95": _half_width(block["sp_ci95_interval"]), "xp_ci95": _half_width(block["xp_ci95_interval"]),
+        "sp_ci95_interval": block["sp_ci95_interval"], "xp_ci95_interval": block["xp_ci95_interval"],
+        "gap_ci95_interval": block["gap_ci95_interval"],
+        "ci_method": f"95% percentile bootstrap over seeds ({BOOTSTRAP_RESAMPLES} resamples)",
         "num_policies": num, "episodes_per_pair": int(result.returns.shape[-1]),
         "per_recipe": per_recipe,
     }
@@ -122,6 +217,4 @@ def summarize(result: CrossPlay, recipe_names: dict[int, str] | None = None) -> 
 
 def recipe_names(env) -> dict[int, str]:
     """Recipe encoding -> readable name ("0+0+1") for a layout's possible recipes."""
-    from ocv2.items import recipe_encoding_np
-
     return {recipe_encoding_np(r): "+".join(str(i) for i in r) for r in env.layout.possible_recipes}

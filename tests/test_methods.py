@@ -21,7 +21,7 @@ from population import ppo
 from population.config import load_config
 from population.evaluation import play_episodes, stack_params
 from population.sa import all_pairs, buffer_size, collect_buffer, collect_pair_states, merge_buffers
-from population.xp import CrossPlay, cross_play, summarize
+from population.xp import CrossPlay, bootstrap_block, cross_play, summarize
 
 SMOKE = Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml"
 
@@ -381,8 +381,10 @@ def test_summarize_synthetic_cross_play():
     assert summary["xp_mean"] == pytest.approx(np.mean(off))
     assert summary["xp_std"] == pytest.approx(np.std(off, ddof=1))
     assert summary["gap"] == pytest.approx(np.mean(diagonal) - np.mean(off))
-    assert summary["sp_ci95"] == pytest.approx(1.96 * np.std(diagonal, ddof=1) / math.sqrt(3))
-    assert summary["xp_ci95"] == pytest.approx(1.96 * np.std(off, ddof=1) / math.sqrt(6))
+    ci = bootstrap_block(matrix)  # 95 % intervals by bootstrap over seeds; ci95 = their half-widths
+    for name in ("sp", "xp"):
+        assert summary[f"{name}_ci95_interval"] == pytest.approx(list(ci[name]))
+        assert summary[f"{name}_ci95"] == pytest.approx((ci[name][1] - ci[name][0]) / 2)
     assert summary["num_policies"] == 3 and summary["episodes_per_pair"] == 4
 
     assert set(summary["per_recipe"]) == {"0+0+0", "1+1+1"}

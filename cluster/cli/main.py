@@ -4,12 +4,15 @@
     ocv2 layouts [--show NAME]          the built-in kitchens (table, or one ASCII map with a legend)
     ocv2 render LAYOUT --steps N --out FILE.gif [--seed S] [--fps F] [--view-radius V] [--tile-size T]
     ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume] [--logger tensorboard|wandb]
-    ocv2 xp RUN_DIR [--episodes N]
+    ocv2 xp RUN_DIR [--episodes N]      cross-play of one run
+    ocv2 xp --rows SRC ... [--cols SRC ...] [--checkpoint C] [--greedy] [--out DIR]   across runs (docs/evaluation.md)
+    ocv2 export SRC --out FILE [--seed I] [--checkpoint C]   one policy to one file
     ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
     ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
     ocv2 button-game [--buttons N] [--seeds S] [--out DIR]
     ocv2 archive info|replay|recover FILE ...   MCAP trajectory archives (docs/archive.md)
     ocv2 play [LAYOUT] [--partner RUN_DIR/checkpoints/seed_i|human] [--seat S] [--port P]   human play (docs/play.md)
+    ocv2 human import SOURCE | proxy LAYOUT --source SOURCE   2019 human games, BC human proxy (docs/human.md)
 
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
 code; ``COMMANDS`` lists them. The bigger ones live in ``cluster/cli/<group>.py`` and are named by
@@ -211,7 +214,10 @@ COMMANDS: list[Command] = [
     Command("render", "render a random-action episode to a GIF", _add_render, _cmd_render),
     Command("train", "train a population from a YAML config", "cluster.cli.train:add_train",
             "cluster.cli.train:run_train"),
-    Command("xp", "cross-play matrix of a trained population", "cluster.cli.train:add_xp", "cluster.cli.train:run_xp"),
+    Command("xp", "cross-play matrix of a trained population, or across runs and policy files",
+            "cluster.cli.xp:add_xp", "cluster.cli.xp:run_xp"),
+    Command("export", "write one policy (params + network + env settings) to a file", "cluster.cli.xp:add_export",
+            "cluster.cli.xp:run_export"),
     Command("validate", "check YAML configs without running anything", "cluster.cli.report:add_validate",
             "cluster.cli.report:run_validate"),
     Command("report", "paper-style SP/XP tables, curves and heatmaps of run directories",
@@ -222,6 +228,8 @@ COMMANDS: list[Command] = [
             "cluster.cli.archive:run"),
     Command("play", "play in the browser with a trained agent or another person (recorded to MCAP)",
             "cluster.cli.play:add_play", "cluster.cli.play:run_play"),
+    Command("human", "2019 human-human trials: import as archives, train a BC human proxy",
+            "cluster.cli.human:add_parser", "cluster.cli.human:run"),
 ]
 
 

@@ -1,7 +1,7 @@
-"""``ocv2 train`` and ``ocv2 xp``: the population commands.
+"""``ocv2 train``: train a population (``ocv2 xp`` lives in ``cluster.cli.xp``).
 
     ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--backend ray|local] [--address A] [--resume]
-    ocv2 xp RUN_DIR [--episodes N]
+              [--logger tensorboard|wandb]
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import os
 from cluster.api import require_backend, train_population
 from cluster.archive import ArchiveError
 from cluster.cli.errors import EXIT_OK, CLIError
-from cluster.runtime.evaluate import evaluate_run
 from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
@@ -87,25 +86,3 @@ def _default_run_dir(config) -> str:
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     return os.path.join("runs", f"{config.env_kwargs['layout']}_{config.population.method}_{stamp}")
 
-
-def add_xp(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("xp", help="cross-play matrix of a trained population",
-                            description="Evaluate every ordered pair of a run's final policies (diagonal = "
-                                        "self-play) and write xp/matrix.csv, episodes.csv, summary.json, heatmap.png.")
-    parser.add_argument("run_dir")
-    parser.add_argument("--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes)")
-    return parser
-
-
-def run_xp(args) -> int:
-    if args.episodes is not None and args.episodes < 1:
-        raise CLIError(f"--episodes must be >= 1, got {args.episodes}")
-    try:
-        evaluate_run(args.run_dir, episodes=args.episodes)
-    except (RunDirError, CheckpointError) as error:
-        raise CLIError(str(error)) from None
-    folder = os.path.join(args.run_dir, "xp")
-    written = [name for name in ("matrix.csv", "episodes.csv", "summary.json", "heatmap.png")
-               if os.path.exists(os.path.join(folder, name))]  # no heatmap without matplotlib
-    print(f"wrote {folder}/{', '.join(written)}")
-    return EXIT_OK

@@ -1,0 +1,166 @@
+"""``ocv2 xp`` (cross-play: of one run, or across runs and policy files) and ``ocv2 export``.
+
+    ocv2 xp RUN_DIR [--episodes N]
+    ocv2 xp --rows SRC [SRC ...] [--cols SRC ...] [--checkpoint final|mid|init|latest|N] [--greedy]
+            [--episodes N] [--seed S] [--out DIR] [--backend ray|local] [--address A] [--workers N]
+    ocv2 export SRC --out FILE [--seed I] [--checkpoint final|mid|init|latest|N]
+
+A source SRC is a run directory (all its seeds), a seed directory RUN_DIR/checkpoints/seed_<i>, a
+checkpoint file, a file written by ``ocv2 export``, or ``human-proxy:LAYOUT``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import os
+import time
+
+from cluster.cli.errors import EXIT_OK, CLIError
+
+
+def add_xp(sub) -> argparse.ArgumentParser:
+    parser = sub.add_parser(
+        "xp", help="cross-play matrix of a trained population, or across runs and policy files",
+        description="With RUN_DIR: evaluate every ordered pair of the run's final policies (diagonal = self-play) "
+                    "and write RUN_DIR/xp/matrix.csv, episodes.csv, summary.json, heatmap.png. With --rows/--cols: "
+                    "every row policy (seat 0) with every column policy (seat 1) across runs (SP vs SA vs OP vs "
+                    "FCP), exported files or human-proxy:LAYOUT, written to --out (matrix.csv, episodes.csv, "
+                    "blocks.csv, summary.json, heatmap.png, blocks.png). Confidence intervals: bootstrap over seeds.")
+    parser.add_argument("run_dir", nargs="?", help="a run directory: its own cross-play (in-run form)")
+    parser.add_argument("--rows", nargs="+", metavar="SRC", help="seat-0 policy sources: run dir (all seeds), "
+                        "seed dir, checkpoint, exported file or human-proxy:LAYOUT")
+    parser.add_argument("--cols", nargs="+", metavar="SRC", help="seat-1 policy sources (default: the --rows)")
+    parser.add_argument("--checkpoint", default="final",
+                        help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an update")
+    parser.add_argument("--greedy", action="store_true", help="argmax actions instead of sampled ones")
+    parser.add_argument("--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes; "
+                                                     "500 with --rows)")
+    parser.add_argument("--seed", type=int, help="episode key stream (default: the first row run's population.seed, "
+                                                 "so a run against itself reproduces its in-run matrix; else 0)")
+    parser.add_argument("--out", help="output directory for --rows (default runs/xp_<time>)")
+    parser.add_argument("--backend", choices=["ray", "local"], default="ray",
+                        help="with --rows: ray (default) spreads the jobs over Ray workers; local plays them here")
+    parser.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT (default: start Ray here)")
+    parser.add_argument("--workers", type=int, help="Ray workers (default: one per available CPU, at most one per job)")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+    return parser
+
+
+def run_xp(args) -> int:
+    if args.episodes is not None and args.episodes < 1:
+        raise CLIError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.rows is None:
+        if args.run_dir is None:
+            raise CLIError("give RUN_DIR (its own cross-play) or --rows SRC ... [--cols SRC ...]")
+        if args.cols:
+            raise CLIError("--cols needs --rows")
+        return _in_run(args)
+    if args.run_dir is not None:
+        raise CLIError(f"give either RUN_DIR ({args.run_dir}) or --rows, not both")
+    return _cross_run(args)
+
+
+def _in_run(args) -> int:
+    from cluster.runtime.evaluate import evaluate_run
+    from cluster.runtime.rundir import RunDirError
+    from population.checkpoints import CheckpointError
+
+    try:
+        evaluate_run(args.run_dir, episodes=args.episodes)
+    except (RunDirError, CheckpointError) as error:
+        raise CLIError(str(error)) from None
+    print(f"wrote {os.path.join(args.run_dir, 'xp')}/matrix.csv, episodes.csv, summary.json, heatmap.png")
+    return EXIT_OK
+
+
+def _cross_run(args) -> int:
+    # Ray workers and the driver share the machine's accelerator: never let the driver take most of it.
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    from cluster.runtime import crossplay
+    from cluster.runtime.ray_backend import RayBackendError, connect
+    from population.config import ClusterConfig
+
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers must be >= 1, got {args.workers}")
+    if args.backend == "local" and (args.address or args.workers):
+        raise CLIError("--address and --workers need --backend ray")
+    checkpoint = _checkpoint(args.checkpoint)
+    try:
+        rows = [crossplay.resolve_source(s, checkpoint) for s in args.rows]
+        cols = rows if not args.cols else [crossplay.resolve_source(s, checkpoint) for s in args.cols]
+        env_kwargs = crossplay.check_same_env([*rows, *cols])
+    except crossplay.CrossPlayError as error:
+        raise CLIError(str(error)) from None
+    episodes = args.episodes or 500
+    seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
+    out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    jobs = sum(len(g.names) for g in rows) * len(cols)
+    started_ray, workers = False, None
+    started = time.perf_counter()
+    try:
+        if args.backend == "ray":
+            import ray
+
+            cluster = ClusterConfig(address=args.address)
+            try:
+                started_ray = connect(cluster)
+            except RayBackendError as error:
+                raise CLIError(str(error)) from None
+            workers = crossplay.RayPlayers(crossplay.ray_worker_count(args.workers, jobs, 1), cluster)
+        else:
+            workers = crossplay.LocalPlayers()
+        label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
+        with crossplay.Bar(label, enabled=not args.quiet) as bar:
+            result = crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar)
+    finally:
+        if workers is not None:
+            workers.close()
+        if started_ray:
+            ray.shutdown()
+    summary = crossplay.summarize_matrix(result)
+    summary.update({"rows": list(args.rows), "cols": list(args.cols or args.rows), "checkpoint": str(checkpoint),
+                    "greedy": bool(args.greedy), "seed": seed, "env": env_kwargs, "backend": args.backend,
+                    "wall_s": round(time.perf_counter() - started, 2)})
+    crossplay.write_outputs(result, out, summary, crossplay.policy_env(env_kwargs))
+    if not args.quiet:
+        for block in summary["blocks"]:
+            low, high = block["xp_ci95_interval"]
+            print(f"{block['rows']} x {block['cols']}: XP {block['xp_mean']:.1f} [{low:.1f}, {high:.1f}]"
+                  + (f", SP {block['sp_mean']:.1f}" if block["sp_mean"] == block["sp_mean"] else ""))
+    print(f"wrote {out}/matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png")
+    return EXIT_OK
+
+
+def _checkpoint(text: str):
+    from population.policy import CHECKPOINT_CHOICES
+
+    if text in CHECKPOINT_CHOICES or text.isdigit():
+        return text
+    raise CLIError(f"--checkpoint: expected one of {', '.join(CHECKPOINT_CHOICES)} or an update number, got {text!r}")
+
+
+def add_export(sub) -> argparse.ArgumentParser:
+    parser = sub.add_parser("export", help="write one policy (params + network + env settings) to a file",
+                            description="Export one trained policy to a single file that 'ocv2 xp', "
+                                        "ocv2.policy.load and 'ocv2 play' read without the run directory.")
+    parser.add_argument("source", help="run directory, RUN_DIR/checkpoints/seed_<i>, or a checkpoint file")
+    parser.add_argument("--out", required=True, help="the file to write (e.g. cook.ocv2policy)")
+    parser.add_argument("--seed", type=int, help="which seed of a run directory (default 0)")
+    parser.add_argument("--checkpoint", default="final",
+                        help="final (default), mid, init, latest or an update number (run or seed directory)")
+    return parser
+
+
+def run_export(args) -> int:
+    from population.policy import PolicyError, export_checkpoint
+
+    checkpoint = _checkpoint(args.checkpoint)
+    if os.path.isdir(args.out):
+        raise CLIError(f"--out {args.out}: is a directory; give a file name")
+    try:
+        path = export_checkpoint(args.source, args.out, seed=args.seed, checkpoint=checkpoint)
+    except PolicyError as error:
+        raise CLIError(str(error)) from None
+    print(f"wrote {path}")
+    return EXIT_OK

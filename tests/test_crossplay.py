@@ -1,0 +1,190 @@
+"""Cross-run cross-play (``ocv2 xp --rows/--cols``), per-seat policies in evaluation, greedy play and the
+seed-bootstrap confidence intervals."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ocv2
+from cluster.cli import main
+from cluster.runtime import crossplay
+from population import policy as pol
+from population.config import ClusterConfig
+from population.evaluation import stack_params
+from population.xp import Side, bootstrap_block, cross_play
+from policy_runs import shared_run
+from test_methods import COOK_SCRIPT, SCRIPT_STEPS, _table, script_apply
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    return shared_run(tmp_path_factory)
+
+
+def _matrix(path) -> np.ndarray:
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    return np.asarray([[float(v) for v in row[1:]] for row in rows[1:]])
+
+
+def _episodes(path) -> list[tuple]:
+    """(return, start recipe) per row of episodes.csv, in file order (labels dropped)."""
+    with open(path, newline="") as handle:
+        return [(r["episode"], r["return"], r["start_recipe"]) for r in csv.DictReader(handle)]
+
+
+def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path):
+    assert main(["xp", str(run), "--episodes", "8"]) == 0
+    out = tmp_path / "xp"
+    assert main(["xp", "--rows", str(run), "--cols", str(run), "--episodes", "8", "--backend", "local",
+                 "--out", str(out), "--quiet"]) == 0
+    in_run = _matrix(run / "xp" / "matrix.csv")
+    np.testing.assert_array_equal(_matrix(out / "matrix.csv"), in_run)
+    assert (in_run != 0).any() and len(np.unique(in_run)) > 1  # real, policy-dependent numbers
+    assert _episodes(out / "episodes.csv") == _episodes(run / "xp" / "episodes.csv")
+    summary = json.loads((out / "summary.json").read_text())
+    own = json.loads((run / "xp" / "summary.json").read_text())
+    (block,) = summary["blocks"]
+    for key in ("sp_mean", "xp_mean", "sp_ci95_interval", "xp_ci95_interval"):
+        assert block[key] == pytest.approx(own[key])
+    for name in ("matrix.csv", "episodes.csv", "blocks.csv", "summary.json", "heatmap.png"):
+        assert (out / name).exists()
+
+    # Any source kind can stand for a row: a seed directory and an exported copy of seed 1 give the
+    # run's own rows, and the exported copy is recognised as seed 1 itself (its diagonal cell is SP).
+    exported = tmp_path / "seed1.ocv2policy"
+    assert main(["export", str(run), "--seed", "1", "--out", str(exported)]) == 0
+    mixed = tmp_path / "mixed"
+    assert main(["xp", "--rows", str(run / "checkpoints" / "seed_0"), str(exported), "--cols", str(run),
+                 "--episodes", "8", "--backend", "local", "--out", str(mixed), "--quiet"]) == 0
+    np.testing.assert_array_equal(_matrix(mixed / "matrix.csv"), in_run)
+    blocks = json.loads((mixed / "summary.json").read_text())["blocks"]
+    assert [b["sp_mean"] for b in blocks] == pytest.approx([in_run[0, 0], in_run[1, 1]], abs=1e-4)
+    assert [b["xp_mean"] for b in blocks] == pytest.approx([in_run[0, 1], in_run[1, 0]], abs=1e-4)
+
+
+class ThreeLocalPlayers(crossplay.LocalPlayers):
+    """In-process, but shaped like three workers: jobs are spread and waved as for Ray actors."""
+
+    def __init__(self):
+        super().__init__()
+        self.shards, self.calls = [[0], [1], [2]], []
+
+    def call(self, method, jobs):
+        self.calls.append([shard for shard, _ in jobs])
+        return super().call(method, jobs)
+
+
+def test_cross_play_jobs_spread_over_workers_give_the_same_matrix(run, ray_session):
+    rows = [crossplay.resolve_source(str(run))]
+    cols = [crossplay.resolve_source(str(run / "checkpoints" / "seed_1")), crossplay.resolve_source(str(run))]
+    key = crossplay.xp_key(0)
+    here = crossplay.play_matrix(rows, cols, crossplay.LocalPlayers(), key, 3)
+    three, seen = ThreeLocalPlayers(), []
+    spread = crossplay.play_matrix(rows, cols, three, key, 3, progress=lambda done, total: seen.append(done))
+    np.testing.assert_array_equal(spread.returns, here.returns)
+    assert three.calls == [[0, 1, 2], [0]]  # 4 jobs (2 rows x 2 column groups) in waves of one per worker
+    assert seen == [0, 3, 1]  # the progress bar moves after every wave
+    players = crossplay.RayPlayers(1, ClusterConfig(num_cpus=1))  # the Ray backend's call, on an actor
+    try:
+        on_ray = crossplay.play_matrix(rows, cols, players, key, 3)
+    finally:
+        players.close()
+    np.testing.assert_array_equal(on_ray.returns, here.returns)
+    np.testing.assert_array_equal(on_ray.start_recipe, here.start_recipe)
+
+
+def test_sources_of_different_environments_are_refused(run, tmp_path):
+    seed_0 = pol.load(run)
+    other = pol.export(tmp_path / "other.ocv2policy", params=seed_0.params, model=seed_0.model,
+                       env={**seed_0.env, "max_steps": 50})
+    assert main(["xp", "--rows", str(run), "--cols", str(other), "--backend", "local", "--out",
+                 str(tmp_path / "xp")]) == 2
+    assert not (tmp_path / "xp").exists()
+    with pytest.raises(crossplay.CrossPlayError, match="max_steps"):
+        crossplay.check_same_env([crossplay.resolve_source(str(run)), crossplay.resolve_source(str(other))])
+    assert main(["xp", "--cols", str(run)]) == 2  # needs --rows or RUN_DIR
+    assert main(["xp", "--rows", str(run), "--checkpoint", "best"]) == 2
+
+
+def test_human_proxy_columns_resolve_through_population_human(run, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "population.human", None)  # not installed: a clear error
+    with pytest.raises(crossplay.CrossPlayError, match="human-proxy:overcookedv2_demo: no human proxies"):
+        crossplay.resolve_source("human-proxy:overcookedv2_demo")
+    proxy = tmp_path / "proxy.ocv2policy"
+    pol.export_checkpoint(run, proxy, seed=0, meta={"name": "human proxy"})
+    module = types.ModuleType("population.human")
+    module.proxy_path = lambda layout: proxy if layout == "overcookedv2_demo" else _no_proxy(layout)
+    monkeypatch.setitem(sys.modules, "population.human", module)
+    group = crossplay.resolve_source("human-proxy:overcookedv2_demo")
+    assert group.names == ("human proxy",) and group.ids == crossplay.resolve_source(str(run)).ids[:1]
+    with pytest.raises(crossplay.CrossPlayError, match="human-proxy:cramped_room: no proxy"):
+        crossplay.resolve_source("human-proxy:cramped_room")
+
+
+def _no_proxy(layout):
+    raise ValueError(f"no proxy for {layout}")
+
+
+# ---------------------------------------------------------------------------------------------------
+# per-seat policies and greedy play, with scripted policies whose returns are known
+# ---------------------------------------------------------------------------------------------------
+
+def stay_apply(params, hidden, obs, reset):
+    """A different network: always stays, with a hidden state of size 3."""
+    logits = 1e4 * jax.nn.one_hot(jnp.full(obs.shape[:2], 4), 6)
+    return hidden + 1.0, logits, jnp.zeros(obs.shape[:2], jnp.float32)
+
+
+def soft_script_apply(params, hidden, obs, reset):
+    """The cook script with soft logits: sampling strays from it, argmax follows it."""
+    h, logits, value = script_apply(params, hidden, obs, reset)
+    return h, logits * 2e-4, value  # logit 2 for the scripted action, 0 for the others
+
+
+def test_seats_with_different_networks_play_together_and_greedy_takes_the_most_likely_action():
+    """A seat-0 script (hidden size 1) with seat-1 stayers of another network (hidden size 3): the cook
+    delivers once. Its soft-logit version completes the script only when played greedily."""
+    env = ocv2.make("cramped_room", max_steps=SCRIPT_STEPS)
+    cook = stack_params([jnp.asarray(_table(COOK_SCRIPT))])
+    stay = Side(stay_apply, 3, jnp.zeros((2, 1)))  # two "policies" of another network
+    greedy = cross_play(soft_script_apply, 1, env, cook, jax.random.PRNGKey(5), 2, partners=stay, greedy=True)
+    assert greedy.returns.shape == (1, 2, 2)
+    np.testing.assert_array_equal(greedy.returns, 20.0)  # the cook delivers once, whoever stays
+    sampled = cross_play(soft_script_apply, 1, env, cook, jax.random.PRNGKey(5), 2, partners=stay)
+    assert (sampled.returns < 20.0).all()  # 40 steps at p ~ 0.6 each: the sampled script never completes
+
+
+# ---------------------------------------------------------------------------------------------------
+# bootstrap over seeds
+# ---------------------------------------------------------------------------------------------------
+
+def test_bootstrap_of_two_seeds_is_exact():
+    """K = 2: a resample draws seeds (0,0), (0,1), (1,0) or (1,1). SP takes m00, m11 or their mean; XP
+    exists only for the two mixed draws and is then always (m01 + m10) / 2."""
+    m = np.asarray([[10.0, 2.0], [4.0, 30.0]])
+    ci = bootstrap_block(m)
+    assert ci["xp"] == (3.0, 3.0)
+    assert ci["sp"] == (10.0, 30.0)
+    assert ci["gap"][0] == pytest.approx(17.0) and ci["gap"][1] == pytest.approx(17.0)
+
+
+def test_bootstrap_resamples_seeds_not_cells():
+    """Two seeds that never cooperate (XP 0) next to one that always does: the interval reflects three
+    seeds' worth of uncertainty, and independent sources are resampled independently."""
+    m = np.zeros((3, 3))
+    np.fill_diagonal(m, 20.0)
+    ci = bootstrap_block(m)
+    assert ci["xp"] == (0.0, 0.0) and ci["sp"] == (20.0, 20.0)
+    rect = np.asarray([[0.0, 10.0], [20.0, 30.0]])  # rows from one run, columns from another
+    low, high = bootstrap_block(rect, ["a", "b"], ["c", "d"])["xp"]
+    assert (low, high) == (0.0, 30.0)  # a resample can draw row a twice and column c twice
+    assert bootstrap_block(rect, ["a", "b"], ["c", "d"]) == bootstrap_block(rect, ["a", "b"], ["c", "d"])
