@@ -240,12 +240,9 @@ def tick_timers(grid: jax.Array) -> jax.Array:
 
     The grid is rebuilt elementwise (a select on the channel index), so XLA fuses the tick into its
     consumers: the auto-reset select, the observation codes and the next state. Writing the two
-    channels in place (``.at[:, :, 1].set``) kept copies and an extra pass over the grid alive; a
-    ``stack`` of the three channels is an element-by-element concatenate on XLA:CPU. Whole step,
-    min of 36 interleaved runs, µs per batch step: cramped_room full view batch 1024 352 -> 314,
-    grounded_coord_simple view 2 batch 1024 478 -> 379, demo_cook_wide view 2 batch 64 69 -> 61.
-    (Before view windows were cut from look codes, this form was fused into the per-channel
-    lookups and made view 2 slower; see docs/BENCHMARKS.md, rounds 3 and 4.)
+    channels in place (``.at[:, :, 1].set``) keeps copies and an extra pass over the grid alive; a
+    ``stack`` of the three channels is an element-by-element concatenate on XLA:CPU. The numbers are
+    in docs/dev/optimisation-journal.md.
     """
     static, item, timer = grid[:, :, 0], grid[:, :, 1], grid[:, :, 2]
     cooking = (static == Static.POT) & (timer > 0)

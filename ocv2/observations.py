@@ -224,9 +224,8 @@ def grid_observations(config: EnvConfig, state: State) -> jax.Array:
 def _full_view(config: EnvConfig, state: State) -> jax.Array:
     """Whole-map observations: the shared channels once, then each agent's layers added at its cell.
 
-    The lookup reads the raw codes: here they are computed inside the lookup fusion, and look codes
-    gained nothing there (round 4: cramped_room batch 64 23 -> 33 µs per step; re-tried in round 5
-    after the elementwise tick: equal within noise).
+    The lookup reads the raw codes: here they are computed inside the lookup fusion, so folding them
+    into look codes (as the windowed view does) saves nothing (docs/dev/optimisation-journal.md).
     """
     n = config.num_ingredients
     agents = state.agents
@@ -243,8 +242,8 @@ def _full_view(config: EnvConfig, state: State) -> jax.Array:
             for b in range(num_agents)
         ])
         # One scatter of every agent's row into the materialised shared channels: a masked add (or a
-        # lookup of agent codes) let XLA split the shared lookup into one materialised gather per
-        # table (2.5x slower at batch 64), and one scatter per agent cost ~4 kernels each at batch 1.
+        # lookup of agent codes) lets XLA split the shared lookup into one materialised gather per
+        # table, and one scatter per agent costs several kernels each at batch 1.
         obs = obs.at[agents.y, agents.x].add(rows)
         out.append(obs)
     return jnp.stack(out)
@@ -255,9 +254,8 @@ def _windowed_view(config: EnvConfig, state: State) -> jax.Array:
 
     Cutting the codes (zero outside the map, which looks up all-zero rows, like the reference's zero
     padding) and looking up only the window's cells does a fraction of the work of building every
-    cell's C channels and slicing. The cut codes are look codes (two planes, two gathers per cell
-    instead of four: batch 64, cramped_room 48 -> 33 µs per step, demo_cook_wide 79 -> 70), except
-    under other-play, which permutes the raw codes per observer. Agents' layers are masked adds
+    cell's C channels and slicing. The cut codes are look codes (two planes, so two gathers per cell
+    instead of four), except under other-play, which permutes the raw codes per observer. Agents' layers are masked adds
     (agents never share a cell), not scatters.
     """
     n = config.num_ingredients
