@@ -138,8 +138,8 @@ def load(source, *, seed: int | None = None, checkpoint: str | int = "final") ->
     """
     path = Path(source)
     if path.is_file():
-        if seed is not None:
-            raise PolicyError(f"{path}: seed= applies to a run directory, not a file")
+        if seed is not None or str(checkpoint) != "final":
+            raise PolicyError(f"{path}: is one policy; seed and checkpoint choices apply to a run or seed directory")
         return _load_file(path)
     if path.is_dir():
         if (path / "config.yaml").is_file():

@@ -75,7 +75,7 @@ def resolve_source(text: str, checkpoint="final") -> PolicyGroup:
     path = Path(text)
     if path.is_dir() and (path / "config.yaml").is_file():
         return _run_group(text, path, checkpoint)
-    return _single(text, path, checkpoint)
+    return _single(text, path, checkpoint if path.is_dir() else "final")  # a file is one fixed policy
 
 
 def _human_proxy_path(layout: str) -> Path:
