@@ -47,7 +47,8 @@ def random_population(config, num: int) -> crossplay.PolicyGroup:
     env = policy_env(config.env_kwargs)
     net = network(config.model, config.ppo.activation, env.num_actions)
     params = [jax.tree.map(np.asarray, init_params(net, jax.random.PRNGKey(s), env.obs_shape)) for s in range(num)]
-    return crossplay.PolicyGroup("population", tuple(f"seed_{s}" for s in range(num)), tuple(str(s) for s in range(num)),
+    names = tuple(f"seed_{s}" for s in range(num))
+    return crossplay.PolicyGroup("population", names, names,
                                  config.model, config.ppo.activation, config.env_kwargs, stack_params(params), "sp", 0)
 
 
@@ -101,6 +102,7 @@ def main(argv=None) -> int:
     measured = args.rows == args.policies
     blocks, size = episode_blocks(args.episodes)
     stamp = _dt.date.today().isoformat()
+    how = "(measured)" if measured else f"(extrapolated: first row + {args.policies - 1} x steady row)"
     cores = os.cpu_count()
     lines = [
         START,
@@ -123,7 +125,7 @@ def main(argv=None) -> int:
         f"{row_cpu:.0f} CPU-seconds |",
         f"| rows played | {args.rows} of {args.policies} ({total:.0f} s) |",
         f"| full {args.policies}x{args.policies}x{args.episodes} matrix | "
-        f"{'**' + format(full_s / 60, '.1f') + ' min**'}{' (measured)' if measured else ' (extrapolated: first row + ' + str(args.policies - 1) + ' x steady row)'} |",
+        f"**{full_s / 60:.1f} min** {how} |",
         f"| full matrix in CPU time (all cores together) | {(row_cpu * args.policies) / 60:.1f} CPU-minutes "
         f"(= {(row_cpu * args.policies) / 60 / cores:.1f} min if all {cores} cores were free and busy) |",
         f"| summary with seed-bootstrap CIs | {summary_s:.2f} s |",

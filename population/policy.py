@@ -119,7 +119,8 @@ def export(path, *, params, model: ModelConfig, env, meta: dict | None = None, a
     return atomic_write(path, serialization.msgpack_serialize(payload))
 
 
-def export_checkpoint(source, out, *, seed: int | None = None, checkpoint: str | int = "final", meta: dict | None = None) -> Path:
+def export_checkpoint(source, out, *, seed: int | None = None, checkpoint: str | int = "final",
+                      meta: dict | None = None) -> Path:
     """Export the policy ``load(source, seed=..., checkpoint=...)`` finds (a run, seed dir or checkpoint)."""
     policy = load(source, seed=seed, checkpoint=checkpoint)
     return export(out, params=policy.params, model=policy.model, env=policy.env, activation=policy.activation,

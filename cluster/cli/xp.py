@@ -32,7 +32,8 @@ def add_xp(sub) -> argparse.ArgumentParser:
                         "seed dir, checkpoint, exported file or human-proxy:LAYOUT")
     parser.add_argument("--cols", nargs="+", metavar="SRC", help="seat-1 policy sources (default: the --rows)")
     parser.add_argument("--checkpoint", default="final",
-                        help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an update")
+                        help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an "
+                             "update number")
     parser.add_argument("--greedy", action="store_true", help="argmax actions instead of sampled ones")
     parser.add_argument("--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes; "
                                                      "500 with --rows)")

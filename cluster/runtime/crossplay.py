@@ -150,7 +150,8 @@ class RowsResult(NamedTuple):
 class CrossPlayPlayer:
     """Plays jobs: seat-0 ``rows`` of one group against every policy of another group."""
 
-    def play(self, row_spec, row_params, col_spec, col_params, rows, key, episodes: int, greedy: bool, job) -> RowsResult:
+    def play(self, row_spec, row_params, col_spec, col_params, rows, key, episodes: int, greedy: bool,
+             job) -> RowsResult:
         env = policy_env(row_spec[2])
         row_side = _side(row_spec, row_params, env)
         if col_spec is None:  # the row group against itself: the in-run code path, numbers included
