@@ -326,7 +326,25 @@ def _env_kwargs(env) -> dict:
         return env.env_kwargs
     if isinstance(env, Mapping):
         return dict(env)
-    raise PolicyError(f"env must be ocv2.make keyword arguments (a mapping) or a run Config, got {type(env).__name__}")
+    if isinstance(env, ocv2.OvercookedV2):
+        env = env.config
+    if isinstance(env, ocv2.EnvConfig):
+        return _env_config_kwargs(env)
+    raise PolicyError(f"env must be ocv2.make keyword arguments (a mapping), an ocv2 env or EnvConfig, or a run "
+                      f"Config; got {type(env).__name__}")
+
+
+def _env_config_kwargs(config: ocv2.EnvConfig) -> dict:
+    """The ``ocv2.make`` kwargs of an env's config: its built-in layout's name and every non-default setting."""
+    name = config.layout.name
+    if ocv2.LAYOUTS.get(name) is not config.layout:
+        raise PolicyError(f"env: layout {name!r} is not a built-in layout; only built-in layouts can be exported")
+    kwargs = {"layout": name}
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if field.name != "layout" and value != field.default:
+            kwargs[field.name] = list(value) if isinstance(value, tuple) else value
+    return kwargs
 
 
 def _plain(value):

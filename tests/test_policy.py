@@ -74,6 +74,10 @@ def test_export_load_round_trip_gives_identical_actions(run, tmp_path):
     assert (loaded.model, loaded.env, loaded.activation, loaded.hidden_size) == \
            (original.model, original.env, original.activation, original.hidden_size)
     assert loaded.meta == {"note": "round trip"}
+    # The environment may also be given as the env object itself.
+    by_env = pol.export(tmp_path / "e.ocv2policy", params=original.params, model=original.model,
+                        env=original.make_env())
+    assert pol.load(by_env).env == original.env
     for greedy in (False, True):
         np.testing.assert_array_equal(_act_trace(original, greedy=greedy), _act_trace(loaded, greedy=greedy))
     # The CLI writes the same policy (only the parameters, the network and the env: no training state).
