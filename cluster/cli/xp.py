@@ -31,7 +31,7 @@ def add_xp(sub) -> argparse.ArgumentParser:
     parser.add_argument("--rows", nargs="+", metavar="SRC", help="seat-0 policy sources: run dir (all seeds), "
                         "seed dir, checkpoint, exported file or human-proxy:LAYOUT")
     parser.add_argument("--cols", nargs="+", metavar="SRC", help="seat-1 policy sources (default: the --rows)")
-    parser.add_argument("--checkpoint", default="final",
+    parser.add_argument("--checkpoint",
                         help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an "
                              "update number")
     parser.add_argument("--greedy", action="store_true", help="argmax actions instead of sampled ones")
@@ -40,7 +40,7 @@ def add_xp(sub) -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, help="episode key stream (default: the first row run's population.seed, "
                                                  "so a run against itself reproduces its in-run matrix; else 0)")
     parser.add_argument("--out", help="output directory for --rows (default runs/xp_<time>)")
-    parser.add_argument("--backend", choices=["ray", "local"], default="ray",
+    parser.add_argument("--backend", choices=["ray", "local"],
                         help="with --rows: ray (default) spreads the jobs over Ray workers; local plays them here")
     parser.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT (default: start Ray here)")
     parser.add_argument("--workers", type=int, help="Ray workers (default: one per available CPU, at most one per job)")
@@ -56,6 +56,13 @@ def run_xp(args) -> int:
             raise CLIError("give RUN_DIR (its own cross-play) or --rows SRC ... [--cols SRC ...]")
         if args.cols:
             raise CLIError("--cols needs --rows")
+        given = [flag for flag, value in (("--checkpoint", args.checkpoint), ("--greedy", args.greedy or None),
+                                          ("--seed", args.seed), ("--out", args.out), ("--backend", args.backend),
+                                          ("--address", args.address), ("--workers", args.workers))
+                 if value is not None]
+        if given:
+            raise CLIError(f"{', '.join(given)}: only with --rows (the in-run form evaluates RUN_DIR's final "
+                           "policies here and writes RUN_DIR/xp/)")
         return _in_run(args)
     if args.run_dir is not None:
         raise CLIError(f"give either RUN_DIR ({args.run_dir}) or --rows, not both")
@@ -84,9 +91,10 @@ def _cross_run(args) -> int:
 
     if args.workers is not None and args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
-    if args.backend == "local" and (args.address or args.workers):
+    backend = args.backend or "ray"
+    if backend == "local" and (args.address or args.workers):
         raise CLIError("--address and --workers need --backend ray")
-    checkpoint = _checkpoint(args.checkpoint)
+    checkpoint = _checkpoint(args.checkpoint or "final")
     try:
         rows = [crossplay.resolve_source(s, checkpoint) for s in args.rows]
         cols = rows if not args.cols else [crossplay.resolve_source(s, checkpoint) for s in args.cols]
@@ -100,7 +108,7 @@ def _cross_run(args) -> int:
     started_ray, workers = False, None
     started = time.perf_counter()
     try:
-        if args.backend == "ray":
+        if backend == "ray":
             import ray
 
             cluster = ClusterConfig(address=args.address)
@@ -121,7 +129,7 @@ def _cross_run(args) -> int:
             ray.shutdown()
     summary = crossplay.summarize_matrix(result)
     summary.update({"rows": list(args.rows), "cols": list(args.cols or args.rows), "checkpoint": str(checkpoint),
-                    "greedy": bool(args.greedy), "seed": seed, "env": env_kwargs, "backend": args.backend,
+                    "greedy": bool(args.greedy), "seed": seed, "env": env_kwargs, "backend": backend,
                     "wall_s": round(time.perf_counter() - started, 2)})
     crossplay.write_outputs(result, out, summary, crossplay.policy_env(env_kwargs))
     if not args.quiet:
