@@ -17,6 +17,13 @@ import os
 import time
 
 from cluster.cli.errors import EXIT_OK, CLIError
+from cluster.runtime import crossplay
+from cluster.runtime.evaluate import evaluate_run
+from cluster.runtime.ray_backend import RayBackendError, connect
+from cluster.runtime.rundir import RunDirError
+from population.checkpoints import CheckpointError
+from population.config import ClusterConfig
+from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
 
 
 def add_xp(sub) -> argparse.ArgumentParser:
@@ -70,10 +77,6 @@ def run_xp(args) -> int:
 
 
 def _in_run(args) -> int:
-    from cluster.runtime.evaluate import evaluate_run
-    from cluster.runtime.rundir import RunDirError
-    from population.checkpoints import CheckpointError
-
     try:
         evaluate_run(args.run_dir, episodes=args.episodes)
     except (RunDirError, CheckpointError) as error:
@@ -85,10 +88,6 @@ def _in_run(args) -> int:
 def _cross_run(args) -> int:
     # Ray workers and the driver share the machine's accelerator: never let the driver take most of it.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from cluster.runtime import crossplay
-    from cluster.runtime.ray_backend import RayBackendError, connect
-    from population.config import ClusterConfig
-
     if args.workers is not None and args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
     backend = args.backend or "ray"
@@ -142,8 +141,6 @@ def _cross_run(args) -> int:
 
 
 def _checkpoint(text: str):
-    from population.policy import CHECKPOINT_CHOICES
-
     if text in CHECKPOINT_CHOICES or text.isdigit():
         return text
     raise CLIError(f"--checkpoint: expected one of {', '.join(CHECKPOINT_CHOICES)} or an update number, got {text!r}")
@@ -162,8 +159,6 @@ def add_export(sub) -> argparse.ArgumentParser:
 
 
 def run_export(args) -> int:
-    from population.policy import PolicyError, export_checkpoint
-
     checkpoint = _checkpoint(args.checkpoint)
     if os.path.isdir(args.out):
         raise CLIError(f"--out {args.out}: is a directory; give a file name")
