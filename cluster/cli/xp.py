@@ -19,10 +19,9 @@ import time
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import crossplay
 from cluster.runtime.evaluate import evaluate_run
-from cluster.runtime.ray_backend import RayBackendError, connect
+from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from population.checkpoints import CheckpointError
-from population.config import ClusterConfig
 from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
 
 
@@ -104,28 +103,14 @@ def _cross_run(args) -> int:
     seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
     out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     jobs = sum(len(g.names) for g in rows) * len(cols)
-    started_ray, workers = False, None
     started = time.perf_counter()
+    label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
     try:
-        if backend == "ray":
-            import ray
-
-            cluster = ClusterConfig(address=args.address)
-            try:
-                started_ray = connect(cluster)
-            except RayBackendError as error:
-                raise CLIError(str(error)) from None
-            workers = crossplay.RayPlayers(crossplay.ray_worker_count(args.workers, jobs, 1), cluster)
-        else:
-            workers = crossplay.LocalPlayers()
-        label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
-        with crossplay.Bar(label, enabled=not args.quiet) as bar:
+        with crossplay.players(backend, jobs, args.address, args.workers) as workers, \
+                crossplay.Bar(label, enabled=not args.quiet) as bar:
             result = crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar)
-    finally:
-        if workers is not None:
-            workers.close()
-        if started_ray:
-            ray.shutdown()
+    except RayBackendError as error:
+        raise CLIError(str(error)) from None
     summary = crossplay.summarize_matrix(result)
     summary.update({"rows": list(args.rows), "cols": list(args.cols or args.rows), "checkpoint": str(checkpoint),
                     "greedy": bool(args.greedy), "seed": seed, "env": env_kwargs, "backend": backend,
