@@ -31,9 +31,9 @@ import numpy as np
 from cluster.runtime.coordinator import spread_jobs
 from cluster.runtime.ray_backend import RayWorkers, actor_env, connect
 from cluster.runtime.rundir import write_csv, write_json
-from cluster.runtime.runstate import XP_KEY_OFFSET
 from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_config
 from population.evaluation import stack_params
+from population.keys import derive_key
 from population.plots import xp_heatmap
 from population.policy import PolicyError, hidden_size_of, load, network, policy_env
 from population.xp import Side, block_summary, cross_play, recipe_names
@@ -261,7 +261,7 @@ class Matrix:
 
 def xp_key(seed: int) -> jax.Array:
     """The episode keys of a cross-play: the XP stream of a population with this seed (as ``ocv2 xp RUN``)."""
-    return jax.random.fold_in(jax.random.PRNGKey(seed), XP_KEY_OFFSET)
+    return derive_key(seed, "xp")
 
 
 def play_matrix(row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None) -> Matrix:
