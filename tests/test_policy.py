@@ -14,6 +14,7 @@ import pytest
 from flax import serialization
 
 from cluster.cli import main
+from population import checkpoints as ckpt
 from population import policy as pol
 from policy_runs import shared_run
 
@@ -59,8 +60,8 @@ def test_load_accepts_run_seed_dir_and_checkpoint(run):
     assert pol.load(run, checkpoint="init").meta["update"] == 0
     assert pol.load(run, checkpoint=2).meta["update"] == 2
     assert pol.load(run, checkpoint="latest").meta["update"] == 4
-    raw = serialization.msgpack_restore((run / "checkpoints" / "seed_1" / "update_0000004.msgpack").read_bytes())
-    _assert_trees_equal(by_run.params, raw["state"]["params"])  # the checkpoint's network params, untouched
+    _, raw = ckpt.read(run / "checkpoints" / "seed_1" / "update_0000004.msgpack")
+    _assert_trees_equal(by_run.params, raw["params"])  # the checkpoint's network params, untouched
     seed_0 = jax.tree.leaves(pol.load(run, seed=0).params)
     assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(by_run.params), seed_0))  # seeds differ
 
