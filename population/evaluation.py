@@ -7,7 +7,8 @@ policy: ``apply``, ``hidden_size`` and ``greedy`` are either one value shared by
 with one per seat, and ``params`` is always a tuple per seat -- so a CNN can play with an RNN, or a
 policy of one run with one of another run (``population.policy``). Actions are sampled (stochastic
 evaluation, as the paper) unless a seat is ``greedy`` (argmax). Episodes start from
-``env.reset_state`` (no state buffer) and run exactly ``env.max_steps`` steps, the only way an OvercookedV2 episode ends.
+``env.reset_state`` (no state buffer) and run exactly ``env.max_steps`` steps, the only way an
+OvercookedV2 episode ends.
 """
 
 from __future__ import annotations

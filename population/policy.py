@@ -119,7 +119,8 @@ def export(path, *, params, model: ModelConfig, env, meta: dict | None = None, a
     return atomic_write(path, serialization.msgpack_serialize(payload))
 
 
-def export_checkpoint(source, out, *, seed: int | None = None, checkpoint: str | int = "final", meta: dict | None = None) -> Path:
+def export_checkpoint(source, out, *, seed: int | None = None, checkpoint: str | int = "final",
+                      meta: dict | None = None) -> Path:
     """Export the policy ``load(source, seed=..., checkpoint=...)`` finds (a run, seed dir or checkpoint)."""
     policy = load(source, seed=seed, checkpoint=checkpoint)
     return export(out, params=policy.params, model=policy.model, env=policy.env, activation=policy.activation,
@@ -138,8 +139,8 @@ def load(source, *, seed: int | None = None, checkpoint: str | int = "final") ->
     """
     path = Path(source)
     if path.is_file():
-        if seed is not None:
-            raise PolicyError(f"{path}: seed= applies to a run directory, not a file")
+        if seed is not None or str(checkpoint) != "final":
+            raise PolicyError(f"{path}: is one policy; seed and checkpoint choices apply to a run or seed directory")
         return _load_file(path)
     if path.is_dir():
         if (path / "config.yaml").is_file():
@@ -325,7 +326,25 @@ def _env_kwargs(env) -> dict:
         return env.env_kwargs
     if isinstance(env, Mapping):
         return dict(env)
-    raise PolicyError(f"env must be ocv2.make keyword arguments (a mapping) or a run Config, got {type(env).__name__}")
+    if isinstance(env, ocv2.OvercookedV2):
+        env = env.config
+    if isinstance(env, ocv2.EnvConfig):
+        return _env_config_kwargs(env)
+    raise PolicyError(f"env must be ocv2.make keyword arguments (a mapping), an ocv2 env or EnvConfig, or a run "
+                      f"Config; got {type(env).__name__}")
+
+
+def _env_config_kwargs(config: ocv2.EnvConfig) -> dict:
+    """The ``ocv2.make`` kwargs of an env's config: its built-in layout's name and every non-default setting."""
+    name = config.layout.name
+    if ocv2.LAYOUTS.get(name) is not config.layout:
+        raise PolicyError(f"env: layout {name!r} is not a built-in layout; only built-in layouts can be exported")
+    kwargs = {"layout": name}
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if field.name != "layout" and value != field.default:
+            kwargs[field.name] = list(value) if isinstance(value, tuple) else value
+    return kwargs
 
 
 def _plain(value):

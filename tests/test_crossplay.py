@@ -113,6 +113,7 @@ def test_sources_of_different_environments_are_refused(run, tmp_path):
         crossplay.check_same_env([crossplay.resolve_source(str(run)), crossplay.resolve_source(str(other))])
     assert main(["xp", "--cols", str(run)]) == 2  # needs --rows or RUN_DIR
     assert main(["xp", "--rows", str(run), "--checkpoint", "best"]) == 2
+    assert main(["xp", str(run), "--greedy", "--backend", "ray"]) == 2  # options of --rows are not ignored
 
 
 def test_human_proxy_columns_resolve_through_population_human(run, tmp_path, monkeypatch):

@@ -14,6 +14,7 @@ import pytest
 from flax import serialization
 
 from cluster.cli import main
+from population import checkpoints as ckpt
 from population import policy as pol
 from policy_runs import shared_run
 
@@ -59,8 +60,8 @@ def test_load_accepts_run_seed_dir_and_checkpoint(run):
     assert pol.load(run, checkpoint="init").meta["update"] == 0
     assert pol.load(run, checkpoint=2).meta["update"] == 2
     assert pol.load(run, checkpoint="latest").meta["update"] == 4
-    raw = serialization.msgpack_restore((run / "checkpoints" / "seed_1" / "update_0000004.msgpack").read_bytes())
-    _assert_trees_equal(by_run.params, raw["state"]["params"])  # the checkpoint's network params, untouched
+    _, raw = ckpt.read(run / "checkpoints" / "seed_1" / "update_0000004.msgpack")
+    _assert_trees_equal(by_run.params, raw["params"])  # the checkpoint's network params, untouched
     seed_0 = jax.tree.leaves(pol.load(run, seed=0).params)
     assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(by_run.params), seed_0))  # seeds differ
 
@@ -74,6 +75,10 @@ def test_export_load_round_trip_gives_identical_actions(run, tmp_path):
     assert (loaded.model, loaded.env, loaded.activation, loaded.hidden_size) == \
            (original.model, original.env, original.activation, original.hidden_size)
     assert loaded.meta == {"note": "round trip"}
+    # The environment may also be given as the env object itself.
+    by_env = pol.export(tmp_path / "e.ocv2policy", params=original.params, model=original.model,
+                        env=original.make_env())
+    assert pol.load(by_env).env == original.env
     for greedy in (False, True):
         np.testing.assert_array_equal(_act_trace(original, greedy=greedy), _act_trace(loaded, greedy=greedy))
     # The CLI writes the same policy (only the parameters, the network and the env: no training state).
@@ -104,6 +109,8 @@ def test_bad_sources_are_one_line_errors(run, tmp_path):
         pol.load(run, checkpoint=3)
     with pytest.raises(pol.PolicyError, match="expected one of"):
         pol.load(run, checkpoint="best")
+    with pytest.raises(pol.PolicyError, match="is one policy"):  # a file has no checkpoints to choose from
+        pol.load(run / "checkpoints" / "seed_0" / "update_0000002.msgpack", checkpoint="mid")
     good = pol.load(run)
     future = tmp_path / "future.ocv2policy"
     pol.export(future, params=good.params, model=good.model, env=good.env)

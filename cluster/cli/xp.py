@@ -17,6 +17,12 @@ import os
 import time
 
 from cluster.cli.errors import EXIT_OK, CLIError
+from cluster.runtime import crossplay
+from cluster.runtime.evaluate import evaluate_run
+from cluster.runtime.ray_backend import RayBackendError
+from cluster.runtime.rundir import RunDirError
+from population.checkpoints import CheckpointError
+from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
 
 
 def add_xp(sub) -> argparse.ArgumentParser:
@@ -31,15 +37,16 @@ def add_xp(sub) -> argparse.ArgumentParser:
     parser.add_argument("--rows", nargs="+", metavar="SRC", help="seat-0 policy sources: run dir (all seeds), "
                         "seed dir, checkpoint, exported file or human-proxy:LAYOUT")
     parser.add_argument("--cols", nargs="+", metavar="SRC", help="seat-1 policy sources (default: the --rows)")
-    parser.add_argument("--checkpoint", default="final",
-                        help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an update")
+    parser.add_argument("--checkpoint",
+                        help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an "
+                             "update number")
     parser.add_argument("--greedy", action="store_true", help="argmax actions instead of sampled ones")
     parser.add_argument("--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes; "
                                                      "500 with --rows)")
     parser.add_argument("--seed", type=int, help="episode key stream (default: the first row run's population.seed, "
                                                  "so a run against itself reproduces its in-run matrix; else 0)")
     parser.add_argument("--out", help="output directory for --rows (default runs/xp_<time>)")
-    parser.add_argument("--backend", choices=["ray", "local"], default="ray",
+    parser.add_argument("--backend", choices=["ray", "local"],
                         help="with --rows: ray (default) spreads the jobs over Ray workers; local plays them here")
     parser.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT (default: start Ray here)")
     parser.add_argument("--workers", type=int, help="Ray workers (default: one per available CPU, at most one per job)")
@@ -55,6 +62,13 @@ def run_xp(args) -> int:
             raise CLIError("give RUN_DIR (its own cross-play) or --rows SRC ... [--cols SRC ...]")
         if args.cols:
             raise CLIError("--cols needs --rows")
+        given = [flag for flag, value in (("--checkpoint", args.checkpoint), ("--greedy", args.greedy or None),
+                                          ("--seed", args.seed), ("--out", args.out), ("--backend", args.backend),
+                                          ("--address", args.address), ("--workers", args.workers))
+                 if value is not None]
+        if given:
+            raise CLIError(f"{', '.join(given)}: only with --rows (the in-run form evaluates RUN_DIR's final "
+                           "policies here and writes RUN_DIR/xp/)")
         return _in_run(args)
     if args.run_dir is not None:
         raise CLIError(f"give either RUN_DIR ({args.run_dir}) or --rows, not both")
@@ -62,10 +76,6 @@ def run_xp(args) -> int:
 
 
 def _in_run(args) -> int:
-    from cluster.runtime.evaluate import evaluate_run
-    from cluster.runtime.rundir import RunDirError
-    from population.checkpoints import CheckpointError
-
     try:
         evaluate_run(args.run_dir, episodes=args.episodes)
     except (RunDirError, CheckpointError) as error:
@@ -77,15 +87,12 @@ def _in_run(args) -> int:
 def _cross_run(args) -> int:
     # Ray workers and the driver share the machine's accelerator: never let the driver take most of it.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from cluster.runtime import crossplay
-    from cluster.runtime.ray_backend import RayBackendError, connect
-    from population.config import ClusterConfig
-
     if args.workers is not None and args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
-    if args.backend == "local" and (args.address or args.workers):
+    backend = args.backend or "ray"
+    if backend == "local" and (args.address or args.workers):
         raise CLIError("--address and --workers need --backend ray")
-    checkpoint = _checkpoint(args.checkpoint)
+    checkpoint = _checkpoint(args.checkpoint or "final")
     try:
         rows = [crossplay.resolve_source(s, checkpoint) for s in args.rows]
         cols = rows if not args.cols else [crossplay.resolve_source(s, checkpoint) for s in args.cols]
@@ -96,31 +103,17 @@ def _cross_run(args) -> int:
     seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
     out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     jobs = sum(len(g.names) for g in rows) * len(cols)
-    started_ray, workers = False, None
     started = time.perf_counter()
+    label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
     try:
-        if args.backend == "ray":
-            import ray
-
-            cluster = ClusterConfig(address=args.address)
-            try:
-                started_ray = connect(cluster)
-            except RayBackendError as error:
-                raise CLIError(str(error)) from None
-            workers = crossplay.RayPlayers(crossplay.ray_worker_count(args.workers, jobs, 1), cluster)
-        else:
-            workers = crossplay.LocalPlayers()
-        label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
-        with crossplay.Bar(label, enabled=not args.quiet) as bar:
+        with crossplay.players(backend, jobs, args.address, args.workers) as workers, \
+                crossplay.Bar(label, enabled=not args.quiet) as bar:
             result = crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar)
-    finally:
-        if workers is not None:
-            workers.close()
-        if started_ray:
-            ray.shutdown()
+    except RayBackendError as error:
+        raise CLIError(str(error)) from None
     summary = crossplay.summarize_matrix(result)
     summary.update({"rows": list(args.rows), "cols": list(args.cols or args.rows), "checkpoint": str(checkpoint),
-                    "greedy": bool(args.greedy), "seed": seed, "env": env_kwargs, "backend": args.backend,
+                    "greedy": bool(args.greedy), "seed": seed, "env": env_kwargs, "backend": backend,
                     "wall_s": round(time.perf_counter() - started, 2)})
     crossplay.write_outputs(result, out, summary, crossplay.policy_env(env_kwargs))
     if not args.quiet:
@@ -133,8 +126,6 @@ def _cross_run(args) -> int:
 
 
 def _checkpoint(text: str):
-    from population.policy import CHECKPOINT_CHOICES
-
     if text in CHECKPOINT_CHOICES or text.isdigit():
         return text
     raise CLIError(f"--checkpoint: expected one of {', '.join(CHECKPOINT_CHOICES)} or an update number, got {text!r}")
@@ -153,8 +144,6 @@ def add_export(sub) -> argparse.ArgumentParser:
 
 
 def run_export(args) -> int:
-    from population.policy import PolicyError, export_checkpoint
-
     checkpoint = _checkpoint(args.checkpoint)
     if os.path.isdir(args.out):
         raise CLIError(f"--out {args.out}: is a directory; give a file name")

@@ -4,7 +4,7 @@ A *source* is anything ``population.policy.load`` reads, plus ``human-proxy:LAYO
 contributes every seed (at the chosen checkpoint), a seed directory / checkpoint / exported file one
 policy. Each source is a ``PolicyGroup``: its policies share one network, so a job -- one seat-0
 policy against every policy of one column group -- is one vmapped, jitted program
-(``population.xp.cross_play``). Jobs go to workers in blocks (``coordinator.spread``); the workers
+(``population.xp.cross_play``). Jobs go to workers in blocks (``spread_jobs``); the workers
 are in-process (``LocalPlayers``) or Ray actors (``RayPlayers``, which reuse the Ray backend's
 retrying ``call``). Every cell uses the same episode keys whatever worker plays it, and a row group
 playing against itself goes through exactly the in-run cross-play code, so ``--rows RUN --cols RUN``
@@ -20,6 +20,7 @@ import math
 import os
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -27,12 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cluster.runtime.coordinator import spread
-from cluster.runtime.ray_backend import RayWorkers, actor_env
+from cluster.runtime.coordinator import spread_jobs
+from cluster.runtime.ray_backend import RayWorkers, actor_env, connect
 from cluster.runtime.rundir import write_csv, write_json
-from cluster.runtime.runstate import XP_KEY_OFFSET
 from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_config
 from population.evaluation import stack_params
+from population.keys import derive_key
 from population.plots import xp_heatmap
 from population.policy import PolicyError, hidden_size_of, load, network, policy_env
 from population.xp import Side, block_summary, cross_play, recipe_names
@@ -75,7 +76,7 @@ def resolve_source(text: str, checkpoint="final") -> PolicyGroup:
     path = Path(text)
     if path.is_dir() and (path / "config.yaml").is_file():
         return _run_group(text, path, checkpoint)
-    return _single(text, path, checkpoint)
+    return _single(text, path, checkpoint if path.is_dir() else "final")  # a file is one fixed policy
 
 
 def _human_proxy_path(layout: str) -> Path:
@@ -150,7 +151,8 @@ class RowsResult(NamedTuple):
 class CrossPlayPlayer:
     """Plays jobs: seat-0 ``rows`` of one group against every policy of another group."""
 
-    def play(self, row_spec, row_params, col_spec, col_params, rows, key, episodes: int, greedy: bool, job) -> RowsResult:
+    def play(self, row_spec, row_params, col_spec, col_params, rows, key, episodes: int, greedy: bool,
+             job) -> RowsResult:
         env = policy_env(row_spec[2])
         row_side = _side(row_spec, row_params, env)
         if col_spec is None:  # the row group against itself: the in-run code path, numbers included
@@ -218,6 +220,29 @@ def ray_worker_count(requested: int | None, jobs: int, cpus_per_worker: float) -
     return max(1, min(requested or available, jobs))
 
 
+@contextmanager
+def players(backend: str, jobs: int, address: str | None = None, workers: int | None = None):
+    """``LocalPlayers``, or ``RayPlayers`` on the Ray cluster at ``address`` (default: started here and
+    shut down afterwards); one worker per CPU unless ``workers``, never more than ``jobs``.
+    Raises ``RayBackendError`` when Ray cannot be reached."""
+    if backend == "local":
+        yield LocalPlayers()
+        return
+    import ray
+
+    cluster = ClusterConfig(address=address)
+    started = connect(cluster)
+    try:
+        ray_players = RayPlayers(ray_worker_count(workers, jobs, 1), cluster)
+        try:
+            yield ray_players
+        finally:
+            ray_players.close()
+    finally:
+        if started:
+            ray.shutdown()
+
+
 # ---------------------------------------------------------------------------------------------------
 # the matrix
 # ---------------------------------------------------------------------------------------------------
@@ -236,7 +261,7 @@ class Matrix:
 
 def xp_key(seed: int) -> jax.Array:
     """The episode keys of a cross-play: the XP stream of a population with this seed (as ``ocv2 xp RUN``)."""
-    return jax.random.fold_in(jax.random.PRNGKey(seed), XP_KEY_OFFSET)
+    return derive_key(seed, "xp")
 
 
 def play_matrix(row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None) -> Matrix:
@@ -256,7 +281,7 @@ def play_matrix(row_groups, col_groups, workers, key, episodes: int, greedy: boo
     items = [(r, c, i) for r, group in enumerate(row_groups) for c in range(len(col_groups))
              for i in range(len(group.names))]
     jobs = []
-    for shard, block in enumerate(spread(items, len(workers.shards))):
+    for shard, block in spread_jobs(workers, items, lambda block: block):  # consecutive blocks, one per worker
         for r, c, i in block:
             same = row_groups[r].ids == col_groups[c].ids and row_groups[r].spec == col_groups[c].spec
             jobs.append((shard, (row_groups[r].spec, row_params[r], None if same else col_groups[c].spec,
