@@ -157,3 +157,21 @@ def test_button_game_without_matplotlib_writes_the_numbers(tmp_path, capsys, mon
     captured = capsys.readouterr()
     assert "pip install 'ocv2[plots]'" in captured.err and "button_game_xp.png" not in captured.out
     assert os.listdir(out) == ["button_game_xp.csv"]
+
+
+def test_commands_import_without_the_ray_extra():
+    # Ray is an extra: --backend local, ocv2 xp --backend local and play must not need it to import,
+    # and asking for Ray without it is one line naming the extra.
+    code = (
+        "import sys; sys.modules['ray'] = None\n"
+        "import cluster.api, cluster.cli.train, cluster.cli.xp, cluster.cli.play\n"
+        "from cluster.runtime.ray_backend import RayBackendError, connect\n"
+        "from population.config import ClusterConfig\n"
+        "try:\n"
+        "    connect(ClusterConfig())\n"
+        "except RayBackendError as error:\n"
+        "    print(error)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "Ray is not installed: pip install 'ocv2[ray]', or use --backend local"

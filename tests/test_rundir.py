@@ -17,7 +17,7 @@ import pytest
 
 from cluster.cli import main
 from cluster.runtime.environment import git_state
-from cluster.runtime.rundir import LOCK_NAME, RunDir, RunDirError
+from cluster.runtime.rundir import RunDir, RunDirError
 from population import checkpoints as ckpt
 from population.config import load_config
 from population.keys import OFFSETS, derive_key

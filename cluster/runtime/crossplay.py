@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib
 import math
 import os
 import sys
@@ -28,11 +27,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cluster.runtime.coordinator import spread_jobs
-from cluster.runtime.ray_backend import RayWorkers, actor_env, connect
+from cluster.runtime.jobs import spread_jobs
+from cluster.runtime.ray_backend import RayWorkers, actor_env, connect, ray
 from cluster.runtime.rundir import write_csv, write_json
 from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_config
 from population.evaluation import stack_params
+from population.human import proxy_path
 from population.keys import derive_key
 from population.plots import xp_heatmap
 from population.policy import PolicyError, hidden_size_of, load, network, policy_env
@@ -81,12 +81,7 @@ def resolve_source(text: str, checkpoint="final") -> PolicyGroup:
 
 def _human_proxy_path(layout: str) -> Path:
     try:
-        human = importlib.import_module("population.human")
-    except ModuleNotFoundError:
-        raise CrossPlayError(f"{HUMAN_PROXY}{layout}: no human proxies in this installation "
-                             "(population.human is missing)") from None
-    try:
-        return Path(human.proxy_path(layout))
+        return Path(proxy_path(layout))
     except (ValueError, LookupError, OSError) as error:
         raise CrossPlayError(f"{HUMAN_PROXY}{layout}: {error}") from None
 
@@ -201,8 +196,6 @@ class RayPlayers(RayWorkers):
     """``num_workers`` Ray actors, each a ``CrossPlayPlayer``; ``call``/``share`` are the Ray backend's."""
 
     def __init__(self, num_workers: int, cluster: ClusterConfig):
-        import ray
-
         self.config = Config(cluster=cluster)  # RayWorkers.call reads cluster.max_restarts
         self.shards = [[i] for i in range(num_workers)]
         self._pool = None
@@ -214,8 +207,6 @@ class RayPlayers(RayWorkers):
 
 
 def ray_worker_count(requested: int | None, jobs: int, cpus_per_worker: float) -> int:
-    import ray
-
     available = int(ray.cluster_resources().get("CPU", 1) // max(cpus_per_worker, 1))
     return max(1, min(requested or available, jobs))
 
@@ -228,8 +219,6 @@ def players(backend: str, jobs: int, address: str | None = None, workers: int | 
     if backend == "local":
         yield LocalPlayers()
         return
-    import ray
-
     cluster = ClusterConfig(address=address)
     started = connect(cluster)
     try:

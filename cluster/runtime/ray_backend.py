@@ -10,7 +10,8 @@ given), checks that the requested resources exist, creates the actors and calls 
 * the failed call is resubmitted once the actor answers again. Calls are idempotent (``SeedShard``),
   so a call that ran although Ray reported it failed changes nothing.
 
-Only this module imports Ray.
+Ray is imported here and by ``crossplay`` (its Ray players); both import without it, and the first
+Ray call says which extra to install.
 """
 
 from __future__ import annotations
@@ -20,8 +21,11 @@ import socket
 import time
 from pathlib import Path
 
-import ray
-from ray.exceptions import ActorDiedError, ActorUnavailableError, GetTimeoutError, RayActorError, RayTaskError
+try:
+    import ray
+    from ray.exceptions import ActorDiedError, ActorUnavailableError, GetTimeoutError, RayActorError, RayTaskError
+except ModuleNotFoundError:  # Ray is the optional ocv2[ray] extra: --backend local must import this room without it
+    ray = None
 
 from cluster.runtime import coordinator
 from cluster.runtime.rundir import RunDirError
@@ -42,7 +46,8 @@ class RayBackendError(RuntimeError):
 
 def connect(cluster: ClusterConfig) -> bool:
     """Join ``cluster.address`` or start Ray here. Returns True if this call started/joined (then shut down)."""
-
+    if ray is None:
+        raise RayBackendError("Ray is not installed: pip install 'ocv2[ray]', or use --backend local")
     if ray.is_initialized():  # e.g. a test session or a notebook that already connected
         return False
     address = cluster.address
