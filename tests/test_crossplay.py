@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import csv
 import json
-import sys
-import types
 
 import jax
 import jax.numpy as jnp
@@ -117,14 +115,13 @@ def test_sources_of_different_environments_are_refused(run, tmp_path):
 
 
 def test_human_proxy_columns_resolve_through_population_human(run, tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "population.human", None)  # not installed: a clear error
-    with pytest.raises(crossplay.CrossPlayError, match="human-proxy:overcookedv2_demo: no human proxies"):
-        crossplay.resolve_source("human-proxy:overcookedv2_demo")
+    with pytest.raises(crossplay.CrossPlayError, match="human-proxy:overcookedv2_demo: layout 'overcookedv2_demo' "
+                                                       "has no human data"):
+        crossplay.resolve_source("human-proxy:overcookedv2_demo")  # the real population.human
     proxy = tmp_path / "proxy.ocv2policy"
     pol.export_checkpoint(run, proxy, seed=0, meta={"name": "human proxy"})
-    module = types.ModuleType("population.human")
-    module.proxy_path = lambda layout: proxy if layout == "overcookedv2_demo" else _no_proxy(layout)
-    monkeypatch.setitem(sys.modules, "population.human", module)
+    monkeypatch.setattr(crossplay, "proxy_path",
+                        lambda layout: proxy if layout == "overcookedv2_demo" else _no_proxy(layout))
     group = crossplay.resolve_source("human-proxy:overcookedv2_demo")
     assert group.names == ("human proxy",) and group.ids == crossplay.resolve_source(str(run)).ids[:1]
     with pytest.raises(crossplay.CrossPlayError, match="human-proxy:cramped_room: no proxy"):
