@@ -82,18 +82,21 @@ def load(path, template, fingerprint: str | None = None):
         state = serialization.from_state_dict(template, raw)
     except (KeyError, ValueError, TypeError) as error:
         raise CheckpointError(f"{path}: does not match the expected state structure ({error})") from None
-    _check_shapes(path, template, state)
+    check_shapes(path, template, state)
     return meta, jax.tree.map(lambda t, x: np.asarray(x, dtype=t.dtype), template, state)
 
 
-def _check_shapes(path, template, state):
-    """``template`` leaves may be arrays or ``jax.ShapeDtypeStruct`` (from ``jax.eval_shape``)."""
-    leaves, restored = jax.tree.leaves(template), jax.tree.leaves(state)
+def check_shapes(where, template, tree, error=CheckpointError, what: str = "array") -> None:
+    """Raise ``error`` naming ``where`` unless ``tree``'s leaves have ``template``'s count and shapes.
+
+    ``template`` leaves may be arrays or ``jax.ShapeDtypeStruct`` (from ``jax.eval_shape``).
+    """
+    leaves, restored = jax.tree.leaves(template), jax.tree.leaves(tree)
     if len(leaves) != len(restored):
-        raise CheckpointError(f"{path}: holds {len(restored)} arrays where {len(leaves)} were expected")
+        raise error(f"{where}: holds {len(restored)} {what}s where {len(leaves)} were expected")
     for t, x in zip(leaves, restored):
         if tuple(t.shape) != np.shape(x):
-            raise CheckpointError(f"{path}: array of shape {np.shape(x)} where {tuple(t.shape)} was expected")
+            raise error(f"{where}: {what} of shape {np.shape(x)} where {tuple(t.shape)} was expected")
 
 
 def list_updates(run_dir, seed: int) -> list[int]:

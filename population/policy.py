@@ -301,12 +301,7 @@ def _restore_params(where: str, template, raw):
         params = serialization.from_state_dict(template, raw)
     except (KeyError, ValueError, TypeError) as error:
         raise PolicyError(f"{where}: parameters do not fit the network ({error})") from None
-    leaves, restored = jax.tree.leaves(template), jax.tree.leaves(params)
-    if len(leaves) != len(restored):
-        raise PolicyError(f"{where}: holds {len(restored)} parameter arrays where the network has {len(leaves)}")
-    for t, x in zip(leaves, restored):
-        if tuple(t.shape) != np.shape(x):
-            raise PolicyError(f"{where}: parameter array of shape {np.shape(x)} where the network has {tuple(t.shape)}")
+    ckpt.check_shapes(where, template, params, PolicyError, what="parameter array")
     return jax.tree.map(lambda t, x: jnp.asarray(x, t.dtype), template, params)
 
 
