@@ -17,9 +17,14 @@ from typing import Sequence
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax.linen.initializers import constant, orthogonal
 
 from population.config import ModelConfig
+
+# The dense SameConv path is used while H*W <= this x k*k (its extra multiply-by-zero work stays
+# below ~3x the im2col FLOPs); measured in bench/train_throughput.py.
+DENSE_CELLS_PER_TAP = 3
 
 _ACTIVATIONS = {"relu": nn.relu, "tanh": nn.tanh}
 
@@ -28,12 +33,37 @@ def _dense(features: int, scale: float) -> nn.Dense:
     return nn.Dense(features, kernel_init=orthogonal(scale), bias_init=constant(0.0))
 
 
-class SameConv(nn.Module):
-    """A stride-1, SAME-padded convolution computed as shifted slices + one matmul (im2col).
+def shift_operator(height: int, width: int, kernel_size: int) -> np.ndarray:
+    """0/1 float32[H*W, H*W, k*k]: entry [p, q, o] is 1 where input cell p is kernel offset o of output cell q.
 
-    Same function and parameters (``kernel`` [k, k, C, F], ``bias`` [F]) as ``nn.Conv``, but XLA:CPU
-    runs its gradient about 4x faster than the convolution op on these small grids (see
-    docs/BENCHMARKS.md); on GPU the matmul is just as good.
+    SAME padding with the odd pixel after (as ``lax.conv``): cells outside the grid simply have no
+    entry, so ``einsum("pqo,ocf->pcqf")`` with a kernel gives the convolution as one dense matrix.
+    """
+    lo = (kernel_size - 1) // 2
+    op = np.zeros((height * width, height * width, kernel_size * kernel_size), np.float32)
+    for y in range(height):
+        for x in range(width):
+            for i in range(kernel_size):
+                for j in range(kernel_size):
+                    sy, sx = y + i - lo, x + j - lo
+                    if 0 <= sy < height and 0 <= sx < width:
+                        op[sy * width + sx, y * width + x, i * kernel_size + j] = 1.0
+    return op
+
+
+class SameConv(nn.Module):
+    """A stride-1, SAME-padded convolution computed with matmuls, never XLA's convolution op.
+
+    Same function and parameters (``kernel`` [k, k, C, F], ``bias`` [F]) as ``nn.Conv``. XLA:CPU runs
+    the convolution op, and especially its gradient, slowly on these small grids (see
+    docs/BENCHMARKS.md). Two exact formulations, picked by cost:
+
+    * dense: on a grid of at most ``DENSE_CELLS_PER_TAP`` cells per kernel tap (the 5x5 egocentric
+      views, the 4x5 Cramped Room), the whole convolution is one [H*W*C, H*W*F] matrix built from the
+      kernel, so each layer is one large matmul on the flattened observation. It multiplies some zeros,
+      but it moves no shifted copies of the activations (im2col's slices, pads and concatenations took
+      most of the update on these grids).
+    * im2col: shifted slices concatenated along channels + one matmul, for larger grids.
     """
 
     features: int
@@ -42,14 +72,20 @@ class SameConv(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:  # [B, H, W, C] -> [B, H, W, F]
         k = self.kernel_size
-        channels = x.shape[-1]
+        batch, height, width, channels = x.shape
         kernel = self.param("kernel", orthogonal(math.sqrt(2)), (k, k, channels, self.features))
         bias = self.param("bias", constant(0.0), (self.features,))
-        if k > 1:
-            lo = (k - 1) // 2  # SAME padding puts the odd pixel after, as lax.conv does
-            height, width = x.shape[1:3]
-            padded = jnp.pad(x, ((0, 0), (lo, k - 1 - lo), (lo, k - 1 - lo), (0, 0)))
-            x = jnp.concatenate([padded[:, i:i + height, j:j + width, :] for i in range(k) for j in range(k)], axis=-1)
+        if k == 1:
+            return x @ kernel.reshape(channels, self.features) + bias
+        cells = height * width
+        if cells <= DENSE_CELLS_PER_TAP * k * k:
+            shift = jnp.asarray(shift_operator(height, width, k))
+            dense = jnp.einsum("pqo,ocf->pcqf", shift, kernel.reshape(k * k, channels, self.features))
+            y = x.reshape(batch, cells * channels) @ dense.reshape(cells * channels, cells * self.features)
+            return (y.reshape(batch, height, width, self.features) + bias)
+        lo = (k - 1) // 2  # SAME padding puts the odd pixel after, as lax.conv does
+        padded = jnp.pad(x, ((0, 0), (lo, k - 1 - lo), (lo, k - 1 - lo), (0, 0)))
+        x = jnp.concatenate([padded[:, i:i + height, j:j + width, :] for i in range(k) for j in range(k)], axis=-1)
         return x @ kernel.reshape(k * k * channels, self.features) + bias
 
 
