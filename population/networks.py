@@ -22,8 +22,9 @@ from flax.linen.initializers import constant, orthogonal
 
 from population.config import ModelConfig
 
-# The dense SameConv path is used while H*W <= this x k*k (its extra multiply-by-zero work stays
-# below ~3x the im2col FLOPs); measured in bench/train_throughput.py.
+# SameConv's dense path is used while H*W <= this x k*k: its matmul does H*W / (k*k) times im2col's
+# multiply-adds, which on the 5x5 views and the 4x5 Cramped Room (<= 2.8x) still beats im2col's
+# copies on XLA:CPU (bench/train_throughput.py and docs/BENCHMARKS.md give the numbers).
 DENSE_CELLS_PER_TAP = 3
 
 _ACTIVATIONS = {"relu": nn.relu, "tanh": nn.tanh}
