@@ -204,10 +204,13 @@ def table(results, repeats: int, peak: MatmulPeak) -> str:
         "keeps `nn.Conv`'s parameters and function but computes it with matmuls: on grids of at most 3 cells per "
         "kernel tap (both configs here: 5x5 and 4x5) the whole convolution is one dense [H*W*C, H*W*F] matrix built "
         "from the kernel, so each conv layer is one large matmul; on larger grids, shifted slices + one matmul "
-        "(im2col). im2col alone gave 1,699 (RNN) and 2,828 (CNN) env steps/s, about 23 % of the matmul peak: "
-        "its slices, pads and concatenations took two thirds of the CNN update and a third of the RNN's. The "
-        "dense matrix multiplies zeros at the grid border (2.8x the 3x3 layers' useful FLOPs on a 5x5 grid, "
-        "uncounted above), but it runs at matmul speed and moves no shifted copies.",
+        "(im2col). With im2col everywhere (`--im2col`) this table read 1,699 (RNN) and 2,828 (CNN) env steps/s "
+        "on 2026-11-21; in a profile of one minibatch's forward + backward its slices, pads and concatenations "
+        "took two thirds of the CNN's time and a quarter of the RNN's, and the dense path made that minibatch "
+        "step about 2x (CNN) and 1.6x (RNN) faster, interleaved in one process. The dense matrix also multiplies "
+        "the zero padding (2.8x the useful multiply-adds of a 3x3 layer on a 5x5 grid, not counted in the "
+        "FLOPs above), so the RNN's 1x1 mixer and dense convs run as plain matmuls but not all of their work "
+        "is useful. The GRU computes its input projections for all steps as one matmul before the time loop.",
         END,
     ]
     return "\n".join(lines)
