@@ -112,7 +112,9 @@ def _fingerprint(x) -> tuple[float, float, float]:
 @pytest.mark.parametrize("name", sorted(CONFIGS))
 def test_two_updates_match_the_reference_implementation(name):
     trainer = ppo.make_trainer(parse_config(CONFIGS[name]))
-    state = ppo.take_seed(ppo.init_population(trainer, [0]), 0)
+    # the key the reference run's seed 0 had, spelled out so a change of key derivation cannot move it
+    key = jax.random.fold_in(jax.random.PRNGKey(0), 0)
+    state = jax.jit(lambda k: ppo.init_train_state(trainer, k))(key)
     state, metrics = jax.jit(lambda s: ppo.advance(trainer, s, 2))(state)
     reference = REFERENCE[name]
     for field, expected in reference["loss"].items():
