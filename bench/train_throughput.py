@@ -208,7 +208,8 @@ def table(results, repeats: int, peak: MatmulPeak) -> str:
         "(idle machine); `--im2col` on 2026-11-24 (same shared machine, another hour) gave 39 % (RNN) "
         "and 42 % (CNN) of its matmul peak. In a profile of one minibatch's forward + backward its slices, pads and concatenations "
         "took two thirds of the CNN's time and a quarter of the RNN's, and the dense path made that minibatch "
-        "step about 2x (CNN) and 1.6x (RNN) faster, interleaved in one process. The dense matrix also multiplies "
+        "step 1.7x (CNN: 174 -> 102 ms) but only 1.06x (RNN: 295 -> 278 ms) faster, interleaved in one process "
+        "on an idle machine. The dense matrix also multiplies "
         "the zero padding (2.8x the useful multiply-adds of a 3x3 layer on a 5x5 grid, not counted in the "
         "FLOPs above), so the RNN's 1x1 mixer and dense convs run as plain matmuls but not all of their work "
         "is useful. The GRU computes its input projections for all steps as one matmul before the time loop.",
