@@ -17,9 +17,15 @@ from typing import Sequence
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax.linen.initializers import constant, orthogonal
 
 from population.config import ModelConfig
+
+# SameConv's dense path is used while H*W <= this x k*k: its matmul does H*W / (k*k) times im2col's
+# multiply-adds, which on the 5x5 views and the 4x5 Cramped Room (<= 2.8x) still beats im2col's
+# copies on XLA:CPU (bench/train_throughput.py and docs/BENCHMARKS.md give the numbers).
+DENSE_CELLS_PER_TAP = 3
 
 _ACTIVATIONS = {"relu": nn.relu, "tanh": nn.tanh}
 
@@ -28,12 +34,37 @@ def _dense(features: int, scale: float) -> nn.Dense:
     return nn.Dense(features, kernel_init=orthogonal(scale), bias_init=constant(0.0))
 
 
-class SameConv(nn.Module):
-    """A stride-1, SAME-padded convolution computed as shifted slices + one matmul (im2col).
+def shift_operator(height: int, width: int, kernel_size: int) -> np.ndarray:
+    """0/1 float32[H*W, H*W, k*k]: entry [p, q, o] is 1 where input cell p is kernel offset o of output cell q.
 
-    Same function and parameters (``kernel`` [k, k, C, F], ``bias`` [F]) as ``nn.Conv``, but XLA:CPU
-    runs its gradient about 4x faster than the convolution op on these small grids (see
-    docs/BENCHMARKS.md); on GPU the matmul is just as good.
+    SAME padding with the odd pixel after (as ``lax.conv``): cells outside the grid simply have no
+    entry, so ``einsum("pqo,ocf->pcqf")`` with a kernel gives the convolution as one dense matrix.
+    """
+    lo = (kernel_size - 1) // 2
+    op = np.zeros((height * width, height * width, kernel_size * kernel_size), np.float32)
+    for y in range(height):
+        for x in range(width):
+            for i in range(kernel_size):
+                for j in range(kernel_size):
+                    sy, sx = y + i - lo, x + j - lo
+                    if 0 <= sy < height and 0 <= sx < width:
+                        op[sy * width + sx, y * width + x, i * kernel_size + j] = 1.0
+    return op
+
+
+class SameConv(nn.Module):
+    """A stride-1, SAME-padded convolution computed with matmuls, never XLA's convolution op.
+
+    Same function and parameters (``kernel`` [k, k, C, F], ``bias`` [F]) as ``nn.Conv``. XLA:CPU runs
+    the convolution op, and especially its gradient, slowly on these small grids (see
+    docs/BENCHMARKS.md). Two exact formulations, picked by cost:
+
+    * dense: on a grid of at most ``DENSE_CELLS_PER_TAP`` cells per kernel tap (the 5x5 egocentric
+      views, the 4x5 Cramped Room), the whole convolution is one [H*W*C, H*W*F] matrix built from the
+      kernel, so each layer is one large matmul on the flattened observation. It multiplies some zeros,
+      but it moves no shifted copies of the activations (im2col's slices, pads and concatenations took
+      most of the update on these grids).
+    * im2col: shifted slices concatenated along channels + one matmul, for larger grids.
     """
 
     features: int
@@ -42,14 +73,20 @@ class SameConv(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:  # [B, H, W, C] -> [B, H, W, F]
         k = self.kernel_size
-        channels = x.shape[-1]
+        batch, height, width, channels = x.shape
         kernel = self.param("kernel", orthogonal(math.sqrt(2)), (k, k, channels, self.features))
         bias = self.param("bias", constant(0.0), (self.features,))
-        if k > 1:
-            lo = (k - 1) // 2  # SAME padding puts the odd pixel after, as lax.conv does
-            height, width = x.shape[1:3]
-            padded = jnp.pad(x, ((0, 0), (lo, k - 1 - lo), (lo, k - 1 - lo), (0, 0)))
-            x = jnp.concatenate([padded[:, i:i + height, j:j + width, :] for i in range(k) for j in range(k)], axis=-1)
+        if k == 1:
+            return x @ kernel.reshape(channels, self.features) + bias
+        cells = height * width
+        if cells <= DENSE_CELLS_PER_TAP * k * k:
+            shift = jnp.asarray(shift_operator(height, width, k))
+            dense = jnp.einsum("pqo,ocf->pcqf", shift, kernel.reshape(k * k, channels, self.features))
+            y = x.reshape(batch, cells * channels) @ dense.reshape(cells * channels, cells * self.features)
+            return (y.reshape(batch, height, width, self.features) + bias)
+        lo = (k - 1) // 2  # SAME padding puts the odd pixel after, as lax.conv does
+        padded = jnp.pad(x, ((0, 0), (lo, k - 1 - lo), (lo, k - 1 - lo), (0, 0)))
+        x = jnp.concatenate([padded[:, i:i + height, j:j + width, :] for i in range(k) for j in range(k)], axis=-1)
         return x @ kernel.reshape(k * k * channels, self.features) + bias
 
 
@@ -75,19 +112,68 @@ class ConvEncoder(nn.Module):
         return nn.LayerNorm()(x)
 
 
-class ResetGRUCell(nn.Module):
-    """A GRU step that zeroes its carry where an episode starts (flax default GRU initialisers)."""
+class _DenseParams(nn.Module):
+    """Only the parameters of an ``nn.Dense`` (same names, shapes, initialisers and random draws)."""
+
+    features: int
+    use_bias: bool
+    kernel_init: nn.initializers.Initializer
+
+    @nn.compact
+    def __call__(self, in_features: int):
+        kernel = self.param("kernel", self.kernel_init, (in_features, self.features))
+        bias = self.param("bias", constant(0.0), (self.features,)) if self.use_bias else None
+        return kernel, bias
+
+
+class _GRUParams(nn.Module):
+    """The parameters of flax's ``nn.GRUCell``: input kernels ir/iz/in with biases, hidden hr/hz/hn (hn biased)."""
 
     features: int
 
     @nn.compact
-    def __call__(self, carry, inputs):
-        x, reset = inputs
-        carry = jnp.where(reset[:, None], jnp.zeros_like(carry), carry)
-        return nn.GRUCell(self.features)(carry, x)
+    def __call__(self, in_features: int):
+        dense_i = lambda name: _DenseParams(self.features, True, nn.initializers.lecun_normal(), name=name)
+        dense_h = lambda name, bias=False: _DenseParams(self.features, bias, orthogonal(), name=name)
+        # creation order = nn.GRUCell's, so the same init key draws the same values
+        ir, hr = dense_i("ir")(in_features), dense_h("hr")(self.features)
+        iz, hz = dense_i("iz")(in_features), dense_h("hz")(self.features)
+        in_, hn = dense_i("in")(in_features), dense_h("hn", True)(self.features)
+        input_kernel = jnp.concatenate([ir[0], iz[0], in_[0]], axis=1)  # [in, 3H]: gates r, z, n
+        input_bias = jnp.concatenate([ir[1], iz[1], in_[1]])
+        hidden_kernel = jnp.concatenate([hr[0], hz[0], hn[0]], axis=1)  # [H, 3H]
+        return input_kernel, input_bias, hidden_kernel, hn[1]
 
 
-_ScannedGRU = nn.scan(ResetGRUCell, variable_broadcast="params", split_rngs={"params": False}, in_axes=0, out_axes=0)
+class ResetGRU(nn.Module):
+    """flax's ``nn.GRUCell`` over a sequence, zeroing the carry where an episode starts.
+
+    Same function and parameter tree as ``nn.scan(GRUCell)`` (kept under the names that scan gave,
+    so checkpoints stay loadable), computed faster: the input projections of all three gates for
+    all T steps are one [T*B, in] x [in, 3H] matmul before the time loop, and each step does one
+    [B, H] x [H, 3H] matmul for the three hidden projections instead of three small ones.
+    """
+
+    features: int
+
+    @nn.compact
+    def __call__(self, hidden, inputs, reset):  # [B, H], [T, B, in], bool[T, B] -> ([B, H], [T, B, H])
+        input_kernel, input_bias, hidden_kernel, hidden_bias = _GRUParams(self.features, name="GRUCell_0")(
+            inputs.shape[-1])
+        projected = inputs @ input_kernel + input_bias  # [T, B, 3H]
+        size = self.features
+
+        def step(h, xs):
+            x, start = xs
+            h = jnp.where(start[:, None], jnp.zeros_like(h), h)
+            hh = h @ hidden_kernel
+            r = nn.sigmoid(x[:, :size] + hh[:, :size])
+            z = nn.sigmoid(x[:, size:2 * size] + hh[:, size:2 * size])
+            n = jnp.tanh(x[:, 2 * size:] + r * (hh[:, 2 * size:] + hidden_bias))
+            h = (1.0 - z) * n + z * h
+            return h, h
+
+        return jax.lax.scan(step, hidden, (projected, reset))
 
 
 class ActorCritic(nn.Module):
@@ -110,7 +196,7 @@ class ActorCritic(nn.Module):
         embedding = ConvEncoder(self.mixer_features, self.conv_features, self.conv_kernels, self.fc_dim,
                                 self.activation)(flat).reshape(steps, batch, -1)
         if self.recurrent:
-            hidden, embedding = _ScannedGRU(self.gru_dim)(hidden, (embedding, reset))
+            hidden, embedding = ResetGRU(self.gru_dim, name="ScanResetGRUCell_0")(hidden, embedding, reset)
         actor = act(_dense(self.fc_dim, math.sqrt(2))(embedding))
         logits = _dense(self.num_actions, 0.01)(actor)
         critic = act(_dense(self.fc_dim, math.sqrt(2))(embedding))
