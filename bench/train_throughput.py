@@ -28,9 +28,8 @@ not counted. The same run times a 2048 x 2048 x 2048 float32 matmul (``jnp.dot``
 the updates; achieved FLOP/s = FLOPs per update / s per update, and its ratio to that matmul's
 median GFLOP/s is the machine-independent measure (the target is >= 50 %).
 
-The paper's loop reaches about 400-670
-(RNN) and 350-470 (CNN) env steps/s on this kind of 2-core machine
-(``../shared/reference/training-reference.md``, Runtime); the target is >= 2x those.
+The paper's loop reaches about 400-670 (RNN) and 350-470 (CNN) env steps/s on this kind of 2-core
+machine (an estimate from its components; docs/REPRODUCING.md, "paper code").
 
 Writes the block between ``<!-- train_throughput:start -->`` and ``<!-- train_throughput:end -->``
 of docs/BENCHMARKS.md.
