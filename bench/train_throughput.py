@@ -29,7 +29,7 @@ the updates; achieved FLOP/s = FLOPs per update / s per update, and its ratio to
 median GFLOP/s is the machine-independent measure (the target is >= 50 %).
 
 The paper's loop reaches about 400-670 (RNN) and 350-470 (CNN) env steps/s on this kind of 2-core
-machine (an estimate from its components; docs/REPRODUCING.md, "paper code").
+machine (an estimate from its components: its environment step, network and update timed apart).
 
 Writes the block between ``<!-- train_throughput:start -->`` and ``<!-- train_throughput:end -->``
 of docs/BENCHMARKS.md.
