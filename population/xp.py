@@ -60,7 +60,8 @@ def episode_blocks(episodes: int, block: int = EPISODE_BLOCK) -> tuple[int, int]
 
 
 def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array, episodes: int,
-               rows=None, on_block=None, partners: Side | None = None, greedy: bool = False) -> CrossPlay:
+               rows=None, on_block=None, partners: Side | None = None, greedy: bool = False,
+               on_progress=None) -> CrossPlay:
     """Evaluate all ordered pairs of the K stacked ``params`` (or only the given seat-0 ``rows``).
 
     One jitted call per row and block of episodes (C pairs x at most 64 episodes) bounds memory; block
@@ -71,6 +72,7 @@ def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array
 
     ``partners``: the seat-1 policies (default: the same K); the result is then [K, C, E]. With
     ``greedy`` both seats take their most likely action instead of sampling one.
+    ``on_progress(done, total)``: called with 0 first, then after each block (``done`` blocks more).
     """
     num = jax.tree.leaves(params)[0].shape[0]
     rows = range(num) if rows is None else rows
@@ -88,6 +90,8 @@ def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array
         play = jitted_play_recorded_pairs(seat_apply, seat_hidden, env, size)
     returns = np.full((num, num_cols, episodes), np.nan, np.float32)
     recipes = np.zeros((num, num_cols, episodes), np.int32)
+    if on_progress is not None:
+        on_progress(0, len(rows) * count)
     for i in rows:
         seat0 = gather_params(params, [i] * num_cols)
         for block in range(count):
@@ -102,6 +106,8 @@ def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array
                 on_block(i, first, result)
             returns[i, :, first:first + n] = np.asarray(block_returns)[:, :n]
             recipes[i, :, first:first + n] = np.asarray(block_recipes)[:, :n]
+            if on_progress is not None:
+                on_progress(1, len(rows) * count)
     return CrossPlay(returns, recipes)
 
 

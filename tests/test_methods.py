@@ -360,6 +360,15 @@ def test_cross_play_rows_only_fills_those_rows(scripted):
     assert np.isnan(result.returns[1]).all()
 
 
+def test_cross_play_reports_progress_per_block(scripted):
+    env, _, params, full = scripted
+    calls = []
+    result = cross_play(script_apply, 1, env, params, jax.random.PRNGKey(5), episodes=3, rows=[0, 1],
+                        on_progress=lambda done, total: calls.append((done, total)))
+    np.testing.assert_array_equal(result.returns, full.returns)  # watching does not change the numbers
+    assert calls[0] == (0, 2) and calls[1:] == [(1, 2), (1, 2)]  # 2 rows x 1 block of 3 episodes
+
+
 # ---------------------------------------------------------------------------------------------------
 # summarize on a synthetic matrix
 # ---------------------------------------------------------------------------------------------------

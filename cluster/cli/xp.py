@@ -19,6 +19,7 @@ import time
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import crossplay
 from cluster.runtime.evaluate import evaluate_run
+from cluster.runtime.progress import Bar
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from population.checkpoints import CheckpointError
@@ -107,7 +108,7 @@ def _cross_run(args) -> int:
     label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
     try:
         with crossplay.players(backend, jobs, args.address, args.workers) as workers, \
-                crossplay.Bar(label, enabled=not args.quiet) as bar:
+                Bar(label, enabled=not args.quiet) as bar:
             result = crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar)
     except RayBackendError as error:
         raise CLIError(str(error)) from None

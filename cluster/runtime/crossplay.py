@@ -17,8 +17,6 @@ import dataclasses
 import hashlib
 import math
 import os
-import sys
-import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -358,35 +356,3 @@ def _short(group: PolicyGroup) -> str:
 
 def _round(value) -> float | str:
     return "" if value is None or (isinstance(value, float) and math.isnan(value)) else round(float(value), 4)
-
-
-class Bar:
-    """A rich progress bar over jobs on a terminal; one line per wave otherwise (logs, CI); or nothing."""
-
-    def __init__(self, label: str, enabled: bool = True):
-        self.label, self.enabled, self._bar, self._task, self.started = label, enabled, None, None, time.perf_counter()
-        self.done = 0
-
-    def __enter__(self):
-        if self.enabled and sys.stdout.isatty():
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-            self._bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeRemainingColumn())
-            self._bar.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        if self._bar is not None:
-            self._bar.__exit__(*exc)
-        return False
-
-    def __call__(self, done: int, total: int) -> None:
-        """``done`` more of ``total`` jobs finished (0 first: the bar appears)."""
-        self.done += done
-        if self._bar is not None:
-            if self._task is None:
-                self._task = self._bar.add_task(self.label, total=total)
-            self._bar.update(self._task, completed=self.done)
-        elif self.enabled and done:
-            print(f"  {self.label}: {self.done}/{total} jobs ({time.perf_counter() - self.started:.0f} s)", flush=True)

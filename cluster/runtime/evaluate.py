@@ -19,6 +19,7 @@ import numpy as np
 
 from cluster.archive import ArchiveWriter, record_episodes
 from cluster.runtime.jobs import spread_jobs
+from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import RunDir, RunDirError, seed_curves, write_csv, write_json
 from cluster.runtime.runstate import archive_meta, hidden_size, load_params, pair_meta, params_template
 from ocv2.render import render_frames, write_gif
@@ -54,13 +55,16 @@ def post_training(run_dir, workers=None, show_progress: bool = True) -> dict:
             "archive": xp.get("archive")}
 
 
-def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes: int, archive_dir=None) -> CrossPlay:
-    """Cross-play of seat-0 ``rows``; with ``archive_dir`` every episode also goes to its row's MCAP file."""
+def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes: int, archive_dir=None,
+              on_progress=None) -> CrossPlay:
+    """Cross-play of seat-0 ``rows``; with ``archive_dir`` every episode also goes to its row's MCAP file.
+
+    ``on_progress(done, total)`` counts blocks of episodes (``population.xp.cross_play``)."""
     env = ppo.eval_env(config)
     apply, hidden = trainer.network.apply, hidden_size(trainer)
     params = jax.tree.map(jnp.asarray, params)
     if archive_dir is None:
-        return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows)
+        return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows, on_progress=on_progress)
     base = archive_meta(config, "cross-play", scored=True, checkpoint_update=config.ppo.num_updates)
     num = jax.tree.leaves(params)[0].shape[0]
     with ExitStack() as files:
@@ -72,7 +76,8 @@ def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes:
                 record_episodes(writers[row], env, jax.tree.map(lambda x: x[j], recorded),
                                 {**base, **pair_meta(row, j)}, first)
 
-        return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows, on_block=write)
+        return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows, on_block=write,
+                          on_progress=on_progress)
 
 
 def xp_archive_path(archive_dir, row: int) -> Path:
@@ -103,7 +108,9 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     run = RunDir(run_dir)
     archive_dir = run.subdir("archive", "xp") if config.archive.xp else None
     if workers is None:
-        result = play_rows(config, trainer, params, range(config.population.num_seeds), key, episodes, archive_dir)
+        num = config.population.num_seeds
+        with Bar(f"cross-play {num}x{num}, {episodes} episodes/pair", enabled=show_progress, unit="blocks") as bar:
+            result = play_rows(config, trainer, params, range(num), key, episodes, archive_dir, on_progress=bar)
     else:
         result = _cross_play_spread(workers, params, key, episodes, archive_dir)
     summary = summarize(result, recipe_names(env))

@@ -1,4 +1,5 @@
-"""One live progress view for a whole population: updates, env steps/s, recent return, ETA, restarts."""
+"""Live progress: a population's training (updates, env steps/s, recent return, ETA, restarts) and job counts
+(cross-play)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import sys
 import time
 
 import numpy as np
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 
 class PopulationProgress:
@@ -23,8 +25,6 @@ class PopulationProgress:
 
     def __enter__(self):
         if self.enabled and sys.stdout.isatty():
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
             self._bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                                  TextColumn("{task.fields[info]}"), TimeRemainingColumn())
             self._bar.__enter__()
@@ -64,6 +64,37 @@ class PopulationProgress:
             self._bar.update(self._task, completed=update, info=info)
         elif self.enabled:
             print(f"  update {update}/{self.total}  {info}  ETA {_duration(eta)}", flush=True)
+
+
+class Bar:
+    """A rich progress bar over jobs on a terminal; one line per wave otherwise (logs, CI); or nothing."""
+
+    def __init__(self, label: str, enabled: bool = True, unit: str = "jobs"):
+        self.unit = unit
+        self.label, self.enabled, self._bar, self._task, self.started = label, enabled, None, None, time.perf_counter()
+        self.done = 0
+
+    def __enter__(self):
+        if self.enabled and sys.stdout.isatty():
+            self._bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeRemainingColumn())
+            self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            self._bar.__exit__(*exc)
+        return False
+
+    def __call__(self, done: int, total: int) -> None:
+        """``done`` more of ``total`` jobs finished (0 first: the bar appears)."""
+        self.done += done
+        if self._bar is not None:
+            if self._task is None:
+                self._task = self._bar.add_task(self.label, total=total)
+            self._bar.update(self._task, completed=self.done)
+        elif self.enabled and done:
+            print(f"  {self.label}: {self.done}/{total} {self.unit} ({time.perf_counter() - self.started:.0f} s)", flush=True)
 
 
 def _latest(rows, name: str) -> np.ndarray:
