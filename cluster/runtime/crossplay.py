@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cluster.runtime.jobs import spread_jobs
+from cluster.runtime.jobs import InProcessWorkers, spread_jobs
 from cluster.runtime.ray_backend import RayWorkers, actor_env, connect, ray
 from cluster.runtime.rundir import write_csv, write_json
 from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_config
@@ -170,24 +170,11 @@ def _side(spec, params, env) -> Side:
     return Side(net.apply, hidden_size_of(model), jax.tree.map(jnp.asarray, params))
 
 
-class LocalPlayers:
-    """One in-process player; ``share`` is the identity."""
+class LocalPlayers(InProcessWorkers):
+    """One in-process player."""
 
     def __init__(self):
-        self.shards, self.events = [[0]], []
-        self._player = CrossPlayPlayer()
-
-    def call(self, method: str, jobs):
-        return [getattr(self._player, method)(*args) for _, args in jobs]
-
-    def share(self, value):
-        return value
-
-    def restarts(self) -> int:
-        return 0
-
-    def close(self) -> None:
-        self._player = None
+        super().__init__([[0]], CrossPlayPlayer())
 
 
 class RayPlayers(RayWorkers):

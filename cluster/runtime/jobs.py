@@ -39,6 +39,28 @@ class Workers(Protocol):
 WorkersFactory = Callable[[Config, Path, object], Workers]  # (config, run_dir, FCP pool or None)
 
 
+class InProcessWorkers:
+    """``Workers`` with one in-process worker, ``target``, called directly; ``share`` is the identity.
+
+    The local backend (a ``SeedShard``) and local cross-play (a ``CrossPlayPlayer``) both use it.
+    """
+
+    def __init__(self, shards: list[list[int]], target):
+        self.shards, self.events, self.target = shards, [], target
+
+    def call(self, method: str, jobs):
+        return [getattr(self.target, method)(*args) for _, args in jobs]
+
+    def share(self, value):
+        return value
+
+    def restarts(self) -> int:
+        return 0
+
+    def close(self) -> None:
+        self.target = None
+
+
 def spread(items: Sequence, parts: int) -> list[list]:
     """``items`` in ``parts`` consecutive blocks as even as possible (some empty if too few items)."""
     size, extra = divmod(len(items), parts)

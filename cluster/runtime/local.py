@@ -9,29 +9,17 @@ from __future__ import annotations
 from pathlib import Path
 
 from cluster.runtime import coordinator
+from cluster.runtime.jobs import InProcessWorkers
 from cluster.runtime.shard import SeedShard
 from population.config import Config
 
 
-class LocalWorkers:
-    """One shard with every seed, called directly; ``share`` is the identity (nothing to copy)."""
+class LocalWorkers(InProcessWorkers):
+    """One shard with every seed, called directly (nothing to copy)."""
 
     def __init__(self, config: Config, run_dir: Path, pool=None):
-        self.shards = [list(range(config.population.num_seeds))]
-        self.events: list[dict] = []
-        self._shard = SeedShard(config, run_dir, self.shards[0], pool)
-
-    def call(self, method: str, jobs):
-        return [getattr(self._shard, method)(*args) for _, args in jobs]
-
-    def share(self, value):
-        return value
-
-    def restarts(self) -> int:
-        return 0
-
-    def close(self) -> None:
-        self._shard = None
+        seeds = list(range(config.population.num_seeds))
+        super().__init__([seeds], SeedShard(config, run_dir, seeds, pool))
 
 
 def train_population(config: Config, run_dir, *, resume: bool = False, show_progress: bool = True,
