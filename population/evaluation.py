@@ -127,6 +127,18 @@ def play_pairs(apply, hidden_size, env, params_a, params_b, keys: jax.Array, epi
     return jax.vmap(run)(params_a, params_b, keys)
 
 
+def play_row(apply, hidden_size, env, params_a, params_b, key: jax.Array, episodes: int,
+             keep_every: int | None = None, greedy=False) -> PairEpisodes:
+    """One seat-0 policy ``params_a`` with each of P partners ``params_b`` (leading [P] axis), one shared key.
+
+    The same episodes as ``play_pairs`` with ``params_a`` repeated P times and ``key`` repeated P times
+    (identical numbers, tested), but seat 0's weights are not copied per pair: its layers run as one
+    matmul over all P x R environments instead of P batched ones -- a cross-play row's shape.
+    """
+    run = lambda pb: play_episodes(apply, hidden_size, env, (params_a, pb), key, episodes, keep_every, greedy)
+    return jax.vmap(run)(params_b)
+
+
 def stack_params(params_list):
     """Stack same-shaped parameter pytrees on a new leading axis."""
     return jax.tree.map(lambda *xs: jnp.stack(xs), *params_list)

@@ -21,7 +21,8 @@ import jax.numpy as jnp
 from ocv2.state import State
 from population.evaluation import PolicyApply, initial_carry, play_step
 
-__all__ = ["Recorded", "jitted_play_recorded", "jitted_play_recorded_pairs", "play_recorded", "play_recorded_pairs"]
+__all__ = ["Recorded", "jitted_play_recorded", "jitted_play_recorded_pairs", "jitted_play_recorded_row", "play_recorded",
+           "play_recorded_pairs", "play_recorded_row"]
 
 
 class Recorded(NamedTuple):
@@ -66,6 +67,13 @@ def play_recorded_pairs(apply: PolicyApply, hidden_size: int, env, params_a, par
     return jax.vmap(run)(params_a, params_b, keys)
 
 
+def play_recorded_row(apply: PolicyApply, hidden_size: int, env, params_a, params_b, key: jax.Array,
+                      episodes: int) -> Recorded:
+    """One seat-0 policy with each of P partners (``params_b`` [P]), one shared key: see ``play_row``."""
+    run = lambda pb: play_recorded(apply, hidden_size, env, (params_a, pb), key, episodes)
+    return jax.vmap(run)(params_b)
+
+
 @functools.lru_cache(maxsize=16)
 def jitted_play_recorded(apply: PolicyApply, hidden_size: int, env, episodes: int):
     """``play_recorded`` compiled once per (apply, hidden_size, env, episodes): ``f(params_pair, key)``."""
@@ -76,3 +84,9 @@ def jitted_play_recorded(apply: PolicyApply, hidden_size: int, env, episodes: in
 def jitted_play_recorded_pairs(apply: PolicyApply, hidden_size: int, env, episodes: int):
     """``play_recorded_pairs`` compiled once per (apply, hidden_size, env, episodes): ``f(a, b, keys)``."""
     return jax.jit(lambda a, b, keys: play_recorded_pairs(apply, hidden_size, env, a, b, keys, episodes))
+
+
+@functools.lru_cache(maxsize=16)
+def jitted_play_recorded_row(apply: PolicyApply, hidden_size: int, env, episodes: int):
+    """``play_recorded_row`` compiled once per (apply, hidden_size, env, episodes): ``f(a, b, key)``."""
+    return jax.jit(lambda a, b, key: play_recorded_row(apply, hidden_size, env, a, b, key, episodes))

@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ocv2.items import recipe_encoding_np
-from population.evaluation import PolicyApply, gather_params, play_pairs
-from population.record import jitted_play_recorded_pairs
+from population.evaluation import PolicyApply, play_row
+from population.record import jitted_play_recorded_row
 
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_SEED = 0  # fixed: the same matrix always gives the same interval
@@ -87,17 +87,17 @@ def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array
     elif greedy:
         raise ValueError("cross_play: recording (on_block) plays sampled actions only")
     else:
-        play = jitted_play_recorded_pairs(seat_apply, seat_hidden, env, size)
+        play = jitted_play_recorded_row(seat_apply, seat_hidden, env, size)
     returns = np.full((num, num_cols, episodes), np.nan, np.float32)
     recipes = np.zeros((num, num_cols, episodes), np.int32)
     if on_progress is not None:
         on_progress(0, len(rows) * count)
     for i in rows:
-        seat0 = gather_params(params, [i] * num_cols)
+        seat0 = jax.tree.map(lambda x: x[i], params)  # shared by the row's pairs, not copied per pair
         for block in range(count):
             first, n = block * size, min(size, episodes - block * size)
-            keys = jnp.stack([jax.random.fold_in(key, block)] * num_cols)  # common random numbers across pairs
-            result = jax.device_get(play(seat0, cols, keys))
+            block_key = jax.random.fold_in(key, block)  # common random numbers: one key for every pair
+            result = jax.device_get(play(seat0, cols, block_key))
             if on_block is None:
                 block_returns, block_recipes = result.returns, result.start_recipe
             else:
@@ -113,7 +113,7 @@ def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array
 
 @functools.lru_cache(maxsize=16)
 def _jitted_play(apply, hidden_size, env, episodes, greedy=False):
-    return jax.jit(lambda a, b, k: play_pairs(apply, hidden_size, env, a, b, k, episodes, greedy=greedy))
+    return jax.jit(lambda a, b, k: play_row(apply, hidden_size, env, a, b, k, episodes, greedy=greedy))
 
 
 def _mean_std(values: np.ndarray) -> tuple[float, float]:

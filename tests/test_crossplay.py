@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -15,8 +16,10 @@ import ocv2
 from cluster.cli import main
 from cluster.runtime import crossplay
 from population import policy as pol
-from population.config import ClusterConfig
-from population.evaluation import stack_params
+from population.config import ClusterConfig, load_config
+from population.evaluation import gather_params, play_row, stack_params
+from population.networks import init_params
+from population.record import play_recorded_pairs, play_recorded_row
 from population.xp import Side, bootstrap_block, cross_play
 from policy_runs import shared_run
 from test_methods import COOK_SCRIPT, SCRIPT_STEPS, _table, script_apply
@@ -186,3 +189,30 @@ def test_bootstrap_resamples_seeds_not_cells():
     low, high = bootstrap_block(rect, ["a", "b"], ["c", "d"])["xp"]
     assert (low, high) == (0.0, 30.0)  # a resample can draw row a twice and column c twice
     assert bootstrap_block(rect, ["a", "b"], ["c", "d"]) == bootstrap_block(rect, ["a", "b"], ["c", "d"])
+
+
+def _rnn_population(num: int, max_steps: int):
+    """``num`` freshly initialised paper RNNs (GRU) and their environment with short episodes."""
+    config = load_config(str(Path(__file__).resolve().parents[1] / "configs/paper/v2_grounded_coord_simple_sp.yaml"))
+    env = pol.policy_env({**config.env_kwargs, "max_steps": max_steps})
+    net = pol.network(config.model, config.ppo.activation, env.num_actions)
+    params = stack_params([init_params(net, jax.random.PRNGKey(s), env.obs_shape) for s in range(num)])
+    return net.apply, pol.hidden_size_of(config.model), env, params
+
+
+def test_a_row_shares_seat_0_and_plays_exactly_the_pairs_of_repeated_copies():
+    """cross_play's rows run seat 0 once for all partners (play_row, play_recorded_row); every state,
+    action and return must equal the pair form with seat 0 and the key copied per pair (the old, slower
+    program). The paper RNN, where seat 0's GRU and dense layers become one matmul over all pairs."""
+    apply, hidden, env, params = _rnn_population(3, 60)
+    key = jax.random.PRNGKey(11)
+    row_fn = jax.jit(lambda a, b, k: (play_row(apply, hidden, env, a, b, k, 4).returns,
+                                      play_recorded_row(apply, hidden, env, a, b, k, 4)))
+    pairs_fn = jax.jit(lambda a, b, k: play_recorded_pairs(apply, hidden, env, a, b, k, 4))
+    for row in range(3):
+        returns, shared = row_fn(jax.tree.map(lambda x: x[row], params), params, key)
+        paired = pairs_fn(gather_params(params, [row] * 3), params, jnp.stack([key] * 3))
+        for a, b in zip(jax.tree.leaves(shared), jax.tree.leaves(paired)):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(returns, paired.returns)
+        assert len(np.unique(np.asarray(paired.actions))) > 1
