@@ -36,7 +36,7 @@ of docs/BENCHMARKS.md.
 
     python bench/train_throughput.py
     python bench/train_throughput.py --configs cnn --repeats 2 --out ''
-    python bench/train_throughput.py --im2col --out ''   # the im2col SameConv, for comparison
+    python bench/train_throughput.py --conv-path im2col --out ''   # one SameConv formulation everywhere
 """
 
 from __future__ import annotations
@@ -222,11 +222,10 @@ def main(argv=None) -> int:
     parser.add_argument("--configs", nargs="+", default=["rnn", "cnn"], choices=sorted(CONFIGS))
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default="docs/BENCHMARKS.md")
-    parser.add_argument("--im2col", action="store_true",
-                        help="time SameConv's im2col path on every grid (the formulation before the dense one)")
+    parser.add_argument("--conv-path", choices=("auto", "dense", "im2col"), default="auto",
+                        help="force one SameConv formulation on every grid, for comparison (default: the cheapest)")
     args = parser.parse_args(argv)
-    if args.im2col:
-        networks.DENSE_CELLS_PER_TAP = 0
+    networks.CONV_PATH = args.conv_path
     results = []
     peak = MatmulPeak()
     for name in args.configs:

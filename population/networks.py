@@ -26,6 +26,8 @@ from population.config import ModelConfig
 # multiply-adds, which on the 5x5 views and the 4x5 Cramped Room (<= 2.8x) still beats im2col's
 # copies on XLA:CPU (bench/train_throughput.py and docs/BENCHMARKS.md give the numbers).
 DENSE_CELLS_PER_TAP = 3
+MIXER_CHUNK_ROWS = 2048  # cells per chunk of the 1x1 mixer (pointwise_mixer); 0: no chunking
+CONV_PATH = "auto"  # or force "dense" / "im2col" everywhere (bench/train_throughput.py --conv-path)
 
 _ACTIVATIONS = {"relu": nn.relu, "tanh": nn.tanh}
 
@@ -52,18 +54,28 @@ def shift_operator(height: int, width: int, kernel_size: int) -> np.ndarray:
     return op
 
 
+def conv_path(height: int, width: int, kernel_size: int) -> str:
+    """How ``SameConv`` computes a k x k convolution on an H x W grid: "pointwise", "dense" or "im2col"."""
+    if kernel_size == 1:
+        return "pointwise"
+    if CONV_PATH != "auto":
+        return CONV_PATH
+    return "dense" if height * width <= DENSE_CELLS_PER_TAP * kernel_size ** 2 else "im2col"
+
+
 class SameConv(nn.Module):
     """A stride-1, SAME-padded convolution computed with matmuls, never XLA's convolution op.
 
     Same function and parameters (``kernel`` [k, k, C, F], ``bias`` [F]) as ``nn.Conv``. XLA:CPU runs
     the convolution op, and especially its gradient, slowly on these small grids (see
-    docs/BENCHMARKS.md). Two exact formulations, picked by cost:
+    docs/BENCHMARKS.md). Two exact formulations, picked by ``conv_path``:
 
     * dense: on a grid of at most ``DENSE_CELLS_PER_TAP`` cells per kernel tap (the 5x5 egocentric
       views, the 4x5 Cramped Room), the whole convolution is one [H*W*C, H*W*F] matrix built from the
       kernel, so each layer is one large matmul on the flattened observation. It multiplies some zeros,
       but it moves no shifted copies of the activations (im2col's slices, pads and concatenations took
-      most of the update on these grids).
+      most of the update on these grids; a banded form, dense along rows only, multiplied fewer
+      zeros but was 2x slower still: docs/dev/optimisation-journal.md).
     * im2col: shifted slices concatenated along channels + one matmul, for larger grids.
     """
 
@@ -76,14 +88,16 @@ class SameConv(nn.Module):
         batch, height, width, channels = x.shape
         kernel = self.param("kernel", orthogonal(math.sqrt(2)), (k, k, channels, self.features))
         bias = self.param("bias", constant(0.0), (self.features,))
-        if k == 1:
-            return x @ kernel.reshape(channels, self.features) + bias
-        cells = height * width
-        if cells <= DENSE_CELLS_PER_TAP * k * k:
+        path = conv_path(height, width, k)
+        if path == "pointwise":  # 2-D, as pointwise_mixer (the networks' own 1x1 layers) does
+            y = x.reshape(-1, channels) @ kernel.reshape(channels, self.features) + bias
+            return y.reshape(batch, height, width, self.features)
+        if path == "dense":
+            cells = height * width
             shift = jnp.asarray(shift_operator(height, width, k))
             dense = jnp.einsum("pqo,ocf->pcqf", shift, kernel.reshape(k * k, channels, self.features))
             y = x.reshape(batch, cells * channels) @ dense.reshape(cells * channels, cells * self.features)
-            return (y.reshape(batch, height, width, self.features) + bias)
+            return y.reshape(batch, height, width, self.features) + bias
         lo = (k - 1) // 2  # SAME padding puts the odd pixel after, as lax.conv does
         padded = jnp.pad(x, ((0, 0), (lo, k - 1 - lo), (lo, k - 1 - lo), (0, 0)))
         x = jnp.concatenate([padded[:, i:i + height, j:j + width, :] for i in range(k) for j in range(k)], axis=-1)
@@ -102,14 +116,69 @@ class ConvEncoder(nn.Module):
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:  # [B, H, W, C] -> [B, fc_dim]
         act = _ACTIVATIONS[self.activation]
-        x = obs.astype(jnp.float32)
-        for features in self.mixer_features:
-            x = act(SameConv(features, 1)(x))
-        for features, k in zip(self.conv_features, self.conv_kernels):
-            x = act(SameConv(features, k)(x))
+        x = obs
+        if self.mixer_features:
+            channels, weights = x.shape[-1], []
+            for index, features in enumerate(self.mixer_features):
+                weights.append(_ConvParams(features, 1, name=f"SameConv_{index}")(channels))
+                channels = features
+            x = pointwise_mixer(weights, x, act)
+        for index, (features, k) in enumerate(zip(self.conv_features, self.conv_kernels)):
+            x = act(SameConv(features, k, name=f"SameConv_{len(self.mixer_features) + index}")(x.astype(jnp.float32)))
         x = x.reshape(x.shape[0], -1)
         x = act(_dense(self.fc_dim, math.sqrt(2))(x))
         return nn.LayerNorm()(x)
+
+
+class _ConvParams(nn.Module):
+    """Only the parameters of a ``SameConv`` (same names, shapes, initialisers and random draws)."""
+
+    features: int
+    kernel_size: int
+
+    @nn.compact
+    def __call__(self, channels: int):
+        k = self.kernel_size
+        kernel = self.param("kernel", orthogonal(math.sqrt(2)), (k, k, channels, self.features))
+        return kernel, self.param("bias", constant(0.0), (self.features,))
+
+
+def pointwise_mixer(weights, x: jax.Array, act, chunk_rows: int | None = None) -> jax.Array:
+    """The 1x1 convs (``weights``: (kernel [1, 1, C, F], bias [F]) per layer) on every cell of ``x``.
+
+    Computed as 2-D [cells, C] matmuls: a dot on the 4-D [B, H, W, C] array made XLA:CPU transpose
+    the [cells, 128] activations for every weight gradient. Over a whole minibatch each layer's
+    output is tens of MB, so the layers run on chunks of about ``chunk_rows`` cells (``lax.map``),
+    back to back on data that stays in cache. Same numbers up to float summation order
+    (tests/test_networks.py).
+    """
+    chunk_rows = MIXER_CHUNK_ROWS if chunk_rows is None else chunk_rows
+    lead, channels = x.shape[:-1], x.shape[-1]
+    rows = x.reshape(-1, channels)
+
+    def layers(part):
+        part = part.astype(jnp.float32)
+        for kernel, bias in weights:
+            part = act(part @ kernel.reshape(kernel.shape[-2], kernel.shape[-1]) + bias)
+        return part
+
+    chunks = chunk_count(rows.shape[0], chunk_rows)
+    if chunks == 1:
+        out = layers(rows)
+    else:
+        # checkpoint: the backward pass recomputes a chunk's layers from its (small, integer) input
+        # instead of keeping every chunk's [rows, 128] activations, which costs more than the recompute
+        out = jax.lax.map(jax.checkpoint(layers), rows.reshape(chunks, -1, channels)).reshape(rows.shape[0], -1)
+    return out.reshape(lead + (out.shape[-1],))
+
+
+def chunk_count(rows: int, chunk_rows: int) -> int:
+    """The number of equal chunks closest to ``rows / chunk_rows`` that divides ``rows`` (1: no chunking)."""
+    if chunk_rows <= 0 or rows < 2 * chunk_rows:
+        return 1
+    target = rows / chunk_rows
+    divisors = [d for d in range(1, rows + 1) if rows % d == 0 and d <= 4 * target]
+    return min(divisors, key=lambda d: abs(d - target))
 
 
 class _DenseParams(nn.Module):
@@ -160,7 +229,8 @@ class ResetGRU(nn.Module):
     def __call__(self, hidden, inputs, reset):  # [B, H], [T, B, in], bool[T, B] -> ([B, H], [T, B, H])
         input_kernel, input_bias, hidden_kernel, hidden_bias = _GRUParams(self.features, name="GRUCell_0")(
             inputs.shape[-1])
-        projected = inputs @ input_kernel + input_bias  # [T, B, 3H]
+        flat = inputs.reshape(-1, inputs.shape[-1])  # 2-D: see pointwise_mixer on XLA:CPU and N-D dots
+        projected = (flat @ input_kernel + input_bias).reshape(inputs.shape[:-1] + (-1,))  # [T, B, 3H]
         size = self.features
 
         def step(h, xs):
@@ -197,10 +267,11 @@ class ActorCritic(nn.Module):
                                 self.activation)(flat).reshape(steps, batch, -1)
         if self.recurrent:
             hidden, embedding = ResetGRU(self.gru_dim, name="ScanResetGRUCell_0")(hidden, embedding, reset)
+        embedding = embedding.reshape(steps * batch, -1)  # 2-D heads: see pointwise_mixer
         actor = act(_dense(self.fc_dim, math.sqrt(2))(embedding))
-        logits = _dense(self.num_actions, 0.01)(actor)
+        logits = _dense(self.num_actions, 0.01)(actor).reshape(steps, batch, -1)
         critic = act(_dense(self.fc_dim, math.sqrt(2))(embedding))
-        value = _dense(1, 1.0)(critic)[..., 0]
+        value = _dense(1, 1.0)(critic).reshape(steps, batch)
         return hidden, logits, value
 
     def initial_hidden(self, batch: int) -> jax.Array:

@@ -10,7 +10,8 @@ import pytest
 
 import ocv2
 from population.config import ModelConfig, parse_config
-from population.networks import ActorCritic, SameConv, count_params, init_params, make_network
+from population.networks import (ActorCritic, SameConv, chunk_count, count_params, init_params, make_network,
+                                 pointwise_mixer)
 
 RNN_OBS = (5, 5, 40)
 SMALL_RNN = {"kind": "rnn", "mixer_features": [8], "conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8,
@@ -248,3 +249,23 @@ def test_make_network_follows_the_config():
     assert params["params"]["Dense_1"]["kernel"].shape == (8, 4)
     assert params["params"]["ConvEncoder_0"]["SameConv_0"]["kernel"].shape == (1, 1, 2, 8)  # the 1x1 mixer
     assert params["params"]["ScanResetGRUCell_0"]["GRUCell_0"]["hn"]["kernel"].shape == (8, 8)
+
+
+def test_the_chunked_mixer_equals_the_whole_mixer_values_and_gradients():
+    """pointwise_mixer runs big inputs in cache-sized chunks (lax.map, recomputed in the backward
+    pass); chunking must not change the function or its parameter gradients beyond float rounding."""
+    key = jax.random.PRNGKey(0)
+    shapes = [(6, 16), (16, 16), (16, 3)]
+    weights = [(jax.random.normal(jax.random.fold_in(key, i), (1, 1) + s) * 0.5, jnp.full((s[1],), 0.1 * i))
+               for i, s in enumerate(shapes)]
+    x = jax.random.randint(jax.random.PRNGKey(1), (12, 5, 5, 6), 0, 3).astype(jnp.uint8)  # 300 cells
+    assert chunk_count(300, 64) == 5 and chunk_count(300, 0) == 1 and chunk_count(100, 64) == 1
+
+    def loss(w, rows):
+        return (pointwise_mixer(w, x, nn.relu, chunk_rows=rows) ** 2).sum()
+
+    whole, chunked = pointwise_mixer(weights, x, nn.relu, 0), pointwise_mixer(weights, x, nn.relu, 64)
+    assert chunked.shape == whole.shape == (12, 5, 5, 3) and float(jnp.abs(whole).max()) > 0
+    np.testing.assert_allclose(chunked, whole, rtol=1e-6, atol=1e-6)
+    for ours, theirs in zip(jax.tree.leaves(jax.grad(loss)(weights, 64)), jax.tree.leaves(jax.grad(loss)(weights, 0))):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)

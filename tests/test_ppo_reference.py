@@ -18,7 +18,7 @@ import pytest
 
 from population import ppo
 from population.config import parse_config
-from population.networks import SameConv
+from population.networks import SameConv, conv_path
 
 _PPO = {"num_envs": 4, "num_steps": 16, "num_minibatches": 2, "update_epochs": 2, "total_timesteps": 512,
         "rew_shaping_horizon": 256}
@@ -127,9 +127,10 @@ def test_two_updates_match_the_reference_implementation(name):
         np.testing.assert_allclose(_fingerprint(leaves[key]), expected, rtol=1e-4, atol=2e-5, err_msg=f"{name} {key}")
 
 
-@pytest.mark.parametrize("shape, kernel_size", [((5, 5), 3), ((4, 5), 5), ((9, 9), 5), ((6, 5), 3)])
-def test_same_conv_dense_and_im2col_paths_match_flax_conv(shape, kernel_size):
-    # (5, 5)/3 and (4, 5)/5 take the dense path, (9, 9)/5 and (6, 5)/3 the im2col path
+@pytest.mark.parametrize("shape, kernel_size, path", [
+    ((5, 5), 3, "dense"), ((4, 5), 5, "dense"), ((9, 9), 5, "im2col"), ((6, 5), 3, "im2col"), ((5, 7), 1, "pointwise")])
+def test_same_conv_paths_match_flax_conv(shape, kernel_size, path):
+    assert conv_path(*shape, kernel_size) == path
     x = jax.random.normal(jax.random.PRNGKey(1), (3,) + shape + (4,))
     module = SameConv(5, kernel_size)
     params = module.init(jax.random.PRNGKey(2), x)
