@@ -203,15 +203,14 @@ def table(results, repeats: int, peak: MatmulPeak) -> str:
         "keeps `nn.Conv`'s parameters and function but computes it with matmuls: on grids of at most 3 cells per "
         "kernel tap (both configs here: 5x5 and 4x5) the whole convolution is one dense [H*W*C, H*W*F] matrix built "
         "from the kernel, so each conv layer is one large matmul; on larger grids, shifted slices + one matmul "
-        "(im2col). With im2col everywhere this table read 1,699 (RNN) and 2,828 (CNN) env steps/s on 2026-11-21 "
-        "(idle machine); `--im2col` on 2026-11-24 (same shared machine, another hour) gave 39 % (RNN) "
-        "and 42 % (CNN) of its matmul peak. In a profile of one minibatch's forward + backward its slices, pads and concatenations "
-        "took two thirds of the CNN's time and a quarter of the RNN's, and the dense path made that minibatch "
-        "step 1.7x (CNN: 174 -> 102 ms) but only 1.06x (RNN: 295 -> 278 ms) faster, interleaved in one process "
-        "on an idle machine. The dense matrix also multiplies "
-        "the zero padding (2.8x the useful multiply-adds of a 3x3 layer on a 5x5 grid, not counted in the "
-        "FLOPs above), so the RNN's 1x1 mixer and dense convs run as plain matmuls but not all of their work "
-        "is useful. The GRU computes its input projections for all steps as one matmul before the time loop.",
+        "(im2col, `--conv-path im2col`: 39 % (RNN) and 42 % (CNN) of the matmul peak on 2026-11-24). The dense "
+        "matrix multiplies the zero padding too (2.8x the counted work of a 3x3 layer on a 5x5 grid); a banded "
+        "form, dense along grid rows only (1.7x), was 2x slower still, so it was not kept. The RNN's 1x1 mixer "
+        "(half of its counted FLOPs) runs as 2-D matmuls on chunks of 2,048 cells, recomputed in the backward "
+        "pass: as 4-D dots, XLA:CPU transposed every [cells, 128] activation for the weight gradients, and one "
+        "RNN minibatch step went from 255-285 ms to 173-181 ms with this change (interleaved runs, same "
+        "machine hour). The GRU computes its input projections for all steps as one matmul before the time "
+        "loop; its 256 sequential steps per minibatch (forward and backward) are about a tenth of the update.",
         END,
     ]
     return "\n".join(lines)
