@@ -219,8 +219,9 @@ class ResetGRU(nn.Module):
 
     Same function and parameter tree as ``nn.scan(GRUCell)`` (kept under the names that scan gave,
     so checkpoints stay loadable), computed faster: the input projections of all three gates for
-    all T steps are one [T*B, in] x [in, 3H] matmul before the time loop, and each step does one
-    [B, H] x [H, 3H] matmul for the three hidden projections instead of three small ones.
+    all T steps are one [T*B, in] x [in, 3H] matmul before the time loop, each step does one
+    [B, H] x [H, 3H] matmul for the three hidden projections instead of three small ones, and the
+    loop's backward pass is hand-written (``gru_sequence``).
     """
 
     features: int
@@ -231,19 +232,73 @@ class ResetGRU(nn.Module):
             inputs.shape[-1])
         flat = inputs.reshape(-1, inputs.shape[-1])  # 2-D: see pointwise_mixer on XLA:CPU and N-D dots
         projected = (flat @ input_kernel + input_bias).reshape(inputs.shape[:-1] + (-1,))  # [T, B, 3H]
-        size = self.features
+        return gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias)
 
-        def step(h, xs):
-            x, start = xs
-            h = jnp.where(start[:, None], jnp.zeros_like(h), h)
-            hh = h @ hidden_kernel
-            r = nn.sigmoid(x[:, :size] + hh[:, :size])
-            z = nn.sigmoid(x[:, size:2 * size] + hh[:, size:2 * size])
-            n = jnp.tanh(x[:, 2 * size:] + r * (hh[:, 2 * size:] + hidden_bias))
-            h = (1.0 - z) * n + z * h
-            return h, h
 
-        return jax.lax.scan(step, hidden, (projected, reset))
+def gru_step(hidden_kernel, hidden_bias, h, projected, start):
+    """One GRU step: (h_prev after the reset, r, z, n, the n gate's hidden part, new h)."""
+    size = h.shape[-1]
+    h = jnp.where(start[:, None], jnp.zeros_like(h), h)
+    hh = h @ hidden_kernel
+    r = nn.sigmoid(projected[:, :size] + hh[:, :size])
+    z = nn.sigmoid(projected[:, size:2 * size] + hh[:, size:2 * size])
+    hidden_n = hh[:, 2 * size:] + hidden_bias
+    n = jnp.tanh(projected[:, 2 * size:] + r * hidden_n)
+    return h, r, z, n, hidden_n, (1.0 - z) * n + z * h
+
+
+@jax.custom_vjp
+def gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias):
+    """The GRU over T steps: projected [T, B, 3H] input projections, reset bool[T, B], hidden [B, H]
+    -> (last hidden [B, H], every hidden [T, B, H]).
+
+    A hand-written backward pass (``jax.custom_vjp``): autodiff of the scan accumulated the hidden
+    kernel's gradient with a small [H, B] x [B, 3H] matmul and a [H, 3H] add at every one of the T
+    steps, sequentially. Here the backward loop only carries the hidden state's gradient and keeps
+    each step's gate gradients; the kernel's gradient is then one [H, T*B] x [T*B, 3H] matmul.
+    Same function; gradients equal autodiff's to float rounding (tests/test_networks.py).
+    """
+    def step(h, xs):
+        *_, h = gru_step(hidden_kernel, hidden_bias, h, *xs)
+        return h, h
+
+    return jax.lax.scan(step, hidden, (projected, reset))
+
+
+def _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias):
+    def step(h, xs):
+        h_prev, r, z, n, hidden_n, h = gru_step(hidden_kernel, hidden_bias, h, *xs)
+        return h, (h, (h_prev, r, z, n, hidden_n))
+
+    last, (every, gates) = jax.lax.scan(step, hidden, (projected, reset))
+    return (last, every), (reset, hidden_kernel, gates)
+
+
+def _gru_backward(residuals, cotangents):
+    reset, hidden_kernel, gates = residuals
+    d_last, d_every = cotangents
+    size = d_last.shape[-1]
+    hidden_kernel_t = hidden_kernel.T
+
+    def step(dh, xs):
+        d_out, start, (h_prev, r, z, n, hidden_n) = xs
+        dh = dh + d_out
+        d_pre_n = dh * (1.0 - z) * (1.0 - n * n)
+        d_pre_r = d_pre_n * hidden_n * r * (1.0 - r)
+        d_pre_z = dh * (h_prev - n) * z * (1.0 - z)
+        d_hh = jnp.concatenate([d_pre_r, d_pre_z, d_pre_n * r], axis=-1)  # [B, 3H]
+        d_prev = dh * z + d_hh @ hidden_kernel_t
+        d_prev = jnp.where(start[:, None], jnp.zeros_like(d_prev), d_prev)
+        return d_prev, (jnp.concatenate([d_pre_r, d_pre_z, d_pre_n], axis=-1), d_hh)
+
+    d_hidden, (d_projected, d_hh) = jax.lax.scan(step, d_last, (d_every, reset, gates), reverse=True)
+    h_prev = gates[0]
+    d_kernel = h_prev.reshape(-1, size).T @ d_hh.reshape(-1, 3 * size)
+    d_bias = d_hh[..., 2 * size:].sum(axis=(0, 1))
+    return d_projected, None, d_hidden, d_kernel, d_bias
+
+
+gru_sequence.defvjp(_gru_forward, _gru_backward)
 
 
 class ActorCritic(nn.Module):

@@ -10,8 +10,8 @@ import pytest
 
 import ocv2
 from population.config import ModelConfig, parse_config
-from population.networks import (ActorCritic, SameConv, chunk_count, count_params, init_params, make_network,
-                                 pointwise_mixer)
+from population.networks import (ActorCritic, SameConv, gru_step, chunk_count, count_params, gru_sequence, init_params,
+                                 make_network, pointwise_mixer)
 
 RNN_OBS = (5, 5, 40)
 SMALL_RNN = {"kind": "rnn", "mixer_features": [8], "conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8,
@@ -268,4 +268,34 @@ def test_the_chunked_mixer_equals_the_whole_mixer_values_and_gradients():
     assert chunked.shape == whole.shape == (12, 5, 5, 3) and float(jnp.abs(whole).max()) > 0
     np.testing.assert_allclose(chunked, whole, rtol=1e-6, atol=1e-6)
     for ours, theirs in zip(jax.tree.leaves(jax.grad(loss)(weights, 64)), jax.tree.leaves(jax.grad(loss)(weights, 0))):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
+
+
+def test_the_gru_backward_pass_equals_autodiff_of_the_plain_scan():
+    """gru_sequence has a hand-written backward pass (one kernel-gradient matmul after the loop);
+    its gradients, through resets and both outputs, must equal autodiff of the plain step scan."""
+    steps, batch, size = 12, 3, 5
+    keys = jax.random.split(jax.random.PRNGKey(0), 7)
+    projected = jax.random.normal(keys[0], (steps, batch, 3 * size))
+    reset = jax.random.uniform(keys[1], (steps, batch)) < 0.25
+    hidden = jax.random.normal(keys[2], (batch, size))
+    kernel, bias = jax.random.normal(keys[3], (size, 3 * size)), jax.random.normal(keys[4], (size,))
+    w_last, w_every = jax.random.normal(keys[5], (batch, size)), jax.random.normal(keys[6], (steps, batch, size))
+    assert reset.any() and not reset.all()
+
+    def plain(projected, reset, hidden, kernel, bias):
+        def step(h, xs):
+            return (h := gru_step(kernel, bias, h, *xs)[-1]), h
+        return jax.lax.scan(step, hidden, (projected, reset))
+
+    def loss(gru):
+        def f(projected, hidden, kernel, bias):
+            last, every = gru(projected, reset, hidden, kernel, bias)
+            return (last * w_last).sum() + (every * w_every).sum()
+        return jax.grad(f, argnums=(0, 1, 2, 3))
+
+    np.testing.assert_array_equal(gru_sequence(projected, reset, hidden, kernel, bias)[1],
+                                  plain(projected, reset, hidden, kernel, bias)[1])
+    for ours, theirs in zip(loss(gru_sequence)(projected, hidden, kernel, bias),
+                            loss(plain)(projected, hidden, kernel, bias), strict=True):
         np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
