@@ -116,15 +116,16 @@ class ConvEncoder(nn.Module):
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:  # [B, H, W, C] -> [B, fc_dim]
         act = _ACTIVATIONS[self.activation]
-        x = obs
         if self.mixer_features:
-            channels, weights = x.shape[-1], []
+            channels, weights = obs.shape[-1], []
             for index, features in enumerate(self.mixer_features):
                 weights.append(_ConvParams(features, 1, name=f"SameConv_{index}")(channels))
                 channels = features
-            x = pointwise_mixer(weights, x, act)
+            x = pointwise_mixer(weights, obs, act)  # casts chunk by chunk: only the integer input is kept
+        else:
+            x = obs.astype(jnp.float32)
         for index, (features, k) in enumerate(zip(self.conv_features, self.conv_kernels)):
-            x = act(SameConv(features, k, name=f"SameConv_{len(self.mixer_features) + index}")(x.astype(jnp.float32)))
+            x = act(SameConv(features, k, name=f"SameConv_{len(self.mixer_features) + index}")(x))
         x = x.reshape(x.shape[0], -1)
         x = act(_dense(self.fc_dim, math.sqrt(2))(x))
         return nn.LayerNorm()(x)
@@ -177,8 +178,7 @@ def chunk_count(rows: int, chunk_rows: int) -> int:
     if chunk_rows <= 0 or rows < 2 * chunk_rows:
         return 1
     target = rows / chunk_rows
-    divisors = [d for d in range(1, rows + 1) if rows % d == 0 and d <= 4 * target]
-    return min(divisors, key=lambda d: abs(d - target))
+    return min((d for d in range(1, rows + 1) if rows % d == 0), key=lambda d: abs(d - target))
 
 
 class _DenseParams(nn.Module):
@@ -258,11 +258,7 @@ def gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias):
     each step's gate gradients; the kernel's gradient is then one [H, T*B] x [T*B, 3H] matmul.
     Same function; gradients equal autodiff's to float rounding (tests/test_networks.py).
     """
-    def step(h, xs):
-        *_, h = gru_step(hidden_kernel, hidden_bias, h, *xs)
-        return h, h
-
-    return jax.lax.scan(step, hidden, (projected, reset))
+    return _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias)[0]  # unused gate outputs: dropped by jit
 
 
 def _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias):
