@@ -282,13 +282,18 @@ def _api(server, message, **headers) -> tuple[int, dict]:
     return status, json.loads(data)
 
 
-@pytest.fixture
-def served(solo_game, archive):
-    """A running server (short request timeout, four connections at most) whose session nobody joined."""
-    server = PlayServer("127.0.0.1", 0, request_timeout=0.5, max_connections=4)
+def _running_server(solo_game, archive, request_timeout: float):
+    """A started server (four connections at most) whose session nobody joined; stopped after the test."""
+    server = PlayServer("127.0.0.1", 0, request_timeout=request_timeout, max_connections=4)
     server.start(GameSession(solo_game, archive, seed=1, fps=5))
     yield server
     server.stop()
+
+
+@pytest.fixture
+def served(solo_game, archive):
+    """A running server with a short request timeout."""
+    yield from _running_server(solo_game, archive, request_timeout=0.5)
 
 
 def test_the_server_rejects_bad_requests_and_the_game_goes_on(solo_game, archive, monkeypatch):
@@ -421,11 +426,8 @@ def wait_readable(client: socket.socket, seconds: float) -> bool:
 
 @pytest.fixture
 def patient(solo_game, archive):
-    """A running server that waits long for requests (idle connections stay open), four connections at most."""
-    server = PlayServer("127.0.0.1", 0, request_timeout=60, max_connections=4)
-    server.start(GameSession(solo_game, archive, seed=1, fps=5))
-    yield server
-    server.stop()
+    """A running server that waits long for requests (idle connections stay open)."""
+    yield from _running_server(solo_game, archive, request_timeout=60)
 
 
 def test_a_flood_of_connections_is_capped(patient):

@@ -291,13 +291,8 @@ def test_op_runs_and_archives_training_episodes(tmp_path):
 
 def test_resume_after_an_interruption_matches_the_uninterrupted_run(sp_run, tmp_path):
     run = tmp_path / "interrupted"
-    shutil.copytree(sp_run, run)
     # As if killed after update 4's metrics were written but before its checkpoints were.
-    for seed in range(NUM_SEEDS):
-        ckpt.checkpoint_path(run, seed, NUM_UPDATES).unlink()
-    for sub in ("xp", "plots", "gifs"):
-        shutil.rmtree(run / sub)
-    RunDir(run).update_manifest(status="training", update=2)
+    _without_final_checkpoints(sp_run, run)
     assert len(read_csv(run / "metrics.csv")) == NUM_SEEDS * NUM_UPDATES  # rows 3..4 already there
 
     assert train(run, extra=["--resume", "--no-eval"]) == 0
@@ -314,14 +309,19 @@ def test_resume_after_an_interruption_matches_the_uninterrupted_run(sp_run, tmp_
     _assert_same_metrics(rows, read_csv(sp_run / "metrics.csv"))
 
 
-def _interrupted_at_update_2(sp_run, run):
-    """A copy of the SP run as if its driver was killed after update 2's chunk was complete."""
+def _without_final_checkpoints(sp_run, run):
+    """A copy of the SP run with the last update's checkpoints and the evaluation gone, manifest at update 2."""
     shutil.copytree(sp_run, run)
     for seed in range(NUM_SEEDS):
         ckpt.checkpoint_path(run, seed, NUM_UPDATES).unlink()
     for sub in ("xp", "plots", "gifs"):
         shutil.rmtree(run / sub)
     RunDir(run).update_manifest(status="training", update=2)
+
+
+def _interrupted_at_update_2(sp_run, run):
+    """A copy of the SP run as if its driver was killed after update 2's chunk was complete."""
+    _without_final_checkpoints(sp_run, run)
     RunDir(run).truncate_metrics(2)
 
 
