@@ -23,7 +23,7 @@ observation grid; a dense kernel [in, out] (the GRU's six included) in*out per s
 learner sequences per environment (2 in self-play). The rollout runs one forward per sample; each
 update epoch one forward + backward (about 2 forwards) per sample, minibatches together covering
 the batch once. Biases, activations, LayerNorm, softmax and the optimizer are left out (under 1 %).
-So FLOPs are the model's useful work: the dense SameConv path multiplies zero padding too, which is
+So FLOPs are the model's useful work: the banded SameConv path multiplies zero padding too, which is
 not counted. The same run times a 2048 x 2048 x 2048 float32 matmul (``jnp.dot``, jitted) between
 the updates; achieved FLOP/s = FLOPs per update / s per update, and its ratio to that matmul's
 median GFLOP/s is the machine-independent measure (the target is >= 50 %).
@@ -200,20 +200,20 @@ def table(results, repeats: int, peak: MatmulPeak) -> str:
         "",
         "What made the difference: XLA:CPU's convolution and especially its gradient are slow on these tiny "
         "grids (with `flax.linen.Conv` the CNN update took 104 s, 158 env steps/s). `population.networks.SameConv` "
-        "keeps `nn.Conv`'s parameters and function but computes it with matmuls: on grids of at most 3 cells per "
-        "kernel tap (both configs here: 5x5 and 4x5) the whole convolution is one dense [H*W*C, H*W*F] matrix built "
-        "from the kernel, so each conv layer is one large matmul; on larger grids, shifted slices + one matmul "
-        "(im2col, `--conv-path im2col`: 39 % (RNN) and 42 % (CNN) of the matmul peak on 2026-11-24). The dense "
-        "matrix multiplies the zero padding too (2.8x the counted work of a 3x3 layer on a 5x5 grid); a banded "
-        "form, dense along grid rows only (1.7x), was 2x slower still, so it was not kept. The RNN's 1x1 mixer "
+        "keeps `nn.Conv`'s parameters and function but computes it with matmuls: on grids at most 3 kernel widths "
+        "wide (both configs here: 5x5 and 4x5) each output grid row is one matmul of the k input rows its kernel "
+        "reaches with a [k*W*C, W*F] matrix built from the kernel (banded); on wider grids, shifted slices + one "
+        "matmul (im2col, `--conv-path im2col`: 39 % (RNN) and 42 % (CNN) of the matmul peak on 2026-11-24). The "
+        "banded form multiplies the zero padding along a row (1.7x the counted work of a 3x3 layer on a 5x5 grid); "
+        "one matmul with the whole [H*W*C, H*W*F] matrix (2.8x) was 13 % (RNN) and 9 % (CNN) slower per "
+        "minibatch step (interleaved runs, 2026-11-25). The RNN's 1x1 mixer "
         "(half of its counted FLOPs) runs as 2-D matmuls on chunks of 2,048 cells, recomputed in the backward "
         "pass: as 4-D dots, XLA:CPU transposed every [cells, 128] activation for the weight gradients, and one "
         "RNN minibatch step went from 255-285 ms to 173-181 ms with this change (interleaved runs, same "
         "machine hour). The GRU computes its input projections for all steps as one matmul before the time "
         "loop, and its loop has a hand-written backward pass whose kernel gradient is one matmul after the loop "
-        "(GRU gradient 39 -> 15 ms per minibatch). The remaining time, by profile: dense conv matmuls about 30 %, "
-        "mixer matmuls about 25 %, GRU loops about 8 %, the rest elementwise passes and small ops "
-        "(docs/dev/optimisation-journal.md).",
+        "(GRU gradient 39 -> 15 ms per minibatch). How the minibatch step's time splits now, and what else was "
+        "tried: docs/dev/optimisation-journal.md.",
         END,
     ]
     return "\n".join(lines)
@@ -224,7 +224,7 @@ def main(argv=None) -> int:
     parser.add_argument("--configs", nargs="+", default=["rnn", "cnn"], choices=sorted(CONFIGS))
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default="docs/BENCHMARKS.md")
-    parser.add_argument("--conv-path", choices=("auto", "dense", "im2col"), default="auto",
+    parser.add_argument("--conv-path", choices=("auto", "banded", "im2col"), default="auto",
                         help="force one SameConv formulation on every grid, for comparison (default: the cheapest)")
     args = parser.parse_args(argv)
     networks.CONV_PATH = args.conv_path

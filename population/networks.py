@@ -22,12 +22,12 @@ from flax.linen.initializers import constant, orthogonal
 
 from population.config import ModelConfig
 
-# SameConv's dense path is used while H*W <= this x k*k: its matmul does H*W / (k*k) times im2col's
-# multiply-adds, which on the 5x5 views and the 4x5 Cramped Room (<= 2.8x) still beats im2col's
-# copies on XLA:CPU (bench/train_throughput.py and docs/BENCHMARKS.md give the numbers).
-DENSE_CELLS_PER_TAP = 3
+# SameConv's banded path is used while W <= this x k: each output row's matmul spans all W cells of
+# its k input rows, W / k times the multiply-adds im2col does, and up to about 3x that still costs
+# less than im2col's shifted copies on XLA:CPU (measured per grid size: docs/dev/optimisation-journal.md).
+BANDED_CELLS_PER_TAP = 3
 MIXER_CHUNK_ROWS = 2048  # cells per chunk of the 1x1 mixer (pointwise_mixer); 0: no chunking
-CONV_PATH = "auto"  # or force "dense" / "im2col" everywhere (bench/train_throughput.py --conv-path)
+CONV_PATH = "auto"  # or force "banded" / "im2col" everywhere (bench/train_throughput.py --conv-path)
 
 _ACTIVATIONS = {"relu": nn.relu, "tanh": nn.tanh}
 
@@ -36,31 +36,29 @@ def _dense(features: int, scale: float) -> nn.Dense:
     return nn.Dense(features, kernel_init=orthogonal(scale), bias_init=constant(0.0))
 
 
-def shift_operator(height: int, width: int, kernel_size: int) -> np.ndarray:
-    """0/1 float32[H*W, H*W, k*k]: entry [p, q, o] is 1 where input cell p is kernel offset o of output cell q.
+def row_shift_operator(width: int, kernel_size: int) -> np.ndarray:
+    """0/1 float32[W, W, k]: entry [p, q, j] is 1 where input column p is kernel column j of output column q.
 
-    SAME padding with the odd pixel after (as ``lax.conv``): cells outside the grid simply have no
-    entry, so ``einsum("pqo,ocf->pcqf")`` with a kernel gives the convolution as one dense matrix.
+    SAME padding with the odd pixel after (as ``lax.conv``): columns outside the grid have no entry,
+    so ``einsum("pqj,ijcf->ipcqf")`` with a kernel gives, for each kernel row i, the [W*C, W*F]
+    matrix that maps one input grid row to its contribution to one output grid row.
     """
     lo = (kernel_size - 1) // 2
-    op = np.zeros((height * width, height * width, kernel_size * kernel_size), np.float32)
-    for y in range(height):
-        for x in range(width):
-            for i in range(kernel_size):
-                for j in range(kernel_size):
-                    sy, sx = y + i - lo, x + j - lo
-                    if 0 <= sy < height and 0 <= sx < width:
-                        op[sy * width + sx, y * width + x, i * kernel_size + j] = 1.0
+    op = np.zeros((width, width, kernel_size), np.float32)
+    for q in range(width):
+        for j in range(kernel_size):
+            if 0 <= q + j - lo < width:
+                op[q + j - lo, q, j] = 1.0
     return op
 
 
 def conv_path(height: int, width: int, kernel_size: int) -> str:
-    """How ``SameConv`` computes a k x k convolution on an H x W grid: "pointwise", "dense" or "im2col"."""
+    """How ``SameConv`` computes a k x k convolution on an H x W grid: "pointwise", "banded" or "im2col"."""
     if kernel_size == 1:
         return "pointwise"
     if CONV_PATH != "auto":
         return CONV_PATH
-    return "dense" if height * width <= DENSE_CELLS_PER_TAP * kernel_size ** 2 else "im2col"
+    return "banded" if width <= BANDED_CELLS_PER_TAP * kernel_size else "im2col"
 
 
 class SameConv(nn.Module):
@@ -70,13 +68,14 @@ class SameConv(nn.Module):
     the convolution op, and especially its gradient, slowly on these small grids (see
     docs/BENCHMARKS.md). Two exact formulations, picked by ``conv_path``:
 
-    * dense: on a grid of at most ``DENSE_CELLS_PER_TAP`` cells per kernel tap (the 5x5 egocentric
-      views, the 4x5 Cramped Room), the whole convolution is one [H*W*C, H*W*F] matrix built from the
-      kernel, so each layer is one large matmul on the flattened observation. It multiplies some zeros,
-      but it moves no shifted copies of the activations (im2col's slices, pads and concatenations took
-      most of the update on these grids; a banded form, dense along rows only, multiplied fewer
-      zeros but was 2x slower still: docs/dev/optimisation-journal.md).
-    * im2col: shifted slices concatenated along channels + one matmul, for larger grids.
+    * banded: on grids at most ``BANDED_CELLS_PER_TAP`` x k cells wide (all but the 3x3 layers on
+      the 4x15 Long Room), each output grid row is one matmul of the k input rows its kernel reaches
+      (a contiguous [B, k*W*C] slice of the flattened activations) with a [k*W*C, W*F] matrix built
+      from the kernel (``banded_rows``). It multiplies the zero padding along a row, but it makes no
+      shifted copies of the activations, which is what makes im2col slow on these grids. It does
+      not use one [H*W*C, H*W*F] matrix for the whole grid either: that would also multiply the zero
+      blocks between rows more than k apart.
+    * im2col: shifted slices concatenated along channels + one matmul, for wider grids.
     """
 
     features: int
@@ -92,16 +91,33 @@ class SameConv(nn.Module):
         if path == "pointwise":  # 2-D, as pointwise_mixer (the networks' own 1x1 layers) does
             y = x.reshape(-1, channels) @ kernel.reshape(channels, self.features) + bias
             return y.reshape(batch, height, width, self.features)
-        if path == "dense":
-            cells = height * width
-            shift = jnp.asarray(shift_operator(height, width, k))
-            dense = jnp.einsum("pqo,ocf->pcqf", shift, kernel.reshape(k * k, channels, self.features))
-            y = x.reshape(batch, cells * channels) @ dense.reshape(cells * channels, cells * self.features)
+        if path == "banded":
+            shift = jnp.asarray(row_shift_operator(width, k))
+            blocks = jnp.einsum("pqj,ijcf->ipcqf", shift, kernel).reshape(k, width * channels, width * self.features)
+            y = banded_rows(x.reshape(batch, -1), blocks, height)
             return y.reshape(batch, height, width, self.features) + bias
         lo = (k - 1) // 2  # SAME padding puts the odd pixel after, as lax.conv does
         padded = jnp.pad(x, ((0, 0), (lo, k - 1 - lo), (lo, k - 1 - lo), (0, 0)))
         x = jnp.concatenate([padded[:, i:i + height, j:j + width, :] for i in range(k) for j in range(k)], axis=-1)
         return x @ kernel.reshape(k * k * channels, self.features) + bias
+
+
+def banded_rows(rows: jax.Array, blocks: jax.Array, height: int) -> jax.Array:
+    """A SAME convolution along grid rows: ``rows`` [B, H*W*C] (row-major grid), ``blocks`` [k, W*C, W*F]
+    (kernel row i's matrix, ``row_shift_operator``) -> [B, H*W*F].
+
+    Output row r is one matmul: input rows r - lo .. r - lo + k - 1 (those inside the grid: fewer at
+    the edges) are a contiguous slice of ``rows``, times the matching kernel rows' blocks stacked.
+    """
+    taps, row_in, row_out = blocks.shape
+    lo = (taps - 1) // 2  # SAME padding: lo rows above an output row, the rest below
+    outputs = []
+    for row in range(height):
+        first, stop = max(0, lo - row), min(taps, height + lo - row)  # kernel rows inside the grid
+        top = row - lo + first
+        band = rows[:, top * row_in:(top + stop - first) * row_in]
+        outputs.append(band @ blocks[first:stop].reshape(-1, row_out))
+    return jnp.concatenate(outputs, axis=1)
 
 
 class ConvEncoder(nn.Module):
