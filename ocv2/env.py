@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from ocv2 import items as it
 from ocv2.config import EnvConfig, build_config
 from ocv2.dynamics import transition
+from ocv2.featurized import make_featurizer
 from ocv2.observations import default_observations, grid_obs_shape
 from ocv2.reset import buffer_reset_state, default_reset_state, state_from, validate_buffer
 from ocv2.spaces import Box, Discrete
@@ -74,8 +75,6 @@ class OvercookedV2:
         self.action_set = jnp.arange(it.NUM_ACTIONS, dtype=jnp.int32)
         self._featurizer = None
         if "featurized" in config.observation_types or config.force_path_planning:
-            from ocv2.featurized import make_featurizer
-
             self._featurizer = make_featurizer(self.layout)
         shapes = [self._obs_shape_for(t) for t in config.observation_types]
         self.obs_shape = shapes[0] if len(set(shapes)) == 1 else shapes

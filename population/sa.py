@@ -21,6 +21,7 @@ import numpy as np
 from ocv2.state import State
 from population.config import SAConfig
 from population.evaluation import PolicyApply, gather_params, play_pairs
+from population.record import jitted_play_recorded_pairs
 
 
 class PairStates(NamedTuple):
@@ -56,8 +57,6 @@ def collect_pairs(apply: PolicyApply, hidden_size: int, env, params, key: jax.Ar
         if not (0 <= i < num and 0 <= j < num):
             raise ValueError(f"pair ({i}, {j}) is out of range for {num} policies")
     if record:
-        from population.record import jitted_play_recorded_pairs
-
         play = jitted_play_recorded_pairs(apply, hidden_size, env, sa.rollouts_per_pair)
         kept_steps = env.max_steps // sa.keep_every * sa.keep_every
     else:
