@@ -26,6 +26,10 @@ from population.config import ModelConfig
 # its k input rows, W / k times the multiply-adds im2col does, and up to about 3x that still costs
 # less than im2col's shifted copies on XLA:CPU (measured per grid size: docs/dev/optimisation-journal.md).
 BANDED_CELLS_PER_TAP = 3
+# ... and while a call has at least this many samples: with fewer (acting in a few environments per
+# policy under vmap, as SA collection and cross-play do), banded's H matmuls of `batch` rows each cost
+# more than im2col's one matmul over batch*H*W rows.
+BANDED_MIN_BATCH = 48
 MIXER_CHUNK_ROWS = 2048  # cells per chunk of the 1x1 mixer (pointwise_mixer); 0: no chunking
 CONV_PATH = "auto"  # or force "banded" / "im2col" everywhere (bench/train_throughput.py --conv-path)
 
@@ -52,13 +56,15 @@ def row_shift_operator(width: int, kernel_size: int) -> np.ndarray:
     return op
 
 
-def conv_path(height: int, width: int, kernel_size: int) -> str:
-    """How ``SameConv`` computes a k x k convolution on an H x W grid: "pointwise", "banded" or "im2col"."""
+def conv_path(height: int, width: int, kernel_size: int, batch: int) -> str:
+    """How ``SameConv`` computes a k x k convolution of ``batch`` samples on an H x W grid: "pointwise",
+    "banded" or "im2col"."""
     if kernel_size == 1:
         return "pointwise"
     if CONV_PATH != "auto":
         return CONV_PATH
-    return "banded" if width <= BANDED_CELLS_PER_TAP * kernel_size else "im2col"
+    banded = width <= BANDED_CELLS_PER_TAP * kernel_size and batch >= BANDED_MIN_BATCH
+    return "banded" if banded else "im2col"
 
 
 class SameConv(nn.Module):
@@ -69,13 +75,13 @@ class SameConv(nn.Module):
     docs/BENCHMARKS.md). Two exact formulations, picked by ``conv_path``:
 
     * banded: on grids at most ``BANDED_CELLS_PER_TAP`` x k cells wide (all but the 3x3 layers on
-      the 4x15 Long Room), each output grid row is one matmul of the k input rows its kernel reaches
+      the 4x15 Long Room) and batches of at least ``BANDED_MIN_BATCH``, each output grid row is one matmul of the k input rows its kernel reaches
       (a contiguous [B, k*W*C] slice of the flattened activations) with a [k*W*C, W*F] matrix built
       from the kernel (``banded_rows``). It multiplies the zero padding along a row, but it makes no
       shifted copies of the activations, which is what makes im2col slow on these grids. It does
       not use one [H*W*C, H*W*F] matrix for the whole grid either: that would also multiply the zero
       blocks between rows more than k apart.
-    * im2col: shifted slices concatenated along channels + one matmul, for wider grids.
+    * im2col: shifted slices concatenated along channels + one matmul, for wider grids and small batches.
     """
 
     features: int
@@ -87,7 +93,7 @@ class SameConv(nn.Module):
         batch, height, width, channels = x.shape
         kernel = self.param("kernel", orthogonal(math.sqrt(2)), (k, k, channels, self.features))
         bias = self.param("bias", constant(0.0), (self.features,))
-        path = conv_path(height, width, k)
+        path = conv_path(height, width, k, batch)
         if path == "pointwise":  # 2-D, as pointwise_mixer (the networks' own 1x1 layers) does
             y = x.reshape(-1, channels) @ kernel.reshape(channels, self.features) + bias
             return y.reshape(batch, height, width, self.features)

@@ -127,11 +127,13 @@ def test_two_updates_match_the_reference_implementation(name):
         np.testing.assert_allclose(_fingerprint(leaves[key]), expected, rtol=1e-4, atol=2e-5, err_msg=f"{name} {key}")
 
 
-@pytest.mark.parametrize("shape, kernel_size, path", [
-    ((5, 5), 3, "banded"), ((4, 5), 5, "banded"), ((9, 9), 3, "banded"), ((2, 7), 5, "banded"), ((5, 6), 4, "banded"), ((4, 15), 3, "im2col"), ((6, 11), 3, "im2col"), ((5, 7), 1, "pointwise")])
-def test_same_conv_paths_match_flax_conv(shape, kernel_size, path):
-    assert conv_path(*shape, kernel_size) == path
-    x = jax.random.normal(jax.random.PRNGKey(1), (3,) + shape + (4,))
+@pytest.mark.parametrize("batch, shape, kernel_size, path", [
+    (48, (5, 5), 3, "banded"), (48, (4, 5), 5, "banded"), (48, (9, 9), 3, "banded"), (48, (2, 7), 5, "banded"),
+    (48, (5, 6), 4, "banded"), (47, (5, 5), 3, "im2col"), (48, (4, 15), 3, "im2col"), (48, (6, 11), 3, "im2col"),
+    (3, (5, 7), 1, "pointwise")])
+def test_same_conv_paths_match_flax_conv(batch, shape, kernel_size, path):
+    assert conv_path(*shape, kernel_size, batch) == path
+    x = jax.random.normal(jax.random.PRNGKey(1), (batch,) + shape + (4,))
     module = SameConv(5, kernel_size)
     params = module.init(jax.random.PRNGKey(2), x)
     params = {"params": dict(params["params"], bias=jnp.arange(5, dtype=jnp.float32) * 0.1)}
