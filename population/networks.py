@@ -74,13 +74,14 @@ class SameConv(nn.Module):
     the convolution op, and especially its gradient, slowly on these small grids (see
     docs/BENCHMARKS.md). Two exact formulations, picked by ``conv_path``:
 
-    * banded: on grids at most ``BANDED_CELLS_PER_TAP`` x k cells wide (all but the 3x3 layers on
-      the 4x15 Long Room) and batches of at least ``BANDED_MIN_BATCH``, each output grid row is one matmul of the k input rows its kernel reaches
-      (a contiguous [B, k*W*C] slice of the flattened activations) with a [k*W*C, W*F] matrix built
-      from the kernel (``banded_rows``). It multiplies the zero padding along a row, but it makes no
-      shifted copies of the activations, which is what makes im2col slow on these grids. It does
-      not use one [H*W*C, H*W*F] matrix for the whole grid either: that would also multiply the zero
-      blocks between rows more than k apart.
+    * banded: on grids at most ``BANDED_CELLS_PER_TAP`` x k cells wide (the egocentric 5x5 views
+      always; for 3x3 kernels on full views, every layout up to 9 columns) and batches of at least
+      ``BANDED_MIN_BATCH``, each output grid row is one matmul of the k input rows its kernel
+      reaches (a contiguous [B, k*W*C] slice of the flattened activations) with a [k*W*C, W*F]
+      matrix built from the kernel (``banded_rows``). It multiplies the zero padding along a row,
+      but it makes no shifted copies of the activations, which is what makes im2col slow on these
+      grids. It does not use one [H*W*C, H*W*F] matrix for the whole grid either: that would also
+      multiply the zero blocks between rows more than k apart.
     * im2col: shifted slices concatenated along channels + one matmul, for wider grids and small batches.
     """
 
