@@ -7,6 +7,7 @@
     ocv2 xp RUN_DIR [--episodes N]      cross-play of one run
     ocv2 xp --rows SRC ... [--cols SRC ...] [--checkpoint C] [--greedy] [--out DIR]   across runs (docs/evaluation.md)
     ocv2 export SRC --out FILE [--seed I] [--checkpoint C]   one policy to one file
+    ocv2 study run STUDY.yaml [--budget F] [--seeds N] [--out DIR] | status DIR | report DIR   studies
     ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
     ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
     ocv2 button-game [--buttons N] [--seeds S] [--out DIR]
@@ -218,6 +219,8 @@ COMMANDS: list[Command] = [
             "cluster.cli.xp:add_xp", "cluster.cli.xp:run_xp"),
     Command("export", "write one policy (params + network + env settings) to a file", "cluster.cli.xp:add_export",
             "cluster.cli.xp:run_export"),
+    Command("study", "run many population jobs and their comparisons as one resumable study",
+            "cluster.cli.study:add_parser", "cluster.cli.study:run"),
     Command("validate", "check YAML configs without running anything", "cluster.cli.report:add_validate",
             "cluster.cli.report:run_validate"),
     Command("report", "paper-style SP/XP tables, curves and heatmaps of run directories",

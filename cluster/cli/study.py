@@ -1,0 +1,159 @@
+"""``ocv2 study``: many population runs and their comparisons as one resumable command.
+
+    ocv2 study run STUDY.yaml [--budget F] [--seeds N] [--backend ray|local] [--address A] [--out DIR]
+    ocv2 study status DIR
+    ocv2 study report DIR
+
+``run`` trains every run of the study that has not finished (resuming an interrupted one), runs the
+cross-play steps and writes DIR/report.md; the same command after any interruption continues where it
+stopped. ``status`` lists every step with its progress and an ETA from the throughput the study measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+
+from cluster.api import require_backend
+from cluster.archive import ArchiveError
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from cluster.runtime.loggers import MissingExtraError
+from cluster.runtime.ray_backend import RayBackendError
+from cluster.runtime.rundir import RunDirError
+from cluster.study.spec import StudyError, load_study, parse_study
+from population.checkpoints import CheckpointError
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    parser = sub.add_parser("study", help="run many population jobs and their comparisons as one resumable study",
+                            description="Studies: a YAML file lists runs (config + overrides, with the paper's "
+                                        "numbers) and comparisons; `run` trains, cross-plays and reports, and "
+                                        "continues where it stopped after any interruption.")
+    commands = parser.add_subparsers(dest="study_command", metavar="{run,status,report}")
+    commands.required = True
+    run = commands.add_parser("run", help="train every unfinished run, cross-play, write DIR/report.md")
+    run.add_argument("study", help="study file (see configs/studies/)")
+    run.add_argument("--budget", type=_budget, default=None,
+                     help="fraction of every run's env steps (total_timesteps and the schedules that follow it); "
+                          "default 1 = the configs as written")
+    run.add_argument("--seeds", type=_seeds, default=None, help="seeds per run (default: each config's own)")
+    run.add_argument("--backend", choices=["ray", "local"], default="ray",
+                     help="ray (default; a Ray started here unless --address) or local (one process, no Ray)")
+    run.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT")
+    run.add_argument("--out", help="study directory (default studies/<study name>)")
+    run.add_argument("--quiet", action="store_true", help="no progress output")
+    status = commands.add_parser("status", help="what is done, running and left, with an ETA")
+    status.add_argument("dir", help="study directory")
+    report = commands.add_parser("report", help="write DIR/report.md again from what is finished")
+    report.add_argument("dir", help="study directory")
+    return parser
+
+
+def _budget(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a fraction such as 0.25, got {text!r}") from None
+    if not (math.isfinite(value) and 0 < value <= 100):
+        raise argparse.ArgumentTypeError(f"expected a budget in (0, 100], got {text}")
+    return value
+
+
+def _seeds(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seeds, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least one seed, got {value}")
+    return value
+
+
+def run(args) -> int:
+    if args.study_command == "status":
+        return _status(args.dir)
+    if args.study_command == "report":
+        return _report(args.dir)
+    return _run(args)
+
+
+def _run(args) -> int:
+    from cluster.study.runner import run_study  # imports the trainer
+
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    if args.address and args.backend != "ray":
+        raise CLIError("--address needs --backend ray")
+    try:
+        require_backend(args.backend)
+        study = load_study(args.study)
+    except (StudyError, MissingExtraError) as error:
+        raise CLIError(str(error)) from None
+    out = Path(args.out or os.path.join("studies", study.name))
+    say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
+    try:
+        state = run_study(study, out, budget=args.budget, seeds=args.seeds, backend=args.backend,
+                          address=args.address, show_progress=not args.quiet, say=say)
+    except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
+        raise CLIError(str(error)) from None
+    blocked = {name: step for name, step in state["steps"].items() if step.get("status") != "done"}
+    print(f"report: {state['report']['report']}")
+    if blocked:
+        for name, step in blocked.items():
+            print(f"not done: {name}: {step.get('reason') or step.get('status')}")
+        raise CLIError(f"{len(blocked)} step(s) could not run (above); fix them and run the same command again",
+                       EXIT_FAILURE)
+    return EXIT_OK
+
+
+def _status(directory: str) -> int:
+    from cluster.study.runner import study_status
+
+    try:
+        entries = study_status(directory)
+    except (StudyError, RunDirError) as error:
+        raise CLIError(str(error)) from None
+    width = max(len(e["step"]) for e in entries)
+    eta_total, unknown = 0.0, False
+    for entry in entries:
+        detail = entry.get("progress") or entry.get("detail") or ""
+        eta = entry.get("eta_s")
+        if entry["status"] != "done" and entry["step"].startswith("train "):
+            if eta is None:
+                unknown = True
+            else:
+                eta_total += eta
+        eta_text = "" if entry["status"] == "done" or eta is None else f"  ETA {_duration(eta)}"
+        print(f"{entry['step']:<{width}}  {entry['status']:<11}  {detail}{eta_text}  (wall {_duration(entry['wall_s'])})")
+    counts = {s: sum(e["status"] == s for e in entries) for s in dict.fromkeys(e["status"] for e in entries)}
+    print(", ".join(f"{n} {s}" for s, n in counts.items())
+          + f"; training left: {_duration(eta_total)}{' + runs of unmeasured speed' if unknown else ''} "
+            "(cross-play steps not included)")
+    return EXIT_OK
+
+
+def _report(directory: str) -> int:
+    from cluster.study.report import write_report
+    from cluster.study.runner import read_state
+    from cluster.study.spec import run_config
+
+    out = Path(directory).resolve()
+    try:
+        state = read_state(out)
+        if not state:
+            raise StudyError(f"{out}: not a study directory (no study.json)")
+        study = parse_study(state["spec"], Path(state["source"]))
+        configs = {r.name: run_config(study, r, out, state["budget"], state["seeds"]) for r in study.runs}
+        paths = write_report(study, out, state, configs)
+    except (StudyError, RunDirError) as error:
+        raise CLIError(str(error)) from None
+    print(f"wrote {paths['report']}")
+    return EXIT_OK
+
+
+def _duration(seconds) -> str:
+    if seconds is None:
+        return "?"
+    seconds = int(seconds)
+    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"

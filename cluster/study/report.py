@@ -1,0 +1,335 @@
+"""The study report: our numbers beside the paper's, per run and per comparison, with pictures.
+
+``STUDY_DIR/report.md`` (for people), ``STUDY_DIR/summary.json`` (strict JSON: NaN is written as null),
+``curves_<layout>.png`` (training curves of every run, mean ± std across seeds),
+``heatmap_<comparison>.png`` (the full cross-play matrix of a comparison) and
+``over_training_<run>.png`` (SP, XP and the gap at every kept snapshot).
+
+Every interval is a 95 % percentile bootstrap over training seeds. "paper in CI" says whether the
+paper's mean lies inside our interval: a plain check, not a test of the paper's claim.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from cluster.runtime.rundir import RunDir, write_json
+from cluster.study.spec import PaperValue, Study, run_dir
+from ocv2.atomic import atomic_write
+from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
+
+METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
+
+
+def write_report(study: Study, out: Path, state: dict, configs: dict) -> dict:
+    runs = [_run_entry(study, run, out, configs[run.name], state) for run in study.runs]
+    comparisons = [_comparison_entry(c.name, out, state) for c in study.comparisons]
+    over = [_over_training_entry(name, out) for name in study.over_training]
+    summary = {"study": study.name, "source": str(study.path), "budget": state["budget"], "seeds": state["seeds"],
+               "backend": state.get("backend"), "written": _now(), "runs": runs, "comparisons": comparisons,
+               "over_training": over,
+               "ci_method": "95% percentile bootstrap over training seeds",
+               "wall_s": round(sum(s.get("wall_s", 0.0) for s in state.get("steps", {}).values()), 1)}
+    pictures = _curves(study, out, configs) + _heatmaps(out, comparisons) + _over_training_plots(out, over)
+    summary["pictures"] = [Path(p).name for p in pictures]
+    write_json(out / "summary.json", _strict(summary))
+    atomic_write(out / "report.md", markdown(study, summary, state))
+    return {"report": str(out / "report.md"), "summary": str(out / "summary.json")}
+
+
+# ---------------------------------------------------------------------------------------------------
+# collecting
+# ---------------------------------------------------------------------------------------------------
+
+def _run_entry(study: Study, spec, out: Path, config, state: dict) -> dict:
+    path = run_dir(out, spec.name)
+    step = state.get("steps", {}).get(f"train {spec.name}", {})
+    entry = {"name": spec.name, "config": str(spec.config), "overrides": list(spec.overrides),
+             "method": config.population.method, "layout": config.env_kwargs["layout"],
+             "model": config.model.kind, "seeds": config.population.num_seeds,
+             "env_steps_per_seed": config.ppo.num_updates * config.ppo.steps_per_update,
+             "fingerprint": config.fingerprint(), "status": "not started", "wall_s": step.get("wall_s"),
+             "commits": [], "xp": None,
+             "paper": None if spec.paper is None else {
+                 "source": spec.paper.source, "note": spec.paper.note,
+                 **{k: _paper(getattr(spec.paper, k)) for k in ("sp", "xp", "gap")}}}
+    if not (path / "config.yaml").is_file():
+        return entry
+    run = RunDir(path)
+    manifest = run.read_manifest()
+    entry["status"] = manifest.get("status", "created")
+    entry["update"] = manifest.get("update")
+    entry["commits"] = _commits(path)
+    summary_path = path / "xp" / "summary.json"
+    if summary_path.is_file():
+        xp = json.loads(summary_path.read_text())
+        entry["xp"] = {key: xp.get(key) for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap",
+                                                     "sp_ci95_interval", "xp_ci95_interval", "gap_ci95_interval",
+                                                     "episodes_per_pair", "num_policies")}
+    return entry
+
+
+def _paper(value: PaperValue | None) -> dict | None:
+    return None if value is None else {"mean": value.mean, "std": value.std}
+
+
+def _commits(path: Path) -> list[str]:
+    """The commits of every driver that trained the run (``environment.json``), marked when dirty."""
+    try:
+        drivers = json.loads((path / "environment.json").read_text()).get("drivers", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    commits = []
+    for driver in drivers:
+        git = driver.get("git") or {}
+        label = (git.get("commit") or "unknown")[:10] + ("+dirty" if git.get("dirty") else "")
+        if label not in commits:
+            commits.append(label)
+    return commits
+
+
+def _comparison_entry(name: str, out: Path, state: dict) -> dict:
+    step = state.get("steps", {}).get(f"compare {name}", {})
+    entry = {"name": name, "status": step.get("status", "left"), "reason": step.get("reason", ""),
+             "wall_s": step.get("wall_s")}
+    path = out / "comparisons" / name / "summary.json"
+    if path.is_file():
+        data = json.loads(path.read_text())
+        entry.update(pairs=data.get("pairs", []), blocks=data.get("blocks", []),
+                     episodes_per_pair=data.get("episodes_per_pair"))
+    return entry
+
+
+def _over_training_entry(name: str, out: Path) -> dict:
+    folder = out / "over_training" / name
+    points = [json.loads(p.read_text()) for p in sorted(folder.glob("update_*.json"))]
+    return {"run": name, "points": [{k: p.get(k) for k in ("update", "env_steps_per_seed", "sp_mean", "xp_mean", "gap",
+                                                           "sp_ci95_interval", "xp_ci95_interval", "gap_ci95_interval",
+                                                           "episodes_per_pair")} for p in points]}
+
+
+# ---------------------------------------------------------------------------------------------------
+# pictures
+# ---------------------------------------------------------------------------------------------------
+
+def _curves(study: Study, out: Path, configs: dict) -> list[str]:
+    by_layout: dict = {}
+    for spec in study.runs:
+        path = run_dir(out, spec.name)
+        if (path / "metrics.csv").is_file():
+            by_layout.setdefault(configs[spec.name].env_kwargs["layout"], []).append((spec, path))
+    pictures = []
+    for layout, members in by_layout.items():
+        target = out / f"curves_{layout}.png"
+        try:
+            plt = pyplot()
+        except PlotsUnavailable as error:
+            skipped(target, error)
+            return []
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+        for spec, path in members:
+            steps, mean, std = _curve(RunDir(path).read_metrics())
+            if steps.size == 0:
+                continue
+            config = configs[spec.name]
+            (line,) = ax.plot(steps, mean, label=f"{spec.name} ({config.population.method.upper()}, "
+                                                 f"{config.population.num_seeds} seeds)")
+            ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+        ax.set_xlabel("environment steps per seed")
+        ax.set_ylabel("sparse return (mean ± std across seeds)")
+        ax.set_title(f"{study.name}: {layout}")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8)
+        pictures.append(save_figure(fig, target))
+        plt.close(fig)
+    return pictures
+
+
+def _curve(rows: list[dict]):
+    """(env steps per seed, mean, std) across seeds per update, where every seed had a finished episode."""
+    by_update: dict = {}
+    for row in rows:
+        value = _float(row.get("sparse_return"))
+        if not math.isnan(value):
+            by_update.setdefault(int(float(row["update"])), (_float(row.get("env_steps")), []))[1].append(value)
+    updates = sorted(by_update)
+    steps = np.asarray([by_update[u][0] for u in updates], np.float64)
+    values = [np.asarray(by_update[u][1]) for u in updates]
+    return steps, np.asarray([v.mean() for v in values]), np.asarray([v.std() for v in values])
+
+
+def _heatmaps(out: Path, comparisons: list[dict]) -> list[str]:
+    pictures = []
+    for entry in comparisons:
+        path = out / "comparisons" / entry["name"] / "matrix.csv"
+        if not path.is_file():
+            continue
+        with open(path, newline="") as handle:
+            rows = list(csv.reader(handle))
+        labels = [r[0] for r in rows[1:]]
+        matrix = np.asarray([[float(v) for v in r[1:]] for r in rows[1:]], np.float64)
+        picture = xp_heatmap(matrix, out / f"heatmap_{entry['name']}.png", labels=labels, col_labels=rows[0][1:],
+                             title=f"{entry['name']}: cross-play, {entry.get('episodes_per_pair')} episodes/pair")
+        if picture is not None:
+            pictures.append(picture)
+    return pictures
+
+
+def _over_training_plots(out: Path, over: list[dict]) -> list[str]:
+    pictures = []
+    for entry in over:
+        points = entry["points"]
+        if not points:
+            continue
+        target = out / f"over_training_{entry['run']}.png"
+        try:
+            plt = pyplot()
+        except PlotsUnavailable as error:
+            skipped(target, error)
+            return []
+        steps = np.asarray([p["env_steps_per_seed"] for p in points], np.float64)
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+        for key, label in (("sp", "SP (diagonal)"), ("xp", "XP (off-diagonal)"), ("gap", "gap SP - XP")):
+            mean = np.asarray([_float(p[f"{key}_mean" if key != "gap" else "gap"]) for p in points])
+            low = np.asarray([_float((p[f"{key}_ci95_interval"] or [None])[0]) for p in points])
+            high = np.asarray([_float((p[f"{key}_ci95_interval"] or [None, None])[1]) for p in points])
+            (line,) = ax.plot(steps, mean, marker="o", label=label)
+            ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.2)
+        ax.set_xlabel("environment steps per seed (snapshot)")
+        ax.set_ylabel("team return (95 % seed-bootstrap interval)")
+        ax.set_title(f"{entry['run']}: cross-play of the kept snapshots")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8)
+        pictures.append(save_figure(fig, target))
+        plt.close(fig)
+    return pictures
+
+
+# ---------------------------------------------------------------------------------------------------
+# markdown
+# ---------------------------------------------------------------------------------------------------
+
+def markdown(study: Study, summary: dict, state: dict) -> str:
+    lines = [f"# Study `{study.name}`", ""]
+    if study.description:
+        lines += [study.description, ""]
+    budget = summary["budget"]
+    lines += [f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps"
+              + (" (the paper's experiment)" if budget == 1 else " (**reduced: not the paper's experiment**)"),
+              f"- seeds per run: {summary['seeds'] or 'as each config'}; backend: {summary['backend']}; "
+              f"wall time so far: {_duration(summary['wall_s'])}",
+              f"- intervals: {summary['ci_method']}; 'in CI': the paper's mean lies inside our interval",
+              f"- written {summary['written']}", ""]
+    lines += ["## Runs: ours beside the paper's", "",
+              "| run | method | layout | seeds x env steps | SP ours [95% CI] | SP paper | XP ours [95% CI] | XP paper "
+              "| gap ours [95% CI] | gap paper | paper source |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for run in summary["runs"]:
+        xp, paper = run["xp"], run["paper"] or {}
+        cells = [run["name"], METHOD_NAMES.get(run["method"], run["method"]), run["layout"],
+                 f"{run['seeds']} x {run['env_steps_per_seed'] / 1e6:.2f}M"]
+        for key, mean_key in (("sp", "sp_mean"), ("xp", "xp_mean"), ("gap", "gap")):
+            if xp is None:
+                cells.append(f"n/a ({run['status']})")
+            else:
+                cells.append(_with_ci(xp.get(mean_key), xp.get(f"{key}_ci95_interval")))
+            cells.append(_paper_cell(paper.get(key), None if xp is None else xp.get(f"{key}_ci95_interval")))
+        cells.append(paper.get("source", "") + (f" ({paper['note']})" if paper.get("note") else ""))
+        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    lines += ["", "Per run: "]
+    for run in summary["runs"]:
+        lines.append(f"- `{run['name']}`: status {run['status']}, wall {_duration(run['wall_s'])}, config "
+                     f"`{Path(run['config']).name}`" + (f" with `{' '.join(run['overrides'])}`" if run["overrides"] else "")
+                     + f", fingerprint `{run['fingerprint']}`, commits {', '.join(run['commits']) or 'n/a'}")
+    if summary["comparisons"]:
+        lines += ["", "## Cross-play between runs (both seat orders)", "",
+                  "| comparison | A | B | A seat 0, B seat 1 | B seat 0, A seat 1 | mean of both [95% CI] |",
+                  "|---|---|---|---|---|---|"]
+        for entry in summary["comparisons"]:
+            if not entry.get("pairs"):
+                lines.append(f"| {entry['name']} | | | n/a ({entry['status']}{': ' + entry['reason'] if entry['reason'] else ''}) | | |")
+                continue
+            for pair in entry["pairs"]:
+                lines.append(f"| {entry['name']} | {_label(pair['a'], pair['a_method'])} | "
+                             f"{_label(pair['b'], pair['b_method'])} | {_pm(pair['a_seat0'], pair['a_seat0_std'])} | "
+                             f"{_pm(pair['a_seat1'], pair['a_seat1_std'])} | "
+                             f"{_with_ci(pair['mean'], pair['mean_ci95_interval'])} |")
+    for entry in summary["over_training"]:
+        if not entry["points"]:
+            continue
+        lines += ["", f"## When does the gap open? `{entry['run']}`, cross-play of every kept snapshot", "",
+                  "| env steps per seed | SP [95% CI] | XP [95% CI] | gap [95% CI] |", "|---|---|---|---|"]
+        for p in entry["points"]:
+            lines.append(f"| {p['env_steps_per_seed'] / 1e6:.2f}M | {_with_ci(p['sp_mean'], p['sp_ci95_interval'])} | "
+                         f"{_with_ci(p['xp_mean'], p['xp_ci95_interval'])} | "
+                         f"{_with_ci(p['gap'], p['gap_ci95_interval'])} |")
+    if summary["pictures"]:
+        lines += ["", "## Pictures", ""] + [f"![{name}]({name})" for name in summary["pictures"]]
+    left = [f"- {name}: {step.get('status')}" + (f" ({step['reason']})" if step.get("reason") else "")
+            for name, step in state.get("steps", {}).items() if step.get("status") != "done"]
+    if left:
+        lines += ["", "## Not finished", ""] + left
+    return "\n".join(lines) + "\n"
+
+
+def _label(label: str, method) -> str:
+    name = Path(str(label).rstrip("/")).name or label
+    return f"{name} ({method})" if method else name
+
+
+def _with_ci(mean, interval) -> str:
+    mean = _float(mean)
+    if math.isnan(mean):
+        return "n/a"
+    if not interval or any(v is None or math.isnan(_float(v)) for v in interval):
+        return f"{mean:.1f}"
+    return f"{mean:.1f} [{_float(interval[0]):.1f}, {_float(interval[1]):.1f}]"
+
+
+def _pm(mean, std) -> str:
+    return f"{_float(mean):.1f} ± {_float(std):.1f}"
+
+
+def _paper_cell(value: dict | None, interval) -> str:
+    if not value:
+        return "–"
+    text = f"{value['mean']:g}" + (f" ± {value['std']:g}" if value.get("std") is not None else "")
+    if interval and all(v is not None for v in interval):
+        inside = _float(interval[0]) <= value["mean"] <= _float(interval[1])
+        text += " (in CI)" if inside else " (outside CI)"
+    return text
+
+
+def _float(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _duration(seconds) -> str:
+    if seconds is None:
+        return "n/a"
+    seconds = int(seconds)
+    return f"{seconds // 3600} h {seconds % 3600 // 60:02d} min" if seconds >= 3600 else f"{seconds // 60} min {seconds % 60:02d} s"
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _strict(value):
+    """NaN and infinities become null: summary.json is strict JSON that any parser reads."""
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

@@ -1,0 +1,440 @@
+"""Running a study: every run trained (or resumed), then cross-play across runs, then the report.
+
+The study directory::
+
+    STUDY_DIR/study.json                 the study file's data, budget, seeds, backend; per step: status, wall time
+              .lock                      held (flock) by the one ``ocv2 study run`` driving it
+              runs/<name>/               one ordinary run directory per run (``ocv2 train``'s layout)
+              over_training/<run>/update_<n>.json   in-run cross-play of one kept snapshot
+              comparisons/<name>/        cross-run cross-play, both seat orders (summary.json, matrix.csv, heatmap.png)
+              report.md  summary.json  *.png
+
+Every step writes its result last and atomically, so a step whose result exists is done: re-running
+the same command after a kill skips finished runs, resumes the unfinished one from its checkpoints and
+redoes only the step that was cut short (a cross-play step restarts from its beginning). Training
+numbers do not depend on where a run was interrupted, and cross-play episode keys depend only on the
+population seed, so an interrupted study reports the same numbers as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from cluster.api import train_population
+from cluster.runtime import crossplay
+from cluster.runtime.rundir import RunDir, RunDirError, write_json
+from cluster.study.spec import Comparison, Study, StudyError, run_config, run_dir
+from population import checkpoints as ckpt
+from population.xp import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, block_summary
+
+log = logging.getLogger(__name__)
+
+STATE_NAME = "study.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyOptions:
+    """How a study runs. ``budget``: fraction of every run's env steps; ``seeds``: seeds per run (None:
+    each config's own); ``backend``/``address``: as ``ocv2 train``; ``only``: run names to run (None: all)."""
+
+    budget: float = 1.0
+    seeds: int | None = None
+    backend: str = "ray"
+    address: str | None = None
+    show_progress: bool = True
+
+
+# ---------------------------------------------------------------------------------------------------
+# the study directory's state
+# ---------------------------------------------------------------------------------------------------
+
+def read_state(out: Path) -> dict:
+    path = Path(out) / STATE_NAME
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise StudyError(f"{path}: unreadable ({error}); restore it or delete it (runs are kept and resumed)") from None
+    if not isinstance(data, dict):
+        raise StudyError(f"{path}: holds a JSON {type(data).__name__}, not an object")
+    return data
+
+
+def open_state(study: Study, out: Path, budget: float | None, seeds: int | None, backend: str) -> dict:
+    """The study directory's state, created or checked: a directory keeps the budget and seed count it was
+    started with (options left out on a later run take those values)."""
+    state = read_state(out)
+    if state:
+        if state.get("study") != study.name:
+            raise StudyError(f"{out}: holds study {state.get('study')!r}, not {study.name!r}; choose another --out")
+        for flag, given, kept in (("--budget", budget, state.get("budget")), ("--seeds", seeds, state.get("seeds"))):
+            if given is not None and given != kept:
+                raise StudyError(f"{out}: was started with {flag} {kept}; pass the same value (or none) to continue "
+                                 "it, or choose another --out")
+    else:
+        if out.exists() and not out.is_dir():
+            raise StudyError(f"{out}: is a file, not a study directory")
+        if out.is_dir() and any(p.name not in ("runs", ".lock") for p in out.iterdir()):
+            raise StudyError(f"{out}: exists and is not a study directory (no {STATE_NAME}); choose another --out")
+        state = {"study": study.name, "budget": 1.0 if budget is None else budget, "seeds": seeds, "steps": {},
+                 "created": time.time()}
+    state.update(source=str(study.path), spec=study.raw, backend=backend)
+    state.setdefault("steps", {})
+    return state
+
+
+class StateFile:
+    """``study.json``, rewritten atomically whenever a step starts, advances or ends."""
+
+    def __init__(self, out: Path, state: dict):
+        self.path, self.state = Path(out) / STATE_NAME, state
+
+    def save(self) -> None:
+        write_json(self.path, self.state)
+
+    def step(self, name: str) -> dict:
+        return self.state["steps"].setdefault(name, {"status": "left", "wall_s": 0.0})
+
+    def mark(self, name: str, **changes) -> None:
+        self.step(name).update(changes)
+        self.save()
+
+    def timer(self, name: str) -> "StepTimer":
+        return StepTimer(self, name)
+
+
+class StepTimer:
+    """Adds wall time to a step as it goes (a kill loses at most the time since the last tick)."""
+
+    def __init__(self, state: StateFile, name: str):
+        self.state, self.name, self.last = state, name, time.time()
+
+    def tick(self, **changes) -> None:
+        now = time.time()
+        step = self.state.step(self.name)
+        step["wall_s"] = round(step.get("wall_s", 0.0) + now - self.last, 1)
+        self.last = now
+        self.state.mark(self.name, **changes)
+
+
+# ---------------------------------------------------------------------------------------------------
+# running
+# ---------------------------------------------------------------------------------------------------
+
+def run_study(study: Study, out, budget: float | None = None, seeds: int | None = None, backend: str = "ray",
+              address: str | None = None, show_progress: bool = True,
+              say: Callable[[str], None] = print) -> dict:
+    """Train every unfinished run, run the cross-play steps, write the report. Returns the state
+    (``steps``: name -> status "done" or "blocked" with a reason)."""
+    out = Path(out).resolve()
+    state = StateFile(out, open_state(study, out, budget, seeds, backend))
+    out.mkdir(parents=True, exist_ok=True)
+    lock = RunDir(out)
+    try:
+        lock.lock()
+    except RunDirError as error:
+        raise StudyError(str(error).replace("before resuming", "before running the study again")) from None
+    try:
+        state.save()
+        options = StudyOptions(state.state["budget"], state.state["seeds"], backend, address, show_progress)
+        configs = {run.name: run_config(study, run, out, options.budget, options.seeds) for run in study.runs}
+        steps = _steps(study)
+        for number, (name, action) in enumerate(steps, start=1):
+            if state.step(name).get("status") == "done" and _still_done(name, out):
+                continue
+            say(f"study {study.name}: [{number}/{len(steps)}] {name}")
+            timer = state.timer(name)
+            state.mark(name, status="running", started=time.time())
+            try:
+                result = action(study, out, configs, options, timer)
+            except StudyBlocked as blocked:
+                timer.tick(status="blocked", reason=str(blocked))
+                say(f"study {study.name}: {name} blocked: {blocked}")
+                continue
+            timer.tick(status="done", finished=time.time(), **(result or {}))
+        from cluster.study.report import write_report  # the report imports plotting; only needed here
+
+        paths = write_report(study, out, state.state, configs)
+        state.state["report"] = paths
+        state.save()
+        return state.state
+    finally:
+        lock.close()
+
+
+class StudyBlocked(Exception):
+    """A step that cannot run yet for a reason the user must fix (e.g. a missing human proxy)."""
+
+
+def _steps(study: Study) -> list[tuple[str, Callable]]:
+    steps = []
+    for run in study.runs:  # a run's snapshots are cross-played as soon as it has finished
+        steps.append((f"train {run.name}", _train_step(run.name)))
+        if run.name in study.over_training:
+            steps.append((f"over_training {run.name}", _over_training_step(run.name)))
+    steps += [(f"compare {c.name}", _compare_step(c)) for c in study.comparisons]
+    return steps
+
+
+def _still_done(step: str, out: Path) -> bool:
+    """A step marked done whose result is still there (a deleted result is redone)."""
+    kind, name = step.split(" ", 1)
+    if kind == "train":
+        return run_finished(run_dir(out, name))
+    if kind == "compare":
+        return (out / "comparisons" / name / "summary.json").is_file()
+    return (out / "over_training" / name / "done.json").is_file()
+
+
+def run_finished(path: Path) -> bool:
+    """Trained and evaluated: never trained again."""
+    if not (path / "config.yaml").is_file():
+        return False
+    try:
+        status = RunDir(path).read_manifest().get("status")
+    except RunDirError:
+        return False
+    return status == "finished" and (path / "xp" / "summary.json").is_file()
+
+
+def _train_step(name: str):
+    def action(study: Study, out: Path, configs: dict, options: StudyOptions, timer: StepTimer) -> dict:
+        path, config = run_dir(out, name), configs[name]
+        if run_finished(path):
+            return {}
+        if options.address:
+            config = dataclasses.replace(config, cluster=dataclasses.replace(config.cluster, address=options.address))
+        resume = (path / "config.yaml").is_file()
+        train_population(config, path, backend=options.backend, resume=resume, show_progress=options.show_progress,
+                         evaluate=True, on_chunk=lambda event: timer.tick(update=event.update))
+        return {"update": config.ppo.num_updates}
+
+    return action
+
+
+def _over_training_step(name: str):
+    def action(study: Study, out: Path, configs: dict, options: StudyOptions, timer: StepTimer) -> dict:
+        path = run_dir(out, name)
+        if not run_finished(path):
+            raise StudyBlocked(f"run {name} has not finished")
+        created = RunDir.existing(path).load_config()  # its snapshots are protected for good
+        snapshots = ckpt.snapshot_updates(created.ppo.num_updates, created.run.num_checkpoints)
+        folder = out / "over_training" / name
+        todo = [u for u in snapshots if not (folder / f"update_{u:07d}.json").is_file()]
+        if todo:
+            groups = {u: _source(str(path), str(u)) for u in todo}
+            jobs = created.population.num_seeds * len(todo)
+            with crossplay.players(options.backend, jobs, options.address) as workers:
+                for update in todo:
+                    group = groups[update]
+                    result = crossplay.play_matrix([group], [group], workers, crossplay.xp_key(created.population.seed),
+                                                   created.eval.episodes)
+                    ids = list(group.ids)
+                    summary = block_summary(result.matrix, ids, ids)
+                    summary.update(update=update, env_steps_per_seed=update * created.ppo.steps_per_update,
+                                   episodes_per_pair=created.eval.episodes, matrix=result.matrix.round(4).tolist())
+                    write_json(folder / f"update_{update:07d}.json", summary)
+                    timer.tick()
+        done = snapshots
+        write_json(folder / "done.json", {"snapshots": done})
+        return {"snapshots": len(done)}
+
+    return action
+
+
+def _compare_step(comparison: Comparison):
+    def action(study: Study, out: Path, configs: dict, options: StudyOptions, timer: StepTimer) -> dict:
+        missing = [r for r in comparison.runs if not run_finished(run_dir(out, r))]
+        if missing:
+            raise StudyBlocked(f"runs {', '.join(missing)} have not finished")
+        first = configs[comparison.runs[0]]
+        # Labelled by run name: the report and summary do not depend on where the study directory lies.
+        groups = [dataclasses.replace(_source(str(run_dir(out, r))), label=r) for r in comparison.runs]
+        if comparison.human_proxy:
+            groups.append(_source(crossplay.HUMAN_PROXY + first.env_kwargs["layout"]))
+        try:
+            crossplay.check_same_env(groups)
+        except crossplay.CrossPlayError as error:
+            raise StudyError(f"comparison {comparison.name!r}: {error}") from None
+        result = compare(groups, options, first.population.seed, first.eval.episodes, timer)
+        folder = out / "comparisons" / comparison.name
+        crossplay.write_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
+        return {}
+
+    return action
+
+
+def _source(text: str, checkpoint: str = "final") -> crossplay.PolicyGroup:
+    try:
+        return crossplay.resolve_source(text, checkpoint)
+    except crossplay.CrossPlayError as error:
+        if text.startswith(crossplay.HUMAN_PROXY):
+            layout = text[len(crossplay.HUMAN_PROXY):]
+            raise StudyBlocked(f"{error} (train it with: ocv2 human proxy {layout} --source "
+                               "overcooked_ai-1.1.0.tar.gz; docs/human.md)") from None
+        raise StudyError(str(error)) from None
+
+
+def _play(options: StudyOptions, rows, cols, seed: int, episodes: int) -> crossplay.Matrix:
+    jobs = sum(len(g.names) for g in rows) * len(cols)
+    with crossplay.players(options.backend, jobs, options.address) as workers:
+        return crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes)
+
+
+# ---------------------------------------------------------------------------------------------------
+# cross-run cross-play, both seat orders
+# ---------------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class ComparisonResult:
+    matrix: crossplay.Matrix  # every group against every group (rows = seat 0)
+    summary: dict
+
+
+def compare(groups, options: StudyOptions, seed: int, episodes: int, timer: StepTimer | None = None
+            ) -> ComparisonResult:
+    """Every group against every other group in both seats; a group against itself is its own in-run
+    cross-play (same episode keys). Returns the full matrix and, per pair of groups, each seat order's
+    XP, their mean and seed-bootstrap 95 % intervals."""
+    result = _play(options, groups, groups, seed, episodes)
+    if timer is not None:
+        timer.tick()
+    summary = crossplay.summarize_matrix(result)
+    summary["pairs"] = seat_orders(result)
+    return ComparisonResult(result, summary)
+
+
+def seat_orders(result: crossplay.Matrix) -> list[dict]:
+    """For each pair of groups (A, B): A in seat 0 with B in seat 1, the reverse, and the mean of both."""
+    offsets = np.cumsum([0] + [len(g.names) for g in result.row_groups])
+    matrix = result.matrix.astype(np.float64)
+    pairs = []
+    for a, group_a in enumerate(result.row_groups):
+        for b in range(a + 1, len(result.row_groups)):
+            group_b = result.row_groups[b]
+            ab = matrix[offsets[a]:offsets[a + 1], offsets[b]:offsets[b + 1]]
+            ba = matrix[offsets[b]:offsets[b + 1], offsets[a]:offsets[a + 1]]
+            low, high = bootstrap_both_orders(ab, ba)
+            pairs.append({"a": group_a.label, "b": group_b.label, "a_method": group_a.method,
+                          "b_method": group_b.method, "a_seat0": float(ab.mean()), "a_seat0_std": _std(ab),
+                          "a_seat1": float(ba.mean()), "a_seat1_std": _std(ba),
+                          "mean": float((ab.mean() + ba.mean()) / 2), "mean_ci95_interval": [low, high]})
+    return pairs
+
+
+def bootstrap_both_orders(ab: np.ndarray, ba: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES,
+                          seed: int = BOOTSTRAP_SEED) -> tuple[float, float]:
+    """95 % percentile interval of the mean of both seat orders, resampling each group's seeds."""
+    rng = np.random.default_rng(seed)
+    na, nb = ab.shape
+    ia = rng.integers(0, na, size=(resamples, na))
+    ib = rng.integers(0, nb, size=(resamples, nb))
+    first = ab[ia[:, :, None], ib[:, None, :]].mean(axis=(1, 2))
+    second = ba[ib[:, :, None], ia[:, None, :]].mean(axis=(1, 2))
+    low, high = np.percentile((first + second) / 2, [2.5, 97.5])
+    return float(low), float(high)
+
+
+def _std(cells: np.ndarray) -> float:
+    return float(cells.std(ddof=1)) if cells.size > 1 else 0.0
+
+
+# ---------------------------------------------------------------------------------------------------
+# status
+# ---------------------------------------------------------------------------------------------------
+
+def study_status(out) -> list[dict]:
+    """One entry per step: name, status (done / running / partial / blocked / left), progress, ETA in seconds
+    for training steps (from the throughput this study measured, per model kind; None when unknown)."""
+    out = Path(out).resolve()
+    state = read_state(out)
+    if not state:
+        raise StudyError(f"{out}: not a study directory (no {STATE_NAME})")
+    from cluster.study.spec import parse_study  # the stored spec, not today's file
+
+    study = parse_study(state["spec"], Path(state.get("source", out / "study.yaml")))
+    rates = _rates(study, out, state)
+    configs = {}
+    for run in study.runs:  # what a run not started yet will train (the budget and seeds the study keeps)
+        try:
+            configs[run.name] = run_config(study, run, out, state.get("budget", 1.0), state.get("seeds"))
+        except StudyError:
+            pass
+    entries = []
+    for name, _ in _steps(study):
+        step = state.get("steps", {}).get(name, {})
+        status = step.get("status", "left")
+        entry = {"step": name, "status": status, "wall_s": step.get("wall_s", 0.0), "detail": step.get("reason", ""),
+                 "eta_s": None}
+        if name.startswith("train "):
+            entry.update(_train_progress(out / "runs" / name[6:], configs.get(name[6:]), rates))
+            if status != "done" and entry.pop("finished", False):
+                entry["status"] = "done"
+        if status == "running" and not _locked(out):
+            entry["status"] = "interrupted"
+        entries.append(entry)
+    return entries
+
+
+def _locked(out: Path) -> bool:
+    probe = RunDir(out)
+    try:
+        probe.lock()
+    except (RunDirError, OSError):
+        return True
+    probe.close()
+    return False
+
+
+def _rates(study: Study, out: Path, state: dict) -> dict:
+    """Measured env steps per second of population training, per model kind, from this study's runs."""
+    totals: dict = {}
+    for run in study.runs:
+        step = state.get("steps", {}).get(f"train {run.name}", {})
+        path = run_dir(out, run.name)
+        if not (path / "config.yaml").is_file() or not step.get("wall_s"):
+            continue
+        config = RunDir(path).load_config()
+        rows = RunDir(path).read_metrics()
+        done = max((int(float(r["update"])) for r in rows), default=0)
+        steps = done * config.ppo.steps_per_update * config.population.num_seeds
+        kind = config.model.kind
+        seen = totals.setdefault(kind, [0.0, 0.0])
+        seen[0] += steps
+        seen[1] += step["wall_s"]
+    return {kind: steps / wall for kind, (steps, wall) in totals.items() if wall > 0 and steps > 0}
+
+
+def _train_progress(path: Path, planned, rates: dict) -> dict:
+    if (path / "config.yaml").is_file():
+        run = RunDir(path)
+        config, manifest = run.load_config(), run.read_manifest()
+    elif planned is not None:
+        config, manifest = planned, {"status": "not started"}
+    else:
+        return {"progress": "not started"}
+    update = int(manifest.get("update") or 0)
+    total = config.ppo.num_updates
+    remaining = (total - update) * config.ppo.steps_per_update * config.population.num_seeds
+    rate = rates.get(config.model.kind)
+    return {"progress": f"update {update}/{total} ({manifest.get('status', 'created')})",
+            "eta_s": remaining / rate if rate else (0.0 if not remaining else None),
+            "finished": manifest.get("status") != "not started" and run_finished(path)}
+
+
+def finite(value) -> float | None:
+    """A float for JSON: None for NaN or missing (strict JSON has no NaN)."""
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None

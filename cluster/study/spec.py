@@ -1,0 +1,306 @@
+"""Study files: many population runs and the comparisons between them, as one typed, validated object.
+
+A study file is YAML::
+
+    study: table1_coord_ring            # a name (the report's title)
+    description: ...                    # optional, printed at the top of the report
+    set: [run.num_checkpoints=11]       # optional overrides for every run
+    runs:
+      - name: sp                        # unique; the run's folder is STUDY_DIR/runs/<name>
+        config: ../paper/classic_coord_ring_sp.yaml   # relative to the study file
+        set: [population.seed=0]        # optional overrides for this run
+        partners_from: sp               # FCP only: the pools come from this earlier run of the study
+        paper:                          # optional: the paper's numbers for this row
+          source: "Table 1, Coordination Ring, standard"
+          sp: [214, 8]                  # mean or [mean, std]
+          xp: [96, 72]
+          gap: 118
+    over_training: [sp]                 # optional: in-run cross-play of every kept snapshot of these runs
+    comparisons:
+      - name: coord_ring                # cross-run cross-play between these runs, both seat orders
+        runs: [sp, sa]
+        human_proxy: true               # also the BC human proxy of the layout, in both seats
+
+``load_study`` reads and checks it; every error is one line naming the file and the entry at fault.
+``resolve_runs`` turns the runs into ``population.config.Config`` objects at a budget fraction and seed
+count; the budget scales ``total_timesteps`` and ``rew_shaping_horizon`` (the LR schedule follows the
+number of updates by itself), of the FCP partner stage too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import re
+from pathlib import Path
+from typing import Any, Mapping
+
+from population.config import Config, ConfigError, load_config, read_yaml
+
+STUDY_KEYS = ("study", "description", "set", "runs", "over_training", "comparisons")
+RUN_KEYS = ("name", "config", "set", "partners_from", "paper")
+PAPER_KEYS = ("source", "sp", "xp", "gap", "note")
+COMPARISON_KEYS = ("name", "runs", "human_proxy")
+NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+class StudyError(ValueError):
+    """A study file or study directory that cannot be used; the message is one line naming the entry."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PaperValue:
+    mean: float
+    std: float | None = None
+
+    def text(self) -> str:
+        return f"{self.mean:g}" if self.std is None else f"{self.mean:g} ± {self.std:g}"
+
+
+@dataclasses.dataclass(frozen=True)
+class PaperNumbers:
+    """One row of the paper's tables: where it comes from and its SP / XP / gap (each optional)."""
+
+    source: str
+    sp: PaperValue | None = None
+    xp: PaperValue | None = None
+    gap: PaperValue | None = None
+    note: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    name: str
+    config: Path  # absolute
+    overrides: tuple[str, ...] = ()  # the study's then the run's
+    partners_from: str | None = None
+    paper: PaperNumbers | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Comparison:
+    name: str
+    runs: tuple[str, ...]
+    human_proxy: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Study:
+    name: str
+    path: Path
+    description: str
+    runs: tuple[RunSpec, ...]
+    comparisons: tuple[Comparison, ...]
+    over_training: tuple[str, ...]
+    raw: Mapping  # the file's data, kept in the study directory
+
+    def run(self, name: str) -> RunSpec:
+        return next(r for r in self.runs if r.name == name)
+
+
+# ---------------------------------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------------------------------
+
+def load_study(path) -> Study:
+    """Read and check a study file (every config it names is loaded once, so a typo fails here)."""
+    path = Path(path).resolve()
+    try:
+        raw = read_yaml(str(path))
+    except ConfigError as error:
+        raise StudyError(str(error)) from None
+    study = parse_study(raw, path)
+    for run in study.runs:  # each config must load with its overrides (at budget 1, one seed count as written)
+        run_config(study, run, Path("/nonexistent-study-dir"), budget=1.0, seeds=None)
+    return study
+
+
+def parse_study(raw: Any, path: Path) -> Study:
+    where = str(path)
+    if not isinstance(raw, Mapping):
+        raise StudyError(f"{where}: a study file is a mapping with keys {', '.join(STUDY_KEYS)}")
+    _unknown(where, "", raw, STUDY_KEYS)
+    name = raw.get("study")
+    if not isinstance(name, str) or not NAME.match(name):
+        raise StudyError(f"{where}: study: expected a name (letters, digits, _ . -), got {name!r}")
+    shared = _overrides(where, "set", raw.get("set"))
+    runs_raw = raw.get("runs")
+    if not isinstance(runs_raw, list) or not runs_raw:
+        raise StudyError(f"{where}: runs: expected a non-empty list of runs")
+    runs: list[RunSpec] = []
+    for index, entry in enumerate(runs_raw):
+        runs.append(_parse_run(where, index, entry, path.parent, shared, [r.name for r in runs]))
+    names = [r.name for r in runs]
+    over = raw.get("over_training") or []
+    if not isinstance(over, list) or not all(isinstance(n, str) for n in over):
+        raise StudyError(f"{where}: over_training: expected a list of run names")
+    for name_ in over:
+        _known_run(where, "over_training", name_, names)
+    comparisons: list[Comparison] = []
+    for index, entry in enumerate(raw.get("comparisons") or []):
+        comparisons.append(_parse_comparison(where, index, entry, names, [c.name for c in comparisons]))
+    description = raw.get("description") or ""
+    if not isinstance(description, str):
+        raise StudyError(f"{where}: description: expected text")
+    return Study(name, path, description.strip(), tuple(runs), tuple(comparisons), tuple(over), raw)
+
+
+def _parse_run(where: str, index: int, entry, base: Path, shared: tuple[str, ...], earlier: list[str]) -> RunSpec:
+    label = f"runs[{index}]"
+    if not isinstance(entry, Mapping):
+        raise StudyError(f"{where}: {label}: expected a mapping with keys {', '.join(RUN_KEYS)}")
+    name = entry.get("name")
+    if not isinstance(name, str) or not NAME.match(name):
+        raise StudyError(f"{where}: {label}.name: expected a name (letters, digits, _ . -), got {name!r}")
+    label = f"run {name!r}"
+    _unknown(where, f"{label}: ", entry, RUN_KEYS)
+    if name in earlier:
+        raise StudyError(f"{where}: {label}: duplicate run name (runs[{earlier.index(name)}] has it too)")
+    config = entry.get("config")
+    if not isinstance(config, str) or not config:
+        raise StudyError(f"{where}: {label}.config: expected a config file path")
+    config_path = (base / config).resolve()
+    if not config_path.is_file():
+        raise StudyError(f"{where}: {label}.config: no such config file {config} (looked for {config_path})")
+    partners = entry.get("partners_from")
+    if partners is not None:
+        if not isinstance(partners, str):
+            raise StudyError(f"{where}: {label}.partners_from: expected a run name")
+        _known_run(where, f"{label}.partners_from", partners, earlier, before=True)
+    paper = _parse_paper(where, label, entry.get("paper"))
+    overrides = shared + _overrides(where, f"{label}.set", entry.get("set"))
+    return RunSpec(name, config_path, overrides, partners, paper)
+
+
+def _parse_paper(where: str, label: str, raw) -> PaperNumbers | None:
+    if raw is None:
+        return None
+    if not isinstance(raw, Mapping):
+        raise StudyError(f"{where}: {label}.paper: expected a mapping with keys {', '.join(PAPER_KEYS)}")
+    _unknown(where, f"{label}.paper: ", raw, PAPER_KEYS)
+    source = raw.get("source")
+    if not isinstance(source, str) or not source.strip():
+        raise StudyError(f"{where}: {label}.paper.source: say which table and row the numbers come from")
+    values = {key: _paper_value(where, f"{label}.paper.{key}", raw.get(key)) for key in ("sp", "xp", "gap")}
+    note = raw.get("note") or ""
+    if not isinstance(note, str):
+        raise StudyError(f"{where}: {label}.paper.note: expected text")
+    return PaperNumbers(source.strip(), note=note.strip(), **values)
+
+
+def _paper_value(where: str, key: str, raw) -> PaperValue | None:
+    if raw is None:
+        return None
+    items = raw if isinstance(raw, list) else [raw]
+    if not 1 <= len(items) <= 2 or not all(_finite_number(v) for v in items):
+        raise StudyError(f"{where}: {key}: expected a number or [mean, std], got {raw!r}")
+    if len(items) == 2 and items[1] < 0:
+        raise StudyError(f"{where}: {key}: the std must be >= 0, got {items[1]}")
+    return PaperValue(float(items[0]), float(items[1]) if len(items) == 2 else None)
+
+
+def _parse_comparison(where: str, index: int, entry, names: list[str], earlier: list[str]) -> Comparison:
+    label = f"comparisons[{index}]"
+    if not isinstance(entry, Mapping):
+        raise StudyError(f"{where}: {label}: expected a mapping with keys {', '.join(COMPARISON_KEYS)}")
+    name = entry.get("name")
+    if not isinstance(name, str) or not NAME.match(name):
+        raise StudyError(f"{where}: {label}.name: expected a name (letters, digits, _ . -), got {name!r}")
+    label = f"comparison {name!r}"
+    _unknown(where, f"{label}: ", entry, COMPARISON_KEYS)
+    if name in earlier:
+        raise StudyError(f"{where}: {label}: duplicate comparison name")
+    runs = entry.get("runs")
+    if not isinstance(runs, list) or not all(isinstance(r, str) for r in runs):
+        raise StudyError(f"{where}: {label}.runs: expected a list of run names")
+    for run in runs:
+        _known_run(where, f"{label}.runs", run, names)
+    if len(set(runs)) != len(runs):
+        raise StudyError(f"{where}: {label}.runs: names a run twice")
+    human = entry.get("human_proxy", False)
+    if not isinstance(human, bool):
+        raise StudyError(f"{where}: {label}.human_proxy: expected true or false, got {human!r}")
+    if len(runs) + human < 2:
+        raise StudyError(f"{where}: {label}: needs two runs, or one run and human_proxy: true")
+    return Comparison(name, tuple(runs), human)
+
+
+def _unknown(where: str, label: str, raw: Mapping, keys) -> None:
+    for key in raw:
+        if key not in keys:
+            close = difflib.get_close_matches(str(key), keys, n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else f"; valid keys are {', '.join(keys)}"
+            raise StudyError(f"{where}: {label}unknown key {key!r}{hint}")
+
+
+def _known_run(where: str, label: str, name: str, names: list[str], before: bool = False) -> None:
+    if name not in names:
+        close = difflib.get_close_matches(name, names, n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        what = "no earlier run" if before else "no run"
+        raise StudyError(f"{where}: {label}: {what} is named {name!r}{hint}")
+
+
+def _overrides(where: str, key: str, raw) -> tuple[str, ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list) or not all(isinstance(item, str) and "=" in item for item in raw):
+        raise StudyError(f"{where}: {key}: expected a list of section.key=value overrides")
+    return tuple(raw)
+
+
+def _finite_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+# ---------------------------------------------------------------------------------------------------
+# runs at a budget
+# ---------------------------------------------------------------------------------------------------
+
+def run_dir(out: Path, name: str) -> Path:
+    return Path(out) / "runs" / name
+
+
+def run_config(study: Study, run: RunSpec, out: Path, budget: float, seeds: int | None) -> Config:
+    """The config ``run`` trains with in study directory ``out`` at ``budget`` (a fraction of
+    ``total_timesteps``) and ``seeds`` (None: the config's own)."""
+    where = f"{study.path}: run {run.name!r}"
+    overrides = list(run.overrides)
+    if seeds is not None:
+        overrides.append(f"population.num_seeds={seeds}")
+    if run.partners_from is not None:
+        partner = study.run(run.partners_from)
+        partner_seeds = run_config(study, partner, out, budget, seeds).population.num_seeds
+        overrides += ["population.fcp.pool=shared", f"population.fcp.partners={run_dir(out, partner.name)}",
+                      f"population.fcp.partner_seeds={partner_seeds}"]
+    base = _load(where, run.config, overrides)
+    if run.partners_from is not None and base.population.method != "fcp":
+        raise StudyError(f"{where}.partners_from: only FCP runs take partners (this run is "
+                         f"{base.population.method})")
+    overrides += budget_overrides(base, budget)
+    return _load(where, run.config, overrides)
+
+
+def budget_overrides(config: Config, budget: float) -> list[str]:
+    """Overrides that scale a run to ``budget`` x its env steps (at least one update)."""
+    if budget == 1.0:
+        return []
+
+    def scaled(prefix: str, ppo) -> list[str]:
+        steps = max(ppo.steps_per_update, round(ppo.total_timesteps * budget))
+        return [f"{prefix}.total_timesteps={steps}",
+                f"{prefix}.rew_shaping_horizon={round(ppo.rew_shaping_horizon * budget)}"]
+
+    out = scaled("ppo", config.ppo)
+    fcp = config.population.fcp
+    if config.population.method == "fcp" and fcp.partners is None and fcp.partner_ppo is not None:
+        out += scaled("population.fcp.partner_ppo", fcp.partner_ppo)
+    return out
+
+
+def _load(where: str, path: Path, overrides: list[str]) -> Config:
+    try:
+        return load_config(path, overrides)
+    except ConfigError as error:
+        raise StudyError(f"{where}: {error}") from None

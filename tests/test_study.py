@@ -1,0 +1,210 @@
+"""Studies (``ocv2 study``): two tiny runs on the local backend, one uninterrupted study and one killed
+mid-run and resumed; both must report the same numbers, and a finished run is never trained again."""
+
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+import yaml
+
+from cluster.cli import main
+from cluster.study.runner import run_study, study_status
+from cluster.study.spec import StudyError, budget_overrides, load_study, run_config
+from population import checkpoints as ckpt
+from population.config import load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "configs" / "smoke.yaml"
+TIMING_COLUMNS = {"steps_per_s", "wall_s"}
+
+STUDY = {
+    "study": "tiny",
+    "description": "two tiny runs",
+    "set": ["eval.episodes=2", "eval.gifs=0", "archive.xp=false", "archive.sa_collection=false"],
+    "runs": [
+        {"name": "sp", "config": str(SMOKE), "set": ["population.method=sp"],
+         "paper": {"source": "Table 9, a made-up row", "sp": [123, 4], "xp": 56, "gap": [67, 8]}},
+        {"name": "sa", "config": str(SMOKE), "set": ["population.method=sa", "ppo.total_timesteps=1024"]},
+    ],
+    "over_training": ["sp"],
+    "comparisons": [{"name": "sp_vs_sa", "runs": ["sp", "sa"]}],
+}
+
+
+def write_study(path: Path, data: dict) -> Path:
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """An uninterrupted study (never modified by the tests)."""
+    base = tmp_path_factory.mktemp("study")
+    study = load_study(write_study(base / "tiny.yaml", STUDY))
+    state = run_study(study, base / "out", backend="local", show_progress=False, say=lambda _: None)
+    assert all(step["status"] == "done" for step in state["steps"].values())
+    return base / "out"
+
+
+def read_csv(path) -> list[dict]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def numbers(out: Path) -> dict:
+    """What a study reports, without wall times and dates."""
+    summary = json.loads((out / "summary.json").read_text())
+    return {"runs": [{k: r[k] for k in ("name", "xp", "paper", "fingerprint", "seeds", "env_steps_per_seed")}
+                     for r in summary["runs"]],
+            "comparisons": [{k: c.get(k) for k in ("name", "pairs", "blocks")} for c in summary["comparisons"]],
+            "over_training": summary["over_training"]}
+
+
+def assert_same_runs(out: Path, reference: Path) -> None:
+    for name, seeds, updates in (("sp", 2, 4), ("sa", 2, 8)):
+        for seed in range(seeds):  # whole TrainStates, bit for bit
+            mine = ckpt.read(ckpt.checkpoint_path(out / "runs" / name, seed, updates))[1]
+            theirs = ckpt.read(ckpt.checkpoint_path(reference / "runs" / name, seed, updates))[1]
+            for x, y in zip(jax.tree.leaves(mine), jax.tree.leaves(theirs), strict=True):
+                np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        rows = read_csv(out / "runs" / name / "metrics.csv")
+        reference_rows = read_csv(reference / "runs" / name / "metrics.csv")
+        assert len(rows) == len(reference_rows) == seeds * updates
+        for row, other in zip(rows, reference_rows):
+            assert {k: v for k, v in row.items() if k not in TIMING_COLUMNS} == \
+                   {k: v for k, v in other.items() if k not in TIMING_COLUMNS}
+
+
+def test_the_report_puts_the_paper_numbers_beside_ours(finished):
+    report = (finished / "report.md").read_text()
+    assert "Table 9, a made-up row" in report
+    assert "123 ± 4" in report and "| 56" in report and "67 ± 8" in report
+    summary = json.loads((finished / "summary.json").read_text())
+    sp = summary["runs"][0]
+    assert sp["paper"]["sp"] == {"mean": 123.0, "std": 4.0} and sp["paper"]["xp"] == {"mean": 56.0, "std": None}
+    assert sp["xp"]["sp_ci95_interval"] and sp["xp"]["num_policies"] == 2
+    pair = summary["comparisons"][0]["pairs"][0]
+    assert (pair["a"].endswith("sp"), pair["b"].endswith("sa")) == (True, True)
+    assert {"a_seat0", "a_seat1", "mean", "mean_ci95_interval"} <= set(pair)
+    assert [p["update"] for p in summary["over_training"][0]["points"]] == [0, 2, 4]
+    for picture in ("curves_cramped_room.png", "heatmap_sp_vs_sa.png", "over_training_sp.png"):
+        assert (finished / picture).is_file()
+    json.loads((finished / "summary.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
+
+
+def test_a_finished_study_is_never_trained_again(finished, tmp_path, capsys):
+    import shutil
+
+    out = tmp_path / "again"
+    shutil.copytree(finished, out)
+    before = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*") if p.is_file()}
+    study = tmp_path / "tiny.yaml"
+    write_study(study, STUDY)
+    assert main(["study", "run", str(study), "--backend", "local", "--out", str(out), "--quiet"]) == 0
+    after = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*") if p.is_file()}
+    assert after == before  # not one file of a finished run written again
+    assert numbers(out) == numbers(finished)
+    statuses = {e["step"]: e["status"] for e in study_status(out)}
+    assert set(statuses.values()) == {"done"} and len(statuses) == 4
+
+
+def test_a_study_killed_mid_run_resumes_to_the_same_numbers(finished, tmp_path):
+    study = write_study(tmp_path / "tiny.yaml", STUDY)
+    out = tmp_path / "killed"
+    command = [sys.executable, "-c", "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
+               "study", "run", str(study), "--backend", "local", "--out", str(out), "--quiet"]
+    child = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # Kill it while the second run trains: the first run is finished, the second has its update-2
+    # checkpoints (of 8 updates).
+    target = ckpt.checkpoint_path(out / "runs" / "sa", 1, 2)
+    deadline = time.time() + 300
+    while not target.exists() and child.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    assert target.exists(), child.stderr.read().decode()[-2000:]
+    assert not (out / "report.md").exists()  # it really died mid-study
+    sa_manifest = json.loads((out / "runs" / "sa" / "manifest.json").read_text())
+    assert sa_manifest["status"] != "finished"
+    statuses = {e["step"]: e["status"] for e in study_status(out)}
+    assert statuses["train sp"] == "done" and statuses["train sa"] in ("interrupted", "left")
+    sp_files = {p: p.stat().st_mtime_ns for p in (out / "runs" / "sp").rglob("*") if p.is_file()}
+
+    assert main(["study", "run", str(study), "--backend", "local", "--out", str(out), "--quiet"]) == 0
+    assert {p: p.stat().st_mtime_ns for p in (out / "runs" / "sp").rglob("*") if p.is_file()} == sp_files
+    assert_same_runs(out, finished)
+    assert numbers(out) == numbers(finished)
+
+
+def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
+    study = write_study(tmp_path / "tiny.yaml", STUDY)
+    with pytest.raises(StudyError, match="--budget 1.0"):
+        run_study(load_study(study), finished, budget=0.5, backend="local", say=lambda _: None)
+
+
+def test_budget_scales_steps_and_schedules_of_every_stage():
+    config = load_config(ROOT / "configs" / "paper" / "v2_grounded_coord_simple_fcp.yaml")
+    scaled = load_config(ROOT / "configs" / "paper" / "v2_grounded_coord_simple_fcp.yaml",
+                         budget_overrides(config, 0.1))
+    assert scaled.ppo.total_timesteps == 3_000_000 and scaled.ppo.rew_shaping_horizon == 1_500_000
+    partner = scaled.population.fcp.partner_ppo
+    assert partner.total_timesteps == 3_000_000 and partner.rew_shaping_horizon == 1_500_000
+    assert partner.lr == config.population.fcp.partner_ppo.lr  # only the budget changes
+    assert budget_overrides(config, 1.0) == []
+
+
+def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
+    data = {"study": "fcp", "runs": [
+        {"name": "sp", "config": str(SMOKE)},
+        {"name": "fcp", "config": str(SMOKE), "set": ["population.method=fcp"], "partners_from": "sp"}]}
+    study = load_study(write_study(tmp_path / "s.yaml", data))
+    config = run_config(study, study.run("fcp"), tmp_path / "out", budget=1.0, seeds=3)
+    fcp = config.population.fcp
+    assert (fcp.pool, fcp.partners, fcp.partner_seeds) == ("shared", str(tmp_path / "out" / "runs" / "sp"), 3)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["runs"][0].update(config="nowhere.yaml"), "run 'sp'.config: no such config file nowhere.yaml"),
+    (lambda d: d["runs"][1].update(sett=["a=b"]), "run 'sa': unknown key 'sett'; did you mean 'set'?"),
+    (lambda d: d.update(comparsons=[]), "unknown key 'comparsons'; did you mean 'comparisons'?"),
+    (lambda d: d["runs"][1].update(name="sp"), "run 'sp': duplicate run name (runs[0] has it too)"),
+    (lambda d: d["comparisons"][0].update(runs=["sp", "op"]), "comparison 'sp_vs_sa'.runs: no run is named 'op'"),
+    (lambda d: d["runs"][0].update(set=["ppo.lrr=1"]), "run 'sp': "),
+    (lambda d: d["runs"][0]["paper"].update(sp="high"), "run 'sp'.paper.sp: expected a number or [mean, std]"),
+    (lambda d: d.update(over_training=["spp"]), "over_training: no run is named 'spp'; did you mean 'sp'?"),
+])
+def test_bad_study_files_are_one_line_errors_naming_the_entry(tmp_path, capsys, change, message):
+    data = json.loads(json.dumps(STUDY))
+    change(data)
+    path = write_study(tmp_path / "bad.yaml", data)
+    with pytest.raises(StudyError) as error:
+        load_study(path)
+    assert message in str(error.value) and str(path) in str(error.value)
+    assert main(["study", "run", str(path), "--backend", "local", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err
+    assert not (tmp_path / "out").exists()  # nothing written
+
+
+def test_status_of_a_folder_that_is_no_study(tmp_path, capsys):
+    assert main(["study", "status", str(tmp_path)]) == 2
+    assert "not a study directory" in capsys.readouterr().err
+
+
+def test_shipped_studies_load(tmp_path):
+    studies = sorted((ROOT / "configs" / "studies").glob("*.yaml"))
+    assert studies
+    for path in studies:
+        study = load_study(path)
+        for run in study.runs:
+            run_config(study, run, tmp_path, budget=0.05, seeds=4)
+        assert all(run.paper is not None for run in study.runs), path
