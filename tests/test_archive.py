@@ -552,3 +552,23 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
         err = capsys.readouterr().err
         assert message in err and path in err and "Traceback" not in err, (message, err)
         assert len(err.strip().splitlines()) == 1, err
+
+
+def _into_closed_pipe(argv: list[str]) -> subprocess.CompletedProcess:
+    """Run ``ocv2 ARGV`` with stdout a pipe whose reader has already gone (``| head -0``, or a ``head -1``
+    that read its line before the rest arrived): every write fails with EPIPE, deterministically."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        return subprocess.run([sys.executable, "-m", "cluster.cli", *argv], stdout=write, stderr=subprocess.PIPE,
+                              text=True, cwd=REPO, timeout=120,
+                              env={**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": REPO})
+    finally:
+        os.close(write)
+
+
+@pytest.mark.parametrize("argv", [["archive", "info", "ARCHIVE", "--limit", "-1"], ["archive", "info", "ARCHIVE",
+                                  "--json"], ["layouts"]])
+def test_piping_into_a_reader_that_closes_early_exits_quietly(archive, argv):
+    child = _into_closed_pipe([archive if a == "ARCHIVE" else a for a in argv])
+    assert child.stderr == "" and child.returncode == 1, child.stderr
