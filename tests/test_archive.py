@@ -219,6 +219,11 @@ def test_write_episode_rejects_bad_input(tmp_path, recorded):
             writer.write_episode({}, states, actions, rewards, shaped, dones)
         with pytest.raises(TypeError, match="JSON"):
             writer.write_episode({"f": object()}, states, actions, rewards, shaped, dones, layout="cramped_room")
+        deep: list = []
+        for _ in range(40):  # deeper than a reader accepts: never written
+            deep = [deep]
+        with pytest.raises(ArchiveError, match="nests deeper than 32 levels"):
+            writer.write_episode({"deep": deep}, states, actions, rewards, shaped, dones, layout="cramped_room")
     assert len(ArchiveReader(tmp_path / "bad.mcap")) == 0
 
 
@@ -521,6 +526,7 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
     opening = [  # refused when the file is opened (info)
         (dict(commit=lambda meta: b"{not json"), "is not JSON"),
         (dict(commit=lambda meta: b"[1, 2]"), "not an object"),
+        (dict(commit=lambda meta: b"[" * 100_000 + b"]" * 100_000), "nested deeper than 32 levels"),
         (dict(commit=without("steps")), "episode 0: the episode record has no 'steps'"),
         (dict(commit=edited(steps=10**12)), "key 'steps' is 1000000000000"),
         (dict(commit=edited(steps=-3)), "key 'steps' is -3"),
@@ -536,6 +542,7 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
         (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[5, 4, 3])}),
          "states do not fit"),
         (dict(step_metadata={"layout": "{}"}), "key 'layout'"),
+        (dict(step_metadata={"layout": "[" * 5000 + "]" * 5000}), "nested deeper than 32 levels"),
     ]
     # A crafted record after good episodes: recover stops with the error and leaves no half-copied file.
     path, out = str(tmp_path / "late.mcap"), tmp_path / "late_fixed.mcap"

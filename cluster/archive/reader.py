@@ -28,6 +28,7 @@ from cluster.archive.format import (
     EPISODE_TOPIC, FRAMES_TOPIC, MAGIC, MAX_CHUNK_BYTES, PROFILE, STATE_NAMES, STATE_TREEDEF, STEP_TOPIC,
     TRANSITION_DTYPES, TRANSITION_FIELDS, ArchiveError, Episode, field_sizes, layout_from_spec,
 )
+from ocv2 import boundedjson
 from ocv2.config import build_config
 from ocv2.layouts import Layout
 from ocv2.reset import validate_buffer
@@ -293,7 +294,7 @@ def _commit_meta(path: str, message: Message) -> dict:
     """A commit record's metadata, checked before anything is sized from it."""
     where = f"{path!r}: the episode record at log time {message.log_time}"
     try:
-        meta = json.loads(message.data)
+        meta = boundedjson.loads(message.data)
     except (ValueError, UnicodeDecodeError) as error:
         raise ArchiveError(f"{where} is not JSON ({error})") from None
     if not isinstance(meta, dict):
@@ -378,7 +379,7 @@ def _step_table(path: str, meta: dict, channel: Channel) -> list[dict]:
     """The step channel's field table, checked: known names, plain numeric dtypes, sane shapes."""
     where = f"{path!r}: episode {meta['episode']}: step channel metadata"
     try:
-        table = json.loads(channel.metadata["fields"])
+        table = boundedjson.loads(channel.metadata["fields"])
     except KeyError:
         raise ArchiveError(f"{where} has no 'fields'") from None
     except ValueError as error:
@@ -413,7 +414,7 @@ def _step_table(path: str, meta: dict, channel: Channel) -> list[dict]:
 def _channel_layout(path: str, meta: dict, channel: Channel) -> Layout:
     where = f"{path!r}: episode {meta['episode']}: step channel metadata key 'layout'"
     try:
-        spec = json.loads(channel.metadata["layout"])
+        spec = boundedjson.loads(channel.metadata["layout"])
         return layout_from_spec(spec)
     except KeyError as error:
         raise ArchiveError(f"{where} is missing (or lacks {error})") from None
@@ -550,7 +551,7 @@ class ArchiveReader:
         images = []
         for t, m in enumerate(messages):
             try:
-                image = json.loads(m.data)
+                image = boundedjson.loads(m.data)
                 pixels = np.frombuffer(base64.b64decode(image["data"]), np.uint8)
                 images.append(pixels.reshape(image["height"], image["width"], 3))
             except (ValueError, TypeError, KeyError) as error:
