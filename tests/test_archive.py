@@ -289,7 +289,8 @@ def test_bad_input_is_a_clear_error(tmp_path, archive, capsys):
     cases = [
         (["archive", "info", str(text)], "not an MCAP file"),
         (["archive", "info", str(tmp_path / "missing.mcap")], "no such file"),
-        (["archive", "replay", archive, "--episode", "3", "--out", str(tmp_path / "x.gif")], "out of range"),
+        (["archive", "replay", archive, "--episode", "3", "--out", str(tmp_path / "x.gif")],
+         "has no episode 3; its complete episodes are 0..2"),
         (["archive", "replay", archive, "--out", str(tmp_path / "x.png")], ".gif"),
         (["archive", "recover", str(text), "--out", str(tmp_path / "fixed.mcap")], "not an MCAP file"),
         (["archive", "recover", archive, "--out", archive], "already exists"),
@@ -472,8 +473,17 @@ def test_corrupt_chunk_is_skipped(tmp_path, archive, recorded, where, capsys):
     assert f"{len(kept)} complete episode(s)" in captured.out
     assert f"warning: {path}: skipped" in captured.err and "Traceback" not in captured.err
     gif = tmp_path / "last.gif"
-    assert main(["archive", "replay", path, "--episode", str(len(kept) - 1), "--out", str(gif)]) == 0
-    capsys.readouterr()
+    # replay takes the numbers info lists: after the lost episode too, and the lost one is an error.
+    assert main(["archive", "replay", path, "--episode", str(kept[-1]), "--out", str(gif)]) == 0
+    out = capsys.readouterr().out
+    assert f"(episode {kept[-1]}: " in out
+    assert reader.position(kept[-1]) == len(kept) - 1
+    assert main(["archive", "replay", path, "--episode", str(bad), "--out", str(tmp_path / "lost.gif")]) == 2
+    err = capsys.readouterr().err
+    listed = {0: "1..2", 1: "0, 2"}[bad]
+    assert f"has no episode {bad}; its complete episodes are {listed}" in err, err
+    assert len([line for line in err.splitlines() if "error:" in line]) == 1 and "Traceback" not in err
+    assert not (tmp_path / "lost.gif").exists()
     fixed = tmp_path / "fixed.mcap"
     assert main(["archive", "recover", path, "--out", str(fixed)]) == 0
     captured = capsys.readouterr()

@@ -502,12 +502,30 @@ class ArchiveReader:
         """The metadata of every complete episode, in file order."""
         return [dict(m) for m in self._metas]
 
+    def position(self, episode: int) -> int:
+        """Where the episode whose stored number (``meta["episode"]``, what ``info`` lists) is ``episode``
+        sits among ``episodes()``: the index ``episode()``, ``layout()`` and ``frames()`` take. The two
+        differ once a damaged part of the file lost episodes.
+
+        Raises:
+            ArchiveError: no complete episode has that number (one line, listing the numbers there are).
+        """
+        if isinstance(episode, bool) or not isinstance(episode, (int, np.integer)):
+            raise ArchiveError(f"episode number must be an integer, got {episode!r}")
+        for index, meta in enumerate(self._metas):
+            if meta["episode"] == episode:
+                return index
+        lost = " (episodes lost to damage are listed in the warnings)" if self._status.warnings else ""
+        raise ArchiveError(f"{self.path!r} has no episode {episode}; its complete episodes are "
+                           f"{_number_ranges([m['episode'] for m in self._metas]) or 'none'}{lost}")
+
     def _index(self, index: int) -> int:
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
-            raise ArchiveError(f"episode index must be an integer, got {index!r}")
+            raise ArchiveError(f"episode position must be an integer, got {index!r}")
         if not -len(self._metas) <= index < len(self._metas):
-            raise ArchiveError(f"episode {index} is out of range: {self.path!r} has {len(self._metas)} "
-                               f"complete episode(s) (0..{len(self._metas) - 1})")
+            raise ArchiveError(f"episode position {index} is out of range: {self.path!r} has {len(self._metas)} "
+                               f"complete episode(s) (positions 0..{len(self._metas) - 1}; position(N) finds "
+                               "stored episode number N)")
         return int(index) % len(self._metas)
 
     def layout(self, index: int) -> Layout:
@@ -523,7 +541,7 @@ class ArchiveReader:
         for group in scan(self.path, status, (meta["log_time_start"], meta["log_time_end"])):
             if group.meta["episode"] == meta["episode"] and group.meta["log_time_start"] == meta["log_time_start"]:
                 return group
-        raise ArchiveError(f"episode {index} of {self.path!r} could not be read again (the file changed?)")
+        raise ArchiveError(f"episode {meta['episode']} of {self.path!r} could not be read again (the file changed?)")
 
     def episode(self, index: int) -> Episode:
         """Episode ``index``: (meta, states [T+1], actions [T, N], rewards [T], shaped [T, N], dones [T])."""
@@ -599,6 +617,17 @@ class ArchiveReader:
             "warnings": self.warnings,
             "tail_error": None if self.finished else self._status.tail_error,
         }
+
+
+def _number_ranges(numbers: Sequence[int]) -> str:
+    """``0, 2..5, 9`` for [0, 2, 3, 4, 5, 9] (file order kept)."""
+    runs: list[list[int]] = []
+    for n in numbers:
+        if runs and n == runs[-1][1] + 1:
+            runs[-1][1] = n
+        else:
+            runs.append([n, n])
+    return ", ".join(str(a) if a == b else f"{a}..{b}" for a, b in runs)
 
 
 def _policies(meta: dict) -> str | None:
