@@ -3,7 +3,8 @@
 Reading never needs the file's summary: records are read in file order. A chunk that fails to
 decompress or to match its CRC is skipped with a warning and reading goes on after it; bytes that do
 not frame a record (a corrupt record length) are skipped up to the next chunk that checks out. A
-torn tail (a killed writer) simply ends the scan. Commit records and step-channel metadata that do
+chunk whose header times (not under the CRC) disagree with its messages' log times is read, with a
+warning, and never passed over by time. A torn tail (a killed writer) simply ends the scan. Commit records and step-channel metadata that do
 not follow the format (crafted or foreign files) are an ``ArchiveError`` naming file, episode and key.
 """
 
@@ -52,6 +53,8 @@ class ScanStatus:
     channels: dict = dataclasses.field(default_factory=dict)  # id -> Channel
     schemas: dict = dataclasses.field(default_factory=dict)  # id -> Schema
     header: Header | None = None
+    # byte offsets of chunks whose header times do not match their messages: never skipped by time
+    untrusted_times: set = dataclasses.field(default_factory=set)
 
 
 class Group(NamedTuple):
@@ -216,13 +219,15 @@ def _records(path: str, status: ScanStatus, time_range: tuple[int, int] | None) 
                     offset = position
                     continue
                 if opcode == Opcode.CHUNK:
-                    if time_range is not None and _outside(data, offset, size, time_range):
+                    if (time_range is not None and offset not in status.untrusted_times
+                            and _outside(data, offset, size, time_range)):
                         offset = end  # another episode's chunk: not even decompressed
                         continue
                     found = _chunk_at(data, offset, size)
                     if found is None:
                         status.warnings.append(f"skipped corrupt {_describe_chunk(data, offset, end)}")
                     else:
+                        _check_chunk_times(offset, *found[:2], status)
                         for record in found[1]:
                             _learn(record, status, fallback)
                             yield record
@@ -244,6 +249,23 @@ def _records(path: str, status: ScanStatus, time_range: tuple[int, int] | None) 
             return
         if not status.finished:
             status.tail_error = status.tail_error or "the file ends without a footer"
+
+
+def _check_chunk_times(offset: int, chunk: Chunk, records: list, status: ScanStatus) -> None:
+    """Compare a chunk header's message time range, which its CRC does not cover, with its messages'
+    log times (the writer stores their exact minimum and maximum). A mismatch is damage to the header:
+    the messages passed the CRC and are read, but the header cannot be trusted to skip the chunk by time."""
+    times = [r.log_time for r in records if isinstance(r, Message)]
+    if not times:
+        return
+    first, last = min(times), max(times)
+    if (chunk.message_start_time, chunk.message_end_time) != (first, last):
+        status.untrusted_times.add(offset)
+        status.warnings.append(
+            f"chunk at byte {offset}: its header gives message log times {chunk.message_start_time}.."
+            f"{chunk.message_end_time} but its {len(times)} messages span {first}..{last} (the header is "
+            "damaged; its messages passed the CRC check and are read; 'ocv2 archive recover' writes a "
+            "file with correct headers)")
 
 
 def _outside(data, offset: int, size: int, time_range: tuple[int, int]) -> bool:
@@ -537,7 +559,8 @@ class ArchiveReader:
     def _group(self, index: int) -> Group:
         index = self._index(index)
         meta = self._metas[index]
-        status = ScanStatus(channels=dict(self._status.channels), schemas=dict(self._status.schemas))
+        status = ScanStatus(channels=dict(self._status.channels), schemas=dict(self._status.schemas),
+                            untrusted_times=set(self._status.untrusted_times))
         for group in scan(self.path, status, (meta["log_time_start"], meta["log_time_end"])):
             if group.meta["episode"] == meta["episode"] and group.meta["log_time_start"] == meta["log_time_start"]:
                 return group
