@@ -48,4 +48,4 @@ def depth(value, stop: int | None = None) -> int:
     return deepest
 
 
-__all__ = ["JSONDepthError", "MAX_DEPTH", "depth", "loads"]
+__all__ = ["MAX_DEPTH", "JSONDepthError", "depth", "loads"]

@@ -6,6 +6,7 @@ Tiny sizes throughout (configs/smoke.yaml: cramped_room, 40-step episodes, a [8,
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import serialization
 
 import ocv2
 from ocv2.items import Action, Static, ingredient_unit, recipe_encoding_np
@@ -504,9 +506,6 @@ def test_any_single_byte_flip_of_a_checkpoint_is_refused(tmp_path):
 
 def test_version_2_checkpoints_still_load(tmp_path):
     """The previous format: the state's bytes under a checksum kept in the (unprotected) metadata."""
-    from flax import serialization
-    import hashlib
-
     state_bytes = serialization.msgpack_serialize(serialization.to_state_dict(SMALL_STATE))
     payload = {"meta": {"version": 2, "fingerprint": "fp", "sha256": hashlib.sha256(state_bytes).hexdigest(),
                         **SMALL_META}, "state": state_bytes}

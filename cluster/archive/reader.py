@@ -13,7 +13,6 @@ from __future__ import annotations
 import base64
 import dataclasses
 import io
-import json
 import os
 import struct
 from typing import Iterator, NamedTuple, Sequence
