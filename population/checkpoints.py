@@ -1,11 +1,14 @@
 """Atomic, config-checked checkpoints of one seed's ``TrainState``.
 
-Layout: ``<run>/checkpoints/seed_<i>/update_<n>.msgpack``, one msgpack file holding
-``{"meta": {...}, "state": <msgpack bytes of the TrainState state dict>}`` (flax serialization).
-A file is written to a temporary name and renamed, so a reader never sees half a checkpoint;
-``meta.sha256`` is the checksum of the state bytes, so a file damaged later (disk, copy) is refused
-instead of restored. ``meta.fingerprint`` is the hash of the training-relevant config; loading into
-a different config is refused with a message. Version-1 files (state inline, no checksum) still load.
+Layout: ``<run>/checkpoints/seed_<i>/update_<n>.msgpack``, one sealed file (``population.sealed``):
+``{"meta": {...}, "state": <the TrainState state dict>}`` under one SHA-256 over every byte of it, the
+metadata included (the metadata carries metric rows that are not in metrics.csv yet, and the update
+number a resume continues from). A file is written to a temporary name and renamed, so a reader never
+sees half a checkpoint; a file damaged later (disk, copy) is refused instead of restored.
+``meta.fingerprint`` is the hash of the training-relevant config; loading into a different config is
+refused with a message. Older files still load: version 2 (``{"meta", "state": bytes}`` with
+``meta.sha256`` over the state bytes only, so damage to its metadata goes unseen) and version 1 (no
+checksum).
 """
 
 from __future__ import annotations
@@ -19,8 +22,10 @@ import numpy as np
 from flax import serialization
 
 from ocv2.atomic import atomic_write
+from population.sealed import SealError, is_sealed, seal, unseal
 
-FORMAT_VERSION = 2
+FORMAT_NAME = "ocv2-checkpoint"
+FORMAT_VERSION = 3
 _NAME = re.compile(r"^update_(\d+)\.msgpack$")
 
 
@@ -42,11 +47,9 @@ def checkpoint_path(run_dir, seed: int, update: int) -> Path:
 
 def save(path, state, fingerprint: str, **meta) -> Path:
     """Write ``state`` (a pytree) atomically; extra ``meta`` (JSON-able) is stored beside it."""
-    state_bytes = serialization.msgpack_serialize(serialization.to_state_dict(jax.tree.map(np.asarray, state)))
-    payload = {"meta": {"version": FORMAT_VERSION, "fingerprint": fingerprint,
-                        "sha256": hashlib.sha256(state_bytes).hexdigest(), **meta},
-               "state": state_bytes}
-    return atomic_write(Path(path), serialization.msgpack_serialize(payload))
+    content = {"meta": {"version": FORMAT_VERSION, "fingerprint": fingerprint, **meta},
+               "state": serialization.to_state_dict(jax.tree.map(np.asarray, state))}
+    return atomic_write(Path(path), seal(FORMAT_NAME, FORMAT_VERSION, content))
 
 
 def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:
@@ -58,14 +61,21 @@ def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:
         raise CheckpointError(f"{path}: no such checkpoint") from None
     except Exception as error:  # msgpack raises several types on truncated/corrupt data
         raise CorruptCheckpointError(f"{path}: not a readable ocv2 checkpoint ({error})") from None
+    if is_sealed(payload):
+        try:
+            payload = unseal(payload, FORMAT_NAME, FORMAT_VERSION)
+        except SealError as error:
+            raise CorruptCheckpointError(f"{path}: {error}") from None
     if not isinstance(payload, dict) or "meta" not in payload or "state" not in payload:
         raise CorruptCheckpointError(f"{path}: not an ocv2 checkpoint (no meta/state)")
     meta, state = payload["meta"], payload["state"]
+    if not isinstance(meta, dict):
+        raise CorruptCheckpointError(f"{path}: not an ocv2 checkpoint (its meta is a {type(meta).__name__})")
     if fingerprint is not None and meta.get("fingerprint") != fingerprint:
         raise CheckpointError(
             f"{path}: checkpoint was written by a different config (fingerprint {meta.get('fingerprint')}, "
             f"this config {fingerprint}); use the run's own config.yaml or a new run directory")
-    if isinstance(state, bytes):  # version 2: checksummed state bytes
+    if isinstance(state, bytes):  # version 2: checksummed state bytes, metadata not covered
         if hashlib.sha256(state).hexdigest() != meta.get("sha256"):
             raise CorruptCheckpointError(f"{path}: checksum mismatch (the file was damaged after it was written)")
         try:

@@ -10,17 +10,27 @@ recorded joint action to count how many transitions ocv2 reproduces exactly (``r
 
 Only reading the pickles needs pandas (the ``[human]`` extra); everything else takes plain row dicts
 (``rows_from_frame`` / a JSON fixture), so tests run without the sdist.
+
+Unpickling runs whatever callables a pickle names, so a pickle from anywhere but the known sdist
+could run code. ``read_frame`` therefore never calls ``pickle.load``/``pd.read_pickle``: its
+``TableUnpickler`` admits only the pandas/numpy constructors a data table needs (``PICKLE_CLASSES``)
+and refuses any other name before it is imported. The known files' SHA-256s are checked as well;
+other bytes are read (with the same restrictions) after a warning.
 """
 
 from __future__ import annotations
 
 import ast
 import collections
+import hashlib
+import importlib
 import io
 import os
+import pickle
 import tarfile
+import warnings
 from pathlib import Path
-from typing import Iterable, NamedTuple, Sequence
+from typing import Callable, Iterable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -44,6 +54,10 @@ LAYOUT_MAP = {
 SPLITS = ("train", "test")
 PICKLE_NAMES = {"train": "clean_train_trials.pickle", "test": "clean_test_trials.pickle"}
 SDIST_NAME = "overcooked_ai-1.1.0.tar.gz"
+#: SHA-256 of the PyPI source distribution (the hash pip checks when it downloads it) and of its two pickles.
+SDIST_SHA256 = "478bf319274bdb6c5bede8048ee901d088912353111ab85e9fb2bf389c6ccddf"
+PICKLE_SHA256 = {"train": "28659cfd09ee033d82b56bed905b239f078877e1b09d1f1b916e4bc0480ca4fa",
+                 "test": "59979552a053f1efe762de976f37dd83e269d70d19b67613c61e856c86705666"}
 CACHE_ENV = "OCV2_CACHE"
 
 #: The 2019 game paid 5 points per soup; ocv2 (like overcooked-ai's MDP) pays DELIVERY_REWARD = 20.
@@ -66,6 +80,10 @@ class HumanDataError(ValueError):
     """The human data cannot be read or converted; the message names the file / row / field."""
 
 
+class HumanDataWarning(UserWarning):
+    """The human data is not the known overcooked-ai 1.1.0 file (read anyway, with the restricted unpickler)."""
+
+
 class Trial(NamedTuple):
     """One recorded game: T transitions on one ocv2 layout (arrays are numpy)."""
 
@@ -82,15 +100,68 @@ class Trial(NamedTuple):
 # Reading the pickles
 # ---------------------------------------------------------------------------------------------------
 
-def read_frame(source: str | os.PathLike, split: str):
+#: (module, name) a human-data pickle may name -> (module, name) actually imported. The first block is
+#: what overcooked-ai 1.1.0's pickles name (pandas 1.x / numpy 1.x spellings, mapped to today's places
+#: as pandas' own compatibility table does); the second what today's pandas writes for a table of
+#: strings and numbers (a re-saved or sliced copy). All build arrays, indexes and frames from data;
+#: none calls anything a pickle chooses.
+PICKLE_CLASSES = {
+    ("numpy", "dtype"): ("numpy", "dtype"),
+    ("numpy", "ndarray"): ("numpy", "ndarray"),
+    ("numpy.core.multiarray", "_reconstruct"): ("numpy._core.multiarray", "_reconstruct"),
+    ("pandas.core.frame", "DataFrame"): ("pandas", "DataFrame"),
+    ("pandas.core.indexes.base", "Index"): ("pandas", "Index"),
+    ("pandas.core.indexes.base", "_new_Index"): ("pandas.core.indexes.base", "_new_Index"),
+    ("pandas.core.indexes.numeric", "Int64Index"): ("pandas", "Index"),
+    ("pandas.core.internals.managers", "BlockManager"): ("pandas.core.internals.managers", "BlockManager"),
+
+    ("builtins", "slice"): ("builtins", "slice"),
+    ("numpy._core.multiarray", "_reconstruct"): ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy._core.numeric", "_frombuffer"): ("numpy._core.numeric", "_frombuffer"),
+    ("pandas", "DataFrame"): ("pandas", "DataFrame"),
+    ("pandas", "Index"): ("pandas", "Index"),
+    ("pandas", "RangeIndex"): ("pandas", "RangeIndex"),
+    ("pandas", "StringDtype"): ("pandas", "StringDtype"),
+    ("pandas.arrays", "StringArray"): ("pandas.arrays", "StringArray"),
+    ("pandas._libs.arrays", "__pyx_unpickle_NDArrayBacked"): ("pandas._libs.arrays", "__pyx_unpickle_NDArrayBacked"),
+    ("pandas._libs.internals", "_unpickle_block"): ("pandas._libs.internals", "_unpickle_block"),
+}
+
+
+class TableUnpickler(pickle.Unpickler):
+    """An unpickler that resolves only the names in ``PICKLE_CLASSES``: any other global (``os.system``,
+    ``builtins.eval``, a class with a malicious ``__reduce__``) is refused before its module is imported."""
+
+    def find_class(self, module: str, name: str):
+        target = PICKLE_CLASSES.get((module, name))
+        if target is None:
+            raise pickle.UnpicklingError(f"refused to load {module}.{name}: the human data holds only "
+                                         "pandas/numpy tables")
+        return getattr(importlib.import_module(target[0]), target[1])
+
+    def persistent_load(self, pid):
+        raise pickle.UnpicklingError("refused a persistent reference: the human data holds only pandas/numpy tables")
+
+
+def _warn(message: str) -> None:
+    warnings.warn(message, HumanDataWarning, stacklevel=3)
+
+
+def read_frame(source: str | os.PathLike, split: str, warn: Callable[[str], None] | None = None):
     """The DataFrame of one split from ``source``: the sdist ``.tar.gz``, a folder holding the pickle
     (the unpacked sdist or its ``human_data`` folder), or the ``.pickle`` file itself.
 
+    The pickle is read by ``TableUnpickler`` (it cannot run code). Bytes other than the known sdist's
+    (``SDIST_SHA256``) or pickle's (``PICKLE_SHA256``) are read after ``warn(message)`` (default: a
+    ``HumanDataWarning``).
+
     Raises:
-        HumanDataError: unknown split, missing file, pandas missing, unreadable pickle.
+        HumanDataError: unknown split, missing file, pandas missing, unreadable pickle, a pickle that
+            names anything but a data table's classes, or one that holds no DataFrame.
     """
     if split not in SPLITS:
         raise HumanDataError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
+    warn = warn or _warn
     path = Path(source)
     name = PICKLE_NAMES[split]
     if not path.exists():
@@ -99,24 +170,42 @@ def read_frame(source: str | os.PathLike, split: str):
         import pandas as pd  # optional dependency: the [human] extra
     except ImportError:
         raise HumanDataError("reading the human data needs pandas: pip install 'ocv2[human]'") from None
+    where = path
     try:
         if path.is_dir():
             found = sorted(path.rglob(name))
             if not found:
                 raise HumanDataError(f"{path}: no {name} below this folder")
-            return pd.read_pickle(found[0])
-        if path.name.endswith((".tar.gz", ".tgz", ".tar")):
+            where = found[0]
+            data = found[0].read_bytes()
+            _check_digest(where, data, PICKLE_SHA256[split], f"overcooked-ai 1.1.0's {name}", warn)
+        elif path.name.endswith((".tar.gz", ".tgz", ".tar")):
+            _check_digest(path, path.read_bytes(), SDIST_SHA256, SDIST_NAME, warn)
             with tarfile.open(path) as tar:
-                members = [m for m in tar.getmembers() if m.name.endswith("/" + name)]
+                members = [m for m in tar.getmembers() if m.name.endswith("/" + name) and m.isfile()]
                 if not members:
                     raise HumanDataError(f"{path}: the archive holds no {name}")
+                where = f"{path}:{members[0].name}"
                 data = tar.extractfile(members[0]).read()
-            return pd.read_pickle(io.BytesIO(data))
-        return pd.read_pickle(path)
+        else:
+            data = path.read_bytes()
+            _check_digest(path, data, PICKLE_SHA256[split], f"overcooked-ai 1.1.0's {name}", warn)
+        frame = TableUnpickler(io.BytesIO(data)).load()
     except HumanDataError:
         raise
     except Exception as error:  # pickle/tar/pandas errors: one line naming the file
-        raise HumanDataError(f"{path}: cannot read the {split} trials: {type(error).__name__}: {error}") from None
+        raise HumanDataError(f"{where}: cannot read the {split} trials: {type(error).__name__}: {error}") from None
+    if not isinstance(frame, pd.DataFrame):
+        raise HumanDataError(f"{where}: holds a {type(frame).__name__}, not the pandas DataFrame of the {split} "
+                             "trials")
+    return frame
+
+
+def _check_digest(where, data: bytes, expected: str, what: str, warn: Callable[[str], None]) -> None:
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != expected:
+        warn(f"{where}: not {what} (sha256 {digest[:16]}..., expected {expected[:16]}...); reading it anyway, "
+             "with an unpickler that only builds pandas/numpy tables")
 
 
 def rows_from_frame(frame) -> list[dict]:

@@ -9,10 +9,12 @@
     hidden = policy.initial_hidden(batch)
     actions, hidden = policy.act(key, obs, hidden, reset)   # obs [B, H, W, C], reset bool[B]
 
-An exported file is one msgpack file (flax serialization) holding a JSON header -- format name and
-version, the network (``ModelConfig`` + activation + number of actions), the ``ocv2.make`` keyword
-arguments of the environment it plays, free ``meta`` -- and the network parameters. Nothing of the
-training run (optimizer state, PPO settings, metrics) is in it, so it can be shared on its own.
+An exported file is one sealed msgpack file (``population.sealed``: every byte under one SHA-256)
+holding a JSON header -- format name and version, the network (``ModelConfig`` + activation + number
+of actions), the ``ocv2.make`` keyword arguments of the environment it plays, free ``meta`` -- and the
+network parameters, which must be finite floating-point arrays. Nothing of the training run (optimizer
+state, PPO settings, metrics) is in it, so it can be shared on its own. Version-1 files (the same
+header and parameters, no checksum) still load, with a ``PolicyFormatWarning``.
 
 ``Policy.apply`` follows the network calling convention of ``population.networks``, which is what
 ``population.evaluation`` pairs seat by seat: policies of different runs, CNN with RNN, or
@@ -25,6 +27,7 @@ import dataclasses
 import functools
 import json
 import re
+import warnings
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -34,13 +37,17 @@ import numpy as np
 from flax import serialization
 
 import ocv2
+from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population import checkpoints as ckpt
 from population.config import Config, ConfigError, ModelConfig, load_config, parse_config
 from population.networks import init_params, make_network
+from population.sealed import SealError, is_sealed, seal, unseal
 
 FORMAT_NAME = "ocv2-policy"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Exports before the checksum: read, with a warning.
+UNSEALED_VERSION = 1
 SUFFIX = ".ocv2policy"
 CHECKPOINT_CHOICES = ("init", "mid", "final", "latest")
 _SEED_DIR = re.compile(r"^seed_(\d+)$")
@@ -48,6 +55,10 @@ _SEED_DIR = re.compile(r"^seed_(\d+)$")
 
 class PolicyError(ValueError):
     """A policy source that cannot be loaded or exported (the message names the file)."""
+
+
+class PolicyFormatWarning(UserWarning):
+    """A policy file in an older format that still loads, without the checks of the current one."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -115,8 +126,8 @@ def export(path, *, params, model: ModelConfig, env, meta: dict | None = None, a
     params = jax.tree.map(np.asarray, params)
     config = _validated(header, str(path))
     _restore_params(str(path), _template(config), serialization.to_state_dict(params))
-    payload = {"header": header_text, "params": serialization.to_state_dict(params)}
-    return atomic_write(path, serialization.msgpack_serialize(payload))
+    content = {"header": header_text, "params": serialization.to_state_dict(params)}
+    return atomic_write(path, seal(FORMAT_NAME, FORMAT_VERSION, content))
 
 
 def export_checkpoint(source, out, *, seed: int | None = None, checkpoint: str | int = "final",
@@ -161,23 +172,39 @@ def _load_file(path: Path) -> Policy:
         raise PolicyError(f"{path}: cannot read ({error.strerror or error})") from None
     except Exception as error:  # msgpack raises several types on truncated or foreign data
         raise PolicyError(f"{path}: not an ocv2 policy or checkpoint file ({type(error).__name__})") from None
+    if is_sealed(payload) and payload.get("format") == ckpt.FORMAT_NAME:
+        return _load_checkpoint_file(path)
+    if is_sealed(payload):
+        try:
+            content = unseal(payload, FORMAT_NAME, FORMAT_VERSION)
+        except SealError as error:
+            raise PolicyError(f"{path}: {error}") from None
+        if "header" not in content or "params" not in content:
+            raise PolicyError(f"{path}: not an {FORMAT_NAME} file (no header/params)")
+        return _load_exported(path, content, FORMAT_VERSION)
     if isinstance(payload, dict) and "header" in payload and "params" in payload:
-        return _load_exported(path, payload)
+        return _load_exported(path, payload, UNSEALED_VERSION)
     if isinstance(payload, dict) and "meta" in payload and "state" in payload:
         return _load_checkpoint_file(path)
     raise PolicyError(f"{path}: not an ocv2 policy or checkpoint file")
 
 
-def _load_exported(path: Path, payload: dict) -> Policy:
+def _load_exported(path: Path, payload: dict, version: int) -> Policy:
     try:
-        header = json.loads(payload["header"])
+        header = boundedjson.loads(payload["header"])
+    except boundedjson.JSONDepthError as error:
+        raise PolicyError(f"{path}: corrupt policy header ({error})") from None
     except (TypeError, ValueError):
         raise PolicyError(f"{path}: corrupt policy header") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
         raise PolicyError(f"{path}: not an {FORMAT_NAME} file")
-    if header.get("version") != FORMAT_VERSION:
+    if header.get("version") != version:
         raise PolicyError(f"{path}: {FORMAT_NAME} version {header.get('version')!r}; this ocv2 reads version "
-                          f"{FORMAT_VERSION}")
+                          f"{FORMAT_VERSION} (and {UNSEALED_VERSION} without a checksum)")
+    if version == UNSEALED_VERSION:
+        warnings.warn(f"{path}: an {FORMAT_NAME} version-{UNSEALED_VERSION} file has no checksum, so damage to it "
+                      f"cannot be detected; export it again to get version {FORMAT_VERSION}",
+                      PolicyFormatWarning, stacklevel=4)
     config = _validated(header, str(path))
     params = _restore_params(str(path), _template(config), payload["params"])
     meta = header.get("meta") or {}
@@ -302,7 +329,20 @@ def _restore_params(where: str, template, raw):
     except (KeyError, ValueError, TypeError) as error:
         raise PolicyError(f"{where}: parameters do not fit the network ({error})") from None
     ckpt.check_shapes(where, template, params, PolicyError, what="parameter array")
+    _check_values(where, params)
     return jax.tree.map(lambda t, x: jnp.asarray(x, t.dtype), template, params)
+
+
+def _check_values(where: str, params) -> None:
+    """Refuse parameters that the cast to the network's float32 would silently change or that would make
+    every action NaN: non-float arrays (complex ones lose their imaginary part) and NaN or infinity."""
+    for keys, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        name = "/".join(str(getattr(k, "key", k)) for k in keys)
+        value = np.asarray(leaf)
+        if not jnp.issubdtype(value.dtype, jnp.floating):
+            raise PolicyError(f"{where}: parameter {name} has dtype {value.dtype}, not a floating-point one")
+        if not np.isfinite(value).all():
+            raise PolicyError(f"{where}: parameter {name} holds NaN or infinite values")
 
 
 def _validated(header: dict, where: str) -> Config:

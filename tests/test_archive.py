@@ -219,6 +219,11 @@ def test_write_episode_rejects_bad_input(tmp_path, recorded):
             writer.write_episode({}, states, actions, rewards, shaped, dones)
         with pytest.raises(TypeError, match="JSON"):
             writer.write_episode({"f": object()}, states, actions, rewards, shaped, dones, layout="cramped_room")
+        deep: list = []
+        for _ in range(40):  # deeper than a reader accepts: never written
+            deep = [deep]
+        with pytest.raises(ArchiveError, match="nests deeper than 32 levels"):
+            writer.write_episode({"deep": deep}, states, actions, rewards, shaped, dones, layout="cramped_room")
     assert len(ArchiveReader(tmp_path / "bad.mcap")) == 0
 
 
@@ -284,7 +289,8 @@ def test_bad_input_is_a_clear_error(tmp_path, archive, capsys):
     cases = [
         (["archive", "info", str(text)], "not an MCAP file"),
         (["archive", "info", str(tmp_path / "missing.mcap")], "no such file"),
-        (["archive", "replay", archive, "--episode", "3", "--out", str(tmp_path / "x.gif")], "out of range"),
+        (["archive", "replay", archive, "--episode", "3", "--out", str(tmp_path / "x.gif")],
+         "has no episode 3; its complete episodes are 0..2"),
         (["archive", "replay", archive, "--out", str(tmp_path / "x.png")], ".gif"),
         (["archive", "recover", str(text), "--out", str(tmp_path / "fixed.mcap")], "not an MCAP file"),
         (["archive", "recover", archive, "--out", archive], "already exists"),
@@ -467,8 +473,18 @@ def test_corrupt_chunk_is_skipped(tmp_path, archive, recorded, where, capsys):
     assert f"{len(kept)} complete episode(s)" in captured.out
     assert f"warning: {path}: skipped" in captured.err and "Traceback" not in captured.err
     gif = tmp_path / "last.gif"
-    assert main(["archive", "replay", path, "--episode", str(len(kept) - 1), "--out", str(gif)]) == 0
-    capsys.readouterr()
+    # replay takes the numbers info lists: after the lost episode too, and the lost one is an error.
+    assert main(["archive", "replay", path, "--episode", str(kept[-1]), "--out", str(gif)]) == 0
+    out = capsys.readouterr().out
+    assert f"(episode {kept[-1]}: " in out
+    assert reader.position(kept[-1]) == len(kept) - 1
+    assert main(["archive", "replay", path, "--episode", str(bad), "--out", str(tmp_path / "lost.gif")]) == 2
+    err = capsys.readouterr().err
+    listed = {0: "1..2", 1: "0, 2"}[bad]
+    assert f"has no episode {bad}; its complete episodes are {listed}" in err, err
+    assert [line.startswith("warning:") for line in err.strip().splitlines()].count(False) == 1, err
+    assert "Traceback" not in err
+    assert not (tmp_path / "lost.gif").exists()
     fixed = tmp_path / "fixed.mcap"
     assert main(["archive", "recover", path, "--out", str(fixed)]) == 0
     captured = capsys.readouterr()
@@ -476,6 +492,36 @@ def test_corrupt_chunk_is_skipped(tmp_path, archive, recorded, where, capsys):
     again = ArchiveReader(fixed)
     assert [m["episode"] for m in again.episodes()] == kept
     _assert_same_episode(again.episode(len(kept) - 1), recorded, kept[-1])
+
+
+@pytest.mark.parametrize("field", ["start", "end"])
+def test_damaged_chunk_header_times_are_detected(tmp_path, archive, recorded, field, capsys):
+    """The header's message time range is outside the chunk CRC: 4 flipped bytes there must not pass
+    as a clean file (replay would skip the chunk by its times and lose the episode)."""
+    path = str(tmp_path / "times.mcap")
+    shutil.copyfile(archive, path)
+    chunk = _chunks(path)[1]
+    at = chunk.chunk_start_offset + 1 + 8 + (0 if field == "start" else 8) + 2  # opcode, length, then the field
+    _damage(path, at, bytes(b ^ 0xFF for b in open(path, "rb").read()[at:at + 4]))
+
+    reader = ArchiveReader(path)
+    assert len(reader) == EPISODES  # the messages passed their CRC: nothing is lost ...
+    assert any(f"chunk at byte {chunk.chunk_start_offset}: its header gives message log times" in w
+               for w in reader.warnings), reader.warnings  # ... but the damage is reported
+    _assert_same_episode(reader.episode(1), recorded, 1)  # not skipped by its (wrong) times
+    assert main(["archive", "info", path]) == 0
+    captured = capsys.readouterr()
+    assert f"{EPISODES} complete episode(s)" in captured.out and "the header is damaged" in captured.err
+    gif = tmp_path / "one.gif"
+    assert main(["archive", "replay", path, "--episode", "1", "--out", str(gif)]) == 0 and gif.exists()
+    capsys.readouterr()
+    fixed = tmp_path / "fixed.mcap"
+    assert main(["archive", "recover", path, "--out", str(fixed)]) == 0
+    captured = capsys.readouterr()
+    assert "the header is damaged" in captured.err and f"recovered {EPISODES} complete episode(s)" in captured.out
+    again = ArchiveReader(fixed)  # the copy has correct headers
+    assert again.warnings == [] and len(again) == EPISODES
+    _assert_same_episode(again.episode(1), recorded, 1)
 
 
 def _rewrite(src, dst, commit=None, step_metadata=None):
@@ -521,6 +567,7 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
     opening = [  # refused when the file is opened (info)
         (dict(commit=lambda meta: b"{not json"), "is not JSON"),
         (dict(commit=lambda meta: b"[1, 2]"), "not an object"),
+        (dict(commit=lambda meta: b"[" * 100_000 + b"]" * 100_000), "nested deeper than 32 levels"),
         (dict(commit=without("steps")), "episode 0: the episode record has no 'steps'"),
         (dict(commit=edited(steps=10**12)), "key 'steps' is 1000000000000"),
         (dict(commit=edited(steps=-3)), "key 'steps' is -3"),
@@ -536,6 +583,7 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
         (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[5, 4, 3])}),
          "states do not fit"),
         (dict(step_metadata={"layout": "{}"}), "key 'layout'"),
+        (dict(step_metadata={"layout": "[" * 5000 + "]" * 5000}), "nested deeper than 32 levels"),
     ]
     # A crafted record after good episodes: recover stops with the error and leaves no half-copied file.
     path, out = str(tmp_path / "late.mcap"), tmp_path / "late_fixed.mcap"
@@ -552,3 +600,23 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
         err = capsys.readouterr().err
         assert message in err and path in err and "Traceback" not in err, (message, err)
         assert len(err.strip().splitlines()) == 1, err
+
+
+def _into_closed_pipe(argv: list[str]) -> subprocess.CompletedProcess:
+    """Run ``ocv2 ARGV`` with stdout a pipe whose reader has already gone (``| head -0``, or a ``head -1``
+    that read its line before the rest arrived): every write fails with EPIPE, deterministically."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        return subprocess.run([sys.executable, "-m", "cluster.cli", *argv], stdout=write, stderr=subprocess.PIPE,
+                              text=True, cwd=REPO, timeout=120,
+                              env={**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": REPO})
+    finally:
+        os.close(write)
+
+
+@pytest.mark.parametrize("argv", [["archive", "info", "ARCHIVE", "--limit", "-1"], ["archive", "info", "ARCHIVE",
+                                  "--json"], ["layouts"]])
+def test_piping_into_a_reader_that_closes_early_exits_quietly(archive, argv):
+    child = _into_closed_pipe([archive if a == "ARCHIVE" else a for a in argv])
+    assert child.stderr == "" and child.returncode == 1, child.stderr

@@ -8,7 +8,11 @@ delivered in the train slice, one in the test slice), so no test needs the sdist
 from __future__ import annotations
 
 import gzip
+import io
 import json
+import os
+import pickle
+import tarfile
 from pathlib import Path
 
 import jax
@@ -91,6 +95,71 @@ def test_bad_rows_name_the_problem(rows):
         human.trials_from_rows(rows["test"], "test", layouts=["two_rooms"])
     with pytest.raises(human.HumanDataError, match="no such file"):
         human.read_frame("/nonexistent/overcooked_ai-1.1.0.tar.gz", "train")
+
+
+class _Payload:
+    """What a hostile pickle carries: unpickling calls ``os.system(command)``."""
+
+    def __init__(self, command: str):
+        self.command = command
+
+    def __reduce__(self):
+        return os.system, (self.command,)
+
+
+def _crafted_pickles(marker: Path) -> dict[str, bytes]:
+    touch = f"touch {marker}"
+    return {
+        "a __reduce__ calling os.system": pickle.dumps(_Payload(touch)),
+        "os.system inside a list of rows": pickle.dumps([{"state": "{}"}, _Payload(touch)]),
+        "builtins.eval": b"cbuiltins\neval\n(V__import__('os').system(" + repr(touch).encode() + b")\ntR.",
+        "a class from another module": pickle.dumps(human.Trial),
+    }
+
+
+def _sdist_with(tmp_path: Path, pickle_bytes: bytes) -> Path:
+    """A rebuilt overcooked_ai-1.1.0.tar.gz whose train pickle is ``pickle_bytes``."""
+    tarball = tmp_path / "rebuilt" / human.SDIST_NAME
+    tarball.parent.mkdir(parents=True)
+    with tarfile.open(tarball, "w:gz") as tar:
+        info = tarfile.TarInfo("overcooked_ai-1.1.0/src/overcooked_ai_py/data/human_data/clean_train_trials.pickle")
+        info.size = len(pickle_bytes)
+        tar.addfile(info, io.BytesIO(pickle_bytes))
+    return tarball
+
+
+def test_a_crafted_pickle_cannot_run_code(tmp_path, capsys):
+    pytest.importorskip("pandas")
+    marker = tmp_path / "code_ran"
+    for what, data in _crafted_pickles(marker).items():
+        lone = tmp_path / human.PICKLE_NAMES["train"]
+        lone.write_bytes(data)
+        for source in (lone, _sdist_with(tmp_path / what.replace(" ", "_"), data)):
+            (tmp_path / "out").mkdir(exist_ok=True)
+            with pytest.warns(human.HumanDataWarning, match="sha256"):  # not the known file: said so ...
+                with pytest.raises(human.HumanDataError, match="refused to load") as error:  # ... and refused
+                    human.read_frame(source, "train")
+            assert str(source) in str(error.value) and "\n" not in str(error.value), what
+            assert main(["human", "import", str(source), "--splits", "train", "--out", str(tmp_path / "out")]) == 1
+            err = capsys.readouterr().err
+            assert "warning:" in err and "sha256" in err and "refused to load" in err and "Traceback" not in err
+            assert [line for line in err.splitlines() if not line.startswith("warning:")] == [
+                line for line in err.splitlines() if "error:" in line] and err.count("error:") == 1, err
+            assert not marker.exists(), f"{what}: the pickle ran code"
+            assert not list((tmp_path / "out").iterdir())
+
+
+@pytest.mark.parametrize("value", [[1, 2, 3], None, {"state": []}])
+def test_a_pickle_that_is_not_a_data_frame_is_a_one_line_error(tmp_path, capsys, value):
+    pytest.importorskip("pandas")
+    path = tmp_path / human.PICKLE_NAMES["test"]
+    path.write_bytes(pickle.dumps(value))
+    with pytest.warns(human.HumanDataWarning):
+        with pytest.raises(human.HumanDataError, match=f"holds a {type(value).__name__}, not the pandas DataFrame"):
+            human.read_frame(path, "test")
+    assert main(["human", "import", str(path), "--splits", "test", "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert f"ocv2 human: error: {path}: holds a {type(value).__name__}" in err and "Traceback" not in err
 
 
 def test_imported_archive_is_a_state_augmentation_source(trials, tmp_path):

@@ -6,6 +6,7 @@ Tiny sizes throughout (configs/smoke.yaml: cramped_room, 40-step episodes, a [8,
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import serialization
 
 import ocv2
 from ocv2.items import Action, Static, ingredient_unit, recipe_encoding_np
@@ -477,6 +479,45 @@ def test_checkpoint_from_a_different_config_is_refused(tmp_path, train_state):
     # eval/run sections are not part of the fingerprint: their checkpoints stay usable.
     same = load_config(SMOKE, ["population.method=sa", "eval.episodes=9", "run.checkpoint_every=1"])
     assert same.fingerprint() == config.fingerprint()
+
+
+SMALL_STATE = {"params": {"w": np.arange(6, dtype=np.float32).reshape(2, 3)}, "update": np.int32(80)}
+SMALL_META = {"seed": 1, "update": 80, "metrics": [{"update": 80, "return": 12.5}]}  # rows not in metrics.csv yet
+
+
+def test_any_single_byte_flip_of_a_checkpoint_is_refused(tmp_path):
+    """Metadata included: it carries the update number and metric rows a resume relies on."""
+    path = ckpt.save(tmp_path / "c.msgpack", SMALL_STATE, "fp", **SMALL_META)
+    data = path.read_bytes()
+    meta, raw = ckpt.read(path, "fp")
+    assert meta["metrics"] == SMALL_META["metrics"] and raw["update"] == 80
+    assert b"metrics" in data and b"return" in data  # the metadata is in the file (under the checksum)
+    damaged = tmp_path / "damaged.msgpack"
+    for offset in range(len(data)):
+        for flip in (0x01, 0x20, 0xFF):  # the lowest bit, the ASCII case bit, every bit
+            damaged.write_bytes(data[:offset] + bytes([data[offset] ^ flip]) + data[offset + 1:])
+            with pytest.raises(ckpt.CorruptCheckpointError) as error:
+                ckpt.read(damaged, "fp")
+            assert str(damaged) in str(error.value) and "\n" not in str(error.value)
+    damaged.write_bytes(data[:-1])
+    with pytest.raises(ckpt.CorruptCheckpointError, match="not a readable"):
+        ckpt.read(damaged)
+
+
+def test_version_2_checkpoints_still_load(tmp_path):
+    """The previous format: the state's bytes under a checksum kept in the (unprotected) metadata."""
+    state_bytes = serialization.msgpack_serialize(serialization.to_state_dict(SMALL_STATE))
+    payload = {"meta": {"version": 2, "fingerprint": "fp", "sha256": hashlib.sha256(state_bytes).hexdigest(),
+                        **SMALL_META}, "state": state_bytes}
+    path = tmp_path / "v2.msgpack"
+    path.write_bytes(serialization.msgpack_serialize(payload))
+    meta, state = ckpt.load(path, SMALL_STATE, "fp")
+    assert meta["version"] == 2 and meta["metrics"] == SMALL_META["metrics"]
+    np.testing.assert_array_equal(state["params"]["w"], SMALL_STATE["params"]["w"])
+    payload["state"] = state_bytes[:-1] + bytes([state_bytes[-1] ^ 1])  # its state stays checked
+    path.write_bytes(serialization.msgpack_serialize(payload))
+    with pytest.raises(ckpt.CorruptCheckpointError, match="checksum mismatch"):
+        ckpt.read(path)
 
 
 @pytest.mark.parametrize("damage", ["truncated", "empty", "garbage", "not_a_checkpoint", "missing"])

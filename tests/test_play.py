@@ -112,6 +112,9 @@ def test_valid_messages_parse():
     (b'{"type": "poll", "token": 12}', 400, "token must be"),
     (b'{"type": "join", "seat": "0"}', 400, "seat must be"),
     (b" " * 5000, 413, "limit"),
+    (b"[" * 2040 + b"]" * 2040, 400, "nests deeper than 2 levels"),  # 4 KB that json.loads cannot parse
+    (b'{"type": "join", "seat": ' + b"[" * 2000 + b"]" * 2000 + b"}", 400, "nests deeper than 2 levels"),
+    (b'{"type": "join", "seat": [[1]]}', 400, "nests deeper than 2 levels"),
 ])
 def test_malformed_messages_are_rejected(body, status, words):
     with pytest.raises(ProtocolError, match=words.replace("[", r"\[").replace("]", r"\]")) as info:
@@ -332,6 +335,12 @@ def test_the_server_rejects_bad_requests_and_the_game_goes_on(solo_game, archive
 
 
 JOIN = {"type": "join"}
+
+
+def test_a_deeply_nested_message_is_a_400_not_a_500(served):
+    status, reply = _api(served, b"[" * 2040 + b"]" * 2040)
+    assert status == 400 and "nests deeper than 2 levels" in reply["error"]
+    assert _api(served, JOIN)[0] == 200  # the server goes on
 
 
 @pytest.mark.parametrize("origin", ["http://evil.example", "null", "http://localhost:{port}"])

@@ -16,6 +16,7 @@ from flax import serialization
 from cluster.cli import main
 from population import checkpoints as ckpt
 from population import policy as pol
+from population import sealed
 from policy_runs import shared_run
 
 
@@ -86,7 +87,8 @@ def test_export_load_round_trip_gives_identical_actions(run, tmp_path):
     via_cli = pol.load(tmp_path / "cli.ocv2policy")
     _assert_trees_equal(original.params, via_cli.params)
     np.testing.assert_array_equal(_act_trace(original), _act_trace(via_cli))
-    header = json.loads(serialization.msgpack_restore((tmp_path / "cli.ocv2policy").read_bytes())["header"])
+    content = _content(tmp_path / "cli.ocv2policy")
+    header = json.loads(content["header"])
     assert header["format"] == pol.FORMAT_NAME and header["version"] == pol.FORMAT_VERSION
     assert set(header) == {"format", "version", "model", "activation", "env", "meta"}
 
@@ -114,9 +116,7 @@ def test_bad_sources_are_one_line_errors(run, tmp_path):
     good = pol.load(run)
     future = tmp_path / "future.ocv2policy"
     pol.export(future, params=good.params, model=good.model, env=good.env)
-    payload = serialization.msgpack_restore(future.read_bytes())
-    payload["header"] = payload["header"].replace(f'"version": {pol.FORMAT_VERSION}', '"version": 99')
-    future.write_bytes(serialization.msgpack_serialize(payload))
+    future.write_bytes(sealed.seal(pol.FORMAT_NAME, 99, _content(future)))
     with pytest.raises(pol.PolicyError, match="version 99"):
         pol.load(future)
     # Parameters that do not fit the network are refused before anything is written.
@@ -133,3 +133,92 @@ def test_ocv2_policy_is_population_policy_loaded_lazily():
     code = ("import sys, ocv2; assert 'population.policy' not in sys.modules and 'population' not in sys.modules; "
             "from ocv2 import policy; import population.policy as p; assert policy is p and ocv2.policy is p")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def _content(path):
+    """The header and parameters inside an exported file (its checksum checked)."""
+    return sealed.unseal(serialization.msgpack_restore(path.read_bytes()), pol.FORMAT_NAME, pol.FORMAT_VERSION)
+
+
+@pytest.fixture(scope="module")
+def exported(run, tmp_path_factory):
+    policy = pol.load(run)
+    path = pol.export(tmp_path_factory.mktemp("exported") / "p.ocv2policy", params=policy.params,
+                      model=policy.model, env=policy.env, meta={"note": "checked"})
+    return policy, path
+
+
+def test_any_flipped_byte_of_an_export_is_refused(exported, tmp_path):
+    policy, path = exported
+    data = path.read_bytes()
+    body_start = data.index(_content(path)["header"].encode()[:16]) - 64  # frame, body header, header text
+    rng = np.random.default_rng(0)
+    offsets = [*range(min(len(data), body_start + 400)), *rng.integers(0, len(data), 300), len(data) - 1]
+    damaged = tmp_path / "damaged.ocv2policy"
+    for offset in offsets:
+        damaged.write_bytes(data[:offset] + bytes([data[offset] ^ 1 << int(offset) % 8]) + data[offset + 1:])
+        with pytest.raises(pol.PolicyError) as error:
+            pol.load(damaged)
+        assert str(damaged) in str(error.value) and "\n" not in str(error.value), offset
+
+
+def _reseal(path, out, edit):
+    content = _content(path)
+    edit(content)
+    out.write_bytes(sealed.seal(pol.FORMAT_NAME, pol.FORMAT_VERSION, content))
+    return out
+
+
+@pytest.mark.parametrize("value, message", [
+    (np.nan, "holds NaN or infinite values"),
+    (np.inf, "holds NaN or infinite values"),
+    (1 + 2j, "dtype complex64, not a floating-point one"),
+    (1, "dtype int32, not a floating-point one"),
+])
+def test_non_finite_or_non_float_parameters_are_refused(exported, tmp_path, value, message):
+    policy, path = exported
+    leaves, treedef = jax.tree.flatten(jax.tree.map(np.asarray, policy.params))
+    first = leaves[0]
+    dtype = np.complex64 if isinstance(value, complex) else np.int32 if isinstance(value, int) else first.dtype
+    bad = first.astype(dtype)
+    bad.flat[0] = value
+    params = jax.tree.unflatten(treedef, [bad, *leaves[1:]])
+    target = tmp_path / "bad.ocv2policy"
+    with pytest.raises(pol.PolicyError, match=message):  # export refuses them before writing ...
+        pol.export(target, params=params, model=policy.model, env=policy.env)
+    assert not target.exists()
+
+    def plant(content):  # ... and a file that carries them (with a valid checksum) is refused on load
+        content["params"] = serialization.to_state_dict(params)
+
+    with pytest.raises(pol.PolicyError, match=message) as error:
+        pol.load(_reseal(path, target, plant))
+    assert str(target) in str(error.value)
+
+
+def test_a_version_1_export_loads_with_a_warning(exported, tmp_path):
+    policy, path = exported
+    content = _content(path)
+    header = json.loads(content["header"])
+    header["version"] = 1
+    old = tmp_path / "old.ocv2policy"
+    old.write_bytes(serialization.msgpack_serialize({"header": json.dumps(header), "params": content["params"]}))
+    with pytest.warns(pol.PolicyFormatWarning, match="version-1 file has no checksum"):
+        loaded = pol.load(old)
+    _assert_trees_equal(loaded.params, policy.params)
+    np.testing.assert_array_equal(_act_trace(loaded), _act_trace(policy))
+
+
+def test_a_header_nested_100000_deep_is_a_one_line_error(exported, tmp_path, capsys):
+    _, path = exported
+    deep = "[" * 100_000 + "]" * 100_000
+    sealed_file = _reseal(path, tmp_path / "deep.ocv2policy", lambda content: content.update(header=deep))
+    old_file = tmp_path / "deep_v1.ocv2policy"
+    old_file.write_bytes(serialization.msgpack_serialize({"header": deep, "params": _content(path)["params"]}))
+    for source in (sealed_file, old_file):
+        with pytest.raises(pol.PolicyError, match="nested deeper than 32 levels"):
+            pol.load(source)
+        assert main(["xp", "--rows", str(source), "--backend", "local", "--out", str(tmp_path / "xp")]) == 2
+        err = capsys.readouterr().err
+        assert "nested deeper than 32 levels" in err and str(source) in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "xp").exists()

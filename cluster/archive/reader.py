@@ -3,7 +3,8 @@
 Reading never needs the file's summary: records are read in file order. A chunk that fails to
 decompress or to match its CRC is skipped with a warning and reading goes on after it; bytes that do
 not frame a record (a corrupt record length) are skipped up to the next chunk that checks out. A
-torn tail (a killed writer) simply ends the scan. Commit records and step-channel metadata that do
+chunk whose header times (not under the CRC) disagree with its messages' log times is read, with a
+warning, and never passed over by time. A torn tail (a killed writer) simply ends the scan. Commit records and step-channel metadata that do
 not follow the format (crafted or foreign files) are an ``ArchiveError`` naming file, episode and key.
 """
 
@@ -12,7 +13,6 @@ from __future__ import annotations
 import base64
 import dataclasses
 import io
-import json
 import os
 import struct
 from typing import Iterator, NamedTuple, Sequence
@@ -28,6 +28,7 @@ from cluster.archive.format import (
     EPISODE_TOPIC, FRAMES_TOPIC, MAGIC, MAX_CHUNK_BYTES, PROFILE, STATE_NAMES, STATE_TREEDEF, STEP_TOPIC,
     TRANSITION_DTYPES, TRANSITION_FIELDS, ArchiveError, Episode, field_sizes, layout_from_spec,
 )
+from ocv2 import boundedjson
 from ocv2.config import build_config
 from ocv2.layouts import Layout
 from ocv2.reset import validate_buffer
@@ -51,6 +52,8 @@ class ScanStatus:
     channels: dict = dataclasses.field(default_factory=dict)  # id -> Channel
     schemas: dict = dataclasses.field(default_factory=dict)  # id -> Schema
     header: Header | None = None
+    # byte offsets of chunks whose header times do not match their messages: never skipped by time
+    untrusted_times: set = dataclasses.field(default_factory=set)
 
 
 class Group(NamedTuple):
@@ -215,13 +218,15 @@ def _records(path: str, status: ScanStatus, time_range: tuple[int, int] | None) 
                     offset = position
                     continue
                 if opcode == Opcode.CHUNK:
-                    if time_range is not None and _outside(data, offset, size, time_range):
+                    if (time_range is not None and offset not in status.untrusted_times
+                            and _outside(data, offset, size, time_range)):
                         offset = end  # another episode's chunk: not even decompressed
                         continue
                     found = _chunk_at(data, offset, size)
                     if found is None:
                         status.warnings.append(f"skipped corrupt {_describe_chunk(data, offset, end)}")
                     else:
+                        _check_chunk_times(offset, *found[:2], status)
                         for record in found[1]:
                             _learn(record, status, fallback)
                             yield record
@@ -243,6 +248,23 @@ def _records(path: str, status: ScanStatus, time_range: tuple[int, int] | None) 
             return
         if not status.finished:
             status.tail_error = status.tail_error or "the file ends without a footer"
+
+
+def _check_chunk_times(offset: int, chunk: Chunk, records: list, status: ScanStatus) -> None:
+    """Compare a chunk header's message time range, which its CRC does not cover, with its messages'
+    log times (the writer stores their exact minimum and maximum). A mismatch is damage to the header:
+    the messages passed the CRC and are read, but the header cannot be trusted to skip the chunk by time."""
+    times = [r.log_time for r in records if isinstance(r, Message)]
+    if not times:
+        return
+    first, last = min(times), max(times)
+    if (chunk.message_start_time, chunk.message_end_time) != (first, last):
+        status.untrusted_times.add(offset)
+        status.warnings.append(
+            f"chunk at byte {offset}: its header gives message log times {chunk.message_start_time}.."
+            f"{chunk.message_end_time} but its {len(times)} messages span {first}..{last} (the header is "
+            "damaged; its messages passed the CRC check and are read; 'ocv2 archive recover' writes a "
+            "file with correct headers)")
 
 
 def _outside(data, offset: int, size: int, time_range: tuple[int, int]) -> bool:
@@ -293,7 +315,7 @@ def _commit_meta(path: str, message: Message) -> dict:
     """A commit record's metadata, checked before anything is sized from it."""
     where = f"{path!r}: the episode record at log time {message.log_time}"
     try:
-        meta = json.loads(message.data)
+        meta = boundedjson.loads(message.data)
     except (ValueError, UnicodeDecodeError) as error:
         raise ArchiveError(f"{where} is not JSON ({error})") from None
     if not isinstance(meta, dict):
@@ -378,7 +400,7 @@ def _step_table(path: str, meta: dict, channel: Channel) -> list[dict]:
     """The step channel's field table, checked: known names, plain numeric dtypes, sane shapes."""
     where = f"{path!r}: episode {meta['episode']}: step channel metadata"
     try:
-        table = json.loads(channel.metadata["fields"])
+        table = boundedjson.loads(channel.metadata["fields"])
     except KeyError:
         raise ArchiveError(f"{where} has no 'fields'") from None
     except ValueError as error:
@@ -413,7 +435,7 @@ def _step_table(path: str, meta: dict, channel: Channel) -> list[dict]:
 def _channel_layout(path: str, meta: dict, channel: Channel) -> Layout:
     where = f"{path!r}: episode {meta['episode']}: step channel metadata key 'layout'"
     try:
-        spec = json.loads(channel.metadata["layout"])
+        spec = boundedjson.loads(channel.metadata["layout"])
         return layout_from_spec(spec)
     except KeyError as error:
         raise ArchiveError(f"{where} is missing (or lacks {error})") from None
@@ -501,12 +523,30 @@ class ArchiveReader:
         """The metadata of every complete episode, in file order."""
         return [dict(m) for m in self._metas]
 
+    def position(self, episode: int) -> int:
+        """Where the episode whose stored number (``meta["episode"]``, what ``info`` lists) is ``episode``
+        sits among ``episodes()``: the index ``episode()``, ``layout()`` and ``frames()`` take. The two
+        differ once a damaged part of the file lost episodes.
+
+        Raises:
+            ArchiveError: no complete episode has that number (one line, listing the numbers there are).
+        """
+        if isinstance(episode, bool) or not isinstance(episode, (int, np.integer)):
+            raise ArchiveError(f"episode number must be an integer, got {episode!r}")
+        for index, meta in enumerate(self._metas):
+            if meta["episode"] == episode:
+                return index
+        lost = " (episodes lost to damage are listed in the warnings)" if self._status.warnings else ""
+        raise ArchiveError(f"{self.path!r} has no episode {episode}; its complete episodes are "
+                           f"{_number_ranges([m['episode'] for m in self._metas]) or 'none'}{lost}")
+
     def _index(self, index: int) -> int:
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
-            raise ArchiveError(f"episode index must be an integer, got {index!r}")
+            raise ArchiveError(f"episode position must be an integer, got {index!r}")
         if not -len(self._metas) <= index < len(self._metas):
-            raise ArchiveError(f"episode {index} is out of range: {self.path!r} has {len(self._metas)} "
-                               f"complete episode(s) (0..{len(self._metas) - 1})")
+            raise ArchiveError(f"episode position {index} is out of range: {self.path!r} has {len(self._metas)} "
+                               f"complete episode(s) (positions 0..{len(self._metas) - 1}; position(N) finds "
+                               "stored episode number N)")
         return int(index) % len(self._metas)
 
     def layout(self, index: int) -> Layout:
@@ -518,11 +558,12 @@ class ArchiveReader:
     def _group(self, index: int) -> Group:
         index = self._index(index)
         meta = self._metas[index]
-        status = ScanStatus(channels=dict(self._status.channels), schemas=dict(self._status.schemas))
+        status = ScanStatus(channels=dict(self._status.channels), schemas=dict(self._status.schemas),
+                            untrusted_times=set(self._status.untrusted_times))
         for group in scan(self.path, status, (meta["log_time_start"], meta["log_time_end"])):
             if group.meta["episode"] == meta["episode"] and group.meta["log_time_start"] == meta["log_time_start"]:
                 return group
-        raise ArchiveError(f"episode {index} of {self.path!r} could not be read again (the file changed?)")
+        raise ArchiveError(f"episode {meta['episode']} of {self.path!r} could not be read again (the file changed?)")
 
     def episode(self, index: int) -> Episode:
         """Episode ``index``: (meta, states [T+1], actions [T, N], rewards [T], shaped [T, N], dones [T])."""
@@ -550,7 +591,7 @@ class ArchiveReader:
         images = []
         for t, m in enumerate(messages):
             try:
-                image = json.loads(m.data)
+                image = boundedjson.loads(m.data)
                 pixels = np.frombuffer(base64.b64decode(image["data"]), np.uint8)
                 images.append(pixels.reshape(image["height"], image["width"], 3))
             except (ValueError, TypeError, KeyError) as error:
@@ -598,6 +639,17 @@ class ArchiveReader:
             "warnings": self.warnings,
             "tail_error": None if self.finished else self._status.tail_error,
         }
+
+
+def _number_ranges(numbers: Sequence[int]) -> str:
+    """``0, 2..5, 9`` for [0, 2, 3, 4, 5, 9] (file order kept)."""
+    runs: list[list[int]] = []
+    for n in numbers:
+        if runs and n == runs[-1][1] + 1:
+            runs[-1][1] = n
+        else:
+            runs.append([n, n])
+    return ", ".join(str(a) if a == b else f"{a}..{b}" for a, b in runs)
 
 
 def _policies(meta: dict) -> str | None:

@@ -42,13 +42,13 @@ def states_as_buffer(paths, keep_every: int = 10, layout: Layout | str | None = 
     parts = []
     for path in paths:
         reader = ArchiveReader(path)
-        for index in range(len(reader)):
+        for index, meta in enumerate(reader.episodes()):
             episode_layout = reader.layout(index)
             if target is None:
                 target = episode_layout
             if not _same_kitchen(episode_layout, target):
                 raise ArchiveError(
-                    f"{path!r} episode {index} is on layout {episode_layout.name!r} "
+                    f"{path!r} episode {meta['episode']} is on layout {episode_layout.name!r} "
                     f"({episode_layout.height}x{episode_layout.width}, {episode_layout.num_agents} agents), not "
                     f"{target.name!r} ({target.height}x{target.width}, {target.num_agents} agents): a reset buffer "
                     "holds states of one kitchen")

@@ -18,6 +18,7 @@ from cluster.archive.format import (
     PARTIAL_SUFFIX, PROFILE, RAW_IMAGE_SCHEMA, RESERVED_KEYS, STATE_NAMES, STATE_TREEDEF, STEP_ENCODING, STEP_TOPIC,
     TRANSITION_FIELDS, ArchiveError, field_table, layout_spec, to_json,
 )
+from ocv2 import boundedjson
 from ocv2.layouts import Layout, get_layout
 from ocv2.render import render_frames
 from ocv2.state import State
@@ -277,7 +278,10 @@ class ArchiveWriter:
         layout = self._resolve_layout(meta, layout)
         leaves, table, rows, steps, num_agents = _episode_rows(states, actions, rewards, shaped_rewards, dones,
                                                                layout)
-        user = json.loads(to_json(meta))
+        try:  # the reader refuses deeper records: never write one it cannot read back
+            user = boundedjson.loads(to_json(meta))
+        except (boundedjson.JSONDepthError, RecursionError):
+            raise ArchiveError(f"episode meta nests deeper than {boundedjson.MAX_DEPTH} levels") from None
         rewards32 = np.asarray(rewards, np.float32)
         shaped32 = np.asarray(shaped_rewards, np.float32)
         t0 = self._clock

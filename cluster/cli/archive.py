@@ -35,7 +35,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                 description="Render every stored state of one episode (T + 1 frames for T "
                                             "transitions) to a looping GIF.")
     replay.add_argument("file", help="archive file")
-    replay.add_argument("--episode", type=int, default=0, metavar="N", help="episode index (default 0; see 'info')")
+    replay.add_argument("--episode", type=int, default=0, metavar="N",
+                        help="episode number, as 'info' lists it in its # column (default 0)")
     replay.add_argument("--out", required=True, help="GIF file to write")
     replay.add_argument("--fps", type=float, default=5.0, help="frames per second (default 5)")
     replay.add_argument("--tile-size", type=int, default=32, help="pixels per cell (default 32)")
@@ -126,8 +127,9 @@ def _replay(args) -> int:
         raise CLIError(f"--view-radius must be >= 0, got {args.view_radius}")
     reader = _reader(args.file)
     try:
-        episode = reader.episode(args.episode)
-        layout = reader.layout(args.episode)
+        index = reader.position(args.episode)  # the stored number info lists, not the position in the file
+        episode = reader.episode(index)
+        layout = reader.layout(index)
     except ArchiveError as error:
         raise CLIError(str(error)) from None
     frames = render_frames(episode.states, layout, agent_view_size=args.view_radius, tile_size=args.tile_size)

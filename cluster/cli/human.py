@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 import numpy as np
 
@@ -75,9 +76,15 @@ def _splits(text: str) -> tuple[str, ...]:
     return names
 
 
+def _warn_once(message: str, _seen: set = set()) -> None:  # noqa: B006 -- the set is the memory of this process
+    if message not in _seen:  # both splits come from one sdist: one warning for it
+        _seen.add(message)
+        print(f"warning: {message}", file=sys.stderr, flush=True)
+
+
 def _load(source: str, split: str, layouts, max_trials) -> list[human.Trial]:
     try:
-        frame = human.read_frame(source, split)
+        frame = human.read_frame(source, split, warn=_warn_once)
         return human.trials_from_rows(human.rows_from_frame(frame), split, layouts, max_trials)
     except human.HumanDataError as error:
         raise CLIError(str(error), EXIT_FAILURE) from None

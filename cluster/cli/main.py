@@ -280,13 +280,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exit_:  # argparse already printed usage / help
         return exit_.code if isinstance(exit_.code, int) else EXIT_USAGE
     try:
-        return int(resolve(args.func)(args))
+        code = int(resolve(args.func)(args))
+        sys.stdout.flush()  # inside the try: a reader gone before the last buffered write is caught here
+        return code
     except CLIError as error:
         print(f"ocv2 {args.command}: error: {error}", file=sys.stderr)
         return error.code
     except KeyboardInterrupt:
         print(f"ocv2 {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        return _reader_gone()
+
+
+def _reader_gone() -> int:
+    """stdout's reader closed early (``ocv2 ... | head``): exit quietly, as a killed-by-SIGPIPE tool would.
+
+    Python ignores SIGPIPE, so writes raise instead. stdout is pointed at /dev/null so that the
+    interpreter's final flush of what is still buffered does not fail a second time at exit.
+    """
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout replaced by an object without a descriptor
+        pass
+    return EXIT_FAILURE
 
 
 if __name__ == "__main__":  # pragma: no cover

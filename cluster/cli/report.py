@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import csv
 import io
-import json
 import math
 import sys
 from pathlib import Path
@@ -35,6 +34,7 @@ from rich.table import Table
 
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.rundir import RunDir, RunDirError, seed_curves
+from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
@@ -138,7 +138,7 @@ def load_run(path) -> dict:
     summary_path = run.path / "xp" / "summary.json"
     if summary_path.is_file():
         try:
-            summary = json.loads(summary_path.read_text())
+            summary = boundedjson.loads(summary_path.read_text())
         except (OSError, ValueError) as error:
             raise CLIError(f"{summary_path}: unreadable cross-play summary: {error}") from None
     try:

@@ -7,15 +7,17 @@ and never reaches the game.
 
 from __future__ import annotations
 
-import json
 from typing import NamedTuple
 
+from ocv2 import boundedjson
 from ocv2 import items as it
 
 ACTIONS = {"right": it.Action.RIGHT, "down": it.Action.DOWN, "left": it.Action.LEFT, "up": it.Action.UP,
            "stay": it.Action.STAY, "interact": it.Action.INTERACT}
 MAX_MESSAGE_BYTES = 4096
 MAX_TOKEN_CHARS = 64
+#: Every message is one flat JSON object; deeper text is refused before anything walks it.
+MAX_MESSAGE_DEPTH = 2
 
 # message type -> (required keys, optional keys) besides "type"
 _FIELDS = {
@@ -50,7 +52,10 @@ def parse_message(body: bytes) -> Message:
     if len(body) > MAX_MESSAGE_BYTES:
         raise ProtocolError(f"message of {len(body)} bytes is over the {MAX_MESSAGE_BYTES}-byte limit", 413)
     try:
-        data = json.loads(body.decode("utf-8"))
+        data = boundedjson.loads(body.decode("utf-8"), MAX_MESSAGE_DEPTH)
+    except boundedjson.JSONDepthError:
+        raise ProtocolError(f"message nests deeper than {MAX_MESSAGE_DEPTH} levels; it must be one flat JSON "
+                            "object") from None
     except (UnicodeDecodeError, ValueError):
         raise ProtocolError("message is not UTF-8 JSON") from None
     if not isinstance(data, dict):

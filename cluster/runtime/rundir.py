@@ -32,6 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cluster.runtime.environment import environment_record
+from ocv2 import boundedjson
 from ocv2.atomic import atomic_write, is_temporary, remove_stale_temporaries
 from population.config import Config, ConfigError, dump_config, load_config
 
@@ -196,8 +197,8 @@ class RunDir:
         except FileNotFoundError:
             return {}
         try:
-            data = json.loads(text)
-        except json.JSONDecodeError as error:
+            data = boundedjson.loads(text)
+        except ValueError as error:  # not JSON, or nested deeper than any manifest ocv2 writes
             what = "is empty" if not text.strip() else f"is not valid JSON ({error})"
             raise RunDirError(f"{self.manifest_path}: {what}; restore it from a backup or delete it to resume "
                               "from the checkpoints") from None
@@ -219,8 +220,8 @@ class RunDir:
         history = []
         if resuming and self.environment_path.exists():
             try:
-                history = json.loads(self.environment_path.read_text()).get("drivers", [])
-            except (json.JSONDecodeError, AttributeError):
+                history = boundedjson.loads(self.environment_path.read_text()).get("drivers", [])
+            except (ValueError, AttributeError):
                 _warn(f"{self.environment_path}: unreadable; starting a new record")
         history.append(environment_record())
         write_json(self.environment_path, {"drivers": history})
