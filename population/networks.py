@@ -17,6 +17,7 @@ A checkpoint trained with either family loads and runs in the other.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Sequence
 
@@ -398,6 +399,12 @@ class ActorCritic(nn.Module):
 
     def initial_hidden(self, batch: int) -> jax.Array:
         return jnp.zeros((batch, self.gru_dim if self.recurrent else 0), jnp.float32)
+
+
+def same_function(model: ModelConfig) -> ModelConfig:
+    """``model`` with the kernel choice reset: two configs equal after this describe the same network
+    (parameters and function), whichever kernels compute it."""
+    return dataclasses.replace(model, kernels="auto")
 
 
 def make_network(model: ModelConfig, num_actions: int = 6, activation: str = "relu") -> ActorCritic:

@@ -14,7 +14,7 @@ import pytest
 import ocv2
 from population.config import ConfigError, ModelConfig, parse_config
 from population.networks import (ActorCritic, SameConv, gru_step, chunk_count, count_params, gru_scan, gru_sequence,
-                                 init_params, kernel_family, make_network, pointwise_mixer)
+                                 init_params, kernel_family, make_network, pointwise_mixer, same_function)
 
 RNN_OBS = (5, 5, 40)
 SMALL_RNN = {"kind": "rnn", "mixer_features": [8], "conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8,
@@ -371,3 +371,9 @@ def test_every_kernel_family_gives_the_same_parameters_outputs_and_gradients(raw
     assert float(jnp.abs(cpu_grads["params"]["ConvEncoder_0"]["SameConv_0"]["kernel"]).max()) > 0
     for ours, theirs in zip(jax.tree.leaves(cpu_grads), jax.tree.leaves(xla_grads), strict=True):
         np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
+
+
+def test_configs_that_differ_only_in_kernels_describe_the_same_network():
+    cpu, auto = _model({**SMALL_RNN, "kernels": "cpu"}), _model(SMALL_RNN)
+    assert cpu != auto and same_function(cpu) == same_function(auto)
+    assert same_function(cpu) != same_function(_model({**SMALL_RNN, "gru_dim": 4}))

@@ -37,6 +37,7 @@ from population import checkpoints as ckpt
 from population import ppo
 from population.config import Config, shards as seed_shards
 from population.evaluation import stack_params
+from population.networks import same_function
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
 
 log = logging.getLogger(__name__)
@@ -120,7 +121,7 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
         partner_config = RunDir.existing(partner_run).load_config()
     except RunDirError as error:
         raise RunDirError(f"population.fcp.partners: {error}") from None
-    if partner_config.env != config.env or partner_config.model != config.model:
+    if partner_config.env != config.env or same_function(partner_config.model) != same_function(config.model):
         raise RunDirError(f"population.fcp.partners: {partner_run} was trained with a different env or model "
                           "section; FCP partners must play the same game with the same network")
     twin = twin_seed_warning(config, partner_config, partner_run)

@@ -36,6 +36,7 @@ from population.config import ClusterConfig, Config, ConfigError, ModelConfig, l
 from population.evaluation import stack_params
 from population.human import proxy_path
 from population.keys import derive_key
+from population.networks import same_function
 from population.plots import xp_heatmap
 from population.policy import PolicyError, hidden_size_of, load, network, policy_env
 from population.xp import Side, block_summary, cross_play, recipe_names
@@ -114,7 +115,7 @@ def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
 
 def policy_id(policy) -> str:
     """A content hash: an exported copy of a run's checkpoint is the same policy as the checkpoint."""
-    digest = hashlib.sha256(repr((policy.model, policy.activation)).encode())
+    digest = hashlib.sha256(repr((same_function(policy.model), policy.activation)).encode())
     for leaf in jax.tree.leaves(policy.params):
         digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
     return digest.hexdigest()[:16]
