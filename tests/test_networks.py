@@ -291,6 +291,9 @@ def test_the_gru_backward_pass_equals_autodiff_of_the_plain_scan():
             return (h := gru_step(kernel, bias, h, *xs)[-1]), h
         return jax.lax.scan(step, hidden, (projected, reset))
 
+    assert jax.tree.all(jax.tree.map(lambda x, y: bool((x == y).all()), gru_scan(projected, reset, hidden, kernel, bias),
+                                     plain(projected, reset, hidden, kernel, bias)))  # the "xla" kernels' GRU
+
     def loss(gru):
         def f(projected, hidden, kernel, bias):
             last, every = gru(projected, reset, hidden, kernel, bias)
