@@ -69,6 +69,10 @@ class ModelConfig:
     mixer_features: tuple[int, ...] = (128, 128, 8)
     fc_dim: int | None = None
     gru_dim: int = 128
+    # how convolutions and the GRU are computed (same function and parameters either way): "cpu" the
+    # matmul forms and hand-written GRU backward tuned for XLA:CPU, "xla" XLA's own convolution op and
+    # autodiff (cuDNN on GPU), "auto" the first on a CPU backend, the second elsewhere
+    kernels: str = "auto"
 
     @property
     def recurrent(self) -> bool:
@@ -279,7 +283,8 @@ class Config:
 
 
 #: Keys added after 0.1.0 and their defaults, left out of the fingerprint at those defaults.
-_LATER_KEYS = {("population", "fcp", "pool"): "shared", ("population", "fcp", "partner_ppo"): None}
+_LATER_KEYS = {("population", "fcp", "pool"): "shared", ("population", "fcp", "partner_ppo"): None,
+               ("model", "kernels"): "auto"}
 
 
 def _plain(value):
@@ -296,6 +301,7 @@ def _plain(value):
 
 METHODS = ("sp", "sa", "op", "fcp")
 ACTIVATIONS = ("relu", "tanh")
+KERNELS = ("auto", "cpu", "xla")  # model.kernels
 SECTIONS = ("env", "model", "ppo", "population", "eval", "run", "archive", "cluster")
 
 
@@ -666,6 +672,8 @@ def _validate(config: Config) -> list[str]:
     problems: list[str] = []
     if len(model.conv_features) != len(model.conv_kernels):
         problems.append("model.conv_kernels: needs one kernel size per entry of model.conv_features")
+    if model.kernels not in KERNELS:
+        problems.append(f"model.kernels: expected one of {', '.join(KERNELS)}, got {model.kernels!r}")
     for key in ("fc_dim", "gru_dim"):
         problems += _positive(f"model.{key}", getattr(model, key))
     for key, values in (("conv_features", model.conv_features), ("conv_kernels", model.conv_kernels),

@@ -7,10 +7,17 @@ One calling convention for both, so PPO, evaluation and FCP never branch on the 
 ``obs`` is [T, B, H, W, C] (any integer or float dtype), ``reset`` bool[T, B] says "an episode starts
 at this step" (the GRU carry is zeroed *before* reading that observation), ``hidden`` is [B, gru_dim]
 (the CNN carries a [B, 0] placeholder). ``logits`` is [T, B, num_actions], ``value`` [T, B].
+
+Two kernel families compute the same function with the same parameter tree (``model.kernels``,
+``kernel_family``): "cpu" builds convolutions from matmuls (``SameConv``) and gives the GRU a
+hand-written backward pass (``gru_sequence``), both measured faster on XLA:CPU; "xla" uses
+``nn.Conv`` and autodiff of the GRU scan, which is what GPUs (cuDNN) and other backends run best.
+A checkpoint trained with either family loads and runs in the other.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Sequence
 
@@ -34,6 +41,17 @@ MIXER_CHUNK_ROWS = 2048  # cells per chunk of the 1x1 mixer (pointwise_mixer); 0
 CONV_PATH = "auto"  # or force "banded" / "im2col" everywhere (bench/train_throughput.py --conv-path)
 
 _ACTIVATIONS = {"relu": nn.relu, "tanh": nn.tanh}
+KERNEL_FAMILIES = ("cpu", "xla")
+
+
+def kernel_family(kernels: str) -> str:
+    """The kernel family ``model.kernels`` asks for: "cpu" or "xla"; "auto" picks "cpu" on the CPU
+    backend (``jax.default_backend()``) and "xla" on any other (GPU, TPU)."""
+    if kernels == "auto":
+        return "cpu" if jax.default_backend() == "cpu" else "xla"
+    if kernels not in KERNEL_FAMILIES:
+        raise ValueError(f"model.kernels: expected auto, cpu or xla, got {kernels!r}")
+    return kernels
 
 
 def _dense(features: int, scale: float) -> nn.Dense:
@@ -135,10 +153,28 @@ class ConvEncoder(nn.Module):
     conv_kernels: Sequence[int]
     fc_dim: int
     activation: str
+    kernels: str = "cpu"  # a kernel family ("cpu" or "xla"), already resolved
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:  # [B, H, W, C] -> [B, fc_dim]
         act = _ACTIVATIONS[self.activation]
+        if self.kernels == "xla":
+            x = self._xla_convs(obs.astype(jnp.float32), act)
+        else:
+            x = self._cpu_convs(obs, act)
+        x = x.reshape(x.shape[0], -1)
+        x = act(_dense(self.fc_dim, math.sqrt(2))(x))
+        return nn.LayerNorm()(x)
+
+    def _xla_convs(self, x: jax.Array, act) -> jax.Array:
+        """``nn.Conv`` layers under SameConv's names (same parameters, same initial draws)."""
+        kernels = (1,) * len(self.mixer_features) + tuple(self.conv_kernels)
+        for index, (features, k) in enumerate(zip((*self.mixer_features, *self.conv_features), kernels)):
+            x = act(nn.Conv(features, (k, k), padding="SAME", kernel_init=orthogonal(math.sqrt(2)),
+                            bias_init=constant(0.0), name=f"SameConv_{index}")(x))
+        return x
+
+    def _cpu_convs(self, obs: jax.Array, act) -> jax.Array:
         if self.mixer_features:
             channels, weights = obs.shape[-1], []
             for index, features in enumerate(self.mixer_features):
@@ -149,9 +185,7 @@ class ConvEncoder(nn.Module):
             x = obs.astype(jnp.float32)
         for index, (features, k) in enumerate(zip(self.conv_features, self.conv_kernels)):
             x = act(SameConv(features, k, name=f"SameConv_{len(self.mixer_features) + index}")(x))
-        x = x.reshape(x.shape[0], -1)
-        x = act(_dense(self.fc_dim, math.sqrt(2))(x))
-        return nn.LayerNorm()(x)
+        return x
 
 
 class _ConvParams(nn.Module):
@@ -244,10 +278,12 @@ class ResetGRU(nn.Module):
     so checkpoints stay loadable), computed faster: the input projections of all three gates for
     all T steps are one [T*B, in] x [in, 3H] matmul before the time loop, each step does one
     [B, H] x [H, 3H] matmul for the three hidden projections instead of three small ones, and the
-    loop's backward pass is hand-written (``gru_sequence``).
+    loop's backward pass is hand-written (``gru_sequence``; ``custom_backward=False``: autodiff of
+    the same scan, ``gru_scan``).
     """
 
     features: int
+    custom_backward: bool = True
 
     @nn.compact
     def __call__(self, hidden, inputs, reset):  # [B, H], [T, B, in], bool[T, B] -> ([B, H], [T, B, H])
@@ -255,7 +291,8 @@ class ResetGRU(nn.Module):
             inputs.shape[-1])
         flat = inputs.reshape(-1, inputs.shape[-1])  # 2-D: see pointwise_mixer on XLA:CPU and N-D dots
         projected = (flat @ input_kernel + input_bias).reshape(inputs.shape[:-1] + (-1,))  # [T, B, 3H]
-        return gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias)
+        gru = gru_sequence if self.custom_backward else gru_scan
+        return gru(projected, reset, hidden, hidden_kernel, hidden_bias)
 
 
 def gru_step(hidden_kernel, hidden_bias, h, projected, start):
@@ -282,6 +319,15 @@ def gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias):
     Same function; gradients equal autodiff's to float rounding (tests/test_networks.py).
     """
     return _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias)[0]  # unused gate outputs: dropped by jit
+
+
+def gru_scan(projected, reset, hidden, hidden_kernel, hidden_bias):
+    """``gru_sequence`` differentiated by autodiff of the step scan (what backends other than XLA:CPU run)."""
+    def step(h, xs):
+        h = gru_step(hidden_kernel, hidden_bias, h, *xs)[-1]
+        return h, h
+
+    return jax.lax.scan(step, hidden, (projected, reset))
 
 
 def _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias):
@@ -331,16 +377,19 @@ class ActorCritic(nn.Module):
     fc_dim: int
     gru_dim: int
     activation: str = "relu"
+    kernels: str = "auto"  # "auto", "cpu" or "xla": see kernel_family
 
     @nn.compact
     def __call__(self, hidden: jax.Array, obs: jax.Array, reset: jax.Array):
         act = _ACTIVATIONS[self.activation]
+        family = kernel_family(self.kernels)
         steps, batch = obs.shape[:2]
         flat = obs.reshape((steps * batch,) + obs.shape[2:])
         embedding = ConvEncoder(self.mixer_features, self.conv_features, self.conv_kernels, self.fc_dim,
-                                self.activation)(flat).reshape(steps, batch, -1)
+                                self.activation, family)(flat).reshape(steps, batch, -1)
         if self.recurrent:
-            hidden, embedding = ResetGRU(self.gru_dim, name="ScanResetGRUCell_0")(hidden, embedding, reset)
+            hidden, embedding = ResetGRU(self.gru_dim, family == "cpu", name="ScanResetGRUCell_0")(
+                hidden, embedding, reset)
         embedding = embedding.reshape(steps * batch, -1)  # 2-D heads: see pointwise_mixer
         actor = act(_dense(self.fc_dim, math.sqrt(2))(embedding))
         logits = _dense(self.num_actions, 0.01)(actor).reshape(steps, batch, -1)
@@ -350,6 +399,12 @@ class ActorCritic(nn.Module):
 
     def initial_hidden(self, batch: int) -> jax.Array:
         return jnp.zeros((batch, self.gru_dim if self.recurrent else 0), jnp.float32)
+
+
+def same_function(model: ModelConfig) -> ModelConfig:
+    """``model`` with the kernel choice reset: two configs equal after this describe the same network
+    (parameters and function), whichever kernels compute it."""
+    return dataclasses.replace(model, kernels="auto")
 
 
 def make_network(model: ModelConfig, num_actions: int = 6, activation: str = "relu") -> ActorCritic:
@@ -363,6 +418,7 @@ def make_network(model: ModelConfig, num_actions: int = 6, activation: str = "re
         fc_dim=model.fc_dim,
         gru_dim=model.gru_dim,
         activation=activation,
+        kernels=model.kernels,
     )
 
 

@@ -171,14 +171,19 @@ def bootstrap_block(matrix: np.ndarray, row_ids=None, col_ids=None, resamples: i
 
 
 def block_summary(matrix: np.ndarray, row_ids, col_ids) -> dict:
-    """SP/XP means, std across cells and seed-bootstrap 95 % intervals of one [R, C] block."""
+    """SP/XP means, std across cells and seed-bootstrap 95 % intervals of one [R, C] block; the gap
+    SP - XP with ``gap_std``, the std across row policies of each one's own gap (its SP cell minus the
+    mean of its XP cells)."""
     matrix = np.asarray(matrix, np.float64)
     same = np.asarray(row_ids)[:, None] == np.asarray(col_ids)[None, :]
     sp_mean, sp_std = _mean_std(matrix[same])
     xp_mean, xp_std = _mean_std(matrix[~same])
     ci = bootstrap_block(matrix, row_ids, col_ids)
+    own_gaps = [matrix[i][same[i]].mean() - matrix[i][~same[i]].mean()
+                for i in range(matrix.shape[0]) if same[i].any() and (~same[i]).any()]
     return {"sp_mean": sp_mean, "sp_std": sp_std, "xp_mean": xp_mean, "xp_std": xp_std,
             "gap": sp_mean - xp_mean if same.any() and (~same).any() else math.nan,
+            "gap_std": _mean_std(own_gaps)[1],
             "sp_ci95_interval": list(ci["sp"]), "xp_ci95_interval": list(ci["xp"]),
             "gap_ci95_interval": list(ci["gap"]), "rows": len(row_ids), "cols": len(col_ids)}
 
@@ -188,7 +193,7 @@ def _half_width(interval) -> float:
 
 
 def summarize(result: CrossPlay, recipe_names: dict[int, str] | None = None) -> dict:
-    """Paper-style summary. Keys: sp_mean, sp_std, xp_mean, xp_std, gap, sp_ci95, xp_ci95,
+    """Paper-style summary. Keys: sp_mean, sp_std, xp_mean, xp_std, gap, gap_std, sp_ci95, xp_ci95,
     sp_ci95_interval, xp_ci95_interval, gap_ci95_interval, ci_method, num_policies, episodes_per_pair,
     per_recipe {name: {sp_mean, xp_mean, episodes}}.
 
@@ -211,7 +216,7 @@ def summarize(result: CrossPlay, recipe_names: dict[int, str] | None = None) -> 
                             "episodes": int(mask.sum())}
     return {
         "sp_mean": block["sp_mean"], "sp_std": block["sp_std"], "xp_mean": block["xp_mean"],
-        "xp_std": block["xp_std"], "gap": block["gap"] if num > 1 else math.nan,
+        "xp_std": block["xp_std"], "gap": block["gap"] if num > 1 else math.nan, "gap_std": block["gap_std"],
         "sp_ci95": _half_width(block["sp_ci95_interval"]), "xp_ci95": _half_width(block["xp_ci95_interval"]),
         "sp_ci95_interval": block["sp_ci95_interval"], "xp_ci95_interval": block["xp_ci95_interval"],
         "gap_ci95_interval": block["gap_ci95_interval"],

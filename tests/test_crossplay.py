@@ -42,7 +42,7 @@ def _episodes(path) -> list[tuple]:
         return [(r["episode"], r["return"], r["start_recipe"]) for r in csv.DictReader(handle)]
 
 
-def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path):
+def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, capsys):
     assert main(["xp", str(run), "--episodes", "8"]) == 0
     out = tmp_path / "xp"
     assert main(["xp", "--rows", str(run), "--cols", str(run), "--episodes", "8", "--backend", "local",
@@ -54,22 +54,48 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     own = json.loads((run / "xp" / "summary.json").read_text())
     (block,) = summary["blocks"]
-    for key in ("sp_mean", "xp_mean", "sp_ci95_interval", "xp_ci95_interval"):
+    for key in ("sp_mean", "xp_mean", "gap", "sp_ci95_interval", "xp_ci95_interval", "gap_ci95_interval"):
         assert block[key] == pytest.approx(own[key])
-    for name in ("matrix.csv", "episodes.csv", "blocks.csv", "summary.json", "heatmap.png"):
+    # a run against itself: its one matrix holds both seat orders, so it is played once
+    assert summary["seats"] == "both" and not (out / "matrix_cols_seat0.csv").exists()
+    np.testing.assert_allclose(_matrix(out / "matrix_mean.csv"), (in_run + in_run.T) / 2, atol=1e-4)
+    for name in ("matrix.csv", "episodes.csv", "blocks.csv", "summary.json", "heatmap.png", "heatmap_mean.png"):
         assert (out / name).exists()
 
     # Any source kind can stand for a row: a seed directory and an exported copy of seed 1 give the
     # run's own rows, and the exported copy is recognised as seed 1 itself (its diagonal cell is SP).
+    # These rows are other sources than the column, so the second seat order is played too.
     exported = tmp_path / "seed1.ocv2policy"
     assert main(["export", str(run), "--seed", "1", "--out", str(exported)]) == 0
     mixed = tmp_path / "mixed"
+    capsys.readouterr()
     assert main(["xp", "--rows", str(run / "checkpoints" / "seed_0"), str(exported), "--cols", str(run),
-                 "--episodes", "8", "--backend", "local", "--out", str(mixed), "--quiet"]) == 0
+                 "--episodes", "8", "--backend", "local", "--out", str(mixed)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("(mean of rows in seat 0: ") == 2 and ", gap " in printed and "matrix_mean.csv" in printed
     np.testing.assert_array_equal(_matrix(mixed / "matrix.csv"), in_run)
-    blocks = json.loads((mixed / "summary.json").read_text())["blocks"]
-    assert [b["sp_mean"] for b in blocks] == pytest.approx([in_run[0, 0], in_run[1, 1]], abs=1e-4)
-    assert [b["xp_mean"] for b in blocks] == pytest.approx([in_run[0, 1], in_run[1, 0]], abs=1e-4)
+    np.testing.assert_array_equal(_matrix(mixed / "matrix_cols_seat0.csv"), in_run)  # the run's seeds in seat 0
+    summary = json.loads((mixed / "summary.json").read_text())
+    first, second = summary["orders"]["rows_seat0"], summary["orders"]["cols_seat0"]
+    assert [b["sp_mean"] for b in first] == pytest.approx([in_run[0, 0], in_run[1, 1]], abs=1e-4)
+    assert [b["xp_mean"] for b in first] == pytest.approx([in_run[0, 1], in_run[1, 0]], abs=1e-4)
+    assert [b["xp_mean"] for b in second] == pytest.approx([in_run[1, 0], in_run[0, 1]], abs=1e-4)
+    assert [(b["rows"], b["cols"]) for b in second] == [(b["rows"], b["cols"]) for b in summary["blocks"]]
+    pair = (in_run[0, 1] + in_run[1, 0]) / 2
+    assert [b["xp_mean"] for b in summary["blocks"]] == pytest.approx([pair, pair], abs=1e-4)
+    with open(mixed / "blocks.csv", newline="") as handle:
+        lines = list(csv.DictReader(handle))
+    assert [line["order"] for line in lines] == ["rows_seat0"] * 2 + ["cols_seat0"] * 2 + ["mean"] * 2
+    assert all(line["row_method"] and line["col_method"] == "sp" for line in lines[:2])
+    assert {"gap", "gap_std", "gap_ci95_low", "gap_ci95_high"} <= set(lines[0])
+
+    one = tmp_path / "one_order"  # --seats 0: the rows in seat 0 only, as before
+    assert main(["xp", "--rows", str(run / "checkpoints" / "seed_0"), "--cols", str(run), "--seats", "0",
+                 "--episodes", "8", "--backend", "local", "--out", str(one), "--quiet"]) == 0
+    summary = json.loads((one / "summary.json").read_text())
+    assert summary["seats"] == "0" and list(summary["orders"]) == ["rows_seat0"]
+    assert summary["blocks"][0]["xp_mean"] == pytest.approx(in_run[0, 1], abs=1e-4)
+    assert not (one / "matrix_cols_seat0.csv").exists() and not (one / "matrix_mean.csv").exists()
 
 
 class ThreeLocalPlayers(crossplay.LocalPlayers):
@@ -127,6 +153,7 @@ def test_human_proxy_columns_resolve_through_population_human(run, tmp_path, mon
                         lambda layout: proxy if layout == "overcookedv2_demo" else _no_proxy(layout))
     group = crossplay.resolve_source("human-proxy:overcookedv2_demo")
     assert group.names == ("human proxy",) and group.ids == crossplay.resolve_source(str(run)).ids[:1]
+    assert group.method == "human-proxy"  # blocks.csv names the method of every source
     with pytest.raises(crossplay.CrossPlayError, match="human-proxy:cramped_room: no proxy"):
         crossplay.resolve_source("human-proxy:cramped_room")
 
@@ -216,3 +243,59 @@ def test_a_row_shares_seat_0_and_plays_exactly_the_pairs_of_repeated_copies():
             np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(returns, paired.returns)
         assert len(np.unique(np.asarray(paired.actions))) > 1
+
+
+# ---------------------------------------------------------------------------------------------------
+# seat-fair results, without playing: orientation, the mean of both orders, what the files say
+# ---------------------------------------------------------------------------------------------------
+
+def _group(label, ids, method):
+    return crossplay.PolicyGroup(label, tuple(f"{label}/{i}" for i in ids), tuple(ids), None, "relu",
+                                 {"layout": "cramped_room"}, None, method)
+
+
+def test_seat_fair_orders_are_oriented_rows_by_cols_and_averaged(tmp_path):
+    """Row source A (2 policies) against column source B (3) and the human proxy: every number in
+    seat 0 is 10 x the seat-0 policy + the seat-1 policy, so each order and the mean are known."""
+    a, b = _group("A", ["a0", "a1"], "sp"), _group("B", ["b0", "b1", "b2"], "fcp")
+    human = _group("human-proxy:cramped_room", ["h"], crossplay.HUMAN_PROXY_METHOD)
+    value = {"a0": 1, "a1": 2, "b0": 3, "b1": 4, "b2": 5, "h": 6}
+    episodes = 4
+
+    def matrix(rows, cols):
+        names = [i for g in rows for i in g.ids], [i for g in cols for i in g.ids]
+        returns = np.asarray([[[10 * value[r] + value[c]] * episodes for c in names[1]] for r in names[0]], np.float32)
+        return crossplay.Matrix(returns, np.zeros(returns.shape, np.int32), tuple(rows), tuple(cols))
+
+    result = crossplay.SeatFairMatrix(matrix([a], [b, human]), matrix([b, human], [a]))
+    np.testing.assert_array_equal(result.oriented("rows_seat0").matrix, [[13, 14, 15, 16], [23, 24, 25, 26]])
+    np.testing.assert_array_equal(result.oriented("cols_seat0").matrix, [[31, 41, 51, 61], [32, 42, 52, 62]])
+    np.testing.assert_array_equal(result.mean.matrix, [[22, 27.5, 33, 38.5], [27.5, 33, 38.5, 44]])
+    summary = crossplay.summarize_seat_fair(result)
+    assert summary["seats"] == "both" and [b["cols"] for b in summary["blocks"]] == ["B", "human-proxy:cramped_room"]
+    assert summary["orders"]["rows_seat0"][1]["xp_mean"] == pytest.approx(21)
+    assert summary["orders"]["cols_seat0"][1]["xp_mean"] == pytest.approx(61.5)
+    assert summary["blocks"][1]["xp_mean"] == pytest.approx(41.25)
+    crossplay.write_seat_fair_outputs(result, tmp_path, summary, ocv2.make("cramped_room"))
+    with open(tmp_path / "blocks.csv", newline="") as handle:
+        lines = list(csv.DictReader(handle))
+    assert [(line["order"], line["cols"], line["col_method"]) for line in lines] == [
+        (order, cols, method) for order in ("rows_seat0", "cols_seat0", "mean")
+        for cols, method in (("B", "fcp"), ("human-proxy:cramped_room", "human-proxy"))]
+    assert all(line["row_method"] == "sp" for line in lines)
+    np.testing.assert_allclose(_matrix(tmp_path / "matrix_cols_seat0.csv"), [[31, 32], [41, 42], [51, 52], [61, 62]])
+    np.testing.assert_allclose(_matrix(tmp_path / "matrix_mean.csv"), result.mean.matrix)
+    with pytest.raises(ValueError, match="no 'cols_seat0' order"):
+        crossplay.SeatFairMatrix(result.rows_seat0).oriented("cols_seat0")
+
+
+def test_gap_std_is_the_spread_of_each_policy_s_own_gap():
+    from population.xp import block_summary
+
+    matrix = np.asarray([[10.0, 4.0, 2.0], [8.0, 9.0, 5.0], [6.0, 6.0, 12.0]])
+    summary = block_summary(matrix, [0, 1, 2], [0, 1, 2])
+    own = [10 - 3, 9 - 6.5, 12 - 6]  # SP cell minus the mean of the row's XP cells
+    assert summary["gap"] == pytest.approx(31 / 3 - 31 / 6)
+    assert summary["gap_std"] == pytest.approx(np.std(own, ddof=1))
+    low, high = summary["gap_ci95_interval"]
+    assert low <= summary["gap"] <= high

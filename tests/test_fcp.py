@@ -252,6 +252,30 @@ def test_per_seed_partner_run_needs_a_pool_of_seeds_per_learner(per_seed_run, tm
     assert jax.tree.leaves(pool)[0].shape[0] == 4
 
 
+def test_partners_of_the_same_population_seed_are_the_learners_twins_and_it_is_said(per_seed_run, caplog):
+    """Learner i's initial parameters come from (population.seed, i) alone: with the partner run's seed
+    they equal partner seed i's, which load_pool warns about, naming a seed that avoids it."""
+    run, _ = per_seed_run
+    stage_seed = RunDir(run / "partners").load_config().population.seed
+    assert stage_seed == smoke().population.seed + coordinator.PARTNER_SEED_OFFSET  # the built-in stage differs
+    twin = smoke(f"population.seed={stage_seed}", f"population.fcp.partners={run / 'partners'}")
+    trainer = ppo.make_trainer(twin)
+    learner = ppo.init_train_state(trainer, ppo.seed_key(twin, 0), pool_size=2).params
+    for x, y in zip(jax.tree.leaves(learner), jax.tree.leaves(_partner_params(run, 0, 0, trainer)), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with caplog.at_level("WARNING", logger="cluster.runtime.coordinator"):
+        coordinator.load_pool(twin, trainer, run / "partners")
+    (record,) = caplog.records
+    assert "same population.seed" in record.message
+    assert f"--set population.seed={stage_seed + coordinator.PARTNER_SEED_OFFSET}" in record.message
+    caplog.clear()
+    # the kernel choice computes the same network: partners trained with other kernels are accepted
+    other = smoke(f"population.fcp.partners={run / 'partners'}", "model.kernels=xla")
+    with caplog.at_level("WARNING", logger="cluster.runtime.coordinator"):
+        coordinator.load_pool(other, ppo.make_trainer(other), run / "partners")
+    assert caplog.records == []
+
+
 @pytest.mark.parametrize("path, before", [("configs/quickstart.yaml", "c6bf8ae599d8439c"),
                                           ("configs/paper/v2_grounded_coord_simple_sa.yaml", "f172112564c9ffd6"),
                                           ("configs/paper/classic_cramped_room_sp.yaml", "e25c665575963c70")])

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -9,9 +12,9 @@ import numpy as np
 import pytest
 
 import ocv2
-from population.config import ModelConfig, parse_config
-from population.networks import (ActorCritic, SameConv, gru_step, chunk_count, count_params, gru_sequence, init_params,
-                                 make_network, pointwise_mixer)
+from population.config import ConfigError, ModelConfig, parse_config
+from population.networks import (ActorCritic, SameConv, gru_step, chunk_count, count_params, gru_scan, gru_sequence,
+                                 init_params, kernel_family, make_network, pointwise_mixer, same_function)
 
 RNN_OBS = (5, 5, 40)
 SMALL_RNN = {"kind": "rnn", "mixer_features": [8], "conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8,
@@ -288,6 +291,9 @@ def test_the_gru_backward_pass_equals_autodiff_of_the_plain_scan():
             return (h := gru_step(kernel, bias, h, *xs)[-1]), h
         return jax.lax.scan(step, hidden, (projected, reset))
 
+    assert jax.tree.all(jax.tree.map(lambda x, y: bool((x == y).all()), gru_scan(projected, reset, hidden, kernel, bias),
+                                     plain(projected, reset, hidden, kernel, bias)))  # the "xla" kernels' GRU
+
     def loss(gru):
         def f(projected, hidden, kernel, bias):
             last, every = gru(projected, reset, hidden, kernel, bias)
@@ -299,3 +305,78 @@ def test_the_gru_backward_pass_equals_autodiff_of_the_plain_scan():
     for ours, theirs in zip(loss(gru_sequence)(projected, hidden, kernel, bias),
                             loss(plain)(projected, hidden, kernel, bias), strict=True):
         np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------------
+# kernel families: the CPU-tuned matmul forms on CPU, XLA's convolution and autodiff elsewhere
+# ---------------------------------------------------------------------------------------------------
+
+def _ops(network, params, obs, reset, hidden) -> str:
+    """The network's jaxpr, as text: which primitives it runs (a custom_vjp call keeps its name here)."""
+    return str(jax.make_jaxpr(network.apply)(params, hidden, obs, reset))
+
+
+def test_the_kernel_family_follows_the_backend_unless_the_config_names_one(monkeypatch):
+    assert kernel_family("auto") == "cpu"  # these tests run on CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert kernel_family("auto") == "xla" and kernel_family("cpu") == "cpu" and kernel_family("xla") == "xla"
+    with pytest.raises(ValueError, match="model.kernels"):
+        kernel_family("cudnn")
+    network = make_network(_model(SMALL_RNN))  # kernels: auto, on a "GPU"
+    obs, reset = jnp.zeros((2, 3, 4, 5, 6)), jnp.zeros((2, 3), bool)
+    params = jax.eval_shape(lambda k: init_params(network, k, (4, 5, 6)), jax.random.PRNGKey(0))
+    ops = _ops(network, params, obs, reset, network.initial_hidden(3))
+    assert "conv_general_dilated" in ops and "custom_vjp" not in ops
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+    ops = _ops(network, params, obs, reset, network.initial_hidden(3))
+    assert "conv_general_dilated" not in ops and "custom_vjp" in ops
+    forced = make_network(_model({**SMALL_RNN, "kernels": "xla"}))  # the config overrides the backend
+    assert "conv_general_dilated" in _ops(forced, params, obs, reset, network.initial_hidden(3))
+
+
+def test_model_kernels_is_validated_and_left_out_of_the_fingerprint_at_its_default(monkeypatch):
+    assert parse_config({}).model.kernels == "auto"
+    with pytest.raises(ConfigError, match="model.kernels: expected one of auto, cpu, xla, got 'gpu'"):
+        parse_config({"model": {"kernels": "gpu"}})
+    hashed = []  # what fingerprint hashes: runs made before the key existed keep their fingerprint
+    real_sha256 = hashlib.sha256
+    monkeypatch.setattr(hashlib, "sha256", lambda data=b"": hashed.append(json.loads(data)) or real_sha256(data))
+    default = parse_config({}).fingerprint()
+    assert "kernels" not in hashed[-1]["model"] and "gru_dim" in hashed[-1]["model"]
+    assert parse_config({"model": {"kernels": "auto"}}).fingerprint() == default
+    assert parse_config({"model": {"kernels": "xla"}}).fingerprint() != default
+
+
+@pytest.mark.parametrize("raw, batch", [(SMALL_RNN, 3), (SMALL_RNN, 16), (SMALL_CNN, 3), (SMALL_CNN, 16)])
+def test_every_kernel_family_gives_the_same_parameters_outputs_and_gradients(raw, batch):
+    """A checkpoint trained with one family runs in the other: same parameter tree and initial values,
+    same outputs and gradients to float rounding (batch 3 x 4 steps: SameConv's im2col form; 16 x 4:
+    the banded form)."""
+    obs_shape, steps = (4, 5, 6), 4
+    obs = jax.random.randint(jax.random.PRNGKey(8), (steps, batch) + obs_shape, 0, 4).astype(jnp.uint8)
+    reset = jax.random.uniform(jax.random.PRNGKey(9), (steps, batch)) < 0.3
+    hidden = jax.random.normal(jax.random.PRNGKey(10), (batch, 8 if raw["kind"] == "rnn" else 0))
+    results = {}
+    for family in ("cpu", "xla"):
+        network = make_network(_model({**raw, "kernels": family}))
+        params = _init(network, jax.random.PRNGKey(11), obs_shape)
+
+        def loss(p):
+            h, logits, value = network.apply(p, hidden, obs, reset)
+            return (logits ** 2).sum() + (value ** 2).sum() + (h ** 2).sum(), (h, logits, value)
+        results[family] = params, jax.jit(jax.grad(loss, has_aux=True))(params)
+    (cpu_params, (cpu_grads, cpu_out)), (xla_params, (xla_grads, xla_out)) = results["cpu"], results["xla"]
+    assert _shapes(cpu_params) == _shapes(xla_params)
+    for ours, theirs in zip(jax.tree.leaves(cpu_params), jax.tree.leaves(xla_params), strict=True):
+        np.testing.assert_array_equal(ours, theirs)
+    for ours, theirs in zip(jax.tree.leaves(cpu_out), jax.tree.leaves(xla_out), strict=True):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
+    assert float(jnp.abs(cpu_grads["params"]["ConvEncoder_0"]["SameConv_0"]["kernel"]).max()) > 0
+    for ours, theirs in zip(jax.tree.leaves(cpu_grads), jax.tree.leaves(xla_grads), strict=True):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
+
+
+def test_configs_that_differ_only_in_kernels_describe_the_same_network():
+    cpu, auto = _model({**SMALL_RNN, "kernels": "cpu"}), _model(SMALL_RNN)
+    assert cpu != auto and same_function(cpu) == same_function(auto)
+    assert same_function(cpu) != same_function(_model({**SMALL_RNN, "gru_dim": 4}))

@@ -210,3 +210,54 @@ def test_runtime_imports_are_one_way_and_at_module_top():
 
     for module in graph:
         visit(module, [])
+
+
+def test_xp_of_a_run_in_use_is_refused_naming_the_holder_not_asking_to_resume(tmp_path, config, capsys):
+    """The trainer (or another ``ocv2 xp``) holds the lock: xp must not write xp/ beside it, and a run
+    that is still training has no reason to be resumed."""
+    holder, _ = RunDir.open(tmp_path / "run", config)
+    try:
+        assert main(["xp", str(tmp_path / "run")]) == 2
+        err = capsys.readouterr().err
+        assert f"in use by another ocv2 process (pid {os.getpid()})" in err and "--wait" in err
+        assert "resume" not in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "run" / "xp").exists()
+    finally:
+        holder.close()
+
+
+def test_xp_wait_blocks_until_the_holder_lets_go(tmp_path, config, capsys):
+    import threading
+
+    holder, _ = RunDir.open(tmp_path / "run", config)
+    release = threading.Timer(0.5, holder.close)
+    release.start()
+    try:
+        # no checkpoints in this run: once the lock is free, the evaluation says the run must be resumed
+        assert main(["xp", str(tmp_path / "run"), "--wait"]) == 2
+    finally:
+        release.join()
+    err = capsys.readouterr().err
+    assert f"(pid {os.getpid()}); waiting for it to finish" in err
+    assert "has not finished training" in err and "resume the run first" in err
+    assert (tmp_path / "run" / ".lock").read_text() == f"{os.getpid()}\n"  # the pid, not a hole before it
+    assert main(["xp", "--rows", str(tmp_path / "run"), "--wait"]) == 2  # --wait is for RUN_DIR
+
+
+@pytest.mark.parametrize("kind", ["file", "under_a_file", "full_dir"])
+def test_xp_out_that_exists_is_refused_before_any_work(tmp_path, capsys, kind):
+    blocker = tmp_path / "results"
+    if kind == "full_dir":
+        blocker.mkdir()
+        (blocker / "matrix.csv").write_text("earlier results")
+        out = blocker
+    else:
+        blocker.write_text("earlier results")
+        out = blocker if kind == "file" else blocker / "xp"
+    # the source does not even exist: the --out check comes first, before loading any policy
+    assert main(["xp", "--rows", str(tmp_path / "no_such_run"), "--backend", "local", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"ocv2 xp: error: --out {out}: ") and len(err.strip().splitlines()) == 1
+    assert {"file": "is a file", "under_a_file": "which is a file", "full_dir": "already holds files"}[kind] in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results"]
+    assert (blocker / "matrix.csv" if kind == "full_dir" else blocker).read_text() == "earlier results"

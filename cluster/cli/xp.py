@@ -1,8 +1,9 @@
 """``ocv2 xp`` (cross-play: of one run, or across runs and policy files) and ``ocv2 export``.
 
-    ocv2 xp RUN_DIR [--episodes N]
+    ocv2 xp RUN_DIR [--episodes N] [--wait]
     ocv2 xp --rows SRC [SRC ...] [--cols SRC ...] [--checkpoint final|mid|init|latest|N] [--greedy]
-            [--episodes N] [--seed S] [--out DIR] [--backend ray|local] [--address A] [--workers N]
+            [--seats both|0] [--episodes N] [--seed S] [--out DIR] [--backend ray|local] [--address A]
+            [--workers N]
     ocv2 export SRC --out FILE [--seed I] [--checkpoint final|mid|init|latest|N]
 
 A source SRC is a run directory (all its seeds), a seed directory RUN_DIR/checkpoints/seed_<i>, a
@@ -15,13 +16,14 @@ import argparse
 import datetime as _dt
 import os
 import time
+from pathlib import Path
 
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import crossplay
 from cluster.runtime.evaluate import evaluate_run
 from cluster.runtime.progress import Bar
 from cluster.runtime.ray_backend import RayBackendError
-from cluster.runtime.rundir import RunDirError
+from cluster.runtime.rundir import RunDir, RunDirError
 from population.checkpoints import CheckpointError
 from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
 
@@ -30,18 +32,26 @@ def add_xp(sub) -> argparse.ArgumentParser:
     parser = sub.add_parser(
         "xp", help="cross-play matrix of a trained population, or across runs and policy files",
         description="With RUN_DIR: evaluate every ordered pair of the run's final policies (diagonal = self-play) "
-                    "and write RUN_DIR/xp/matrix.csv, episodes.csv, summary.json, heatmap.png. With --rows/--cols: "
-                    "every row policy (seat 0) with every column policy (seat 1) across runs (SP vs SA vs OP vs "
-                    "FCP), exported files or human-proxy:LAYOUT, written to --out (matrix.csv, episodes.csv, "
-                    "blocks.csv, summary.json, heatmap.png, blocks.png). Confidence intervals: bootstrap over seeds.")
+                    "and write RUN_DIR/xp/matrix.csv, episodes.csv, summary.json, heatmap.png (the run's lock is "
+                    "taken: a run that trains or is evaluated elsewhere is refused unless --wait). With "
+                    "--rows/--cols: every row policy with every column policy across runs (SP vs SA vs OP vs FCP), "
+                    "exported files or human-proxy:LAYOUT, in both seat orders (--seats 0: rows in seat 0 only), "
+                    "written to --out (matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png, blocks.png; "
+                    "with both orders also *_cols_seat0 and *_mean files). Confidence intervals: bootstrap over seeds.")
     parser.add_argument("run_dir", nargs="?", help="a run directory: its own cross-play (in-run form)")
-    parser.add_argument("--rows", nargs="+", metavar="SRC", help="seat-0 policy sources: run dir (all seeds), "
+    parser.add_argument("--rows", nargs="+", metavar="SRC", help="row policy sources: run dir (all seeds), "
                         "seed dir, checkpoint, exported file or human-proxy:LAYOUT")
-    parser.add_argument("--cols", nargs="+", metavar="SRC", help="seat-1 policy sources (default: the --rows)")
+    parser.add_argument("--cols", nargs="+", metavar="SRC", help="column policy sources (default: the --rows)")
     parser.add_argument("--checkpoint",
                         help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an "
                              "update number")
     parser.add_argument("--greedy", action="store_true", help="argmax actions instead of sampled ones")
+    parser.add_argument("--seats", choices=crossplay.SEATS,
+                        help="with --rows: both (default) plays every pair in both seat orders and reports each "
+                             "order and their mean; 0 plays the row policies in seat 0 only")
+    parser.add_argument("--wait", action="store_true",
+                        help="with RUN_DIR: wait for the process that holds the run (training, another xp) "
+                             "instead of refusing")
     parser.add_argument("--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes; "
                                                      "500 with --rows)")
     parser.add_argument("--seed", type=int, help="episode key stream (default: the first row run's population.seed, "
@@ -65,24 +75,44 @@ def run_xp(args) -> int:
             raise CLIError("--cols needs --rows")
         given = [flag for flag, value in (("--checkpoint", args.checkpoint), ("--greedy", args.greedy or None),
                                           ("--seed", args.seed), ("--out", args.out), ("--backend", args.backend),
-                                          ("--address", args.address), ("--workers", args.workers))
+                                          ("--address", args.address), ("--workers", args.workers),
+                                          ("--seats", args.seats))
                  if value is not None]
         if given:
             raise CLIError(f"{', '.join(given)}: only with --rows (the in-run form evaluates RUN_DIR's final "
-                           "policies here and writes RUN_DIR/xp/)")
+                           "policies here and writes RUN_DIR/xp/; its matrix holds both seat orders)")
         return _in_run(args)
     if args.run_dir is not None:
         raise CLIError(f"give either RUN_DIR ({args.run_dir}) or --rows, not both")
+    if args.wait:
+        raise CLIError("--wait: only with RUN_DIR (--rows reads checkpoints and takes no run's lock)")
     return _cross_run(args)
 
 
 def _in_run(args) -> int:
     try:
-        evaluate_run(args.run_dir, episodes=args.episodes)
+        run = RunDir.existing(args.run_dir)
+        # the lock keeps out the trainer and a second evaluation, which write the same files
+        run.lock(wait=args.wait, advice="wait for it to finish or pass --wait")
+        try:
+            evaluate_run(args.run_dir, episodes=args.episodes)
+        finally:
+            run.close()
     except (RunDirError, CheckpointError) as error:
         raise CLIError(str(error)) from None
     print(f"wrote {os.path.join(args.run_dir, 'xp')}/matrix.csv, episodes.csv, summary.json, heatmap.png")
     return EXIT_OK
+
+
+def _check_out(out: str) -> None:
+    """Refuse, before any work, an --out that is a file, lies under a file or already holds files."""
+    path = Path(out)
+    for parent in reversed([path, *path.parents]):
+        if parent.exists() and not parent.is_dir():
+            where = "is a file" if parent == path else f"lies under {parent}, which is a file"
+            raise CLIError(f"--out {out}: {where}; give a new directory")
+    if path.is_dir() and any(path.iterdir()):
+        raise CLIError(f"--out {out}: already holds files (earlier results?); give a new directory")
 
 
 def _cross_run(args) -> int:
@@ -94,6 +124,8 @@ def _cross_run(args) -> int:
     if backend == "local" and (args.address or args.workers):
         raise CLIError("--address and --workers need --backend ray")
     checkpoint = _checkpoint(args.checkpoint or "final")
+    out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    _check_out(out)
     try:
         rows = [crossplay.resolve_source(s, checkpoint) for s in args.rows]
         cols = rows if not args.cols else [crossplay.resolve_source(s, checkpoint) for s in args.cols]
@@ -102,28 +134,39 @@ def _cross_run(args) -> int:
         raise CLIError(str(error)) from None
     episodes = args.episodes or 500
     seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
-    out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    seats = args.seats or "both"
     jobs = sum(len(g.names) for g in rows) * len(cols)
     started = time.perf_counter()
     label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
     try:
         with crossplay.players(backend, jobs, args.address, args.workers) as workers, \
                 Bar(label, enabled=not args.quiet) as bar:
-            result = crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar)
+            result = crossplay.play_seat_fair(rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar,
+                                              seats=seats)
     except RayBackendError as error:
         raise CLIError(str(error)) from None
-    summary = crossplay.summarize_matrix(result)
+    summary = crossplay.summarize_seat_fair(result)
     summary.update({"rows": list(args.rows), "cols": list(args.cols or args.rows), "checkpoint": str(checkpoint),
                     "greedy": bool(args.greedy), "seed": seed, "env": env_kwargs, "backend": backend,
                     "wall_s": round(time.perf_counter() - started, 2)})
-    crossplay.write_outputs(result, out, summary, crossplay.policy_env(env_kwargs))
+    crossplay.write_seat_fair_outputs(result, out, summary, crossplay.policy_env(env_kwargs))
     if not args.quiet:
-        for block in summary["blocks"]:
-            low, high = block["xp_ci95_interval"]
-            print(f"{block['rows']} x {block['cols']}: XP {block['xp_mean']:.1f} [{low:.1f}, {high:.1f}]"
-                  + (f", SP {block['sp_mean']:.1f}" if block["sp_mean"] == block["sp_mean"] else ""))
-    print(f"wrote {out}/matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png")
+        _print_blocks(summary)
+    print(f"wrote {out}/: {', '.join(sorted(p.name for p in Path(out).iterdir()))}")
     return EXIT_OK
+
+
+def _print_blocks(summary: dict) -> None:
+    both = summary["seats"] == "both"
+    for index, block in enumerate(summary["blocks"]):
+        low, high = block["xp_ci95_interval"]
+        line = f"{block['rows']} x {block['cols']}: XP {block['xp_mean']:.1f} [{low:.1f}, {high:.1f}]"
+        if both:
+            first, second = (summary["orders"][order][index]["xp_mean"] for order in ("rows_seat0", "cols_seat0"))
+            line += f" (mean of rows in seat 0: {first:.1f}, cols in seat 0: {second:.1f})"
+        if block["sp_mean"] == block["sp_mean"]:
+            line += f", SP {block['sp_mean']:.1f}, gap {block['gap']:.1f} +- {block['gap_std']:.1f}"
+        print(line)
 
 
 def _checkpoint(text: str):

@@ -19,6 +19,7 @@ training, cross-play is spread over the shards too (``cluster.runtime.evaluate``
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 from typing import Callable
 
@@ -36,7 +37,10 @@ from population import checkpoints as ckpt
 from population import ppo
 from population.config import Config, shards as seed_shards
 from population.evaluation import stack_params
+from population.networks import same_function
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
+
+log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -117,9 +121,12 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
         partner_config = RunDir.existing(partner_run).load_config()
     except RunDirError as error:
         raise RunDirError(f"population.fcp.partners: {error}") from None
-    if partner_config.env != config.env or partner_config.model != config.model:
+    if partner_config.env != config.env or same_function(partner_config.model) != same_function(config.model):
         raise RunDirError(f"population.fcp.partners: {partner_run} was trained with a different env or model "
                           "section; FCP partners must play the same game with the same network")
+    twin = twin_seed_warning(config, partner_config, partner_run)
+    if twin:
+        log.warning(twin)
     needed = fcp.stage_seeds(config.population.num_seeds)
     if partner_config.population.num_seeds < needed:
         per_learner = (f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed; "
@@ -145,6 +152,21 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
     return jax.tree.map(lambda *xs: np.stack(xs), *[p for p, _ in pools]), [labels for _, labels in pools]
 
 
+def twin_seed_warning(config: Config, partner_config: Config, partner_run) -> str | None:
+    """Seed i's initial parameters come from (population.seed, i) alone, so FCP learners trained with
+    their partner run's population.seed start as exact copies of the partner seeds of the same index."""
+    seed = config.population.seed
+    if partner_config.population.seed != seed:
+        return None
+    return (f"population.fcp.partners: {partner_run} was trained with the same population.seed ({seed}), so "
+            f"learner i starts from the very parameters of partner seed i; give the FCP run another seed "
+            f"(--set population.seed={seed + PARTNER_SEED_OFFSET}) for learners independent of their partners")
+
+
+#: population.seed of the SP partner stage = the FCP run's seed + this (learners never start as their partners)
+PARTNER_SEED_OFFSET = 7919
+
+
 def partner_stage(config: Config) -> Config:
     """The SP run FCP trains its partners in when ``population.fcp.partners`` is unset.
 
@@ -156,7 +178,7 @@ def partner_stage(config: Config) -> Config:
     workers = min(len(seed_shards(config)), seeds)
     return dataclasses.replace(
         config, ppo=fcp.partner_ppo,
-        population=dataclasses.replace(pop, method="sp", num_seeds=seeds, seed=pop.seed + 7919),
+        population=dataclasses.replace(pop, method="sp", num_seeds=seeds, seed=pop.seed + PARTNER_SEED_OFFSET),
         cluster=dataclasses.replace(config.cluster, workers=workers, seeds_per_actor=1))
 
 

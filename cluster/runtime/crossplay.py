@@ -9,6 +9,10 @@ are in-process (``LocalPlayers``) or Ray actors (``RayPlayers``, which reuse the
 retrying ``call``). Every cell uses the same episode keys whatever worker plays it, and a row group
 playing against itself goes through exactly the in-run cross-play code, so ``--rows RUN --cols RUN``
 reproduces ``ocv2 xp RUN``.
+
+On OvercookedV2 layouts the two seats are different roles, so ``play_seat_fair`` plays both orders
+(row policies in seat 0, then column policies in seat 0, with the same episode keys) and reports each
+order and their mean (``summarize_seat_fair``); ``play_matrix`` is one order.
 """
 
 from __future__ import annotations
@@ -32,11 +36,15 @@ from population.config import ClusterConfig, Config, ConfigError, ModelConfig, l
 from population.evaluation import stack_params
 from population.human import proxy_path
 from population.keys import derive_key
+from population.networks import same_function
 from population.plots import xp_heatmap
 from population.policy import PolicyError, hidden_size_of, load, network, policy_env
 from population.xp import Side, block_summary, cross_play, recipe_names
 
 HUMAN_PROXY = "human-proxy:"
+HUMAN_PROXY_METHOD = "human-proxy"  # the method named for a human-proxy source
+SEATS = ("both", "0")  # both seat orders, or the row policies in seat 0 only
+ORDERS = ("rows_seat0", "cols_seat0")
 
 
 class CrossPlayError(ValueError):
@@ -70,7 +78,8 @@ class PolicyGroup:
 def resolve_source(text: str, checkpoint="final") -> PolicyGroup:
     """A column/row spec -> its policies. Errors name the spec."""
     if text.startswith(HUMAN_PROXY):
-        return _single(text, _human_proxy_path(text[len(HUMAN_PROXY):]), "final")
+        group = _single(text, _human_proxy_path(text[len(HUMAN_PROXY):]), "final")
+        return dataclasses.replace(group, method=HUMAN_PROXY_METHOD)
     path = Path(text)
     if path.is_dir() and (path / "config.yaml").is_file():
         return _run_group(text, path, checkpoint)
@@ -106,7 +115,7 @@ def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
 
 def policy_id(policy) -> str:
     """A content hash: an exported copy of a run's checkpoint is the same policy as the checkpoint."""
-    digest = hashlib.sha256(repr((policy.model, policy.activation)).encode())
+    digest = hashlib.sha256(repr((same_function(policy.model), policy.activation)).encode())
     for leaf in jax.tree.leaves(policy.params):
         digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
     return digest.hexdigest()[:16]
@@ -278,6 +287,70 @@ def play_matrix(row_groups, col_groups, workers, key, episodes: int, greedy: boo
     return Matrix(returns, recipes, tuple(row_groups), tuple(col_groups))
 
 
+@dataclasses.dataclass(frozen=True)
+class SeatFairMatrix:
+    """Cross-play in both seat orders. ``rows_seat0``: the row policies in seat 0 (rows x cols);
+    ``cols_seat0``: the column policies in seat 0 (its rows are the column groups), None when only the
+    first order was played. When the columns are the row groups themselves, one matrix holds both
+    orders and ``cols_seat0`` is ``rows_seat0``."""
+
+    rows_seat0: Matrix
+    cols_seat0: Matrix | None = None
+
+    @property
+    def orders(self) -> tuple[str, ...]:
+        return ORDERS if self.cols_seat0 is not None else ORDERS[:1]
+
+    def oriented(self, order: str) -> Matrix:
+        """One order as a rows x cols ``Matrix``: cell (r, c) pairs row policy r with column policy c,
+        r in seat 0 for ``rows_seat0``, in seat 1 for ``cols_seat0``."""
+        if order == "rows_seat0":
+            return self.rows_seat0
+        if order != "cols_seat0" or self.cols_seat0 is None:
+            raise ValueError(f"no {order!r} order in this result (orders: {', '.join(self.orders)})")
+        m = self.cols_seat0
+        return Matrix(m.returns.transpose(1, 0, 2), m.start_recipe.transpose(1, 0, 2), m.col_groups, m.row_groups)
+
+    @property
+    def mean(self) -> Matrix:
+        """rows x cols, each episode's return averaged over the two orders (the same episode keys, so
+        the same start states); the first order alone when only that was played."""
+        if self.cols_seat0 is None:
+            return self.rows_seat0
+        first, second = self.rows_seat0, self.oriented("cols_seat0")
+        return Matrix((first.returns + second.returns) / 2, first.start_recipe, first.row_groups, first.col_groups)
+
+
+def same_groups(row_groups, col_groups) -> bool:
+    """Whether the column groups are the row groups (same policies, same networks, same order)."""
+    return len(row_groups) == len(col_groups) and all(
+        r.ids == c.ids and r.spec == c.spec for r, c in zip(row_groups, col_groups))
+
+
+def play_seat_fair(row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None,
+                   seats: str = "both") -> SeatFairMatrix:
+    """``play_matrix`` in both seat orders (``seats="both"``) or with the rows in seat 0 only ("0").
+
+    Both orders use the same episode keys. When the columns are the row groups, the one matrix already
+    holds both orders (cell (i, j) and (j, i)) and is played once. ``progress(done, total)`` counts the
+    jobs of both orders together.
+    """
+    if seats not in SEATS:
+        raise ValueError(f"seats: expected one of {', '.join(SEATS)}, got {seats!r}")
+    one_matrix = seats == "0" or same_groups(row_groups, col_groups)
+    total = _job_count(row_groups, col_groups) + (0 if one_matrix else _job_count(col_groups, row_groups))
+    bar = None if progress is None else (lambda done, _: progress(done, total))
+    first = play_matrix(row_groups, col_groups, workers, key, episodes, greedy, bar)
+    if seats == "0":
+        return SeatFairMatrix(first)
+    second = first if one_matrix else play_matrix(col_groups, row_groups, workers, key, episodes, greedy, bar)
+    return SeatFairMatrix(first, second)
+
+
+def _job_count(row_groups, col_groups) -> int:
+    return sum(len(g.names) for g in row_groups) * len(col_groups)
+
+
 def _offsets(groups) -> list[int]:
     offsets = [0]
     for group in groups:
@@ -286,7 +359,16 @@ def _offsets(groups) -> list[int]:
 
 
 def summarize_matrix(result: Matrix) -> dict:
-    """One entry per (row source, column source) block: SP/XP means, std across cells, seed-bootstrap CIs."""
+    """One entry per (row source, column source) block: SP/XP means, std across cells, the gap with its
+    std, seed-bootstrap CIs."""
+    matrix = result.matrix
+    return {"num_rows": int(matrix.shape[0]), "num_cols": int(matrix.shape[1]),
+            "episodes_per_pair": int(result.returns.shape[-1]),
+            "ci_method": "95% percentile bootstrap over seeds (rows and columns resampled by policy)",
+            "blocks": _blocks(result)}
+
+
+def _blocks(result: Matrix) -> list[dict]:
     row_offsets, col_offsets = _offsets(result.row_groups), _offsets(result.col_groups)
     matrix = result.matrix
     blocks = []
@@ -298,42 +380,97 @@ def summarize_matrix(result: Matrix) -> dict:
             entry["rows"], entry["cols"] = rg.label, cg.label
             entry["num_rows"], entry["num_cols"] = len(rg.ids), len(cg.ids)
             blocks.append(entry)
-    return {"num_rows": int(matrix.shape[0]), "num_cols": int(matrix.shape[1]),
-            "episodes_per_pair": int(result.returns.shape[-1]),
-            "ci_method": "95% percentile bootstrap over seeds (rows and columns resampled by policy)",
-            "blocks": blocks}
+    return blocks
+
+
+def summarize_seat_fair(result: SeatFairMatrix) -> dict:
+    """``summarize_matrix`` of the seat-averaged matrix (``blocks``), plus ``orders``: the blocks of
+    each seat order, (row source, column source) keyed as in ``blocks`` (``cols_seat0``: the column
+    source in seat 0), and ``seats``: "both" or "0"."""
+    summary = summarize_matrix(result.mean)
+    summary["seats"] = "both" if result.cols_seat0 is not None else "0"
+    summary["orders"] = {order: _blocks(result.oriented(order)) for order in result.orders}
+    return summary
+
+
+_BLOCK_FIELDS = ["rows", "cols", "row_method", "col_method", "num_rows", "num_cols", "sp_mean", "sp_std", "xp_mean",
+                 "xp_std", "gap", "gap_std", "xp_ci95_low", "xp_ci95_high", "sp_ci95_low", "sp_ci95_high",
+                 "gap_ci95_low", "gap_ci95_high"]
+
+
+def _block_row(order: str, b: dict) -> list:
+    return [order, b["rows"], b["cols"], b["row_method"] or "", b["col_method"] or "", b["num_rows"], b["num_cols"],
+            *(_round(b[k]) for k in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "gap_std")),
+            *(_round(v) for v in b["xp_ci95_interval"]), *(_round(v) for v in b["sp_ci95_interval"]),
+            *(_round(v) for v in b["gap_ci95_interval"])]
 
 
 def write_outputs(result: Matrix, out, summary: dict, env) -> dict:
-    """matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png (+ blocks.png) under ``out``."""
+    """matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png (+ blocks.png) under ``out``: one order."""
     out = Path(out)
-    rows = [n for g in result.row_groups for n in g.names]
-    cols = [n for g in result.col_groups for n in g.names]
+    _write_order(result, out, env, "")
+    write_csv(out / "blocks.csv", ["order", *_BLOCK_FIELDS], [_block_row("rows_seat0", b) for b in summary["blocks"]])
+    write_json(out / "summary.json", summary)
+    _write_blocks_png(result, out, summary["blocks"], "mean cross-play return by source (rows in seat 0)")
+    return {"matrix": str(out / "matrix.csv"), "summary": str(out / "summary.json")}
+
+
+def write_seat_fair_outputs(result: SeatFairMatrix, out, summary: dict, env) -> dict:
+    """``summarize_seat_fair``'s result and the matrices under ``out``: matrix.csv, episodes.csv and
+    heatmap.png of the rows-in-seat-0 order; with both orders also matrix_cols_seat0.csv,
+    episodes_cols_seat0.csv, heatmap_cols_seat0.png (the column policies in seat 0, when they are
+    other policies than the rows) and matrix_mean.csv + heatmap_mean.png (rows x cols, averaged over
+    the orders); blocks.csv (one line per order and block, plus the "mean" lines), summary.json and
+    blocks.png (mean XP per block)."""
+    if result.cols_seat0 is None:
+        return write_outputs(result.rows_seat0, out, summary, env)
+    out = Path(out)
+    _write_order(result.rows_seat0, out, env, "")
+    if result.cols_seat0 is not result.rows_seat0:
+        _write_order(result.cols_seat0, out, env, "_cols_seat0")
+    mean = result.mean
+    rows, cols = _names(mean.row_groups), _names(mean.col_groups)
+    write_csv(out / "matrix_mean.csv", ["row\\col (mean of both seat orders)"] + cols,
+              [[rows[i]] + [round(float(v), 4) for v in mean.matrix[i]] for i in range(len(rows))])
+    xp_heatmap(mean.matrix, out / "heatmap_mean.png", labels=rows, col_labels=cols, row_title="row policy",
+               col_title="column policy", title=f"cross-play, mean of both seat orders, "
+                                                f"{mean.returns.shape[-1]} episodes/pair/order")
+    lines = [_block_row(order, b) for order in result.orders for b in summary["orders"][order]]
+    write_csv(out / "blocks.csv", ["order", *_BLOCK_FIELDS], lines + [_block_row("mean", b) for b in summary["blocks"]])
+    write_json(out / "summary.json", summary)
+    _write_blocks_png(mean, out, summary["blocks"], "mean cross-play return by source (both seat orders)")
+    paths = {"matrix": str(out / "matrix.csv"), "matrix_mean": str(out / "matrix_mean.csv"),
+             "summary": str(out / "summary.json")}
+    if result.cols_seat0 is not result.rows_seat0:
+        paths["matrix_cols_seat0"] = str(out / "matrix_cols_seat0.csv")
+    return paths
+
+
+def _names(groups) -> list[str]:
+    return [n for g in groups for n in g.names]
+
+
+def _write_order(result: Matrix, out: Path, env, suffix: str) -> None:
+    """matrix, episodes and heatmap of one order: rows in seat 0, columns in seat 1."""
+    rows, cols = _names(result.row_groups), _names(result.col_groups)
     matrix = result.matrix
     names = recipe_names(env)
-    write_csv(out / "matrix.csv", ["seat0\\seat1"] + cols,
+    write_csv(out / f"matrix{suffix}.csv", ["seat0\\seat1"] + cols,
               [[rows[i]] + [round(float(v), 4) for v in matrix[i]] for i in range(len(rows))])
-    write_csv(out / "episodes.csv", ["seat0", "seat1", "episode", "return", "start_recipe"],
+    write_csv(out / f"episodes{suffix}.csv", ["seat0", "seat1", "episode", "return", "start_recipe"],
               [[rows[i], cols[j], e, float(result.returns[i, j, e]), names.get(int(result.start_recipe[i, j, e]), "")]
                for i in range(len(rows)) for j in range(len(cols)) for e in range(result.returns.shape[-1])])
-    fields = ["rows", "cols", "row_method", "col_method", "num_rows", "num_cols", "sp_mean", "sp_std", "xp_mean",
-              "xp_std", "gap", "xp_ci95_low", "xp_ci95_high", "sp_ci95_low", "sp_ci95_high"]
-    write_csv(out / "blocks.csv", fields,
-              [[b["rows"], b["cols"], b["row_method"] or "", b["col_method"] or "", b["num_rows"], b["num_cols"],
-                *(_round(b[k]) for k in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap")),
-                *(_round(v) for v in b["xp_ci95_interval"]), *(_round(v) for v in b["sp_ci95_interval"])]
-               for b in summary["blocks"]])
-    write_json(out / "summary.json", summary)
-    episodes = result.returns.shape[-1]
-    xp_heatmap(matrix, out / "heatmap.png", labels=rows, col_labels=cols,
-               title=f"cross-play, {episodes} episodes/pair")
-    paths = {"matrix": str(out / "matrix.csv"), "summary": str(out / "summary.json")}
+    xp_heatmap(matrix, out / f"heatmap{suffix}.png", labels=rows, col_labels=cols,
+               title=f"cross-play (rows in seat 0), {result.returns.shape[-1]} episodes/pair")
+
+
+def _write_blocks_png(result: Matrix, out: Path, blocks: list[dict], title: str) -> None:
     if len(result.row_groups) > 1 or len(result.col_groups) > 1:
-        block_means = np.asarray([b["xp_mean"] for b in summary["blocks"]], np.float64)  # row-source major
+        block_means = np.asarray([b["xp_mean"] for b in blocks], np.float64)  # row-source major
         block_means = block_means.reshape(len(result.row_groups), len(result.col_groups))
         xp_heatmap(block_means, out / "blocks.png", labels=[_short(g) for g in result.row_groups],
-                   col_labels=[_short(g) for g in result.col_groups], title="mean cross-play return by source")
-    return paths
+                   col_labels=[_short(g) for g in result.col_groups], title=title, row_title="row source",
+                   col_title="column source")
 
 
 def _short(group: PolicyGroup) -> str:

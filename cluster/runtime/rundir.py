@@ -125,8 +125,9 @@ class RunDir:
             raise RunDirError(f"{self.path}: is a file, not a run directory{advice}")
 
     # the lock -----------------------------------------------------------------------------------------
-    def lock(self) -> None:
-        """Take the run's exclusive lock, or fail naming the process that holds it.
+    def lock(self, wait: bool = False, advice: str = "wait for it to finish or stop it before resuming") -> None:
+        """Take the run's exclusive lock, or fail naming the process that holds it (``advice`` follows);
+        with ``wait``, say who holds it and block until it is free.
 
         ``flock`` on ``RUN_DIR/.lock``: advisory, released by the kernel when the holder exits or dies
         (no stale lock after a kill). NFS and some other network file systems may not honour it.
@@ -137,13 +138,21 @@ class RunDir:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:
+            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                os.close(fd)
+                raise
             holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
-            os.close(fd)
-            if error.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                raise RunDirError(f"{self.path}: in use by another ocv2 process (pid {holder}); wait for it to "
-                                  "finish or stop it before resuming") from None
-            raise
+            if not wait:
+                os.close(fd)
+                raise RunDirError(f"{self.path}: in use by another ocv2 process (pid {holder}); {advice}") from None
+            _warn(f"{self.path}: in use by another ocv2 process (pid {holder}); waiting for it to finish")
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            except BaseException:
+                os.close(fd)
+                raise
         os.ftruncate(fd, 0)
+        os.lseek(fd, 0, os.SEEK_SET)  # reading the holder's pid moved the offset
         os.write(fd, f"{os.getpid()}\n".encode())
         self._lock_fd = fd
 
