@@ -33,7 +33,7 @@ from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir, RunDirError, write_json
 from cluster.study.spec import Comparison, Study, StudyError, run_config, run_dir
 from population import checkpoints as ckpt
-from population.xp import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, block_summary
+from population.xp import block_summary
 
 log = logging.getLogger(__name__)
 
@@ -314,7 +314,8 @@ def compare(groups, options: StudyOptions, seed: int, episodes: int, timer: Step
 
 
 def seat_orders(result: crossplay.Matrix) -> list[dict]:
-    """For each pair of groups (A, B): A in seat 0 with B in seat 1, the reverse, and the mean of both."""
+    """For each pair of groups (A, B): A in seat 0 with B in seat 1, the reverse, and the mean of both
+    orders with its seed-bootstrap interval (A's and B's seeds resampled, as ``block_summary`` does)."""
     offsets = np.cumsum([0] + [len(g.names) for g in result.row_groups])
     matrix = result.matrix.astype(np.float64)
     pairs = []
@@ -323,25 +324,12 @@ def seat_orders(result: crossplay.Matrix) -> list[dict]:
             group_b = result.row_groups[b]
             ab = matrix[offsets[a]:offsets[a + 1], offsets[b]:offsets[b + 1]]
             ba = matrix[offsets[b]:offsets[b + 1], offsets[a]:offsets[a + 1]]
-            low, high = bootstrap_both_orders(ab, ba)
+            both = block_summary((ab + ba.T) / 2, list(group_a.ids), list(group_b.ids))
             pairs.append({"a": group_a.label, "b": group_b.label, "a_method": group_a.method,
                           "b_method": group_b.method, "a_seat0": float(ab.mean()), "a_seat0_std": _std(ab),
                           "a_seat1": float(ba.mean()), "a_seat1_std": _std(ba),
-                          "mean": float((ab.mean() + ba.mean()) / 2), "mean_ci95_interval": [low, high]})
+                          "mean": both["xp_mean"], "mean_ci95_interval": both["xp_ci95_interval"]})
     return pairs
-
-
-def bootstrap_both_orders(ab: np.ndarray, ba: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES,
-                          seed: int = BOOTSTRAP_SEED) -> tuple[float, float]:
-    """95 % percentile interval of the mean of both seat orders, resampling each group's seeds."""
-    rng = np.random.default_rng(seed)
-    na, nb = ab.shape
-    ia = rng.integers(0, na, size=(resamples, na))
-    ib = rng.integers(0, nb, size=(resamples, nb))
-    first = ab[ia[:, :, None], ib[:, None, :]].mean(axis=(1, 2))
-    second = ba[ib[:, :, None], ia[:, None, :]].mean(axis=(1, 2))
-    low, high = np.percentile((first + second) / 2, [2.5, 97.5])
-    return float(low), float(high)
 
 
 def _std(cells: np.ndarray) -> float:
