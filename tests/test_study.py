@@ -101,6 +101,16 @@ def test_the_report_puts_the_paper_numbers_beside_ours(finished):
     json.loads((finished / "summary.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
 
 
+def test_a_compact_copy_of_the_report(finished, tmp_path, capsys):
+    dest = tmp_path / "results"
+    assert main(["study", "report", str(finished), "--out", str(dest)]) == 0
+    names = {p.name for p in dest.iterdir()}
+    assert {"report.md", "summary.json", "xp_sp.csv", "xp_sa.csv", "xp_sp_vs_sa.csv", "heatmap_sp_vs_sa.png",
+            "over_training_sp.png", "curves_cramped_room.png"} <= names
+    assert not any(name.endswith((".msgpack", ".mcap")) for name in names)
+    assert numbers(dest) == numbers(finished)
+
+
 def test_a_finished_study_is_never_trained_again(finished, tmp_path, capsys):
     import shutil
 

@@ -2,7 +2,7 @@
 
     ocv2 study run STUDY.yaml [--budget F] [--seeds N] [--backend ray|local] [--address A] [--out DIR]
     ocv2 study status DIR
-    ocv2 study report DIR
+    ocv2 study report DIR [--out FOLDER]
 
 ``run`` trains every run of the study that has not finished (resuming an interrupted one), runs the
 cross-play steps and writes DIR/report.md; the same command after any interruption continues where it
@@ -48,6 +48,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     status.add_argument("dir", help="study directory")
     report = commands.add_parser("report", help="write DIR/report.md again from what is finished")
     report.add_argument("dir", help="study directory")
+    report.add_argument("--out", help="write the report, summary, pictures and cross-play matrices into this folder "
+                                      "instead (a compact record to keep: no checkpoints, no archives)")
     return parser
 
 
@@ -75,7 +77,7 @@ def run(args) -> int:
     if args.study_command == "status":
         return _status(args.dir)
     if args.study_command == "report":
-        return _report(args.dir)
+        return _report(args.dir, args.out)
     return _run(args)
 
 
@@ -133,7 +135,7 @@ def _status(directory: str) -> int:
     return EXIT_OK
 
 
-def _report(directory: str) -> int:
+def _report(directory: str, dest: str | None) -> int:
     from cluster.study.report import write_report
     from cluster.study.runner import read_state
     from cluster.study.spec import run_config
@@ -145,7 +147,7 @@ def _report(directory: str) -> int:
             raise StudyError(f"{out}: not a study directory (no study.json)")
         study = parse_study(state["spec"], Path(state["source"]))
         configs = {r.name: run_config(study, r, out, state["budget"], state["seeds"]) for r in study.runs}
-        paths = write_report(study, out, state, configs)
+        paths = write_report(study, out, state, configs, None if dest is None else Path(dest))
     except (StudyError, RunDirError) as error:
         raise CLIError(str(error)) from None
     print(f"wrote {paths['report']}")

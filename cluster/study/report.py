@@ -27,7 +27,14 @@ from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_
 METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
 
 
-def write_report(study: Study, out: Path, state: dict, configs: dict) -> dict:
+def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path | None = None) -> dict:
+    """The report of study directory ``out``, written into ``dest`` (default ``out``). Into another
+    folder it comes with copies of the cross-play matrices (``xp_<run>.csv``, ``xp_<comparison>.csv``),
+    which makes a compact, self-contained record without checkpoints or archives."""
+    dest = out if dest is None else Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    if dest != out:
+        _copy_matrices(study, out, dest)
     runs = [_run_entry(study, run, out, configs[run.name], state) for run in study.runs]
     comparisons = [_comparison_entry(c.name, out, state) for c in study.comparisons]
     over = [_over_training_entry(name, out) for name in study.over_training]
@@ -36,11 +43,19 @@ def write_report(study: Study, out: Path, state: dict, configs: dict) -> dict:
                "over_training": over,
                "ci_method": "95% percentile bootstrap over training seeds",
                "wall_s": round(sum(s.get("wall_s", 0.0) for s in state.get("steps", {}).values()), 1)}
-    pictures = _curves(study, out, configs) + _heatmaps(out, comparisons) + _over_training_plots(out, over)
+    pictures = _curves(study, out, configs, dest) + _heatmaps(out, comparisons, dest) + _over_training_plots(dest, over)
     summary["pictures"] = [Path(p).name for p in pictures]
-    write_json(out / "summary.json", _strict(summary))
-    atomic_write(out / "report.md", markdown(study, summary, state))
-    return {"report": str(out / "report.md"), "summary": str(out / "summary.json")}
+    write_json(dest / "summary.json", _strict(summary))
+    atomic_write(dest / "report.md", markdown(study, summary, state))
+    return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}
+
+
+def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
+    sources = [(run_dir(out, r.name) / "xp" / "matrix.csv", f"xp_{r.name}.csv") for r in study.runs]
+    sources += [(out / "comparisons" / c.name / "matrix.csv", f"xp_{c.name}.csv") for c in study.comparisons]
+    for source, name in sources:
+        if source.is_file():
+            atomic_write(dest / name, source.read_text())
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -111,14 +126,14 @@ def _over_training_entry(name: str, out: Path) -> dict:
     points = [json.loads(p.read_text()) for p in sorted(folder.glob("update_*.json"))]
     return {"run": name, "points": [{k: p.get(k) for k in ("update", "env_steps_per_seed", "sp_mean", "xp_mean", "gap",
                                                            "sp_ci95_interval", "xp_ci95_interval", "gap_ci95_interval",
-                                                           "episodes_per_pair")} for p in points]}
+                                                           "episodes_per_pair", "matrix")} for p in points]}
 
 
 # ---------------------------------------------------------------------------------------------------
 # pictures
 # ---------------------------------------------------------------------------------------------------
 
-def _curves(study: Study, out: Path, configs: dict) -> list[str]:
+def _curves(study: Study, out: Path, configs: dict, dest: Path) -> list[str]:
     by_layout: dict = {}
     for spec in study.runs:
         path = run_dir(out, spec.name)
@@ -126,7 +141,7 @@ def _curves(study: Study, out: Path, configs: dict) -> list[str]:
             by_layout.setdefault(configs[spec.name].env_kwargs["layout"], []).append((spec, path))
     pictures = []
     for layout, members in by_layout.items():
-        target = out / f"curves_{layout}.png"
+        target = dest / f"curves_{layout}.png"
         try:
             plt = pyplot()
         except PlotsUnavailable as error:
@@ -164,7 +179,7 @@ def _curve(rows: list[dict]):
     return steps, np.asarray([v.mean() for v in values]), np.asarray([v.std() for v in values])
 
 
-def _heatmaps(out: Path, comparisons: list[dict]) -> list[str]:
+def _heatmaps(out: Path, comparisons: list[dict], dest: Path) -> list[str]:
     pictures = []
     for entry in comparisons:
         path = out / "comparisons" / entry["name"] / "matrix.csv"
@@ -174,20 +189,20 @@ def _heatmaps(out: Path, comparisons: list[dict]) -> list[str]:
             rows = list(csv.reader(handle))
         labels = [r[0] for r in rows[1:]]
         matrix = np.asarray([[float(v) for v in r[1:]] for r in rows[1:]], np.float64)
-        picture = xp_heatmap(matrix, out / f"heatmap_{entry['name']}.png", labels=labels, col_labels=rows[0][1:],
+        picture = xp_heatmap(matrix, dest / f"heatmap_{entry['name']}.png", labels=labels, col_labels=rows[0][1:],
                              title=f"{entry['name']}: cross-play, {entry.get('episodes_per_pair')} episodes/pair")
         if picture is not None:
             pictures.append(picture)
     return pictures
 
 
-def _over_training_plots(out: Path, over: list[dict]) -> list[str]:
+def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
     pictures = []
     for entry in over:
         points = entry["points"]
         if not points:
             continue
-        target = out / f"over_training_{entry['run']}.png"
+        target = dest / f"over_training_{entry['run']}.png"
         try:
             plt = pyplot()
         except PlotsUnavailable as error:

@@ -132,7 +132,7 @@ class StepTimer:
 
 def run_study(study: Study, out, budget: float | None = None, seeds: int | None = None, backend: str = "ray",
               address: str | None = None, show_progress: bool = True,
-              say: Callable[[str], None] = print) -> dict:
+              say: Callable[[str], None] = log.info) -> dict:
     """Train every unfinished run, run the cross-play steps, write the report. Returns the state
     (``steps``: name -> status "done" or "blocked" with a reason)."""
     out = Path(out).resolve()
