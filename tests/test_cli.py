@@ -150,6 +150,20 @@ def test_imports_point_down_and_the_cli_imports_at_module_top():
     assert problems == []
 
 
+def test_no_module_imports_private_names_from_another():
+    """The commands share helpers through a module of their own (cluster/cli/args.py), never as ``_name``."""
+    root = Path(__file__).resolve().parents[1]
+    problems = []
+    for package in ("cluster",):
+        for path in (root / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in (
+                        "ocv2", "population", "cluster"):
+                    problems += [f"{path.relative_to(root)}: {alias.name} from {node.module}" for alias in node.names
+                                 if alias.name.startswith("_") and not alias.name.startswith("__")]
+    assert problems == []
+
+
 def test_button_game_without_matplotlib_writes_the_numbers(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # as when the plots extra is not installed
     out = tmp_path / "bg"

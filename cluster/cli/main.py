@@ -35,10 +35,10 @@ from rich.console import Console
 from rich.table import Table
 
 import ocv2
+from cluster.cli.args import fps, layout_or_error, non_negative_int, positive_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
-from ocv2.layouts import LAYOUTS, Layout, get_layout
+from ocv2.layouts import LAYOUTS, Layout
 from ocv2.render import render_frames, rollout_states, write_gif
-from population.config import MAX_SEED
 
 # ---------------------------------------------------------------------------------------------------
 # helpers
@@ -49,50 +49,6 @@ def _console(stream=None):
     # Not a terminal (pipes, tests): wide enough that layout names are never wrapped.
     width = None if stream.isatty() else 200
     return Console(file=stream, width=width, highlight=False, soft_wrap=False)
-
-
-def _layout_or_error(name: str):
-    try:
-        return get_layout(name)
-    except ValueError as error:  # its message names the layout, lists the choices and suggests close ones
-        raise CLIError(str(error)) from None
-
-
-def _int_at_least(minimum: int, what: str):
-    """An argparse type: an integer >= ``minimum``, with a message naming ``what`` was expected."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a {what} integer, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected a {what} integer, got {value}")
-        return value
-
-    return parse
-
-
-_positive_int = _int_at_least(1, "positive")
-_non_negative_int = _int_at_least(0, "non-negative")
-
-
-def _seed(text: str) -> int:
-    """A PRNG seed: JAX's keys hold 32 bits, so a larger seed would silently wrap onto a small one."""
-    value = _non_negative_int(text)
-    if value > MAX_SEED:
-        raise argparse.ArgumentTypeError(f"expected a seed in [0, {MAX_SEED}], got {value}")
-    return value
-
-
-def _fps(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected frames per second (a number), got {text!r}") from None
-    if not 0 < value <= 100:
-        raise argparse.ArgumentTypeError(f"fps must be > 0 and <= 100, got {text}")
-    return value
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -122,7 +78,7 @@ def legend(layout: Layout) -> list[str]:
 
 def _cmd_layouts(args) -> int:
     if args.show is not None:
-        layout = _layout_or_error(args.show)
+        layout = layout_or_error(args.show)
         print(f"{layout.name}: {layout.height}x{layout.width}, {layout.num_agents} agents, "
               f"{layout.num_ingredients} ingredients, recipes {[list(r) for r in layout.possible_recipes]}")
         print(layout.to_string())
@@ -153,13 +109,13 @@ def _add_render(sub) -> argparse.ArgumentParser:
                             description="Play uniformly random actions on LAYOUT and write the frames "
                                         "(the reset state plus one per step) to a looping GIF.")
     parser.add_argument("layout", help="layout name (see 'ocv2 layouts')")
-    parser.add_argument("--steps", type=_non_negative_int, default=50, help="transitions to play (default 50)")
+    parser.add_argument("--steps", type=non_negative_int, default=50, help="transitions to play (default 50)")
     parser.add_argument("--out", required=True, help="GIF file to write")
-    parser.add_argument("--seed", type=_seed, default=0, help="PRNG seed (default 0)")
-    parser.add_argument("--fps", type=_fps, default=5.0, help="frames per second (default 5)")
-    parser.add_argument("--view-radius", type=_non_negative_int, default=None,
+    parser.add_argument("--seed", type=seed, default=0, help="PRNG seed (default 0)")
+    parser.add_argument("--fps", type=fps, default=5.0, help="frames per second (default 5)")
+    parser.add_argument("--view-radius", type=non_negative_int, default=None,
                         help="highlight every cell within this radius of an agent (default: none)")
-    parser.add_argument("--tile-size", type=_positive_int, default=32, help="pixels per cell (default 32)")
+    parser.add_argument("--tile-size", type=positive_int, default=32, help="pixels per cell (default 32)")
     return parser
 
 
@@ -173,7 +129,7 @@ def gif_bytes(layout: Layout, steps: int, tile_size: int) -> int:
 
 
 def _cmd_render(args) -> int:
-    layout = _layout_or_error(args.layout)
+    layout = layout_or_error(args.layout)
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
     needed = gif_bytes(layout, args.steps, args.tile_size)
