@@ -17,7 +17,7 @@ import pytest
 
 from cluster.cli import main
 from cluster.runtime.environment import git_state
-from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.rundir import RunDir, RunDirError, write_json
 from population import checkpoints as ckpt
 from population.config import load_config
 from population.keys import OFFSETS, derive_key
@@ -209,3 +209,14 @@ def test_runtime_imports_are_one_way_and_at_module_top():
 
     for module in graph:
         visit(module, [])
+
+
+def test_json_files_are_strict_json_with_null_for_undefined_numbers(tmp_path):
+    def refuse(constant):
+        raise ValueError(f"bare {constant} in a JSON file")
+
+    data = {"sp_mean": np.float32(3.5), "gap_ci95_interval": [float("nan"), np.float64("inf")], "n": np.int64(2),
+            "cells": np.array([1.0, np.nan])}
+    write_json(tmp_path / "summary.json", data)
+    assert json.loads((tmp_path / "summary.json").read_text(), parse_constant=refuse) == {
+        "sp_mean": 3.5, "gap_ci95_interval": [None, None], "n": 2, "cells": [1.0, None]}

@@ -206,7 +206,7 @@ class RunDir:
         return data
 
     def write_manifest(self, data: dict) -> None:
-        atomic_write(self.manifest_path, json.dumps(data, indent=2, default=_json_default))  # fsynced
+        atomic_write(self.manifest_path, strict_json(data))  # fsynced
 
     def update_manifest(self, **changes) -> dict:
         data = self.read_manifest()
@@ -381,5 +381,28 @@ def write_csv(path: Path, header, rows) -> None:
     atomic_write(path, buffer.getvalue())  # CSV rows keep their \r\n
 
 
+def strict_json(data) -> str:
+    """``data`` as strict JSON: a NaN or infinite number becomes ``null``.
+
+    Python's ``json`` writes bare ``NaN``/``Infinity`` by default, which JSON does not allow: ``jq``,
+    JavaScript's ``JSON.parse`` and most other readers reject the whole file. An undefined number here
+    (an interval of a single seed, a mean over no episode) is therefore ``null``.
+    """
+    return json.dumps(_finite_or_none(data), indent=2, default=_json_default, allow_nan=False)
+
+
+def _finite_or_none(value):
+    if isinstance(value, dict):
+        return {key: _finite_or_none(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_none(item) for item in value]
+    if isinstance(value, np.ndarray):
+        return _finite_or_none(value.tolist())
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
+
+
 def write_json(path: Path, data) -> None:
-    atomic_write(path, json.dumps(data, indent=2, default=_json_default, allow_nan=True))
+    """``data`` as strict JSON (``strict_json``), written atomically."""
+    atomic_write(path, strict_json(data))
