@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from PIL import Image
 
 from cluster.cli import main
@@ -189,3 +190,68 @@ def test_commands_import_without_the_ray_extra():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "Ray is not installed: pip install 'ocv2[ray]', or use --backend local"
+
+
+def test_library_code_never_prints():
+    """Only the command line writes to stdout/stderr itself; the packages log through module loggers."""
+    root = Path(__file__).resolve().parents[1]
+    problems = []
+    for package in ("ocv2", "population", "cluster"):
+        for path in (root / package).rglob("*.py"):
+            if path.is_relative_to(root / "cluster" / "cli"):
+                continue
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print":
+                    problems.append(f"{path.relative_to(root)}:{node.lineno}")
+    assert problems == []
+
+
+def _log_at_every_level():
+    import logging
+
+    for level in (logging.DEBUG, logging.INFO, logging.WARNING):
+        logging.getLogger("cluster.runtime.progress").log(level, "message at %s", logging.getLevelName(level))
+
+
+@pytest.fixture
+def log_levels():
+    """The package loggers' levels as they were before the test (main() sets them for the process)."""
+    import logging
+
+    from cluster.cli.main import PACKAGE_LOGGERS
+
+    levels = {name: logging.getLogger(name).level for name in PACKAGE_LOGGERS}
+    yield
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
+
+
+@pytest.mark.parametrize("flags, shown", [([], ["INFO", "WARNING"]), (["-q"], ["WARNING"]),
+                                          (["-v"], ["DEBUG", "INFO", "WARNING"])])
+def test_global_verbosity_flags_set_what_the_packages_log_to_stderr(capsys, log_levels, flags, shown):
+    assert main([*flags, "layouts"]) == 0
+    capsys.readouterr()
+    _log_at_every_level()
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert [line.rsplit(" ", 1)[-1] for line in captured.err.splitlines()] == shown
+    assert "warning: message at WARNING" in captured.err.splitlines()
+
+
+def test_global_q_turns_the_command_quiet_on_and_contradicting_flags_are_refused(capsys):
+    parser = build_parser(["train"])
+    args = parser.parse_args(["-q", "train", "c.yaml"])
+    assert args.log_quiet and not args.quiet  # main() turns the command's --quiet on from -q
+    assert main(["-v", "-q", "layouts"]) == 2
+    assert "contradict" in capsys.readouterr().err
+
+
+def test_the_progress_header_counts_env_steps_per_seed(caplog):
+    import logging
+
+    from cluster.runtime.progress import PopulationProgress
+
+    caplog.set_level(logging.INFO, logger="cluster")
+    with PopulationProgress("SP cramped_room", num_seeds=3, total_updates=10, steps_per_update=128):
+        pass
+    assert caplog.messages == ["SP cramped_room: 3 seeds x 10 updates x 128 = 1,280 env steps per seed"]

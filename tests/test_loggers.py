@@ -140,11 +140,11 @@ def test_missing_extra_is_one_line_before_the_run_starts(tmp_path, capsys, monke
                                  loggers=[] if blocked == "ray" else [argv[-1]])
 
 
-def test_without_matplotlib_plots_are_skipped_with_a_warning(logged_run, tmp_path, capsys, monkeypatch):
+def test_without_matplotlib_plots_are_skipped_with_a_warning(logged_run, tmp_path, caplog, monkeypatch):
     run_dir, _, _, _ = logged_run
     monkeypatch.setitem(sys.modules, "matplotlib", None)
     assert evaluate.write_training_plot(run_dir) is None
-    assert "pip install 'ocv2[plots]'" in capsys.readouterr().err
+    assert [r.levelname for r in caplog.records] == ["WARNING"] and "pip install 'ocv2[plots]'" in caplog.text
     from population.plots import xp_heatmap
 
     assert xp_heatmap(np.eye(2), tmp_path / "h.png") is None

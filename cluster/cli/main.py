@@ -14,11 +14,17 @@
     ocv2 play [LAYOUT] [--partner RUN_DIR/checkpoints/seed_i|human] [--seat S] [--port P]   human play (docs/play.md)
     ocv2 human import SOURCE | proxy LAYOUT --source SOURCE   2019 human games, BC human proxy (docs/human.md)
 
+Global options, before the command: ``-v`` shows debug records, ``-q`` only warnings and errors (no
+progress; ``ocv2 -q train ...`` is ``ocv2 train --quiet ...``).
+
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
 code; ``COMMANDS`` lists them. The bigger ones live in ``cluster/cli/<group>.py`` and are named by
 string: a command's module is imported only when that command runs (``ocv2 layouts`` never imports the
 trainer, Ray or the play server). Errors the user can fix raise ``CLIError`` and become a one-line
 message on stderr and exit code 2 (usage) or 1 (failure), never a traceback.
+
+Results (tables, "wrote FILE", the run directory) go to stdout; progress, warnings and errors are log
+records of the packages' module loggers, which ``configure_logging`` sends to stderr.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.metadata
+import logging
 import os
 import sys
 from typing import Callable, NamedTuple, Sequence
@@ -154,6 +161,58 @@ def _cmd_render(args) -> int:
 
 
 # ---------------------------------------------------------------------------------------------------
+# logging
+# ---------------------------------------------------------------------------------------------------
+
+#: The loggers of the three packages: the library modules log under these names, never print.
+PACKAGE_LOGGERS = ("ocv2", "population", "cluster")
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time (a rich bar or a test may have replaced it)."""
+
+    def __init__(self):
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value):
+        pass
+
+
+class _Formatter(logging.Formatter):
+    """Progress as it is; a warning or an error says so in front; debug records name their module."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        message = super().format(record)
+        if record.levelno >= logging.ERROR:
+            return f"error: {message}"
+        if record.levelno >= logging.WARNING:
+            return f"warning: {message}"
+        if record.levelno < logging.INFO:
+            return f"debug {record.name}: {message}"
+        return message
+
+
+_handler = _StderrHandler()
+_handler.setFormatter(_Formatter())
+
+
+def configure_logging(verbosity: int = 0) -> None:
+    """Show the packages' log records on stderr: INFO and up, DEBUG too (``verbosity`` > 0), or only
+    WARNING and up (< 0). One handler, installed once, however often ``main`` runs in a process."""
+    level = logging.DEBUG if verbosity > 0 else logging.WARNING if verbosity < 0 else logging.INFO
+    for name in PACKAGE_LOGGERS:
+        logger = logging.getLogger(name)
+        logger.setLevel(level)
+        if _handler not in logger.handlers:
+            logger.addHandler(_handler)
+
+
+# ---------------------------------------------------------------------------------------------------
 # entry point
 # ---------------------------------------------------------------------------------------------------
 
@@ -213,6 +272,10 @@ def build_parser(argv: Sequence[str] = (), full: bool = False) -> argparse.Argum
     """The parser, with the arguments of the command ``argv`` names only (``full``: of every command)."""
     parser = argparse.ArgumentParser(prog="ocv2", description="OvercookedV2 in pure JAX: layouts, rendering, training.")
     parser.add_argument("--version", action="version", version=f"ocv2 {version()}")
+    parser.add_argument("-v", "--verbose", dest="log_verbose", action="store_true",
+                        help="also show debug messages (before the command: ocv2 -v train ...)")
+    parser.add_argument("-q", "--quiet", dest="log_quiet", action="store_true",
+                        help="only warnings and errors: no progress (before the command: ocv2 -q train ...)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     chosen = _chosen_command(argv)
@@ -232,6 +295,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exit_:  # argparse already printed usage / help
         return exit_.code if isinstance(exit_.code, int) else EXIT_USAGE
+    if args.log_verbose and args.log_quiet:
+        print("ocv2: error: -v and -q contradict each other; give one", file=sys.stderr)
+        return EXIT_USAGE
+    if args.log_quiet and hasattr(args, "quiet"):
+        args.quiet = True  # the command's own --quiet also turns its progress bar off
+    quiet = args.log_quiet or getattr(args, "quiet", False) is True
+    configure_logging(1 if args.log_verbose else -1 if quiet else 0)
     try:
         return int(resolve(args.func)(args))
     except CLIError as error:

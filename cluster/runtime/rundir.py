@@ -21,9 +21,9 @@ import errno
 import fcntl
 import io
 import json
+import logging
 import math
 import os
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -34,6 +34,8 @@ import numpy as np
 from cluster.runtime.environment import environment_record
 from ocv2.atomic import atomic_write, is_temporary, remove_stale_temporaries
 from population.config import Config, ConfigError, dump_config, load_config
+
+log = logging.getLogger(__name__)
 
 METRIC_FIELDS = ("seed", "update", "env_steps", "sparse_return", "shaped_return", "episodes", "loss", "actor_loss",
                  "value_loss", "entropy", "approx_kl", "clip_frac", "lr", "shaping_coef", "steps_per_s", "wall_s")
@@ -285,7 +287,7 @@ class RunDir:
 
 
 def _warn(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    log.warning(message)
 
 
 def _is_int(text) -> bool:
