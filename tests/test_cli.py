@@ -238,6 +238,21 @@ def test_global_verbosity_flags_set_what_the_packages_log_to_stderr(capsys, log_
     assert "warning: message at WARNING" in captured.err.splitlines()
 
 
+def test_each_log_line_is_written_once_even_after_a_library_configures_logging():
+    # optax logs through absl, which calls logging.basicConfig() when the root logger has no handler: a
+    # second handler there would repeat every line of ours in its own format.
+    code = ("import logging, optax\n"
+            "from cluster.cli import main\n"
+            "main(['layouts'])\n"
+            "optax.polynomial_schedule(1.0, 0.0, 1, transition_steps=0)\n"
+            "logging.getLogger('cluster.runtime.progress').info('progress line')\n"
+            "logging.getLogger('some.library').info('library detail')\n"
+            "logging.getLogger('some.library').warning('library warning')\n")
+    err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stderr
+    assert err.splitlines() == ["progress line", "warning: library warning"]
+
+
 def test_global_q_turns_the_command_quiet_on_and_contradicting_flags_are_refused(capsys):
     parser = build_parser(["train"])
     args = parser.parse_args(["-q", "train", "c.yaml"])

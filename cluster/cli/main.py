@@ -197,19 +197,27 @@ class _Formatter(logging.Formatter):
         return message
 
 
+def _ours_or_a_warning(record: logging.LogRecord) -> bool:
+    """The packages' records at their loggers' level; another library's only from WARNING up."""
+    return record.name.split(".")[0] in PACKAGE_LOGGERS or record.levelno >= logging.WARNING
+
+
 _handler = _StderrHandler()
 _handler.setFormatter(_Formatter())
+_handler.addFilter(_ours_or_a_warning)
 
 
 def configure_logging(verbosity: int = 0) -> None:
-    """Show the packages' log records on stderr: INFO and up, DEBUG too (``verbosity`` > 0), or only
-    WARNING and up (< 0). One handler, installed once, however often ``main`` runs in a process."""
+    """Show log records on stderr: the packages' from INFO, from DEBUG (``verbosity`` > 0) or only from
+    WARNING (< 0); other libraries' warnings and errors. One handler, installed once on the root logger
+    however often ``main`` runs in a process: with a root handler in place, libraries that call
+    ``logging.basicConfig`` on first use (absl, through optax) add no second one that repeats every line."""
     level = logging.DEBUG if verbosity > 0 else logging.WARNING if verbosity < 0 else logging.INFO
     for name in PACKAGE_LOGGERS:
-        logger = logging.getLogger(name)
-        logger.setLevel(level)
-        if _handler not in logger.handlers:
-            logger.addHandler(_handler)
+        logging.getLogger(name).setLevel(level)
+    root = logging.getLogger()
+    if _handler not in root.handlers:
+        root.addHandler(_handler)
 
 
 # ---------------------------------------------------------------------------------------------------
