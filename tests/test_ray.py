@@ -122,7 +122,7 @@ def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_number
     run = tmp_path / "killed"
     killed = {}
 
-    def kill_worker_0(update, workers):
+    def kill_worker_0(update, workers, _rows):
         if update == 2 and not killed:  # SIGKILL the process while it trains the next chunk
             killed["pid"] = pid = workers.pids()[0]
             threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()

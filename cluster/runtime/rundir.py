@@ -1,4 +1,4 @@
-"""The run directory every backend writes (issue 3/4 layout):
+"""The run directory every backend writes:
 
     RUN_DIR/config.yaml       resolved config (the run's identity: its fingerprint guards checkpoints)
             manifest.json     progress for --resume: status, updates done, snapshots, stage
@@ -27,6 +27,7 @@ import os
 import time
 import warnings
 from pathlib import Path
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
@@ -40,6 +41,31 @@ log = logging.getLogger(__name__)
 METRIC_FIELDS = ("seed", "update", "env_steps", "sparse_return", "shaped_return", "episodes", "loss", "actor_loss",
                  "value_loss", "entropy", "approx_kl", "clip_frac", "lr", "shaping_coef", "steps_per_s", "wall_s")
 LOCK_NAME = ".lock"
+
+
+class MetricsRow(NamedTuple):
+    """One row of ``metrics.csv``: one seed's numbers after one update, typed."""
+
+    seed: int
+    update: int
+    env_steps: int  # this seed's environment steps so far (the x axis of training curves)
+    values: dict[str, float]  # every other column by name; NaN where nothing was measured (no episode ended yet)
+
+    @classmethod
+    def of(cls, row: Mapping) -> MetricsRow:
+        """From a row as ``metric_rows`` builds it or as ``csv`` reads it back (strings, "" = no value)."""
+        return cls(int(float(row["seed"])), int(float(row["update"])), int(float(row["env_steps"])),
+                   {key: _float_or_nan(value) for key, value in row.items() if key not in _INDEX_FIELDS})
+
+
+_INDEX_FIELDS = ("seed", "update", "env_steps")
+
+
+def _float_or_nan(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):  # "" (nothing measured) or None
+        return math.nan
 
 
 class RunDirError(ValueError):
