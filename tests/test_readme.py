@@ -36,3 +36,16 @@ def test_every_readme_python_snippet_runs_as_pasted(tmp_path):
                           text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert f"--- README snippet {len(blocks) - 1}" in done.stdout
+
+
+def test_ci_runs_the_readme_test_command_lint_first_and_without_q():
+    """.ci/run runs what the README tells people to run. No -q: at negative verbosity pytest-xdist prints
+    "bringing up nodes..." twice on a non-terminal."""
+    readme = (ROOT / "README.md").read_text()
+    (command,) = [line for line in readme.splitlines() if line.startswith('pip install -e ".[test]" && ')]
+    steps = command.split(" && ")[1:]
+    assert steps == ["ruff check .", "ruff format --check .", "python -m pytest"]
+    ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()
+          if line.strip() and not line.lstrip().startswith("#")]
+    assert "ruff check . && ruff format --check ." in ci and ci[-1] == "python -m pytest"
+    assert ci.index("ruff check . && ruff format --check .") < ci.index("python -m pytest")
