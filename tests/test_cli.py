@@ -122,6 +122,13 @@ def test_layouts_does_not_import_the_trainer():
     assert out.strip().splitlines()[-1] == "[]"
 
 
+def test_import_ocv2_loads_no_learning_code():
+    code = "import sys, ocv2; print(sorted(m for m in ('optax', 'population') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stdout
+    assert out.strip().splitlines()[-1] == "[]"
+
+
 def _imports(path: Path):
     """(module imported, whether inside a function) for every import statement of a source file."""
     tree = ast.parse(path.read_text())
