@@ -199,6 +199,18 @@ def test_commands_import_without_the_ray_extra():
     assert out.stdout.strip() == "Ray is not installed: pip install 'ocv2[ray]', or use --backend local"
 
 
+def test_comments_say_why_instead_of_citing_spec_sections_or_issues():
+    """A reader of the code has neither the project's spec nor its issue tracker: say the reason."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    pattern = re.compile(r"spec sections?\b|\bspec \d|\bthe issue\b|\bissues? #?\d", re.IGNORECASE)
+    hits = [f"{path.relative_to(root)}:{number}" for package in ("ocv2", "population", "cluster", "tests", "bench")
+            for path in (root / package).rglob("*.py") if path.name != "test_cli.py"
+            for number, line in enumerate(path.read_text().splitlines(), start=1) if pattern.search(line)]
+    assert hits == []
+
+
 def test_library_code_never_prints():
     """Only the command line writes to stdout/stderr itself; the packages log through module loggers."""
     root = Path(__file__).resolve().parents[1]
