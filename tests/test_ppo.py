@@ -5,7 +5,6 @@ Everything runs on tiny models (one conv of 4, fc 8, GRU 8) and tiny batches (4 
 
 from __future__ import annotations
 
-import functools
 import math
 
 import flax.serialization
