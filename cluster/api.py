@@ -28,7 +28,7 @@ from typing import Callable, NamedTuple, Sequence
 from cluster.runtime import coordinator, ray_backend
 from cluster.runtime.local import LocalWorkers
 from cluster.runtime.loggers import MetricsLogger, MissingExtraError, check_loggers, make_loggers
-from cluster.runtime.rundir import MetricsRow
+from cluster.runtime.rundir import MetricsRow, RunDir
 from population.config import Config, load_config
 
 BACKENDS = ("ray", "local")
@@ -67,6 +67,9 @@ def train_population(config: Config | str | os.PathLike, run_dir, *, backend: st
     require_backend(backend)
     check_loggers(loggers)  # before the run directory is touched
     run_dir = Path(run_dir).resolve()
+    # A resumed run retrains the updates after its last checkpoint; the rows an earlier driver already
+    # logged up to here are not logged twice (W&B refuses steps that go back). One read, at the start.
+    logged = _last_update(run_dir) if resume else 0
     active: list[MetricsLogger] = []
     state = {"started": False}
 
@@ -78,7 +81,7 @@ def train_population(config: Config | str | os.PathLike, run_dir, *, backend: st
             active.extend(make_loggers(loggers, run_dir, config))
 
     def chunk_done(update: int, _workers, new_rows: list[dict]) -> None:
-        rows = [MetricsRow.of(row) for row in new_rows]
+        rows = [row for row in map(MetricsRow.of, new_rows) if row.update > logged]
         start_loggers()
         for logger in active:
             logger.log_rows(rows)
@@ -97,6 +100,11 @@ def train_population(config: Config | str | os.PathLike, run_dir, *, backend: st
         for logger in active:
             logger.close()
     return summary
+
+
+def _last_update(run_dir: Path) -> int:
+    """The last update in a run's metrics.csv (0 for a run not started yet)."""
+    return max((int(float(r["update"])) for r in RunDir(run_dir).read_metrics()), default=0)
 
 
 def _train(config: Config, run_dir: Path, backend: str, **options) -> dict:

@@ -14,7 +14,6 @@ by default at ``population.human.proxy_path(LAYOUT)``. See docs/human.md.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 
 import numpy as np
@@ -23,6 +22,7 @@ import ocv2
 from cluster.archive import ArchiveError, ArchiveWriter, env_meta
 from cluster.cli.args import positive_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from cluster.runtime.rundir import strict_json
 from ocv2.atomic import atomic_write
 from population import bc, human
 
@@ -137,7 +137,7 @@ def run_import(args) -> int:
             print(f"wrote {path}: {len(trials)} games, {sum(len(t.actions) for t in trials)} transitions")
     except (ArchiveError, OSError) as error:
         raise CLIError(f"could not write the archive: {error}", EXIT_FAILURE) from None
-    report_path = atomic_write(os.path.join(args.out, "reproduction.json"), json.dumps(report, indent=1) + "\n")
+    report_path = atomic_write(os.path.join(args.out, "reproduction.json"), strict_json(report) + "\n")
     print(f"{'split':6} {'layout':18} {'transitions':>11} {'exact':>7}  mismatches by field")
     for split, layouts in report["splits"].items():
         for layout, r in layouts.items():
