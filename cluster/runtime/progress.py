@@ -40,13 +40,12 @@ class PopulationProgress:
 
     def __enter__(self):
         if self.enabled:
+            log.info(header(self.label, self.num_seeds, self.total, self.steps_per_update))
             self._bar = _bar(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                              TextColumn("{task.fields[info]}"), TimeRemainingColumn())
         if self._bar is not None:
             self._bar.__enter__()
             self._task = self._bar.add_task(self.label, total=self.total, info="compiling...")
-        elif self.enabled:
-            log.info(header(self.label, self.num_seeds, self.total, self.steps_per_update))
         return self
 
     def __exit__(self, *exc):
