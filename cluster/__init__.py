@@ -6,7 +6,7 @@ Python entry point (``cluster.api``); ``ocv2`` is ``cluster.cli.main``.
 
 import importlib
 
-__all__ = ["train_population", "ChunkEvent"]
+__all__ = ["train_population", "ChunkEvent", "MetricsRow"]
 
 
 def __getattr__(name: str):

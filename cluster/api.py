@@ -3,14 +3,18 @@
     import cluster
 
     def show(event):
-        print(event.update, "/", event.num_updates, len(event.rows), "new metrics rows")
+        returns = [row.values["sparse_return"] for row in event.rows]
+        print(event.update, "/", event.num_updates, len(event.rows), "new metrics rows, returns", returns)
 
     summary = cluster.train_population("configs/smoke.yaml", "runs/demo", backend="local",
                                        on_chunk=show, loggers=["tensorboard"])
 
 ``on_chunk`` is called after every chunk of updates the coordinator merged (``run.checkpoint_every``)
 with a ``ChunkEvent``: the population's update, the run's total, the metrics rows that chunk added to
-``metrics.csv`` and the run directory. ``loggers`` names experiment loggers fed with the same rows and,
+``metrics.csv`` (``MetricsRow``: seed, update, env_steps and a dict of the other columns; NaN where
+nothing was measured) and the run directory. The rows come from the coordinator as it merges them:
+the cost of a chunk does not grow with the length of the run. Progress is logged (``logging``) by the
+``cluster`` loggers: ``logging.basicConfig(level=logging.INFO)`` shows it in a script. ``loggers`` names experiment loggers fed with the same rows and,
 after evaluation, the cross-play summary and heatmap (``cluster.runtime.loggers``).
 """
 
@@ -24,7 +28,7 @@ from typing import Callable, NamedTuple, Sequence
 from cluster.runtime import coordinator, ray_backend
 from cluster.runtime.local import LocalWorkers
 from cluster.runtime.loggers import MetricsLogger, MissingExtraError, check_loggers, make_loggers
-from cluster.runtime.rundir import RunDir
+from cluster.runtime.rundir import MetricsRow, RunDir
 from population.config import Config, load_config
 
 BACKENDS = ("ray", "local")
@@ -33,7 +37,7 @@ BACKENDS = ("ray", "local")
 class ChunkEvent(NamedTuple):
     update: int  # updates every seed has finished
     num_updates: int  # updates of the whole run
-    rows: list[dict]  # metrics.csv rows added since the previous event (values as read back from the CSV)
+    rows: list[MetricsRow]  # the metrics.csv rows added since the previous event
     run_dir: Path
 
 
@@ -63,9 +67,11 @@ def train_population(config: Config | str | os.PathLike, run_dir, *, backend: st
     require_backend(backend)
     check_loggers(loggers)  # before the run directory is touched
     run_dir = Path(run_dir).resolve()
-    previous = _last_update(run_dir) if resume else 0
+    # A resumed run retrains the updates after its last checkpoint; the rows an earlier driver already
+    # logged up to here are not logged twice (W&B refuses steps that go back). One read, at the start.
+    logged = _last_update(run_dir) if resume else 0
     active: list[MetricsLogger] = []
-    state = {"logged": previous, "started": False}
+    state = {"started": False}
 
     def start_loggers() -> None:
         # Once the coordinator has made the run directory: a folder the loggers made first would not
@@ -74,9 +80,8 @@ def train_population(config: Config | str | os.PathLike, run_dir, *, backend: st
             state["started"] = True
             active.extend(make_loggers(loggers, run_dir, config))
 
-    def chunk_done(update: int, _workers) -> None:
-        rows = [r for r in RunDir(run_dir).read_metrics() if int(float(r["update"])) > state["logged"]]
-        state["logged"] = max([state["logged"], *(int(float(r["update"])) for r in rows)])
+    def chunk_done(update: int, _workers, new_rows: list[dict]) -> None:
+        rows = [row for row in map(MetricsRow.of, new_rows) if row.update > logged]
         start_loggers()
         for logger in active:
             logger.log_rows(rows)
@@ -97,12 +102,13 @@ def train_population(config: Config | str | os.PathLike, run_dir, *, backend: st
     return summary
 
 
+def _last_update(run_dir: Path) -> int:
+    """The last update in a run's metrics.csv (0 for a run not started yet)."""
+    return max((int(float(r["update"])) for r in RunDir(run_dir).read_metrics()), default=0)
+
+
 def _train(config: Config, run_dir: Path, backend: str, **options) -> dict:
     if backend == "local":
         return coordinator.train(config, run_dir, LocalWorkers, **options)
     return ray_backend.train_population(config, run_dir, **options)
 
-
-def _last_update(run_dir: Path) -> int:
-    """The last update already in a run's metrics.csv (a resumed run logs only what comes after it)."""
-    return max((int(float(r["update"])) for r in RunDir(run_dir).read_metrics()), default=0)

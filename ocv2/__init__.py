@@ -19,6 +19,8 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    if name == "policy":  # lazy: `import ocv2` stays free of flax/optax and of population/
+    # Lazy: `import ocv2` loads neither the learning code (population/) nor optax. It does load flax,
+    # whose struct dataclasses are the State pytrees (and what flax.serialization checkpoints know).
+    if name == "policy":
         return importlib.import_module("population.policy")
     raise AttributeError(f"module 'ocv2' has no attribute {name!r}")

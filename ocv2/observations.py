@@ -1,4 +1,4 @@
-"""Grid observations (spec section 10): per-agent (H, W, C) channel stacks, optional view window.
+"""Grid observations, as the reference builds them: per-agent (H, W, C) channel stacks, optional view window.
 
 Channel order (n ingredients, item block = [plate bit, cooked bit, count_0 .. count_{n-1}]):
 ego position, ego direction (4), ego inventory block, other agents' position / directions / inventory
@@ -225,7 +225,7 @@ def _full_view(config: EnvConfig, state: State) -> jax.Array:
     """Whole-map observations: the shared channels once, then each agent's layers added at its cell.
 
     The lookup reads the raw codes: here they are computed inside the lookup fusion, so folding them
-    into look codes (as the windowed view does) saves nothing (docs/dev/optimisation-journal.md).
+    into look codes (as the windowed view does) measured no faster.
     """
     n = config.num_ingredients
     agents = state.agents

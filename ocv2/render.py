@@ -1,7 +1,7 @@
 """Pictures of kitchens: a pure-JAX renderer, episode roll-outs and looping GIFs.
 
 ``render(state)`` draws one state as an RGB image, one ``tile_size`` square per grid cell, in the
-look of the reference visualiser (JaxMARL 0.2.0, spec section 13.1): black floor with grey grid
+look of the reference visualiser (JaxMARL 0.2.0): black floor with grey grid
 lines, grey counters with their item, a green delivery square, pots with their contents, lid and
 cooking bar, plate and ingredient piles, recipe / button indicators and the agents as triangles in
 their colour (red, blue, green, purple, yellow, orange) holding a small item.

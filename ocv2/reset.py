@@ -1,6 +1,6 @@
 """Initial states: the layout's start, random starts, other-play permutations, buffer resets.
 
-The order and arguments of every ``jax.random`` call follow the reference (spec section 6), so the
+The order and arguments of every ``jax.random`` call follow the reference (JaxMARL 0.2.0), so the
 same key gives the same state -- including its key-reuse quirk (the other-play permutations and the
 randomisation are drawn from the same sub-key).
 """
@@ -155,7 +155,7 @@ def randomize_state(config: EnvConfig, state: State, key: jax.Array) -> State:
 
 
 def default_reset_state(config: EnvConfig, key: jax.Array) -> State:
-    """The reference's ``reset`` without a buffer (spec 6.1), observation excluded."""
+    """The reference's ``reset`` without a buffer, observation excluded."""
     key, k_recipe = jax.random.split(key)
     recipe = sample_recipe(config, k_recipe)
     permutations = sample_permutations(config, key)

@@ -6,7 +6,7 @@ of the recorded state and the action the human took. A feed-forward network of
 Adam on minibatches drawn with an explicit key; training is one jitted ``lax.scan`` per evaluation
 chunk, so the same config and seed give the same parameters.
 
-The proxy is scored as the issue asks: action accuracy on the held-out test trials (against a uniform
+The proxy is scored by its action accuracy on the held-out test trials (against a uniform
 policy, 1/6, and the majority action of the training data) and the team return of the proxy playing
 with itself (sampled actions, ``population.evaluation.play_episodes``).
 

@@ -6,13 +6,15 @@ draw nothing, say so on stderr and return None, so a training run still finishes
 
 from __future__ import annotations
 
-import sys
+import logging
 import textwrap
 from typing import NamedTuple
 
 import numpy as np
 
 from ocv2.atomic import atomic_path
+
+log = logging.getLogger(__name__)
 
 MISSING_MATPLOTLIB = "matplotlib is not installed: pip install 'ocv2[plots]'"
 
@@ -42,7 +44,7 @@ def save_figure(fig, path) -> str:
 
 
 def skipped(path, error: PlotsUnavailable) -> None:
-    print(f"warning: {path} not drawn: {error}", file=sys.stderr)
+    log.warning("%s not drawn: %s", path, error)
 
 
 def across_seeds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

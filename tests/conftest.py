@@ -61,10 +61,13 @@ def ensure_ray():
     os.environ["RAY_AUTH_MODE"] = "disabled"
     import ray
 
+    from cluster.runtime.ray_backend import start_local
+
     if not ray.is_initialized():
         # Actors inherit the environment, so they share the session's compilation cache (above).
-        # address="local": a fresh instance, never another test process's cluster (pytest-xdist).
-        ray.init(address="local", num_cpus=RAY_CPUS, include_dashboard=False, configure_logging=False)
+        # A fresh instance, never another test process's cluster (pytest-xdist), started as ocv2 starts
+        # one (without the fork warnings JAX would print, as it is already running here).
+        start_local(num_cpus=RAY_CPUS)
     return ray
 
 

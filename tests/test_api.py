@@ -66,11 +66,19 @@ def test_int32_observations_have_the_same_values(layout, params):
         np.testing.assert_array_equal(np.asarray(oa, np.int32), np.asarray(ob))
 
 
-def test_same_key_same_numbers():
+def test_the_key_alone_decides_a_trajectory():
+    """Compiled and step-by-step (eager) runs from the same keys agree; another key gives another trajectory."""
     env = ocv2.make("counter_circuit", random_reset=True)
-    run = jax.jit(lambda k: jax.lax.scan(
-        lambda s, k: (env.step_arrays(k, s, jax.random.randint(k, (2,), 0, 6)).state, None),
-        env.reset_state(k), jax.random.split(k, 50))[0])
-    first, second = run(jax.random.PRNGKey(9)), run(jax.random.PRNGKey(9))
-    for x, y in zip(jax.tree.leaves(first), jax.tree.leaves(second)):
+    step = lambda s, k: (env.step_arrays(k, s, jax.random.randint(k, (2,), 0, 6)).state, None)
+
+    def compiled(key):
+        return jax.jit(lambda k: jax.lax.scan(step, env.reset_state(k), jax.random.split(k, 12))[0])(key)
+
+    state = env.reset_state(jax.random.PRNGKey(9))
+    for k in jax.random.split(jax.random.PRNGKey(9), 12):
+        state, _ = step(state, k)
+    for x, y in zip(jax.tree.leaves(compiled(jax.random.PRNGKey(9))), jax.tree.leaves(state), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    other = compiled(jax.random.PRNGKey(10))
+    assert not all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(other),
+                                                                                 jax.tree.leaves(state)))

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from PIL import Image
 
 from cluster.cli import main
@@ -121,6 +122,13 @@ def test_layouts_does_not_import_the_trainer():
     assert out.strip().splitlines()[-1] == "[]"
 
 
+def test_import_ocv2_loads_no_learning_code():
+    code = "import sys, ocv2; print(sorted(m for m in ('optax', 'population') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stdout
+    assert out.strip().splitlines()[-1] == "[]"
+
+
 def _imports(path: Path):
     """(module imported, whether inside a function) for every import statement of a source file."""
     tree = ast.parse(path.read_text())
@@ -150,6 +158,20 @@ def test_imports_point_down_and_the_cli_imports_at_module_top():
     assert problems == []
 
 
+def test_no_module_imports_private_names_from_another():
+    """The commands share helpers through a module of their own (cluster/cli/args.py), never as ``_name``."""
+    root = Path(__file__).resolve().parents[1]
+    problems = []
+    for package in ("cluster",):
+        for path in (root / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in (
+                        "ocv2", "population", "cluster"):
+                    problems += [f"{path.relative_to(root)}: {alias.name} from {node.module}" for alias in node.names
+                                 if alias.name.startswith("_") and not alias.name.startswith("__")]
+    assert problems == []
+
+
 def test_button_game_without_matplotlib_writes_the_numbers(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # as when the plots extra is not installed
     out = tmp_path / "bg"
@@ -175,3 +197,95 @@ def test_commands_import_without_the_ray_extra():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "Ray is not installed: pip install 'ocv2[ray]', or use --backend local"
+
+
+def test_comments_say_why_instead_of_citing_spec_sections_or_issues():
+    """A reader of the code has neither the project's spec nor its issue tracker: say the reason."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    pattern = re.compile(r"spec sections?\b|\bspec \d|\bthe issue\b|\bissues? #?\d", re.IGNORECASE)
+    hits = [f"{path.relative_to(root)}:{number}" for package in ("ocv2", "population", "cluster", "tests", "bench")
+            for path in (root / package).rglob("*.py") if path.name != "test_cli.py"
+            for number, line in enumerate(path.read_text().splitlines(), start=1) if pattern.search(line)]
+    assert hits == []
+
+
+def test_library_code_never_prints():
+    """Only the command line writes to stdout/stderr itself; the packages log through module loggers."""
+    root = Path(__file__).resolve().parents[1]
+    problems = []
+    for package in ("ocv2", "population", "cluster"):
+        for path in (root / package).rglob("*.py"):
+            if path.is_relative_to(root / "cluster" / "cli"):
+                continue
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print":
+                    problems.append(f"{path.relative_to(root)}:{node.lineno}")
+    assert problems == []
+
+
+def _log_at_every_level():
+    import logging
+
+    for level in (logging.DEBUG, logging.INFO, logging.WARNING):
+        logging.getLogger("cluster.runtime.progress").log(level, "message at %s", logging.getLevelName(level))
+
+
+@pytest.fixture
+def log_levels():
+    """The package loggers' levels as they were before the test (main() sets them for the process)."""
+    import logging
+
+    from cluster.cli.main import PACKAGE_LOGGERS
+
+    levels = {name: logging.getLogger(name).level for name in PACKAGE_LOGGERS}
+    yield
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
+
+
+@pytest.mark.parametrize("flags, shown", [([], ["INFO", "WARNING"]), (["-q"], ["WARNING"]),
+                                          (["-v"], ["DEBUG", "INFO", "WARNING"])])
+def test_global_verbosity_flags_set_what_the_packages_log_to_stderr(capsys, log_levels, flags, shown):
+    assert main([*flags, "layouts"]) == 0
+    capsys.readouterr()
+    _log_at_every_level()
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert [line.rsplit(" ", 1)[-1] for line in captured.err.splitlines()] == shown
+    assert "warning: message at WARNING" in captured.err.splitlines()
+
+
+def test_each_log_line_is_written_once_even_after_a_library_configures_logging():
+    # optax logs through absl, which calls logging.basicConfig() when the root logger has no handler: a
+    # second handler there would repeat every line of ours in its own format.
+    code = ("import logging, optax\n"
+            "from cluster.cli import main\n"
+            "main(['layouts'])\n"
+            "optax.polynomial_schedule(1.0, 0.0, 1, transition_steps=0)\n"
+            "logging.getLogger('cluster.runtime.progress').info('progress line')\n"
+            "logging.getLogger('some.library').info('library detail')\n"
+            "logging.getLogger('some.library').warning('library warning')\n")
+    err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stderr
+    assert err.splitlines() == ["progress line", "warning: library warning"]
+
+
+def test_global_q_turns_the_command_quiet_on_and_contradicting_flags_are_refused(capsys):
+    parser = build_parser(["train"])
+    args = parser.parse_args(["-q", "train", "c.yaml"])
+    assert args.log_quiet and not args.quiet  # main() turns the command's --quiet on from -q
+    assert main(["-v", "-q", "layouts"]) == 2
+    assert "contradict" in capsys.readouterr().err
+
+
+def test_the_progress_header_counts_env_steps_per_seed(caplog):
+    import logging
+
+    from cluster.runtime.progress import PopulationProgress
+
+    caplog.set_level(logging.INFO, logger="cluster")
+    with PopulationProgress("SP cramped_room", num_seeds=3, total_updates=10, steps_per_update=128):
+        pass
+    assert caplog.messages == ["SP cramped_room: 3 seeds x 10 updates x 128 = 1,280 env steps per seed"]

@@ -204,7 +204,7 @@ def test_per_seed_run_resumes_where_it_stopped(per_seed_run, tmp_path, monkeypat
     class Stop(Exception):
         pass
 
-    def die(update, workers):
+    def die(update, workers, _rows):
         if update == 2:
             raise Stop
 

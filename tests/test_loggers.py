@@ -22,7 +22,7 @@ import cluster
 from cluster.cli import main
 from cluster.runtime import evaluate
 from cluster.runtime.loggers import MissingExtraError, measurements, scalar_tag
-from cluster.runtime.rundir import RunDir
+from cluster.runtime.rundir import MetricsRow, RunDir
 from population.config import load_config
 
 SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
@@ -65,27 +65,50 @@ def read_events(folder: Path) -> list:
     return events
 
 
+class _Events(list):
+    reads: list[int]  # for each read of metrics.csv during the run: how many chunk events came before it
+
+
 @pytest.fixture(scope="module")
 def logged_run(tmp_path_factory):
     wandb = fake_wandb()
-    events = []
+    events, reads = _Events(), []
+    read = RunDir._read_metrics
+
+    def counted(self):
+        reads.append(len(events))  # how many chunk events had been seen when metrics.csv was read
+        return read(self)
+
     with pytest.MonkeyPatch.context() as patch:
         patch.setitem(sys.modules, "wandb", wandb)
+        patch.setattr(RunDir, "_read_metrics", counted)
         run_dir = tmp_path_factory.mktemp("runs") / "logged"
         summary = cluster.train_population(load_config(SMOKE, ["eval.episodes=3"]), run_dir, backend="local",
                                            show_progress=False, on_chunk=events.append,
                                            loggers=["tensorboard", "wandb"])
     (run,) = wandb.runs
+    events.reads = reads
     return run_dir, summary, events, run
 
 
 def test_on_chunk_sees_every_metrics_row_once(logged_run):
     run_dir, summary, events, _ = logged_run
     assert [(e.update, e.num_updates) for e in events] == [(2, 4), (4, 4)]  # run.checkpoint_every=2
-    rows = RunDir(run_dir).read_metrics()
-    assert [r for e in events for r in e.rows] == rows and len(rows) == 2 * 4
+    rows = [MetricsRow.of(row) for row in RunDir(run_dir).read_metrics()]
+    assert len(rows) == 2 * 4 and all(isinstance(r, MetricsRow) for e in events for r in e.rows)
+    assert [(r.seed, r.update, r.env_steps) for e in events for r in e.rows] == [(r.seed, r.update, r.env_steps)
+                                                                                 for r in rows]
+    assert [measurements(r) for e in events for r in e.rows] == [measurements(r) for r in rows]  # CSV floats round-trip
     assert all(e.run_dir == run_dir.resolve() for e in events)
     assert summary["updates"] == 4 and "xp" in summary
+
+
+def test_chunk_events_do_not_read_metrics_csv_back(logged_run):
+    """The rows come from the coordinator: a chunk costs the same at update 10 and at update 10,000."""
+    _, _, events, _ = logged_run
+    assert len(events) == 2
+    # Reads before the first chunk (the coordinator's table) and after the last (plots) only.
+    assert [n for n in events.reads if 0 < n < len(events)] == []
 
 
 def test_tensorboard_holds_every_metric_of_every_row_and_the_cross_play(logged_run):
@@ -97,8 +120,8 @@ def test_tensorboard_holds_every_metric_of_every_row_and_the_cross_play(logged_r
                 scalars[(value.tag, event.step)] = value.simple_value
             elif value.WhichOneof("value") == "image":
                 images.append(value.tag)
-    expected = {(scalar_tag(name, row["seed"]), int(row["env_steps"])): number
-                for row in RunDir(run_dir).read_metrics() for name, number in measurements(row).items()}
+    expected = {(scalar_tag(name, row.seed), row.env_steps): number
+                for row in map(MetricsRow.of, RunDir(run_dir).read_metrics()) for name, number in measurements(row).items()}
     assert {k: v for k, v in scalars.items() if not k[0].startswith("xp/")} == pytest.approx(expected)
     assert {"sparse_return/seed_1", "return_recipe_0_0_0/seed_0"} <= {tag for tag, _ in expected}
     written = json.loads((run_dir / "xp" / "summary.json").read_text())
@@ -114,11 +137,11 @@ def test_wandb_gets_one_step_per_update_and_the_cross_play(logged_run):
     steps = [step for step, _ in run.logged if step is not None]
     assert steps == [1, 2, 3, 4]
     by_step = {step: data for step, data in run.logged if step is not None}
-    for row in RunDir(run_dir).read_metrics():
-        logged = by_step[int(row["update"])]
-        assert logged["env_steps"] == int(row["env_steps"])
+    for row in map(MetricsRow.of, RunDir(run_dir).read_metrics()):
+        logged = by_step[row.update]
+        assert logged["env_steps"] == row.env_steps
         for name, number in measurements(row).items():
-            assert logged[scalar_tag(name, row["seed"])] == pytest.approx(number)
+            assert logged[scalar_tag(name, row.seed)] == pytest.approx(number)
     assert run.summary["xp/gap"] == pytest.approx(json.loads((run_dir / "xp" / "summary.json").read_text())["gap"])
     assert run.logged[-1] == (None, {"xp/heatmap": ("image", str(run_dir / "xp" / "heatmap.png"))})
 
@@ -140,11 +163,11 @@ def test_missing_extra_is_one_line_before_the_run_starts(tmp_path, capsys, monke
                                  loggers=[] if blocked == "ray" else [argv[-1]])
 
 
-def test_without_matplotlib_plots_are_skipped_with_a_warning(logged_run, tmp_path, capsys, monkeypatch):
+def test_without_matplotlib_plots_are_skipped_with_a_warning(logged_run, tmp_path, caplog, monkeypatch):
     run_dir, _, _, _ = logged_run
     monkeypatch.setitem(sys.modules, "matplotlib", None)
     assert evaluate.write_training_plot(run_dir) is None
-    assert "pip install 'ocv2[plots]'" in capsys.readouterr().err
+    assert [r.levelname for r in caplog.records] == ["WARNING"] and "pip install 'ocv2[plots]'" in caplog.text
     from population.plots import xp_heatmap
 
     assert xp_heatmap(np.eye(2), tmp_path / "h.png") is None

@@ -1,4 +1,9 @@
-"""The PPO trainer's numbers are those of the reference implementation it was optimised from.
+"""A change detector: the PPO trainer's numbers are those of the implementation it was optimised from.
+
+These tests do not show that PPO is correct or learns (tests/test_ppo.py checks its parts against hand
+computations, tests/test_learning.py that it learns); they show that an optimisation changed nothing but
+floating-point summation order. A deliberate change of the numbers (a new initialiser, another loss
+term) fails them by design: re-record the expected values then, and say why in the commit.
 
 The hot path (population/networks.py, population/ppo.py) was rewritten for speed: dense SameConv
 matrices on small grids, the GRU's input projection as one matmul outside the time loop, and so on.

@@ -122,7 +122,7 @@ def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_number
     run = tmp_path / "killed"
     killed = {}
 
-    def kill_worker_0(update, workers):
+    def kill_worker_0(update, workers, _rows):
         if update == 2 and not killed:  # SIGKILL the process while it trains the next chunk
             killed["pid"] = pid = workers.pids()[0]
             threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
@@ -238,3 +238,23 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
         with ArchiveReader(run / "archive" / "sa" / f"iteration_{iteration:03d}.mcap") as reader:
             assert sorted(tuple(m["seeds"]) for m in reader.episodes()) == [(0, 0), (0, 1), (1, 0), (1, 1)]
             assert {m["iteration"] for m in reader.episodes()} == {iteration}
+
+
+def test_starting_ray_after_jax_says_one_line_of_its_own_and_no_alarms(tmp_path):
+    # A driver where JAX already runs (a notebook, `ocv2 xp` after loading policies) starting Ray with
+    # the auth mode unset: no JAX fork warning for Ray's process launches, no Ray token-auth notice.
+    code = ("import logging, jax, ray\n"
+            "jax.numpy.zeros(1).block_until_ready()\n"
+            "logging.basicConfig(level=logging.WARNING, format='%(name)s: %(message)s')\n"
+            "logging.getLogger('cluster').setLevel(logging.INFO)\n"
+            "from cluster.runtime.ray_backend import connect\n"
+            "from population.config import ClusterConfig\n"
+            "assert connect(ClusterConfig(local_cpus=1))\n"
+            "ray.shutdown()\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("RAY_AUTH_MODE", "RAY_ADDRESS")}
+    env.update(PYTHONPATH=str(Path(__file__).resolve().parents[1]), HOME=str(tmp_path))  # Ray's token file there
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "os.fork()" not in done.stderr and "Token authentication is enabled" not in done.stderr, done.stderr
+    ours = [line for line in done.stderr.splitlines() if line.startswith("cluster.runtime.ray_backend:")]
+    assert len(ours) == 1 and "token authentication" in ours[0] and "RAY_AUTH_MODE=disabled" in ours[0]

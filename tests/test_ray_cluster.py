@@ -45,7 +45,7 @@ def test_seeds_spread_over_two_nodes_and_the_run_survives_losing_one(tmp_path, t
     config = load_config(SMOKE, ["ppo.total_timesteps=1024", "run.checkpoint_every=2"])
     seen = {}
 
-    def remove_worker_node(update, workers):
+    def remove_worker_node(update, workers, _rows):
         if update == 2 and not seen:
             seen["nodes"] = workers.node_ids()
             cluster.remove_node(worker_node)

@@ -1,4 +1,4 @@
-"""Targeted tests of single rules: the interaction table (spec section 8), movement, timers, flags.
+"""Targeted tests of single rules: the reference's interaction table, movement, timers, flags.
 
 States are built by hand on a small kitchen so each test shows one rule in isolation.
 """

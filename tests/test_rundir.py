@@ -17,7 +17,7 @@ import pytest
 
 from cluster.cli import main
 from cluster.runtime.environment import git_state
-from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.rundir import RunDir, RunDirError, write_json
 from population import checkpoints as ckpt
 from population.config import load_config
 from population.keys import OFFSETS, derive_key
@@ -77,7 +77,7 @@ def test_an_empty_or_invalid_manifest_is_reported(tmp_path, config, capsys, text
     assert message in capsys.readouterr().err
 
 
-def test_stale_temporaries_are_removed_when_a_run_is_opened(tmp_path, config, capsys):
+def test_stale_temporaries_are_removed_when_a_run_is_opened(tmp_path, config, caplog):
     run, _ = RunDir.open(tmp_path / "run", config)
     run.close()
     stale = [run.path / ".manifest.tmp-123-abcdef01.json",
@@ -90,23 +90,22 @@ def test_stale_temporaries_are_removed_when_a_run_is_opened(tmp_path, config, ca
     run, _ = RunDir.open(run.path, config, resume=True)
     run.close()
     assert not any(path.exists() for path in stale) and keep.exists()
-    assert "interrupted write" in capsys.readouterr().err
+    assert "interrupted write" in caplog.text
 
 
-def test_torn_metrics_rows_are_dropped_and_the_file_repaired(tmp_path, capsys):
+def test_torn_metrics_rows_are_dropped_and_the_file_repaired(tmp_path, caplog):
     run = RunDir(tmp_path)
     header = "seed,update,sparse_return"
     # an appending writer killed twice: once mid-row (then appended again), once mid-last-row
     (tmp_path / "metrics.csv").write_text(f"{header}\n0,1,0.5\n0,2\n1,1,0.25\n1,2,0.")
     assert [(r["seed"], r["update"]) for r in run.read_metrics()] == [("0", "1"), ("1", "1")]
-    err = capsys.readouterr().err
-    assert "line 3 is incomplete" in err and "line 5 is incomplete" in err
+    assert "line 3 is incomplete" in caplog.text and "line 5 is incomplete" in caplog.text
     assert [r["update"] for r in run.truncate_metrics(after_update=1)] == ["1", "1"]
-    capsys.readouterr()
+    caplog.clear()
     assert (tmp_path / "metrics.csv").read_text().splitlines() == [header, "0,1,0.5", "1,1,0.25"]
     run.append_metrics([{"seed": 0, "update": 2, "sparse_return": 1.0}, {"seed": 1, "update": 2, "sparse_return": ""}])
     assert [(r["seed"], r["update"]) for r in run.read_metrics()] == [("0", "1"), ("1", "1"), ("0", "2"), ("1", "2")]
-    assert capsys.readouterr().err == ""
+    assert caplog.records == []
 
 
 def test_metrics_are_not_touched_by_a_write_that_fails(tmp_path, monkeypatch):
@@ -261,3 +260,14 @@ def test_xp_out_that_exists_is_refused_before_any_work(tmp_path, capsys, kind):
     assert {"file": "is a file", "under_a_file": "which is a file", "full_dir": "already holds files"}[kind] in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["results"]
     assert (blocker / "matrix.csv" if kind == "full_dir" else blocker).read_text() == "earlier results"
+
+
+def test_json_files_are_strict_json_with_null_for_undefined_numbers(tmp_path):
+    def refuse(constant):
+        raise ValueError(f"bare {constant} in a JSON file")
+
+    data = {"sp_mean": np.float32(3.5), "gap_ci95_interval": [float("nan"), np.float64("inf")], "n": np.int64(2),
+            "cells": np.array([1.0, np.nan])}
+    write_json(tmp_path / "summary.json", data)
+    assert json.loads((tmp_path / "summary.json").read_text(), parse_constant=refuse) == {
+        "sp_mean": 3.5, "gap_ci95_interval": [None, None], "n": 2, "cells": [1.0, None]}

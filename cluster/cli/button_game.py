@@ -15,6 +15,7 @@ import os
 import sys
 import time
 
+from cluster.cli.args import bounded
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from population.button_game import ButtonGameConfig, IQLConfig, plot_heatmap, run_button_game, write_csv
 
@@ -27,25 +28,6 @@ CSV_NAME = "button_game_xp.csv"
 PNG_NAME = "button_game_xp.png"
 
 
-def _bounded(parse, low, high, what: str, low_open: bool = False):
-    """An argparse type: ``parse(text)`` within ``[low, high]`` (``(low, high]`` if ``low_open``).
-
-    Range errors are argparse errors: a usage message naming the flag and the value, exit code 2.
-    """
-
-    def check(text: str):
-        try:
-            value = parse(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-        too_low = value <= low if low_open else value < low
-        if too_low or value > high or value != value:  # value != value: NaN
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text}")
-        return value
-
-    return check
-
-
 def add_parser(sub) -> argparse.ArgumentParser:
     """Declare ``button-game`` and its arguments; out-of-range values are argparse usage errors."""
     parser = sub.add_parser(
@@ -54,20 +36,20 @@ def add_parser(sub) -> argparse.ArgumentParser:
                     "best-responds to a uniformly random Alice, then write the cross-play matrix (exact "
                     "expected reward of greedy policies) as CSV and as a heatmap PNG.")
     positive = "an integer in [1, {}]".format
-    parser.add_argument("--buttons", metavar="N", type=_bounded(int, 2, 10_000, "an integer in [2, 10000]"),
+    parser.add_argument("--buttons", metavar="N", type=bounded(int, 2, 10_000, "an integer in [2, 10000]"),
                         default=DEFAULT_BUTTONS, help=f"number of buttons N (2N bulbs; default {DEFAULT_BUTTONS})")
-    parser.add_argument("--seeds", metavar="SEEDS", type=_bounded(int, 1, 100, positive(100)), default=10,
+    parser.add_argument("--seeds", metavar="SEEDS", type=bounded(int, 1, 100, positive(100)), default=10,
                         help="self-play pairs to train (default 10)")
     parser.add_argument("--out", metavar="DIR", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
-    parser.add_argument("--seed", metavar="S", type=_bounded(int, 0, 2 ** 32 - 1, "an integer in [0, 2**32)"),
+    parser.add_argument("--seed", metavar="S", type=bounded(int, 0, 2 ** 32 - 1, "an integer in [0, 2**32)"),
                         default=0,
                         help="root PRNG seed; pair i uses fold_in(PRNGKey(seed), i) (default 0)")
-    parser.add_argument("--episodes", metavar="E", type=_bounded(int, 1, 10_000_000, positive(10_000_000)),
+    parser.add_argument("--episodes", metavar="E", type=bounded(int, 1, 10_000_000, positive(10_000_000)),
                         default=DEFAULT_EPISODES, help=f"training games per agent (default {DEFAULT_EPISODES})")
-    parser.add_argument("--epsilon", metavar="EPS", type=_bounded(float, 0.0, 1.0, "a number in [0, 1]"),
+    parser.add_argument("--epsilon", metavar="EPS", type=bounded(float, 0.0, 1.0, "a number in [0, 1]"),
                         default=DEFAULT_EPSILON,
                         help=f"epsilon-greedy exploration rate (default {DEFAULT_EPSILON:g})")
-    parser.add_argument("--lr", metavar="LR", type=_bounded(float, 0.0, 1.0, "a number in (0, 1]", low_open=True),
+    parser.add_argument("--lr", metavar="LR", type=bounded(float, 0.0, 1.0, "a number in (0, 1]", low_open=True),
                         default=DEFAULT_LR, help=f"Q-learning rate (default {DEFAULT_LR:g})")
     return parser
 

@@ -14,7 +14,6 @@ by default at ``population.human.proxy_path(LAYOUT)``. See docs/human.md.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
@@ -22,8 +21,9 @@ import numpy as np
 
 import ocv2
 from cluster.archive import ArchiveError, ArchiveWriter, env_meta
+from cluster.cli.args import positive_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-from cluster.cli.main import _positive_int, _seed
+from cluster.runtime.rundir import strict_json
 from ocv2.atomic import atomic_write
 from population import bc, human
 
@@ -45,7 +45,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                      help="comma-separated splits to import (default train,test)")
     imp.add_argument("--layouts", metavar="L", nargs="+", default=None,
                      help="only these layouts (ocv2 or overcooked-ai names; default all five)")
-    imp.add_argument("--max-trials", metavar="N", type=_positive_int, default=None,
+    imp.add_argument("--max-trials", metavar="N", type=positive_int, default=None,
                      help="import at most N games per split (a quick look)")
     imp.add_argument("--overwrite", action="store_true", help="replace existing archives in DIR")
 
@@ -55,15 +55,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
     proxy.add_argument("--out", metavar="FILE", default=None,
                        help="proxy file (default: the cache, population.human.proxy_path(LAYOUT))")
     defaults = bc.BCConfig()
-    proxy.add_argument("--steps", metavar="N", type=_positive_int, default=defaults.steps, help="optimizer steps")
-    proxy.add_argument("--batch-size", metavar="B", type=_positive_int, default=defaults.batch_size)
-    proxy.add_argument("--eval-every", metavar="K", type=_positive_int, default=defaults.eval_every,
+    proxy.add_argument("--steps", metavar="N", type=positive_int, default=defaults.steps, help="optimizer steps")
+    proxy.add_argument("--batch-size", metavar="B", type=positive_int, default=defaults.batch_size)
+    proxy.add_argument("--eval-every", metavar="K", type=positive_int, default=defaults.eval_every,
                        help="held-out accuracy every K steps")
     proxy.add_argument("--lr", metavar="LR", type=float, default=defaults.learning_rate)
-    proxy.add_argument("--seed", metavar="S", type=_seed, default=defaults.seed)
-    proxy.add_argument("--episodes", metavar="E", type=_positive_int, default=defaults.selfplay_episodes,
+    proxy.add_argument("--seed", metavar="S", type=seed, default=defaults.seed)
+    proxy.add_argument("--episodes", metavar="E", type=positive_int, default=defaults.selfplay_episodes,
                        help="self-play episodes for the proxy's own return")
-    proxy.add_argument("--max-trials", metavar="N", type=_positive_int, default=None,
+    proxy.add_argument("--max-trials", metavar="N", type=positive_int, default=None,
                        help="use at most N games per split (a quick look)")
     return parser
 
@@ -144,7 +144,7 @@ def run_import(args) -> int:
             print(f"wrote {path}: {len(trials)} games, {sum(len(t.actions) for t in trials)} transitions")
     except (ArchiveError, OSError) as error:
         raise CLIError(f"could not write the archive: {error}", EXIT_FAILURE) from None
-    report_path = atomic_write(os.path.join(args.out, "reproduction.json"), json.dumps(report, indent=1) + "\n")
+    report_path = atomic_write(os.path.join(args.out, "reproduction.json"), strict_json(report) + "\n")
     print(f"{'split':6} {'layout':18} {'transitions':>11} {'exact':>7}  mismatches by field")
     for split, layouts in report["splits"].items():
         for layout, r in layouts.items():

@@ -15,11 +15,17 @@
     ocv2 play [LAYOUT] [--partner RUN_DIR/checkpoints/seed_i|human] [--seat S] [--port P]   human play (docs/play.md)
     ocv2 human import SOURCE | proxy LAYOUT --source SOURCE   2019 human games, BC human proxy (docs/human.md)
 
+Global options, before the command: ``-v`` shows debug records, ``-q`` only warnings and errors (no
+progress; ``ocv2 -q train ...`` is ``ocv2 train --quiet ...``).
+
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
 code; ``COMMANDS`` lists them. The bigger ones live in ``cluster/cli/<group>.py`` and are named by
 string: a command's module is imported only when that command runs (``ocv2 layouts`` never imports the
 trainer, Ray or the play server). Errors the user can fix raise ``CLIError`` and become a one-line
 message on stderr and exit code 2 (usage) or 1 (failure), never a traceback.
+
+Results (tables, "wrote FILE", the run directory) go to stdout; progress, warnings and errors are log
+records of the packages' module loggers, which ``configure_logging`` sends to stderr.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.metadata
+import logging
 import os
 import sys
 from typing import Callable, NamedTuple, Sequence
@@ -36,10 +43,10 @@ from rich.console import Console
 from rich.table import Table
 
 import ocv2
+from cluster.cli.args import fps, layout_or_error, non_negative_int, positive_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
-from ocv2.layouts import LAYOUTS, Layout, get_layout
+from ocv2.layouts import LAYOUTS, Layout
 from ocv2.render import render_frames, rollout_states, write_gif
-from population.config import MAX_SEED
 
 # ---------------------------------------------------------------------------------------------------
 # helpers
@@ -50,50 +57,6 @@ def _console(stream=None):
     # Not a terminal (pipes, tests): wide enough that layout names are never wrapped.
     width = None if stream.isatty() else 200
     return Console(file=stream, width=width, highlight=False, soft_wrap=False)
-
-
-def _layout_or_error(name: str):
-    try:
-        return get_layout(name)
-    except ValueError as error:  # its message names the layout, lists the choices and suggests close ones
-        raise CLIError(str(error)) from None
-
-
-def _int_at_least(minimum: int, what: str):
-    """An argparse type: an integer >= ``minimum``, with a message naming ``what`` was expected."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a {what} integer, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected a {what} integer, got {value}")
-        return value
-
-    return parse
-
-
-_positive_int = _int_at_least(1, "positive")
-_non_negative_int = _int_at_least(0, "non-negative")
-
-
-def _seed(text: str) -> int:
-    """A PRNG seed: JAX's keys hold 32 bits, so a larger seed would silently wrap onto a small one."""
-    value = _non_negative_int(text)
-    if value > MAX_SEED:
-        raise argparse.ArgumentTypeError(f"expected a seed in [0, {MAX_SEED}], got {value}")
-    return value
-
-
-def _fps(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected frames per second (a number), got {text!r}") from None
-    if not 0 < value <= 100:
-        raise argparse.ArgumentTypeError(f"fps must be > 0 and <= 100, got {text}")
-    return value
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -123,7 +86,7 @@ def legend(layout: Layout) -> list[str]:
 
 def _cmd_layouts(args) -> int:
     if args.show is not None:
-        layout = _layout_or_error(args.show)
+        layout = layout_or_error(args.show)
         print(f"{layout.name}: {layout.height}x{layout.width}, {layout.num_agents} agents, "
               f"{layout.num_ingredients} ingredients, recipes {[list(r) for r in layout.possible_recipes]}")
         print(layout.to_string())
@@ -154,13 +117,13 @@ def _add_render(sub) -> argparse.ArgumentParser:
                             description="Play uniformly random actions on LAYOUT and write the frames "
                                         "(the reset state plus one per step) to a looping GIF.")
     parser.add_argument("layout", help="layout name (see 'ocv2 layouts')")
-    parser.add_argument("--steps", type=_non_negative_int, default=50, help="transitions to play (default 50)")
+    parser.add_argument("--steps", type=non_negative_int, default=50, help="transitions to play (default 50)")
     parser.add_argument("--out", required=True, help="GIF file to write")
-    parser.add_argument("--seed", type=_seed, default=0, help="PRNG seed (default 0)")
-    parser.add_argument("--fps", type=_fps, default=5.0, help="frames per second (default 5)")
-    parser.add_argument("--view-radius", type=_non_negative_int, default=None,
+    parser.add_argument("--seed", type=seed, default=0, help="PRNG seed (default 0)")
+    parser.add_argument("--fps", type=fps, default=5.0, help="frames per second (default 5)")
+    parser.add_argument("--view-radius", type=non_negative_int, default=None,
                         help="highlight every cell within this radius of an agent (default: none)")
-    parser.add_argument("--tile-size", type=_positive_int, default=32, help="pixels per cell (default 32)")
+    parser.add_argument("--tile-size", type=positive_int, default=32, help="pixels per cell (default 32)")
     return parser
 
 
@@ -174,7 +137,7 @@ def gif_bytes(layout: Layout, steps: int, tile_size: int) -> int:
 
 
 def _cmd_render(args) -> int:
-    layout = _layout_or_error(args.layout)
+    layout = layout_or_error(args.layout)
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
     needed = gif_bytes(layout, args.steps, args.tile_size)
@@ -196,6 +159,66 @@ def _cmd_render(args) -> int:
     print(f"wrote {path}: {len(frames)} frames ({args.steps} steps of {layout.name}), {width}x{height} px, "
           f"{args.fps:g} fps")
     return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------------
+# logging
+# ---------------------------------------------------------------------------------------------------
+
+#: The loggers of the three packages: the library modules log under these names, never print.
+PACKAGE_LOGGERS = ("ocv2", "population", "cluster")
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time (a rich bar or a test may have replaced it)."""
+
+    def __init__(self):
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value):
+        pass
+
+
+class _Formatter(logging.Formatter):
+    """Progress as it is; a warning or an error says so in front; debug records name their module."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        message = super().format(record)
+        if record.levelno >= logging.ERROR:
+            return f"error: {message}"
+        if record.levelno >= logging.WARNING:
+            return f"warning: {message}"
+        if record.levelno < logging.INFO:
+            return f"debug {record.name}: {message}"
+        return message
+
+
+def _ours_or_a_warning(record: logging.LogRecord) -> bool:
+    """The packages' records at their loggers' level; another library's only from WARNING up."""
+    return record.name.split(".")[0] in PACKAGE_LOGGERS or record.levelno >= logging.WARNING
+
+
+_handler = _StderrHandler()
+_handler.setFormatter(_Formatter())
+_handler.addFilter(_ours_or_a_warning)
+
+
+def configure_logging(verbosity: int = 0) -> None:
+    """Show log records on stderr: the packages' from INFO, from DEBUG (``verbosity`` > 0) or only from
+    WARNING (< 0); other libraries' warnings and errors. One handler, installed once on the root logger
+    however often ``main`` runs in a process: with a root handler in place, libraries that call
+    ``logging.basicConfig`` on first use (absl, through optax) add no second one that repeats every line."""
+    level = logging.DEBUG if verbosity > 0 else logging.WARNING if verbosity < 0 else logging.INFO
+    for name in PACKAGE_LOGGERS:
+        logging.getLogger(name).setLevel(level)
+    root = logging.getLogger()
+    if _handler not in root.handlers:
+        root.addHandler(_handler)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -260,6 +283,10 @@ def build_parser(argv: Sequence[str] = (), full: bool = False) -> argparse.Argum
     """The parser, with the arguments of the command ``argv`` names only (``full``: of every command)."""
     parser = argparse.ArgumentParser(prog="ocv2", description="OvercookedV2 in pure JAX: layouts, rendering, training.")
     parser.add_argument("--version", action="version", version=f"ocv2 {version()}")
+    parser.add_argument("-v", "--verbose", dest="log_verbose", action="store_true",
+                        help="also show debug messages (before the command: ocv2 -v train ...)")
+    parser.add_argument("-q", "--quiet", dest="log_quiet", action="store_true",
+                        help="only warnings and errors: no progress (before the command: ocv2 -q train ...)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     chosen = _chosen_command(argv)
@@ -279,6 +306,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exit_:  # argparse already printed usage / help
         return exit_.code if isinstance(exit_.code, int) else EXIT_USAGE
+    if args.log_verbose and args.log_quiet:
+        print("ocv2: error: -v and -q contradict each other; give one", file=sys.stderr)
+        return EXIT_USAGE
+    if args.log_quiet and hasattr(args, "quiet"):
+        args.quiet = True  # the command's own --quiet also turns its progress bar off
+    quiet = args.log_quiet or getattr(args, "quiet", False) is True
+    configure_logging(1 if args.log_verbose else -1 if quiet else 0)
     try:
         code = int(resolve(args.func)(args))
         sys.stdout.flush()  # inside the try: a reader gone before the last buffered write is caught here

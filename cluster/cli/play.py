@@ -24,9 +24,8 @@ import yaml
 
 import ocv2
 from cluster.archive import RESERVED_KEYS, ArchiveError, ArchiveWriter
-from cluster.cli.button_game import _bounded
+from cluster.cli.args import bounded, fps, int_at_least, layout_or_error, non_negative_int, positive_int
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-from cluster.cli.main import _fps, _int_at_least, _layout_or_error, _non_negative_int, _positive_int
 from cluster.play.game import PartnerError, human_partner, load_policy_partner, make_game, scripted_partner, warm_up
 from cluster.play.server import PlayServer
 from cluster.play.session import PLAY_META_KEYS, SEAT_COLOURS, GameSession
@@ -56,33 +55,33 @@ def add_play(sub) -> argparse.ArgumentParser:
                         help="RUN_DIR/checkpoints/seed_<i> (its latest checkpoint) or a checkpoint file in it; "
                              "'human' (a second browser tab plays the other seat); 'stay' or 'random' "
                              "(scripted; default stay)")
-    parser.add_argument("--seat", type=_non_negative_int, default=0,
+    parser.add_argument("--seat", type=non_negative_int, default=0,
                         help="the human's seat, 0 (red) or 1 (blue); with --partner human, the first tab's seat "
                              "(default 0)")
     parser.add_argument("--host", default=DEFAULT_HOST,
                         help=f"address to listen on (default {DEFAULT_HOST}: this machine only; 0.0.0.0 lets "
                              "other machines join)")
-    parser.add_argument("--port", type=_bounded(int, 0, 65535, "a port number 0..65535 (0: any free port)"),
+    parser.add_argument("--port", type=bounded(int, 0, 65535, "a port number 0..65535 (0: any free port)"),
                         default=DEFAULT_PORT,
                         help=f"TCP port (default {DEFAULT_PORT}; 0 picks a free one)")
-    parser.add_argument("--fps", type=_fps, default=5.0, help="environment steps per second (default 5)")
-    parser.add_argument("--agent-view-size", type=_non_negative_int, default=None, metavar="V",
+    parser.add_argument("--fps", type=fps, default=5.0, help="environment steps per second (default 5)")
+    parser.add_argument("--agent-view-size", type=non_negative_int, default=None, metavar="V",
                         help="view radius: each player sees only the cells within V of their cook")
-    parser.add_argument("--max-steps", type=_positive_int, default=None, metavar="N",
+    parser.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
                         help="steps per episode (default the env's 400, or the partner run's)")
     parser.add_argument("--env", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
                         help="any other ocv2.make parameter (YAML value), e.g. --env sample_recipe_on_delivery=true")
-    parser.add_argument("--tile-size", type=_int_at_least(8, "tile size (>= 8)"), default=48,
+    parser.add_argument("--tile-size", type=int_at_least(8, "tile size (>= 8)"), default=48,
                         help="pixels per grid cell of the picture (default 48)")
     parser.add_argument("--out", metavar="FILE.mcap",
                         help="archive to record to (default runs/play/<layout>_<time>.mcap)")
-    parser.add_argument("--seed", type=_bounded(int, 0, 2 ** 32 - 1, "an integer in [0, 2**32)"), default=None,
+    parser.add_argument("--seed", type=bounded(int, 0, 2 ** 32 - 1, "an integer in [0, 2**32)"), default=None,
                         help="root PRNG seed (default: random, and recorded in every episode's metadata)")
-    parser.add_argument("--episodes", type=_positive_int, default=None, metavar="N",
+    parser.add_argument("--episodes", type=positive_int, default=None, metavar="N",
                         help="stop after N recorded episodes (default: run until Ctrl-C)")
     parser.add_argument("--meta", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
                         help="extra metadata for every episode, e.g. --meta participant=P07 (repeatable)")
-    parser.add_argument("--disconnect-timeout", type=_bounded(float, 0, 3600, "seconds in (0, 3600]", low_open=True),
+    parser.add_argument("--disconnect-timeout", type=bounded(float, 0, 3600, "seconds in (0, 3600]", low_open=True),
                         default=10.0, metavar="S",
                         help="a tab silent this many seconds has left: its episode ends (default 10)")
     parser.add_argument("--verbose", action="store_true", help="log every HTTP request")
@@ -167,7 +166,7 @@ def _env(args, partner):
     flags = _env_flags(args)
     if partner.kind == "policy":
         trained = partner.env_kwargs
-        if args.layout is not None and _layout_or_error(args.layout).name != trained["layout"]:
+        if args.layout is not None and layout_or_error(args.layout).name != trained["layout"]:
             raise CLIError(f"the partner was trained on layout {trained['layout']!r}, not {args.layout!r}; "
                            "omit LAYOUT or pick a partner trained on it")
         try:
@@ -183,7 +182,7 @@ def _env(args, partner):
         return ocv2.make(**trained)
     if args.layout is None:
         raise CLIError("give a LAYOUT (see 'ocv2 layouts'), or a trained --partner whose run fixes it")
-    layout = _layout_or_error(args.layout)
+    layout = layout_or_error(args.layout)
     try:
         return ocv2.make(layout, **flags)
     except (TypeError, ValueError) as error:

@@ -34,6 +34,7 @@ import hmac
 import io
 import ipaddress
 import json
+import logging
 import secrets
 import socket
 import sys
@@ -45,6 +46,8 @@ from urllib.parse import parse_qs, urlsplit
 
 from cluster.play.protocol import MAX_MESSAGE_BYTES, ProtocolError, parse_message
 from cluster.play.session import GameSession
+
+log = logging.getLogger(__name__)
 
 PAGE = "play.html"
 REQUEST_TIMEOUT_S = 10.0  # to deliver one whole request; the page's requests take milliseconds
@@ -167,8 +170,7 @@ class _Server(ThreadingHTTPServer):
         """Answer 503 without a thread (best effort, never blocking the accept loop) and close."""
         if not self._refusing:
             self._refusing = True
-            print(f"ocv2 play: {self.max_connections} connections are open; refusing more until one closes",
-                  file=sys.stderr)
+            log.warning("ocv2 play: %d connections are open; refusing more until one closes", self.max_connections)
         try:
             request.setblocking(False)
             request.send(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\nConnection: close\r\n\r\n")
@@ -179,8 +181,7 @@ class _Server(ThreadingHTTPServer):
     def handle_error(self, request, client_address):
         error = sys.exc_info()[1]
         if isinstance(error, (ConnectionError, TimeoutError)):  # the client went away: nothing to debug
-            print(f"ocv2 play: connection from {client_address[0]} ended mid-request ({type(error).__name__})",
-                  file=sys.stderr)
+            log.info("ocv2 play: connection from %s ended mid-request (%s)", client_address[0], type(error).__name__)
             return
         super().handle_error(request, client_address)
 
@@ -242,7 +243,7 @@ class _Handler(BaseHTTPRequestHandler):
             self._json(error.status, {"ok": False, "error": str(error)})
             return
         except Exception as error:  # a bug in one request must not take the game down
-            print(f"ocv2 play: request failed: {type(error).__name__}: {error}", file=sys.stderr)
+            log.error("ocv2 play: request failed: %s: %s", type(error).__name__, error)
             self._json(500, {"ok": False, "error": f"internal error ({type(error).__name__})"})
             return
         self._json(200, reply)
@@ -282,8 +283,9 @@ class _Handler(BaseHTTPRequestHandler):
         self.wfile.write(body)
 
     def log_message(self, format, *args):  # noqa: A002 (the base class's name)
+        # The base class writes every request to stderr; here they are log records, shown with --verbose.
         if self.server.verbose:
-            super().log_message(format, *args)
+            log.info("%s - %s", self.address_string(), format % args)
 
 
 def _media_type(header: str | None) -> str:

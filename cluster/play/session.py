@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import base64
 import io
+import logging
 import secrets
-import sys
 import threading
 import time
 from typing import Callable
@@ -33,6 +33,8 @@ from cluster.play.game import Game, GameCarry, host, ingredient_colour, recipe_i
 from cluster.play.protocol import Message, ProtocolError
 from ocv2 import items as it
 from ocv2.state import State, stack_states
+
+log = logging.getLogger(__name__)
 
 SEAT_COLOURS = ("red", "blue", "green", "purple", "yellow", "orange")  # ocv2.render.AGENT_COLORS' order
 POLL_TIMEOUT_S = 1.0  # a poll with nothing new answers after this long: it doubles as the heartbeat
@@ -261,7 +263,7 @@ class GameSession:
             index = log.write(self.writer, meta, self.env.layout)
         except (OSError, ArchiveError, ValueError) as error:  # keep serving; say so on the console and the page
             self.last_error = f"could not record episode {self._number}: {error}"
-            print(f"ocv2 play: {self.last_error}", file=sys.stderr)
+            log.warning("ocv2 play: %s", self.last_error)
         if index is not None:
             self.episodes_recorded += 1
         self.last_episode = {"score": self.score, "steps": log.steps, "cut_short": cut_short, "end_reason": reason,

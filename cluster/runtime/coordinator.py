@@ -215,7 +215,9 @@ def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = Fa
     """Train (or resume) a population into ``run_dir`` with the given backend; then evaluate.
 
     The run directory stays locked until this returns (a second driver of the same run is refused).
-    ``on_chunk(update, workers)`` is called after every merged chunk (tests use it to kill workers).
+    ``on_chunk(update, workers, rows)`` is called after every merged chunk with the metrics rows it added
+    to metrics.csv (on a resume the first call also carries the rows caught up from checkpoints); tests
+    use it to kill workers.
     """
     extra = archived_states(config)  # a bad archive fails here, before the run directory is touched
     run, resuming = RunDir.open(run_dir, config, resume=resume)
@@ -238,14 +240,16 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
         # A driver killed after the shards saved a chunk but before it merged their rows: those rows
         # live in the checkpoints' meta; collect them before training on.
         since = max((int(r["update"]) for r in run.truncate_metrics(update)), default=0)
+        caught_up_rows = []
         if since < update:
             caught_up = workers.call("advance", [(i, (update, None, since)) for i in range(len(workers.shards))])
-            run.append_metrics(merge_rows(caught_up, since, update))
+            caught_up_rows = merge_rows(caught_up, since, update)
+            run.append_metrics(caught_up_rows)
         run.update_manifest(status="training", method=method, num_updates=schedule.num_updates, update=update,
                             snapshots=list(schedule.snapshots), pool=pool_labels,
                             seeds=list(range(config.population.num_seeds)), shards=workers.shards,
                             resumed_from=update if resuming else None)
-        _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra)
+        _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra, caught_up_rows)
         summary = {"run_dir": str(run.path), "updates": schedule.num_updates, "restarts": workers.restarts()}
         if evaluate:
             summary.update(post_training(run.path, workers, show_progress=show_progress))
@@ -255,7 +259,7 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
     return summary
 
 
-def _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra) -> None:
+def _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra, unreported) -> None:
     num_shards = len(workers.shards)
     buffer, buffer_handle = None, None
     progress = PopulationProgress(label or f"{config.population.method.upper()} {config.env_kwargs['layout']}",
@@ -282,7 +286,8 @@ def _train_loop(config, run, workers, schedule, update, show_progress, label, on
             run.update_manifest(update=update, restarts=workers.restarts(), restart_events=workers.events)
             progress.advance_to(update, rows, steps_per_s, restarts=workers.restarts())
             if on_chunk is not None:
-                on_chunk(update, workers)
+                on_chunk(update, workers, [*unreported, *rows])
+                unreported = []
     run.update_manifest(status="trained", update=update)
 
 

@@ -9,6 +9,7 @@ played the row (so no trajectory crosses the object store).
 
 from __future__ import annotations
 
+import logging
 import time
 from contextlib import ExitStack
 from pathlib import Path
@@ -30,6 +31,8 @@ from population.evaluation import play_episodes, stack_params
 from population.keys import derive_key
 from population.plots import training_curves, xp_heatmap
 from population.xp import CrossPlay, cross_play, recipe_names, summarize
+
+log = logging.getLogger(__name__)
 
 
 def final_params(run_dir) -> tuple[Config, ppo.Trainer, object]:
@@ -129,9 +132,9 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     xp_heatmap(result.matrix, run.sub("xp", "heatmap.png"), title=f"{config.population.method.upper()} {layout}: "
                f"SP {summary['sp_mean']:.1f}, XP {summary['xp_mean']:.1f} ({episodes} episodes/pair)")
     if show_progress:
-        print(f"cross-play ({num}x{num}, {episodes} episodes/pair): SP {summary['sp_mean']:.1f} +- "
-              f"{summary['sp_std']:.1f}, XP {summary['xp_mean']:.1f} +- {summary['xp_std']:.1f}, "
-              f"gap {summary['gap']:.1f}")
+        log.info(f"cross-play ({num}x{num}, {episodes} episodes/pair): SP {summary['sp_mean']:.1f} +- "
+                 f"{summary['sp_std']:.1f}, XP {summary['xp_mean']:.1f} +- {summary['xp_std']:.1f}, "
+                 f"gap {summary['gap']:.1f}")
     return summary
 
 

@@ -25,11 +25,10 @@ from typing import Iterable, Mapping, Protocol, Sequence
 import numpy as np
 from PIL import Image
 
+from cluster.runtime.rundir import MetricsRow
 from population.config import Config
 
 LOGGERS = ("tensorboard", "wandb")
-#: Row columns that say where a row belongs rather than what was measured.
-_INDEX_FIELDS = ("seed", "update", "env_steps")
 
 
 class MissingExtraError(RuntimeError):
@@ -37,8 +36,8 @@ class MissingExtraError(RuntimeError):
 
 
 class MetricsLogger(Protocol):
-    def log_rows(self, rows: Sequence[Mapping]) -> None:
-        """Rows of metrics.csv (values may be strings as read back from the CSV; "" = no value)."""
+    def log_rows(self, rows: Sequence[MetricsRow]) -> None:
+        """The rows a chunk added to metrics.csv."""
 
     def log_xp(self, summary: Mapping, heatmap: Path | None) -> None:
         """The cross-play summary (xp/summary.json) and heatmap image after evaluation."""
@@ -54,19 +53,9 @@ def require(module: str, extra: str, feature: str):
         raise MissingExtraError(f"{feature} needs {module}: pip install 'ocv2[{extra}]'") from None
 
 
-def measurements(row: Mapping) -> dict[str, float]:
-    """The numeric measurements of a metrics row (index columns and empty cells left out)."""
-    out = {}
-    for key, value in row.items():
-        if key in _INDEX_FIELDS or value is None or value == "":
-            continue
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            continue
-        if math.isfinite(number):
-            out[key] = number
-    return out
+def measurements(row: MetricsRow) -> dict[str, float]:
+    """The measured values of a metrics row (columns without a finite value left out)."""
+    return {key: value for key, value in row.values.items() if math.isfinite(value)}
 
 
 def scalar_tag(name: str, seed) -> str:
@@ -95,12 +84,11 @@ class TensorBoardLogger:
         self.steps_per_update = config.ppo.steps_per_update
         self.last_step = 0
 
-    def log_rows(self, rows: Sequence[Mapping]) -> None:
+    def log_rows(self, rows: Sequence[MetricsRow]) -> None:
         for row in rows:
-            step = int(float(row["env_steps"]))
-            self.last_step = max(self.last_step, step)
+            self.last_step = max(self.last_step, row.env_steps)
             for name, value in measurements(row).items():
-                self.writer.add_scalar(scalar_tag(name, row["seed"]), value, global_step=step)
+                self.writer.add_scalar(scalar_tag(name, row.seed), value, global_step=row.env_steps)
         self.writer.flush()
 
     def log_xp(self, summary: Mapping, heatmap: Path | None) -> None:
@@ -122,13 +110,13 @@ class WandbLogger:
         self.run = self.wandb.init(project=os.environ.get("WANDB_PROJECT", "ocv2"), dir=str(run_dir), name=run_dir.name, id=_wandb_id(run_dir.name),
                                    resume="allow", config=config.to_dict())
 
-    def log_rows(self, rows: Sequence[Mapping]) -> None:
+    def log_rows(self, rows: Sequence[MetricsRow]) -> None:
         # W&B steps must grow: one log call per update, holding every seed's numbers.
         by_update: dict[int, dict] = defaultdict(dict)
         for row in rows:
-            entry = by_update[int(float(row["update"]))]
-            entry["env_steps"] = int(float(row["env_steps"]))
-            entry.update({scalar_tag(name, row["seed"]): value for name, value in measurements(row).items()})
+            entry = by_update[row.update]
+            entry["env_steps"] = row.env_steps
+            entry.update({scalar_tag(name, row.seed): value for name, value in measurements(row).items()})
         for update in sorted(by_update):
             self.run.log(by_update[update], step=update)
 

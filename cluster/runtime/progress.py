@@ -1,14 +1,29 @@
 """Live progress: a population's training (updates, env steps/s, recent return, ETA, restarts) and job counts
-(cross-play)."""
+(cross-play).
+
+On a terminal a rich bar on stderr; otherwise (logs, CI, a script) one INFO record of this module's logger
+per chunk or wave, which the ``ocv2`` command line shows on stderr unless ``-q``.
+"""
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
 
 import numpy as np
+from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+log = logging.getLogger(__name__)
+
+
+def _bar(*columns) -> Progress | None:
+    """A rich bar on stderr when stderr is a terminal (stdout stays for results), else None."""
+    if not sys.stderr.isatty():
+        return None
+    return Progress(*columns, console=Console(stderr=True))
 
 
 class PopulationProgress:
@@ -24,14 +39,13 @@ class PopulationProgress:
         self._task = None
 
     def __enter__(self):
-        if self.enabled and sys.stdout.isatty():
-            self._bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TextColumn("{task.fields[info]}"), TimeRemainingColumn())
+        if self.enabled:
+            log.info(header(self.label, self.num_seeds, self.total, self.steps_per_update))
+            self._bar = _bar(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                             TextColumn("{task.fields[info]}"), TimeRemainingColumn())
+        if self._bar is not None:
             self._bar.__enter__()
             self._task = self._bar.add_task(self.label, total=self.total, info="compiling...")
-        elif self.enabled:
-            print(f"{self.label}: {self.num_seeds} seeds x {self.total} updates "
-                  f"({self.steps_per_update} env steps each)", flush=True)
         return self
 
     def __exit__(self, *exc):
@@ -43,7 +57,7 @@ class PopulationProgress:
         if self._bar is not None:
             self._bar.update(self._task, info=text)
         elif self.enabled:
-            print(f"  {text}", flush=True)
+            log.info(f"  {text}")
 
     def advance_to(self, update: int, rows, steps_per_s: float | None = None, restarts: int = 0) -> None:
         """``rows``: the metrics.csv rows of the chunk that ended at ``update`` (None: just move the bar)."""
@@ -63,7 +77,7 @@ class PopulationProgress:
         if self._bar is not None:
             self._bar.update(self._task, completed=update, info=info)
         elif self.enabled:
-            print(f"  update {update}/{self.total}  {info}  ETA {_duration(eta)}", flush=True)
+            log.info(f"  update {update}/{self.total}  {info}  ETA {_duration(eta)}")
 
 
 class Bar:
@@ -75,9 +89,10 @@ class Bar:
         self.done = 0
 
     def __enter__(self):
-        if self.enabled and sys.stdout.isatty():
-            self._bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeRemainingColumn())
+        if self.enabled:
+            self._bar = _bar(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                             TimeRemainingColumn())
+        if self._bar is not None:
             self._bar.__enter__()
         return self
 
@@ -94,7 +109,13 @@ class Bar:
                 self._task = self._bar.add_task(self.label, total=total)
             self._bar.update(self._task, completed=self.done)
         elif self.enabled and done:
-            print(f"  {self.label}: {self.done}/{total} {self.unit} ({time.perf_counter() - self.started:.0f} s)", flush=True)
+            log.info(f"  {self.label}: {self.done}/{total} {self.unit} ({time.perf_counter() - self.started:.0f} s)")
+
+
+def header(label: str, num_seeds: int, num_updates: int, steps_per_update: int) -> str:
+    """The first line of a run, worded as ``ocv2 validate`` describes a config."""
+    return (f"{label}: {num_seeds} seeds x {num_updates} updates x {steps_per_update:,} "
+            f"= {num_updates * steps_per_update:,} env steps per seed")
 
 
 def _latest(rows, name: str) -> np.ndarray:

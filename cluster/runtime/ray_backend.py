@@ -17,8 +17,11 @@ Ray call says which extra to install.
 from __future__ import annotations
 
 import functools
+import logging
+import os
 import socket
 import time
+import warnings
 from pathlib import Path
 
 try:
@@ -34,6 +37,8 @@ from population.checkpoints import CheckpointError
 from population.config import ClusterConfig, Config, shards as seed_shards
 
 RESTART_TIMEOUT_S = 600.0  # how long a restarting actor may take to answer again
+
+log = logging.getLogger(__name__)
 
 
 class RayBackendError(RuntimeError):
@@ -52,9 +57,7 @@ def connect(cluster: ClusterConfig) -> bool:
         return False
     address = cluster.address
     if address is None:
-        # "local": always a fresh instance here, never a cluster that RAY_ADDRESS or `ray start` left running.
-        ray.init(address="local", num_cpus=cluster.local_cpus or None, include_dashboard=False,
-                 configure_logging=False)
+        start_local(num_cpus=cluster.local_cpus or None)
         return True
     if address not in ("auto",) and not address.startswith("ray://"):
         _check_reachable(address)
@@ -70,6 +73,38 @@ def connect(cluster: ClusterConfig) -> bool:
                                   "docs/cluster.md") from None
         raise
     return True
+
+
+def start_local(num_cpus: int | None = None) -> None:
+    """Start a fresh Ray instance on this machine (never one that RAY_ADDRESS or `ray start` left running).
+
+    Quietly: Ray's own notices on this path are alarming and not about anything wrong.
+
+    * Token authentication: with ``RAY_AUTH_MODE`` unset, Ray turns it on for a local instance (its
+      default since 2.59) and logs a warning about it every time. That warning is dropped and this
+      module says the same once, as an INFO record.
+    * ``os.fork()``: Ray launches its processes with ``subprocess.Popen(preexec_fn=...)``, and a
+      ``preexec_fn`` runs the interpreter's at-fork hooks, where JAX (initialised in this process by
+      then, in a notebook or a test session) warns that forking a multithreaded process may deadlock.
+      The child only masks SIGINT and sets its parent-death signal before ``exec``: it never runs
+      JAX's threads or locks, so that warning is filtered out for exactly these launches.
+    """
+    mode_before = os.environ.get("RAY_AUTH_MODE")
+    notices = logging.getLogger("ray._private.authentication.authentication_token_setup")
+    notices.addFilter(_token_auth_notice)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, configure_logging=False)
+    finally:
+        notices.removeFilter(_token_auth_notice)
+    if mode_before is None and os.environ.get("RAY_AUTH_MODE") == "token":  # Ray chose its default
+        log.info("started Ray on this machine with token authentication, Ray's default for a local instance "
+                 "(RAY_AUTH_MODE=disabled turns it off; docs/cluster.md)")
+
+
+def _token_auth_notice(record: logging.LogRecord) -> bool:
+    return not record.getMessage().startswith("Token authentication is enabled for this Ray cluster")
 
 
 def _check_reachable(address: str, timeout_s: float = 5.0) -> None:

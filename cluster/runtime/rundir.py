@@ -1,4 +1,4 @@
-"""The run directory every backend writes (issue 3/4 layout):
+"""The run directory every backend writes:
 
     RUN_DIR/config.yaml       resolved config (the run's identity: its fingerprint guards checkpoints)
             manifest.json     progress for --resume: status, updates done, snapshots, stage
@@ -21,12 +21,13 @@ import errno
 import fcntl
 import io
 import json
+import logging
 import math
 import os
-import sys
 import time
 import warnings
 from pathlib import Path
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
@@ -36,9 +37,36 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write, is_temporary, remove_stale_temporaries
 from population.config import Config, ConfigError, dump_config, load_config
 
+log = logging.getLogger(__name__)
+
 METRIC_FIELDS = ("seed", "update", "env_steps", "sparse_return", "shaped_return", "episodes", "loss", "actor_loss",
                  "value_loss", "entropy", "approx_kl", "clip_frac", "lr", "shaping_coef", "steps_per_s", "wall_s")
 LOCK_NAME = ".lock"
+
+
+class MetricsRow(NamedTuple):
+    """One row of ``metrics.csv``: one seed's numbers after one update, typed."""
+
+    seed: int
+    update: int
+    env_steps: int  # this seed's environment steps so far (the x axis of training curves)
+    values: dict[str, float]  # every other column by name; NaN where nothing was measured (no episode ended yet)
+
+    @classmethod
+    def of(cls, row: Mapping) -> MetricsRow:
+        """From a row as ``metric_rows`` builds it or as ``csv`` reads it back (strings, "" = no value)."""
+        return cls(int(float(row["seed"])), int(float(row["update"])), int(float(row["env_steps"])),
+                   {key: _float_or_nan(value) for key, value in row.items() if key not in _INDEX_FIELDS})
+
+
+_INDEX_FIELDS = ("seed", "update", "env_steps")
+
+
+def _float_or_nan(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):  # "" (nothing measured) or None
+        return math.nan
 
 
 class RunDirError(ValueError):
@@ -216,7 +244,7 @@ class RunDir:
         return data
 
     def write_manifest(self, data: dict) -> None:
-        atomic_write(self.manifest_path, json.dumps(data, indent=2, default=_json_default))  # fsynced
+        atomic_write(self.manifest_path, strict_json(data))  # fsynced
 
     def update_manifest(self, **changes) -> dict:
         data = self.read_manifest()
@@ -295,7 +323,7 @@ class RunDir:
 
 
 def _warn(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    log.warning(message)
 
 
 def _is_int(text) -> bool:
@@ -391,5 +419,28 @@ def write_csv(path: Path, header, rows) -> None:
     atomic_write(path, buffer.getvalue())  # CSV rows keep their \r\n
 
 
+def strict_json(data) -> str:
+    """``data`` as strict JSON: a NaN or infinite number becomes ``null``.
+
+    Python's ``json`` writes bare ``NaN``/``Infinity`` by default, which JSON does not allow: ``jq``,
+    JavaScript's ``JSON.parse`` and most other readers reject the whole file. An undefined number here
+    (an interval of a single seed, a mean over no episode) is therefore ``null``.
+    """
+    return json.dumps(_finite_or_none(data), indent=2, default=_json_default, allow_nan=False)
+
+
+def _finite_or_none(value):
+    if isinstance(value, dict):
+        return {key: _finite_or_none(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_none(item) for item in value]
+    if isinstance(value, np.ndarray):
+        return _finite_or_none(value.tolist())
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
+
+
 def write_json(path: Path, data) -> None:
-    atomic_write(path, json.dumps(data, indent=2, default=_json_default, allow_nan=True))
+    """``data`` as strict JSON (``strict_json``), written atomically."""
+    atomic_write(path, strict_json(data))

@@ -9,7 +9,7 @@ metrics.csv, no row counted twice).
 from __future__ import annotations
 
 import dataclasses
-import sys
+import logging
 from pathlib import Path
 
 import jax
@@ -20,6 +20,8 @@ from flax import serialization
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import Config, load_config
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,7 +121,7 @@ def restore(trainer: ppo.Trainer, run_dir, config: Config, seeds, pool_size: int
         try:
             return at(update)
         except ckpt.CorruptCheckpointError as error:
-            print(f"{error}; falling back to update {older}", file=sys.stderr, flush=True)
+            log.warning("%s; falling back to update %s", error, older)
     try:
         return at(common[-1])
     except ckpt.CorruptCheckpointError as error:

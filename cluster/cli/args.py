@@ -1,0 +1,76 @@
+"""Argument types the ``ocv2`` subcommands share: argparse ``type=`` callables and the layout lookup.
+
+A bad value is an ``argparse.ArgumentTypeError`` (a usage line naming the flag and the value, exit
+code 2); an unknown layout is a ``CLIError`` whose message lists the choices and suggests close ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+from cluster.cli.errors import CLIError
+from ocv2.layouts import Layout, get_layout
+from population.config import MAX_SEED
+
+
+def layout_or_error(name: str) -> Layout:
+    """The built-in layout ``name``, or a ``CLIError`` naming it."""
+    try:
+        return get_layout(name)
+    except ValueError as error:  # its message names the layout, lists the choices and suggests close ones
+        raise CLIError(str(error)) from None
+
+
+def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
+    """An argparse type: an integer >= ``minimum``, with a message naming ``what`` was expected."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {what} integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected a {what} integer, got {value}")
+        return value
+
+    return parse
+
+
+positive_int = int_at_least(1, "positive")
+non_negative_int = int_at_least(0, "non-negative")
+
+
+def bounded(parse: Callable[[str], float], low, high, what: str, low_open: bool = False) -> Callable[[str], float]:
+    """An argparse type: ``parse(text)`` within ``[low, high]`` (``(low, high]`` if ``low_open``)."""
+
+    def check(text: str):
+        try:
+            value = parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        too_low = value <= low if low_open else value < low
+        if too_low or value > high or value != value:  # value != value: NaN
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text}")
+        return value
+
+    return check
+
+
+def seed(text: str) -> int:
+    """A PRNG seed: JAX's keys hold 32 bits, so a larger seed would silently wrap onto a small one."""
+    value = non_negative_int(text)
+    if value > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected a seed in [0, {MAX_SEED}], got {value}")
+    return value
+
+
+def fps(text: str) -> float:
+    """Frames (or environment steps) per second: a number in (0, 100]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected frames per second (a number), got {text!r}") from None
+    if not 0 < value <= 100:
+        raise argparse.ArgumentTypeError(f"fps must be > 0 and <= 100, got {text}")
+    return value
