@@ -22,9 +22,18 @@ UPDATES = 60  # 16 environments x 50 steps each: 48,000 environment steps
 CONFIG = {
     "env": {"layout": "cramped_room", "max_steps": EPISODE},
     "model": {"kind": "cnn", "conv_features": [16, 16], "conv_kernels": [3, 3], "fc_dim": 32},
-    "ppo": {"num_envs": 16, "num_steps": EPISODE, "num_minibatches": 4, "update_epochs": 4, "lr": 1e-3,
-            "anneal_lr": False, "ent_coef": 0.01, "max_grad_norm": 0.5, "total_timesteps": 16 * EPISODE * UPDATES,
-            "rew_shaping_horizon": 2**30},
+    "ppo": {
+        "num_envs": 16,
+        "num_steps": EPISODE,
+        "num_minibatches": 4,
+        "update_epochs": 4,
+        "lr": 1e-3,
+        "anneal_lr": False,
+        "ent_coef": 0.01,
+        "max_grad_norm": 0.5,
+        "total_timesteps": 16 * EPISODE * UPDATES,
+        "rew_shaping_horizon": 2**30,
+    },
 }
 
 
@@ -40,8 +49,9 @@ def random_return(env, key: jax.Array, episodes: int = 256) -> float:
             out = env.step_arrays(k_env, state, jax.random.randint(k_act, (env.num_agents,), 0, env.num_actions))
             return (out.state, total + out.reward[0] + out.shaped_reward.mean()), None
 
-        (_, total), _ = jax.lax.scan(step, (env.reset_state(k_reset), jnp.float32(0)),
-                                     jax.random.split(k_steps, env.max_steps))
+        (_, total), _ = jax.lax.scan(
+            step, (env.reset_state(k_reset), jnp.float32(0)), jax.random.split(k_steps, env.max_steps)
+        )
         return total
 
     return float(jax.jit(jax.vmap(episode))(jax.random.split(key, episodes)).mean())

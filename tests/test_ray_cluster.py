@@ -27,10 +27,13 @@ def two_nodes():
 
     from conftest import ensure_ray
 
+    from cluster.runtime.ray_backend import ray_process_launches
+
     ensure_ray()  # sets RAY_AUTH_MODE (the compilation cache is in the environment the nodes inherit)
     ray.shutdown()
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
-    worker_node = cluster.add_node(num_cpus=1)
+    with ray_process_launches():
+        cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+        worker_node = cluster.add_node(num_cpus=1)
     cluster.wait_for_nodes()
     ray.init(address=cluster.address)
     try:

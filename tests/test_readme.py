@@ -32,8 +32,9 @@ def test_every_readme_python_snippet_runs_as_pasted(tmp_path):
     script = "\n".join(f"print('--- README snippet {i}', flush=True)\n{block}" for i, block in enumerate(blocks))
     (tmp_path / "readme_snippets.py").write_text(script)
     env = {**os.environ, "PYTHONPATH": str(ROOT), "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
-    done = subprocess.run([sys.executable, "readme_snippets.py"], cwd=tmp_path, env=env, capture_output=True,
-                          text=True, timeout=600)
+    done = subprocess.run(
+        [sys.executable, "readme_snippets.py"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
+    )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert f"--- README snippet {len(blocks) - 1}" in done.stdout
 
@@ -45,7 +46,10 @@ def test_ci_runs_the_readme_test_command_lint_first_and_without_q():
     (command,) = [line for line in readme.splitlines() if line.startswith('pip install -e ".[test]" && ')]
     steps = command.split(" && ")[1:]
     assert steps == ["ruff check .", "ruff format --check .", "python -m pytest"]
-    ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()
-          if line.strip() and not line.lstrip().startswith("#")]
+    ci = [
+        line.strip()
+        for line in (ROOT / ".ci" / "run").read_text().splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
     assert "ruff check . && ruff format --check ." in ci and ci[-1] == "python -m pytest"
     assert ci.index("ruff check . && ruff format --check .") < ci.index("python -m pytest")

@@ -16,6 +16,7 @@ Ray call says which extra to install.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -93,14 +94,22 @@ def start_local(num_cpus: int | None = None) -> None:
     notices = logging.getLogger("ray._private.authentication.authentication_token_setup")
     notices.addFilter(_token_auth_notice)
     try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        with ray_process_launches():
             ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, configure_logging=False)
     finally:
         notices.removeFilter(_token_auth_notice)
     if mode_before is None and os.environ.get("RAY_AUTH_MODE") == "token":  # Ray chose its default
         log.info("started Ray on this machine with token authentication, Ray's default for a local instance "
                  "(RAY_AUTH_MODE=disabled turns it off; docs/cluster.md)")
+
+
+@contextlib.contextmanager
+def ray_process_launches():
+    """Around code that makes Ray start processes here: JAX's at-fork warning is not shown for them
+    (each child execs at once; see ``start_local``). Any other warning still is."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        yield
 
 
 def _token_auth_notice(record: logging.LogRecord) -> bool:
