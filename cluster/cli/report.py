@@ -89,8 +89,9 @@ def check_config_file(path: str, overrides) -> tuple[str, object]:
             return "skip", "a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config"
         config = parse_config(raw if raw is not None else {}, overrides)
     except ConfigError as error:
-        problems = error.problems
-        return "fail", [p if p.startswith(f"{path}:") else f"{path}: {p}" for p in problems]
+        problems = error.problems if all(p.startswith(f"{path}:") for p in error.problems) \
+            else error.prefixed(path).problems
+        return "fail", problems
     partners = config.population.fcp.partners
     if config.population.method == "fcp" and partners and not (Path(partners) / "config.yaml").is_file():
         return "fail", [f"{path}: population.fcp.partners: {partners} is not an ocv2 run directory (no config.yaml)"]
