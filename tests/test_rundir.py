@@ -53,6 +53,18 @@ def test_a_run_dir_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
     assert "is a file" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("sub", ["run", "deeper/run"])
+def test_out_below_a_file_names_the_file(tmp_path, config, capsys, sub):
+    parent = tmp_path / "notes.txt"
+    parent.write_text("x")
+    with pytest.raises(RunDirError, match=rf"{parent} is a file, not a directory"):
+        RunDir.open(parent / sub, config)
+    assert main(["train", SMOKE, "--out", str(parent / sub), "--quiet", "--backend", "local"]) == 2
+    err = capsys.readouterr().err
+    assert f"{parent} is a file, not a directory" in err and "--resume" not in err and len(err.strip().splitlines()) == 1
+    assert parent.read_text() == "x"
+
+
 def test_a_refused_directory_is_left_as_it_was(tmp_path, config):
     (tmp_path / "stuff.txt").write_text("x")
     with pytest.raises(RunDirError, match="not an ocv2 run directory"):
@@ -99,7 +111,10 @@ def test_torn_metrics_rows_are_dropped_and_the_file_repaired(tmp_path, capsys):
     (tmp_path / "metrics.csv").write_text(f"{header}\n0,1,0.5\n0,2\n1,1,0.25\n1,2,0.")
     assert [(r["seed"], r["update"]) for r in run.read_metrics()] == [("0", "1"), ("1", "1")]
     err = capsys.readouterr().err
-    assert "line 3 is incomplete" in err and "line 5 is incomplete" in err
+    # ocv2 rewrites metrics.csv atomically: a bad row before the last is damage, not a torn append
+    assert "the file is damaged: line 3 (row 2) is not a complete metrics row (0,2)" in err
+    assert "line 5 is incomplete (an interrupted write)" in err
+    assert not any("line 3" in line and "interrupted" in line for line in err.splitlines())
     assert [r["update"] for r in run.truncate_metrics(after_update=1)] == ["1", "1"]
     capsys.readouterr()
     assert (tmp_path / "metrics.csv").read_text().splitlines() == [header, "0,1,0.5", "1,1,0.25"]

@@ -358,6 +358,16 @@ def test_a_full_disk_is_a_one_line_error_and_the_run_resumes(sp_run, tmp_path, c
     _assert_same_run(run, sp_run)  # update 3-4 rows come back from the update-4 checkpoints' meta
 
 
+def test_resume_refills_a_dropped_last_metrics_row_from_the_checkpoint(sp_run, tmp_path, capsys):
+    run = tmp_path / "torn"
+    shutil.copytree(sp_run, run)
+    text = (run / "metrics.csv").read_text()
+    (run / "metrics.csv").write_text(text[:-12])  # the last row (seed 1, update 4) cut short
+    assert train(run, extra=["--resume", "--no-eval"]) == 0
+    assert "incomplete (an interrupted write)" in capsys.readouterr().err
+    assert (run / "metrics.csv").read_text() == text  # the row came back from the update-4 checkpoint's meta
+
+
 def test_a_corrupt_latest_checkpoint_falls_back_to_the_previous_one(sp_run, tmp_path, capsys):
     run = tmp_path / "corrupt"
     shutil.copytree(sp_run, run)
