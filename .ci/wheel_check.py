@@ -50,8 +50,8 @@ def main() -> None:
         config = Path(tmp) / "tiny_fcp.yaml"
         config.write_text(yaml.safe_dump(TINY_FCP))
         run = Path(tmp) / "run"
-        subprocess.run([ocv2_cli, "train", str(config), "--backend", "local", "--quiet", "--no-eval", "--out", str(run)],
-                       check=True, cwd=tmp)
+        subprocess.run([ocv2_cli, "train", str(config), "--backend", "local", "--quiet", "--no-eval",
+                        "--out", str(run)], check=True, cwd=tmp)
         stage = yaml.safe_load((run / "partners" / "config.yaml").read_text())["ppo"]
     paper = yaml.safe_load((Path(str(PAPER_CONFIGS)) / "classic_cramped_room_sp.yaml").read_text())["ppo"]
     for key, value in paper.items():

@@ -8,7 +8,7 @@ the kernel (``os.wait4``'s rusage of that child alone). A straight line through 
 fixed cost of a process and the cost of each further seed; ``population.config.memory`` uses those
 numbers (docs/cluster.md, "Memory").
 
-    python bench/memory.py                        # both kinds, 1 / 2 / 4 seeds
+    python bench/memory.py                        # both kinds, 2 / 4 / 8 seeds
     python bench/memory.py --seeds 1 2 --kinds cnn
 """
 
@@ -44,7 +44,7 @@ def peak_mib(kind: str, seeds: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--kinds", nargs="+", default=["cnn", "rnn"], choices=sorted(CONFIGS))
-    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 4])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[2, 4, 8])
     args = parser.parse_args()
     for kind in args.kinds:
         points = []

@@ -444,3 +444,46 @@ def test_seed_shards_and_job_blocks_are_one_split():
     assert shards(config) == [[0, 1, 2], [3, 4, 5], [6, 7], [8, 9]] == spread(range(10), 4)
     assert shards(parse_config({"population": {"num_seeds": 5}, "cluster": {"workers": 2}})) == [[0, 1, 2], [3, 4]]
     assert spread([1, 2], 3) == [[1], [2], []]
+
+
+# ---------------------------------------------------------------------------------------------------
+# memory: refused before anything runs when this machine cannot hold the run
+# ---------------------------------------------------------------------------------------------------
+
+def test_memory_estimate_is_linear_in_seeds_and_rollout_size():
+    from population.config import estimate
+    from population.config.memory import MEASURED
+
+    cnn = {"env": {"layout": "cramped_room"}, "model": {"kind": "cnn"},
+           "ppo": {"num_envs": 64, "num_steps": 256, "num_minibatches": 16}}
+    one, ten = (parse_config(cnn, [f"population.num_seeds={n}"]) for n in (1, 10))
+    measured = MEASURED["cnn"]  # measured at exactly these sizes
+    assert estimate(one).total_mib == pytest.approx(measured.base_mib + measured.per_seed_mib)
+    assert estimate(ten).total_mib == pytest.approx(measured.base_mib + 10 * measured.per_seed_mib)
+    half = parse_config(cnn, ["population.num_seeds=10", "ppo.num_envs=32"])
+    assert estimate(half).total_mib == pytest.approx(measured.base_mib + 5 * measured.per_seed_mib)
+    # Ray started here: a process per actor, the driver and Ray's own processes on top
+    assert estimate(ten, "ray").total_mib > estimate(ten).total_mib
+    # joining a cluster: only the driver stays here, with every seed's parameters
+    assert estimate(ten, "cluster").total_mib < estimate(ten).total_mib
+
+
+def test_an_fcp_partner_stage_counts_its_seeds():
+    from population.config import estimate
+
+    fcp = parse_config({"ppo": SMALL_PPO, "population": {"method": "fcp", "num_seeds": 2, "fcp": {
+        "pool": "per_seed", "partner_seeds": 4, "partner_ppo": SMALL_PPO}}})
+    assert "8 seeds" in estimate(fcp).where  # 2 learners x 4 partner seeds train first
+
+
+def test_a_run_that_cannot_fit_is_refused_naming_both_sizes():
+    from population.config import check_fits
+
+    huge = parse_config({"ppo": SMALL_PPO}, ["population.num_seeds=1000000000"])
+    with pytest.raises(ConfigError) as info:
+        check_fits(huge, "cluster", available_mib=24 * 1024)
+    message = str(info.value)
+    assert message.startswith("population.num_seeds: the run needs about") and "TiB" in message
+    assert "it has 24.0 GiB" in message
+    small = parse_config({"ppo": SMALL_PPO})
+    assert check_fits(small, "ray", available_mib=24 * 1024).total_mib < 24 * 1024

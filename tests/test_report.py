@@ -231,6 +231,15 @@ def test_validate_applies_overrides(capsys):
     assert "ppo.num_minibatches" in capsys.readouterr().err
 
 
+def test_validate_refuses_a_population_no_machine_here_can_hold(capsys):
+    smoke = str(ROOT / "configs" / "smoke.yaml")
+    assert main(["validate", smoke, "--set", "population.num_seeds=1000000000"]) == 1
+    err = capsys.readouterr().err
+    assert f"FAIL {smoke}: population.num_seeds: the run needs about" in err and "this machine" in err
+    assert main(["validate", smoke]) == 0
+    assert "memory here ~0." in capsys.readouterr().out  # the estimate for training here, in one process
+
+
 def test_validate_checks_fcp_partner_directory(tmp_path, capsys):
     config = str(PAPER / "v2_grounded_coord_simple_fcp.yaml")
     assert main(["validate", config, "--set", f"population.fcp.partners={tmp_path}"]) == 1

@@ -65,6 +65,16 @@ def test_out_below_a_file_names_the_file(tmp_path, config, capsys, sub):
     assert parent.read_text() == "x"
 
 
+@pytest.mark.parametrize("backend", ["local", "ray"])
+def test_a_population_this_machine_cannot_hold_is_refused_before_any_file(tmp_path, capsys, backend):
+    out = tmp_path / "run"
+    assert main(["train", SMOKE, "--out", str(out), "--quiet", "--backend", backend,
+                 "--set", "population.num_seeds=1000000000"]) == 2
+    err = capsys.readouterr().err
+    assert "the run needs about" in err and "of memory on this machine" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
 def test_a_refused_directory_is_left_as_it_was(tmp_path, config):
     (tmp_path / "stuff.txt").write_text("x")
     with pytest.raises(RunDirError, match="not an ocv2 run directory"):

@@ -59,7 +59,8 @@ def run_train(args) -> int:
             message = str(error).replace(f"--set cluster.address={args.address}: ", "")  # given as --address
             raise CLIError(message.replace("cluster.address", "--address")) from None
     try:  # before the run directory exists: a run that cannot fit this machine leaves nothing behind
-        check_fits(config, "local" if args.backend == "local" else "ray" if config.cluster.address is None else "cluster")
+        place = "local" if args.backend == "local" else "ray" if config.cluster.address is None else "cluster"
+        check_fits(config, place)
     except ConfigError as error:
         raise CLIError(str(error)) from None
     out = args.out or _default_run_dir(config)

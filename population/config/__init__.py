@@ -11,8 +11,24 @@ names the offending key (``ppo.num_minibatches``) and where it came from (the fi
 """
 
 from population.config.errors import ConfigError
-from population.config.paper import PACKAGED_CONFIGS, PAPER_CONFIGS, paper_config_files, paper_sp_ppo
-from population.config.parse import RAY_LAUNCHER_KEYS, is_ray_launcher_config, load_config, parse_config
+from population.config.memory import (
+    MemoryEstimate,
+    check_fits,
+    estimate,
+    machine_memory_mib,
+)
+from population.config.paper import (
+    PACKAGED_CONFIGS,
+    PAPER_CONFIGS,
+    paper_config_files,
+    paper_sp_ppo,
+)
+from population.config.parse import (
+    RAY_LAUNCHER_KEYS,
+    is_ray_launcher_config,
+    load_config,
+    parse_config,
+)
 from population.config.schema import (
     ACTIVATIONS,
     FCP_POOLS,
@@ -34,12 +50,20 @@ from population.config.schema import (
     SAConfig,
 )
 from population.config.shards import shards, spread
-from population.config.yaml_io import MAX_YAML_NODES, apply_overrides, check_plain_data, dump_config, read_yaml, yaml_problem
+from population.config.yaml_io import (
+    MAX_YAML_NODES,
+    apply_overrides,
+    check_plain_data,
+    dump_config,
+    read_yaml,
+    yaml_problem,
+)
 
 __all__ = [
     "ACTIVATIONS", "FCP_POOLS", "FCP_STAGE_SEED_OFFSET", "MAX_SEED", "MAX_YAML_NODES", "METHODS", "MODEL_DEFAULTS",
-    "PACKAGED_CONFIGS", "PAPER_CONFIGS", "RAY_LAUNCHER_KEYS", "SECTIONS", "ArchiveConfig", "ClusterConfig", "Config",
-    "ConfigError", "EvalConfig", "FCPConfig", "ModelConfig", "OPConfig", "PPOConfig", "PopulationConfig", "RunConfig",
-    "SAConfig", "apply_overrides", "check_plain_data", "dump_config", "is_ray_launcher_config", "load_config",
+    "PACKAGED_CONFIGS", "PAPER_CONFIGS", "RAY_LAUNCHER_KEYS", "SECTIONS", "ArchiveConfig", "ClusterConfig",
+    "Config", "ConfigError", "EvalConfig", "MemoryEstimate", "check_fits", "estimate", "machine_memory_mib",
+    "FCPConfig", "ModelConfig", "OPConfig", "PPOConfig", "PopulationConfig", "RunConfig", "SAConfig",
+    "apply_overrides", "check_plain_data", "dump_config", "is_ray_launcher_config", "load_config",
     "paper_config_files", "paper_sp_ppo", "parse_config", "read_yaml", "shards", "spread", "yaml_problem",
 ]
