@@ -1,4 +1,4 @@
-"""The experiment config (population/config.py): parsing, round trips, fingerprints, errors naming the key."""
+"""The experiment config (population/config/): parsing, round trips, fingerprints, errors naming the key."""
 
 from __future__ import annotations
 
