@@ -75,6 +75,16 @@ def test_a_population_this_machine_cannot_hold_is_refused_before_any_file(tmp_pa
     assert not out.exists()
 
 
+def test_the_python_entry_point_refuses_it_too(tmp_path, config):
+    import cluster
+    from population.config import ConfigError, parse_config
+
+    huge = parse_config(config.to_dict(), ["population.num_seeds=1000000000"])
+    with pytest.raises(ConfigError, match="of memory on this machine"):
+        cluster.train_population(huge, tmp_path / "run", backend="local", show_progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_refused_directory_is_left_as_it_was(tmp_path, config):
     (tmp_path / "stuff.txt").write_text("x")
     with pytest.raises(RunDirError, match="not an ocv2 run directory"):
