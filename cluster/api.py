@@ -29,7 +29,7 @@ from cluster.runtime import coordinator, ray_backend
 from cluster.runtime.local import LocalWorkers
 from cluster.runtime.loggers import MetricsLogger, MissingExtraError, check_loggers, make_loggers
 from cluster.runtime.rundir import MetricsRow, RunDir
-from population.config import Config, load_config
+from population.config import Config, check_fits, load_config
 
 BACKENDS = ("ray", "local")
 
@@ -64,6 +64,8 @@ def train_population(config: Config | str | os.PathLike, run_dir, *, backend: st
     """
     if not isinstance(config, Config):
         config = load_config(config)
+    # A run this machine cannot hold is a ConfigError before anything is written (docs/cluster.md, Memory).
+    check_fits(config, "local" if backend == "local" else "ray" if config.cluster.address is None else "cluster")
     require_backend(backend)
     check_loggers(loggers)  # before the run directory is touched
     run_dir = Path(run_dir).resolve()

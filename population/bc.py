@@ -29,7 +29,7 @@ import optax
 import ocv2
 from ocv2 import items as it
 from ocv2.items import Action
-from population.config import _MODEL_DEFAULTS, ModelConfig
+from population.config import MODEL_DEFAULTS, ModelConfig
 from population.evaluation import play_episodes
 from population import policy
 from population.human import Trial
@@ -63,7 +63,7 @@ class BCConfig:
 
     @property
     def model(self) -> ModelConfig:
-        return ModelConfig(kind=self.kind, **_MODEL_DEFAULTS[self.kind])
+        return ModelConfig(kind=self.kind, **MODEL_DEFAULTS[self.kind])
 
 
 class BCData(NamedTuple):

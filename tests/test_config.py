@@ -1,4 +1,4 @@
-"""The experiment config (population/config.py): parsing, round trips, fingerprints, errors naming the key."""
+"""The experiment config (population/config/): parsing, round trips, fingerprints, errors naming the key."""
 
 from __future__ import annotations
 
@@ -257,7 +257,9 @@ def test_load_config_with_overrides(tmp_path):
     assert config.ppo.num_envs == 4 and config.ppo.lr == pytest.approx(5e-4) and config.eval.episodes == 3
     with pytest.raises(ConfigError) as info:
         load_config(path, ["ppo.num_minibatches=3"])
-    assert str(path) in str(info.value) and "ppo.num_minibatches" in str(info.value)
+    # the override caused it: the message names --set, not the file
+    assert str(info.value).startswith("--set ppo.num_minibatches=3: ppo.num_minibatches: 3 does not divide")
+    assert str(path) not in str(info.value)
 
 
 def test_configs_are_frozen():
@@ -272,19 +274,37 @@ def test_configs_are_frozen():
 # bad input: one line naming the file and key, never a traceback, never a silent "run"
 # ---------------------------------------------------------------------------------------------------
 
-def _file_error(tmp_path, text: str, overrides=()) -> str:
+def _file_error(tmp_path, text: str, overrides=(), start=None) -> str:
     path = tmp_path / "c.yaml"
     path.write_text(text)
     with pytest.raises(ConfigError) as info:
         load_config(path, overrides)
     message = str(info.value)
-    assert message.startswith(str(path)) and "\n" not in message
+    assert message.startswith(start or str(path)) and "\n" not in message
     return message
 
 
 def test_override_with_broken_yaml_is_one_line(tmp_path):
-    message = _file_error(tmp_path, "", ["ppo.lr=[1,"])
-    assert "override 'ppo.lr=[1,'" in message and "not valid YAML" in message and "line 1" in message
+    message = _file_error(tmp_path, "", ["ppo.lr=[1,"], start="--set ppo.lr=[1,: ")
+    assert "not valid YAML" in message and "line 1" in message
+
+
+@pytest.mark.parametrize("item, start, hint", [
+    ("ppo.lrr=1e-3", "--set ppo.lrr=1e-3: ppo.lrr: unknown key", "did you mean ppo.lr?"),
+    ("population.num_seed=3", "--set population.num_seed=3: population.num_seed: unknown key",
+     "did you mean population.num_seeds?"),
+    ("ppoo.lr=1e-3", "--set ppoo.lr=1e-3: ppoo: unknown section", "did you mean ppo?"),
+    ("ppo.lr=fast", "--set ppo.lr=fast: ppo.lr: expected a number", ""),
+    ("ppo.lr", "--set ppo.lr: expected section.key=value", ""),
+])
+def test_override_errors_name_set_and_the_nearest_key(tmp_path, item, start, hint):
+    message = _file_error(tmp_path, "ppo: {num_envs: 4, num_steps: 16, num_minibatches: 2}\n", [item], start=start)
+    assert hint in message and str(tmp_path) not in message
+
+
+def test_file_errors_suggest_the_nearest_key_and_keep_the_file(tmp_path):
+    message = _file_error(tmp_path, "ppo: {lrr: 1.0e-3}\n", ["ppo.lr=1e-3"])
+    assert "ppo.lrr: unknown key; did you mean ppo.lr?" in message and "--set" not in message
 
 
 def test_broken_yaml_file_is_one_line(tmp_path):
@@ -333,7 +353,45 @@ def test_plain_anchors_still_work(tmp_path):
 ])
 def test_non_finite_floats_are_refused(item, key):
     message = _error({}, [item])
-    assert message.startswith(key) and "finite" in message
+    assert message.startswith(f"--set {item}: {key}:") and "finite" in message
+
+
+@pytest.mark.parametrize("item, key, what", [
+    ("ppo.lr=1e308", "ppo.lr", "outside float32's range"),  # finite in float64, inf in float32
+    ("ppo.ent_coef=-1e39", "ppo.ent_coef", "outside float32's range"),
+    ("ppo.lr=1e-50", "ppo.lr", "rounds to 0 in float32"),
+    ("cluster.gpu_memory_fraction=1e-46", "cluster.gpu_memory_fraction", "rounds to 0"),
+    ("ppo.clip_eps=" + "9" * 400, "ppo.clip_eps", "outside float32's range"),  # an int too large for float()
+])
+def test_floats_must_fit_float32(item, key, what):
+    message = _error({"ppo": SMALL_PPO}, [item])
+    assert message.startswith(f"--set {item}: {key}:") and what in message
+
+
+@pytest.mark.parametrize("item, key, what", [
+    ("ppo.total_timesteps=1e30", "ppo.total_timesteps", "int32"),
+    ("ppo.num_envs=1e10", "ppo.num_envs", "int32"),
+    ("population.num_seeds=-1e12", "population.num_seeds", "int32"),
+    ("model.conv_features=[8, 1e12]", "model.conv_features[1]", "int32"),
+    ("env.max_steps=1.0e+30", "env.max_steps", "int32"),
+    ("population.seed=1e30", "population.seed", "int64"),  # held by Python, then checked against 32 bits
+    ("ppo.rew_shaping_horizon=1e19", "ppo.rew_shaping_horizon", "int64"),
+])
+def test_integers_must_fit_what_holds_them(item, key, what):
+    message = _error({"ppo": SMALL_PPO}, [item])
+    assert message.startswith(f"--set {item}: {key}:") and f"the {what}" in message
+    assert parse_config({"ppo": SMALL_PPO}, ["ppo.rew_shaping_horizon=3e9"]).ppo.rew_shaping_horizon == 3 * 10**9
+
+
+def test_step_counters_must_fit_int32():
+    # 2**31 env steps in one update, or more optimiser steps than the int32 counter holds, would wrap
+    def problems(ppo):
+        with pytest.raises(ConfigError) as info:
+            parse_config({"ppo": dict(SMALL_PPO, num_minibatches=1, **ppo)})
+        return " | ".join(info.value.problems)
+
+    assert "exceed the int32 step counter" in problems({"num_envs": 2**16, "num_steps": 2**15})
+    assert "optimiser steps exceed" in problems({"num_steps": 1, "update_epochs": 2**20, "total_timesteps": 2**30})
 
 
 def test_seeds_must_fit_32_bits():
@@ -365,7 +423,7 @@ def test_a_problem_is_reported_once():
     with pytest.raises(ConfigError) as info:
         parse_config({"model": {"kind": "mlp"}, "ppo": {"lr": "fast"}, "bogus": {}})
     problems = info.value.problems
-    assert problems[0].startswith("unknown section 'bogus'")
+    assert problems[0].startswith("bogus: unknown section")
     assert [p.split(":")[0] for p in problems[1:]] == ["model.kind", "ppo.lr"]
 
 
@@ -375,3 +433,57 @@ def test_file_prefix_on_every_problem(tmp_path):
     with pytest.raises(ConfigError) as info:
         load_config(path)
     assert all(p.startswith(f"{path}: ppo.") for p in info.value.problems) and len(info.value.problems) == 2
+
+
+def test_seed_shards_and_job_blocks_are_one_split():
+    from cluster.runtime import jobs
+    from population.config import shards, spread
+
+    assert jobs.spread is spread  # the coordinator's job blocks and the seed shards split alike
+    config = parse_config({"population": {"num_seeds": 10}, "cluster": {"seeds_per_actor": 3}})
+    assert shards(config) == [[0, 1, 2], [3, 4, 5], [6, 7], [8, 9]] == spread(range(10), 4)
+    assert shards(parse_config({"population": {"num_seeds": 5}, "cluster": {"workers": 2}})) == [[0, 1, 2], [3, 4]]
+    assert spread([1, 2], 3) == [[1], [2], []]
+
+
+# ---------------------------------------------------------------------------------------------------
+# memory: refused before anything runs when this machine cannot hold the run
+# ---------------------------------------------------------------------------------------------------
+
+def test_memory_estimate_is_linear_in_seeds_and_rollout_size():
+    from population.config import estimate
+    from population.config.memory import MEASURED
+
+    cnn = {"env": {"layout": "cramped_room"}, "model": {"kind": "cnn"},
+           "ppo": {"num_envs": 64, "num_steps": 256, "num_minibatches": 16}}
+    one, ten = (parse_config(cnn, [f"population.num_seeds={n}"]) for n in (1, 10))
+    measured = MEASURED["cnn"]  # measured at exactly these sizes
+    assert estimate(one).total_mib == pytest.approx(measured.base_mib + measured.per_seed_mib)
+    assert estimate(ten).total_mib == pytest.approx(measured.base_mib + 10 * measured.per_seed_mib)
+    half = parse_config(cnn, ["population.num_seeds=10", "ppo.num_envs=32"])
+    assert estimate(half).total_mib == pytest.approx(measured.base_mib + 5 * measured.per_seed_mib)
+    # Ray started here: a process per actor, the driver and Ray's own processes on top
+    assert estimate(ten, "ray").total_mib > estimate(ten).total_mib
+    # joining a cluster: only the driver stays here, with every seed's parameters
+    assert estimate(ten, "cluster").total_mib < estimate(ten).total_mib
+
+
+def test_an_fcp_partner_stage_counts_its_seeds():
+    from population.config import estimate
+
+    fcp = parse_config({"ppo": SMALL_PPO, "population": {"method": "fcp", "num_seeds": 2, "fcp": {
+        "pool": "per_seed", "partner_seeds": 4, "partner_ppo": SMALL_PPO}}})
+    assert "8 seeds" in estimate(fcp).where  # 2 learners x 4 partner seeds train first
+
+
+def test_a_run_that_cannot_fit_is_refused_naming_both_sizes():
+    from population.config import check_fits
+
+    huge = parse_config({"ppo": SMALL_PPO}, ["population.num_seeds=1000000000"])
+    with pytest.raises(ConfigError) as info:
+        check_fits(huge, "cluster", available_mib=24 * 1024)
+    message = str(info.value)
+    assert message.startswith("population.num_seeds: the run needs about") and "TiB" in message
+    assert "it has 24.0 GiB" in message
+    small = parse_config({"ppo": SMALL_PPO})
+    assert check_fits(small, "ray", available_mib=24 * 1024).total_mib < 24 * 1024

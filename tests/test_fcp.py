@@ -20,7 +20,7 @@ from cluster.runtime.rundir import RunDir, RunDirError
 from cluster.runtime.shard import SeedShard
 from population import checkpoints as ckpt
 from population import ppo
-from population.config import ConfigError, load_config, parse_config
+from population.config import ConfigError, load_config, paper, parse_config
 from population.networks import init_params
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -88,7 +88,26 @@ def test_fcp_config_errors_are_one_line_naming_the_key(overrides, key):
     with pytest.raises(ConfigError) as error:
         load_config(SMOKE, [*PER_SEED, *overrides])
     message = str(error.value)
-    assert f"{key}:" in message and "\n" not in message and "smoke.yaml" in message
+    # every problem here comes from an override: it names --set, not the file
+    assert f"{key}:" in message and "\n" not in message and message.startswith("--set population.")
+    assert "smoke.yaml" not in message
+
+
+def test_missing_paper_configs_are_an_error_not_default_hyperparameters(tmp_path, monkeypatch):
+    monkeypatch.setattr(paper, "PAPER_CONFIGS", tmp_path / "not_installed")
+    paper.paper_sp_ppo.cache_clear()
+    try:
+        with pytest.raises(ConfigError, match="paper configs that ship with ocv2 are missing"):
+            load_config(PAPER / "v2_grounded_coord_simple_fcp.yaml")
+    finally:
+        paper.paper_sp_ppo.cache_clear()
+
+
+def test_paper_configs_are_read_as_package_data():
+    # configs/ in a checkout links to the package's copy: one copy, shipped in the wheel
+    assert PAPER.resolve() == Path(str(paper.PAPER_CONFIGS)).resolve()
+    names = [f.name for f in paper.paper_config_files()]
+    assert "classic_cramped_room_sp.yaml" in names and len(names) == len(list(PAPER.glob("*.yaml")))
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -210,7 +210,7 @@ def test_validate_lists_every_problem_of_a_file(tmp_path, capsys):
     bad.write_text("ppo: {lr: -1, lrr: 2}\nbogus: 1\neval: {episodes: 0}\n")
     assert main(["validate", str(bad)]) == 1
     failed = [line for line in capsys.readouterr().err.splitlines() if line.startswith("FAIL")]
-    assert failed[0].startswith(f"FAIL {bad}: unknown section 'bogus'")
+    assert failed[0].startswith(f"FAIL {bad}: bogus: unknown section")
     assert [line.split(":")[1].strip() for line in failed[1:]] == ["ppo.lrr", "ppo.lr", "eval.episodes"]
     assert all(line.startswith(f"FAIL {bad}: ") for line in failed)
 
@@ -229,6 +229,15 @@ def test_validate_applies_overrides(capsys):
     assert "3 seeds x 10 updates x 128 = 1,280 env steps per seed" in capsys.readouterr().out
     assert main(["validate", smoke, "--set", "ppo.num_minibatches=3"]) == 1
     assert "ppo.num_minibatches" in capsys.readouterr().err
+
+
+def test_validate_refuses_a_population_no_machine_here_can_hold(capsys):
+    smoke = str(ROOT / "configs" / "smoke.yaml")
+    assert main(["validate", smoke, "--set", "population.num_seeds=1000000000"]) == 1
+    err = capsys.readouterr().err
+    assert f"FAIL {smoke}: population.num_seeds: the run needs about" in err and "this machine" in err
+    assert main(["validate", smoke]) == 0
+    assert "memory here ~0." in capsys.readouterr().out  # the estimate for training here, in one process
 
 
 def test_validate_checks_fcp_partner_directory(tmp_path, capsys):

@@ -53,6 +53,39 @@ def test_a_run_dir_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
     assert "is a file" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("sub", ["run", "deeper/run"])
+def test_out_below_a_file_names_the_file(tmp_path, config, capsys, sub):
+    parent = tmp_path / "notes.txt"
+    parent.write_text("x")
+    with pytest.raises(RunDirError, match=rf"{parent} is a file, not a directory"):
+        RunDir.open(parent / sub, config)
+    assert main(["train", SMOKE, "--out", str(parent / sub), "--quiet", "--backend", "local"]) == 2
+    err = capsys.readouterr().err
+    assert f"{parent} is a file, not a directory" in err and "--resume" not in err
+    assert len(err.strip().splitlines()) == 1
+    assert parent.read_text() == "x"
+
+
+@pytest.mark.parametrize("backend", ["local", "ray"])
+def test_a_population_this_machine_cannot_hold_is_refused_before_any_file(tmp_path, capsys, backend):
+    out = tmp_path / "run"
+    assert main(["train", SMOKE, "--out", str(out), "--quiet", "--backend", backend,
+                 "--set", "population.num_seeds=1000000000"]) == 2
+    err = capsys.readouterr().err
+    assert "the run needs about" in err and "of memory on this machine" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_the_python_entry_point_refuses_it_too(tmp_path, config):
+    import cluster
+    from population.config import ConfigError, parse_config
+
+    huge = parse_config(config.to_dict(), ["population.num_seeds=1000000000"])
+    with pytest.raises(ConfigError, match="of memory on this machine"):
+        cluster.train_population(huge, tmp_path / "run", backend="local", show_progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_refused_directory_is_left_as_it_was(tmp_path, config):
     (tmp_path / "stuff.txt").write_text("x")
     with pytest.raises(RunDirError, match="not an ocv2 run directory"):
@@ -99,7 +132,10 @@ def test_torn_metrics_rows_are_dropped_and_the_file_repaired(tmp_path, caplog):
     # an appending writer killed twice: once mid-row (then appended again), once mid-last-row
     (tmp_path / "metrics.csv").write_text(f"{header}\n0,1,0.5\n0,2\n1,1,0.25\n1,2,0.")
     assert [(r["seed"], r["update"]) for r in run.read_metrics()] == [("0", "1"), ("1", "1")]
-    assert "line 3 is incomplete" in caplog.text and "line 5 is incomplete" in caplog.text
+    # ocv2 rewrites metrics.csv atomically: a bad row before the last is damage, not a torn append
+    assert "the file is damaged: line 3 (row 2) is not a complete metrics row (0,2)" in caplog.text
+    assert "line 5 is incomplete (an interrupted write)" in caplog.text
+    assert not any("line 3" in line and "interrupted" in line for line in caplog.text.splitlines())
     assert [r["update"] for r in run.truncate_metrics(after_update=1)] == ["1", "1"]
     caplog.clear()
     assert (tmp_path / "metrics.csv").read_text().splitlines() == [header, "0,1,0.5", "1,1,0.25"]

@@ -358,6 +358,16 @@ def test_a_full_disk_is_a_one_line_error_and_the_run_resumes(sp_run, tmp_path, c
     _assert_same_run(run, sp_run)  # update 3-4 rows come back from the update-4 checkpoints' meta
 
 
+def test_resume_refills_a_dropped_last_metrics_row_from_the_checkpoint(sp_run, tmp_path, capsys):
+    run = tmp_path / "torn"
+    shutil.copytree(sp_run, run)
+    text = (run / "metrics.csv").read_text()
+    (run / "metrics.csv").write_text(text[:-12])  # the last row (seed 1, update 4) cut short
+    assert train(run, extra=["--resume", "--no-eval"]) == 0
+    assert "incomplete (an interrupted write)" in capsys.readouterr().err
+    assert (run / "metrics.csv").read_text() == text  # the row came back from the update-4 checkpoint's meta
+
+
 def test_a_corrupt_latest_checkpoint_falls_back_to_the_previous_one(sp_run, tmp_path, capsys):
     run = tmp_path / "corrupt"
     shutil.copytree(sp_run, run)
@@ -422,10 +432,12 @@ def test_non_run_directory_is_refused(tmp_path, capsys):
 
 @pytest.mark.parametrize("override, key", [("ppo.num_minibatches=3", "ppo.num_minibatches"),
                                            ("ppo.bogus=1", "ppo.bogus"),
-                                           ("population.method=xx", "population.method")])
+                                           ("population.method=xx", "population.method"),
+                                           ("ppo.total_timesteps=1e30", "ppo.total_timesteps"),  # int32
+                                           ("ppo.lr=1e308", "ppo.lr")])  # inf in float32
 def test_config_errors_exit_2_naming_the_key(tmp_path, capsys, override, key):
     assert train(tmp_path / "run", override) == 2
-    assert key in capsys.readouterr().err
+    assert f"--set {override}: {key}" in capsys.readouterr().err  # the override, not the file, is named
     assert not (tmp_path / "run").exists()
 
 

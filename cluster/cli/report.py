@@ -36,7 +36,7 @@ from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.rundir import RunDir, RunDirError, seed_curves
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
-from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
+from population.config import ConfigError, check_fits, estimate, is_ray_launcher_config, parse_config, read_yaml
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
 
 METHOD_ORDER = ("sp", "sa", "op", "fcp")
@@ -88,9 +88,13 @@ def check_config_file(path: str, overrides) -> tuple[str, object]:
         if is_ray_launcher_config(raw):
             return "skip", "a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config"
         config = parse_config(raw if raw is not None else {}, overrides)
+        # What a run needs on this machine at the least (training on a cluster, this machine the
+        # driver) must fit; what it needs when it trains here is shown.
+        check_fits(config, "cluster")
     except ConfigError as error:
-        problems = error.problems
-        return "fail", [p if p.startswith(f"{path}:") else f"{path}: {p}" for p in problems]
+        problems = error.problems if all(p.startswith(f"{path}:") for p in error.problems) \
+            else error.prefixed(path).problems
+        return "fail", problems
     partners = config.population.fcp.partners
     if config.population.method == "fcp" and partners and not (Path(partners) / "config.yaml").is_file():
         return "fail", [f"{path}: population.fcp.partners: {partners} is not an ocv2 run directory (no config.yaml)"]
@@ -108,7 +112,7 @@ def run_validate(args) -> int:
                 print(f"FAIL {problem}", file=sys.stderr)
             bad.append(path)
         else:
-            print(f"OK   {path}: {describe_config(result)}")
+            print(f"OK   {path}: {describe_config(result)}; memory here {estimate(result, 'local').describe()}")
     if bad:
         raise CLIError(f"{len(bad)} of {len(args.configs)} config(s) invalid: {', '.join(bad)}", EXIT_FAILURE)
     return EXIT_OK

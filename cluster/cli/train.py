@@ -17,7 +17,7 @@ from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from population.checkpoints import CheckpointError
-from population.config import ConfigError, load_config
+from population.config import ConfigError, check_fits, load_config
 
 
 def add_train(sub) -> argparse.ArgumentParser:
@@ -56,7 +56,13 @@ def run_train(args) -> int:
         try:
             config = load_config(args.config, [*args.overrides, f"cluster.address={args.address}"])
         except ConfigError as error:
-            raise CLIError(str(error).replace("cluster.address", "--address")) from None
+            message = str(error).replace(f"--set cluster.address={args.address}: ", "")  # given as --address
+            raise CLIError(message.replace("cluster.address", "--address")) from None
+    try:  # before the run directory exists: a run that cannot fit this machine leaves nothing behind
+        place = "local" if args.backend == "local" else "ray" if config.cluster.address is None else "cluster"
+        check_fits(config, place)
+    except ConfigError as error:
+        raise CLIError(str(error)) from None
     out = args.out or _default_run_dir(config)
     if args.resume and not args.out:
         raise CLIError("--resume needs --out RUN_DIR (the run to continue)")

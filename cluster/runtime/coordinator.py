@@ -237,13 +237,19 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
     try:
         # Shards restore themselves; the slowest decides where the population stands.
         update = min(workers.call("position", on_every_shard(workers)))
-        # A driver killed after the shards saved a chunk but before it merged their rows: those rows
-        # live in the checkpoints' meta; collect them before training on.
-        since = max((int(r["update"]) for r in run.truncate_metrics(update)), default=0)
+        # A driver killed after the shards saved a chunk but before it merged their rows, or a last row
+        # dropped from a torn metrics.csv: those rows live in the checkpoints' meta; collect them before
+        # training on, from the seed whose rows stop earliest.
+        kept = {(int(r["seed"]), int(float(r["update"]))) for r in run.truncate_metrics(update)}
+        latest = {}
+        for seed, row_update in kept:
+            latest[seed] = max(latest.get(seed, 0), row_update)
+        since = min(latest.get(seed, 0) for seed in range(config.population.num_seeds))
         caught_up_rows = []
         if since < update:
             caught_up = workers.call("advance", [(i, (update, None, since)) for i in range(len(workers.shards))])
-            caught_up_rows = merge_rows(caught_up, since, update)
+            caught_up_rows = [row for row in merge_rows(caught_up, since, update)
+                              if (int(row["seed"]), int(row["update"])) not in kept]
             run.append_metrics(caught_up_rows)
         run.update_manifest(status="training", method=method, num_updates=schedule.num_updates, update=update,
                             snapshots=list(schedule.snapshots), pool=pool_labels,

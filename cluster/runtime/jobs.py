@@ -14,7 +14,7 @@ from typing import Callable, Protocol, Sequence
 import jax
 import numpy as np
 
-from population.config import Config
+from population.config import Config, spread
 
 
 class Workers(Protocol):
@@ -59,17 +59,6 @@ class InProcessWorkers:
 
     def close(self) -> None:
         self.target = None
-
-
-def spread(items: Sequence, parts: int) -> list[list]:
-    """``items`` in ``parts`` consecutive blocks as even as possible (some empty if too few items)."""
-    size, extra = divmod(len(items), parts)
-    blocks, start = [], 0
-    for index in range(parts):
-        end = start + size + (index < extra)
-        blocks.append(list(items[start:end]))
-        start = end
-    return blocks
 
 
 def spread_jobs(workers: Workers, items: Sequence, make_args: Callable[[list], tuple]) -> list[tuple[int, tuple]]:

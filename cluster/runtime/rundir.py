@@ -151,6 +151,12 @@ class RunDir:
     def _check_not_a_file(self, advice: str = "") -> None:
         if self.path.exists() and not self.path.is_dir():
             raise RunDirError(f"{self.path}: is a file, not a run directory{advice}")
+        for parent in self.path.parents:  # --out DIR/sub with DIR a file: mkdir would fail with ENOTDIR
+            if parent.exists():
+                if not parent.is_dir():
+                    raise RunDirError(f"{self.path}: cannot be a run directory: {parent} is a file, not a "
+                                      f"directory{advice}")
+                break
 
     # the lock -----------------------------------------------------------------------------------------
     def lock(self, wait: bool = False, advice: str = "wait for it to finish or stop it before resuming") -> None:
@@ -313,9 +319,15 @@ class RunDir:
             _warn(f"{self.metrics_path}: line {len(lines)} is incomplete (an interrupted write); dropped")
             lines = lines[:-1]
         rows = []
-        for number, row in enumerate(csv.DictReader(io.StringIO("".join(lines), newline="")), start=2):
+        records = list(csv.DictReader(io.StringIO("".join(lines), newline="")))
+        for number, row in enumerate(records, start=2):
             if None in row or None in row.values() or not _is_int(row.get("update")) or not _is_int(row.get("seed")):
-                _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped")
+                if number == len(records) + 1:  # the last row: what an appending writer's kill leaves
+                    _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped "
+                          "(--resume refills it from the checkpoint if it belongs to the last chunk)")
+                else:  # ocv2 rewrites the file atomically: a bad row before the last is damage
+                    _warn(f"{self.metrics_path}: the file is damaged: line {number} (row {number - 1}) is not a "
+                          f"complete metrics row ({_shown(row)}); dropped")
                 torn = True
                 continue
             rows.append(row)
@@ -324,6 +336,13 @@ class RunDir:
 
 def _warn(message: str) -> None:
     log.warning(message)
+
+
+def _shown(row: dict) -> str:
+    """A damaged row as it reads, short enough for one line."""
+    values = [str(v) for k, v in row.items() if k is not None and v is not None] + [str(v) for v in row.get(None, [])]
+    text = ",".join(values)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _is_int(text) -> bool:

@@ -1,0 +1,70 @@
+"""Experiment configuration: YAML parsed once into frozen, typed, validated dataclasses.
+
+One job per module: ``schema`` (the section dataclasses and ``Config``), ``yaml_io`` (reading files,
+``--set`` overrides, writing a resolved config), ``fields`` (a section's mapping -> its dataclass, with
+types and numeric ranges), ``validate`` (values checked against each other), ``paper`` (the configs
+shipped as package data and the paper's self-play hyperparameters), ``parse`` (all of it -> ``Config``),
+``shards`` (splitting seeds and jobs over workers) and ``memory`` (the memory a run needs). Every error
+names the offending key (``ppo.num_minibatches``) and where it came from (the file, or ``--set``).
+
+    config = load_config("configs/quickstart.yaml", overrides=["ppo.total_timesteps=1e5"])
+"""
+
+from population.config.errors import ConfigError
+from population.config.memory import (
+    MemoryEstimate,
+    check_fits,
+    estimate,
+    machine_memory_mib,
+)
+from population.config.paper import (
+    PACKAGED_CONFIGS,
+    PAPER_CONFIGS,
+    paper_config_files,
+    paper_sp_ppo,
+)
+from population.config.parse import (
+    RAY_LAUNCHER_KEYS,
+    is_ray_launcher_config,
+    load_config,
+    parse_config,
+)
+from population.config.schema import (
+    ACTIVATIONS,
+    KERNELS,
+    FCP_POOLS,
+    FCP_STAGE_SEED_OFFSET,
+    MAX_SEED,
+    METHODS,
+    MODEL_DEFAULTS,
+    SECTIONS,
+    ArchiveConfig,
+    ClusterConfig,
+    Config,
+    EvalConfig,
+    FCPConfig,
+    ModelConfig,
+    OPConfig,
+    PopulationConfig,
+    PPOConfig,
+    RunConfig,
+    SAConfig,
+)
+from population.config.shards import shards, spread
+from population.config.yaml_io import (
+    MAX_YAML_NODES,
+    apply_overrides,
+    check_plain_data,
+    dump_config,
+    read_yaml,
+    yaml_problem,
+)
+
+__all__ = [
+    "ACTIVATIONS", "KERNELS", "FCP_POOLS", "FCP_STAGE_SEED_OFFSET", "MAX_SEED", "MAX_YAML_NODES", "METHODS", "MODEL_DEFAULTS",
+    "PACKAGED_CONFIGS", "PAPER_CONFIGS", "RAY_LAUNCHER_KEYS", "SECTIONS", "ArchiveConfig", "ClusterConfig",
+    "Config", "ConfigError", "EvalConfig", "MemoryEstimate", "check_fits", "estimate", "machine_memory_mib",
+    "FCPConfig", "ModelConfig", "OPConfig", "PPOConfig", "PopulationConfig", "RunConfig", "SAConfig",
+    "apply_overrides", "check_plain_data", "dump_config", "is_ray_launcher_config", "load_config",
+    "paper_config_files", "paper_sp_ppo", "parse_config", "read_yaml", "shards", "spread", "yaml_problem",
+]

@@ -1,0 +1,195 @@
+"""YAML -> ``Config``: the sections parsed and checked, every problem collected, each naming its key and
+where it came from (the file, or the ``--set`` override).
+
+    config = load_config("configs/quickstart.yaml", overrides=["ppo.total_timesteps=1e5"])
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any, Mapping, Sequence
+
+from ocv2.config import build_config
+from population.config.errors import SET_PREFIX, ConfigError
+from population.config.fields import bounded_int, finite_float32, nearest, parse_section
+from population.config.paper import paper_sp_ppo
+from population.config.schema import (
+    MODEL_DEFAULTS,
+    SECTIONS,
+    ArchiveConfig,
+    ClusterConfig,
+    Config,
+    EvalConfig,
+    FCPConfig,
+    ModelConfig,
+    OPConfig,
+    PopulationConfig,
+    PPOConfig,
+    RunConfig,
+    SAConfig,
+)
+from population.config.validate import validate
+from population.config.yaml_io import apply_overrides, check_plain_data, read_yaml
+
+
+def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> Config:
+    """Read a YAML file, apply ``section.key=value`` overrides, validate. Errors name file and key."""
+    path = os.fspath(path)
+    raw = read_yaml(path)
+    try:
+        return parse_config(raw if raw is not None else {}, overrides)
+    except ConfigError as error:
+        raise error.prefixed(path) from None
+
+
+def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
+    """Validate a nested mapping (e.g. from YAML) into a ``Config``; a ConfigError lists every problem."""
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"the config must be a mapping of sections {SECTIONS}, got {type(raw).__name__}")
+    check_plain_data(raw)
+    if is_ray_launcher_config(raw):
+        raise ConfigError("a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config")
+    raw = apply_overrides(raw, overrides)
+    problems = [f"{name}: unknown section{nearest(name, SECTIONS)} (sections: {', '.join(SECTIONS)})"
+                for name in sorted(set(raw) - set(SECTIONS), key=str)]
+
+    def parsed(parse, *args, default):
+        try:
+            return parse(*args)
+        except ConfigError as error:
+            problems.extend(error.problems)
+            return default if error.partial is None else error.partial
+
+    env = parsed(_parse_env, raw.get("env") or {}, default=Config().env)
+    model = _resolve_model(parsed(parse_section, "model", ModelConfig, raw.get("model"), default=ModelConfig()),
+                           problems)
+    ppo = parsed(parse_section, "ppo", PPOConfig, raw.get("ppo"), default=PPOConfig())
+    pop_raw = raw.get("population") or {}
+    if not isinstance(pop_raw, Mapping):
+        problems.append(f"population: expected a mapping of keys, got {type(pop_raw).__name__}")
+        pop_raw = {}
+    pop_raw = dict(pop_raw)
+    fcp_raw = pop_raw.pop("fcp", None)
+    if fcp_raw is not None and not isinstance(fcp_raw, Mapping):
+        problems.append(f"population.fcp: expected a mapping of keys, got {type(fcp_raw).__name__}")
+        fcp_raw = None
+    fcp_raw = dict(fcp_raw or {})
+    partner_raw = fcp_raw.pop("partner_ppo", None)
+    subs = {name: parsed(parse_section, f"population.{name}", cls, pop_raw.pop(name, None), default=cls())
+            for name, cls in (("sa", SAConfig), ("op", OPConfig))}
+    subs["fcp"] = parsed(parse_section, "population.fcp", FCPConfig, fcp_raw, default=FCPConfig())
+    population = dataclasses.replace(
+        parsed(parse_section, "population", PopulationConfig, pop_raw, default=PopulationConfig()), **subs)
+    partner_ppo = parsed(_partner_ppo, partner_raw, env, model, population, default=None)
+    population = dataclasses.replace(population, fcp=dataclasses.replace(population.fcp, partner_ppo=partner_ppo))
+    config = Config(env=env, model=model, ppo=ppo, population=population,
+                    eval=parsed(_parse_eval, raw.get("eval"), default=EvalConfig()),
+                    run=parsed(parse_section, "run", RunConfig, raw.get("run"), default=RunConfig()),
+                    archive=parsed(parse_section, "archive", ArchiveConfig, raw.get("archive"),
+                                   default=ArchiveConfig()),
+                    cluster=parsed(_parse_cluster, raw.get("cluster"), default=ClusterConfig()))
+    # Values are checked with every key that did not parse at its default; a key already reported is
+    # not reported again.
+    reported = {problem.split(":", 1)[0] for problem in problems}
+    problems += [p for p in validate(config) if p.split(":", 1)[0] not in reported]
+    if problems:
+        raise ConfigError(blame_overrides(problems, overrides))
+    return config
+
+
+def blame_overrides(problems: Sequence[str], overrides: Sequence[str]) -> list[str]:
+    """Each problem at, inside or just above a key an override set, named after that override
+    (``--set ppo.lr=1e308: ppo.lr: ...``): the file did not cause it."""
+    dotted = [(item.split("=", 1)[0].strip(), item) for item in overrides]
+    blamed = []
+    for problem in problems:
+        key = problem.split(":", 1)[0]
+        hits = [item for name, item in dotted
+                if name == key or key.startswith((f"{name}.", f"{name}[")) or name.startswith(f"{key}.")]
+        blamed.append(f"{SET_PREFIX}{hits[-1]}: {problem}" if hits else problem)
+    return blamed
+
+
+#: Keys every Ray cluster launcher YAML has (``ray up``); configs/cluster/ holds one beside ocv2 configs.
+RAY_LAUNCHER_KEYS = frozenset({"cluster_name", "provider"})
+
+
+def is_ray_launcher_config(raw) -> bool:
+    return isinstance(raw, Mapping) and RAY_LAUNCHER_KEYS <= set(raw) and not set(raw) & set(SECTIONS[:-1])
+
+
+def _parse_env(raw) -> tuple[tuple[str, Any], ...]:
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"env: expected a mapping of ocv2.make parameters, got {type(raw).__name__}")
+    if "initial_state_buffer" in raw:
+        raise ConfigError("env.initial_state_buffer: state buffers come from population.method=sa, not the config")
+    # Integral floats (YAML reads 1e3 as a float) count as integers, as in the other sections.
+    params = {k: int(v) if isinstance(v, float) and v.is_integer() else v for k, v in raw.items()}
+    params.setdefault("layout", "cramped_room")
+    problems = [problem for key, value in params.items() for problem in _number_problems(f"env.{key}", value)]
+    if problems:
+        raise ConfigError(problems)
+    try:
+        build_config(**params)
+    except TypeError as error:
+        raise ConfigError(f"env: {error}") from None
+    except ValueError as error:
+        raise ConfigError(f"env: {error}") from None
+    frozen = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in params.items()))
+    return frozen
+
+
+def _number_problems(key: str, value) -> list[str]:
+    """Integers must fit int32 and floats float32 (every env parameter ends up in a JAX array)."""
+    if isinstance(value, (list, tuple)):
+        return [p for i, v in enumerate(value) for p in _number_problems(f"{key}[{i}]", v)]
+    try:
+        if isinstance(value, int) and not isinstance(value, bool):
+            bounded_int(key, value)
+        elif isinstance(value, float):
+            finite_float32(key, value)
+    except ConfigError as error:
+        return error.problems
+    return []
+
+
+def _parse_eval(raw) -> EvalConfig:
+    if isinstance(raw, Mapping) and "archive_episodes" in raw:
+        raise ConfigError("eval.archive_episodes: replaced by archive.xp (default true), which archives every "
+                          "scored cross-play episode to archive/xp/")
+    return parse_section("eval", EvalConfig, raw)
+
+
+def _parse_cluster(raw) -> ClusterConfig:
+    if isinstance(raw, Mapping) and "checkpoint_every" in raw:
+        raise ConfigError("cluster.checkpoint_every: checkpoints are set by run.checkpoint_every, which both "
+                          "backends use (it is also the chunk between coordinator steps)")
+    return parse_section("cluster", ClusterConfig, raw)
+
+
+def _resolve_model(model: ModelConfig, problems: list[str]) -> ModelConfig:
+    if model.kind not in MODEL_DEFAULTS:
+        problems.append(f"model.kind: expected one of {', '.join(MODEL_DEFAULTS)}, got {model.kind!r}")
+        model = dataclasses.replace(model, kind=ModelConfig.kind)
+    fill = {k: v for k, v in MODEL_DEFAULTS[model.kind].items() if getattr(model, k) is None}
+    return dataclasses.replace(model, **fill)
+
+
+def _partner_ppo(raw, env, model: ModelConfig, population: PopulationConfig) -> PPOConfig | None:
+    """The FCP partner stage's ppo section: ``raw`` keys over the paper's self-play section for this layout."""
+    key = "population.fcp.partner_ppo"
+    if raw is not None and not isinstance(raw, Mapping):
+        raise ConfigError(f"{key}: expected a mapping of ppo keys, got {type(raw).__name__}")
+    trains_partners = population.method == "fcp" and population.fcp.partners is None
+    if not trains_partners:
+        # Not used (another method, or partners from a finished SP run): only checked, never looked up.
+        return None if raw is None else parse_section(key, PPOConfig, raw)
+    layout = dict(env)["layout"]
+    base = paper_sp_ppo(layout, model.kind)
+    if base is None and raw is None:
+        raise ConfigError(f"{key}: no paper self-play config for layout {layout!r} with model.kind={model.kind} "
+                          "to take the partner stage's hyperparameters from; set it (a ppo mapping)")
+    values = dataclasses.asdict(base) if base is not None else {}
+    values.update(raw or {})
+    return parse_section(key, PPOConfig, values)

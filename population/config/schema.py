@@ -1,0 +1,258 @@
+"""The config's schema: one frozen, typed dataclass per section, and the ``Config`` that holds them.
+
+Sections: ``env`` (the ``ocv2.make`` parameters), ``model``, ``ppo`` (the paper's hyperparameter names in
+lower case), ``population`` (method and per-method settings), ``eval``, ``run``, ``archive`` (what goes
+into the MCAP trajectory archive) and ``cluster`` (Ray resources; ignored by the local backend).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from typing import Any, Sequence
+
+#: JAX's default PRNG keys are built from 32-bit seeds: a larger seed would silently wrap around.
+MAX_SEED = 2**32 - 1
+#: The SP stage of an FCP run without partners trains with ``population.seed + FCP_STAGE_SEED_OFFSET``.
+FCP_STAGE_SEED_OFFSET = 7919
+
+METHODS = ("sp", "sa", "op", "fcp")
+ACTIVATIONS = ("relu", "tanh")
+KERNELS = ("auto", "cpu", "xla")  # model.kernels
+SECTIONS = ("env", "model", "ppo", "population", "eval", "run", "archive", "cluster")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Network. ``cnn``: the classic-layout CNN; ``rnn``: 1x1-conv mixer + CNN + GRU (paper appendix B)."""
+
+    kind: str = "rnn"
+    # cnn: conv features / kernel sizes / dense width (Conv 5x5/32, 3x3/32, 3x3/32 -> Dense 64)
+    # rnn: 1x1 mixer (128,128,8) -> 3x3 convs (16,32,32) -> Dense 128 -> GRU 128
+    conv_features: tuple[int, ...] | None = None
+    conv_kernels: tuple[int, ...] | None = None
+    mixer_features: tuple[int, ...] = (128, 128, 8)
+    fc_dim: int | None = None
+    gru_dim: int = 128
+    # how convolutions and the GRU are computed (same function and parameters either way): "cpu" the
+    # matmul forms and hand-written GRU backward tuned for XLA:CPU, "xla" XLA's own convolution op and
+    # autodiff (cuDNN on GPU), "auto" the first on a CPU backend, the second elsewhere
+    kernels: str = "auto"
+
+    @property
+    def recurrent(self) -> bool:
+        return self.kind == "rnn"
+
+
+MODEL_DEFAULTS = {
+    "cnn": {"conv_features": (32, 32, 32), "conv_kernels": (5, 3, 3), "fc_dim": 64},
+    "rnn": {"conv_features": (16, 32, 32), "conv_kernels": (3, 3, 3), "fc_dim": 128},
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyperparameters (paper appendix D names). Defaults: the paper's RNN self-play column."""
+
+    lr: float = 2.5e-4
+    anneal_lr: bool = True
+    lr_warmup: float = 0.05  # fraction of all optimizer steps spent warming up from 0 to lr
+    clip_eps: float = 0.2
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    max_grad_norm: float = 0.25
+    num_envs: int = 256
+    num_steps: int = 256
+    num_minibatches: int = 64
+    update_epochs: int = 4
+    total_timesteps: int = 30_000_000
+    rew_shaping_horizon: int = 15_000_000
+    activation: str = "relu"
+    # Reproduce the paper code's recurrent bug (post-step done used as the replay's reset flag).
+    paper_done_bug: bool = False
+
+    @property
+    def steps_per_update(self) -> int:
+        """Environment steps (transitions of whole kitchens) per PPO update."""
+        return self.num_envs * self.num_steps
+
+    @property
+    def num_updates(self) -> int:
+        return self.total_timesteps // self.steps_per_update
+
+
+@dataclasses.dataclass(frozen=True)
+class SAConfig:
+    """State augmentation (paper Algorithm 1)."""
+
+    iterations: int = 10
+    rollouts_per_pair: int = 10
+    keep_every: int = 10
+    # MCAP archives (e.g. last month's cross-play, human play) whose every keep_every-th state joins
+    # each iteration's buffer; paths are relative to where ocv2 train runs.
+    archives: tuple[str, ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class OPConfig:
+    """Other-play: ingredient indices each agent's view is permuted over, per episode."""
+
+    ingredients: tuple[int, ...] = (0, 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class FCPConfig:
+    """Fictitious co-play: a learner per seed against a frozen pool of SP checkpoints.
+
+    ``partners``: an SP run directory to take the pools from; None trains an SP stage first (same
+    env/model sections, ``partner_ppo`` hyperparameters). ``partner_seeds``: SP seeds per pool.
+    ``checkpoints``: which snapshots of each partner seed join the pool ("init", "mid", "final" or an
+    update number). ``pool``: "shared" (every learner plays partner seeds [0, k)) or "per_seed" (the
+    paper: learner i plays its own partner seeds [i*k, (i+1)*k), so the SP stage trains num_seeds x k
+    seeds). ``partner_ppo``: the SP stage's ppo section; unset, the paper's self-play hyperparameters
+    for this layout and model kind (``configs/paper``); keys given replace single values of that.
+    """
+
+    partners: str | None = None
+    partner_seeds: int = 8
+    checkpoints: tuple[str, ...] = ("mid", "final")
+    pool: str = "shared"
+    partner_ppo: PPOConfig | None = None
+
+    @property
+    def per_seed(self) -> bool:
+        return self.pool == "per_seed"
+
+    def pool_seeds(self, learner: int) -> range:
+        """The partner-run seeds whose checkpoints make up learner ``learner``'s pool."""
+        k = self.partner_seeds
+        return range(learner * k, (learner + 1) * k) if self.per_seed else range(k)
+
+    def stage_seeds(self, num_learners: int) -> int:
+        """SP seeds the partner run needs for ``num_learners`` learners."""
+        return self.partner_seeds * (num_learners if self.per_seed else 1)
+
+
+FCP_POOLS = ("shared", "per_seed")
+
+
+@dataclasses.dataclass(frozen=True)
+class PopulationConfig:
+    method: str = "sp"
+    num_seeds: int = 10
+    seed: int = 0
+    sa: SAConfig = SAConfig()
+    op: OPConfig = OPConfig()
+    fcp: FCPConfig = FCPConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Cross-play evaluation: E episodes per ordered pair, stochastic actions, team sparse return."""
+
+    episodes: int = 500
+    gifs: int = 2  # episode GIFs of the first seeds' self-play written after training
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """How a run is driven: chunking, checkpoints."""
+
+    checkpoint_every: int = 50  # updates between atomic TrainState checkpoints (also the chunk size)
+    num_checkpoints: int = 3  # kept snapshots spread over training (0, mid, final), as the paper
+
+
+@dataclasses.dataclass(frozen=True)
+class ArchiveConfig:
+    """The MCAP trajectory archive under RUN_DIR/archive/ (both backends; see docs/archive.md).
+
+    ``xp``: every scored cross-play episode -> ``archive/xp/seat0_seed_<i>.mcap``. ``sa_collection``: every SA collection
+    episode (all states, not only the kept ones) -> ``archive/sa/iteration_<k>.mcap``. ``train_every``:
+    every N updates each seed's current policy plays one self-play episode -> ``archive/train/`` (0: off).
+    ``foxglove``: add a rendered-frame channel for Foxglove Studio (~10x larger files).
+    """
+
+    xp: bool = True
+    sa_collection: bool = True
+    train_every: int = 0
+    foxglove: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class ClusterConfig:
+    """The Ray backend (``ocv2 train`` default). Not part of the config fingerprint: a run may resume
+    with other resources or another split of seeds (which moves parameters only at float-rounding level,
+    ~1e-7, because XLA picks different kernels for different batch sizes; docs/cluster.md).
+
+    ``address``: None starts Ray on this machine; "auto" or "HOST:PORT" joins a running cluster.
+    ``seeds_per_actor`` seeds are vmapped in one actor (a GPU wants several); ``workers`` (0: one actor
+    per ``seeds_per_actor`` seeds) sets the number of actors instead, spreading seeds evenly. ``num_cpus``/``num_gpus`` are
+    per actor (fractional on a laptop: Ray's default of 1 CPU would leave actors pending on 2 cores).
+    ``gpu_memory_fraction``: 0 grows GPU memory on demand (several actors can share a GPU); otherwise
+    each actor preallocates that fraction. ``max_restarts``: Ray restarts of a dead worker actor.
+    ``local_cpus``: logical CPUs of a Ray started on this machine (0: Ray detects them).
+    """
+
+    address: str | None = None
+    workers: int = 0
+    seeds_per_actor: int = 1
+    num_cpus: float = 0.5
+    num_gpus: float = 0.0
+    gpu_memory_fraction: float = 0.0
+    max_restarts: int = 3
+    local_cpus: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    env: tuple[tuple[str, Any], ...] = (("layout", "cramped_room"),)
+    model: ModelConfig = ModelConfig()
+    ppo: PPOConfig = PPOConfig()
+    population: PopulationConfig = PopulationConfig()
+    eval: EvalConfig = EvalConfig()
+    run: RunConfig = RunConfig()
+    archive: ArchiveConfig = ArchiveConfig()
+    cluster: ClusterConfig = ClusterConfig()
+
+    @property
+    def env_kwargs(self) -> dict:
+        """Keyword arguments for ``ocv2.make``."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.env}
+
+    def to_dict(self) -> dict:
+        """Plain YAML/JSON-able form (round-trips through ``parse_config``)."""
+        out = {"env": self.env_kwargs}
+        for name in SECTIONS[1:]:
+            out[name] = _plain(dataclasses.asdict(getattr(self, name)))
+        return out
+
+    def fingerprint(self, exclude: Sequence[str] = ("eval", "run", "archive", "cluster")) -> str:
+        """A hash of everything that changes training numbers (checkpoints from another config are refused).
+
+        Keys added after a release are left out at their default value (``_LATER_KEYS``), so runs made
+        before the key existed keep their fingerprint and still resume.
+        """
+        data = {k: v for k, v in self.to_dict().items() if k not in exclude}
+        for *path, key in _LATER_KEYS:
+            section = data
+            for name in path:
+                section = section.get(name, {})
+            if key in section and section[key] == _LATER_KEYS[(*path, key)]:
+                del section[key]
+        return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+#: Keys added after 0.1.0 and their defaults, left out of the fingerprint at those defaults.
+_LATER_KEYS = {("population", "fcp", "pool"): "shared", ("population", "fcp", "partner_ppo"): None,
+               ("model", "kernels"): "auto"}
+
+
+def _plain(value):
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return value

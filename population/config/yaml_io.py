@@ -1,0 +1,117 @@
+"""YAML in and out: reading a config file as plain data, ``--set`` overrides, writing a resolved config."""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
+
+import yaml
+
+from ocv2.atomic import atomic_write
+from population.config.errors import SET_PREFIX, ConfigError
+
+if TYPE_CHECKING:
+    from population.config.schema import Config
+
+#: YAML nodes a config may expand to (aliases included): a config is a few hundred; this stops alias bombs.
+MAX_YAML_NODES = 100_000
+
+
+def read_yaml(path: str) -> Any:
+    """The plain data (mappings, lists, strings, numbers, booleans, null) of a YAML file, or a ConfigError."""
+    if os.path.isdir(path):
+        raise ConfigError(f"{path}: is a directory, not a config file")
+    try:
+        with open(path, encoding="utf-8") as handle:
+            raw = yaml.safe_load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file (not valid UTF-8)") from None
+    except OSError as error:
+        raise ConfigError(f"{path}: cannot read: {error.strerror or error}") from None
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {yaml_problem(error)}") from None
+    try:
+        check_plain_data(raw)
+    except ConfigError as error:
+        raise error.prefixed(path) from None
+    return raw
+
+
+def yaml_problem(error: yaml.YAMLError) -> str:
+    """A YAML error as one line: what went wrong and where (PyYAML's own message spans several lines)."""
+    mark = getattr(error, "problem_mark", None)
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return f"{problem}{where}"
+
+
+def check_plain_data(value, where: str = "") -> None:
+    """Refuse what YAML can express but a config cannot hold: dates, binary, sets, self-referencing
+    anchors, and alias chains that expand to more than ``MAX_YAML_NODES`` nodes."""
+    budget = [MAX_YAML_NODES]
+
+    def walk(node, key: str, parents: tuple[int, ...]) -> None:
+        budget[0] -= 1
+        if budget[0] < 0:
+            raise ConfigError(f"the YAML expands to more than {MAX_YAML_NODES} values (anchors and aliases "
+                              "repeated too often)")
+        name = key or "the config"
+        if isinstance(node, (dict, list)):
+            if id(node) in parents:
+                raise ConfigError(f"{name}: refers to itself through a YAML anchor")
+            inner = (*parents, id(node))
+            items = node.items() if isinstance(node, dict) else enumerate(node)
+            for child_key, child in items:
+                if isinstance(node, dict) and not isinstance(child_key, str):
+                    raise ConfigError(f"{name}: key {child_key!r} is not a string")
+                child_name = f"{key}.{child_key}" if isinstance(node, dict) and key else (
+                    str(child_key) if isinstance(node, dict) else f"{name}[{child_key}]")
+                walk(child, child_name, inner)
+            return
+        if node is None or isinstance(node, (bool, int, float, str)):
+            return
+        kind = {"date": "a date", "datetime": "a date and time", "bytes": "binary data (!!binary)",
+                "set": "a set (!!set)"}.get(type(node).__name__, f"a {type(node).__name__}")
+        hint = "; quote it to make it a string" if type(node).__name__ in ("date", "datetime") else ""
+        raise ConfigError(f"{name}: {kind} is not a config value, got {node!r}{hint}")
+
+    walk(value, where, ())
+
+
+def apply_overrides(raw: Mapping, overrides: Sequence[str]) -> dict:
+    """``["ppo.lr=1e-3", "env.layout=coord_ring"]`` -> a new nested dict; values are parsed as YAML.
+
+    Errors name the override as the user typed it (``--set ppo.lr=[1,: ...``), never the file.
+    """
+    data = json.loads(json.dumps(raw))  # deep copy of plain data
+    for item in overrides:
+        where = f"{SET_PREFIX}{item}"
+        if "=" not in item:
+            raise ConfigError(f"{where}: expected section.key=value")
+        dotted, text = item.split("=", 1)
+        parts = dotted.strip().split(".")
+        if len(parts) < 2 or not all(parts):
+            raise ConfigError(f"{where}: expected section.key=value")
+        node = data
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{where}: {part} is not a section")
+        try:
+            value = yaml.safe_load(text) if text.strip() else None
+        except yaml.YAMLError as error:
+            raise ConfigError(f"{where}: the value is not valid YAML: {yaml_problem(error)}") from None
+        try:
+            check_plain_data(value, dotted.strip())
+        except ConfigError as error:
+            raise ConfigError([f"{where}: {problem}" for problem in error.problems]) from None
+        node[parts[-1]] = value
+    return data
+
+
+def dump_config(config: Config, path: str | os.PathLike) -> None:
+    """Write the resolved config as YAML (atomically)."""
+    atomic_write(path, yaml.safe_dump(config.to_dict(), sort_keys=False))
