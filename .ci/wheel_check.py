@@ -45,6 +45,13 @@ def main() -> None:
     assert len(papers) >= 40, f"only {len(papers)} paper configs in the wheel"
     subprocess.run([ocv2_cli, "validate", *papers], check=True, stdout=subprocess.DEVNULL)
     print(f"wheel: ocv2 validate passed on the {len(papers)} packaged paper configs")
+    from cluster.study.spec import load_study
+
+    studies = sorted(Path(str(PAPER_CONFIGS)).parent.joinpath("studies").glob("*.yaml"))
+    assert len(studies) >= 14, f"only {len(studies)} studies in the wheel"
+    for study in studies:  # every run's config resolves inside the installed package
+        load_study(study)
+    print(f"wheel: the {len(studies)} packaged studies load")
 
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "tiny_fcp.yaml"

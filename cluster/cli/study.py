@@ -22,7 +22,9 @@ from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.loggers import MissingExtraError
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
-from cluster.study.spec import StudyError, load_study, parse_study
+from cluster.study.report import write_report
+from cluster.study.runner import read_state, run_study, study_status
+from cluster.study.spec import StudyError, load_study, parse_study, run_config
 from population.checkpoints import CheckpointError
 
 
@@ -82,8 +84,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from cluster.study.runner import run_study  # imports the trainer
-
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     if args.address and args.backend != "ray":
         raise CLIError("--address needs --backend ray")
@@ -110,8 +110,6 @@ def _run(args) -> int:
 
 
 def _status(directory: str) -> int:
-    from cluster.study.runner import study_status
-
     try:
         entries = study_status(directory)
     except (StudyError, RunDirError) as error:
@@ -136,10 +134,6 @@ def _status(directory: str) -> int:
 
 
 def _report(directory: str, dest: str | None) -> int:
-    from cluster.study.report import write_report
-    from cluster.study.runner import read_state
-    from cluster.study.spec import run_config
-
     out = Path(directory).resolve()
     try:
         state = read_state(out)

@@ -31,7 +31,8 @@ import numpy as np
 from cluster.api import train_population
 from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir, RunDirError, write_json
-from cluster.study.spec import Comparison, Study, StudyError, run_config, run_dir
+from cluster.study.report import write_report
+from cluster.study.spec import Comparison, Study, StudyError, parse_study, run_config, run_dir
 from population import checkpoints as ckpt
 from population.xp import block_summary
 
@@ -161,8 +162,6 @@ def run_study(study: Study, out, budget: float | None = None, seeds: int | None 
                 say(f"study {study.name}: {name} blocked: {blocked}")
                 continue
             timer.tick(status="done", finished=time.time(), **(result or {}))
-        from cluster.study.report import write_report  # the report imports plotting; only needed here
-
         paths = write_report(study, out, state.state, configs)
         state.state["report"] = paths
         state.save()
@@ -347,8 +346,6 @@ def study_status(out) -> list[dict]:
     state = read_state(out)
     if not state:
         raise StudyError(f"{out}: not a study directory (no {STATE_NAME})")
-    from cluster.study.spec import parse_study  # the stored spec, not today's file
-
     study = parse_study(state["spec"], Path(state.get("source", out / "study.yaml")))
     rates = _rates(study, out, state)
     configs = {}
