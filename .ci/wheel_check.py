@@ -15,15 +15,24 @@ from pathlib import Path
 import yaml
 
 CHECKOUT = Path(sys.argv[1]).resolve()
-SIZES = {"num_envs": 4, "num_steps": 32, "num_minibatches": 2, "update_epochs": 1, "total_timesteps": 256,
-         "rew_shaping_horizon": 128}
+SIZES = {
+    "num_envs": 4,
+    "num_steps": 32,
+    "num_minibatches": 2,
+    "update_epochs": 1,
+    "total_timesteps": 256,
+    "rew_shaping_horizon": 128,
+}
 TINY_FCP = {
     "env": {"layout": "cramped_room", "max_steps": 40},
     "model": {"kind": "cnn", "conv_features": [8, 8], "conv_kernels": [3, 3], "fc_dim": 16},
     "ppo": {**SIZES, "lr": 1.0e-3},
     # partner_ppo gives only sizes: every other value must come from the paper's SP config
-    "population": {"method": "fcp", "num_seeds": 1, "fcp": {"partner_seeds": 1, "checkpoints": ["final"],
-                                                            "partner_ppo": SIZES}},
+    "population": {
+        "method": "fcp",
+        "num_seeds": 1,
+        "fcp": {"partner_seeds": 1, "checkpoints": ["final"], "partner_ppo": SIZES},
+    },
     "eval": {"episodes": 1, "gifs": 0},
     "run": {"checkpoint_every": 8, "num_checkpoints": 2},
     "archive": {"xp": False, "sa_collection": False},
@@ -57,15 +66,20 @@ def main() -> None:
         config = Path(tmp) / "tiny_fcp.yaml"
         config.write_text(yaml.safe_dump(TINY_FCP))
         run = Path(tmp) / "run"
-        subprocess.run([ocv2_cli, "train", str(config), "--backend", "local", "--quiet", "--no-eval",
-                        "--out", str(run)], check=True, cwd=tmp)
+        subprocess.run(
+            [ocv2_cli, "train", str(config), "--backend", "local", "--quiet", "--no-eval", "--out", str(run)],
+            check=True,
+            cwd=tmp,
+        )
         stage = yaml.safe_load((run / "partners" / "config.yaml").read_text())["ppo"]
     paper = yaml.safe_load((Path(str(PAPER_CONFIGS)) / "classic_cramped_room_sp.yaml").read_text())["ppo"]
     for key, value in paper.items():
         expected = SIZES.get(key, value)
         assert stage[key] == expected, f"partner stage {key} = {stage[key]!r}, paper SP config says {expected!r}"
-    print(f"wheel: the FCP partner stage trained with the packaged paper SP hyperparameters "
-          f"(lr {stage['lr']}, ent_coef {stage['ent_coef']}, max_grad_norm {stage['max_grad_norm']})")
+    print(
+        f"wheel: the FCP partner stage trained with the packaged paper SP hyperparameters "
+        f"(lr {stage['lr']}, ent_coef {stage['ent_coef']}, max_grad_norm {stage['max_grad_norm']})"
+    )
 
 
 if __name__ == "__main__":

@@ -42,11 +42,10 @@ import platform
 import statistics
 import sys
 import time
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-
 from sections import write_section  # bench/ is sys.path[0] when a script runs
 
 DEFAULT_LAYOUTS = ["cramped_room", "counter_circuit", "grounded_coord_simple", "demo_cook_wide"]
@@ -58,13 +57,13 @@ END_MARK = "<!-- env_throughput:end -->"
 
 
 # ---------------------------------------------------------------------------- factories
-def make_jaxmarl(layout: str, view: Optional[int]):
+def make_jaxmarl(layout: str, view: int | None):
     from jaxmarl.environments.overcooked_v2 import OvercookedV2
 
     return OvercookedV2(layout=layout, agent_view_size=view)
 
 
-def make_ocv2(layout: str, view: Optional[int]):
+def make_ocv2(layout: str, view: int | None):
     import ocv2
 
     return ocv2.make(layout, agent_view_size=view)
@@ -354,10 +353,7 @@ def view_str(v) -> str:
 
 
 def results_table(rows_by_cfg, configs) -> tuple[str, dict]:
-    head = (
-        "| layout | view | batch | jaxmarl env steps/s | ocv2 env steps/s | ratio (ocv2/jaxmarl) "
-        "| target | met? |"
-    )
+    head = "| layout | view | batch | jaxmarl env steps/s | ocv2 env steps/s | ratio (ocv2/jaxmarl) | target | met? |"
     sep = "|---|---|---:|---:|---:|---:|---:|:---:|"
     lines, ratios, met = [head, sep], [], 0
     for cfg in configs:
@@ -383,8 +379,11 @@ def results_table(rows_by_cfg, configs) -> tuple[str, dict]:
 
 def split_table(split_results, batch: int) -> str:
     views = list(split_results)
-    head = "| part | " + " | ".join(
-        f"view {view_str(v)}: µs/step (batch {batch}) | view {view_str(v)}: % of (d)" for v in views) + " |"
+    head = (
+        "| part | "
+        + " | ".join(f"view {view_str(v)}: µs/step (batch {batch}) | view {view_str(v)}: % of (d)" for v in views)
+        + " |"
+    )
     sep = "|---|" + "---:|---:|" * len(views)
     lines = [head, sep]
     for part, label in SPLIT_PARTS:
@@ -403,8 +402,9 @@ def split_table(split_results, batch: int) -> str:
     return "\n".join(lines)
 
 
-def build_markdown(info, args, command, table, summary, split_md, split_cfg, split_results,
-                   main_rows_by_cfg, wall_s) -> str:
+def build_markdown(
+    info, args, command, table, summary, split_md, split_cfg, split_results, main_rows_by_cfg, wall_s
+) -> str:
     out = [
         START_MARK,
         "## Environment throughput (bench/env_throughput.py)",
@@ -493,20 +493,35 @@ def build_markdown(info, args, command, table, summary, split_md, split_cfg, spl
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--layouts", nargs="+", default=None, help=f"default: {' '.join(DEFAULT_LAYOUTS)}")
-    p.add_argument("--views", nargs="+", default=None, help="agent_view_size values, 'none' = full grid (default: none 2)")
+    p.add_argument(
+        "--views", nargs="+", default=None, help="agent_view_size values, 'none' = full grid (default: none 2)"
+    )
     p.add_argument("--batches", nargs="+", type=int, default=None, help="default: 1 64 1024")
     p.add_argument("--steps", type=int, default=256, help="env steps per timed scan")
     p.add_argument("--repeats", type=int, default=3, help="least timed runs per case per round")
-    p.add_argument("--min-time", type=float, default=0.5,
-                   help="least seconds of timed runs per case per round: short cases (batch 1) repeat more,"
-                        " so one noisy moment on a shared machine does not decide their median")
-    p.add_argument("--rounds", type=int, default=None,
-                   help="interleaved sweeps (default 5; 1 with --quick): the shared VMs this runs on swing by"
-                        " +-35 %% between minutes, and the median of fewer sweeps lets one slow minute decide a cell")
-    p.add_argument("--quick", action="store_true",
-                   help="smoke run: one layout (cramped_room), batches 1 and 64, 1 round, small time split")
+    p.add_argument(
+        "--min-time",
+        type=float,
+        default=0.5,
+        help="least seconds of timed runs per case per round: short cases (batch 1) repeat more,"
+        " so one noisy moment on a shared machine does not decide their median",
+    )
+    p.add_argument(
+        "--rounds",
+        type=int,
+        default=None,
+        help="interleaved sweeps (default 5; 1 with --quick): the shared VMs this runs on swing by"
+        " +-35 %% between minutes, and the median of fewer sweeps lets one slow minute decide a cell",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run: one layout (cramped_room), batches 1 and 64, 1 round, small time split",
+    )
     p.add_argument("--split-layout", default="grounded_coord_simple", help="layout for 'Where the time goes'")
-    p.add_argument("--split-batch", type=int, default=None, help="batch for 'Where the time goes' (default 1024; 64 with --quick)")
+    p.add_argument(
+        "--split-batch", type=int, default=None, help="batch for 'Where the time goes' (default 1024; 64 with --quick)"
+    )
     p.add_argument("--no-split", action="store_true", help="skip 'Where the time goes'")
     p.add_argument("--out", default="docs/BENCHMARKS.md", help="Markdown file to write ('' = don't write)")
     p.add_argument("--json", default=None, help="also write all results to this JSON file")
@@ -523,8 +538,10 @@ def main(argv=None):
     args.rounds = args.rounds or 5
     args.split_batch = args.split_batch or 1024
     views = [None if str(v).lower() == "none" else int(v) for v in args.views]
-    command = "python " + " ".join([os.path.relpath(sys.argv[0]) if sys.argv[0] else "bench/env_throughput.py"]
-                                   + (sys.argv[1:] if argv is None else list(argv)))
+    command = "python " + " ".join(
+        [os.path.relpath(sys.argv[0]) if sys.argv[0] else "bench/env_throughput.py"]
+        + (sys.argv[1:] if argv is None else list(argv))
+    )
 
     t_start = time.perf_counter()
     info = environment_info()
@@ -574,8 +591,9 @@ def main(argv=None):
             fns = make_split_fns(env, args.split_batch, args.steps)
             for part, _ in SPLIT_PARTS:
                 if part in REFERENCE_PARTS:
-                    split_cases[(v, part)] = Case(REFERENCE_PARTS[part], args.split_layout, v, args.split_batch,
-                                                  steps=args.steps)
+                    split_cases[(v, part)] = Case(
+                        REFERENCE_PARTS[part], args.split_layout, v, args.split_batch, steps=args.steps
+                    )
                 else:
                     fn, carry = fns[part]
                     split_cases[(v, part)] = SplitCase(fn, carry)
@@ -587,7 +605,7 @@ def main(argv=None):
                     log(
                         f"[split round {rnd + 1}/{args.rounds}] {args.split_layout} view={view_str(v):4s}"
                         f" batch={args.split_batch} {part:13s}"
-                        f" {1e6 * statistics.median(sc.times[-args.repeats:]) / args.steps:10,.1f} µs/step"
+                        f" {1e6 * statistics.median(sc.times[-args.repeats :]) / args.steps:10,.1f} µs/step"
                     )
         for v in views:
             split_results[v] = {}
@@ -617,8 +635,18 @@ def main(argv=None):
     log(f"\nwall time: {wall_s:.1f} s ({wall_s / 60:.1f} min)")
 
     if args.out:
-        block = build_markdown(info, args, command, table, summary, split_md,
-                               (args.split_layout, args.split_batch), split_results, rows_by_cfg, wall_s)
+        block = build_markdown(
+            info,
+            args,
+            command,
+            table,
+            summary,
+            split_md,
+            (args.split_layout, args.split_batch),
+            split_results,
+            rows_by_cfg,
+            wall_s,
+        )
         write_section(args.out, block, START_MARK, END_MARK)
         log(f"wrote {args.out}")
     if args.json:

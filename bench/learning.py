@@ -28,7 +28,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 from sections import write_section  # bench/ is sys.path[0] when a script runs
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -69,22 +68,36 @@ def main(argv=None) -> int:
     started = time.perf_counter()
     rows = []
     update = 0
-    print(f"{config.env_kwargs['layout']}: {args.seeds} seed(s), paper schedule over {config.ppo.num_updates} "
-          f"updates, budget {args.minutes:g} min", flush=True)
+    print(
+        f"{config.env_kwargs['layout']}: {args.seeds} seed(s), paper schedule over {config.ppo.num_updates} "
+        f"updates, budget {args.minutes:g} min",
+        flush=True,
+    )
     while update < config.ppo.num_updates and time.perf_counter() - started < budget:
         chunk_start = time.perf_counter()
         states, metrics = advance(states, None, None)
         metrics = jax.tree.map(np.asarray, metrics)
         wall = time.perf_counter() - chunk_start
         for u in range(args.chunk):
-            rows.append({"update": int(metrics.update[0, u]), "env_steps": int(metrics.env_steps[0, u]),
-                         "sparse_return": float(np.nanmean(metrics.sparse_return[:, u])) if not np.isnan(metrics.sparse_return[:, u]).all() else float("nan"),
-                         "shaped_return": float(np.nanmean(metrics.shaped_return[:, u])) if not np.isnan(metrics.shaped_return[:, u]).all() else float("nan"),
-                         "wall_s": time.perf_counter() - started})
+            rows.append(
+                {
+                    "update": int(metrics.update[0, u]),
+                    "env_steps": int(metrics.env_steps[0, u]),
+                    "sparse_return": float(np.nanmean(metrics.sparse_return[:, u]))
+                    if not np.isnan(metrics.sparse_return[:, u]).all()
+                    else float("nan"),
+                    "shaped_return": float(np.nanmean(metrics.shaped_return[:, u]))
+                    if not np.isnan(metrics.shaped_return[:, u]).all()
+                    else float("nan"),
+                    "wall_s": time.perf_counter() - started,
+                }
+            )
         update = rows[-1]["update"]
-        print(f"  update {update:4d}  env steps {rows[-1]['env_steps']:>10,}  sparse {rows[-1]['sparse_return']:7.1f}"
-              f"  shaped {rows[-1]['shaped_return']:7.1f}  {args.seeds * args.chunk * config.ppo.steps_per_update / wall:,.0f} steps/s",
-              flush=True)
+        print(
+            f"  update {update:4d}  env steps {rows[-1]['env_steps']:>10,}  sparse {rows[-1]['sparse_return']:7.1f}"
+            f"  shaped {rows[-1]['shaped_return']:7.1f}  {args.seeds * args.chunk * config.ppo.steps_per_update / wall:,.0f} steps/s",
+            flush=True,
+        )
         if args.csv:
             _write_csv(args.csv, rows)
     random_return = random_policy_return(config)
@@ -122,7 +135,9 @@ def _table(rows, config, args, random_return, wall) -> str:
     ]
     for i in marks:
         r = rows[i]
-        lines.append(f"| {r['env_steps']:,} | {r['sparse_return']:.1f} | {r['shaped_return']:.1f} | {r['wall_s'] / 60:.1f} min |")
+        lines.append(
+            f"| {r['env_steps']:,} | {r['sparse_return']:.1f} | {r['shaped_return']:.1f} | {r['wall_s'] / 60:.1f} min |"
+        )
     lines += [
         "",
         f"Random policy (uniform actions, 64 episodes): {random_return:.1f}. Paper: SP 259 after 10M steps (GPU). "

@@ -29,10 +29,28 @@ def peak_mib(kind: str, seeds: int) -> float:
     """Peak RSS (MiB) of one ``ocv2 train --backend local`` process training ``seeds`` seeds for one update."""
     steps = STEPS_PER_UPDATE[kind]
     with tempfile.TemporaryDirectory() as tmp:
-        command = [sys.executable, "-m", "cluster.cli", "train", CONFIGS[kind], "--backend", "local", "--quiet",
-                   "--out", os.path.join(tmp, "run"), "--set", f"population.num_seeds={seeds}",
-                   "--set", f"ppo.total_timesteps={steps}", "--set", "eval.episodes=1", "--set", "eval.gifs=0",
-                   "--set", "archive.xp=false"]
+        command = [
+            sys.executable,
+            "-m",
+            "cluster.cli",
+            "train",
+            CONFIGS[kind],
+            "--backend",
+            "local",
+            "--quiet",
+            "--out",
+            os.path.join(tmp, "run"),
+            "--set",
+            f"population.num_seeds={seeds}",
+            "--set",
+            f"ppo.total_timesteps={steps}",
+            "--set",
+            "eval.episodes=1",
+            "--set",
+            "eval.gifs=0",
+            "--set",
+            "archive.xp=false",
+        ]
         env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
         process = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
         _, status, usage = os.wait4(process.pid, 0)
@@ -55,8 +73,7 @@ def main() -> None:
             n = len(points)
             mean_x = sum(x for x, _ in points) / n
             mean_y = sum(y for _, y in points) / n
-            slope = (sum((x - mean_x) * (y - mean_y) for x, y in points)
-                     / sum((x - mean_x) ** 2 for x, _ in points))
+            slope = sum((x - mean_x) * (y - mean_y) for x, y in points) / sum((x - mean_x) ** 2 for x, _ in points)
             print(f"{kind}: {mean_y - slope * mean_x:.0f} MiB + {slope:.0f} MiB per seed", flush=True)
 
 

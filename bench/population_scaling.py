@@ -74,8 +74,14 @@ class Timeline:
 
 def population_config(seeds: int, updates: int, backend: str):
     steps = 64 * 256 * updates
-    overrides = [f"population.num_seeds={seeds}", f"ppo.total_timesteps={steps}", f"ppo.rew_shaping_horizon={steps}",
-                 "population.sa.iterations=2", f"run.checkpoint_every={max(1, updates // 3)}", "eval.gifs=0"]
+    overrides = [
+        f"population.num_seeds={seeds}",
+        f"ppo.total_timesteps={steps}",
+        f"ppo.rew_shaping_horizon={steps}",
+        "population.sa.iterations=2",
+        f"run.checkpoint_every={max(1, updates // 3)}",
+        "eval.gifs=0",
+    ]
     if backend == "ray":
         overrides += [f"cluster.num_cpus={max(os.cpu_count() or 1, 1) / seeds:.3f}"]
     return load_config(PAPER_CONFIG, overrides)
@@ -92,7 +98,9 @@ def run_population(backend: str, seeds: int, updates: int) -> dict:
         if backend == "local":
             from cluster.runtime.local import LocalWorkers
 
-            coordinator.train(config, out, LocalWorkers, show_progress=False, evaluate=False, on_chunk=timeline.on_chunk)
+            coordinator.train(
+                config, out, LocalWorkers, show_progress=False, evaluate=False, on_chunk=timeline.on_chunk
+            )
         else:
             import ray
 
@@ -106,8 +114,9 @@ def run_population(backend: str, seeds: int, updates: int) -> dict:
             finally:
                 ray.shutdown()
         wall = time.perf_counter() - started
-        archive_bytes = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(os.path.join(out, "archive"))
-                            for f in fs)
+        archive_bytes = sum(
+            os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(os.path.join(out, "archive")) for f in fs
+        )
     finally:
         coordinator.sa_buffer = timeline._collect
         shutil.rmtree(out, ignore_errors=True)
@@ -115,10 +124,19 @@ def run_population(backend: str, seeds: int, updates: int) -> dict:
     window = t1 - t0
     sa_in_window = sum(max(0.0, min(e, t1) - max(s, t0)) for s, e in timeline.collections)
     steps = seeds * (u1 - u0) * config.ppo.steps_per_update
-    return {"backend": backend, "wall_s": wall, "ray_start_s": ray_start, "first_chunk_s": t0 - started,
-            "steady_steps_per_s": steps / window, "training_steps_per_s": steps / (window - sa_in_window),
-            "sa_share": sa_in_window / window, "sa_s": sum(e - s for s, e in timeline.collections),
-            "collections": len(timeline.collections), "archive_bytes": archive_bytes, "window_updates": u1 - u0}
+    return {
+        "backend": backend,
+        "wall_s": wall,
+        "ray_start_s": ray_start,
+        "first_chunk_s": t0 - started,
+        "steady_steps_per_s": steps / window,
+        "training_steps_per_s": steps / (window - sa_in_window),
+        "sa_share": sa_in_window / window,
+        "sa_s": sum(e - s for s, e in timeline.collections),
+        "collections": len(timeline.collections),
+        "archive_bytes": archive_bytes,
+        "window_updates": u1 - u0,
+    }
 
 
 def sa_at_paper_settings() -> dict:
@@ -134,8 +152,9 @@ def sa_at_paper_settings() -> dict:
     env = ppo.eval_env(config)
     key = jax.random.PRNGKey(0)
     sa = config.population.sa
-    collect = lambda record, pairs: collect_pairs(trainer.network.apply, hidden_size(trainer), env, params, key, sa,
-                                                  pairs, record=record)
+    collect = lambda record, pairs: collect_pairs(
+        trainer.network.apply, hidden_size(trainer), env, params, key, sa, pairs, record=record
+    )
     for record in (False, True):  # compile both programs (one K-pair chunk) before timing
         jax.block_until_ready(jax.tree.leaves(collect(record, all_pairs(PAPER_SEEDS)[:PAPER_SEEDS])[0].states))
     start = time.perf_counter()
@@ -183,9 +202,11 @@ def render(results: list[dict], paper: dict, seeds: int, updates: int) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        lines.append(f"| {r['backend']} | {r['wall_s']:.0f} s | {r['ray_start_s']:.1f} s | {r['first_chunk_s']:.0f} s | "
-                     f"{r['steady_steps_per_s']:,.0f} | {r['training_steps_per_s']:,.0f} | {100 * r['sa_share']:.1f} % "
-                     f"| {r['archive_bytes'] / 1e6:.1f} MB |")
+        lines.append(
+            f"| {r['backend']} | {r['wall_s']:.0f} s | {r['ray_start_s']:.1f} s | {r['first_chunk_s']:.0f} s | "
+            f"{r['steady_steps_per_s']:,.0f} | {r['training_steps_per_s']:,.0f} | {100 * r['sa_share']:.1f} % "
+            f"| {r['archive_bytes'] / 1e6:.1f} MB |"
+        )
     lines += [
         "",
         f"Part B: one SA collection at the paper's settings (10 seeds, 100 ordered pairs x 10 episodes x 400 steps = "
@@ -212,8 +233,11 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--updates", type=int, default=12)
-    parser.add_argument("--out", default=os.path.join(ROOT, "docs", "BENCHMARKS.md"),
-                        help="Markdown file whose block is replaced ('' to only print)")
+    parser.add_argument(
+        "--out",
+        default=os.path.join(ROOT, "docs", "BENCHMARKS.md"),
+        help="Markdown file whose block is replaced ('' to only print)",
+    )
     args = parser.parse_args(argv)
     results = []
     for backend in ("local", "ray"):

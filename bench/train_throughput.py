@@ -51,7 +51,6 @@ import time
 
 import jax
 import jax.numpy as jnp
-
 from sections import publish  # bench/ is sys.path[0] when a script runs
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -63,19 +62,40 @@ START, END = "<!-- train_throughput:start -->", "<!-- train_throughput:end -->"
 PAPER_RANGE = {"rnn": (400, 670), "cnn": (350, 470)}
 CONFIGS = {
     "rnn": {
-        "env": {"layout": "grounded_coord_simple", "agent_view_size": 2, "negative_rewards": True,
-                "random_agent_positions": True, "sample_recipe_on_delivery": True},
+        "env": {
+            "layout": "grounded_coord_simple",
+            "agent_view_size": 2,
+            "negative_rewards": True,
+            "random_agent_positions": True,
+            "sample_recipe_on_delivery": True,
+        },
         "model": {"kind": "rnn"},
-        "ppo": {"lr": 2.5e-4, "num_envs": 256, "num_steps": 256, "num_minibatches": 64, "update_epochs": 4,
-                "total_timesteps": 30_000_000, "rew_shaping_horizon": 15_000_000, "ent_coef": 0.01,
-                "max_grad_norm": 0.25},
+        "ppo": {
+            "lr": 2.5e-4,
+            "num_envs": 256,
+            "num_steps": 256,
+            "num_minibatches": 64,
+            "update_epochs": 4,
+            "total_timesteps": 30_000_000,
+            "rew_shaping_horizon": 15_000_000,
+            "ent_coef": 0.01,
+            "max_grad_norm": 0.25,
+        },
     },
     "cnn": {
         "env": {"layout": "cramped_room"},
         "model": {"kind": "cnn"},
-        "ppo": {"lr": 4e-4, "num_envs": 64, "num_steps": 256, "num_minibatches": 16, "update_epochs": 4,
-                "total_timesteps": 10_000_000, "rew_shaping_horizon": 5_000_000, "ent_coef": 0.04,
-                "max_grad_norm": 0.5},
+        "ppo": {
+            "lr": 4e-4,
+            "num_envs": 64,
+            "num_steps": 256,
+            "num_minibatches": 16,
+            "update_epochs": 4,
+            "total_timesteps": 10_000_000,
+            "rew_shaping_horizon": 5_000_000,
+            "ent_coef": 0.04,
+            "max_grad_norm": 0.5,
+        },
     },
 }
 
@@ -98,7 +118,7 @@ class MatmulPeak:
         for _ in range(calls):
             start = time.perf_counter()
             jax.block_until_ready(self.fn(self.a, self.b))
-            self.samples.append(2 * PEAK_SIZE ** 3 / (time.perf_counter() - start) / 1e9)
+            self.samples.append(2 * PEAK_SIZE**3 / (time.perf_counter() - start) / 1e9)
 
     def gflops(self, samples=None) -> float:
         return statistics.median(self.samples if samples is None else samples)
@@ -142,8 +162,9 @@ def measure(name: str, repeats: int, peak: MatmulPeak) -> dict:
 
     def rollout(s):
         carry = ppo.StepCarry(s, jnp.float32(1.0))
-        carry, transitions = jax.lax.scan(lambda c, x: ppo.rollout_step(trainer, None, None, c, x), carry, None,
-                                          length=config.ppo.num_steps)
+        carry, transitions = jax.lax.scan(
+            lambda c, x: ppo.rollout_step(trainer, None, None, c, x), carry, None, length=config.ppo.num_steps
+        )
         return carry.state.key, transitions.reward
 
     update = jax.jit(lambda s: ppo.advance(trainer, s, 1)[1])
@@ -158,10 +179,21 @@ def measure(name: str, repeats: int, peak: MatmulPeak) -> dict:
     steps = config.ppo.steps_per_update
     flops = flops_per_env_step(trainer, state.params)
     achieved = flops * steps / t_update / 1e9
-    return {"name": name, "layout": config.env_kwargs["layout"], "steps": steps, "update_s": t_update,
-            "rollout_s": t_rollout, "learn_s": max(t_update - t_rollout, 0.0), "sps": steps / t_update,
-            "compile_s": compile_s, "config": config, "mflop_per_step": flops / 1e6, "gflops": achieved,
-            "peak_gflops": peak_gflops, "ratio": achieved / peak_gflops}
+    return {
+        "name": name,
+        "layout": config.env_kwargs["layout"],
+        "steps": steps,
+        "update_s": t_update,
+        "rollout_s": t_rollout,
+        "learn_s": max(t_update - t_rollout, 0.0),
+        "sps": steps / t_update,
+        "compile_s": compile_s,
+        "config": config,
+        "mflop_per_step": flops / 1e6,
+        "gflops": achieved,
+        "peak_gflops": peak_gflops,
+        "ratio": achieved / peak_gflops,
+    }
 
 
 def table(results, repeats: int, peak: MatmulPeak) -> str:
@@ -183,7 +215,8 @@ def table(results, repeats: int, peak: MatmulPeak) -> str:
             f"{r['rollout_s']:.1f} s ({100 * r['rollout_s'] / r['update_s']:.0f} %) | "
             f"{r['learn_s']:.1f} s ({100 * r['learn_s'] / r['update_s']:.0f} %) | {r['sps']:,.0f} | "
             f"{r['mflop_per_step']:.1f} | {r['gflops']:.1f} | {r['peak_gflops']:.1f} | {100 * r['ratio']:.0f} % | {lo}-{hi} | "
-            f"{r['sps'] / hi:.1f}-{r['sps'] / lo:.1f}x |")
+            f"{r['sps'] / hi:.1f}-{r['sps'] / lo:.1f}x |"
+        )
     lines += [
         "",
         f"Matmul peak: a jitted 2048^3 float32 `jnp.dot` timed 3 times after every timed update and rollout "
@@ -224,8 +257,12 @@ def main(argv=None) -> int:
     parser.add_argument("--configs", nargs="+", default=["rnn", "cnn"], choices=sorted(CONFIGS))
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default="docs/BENCHMARKS.md")
-    parser.add_argument("--conv-path", choices=("auto", "banded", "im2col"), default="auto",
-                        help="force one SameConv formulation on every grid, for comparison (default: the cheapest)")
+    parser.add_argument(
+        "--conv-path",
+        choices=("auto", "banded", "im2col"),
+        default="auto",
+        help="force one SameConv formulation on every grid, for comparison (default: the cheapest)",
+    )
     args = parser.parse_args(argv)
     networks.CONV_PATH = args.conv_path
     results = []
@@ -233,9 +270,12 @@ def main(argv=None) -> int:
     for name in args.configs:
         print(f"measuring {name} ...", flush=True)
         r = measure(name, args.repeats, peak)
-        print(f"  {r['sps']:,.0f} env steps/s (update {r['update_s']:.1f} s, rollout {r['rollout_s']:.1f} s, "
-              f"compile {r['compile_s']:.0f} s); {r['mflop_per_step']:.1f} MFLOP/env step = {r['gflops']:.1f} GFLOP/s, "
-              f"{100 * r['ratio']:.0f} % of the {r['peak_gflops']:.1f} GFLOP/s matmul", flush=True)
+        print(
+            f"  {r['sps']:,.0f} env steps/s (update {r['update_s']:.1f} s, rollout {r['rollout_s']:.1f} s, "
+            f"compile {r['compile_s']:.0f} s); {r['mflop_per_step']:.1f} MFLOP/env step = {r['gflops']:.1f} GFLOP/s, "
+            f"{100 * r['ratio']:.0f} % of the {r['peak_gflops']:.1f} GFLOP/s matmul",
+            flush=True,
+        )
         results.append(r)
     block = table(results, args.repeats, peak)
     publish(block, args.out, START, END)

@@ -26,7 +26,6 @@ import time
 
 import jax
 import numpy as np
-
 from sections import publish  # bench/ is sys.path[0] when a script runs
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -48,8 +47,17 @@ def random_population(config, num: int) -> crossplay.PolicyGroup:
     net = network(config.model, config.ppo.activation, env.num_actions)
     params = [jax.tree.map(np.asarray, init_params(net, jax.random.PRNGKey(s), env.obs_shape)) for s in range(num)]
     names = tuple(f"seed_{s}" for s in range(num))
-    return crossplay.PolicyGroup("population", names, names,
-                                 config.model, config.ppo.activation, config.env_kwargs, stack_params(params), "sp", 0)
+    return crossplay.PolicyGroup(
+        "population",
+        names,
+        names,
+        config.model,
+        config.ppo.activation,
+        config.env_kwargs,
+        stack_params(params),
+        "sp",
+        0,
+    )
 
 
 class RowTimer(crossplay.LocalPlayers):
@@ -80,9 +88,17 @@ def main(argv=None) -> int:
     config = load_config(args.config)
     env = policy_env(config.env_kwargs)
     group = random_population(config, args.policies)
-    rows = crossplay.PolicyGroup(group.label, group.names[:args.rows], group.ids[:args.rows], group.model,
-                                 group.activation, group.env, jax.tree.map(lambda x: x[:args.rows], group.params),
-                                 group.method, group.seed)
+    rows = crossplay.PolicyGroup(
+        group.label,
+        group.names[: args.rows],
+        group.ids[: args.rows],
+        group.model,
+        group.activation,
+        group.env,
+        jax.tree.map(lambda x: x[: args.rows], group.params),
+        group.method,
+        group.seed,
+    )
     players = RowTimer()
     cpu_started = time.process_time()
     started = time.perf_counter()
@@ -114,7 +130,7 @@ def main(argv=None) -> int:
         f"The paper's matrix: {args.policies} RNN policies ({args.config}: {config.model.kind}, GRU "
         f"{config.model.gru_dim}, layout {config.env_kwargs['layout']}, view "
         f"{config.env_kwargs.get('agent_view_size')}) x {args.policies} partners x {args.episodes} episodes of "
-        f"{env.max_steps} steps = {args.policies ** 2 * args.episodes * env.max_steps / 1e6:.0f}M env steps, played "
+        f"{env.max_steps} steps = {args.policies**2 * args.episodes * env.max_steps / 1e6:.0f}M env steps, played "
         f"by the code behind `ocv2 xp --rows RUN --backend local` in one process (one job per seat-0 policy: "
         f"{args.policies} pairs x {blocks} blocks of {size} episodes, vmapped).",
         "",
@@ -124,8 +140,7 @@ def main(argv=None) -> int:
         f"| one row after that (median of {len(steady)}) | {row_s:.1f} s ({steps / row_s:,.0f} env steps/s); "
         f"{row_cpu:.0f} CPU-seconds |",
         f"| rows played | {args.rows} of {args.policies} ({total:.0f} s) |",
-        f"| full {args.policies}x{args.policies}x{args.episodes} matrix | "
-        f"**{full_s / 60:.1f} min** {how} |",
+        f"| full {args.policies}x{args.policies}x{args.episodes} matrix | **{full_s / 60:.1f} min** {how} |",
         f"| full matrix in CPU time (all cores together) | {(row_cpu * args.policies) / 60:.1f} CPU-minutes "
         f"(= {(row_cpu * args.policies) / 60 / cores:.1f} min if all {cores} cores were free and busy) |",
         f"| summary with seed-bootstrap CIs | {summary_s:.2f} s |",
@@ -134,8 +149,10 @@ def main(argv=None) -> int:
         "With `--backend ray` the rows spread over Ray workers (one per CPU by default), so on a machine "
         "with more cores the wall time drops about in proportion to the workers.",
         "",
-        "Command: `python bench/xp_matrix.py" + (f" --rows {args.rows}" if not measured else "")
-        + (f" --episodes {args.episodes}" if args.episodes != 500 else "") + "`",
+        "Command: `python bench/xp_matrix.py"
+        + (f" --rows {args.rows}" if not measured else "")
+        + (f" --episodes {args.episodes}" if args.episodes != 500 else "")
+        + "`",
         END,
     ]
     publish("\n".join(lines), args.out, START, END)

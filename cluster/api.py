@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import importlib
 import os
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, NamedTuple, Sequence
+from typing import NamedTuple
 
 from cluster.runtime import coordinator, ray_backend
 from cluster.runtime.local import LocalWorkers
@@ -49,13 +50,22 @@ def require_backend(backend: str) -> None:
         try:
             importlib.import_module("ray")
         except ImportError:
-            raise MissingExtraError("the Ray backend needs Ray: pip install 'ocv2[ray]', or use --backend local") from None
+            raise MissingExtraError(
+                "the Ray backend needs Ray: pip install 'ocv2[ray]', or use --backend local"
+            ) from None
 
 
-def train_population(config: Config | str | os.PathLike, run_dir, *, backend: str = "ray", resume: bool = False,
-                     show_progress: bool = True, evaluate: bool = True,
-                     on_chunk: Callable[[ChunkEvent], None] | None = None,
-                     loggers: Sequence[str] = ()) -> dict:
+def train_population(
+    config: Config | str | os.PathLike,
+    run_dir,
+    *,
+    backend: str = "ray",
+    resume: bool = False,
+    show_progress: bool = True,
+    evaluate: bool = True,
+    on_chunk: Callable[[ChunkEvent], None] | None = None,
+    loggers: Sequence[str] = (),
+) -> dict:
     """Train (or resume) a population into ``run_dir``, then (``evaluate``) cross-play, plots, GIFs.
 
     ``config``: a ``Config`` or a YAML path. ``backend``: "ray" (one actor per shard of seeds; needs
@@ -91,8 +101,9 @@ def train_population(config: Config | str | os.PathLike, run_dir, *, backend: st
             on_chunk(ChunkEvent(update, config.ppo.num_updates, rows, run_dir))
 
     try:
-        summary = _train(config, run_dir, backend, resume=resume, show_progress=show_progress,
-                         evaluate=evaluate, on_chunk=chunk_done)
+        summary = _train(
+            config, run_dir, backend, resume=resume, show_progress=show_progress, evaluate=evaluate, on_chunk=chunk_done
+        )
         if "xp" in summary:
             start_loggers()
             heatmap = run_dir / "xp" / "heatmap.png"
@@ -113,4 +124,3 @@ def _train(config: Config, run_dir: Path, backend: str, **options) -> dict:
     if backend == "local":
         return coordinator.train(config, run_dir, LocalWorkers, **options)
     return ray_backend.train_population(config, run_dir, **options)
-

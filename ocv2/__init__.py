@@ -13,8 +13,19 @@ from ocv2.layouts import LAYOUTS, REFERENCE_LAYOUT_NAMES, Layout
 from ocv2.state import Agents, State, stack_states
 
 __all__ = [
-    "Action", "Agents", "Direction", "EnvConfig", "LAYOUTS", "Layout", "OvercookedV2",
-    "REFERENCE_LAYOUT_NAMES", "State", "Static", "StepArrays", "make", "stack_states",
+    "Action",
+    "Agents",
+    "Direction",
+    "EnvConfig",
+    "LAYOUTS",
+    "Layout",
+    "OvercookedV2",
+    "REFERENCE_LAYOUT_NAMES",
+    "State",
+    "Static",
+    "StepArrays",
+    "make",
+    "stack_states",
 ]
 
 

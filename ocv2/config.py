@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 from ocv2.layouts import Layout, get_layout
 
@@ -70,9 +70,17 @@ class EnvConfig:
 
 
 _BOOL_FIELDS = (
-    "random_reset", "random_agent_positions", "start_cooking_interaction", "negative_rewards",
-    "sample_recipe_on_delivery", "indicate_successful_delivery", "force_path_planning",
-    "fix_negative_placement_reward", "fix_offmap_interaction", "fix_zero_view_size", "fix_button_repress",
+    "random_reset",
+    "random_agent_positions",
+    "start_cooking_interaction",
+    "negative_rewards",
+    "sample_recipe_on_delivery",
+    "indicate_successful_delivery",
+    "force_path_planning",
+    "fix_negative_placement_reward",
+    "fix_offmap_interaction",
+    "fix_zero_view_size",
+    "fix_button_repress",
     "paper_obs_truncation",
 )
 

@@ -182,8 +182,9 @@ def interact(config: EnvConfig, cell, inventory, recipe, counts: _PlateCounts) -
 
     # Plate pickup pays only if fewer plates are held (at step start) than pots are non-empty, and no
     # bare plate lies anywhere on the grid (the reference's anti-reward-hacking rule).
-    plate_pickup = (pickup & (new_inventory == it.PLATE) & (counts.plates_held < counts.busy_pots)
-                    & (counts.loose_plates == 0))
+    plate_pickup = (
+        pickup & (new_inventory == it.PLATE) & (counts.plates_held < counts.busy_pots) & (counts.loose_plates == 0)
+    )
     shaped = shaped + jnp.where(plate_pickup, float(it.SHAPED_PLATE_PICKUP), 0.0)
 
     new_cell = jnp.stack([static, new_item, new_timer]).astype(jnp.int32)
@@ -224,7 +225,8 @@ def apply_interactions(config: EnvConfig, state: State, agents: Agents, actions:
         grid = grid.at[ry, rx].set(written)
         counts = counts._replace(
             busy_pots=counts.busy_pots + _busy_pot(written).astype(jnp.int32) - _busy_pot(cell).astype(jnp.int32),
-            loose_plates=counts.loose_plates + (written[1] == it.PLATE).astype(jnp.int32)
+            loose_plates=counts.loose_plates
+            + (written[1] == it.PLATE).astype(jnp.int32)
             - (cell[1] == it.PLATE).astype(jnp.int32),
         )
         inventories[a] = jnp.where(acting, result.inventory, inventories[a])

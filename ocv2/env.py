@@ -34,7 +34,7 @@ class StepArrays(NamedTuple):
     terminal_state: State  # the state the transition reached, before any auto-reset
 
 
-def make(layout="cramped_room", **params) -> "OvercookedV2":
+def make(layout="cramped_room", **params) -> OvercookedV2:
     """Create an environment; parameters as the reference ``OvercookedV2`` constructor (plus fix flags)."""
     return OvercookedV2(layout, **params)
 
@@ -93,8 +93,12 @@ class OvercookedV2:
         kind = self.config.observation_types[index]
         shape = self._obs_shape_for(kind)
         if kind == "featurized":
-            return Box(low=-float(max(self.height, self.width)), high=float(max(self.height, self.width, it.POT_COOK_TIME)),
-                       shape=shape, dtype=jnp.float32)
+            return Box(
+                low=-float(max(self.height, self.width)),
+                high=float(max(self.height, self.width, it.POT_COOK_TIME)),
+                shape=shape,
+                dtype=jnp.float32,
+            )
         # Largest value: the pot timer (20) or summed layers of N agents (counts <= 3).
         high = max(it.POT_COOK_TIME, 3 * self.num_agents)
         return Box(low=0, high=high, shape=shape, dtype=jnp.dtype(self.config.obs_dtype))
@@ -145,8 +149,14 @@ class OvercookedV2:
         obs = self.get_obs(result.state)
         return (obs, result.state) + self._dicts(result.reward, result.shaped_reward, result.state.done)
 
-    def step(self, key: jax.Array, state: State, actions: dict, reset_state: State | None = None,
-             state_buffer: State | None = None):
+    def step(
+        self,
+        key: jax.Array,
+        state: State,
+        actions: dict,
+        reset_state: State | None = None,
+        state_buffer: State | None = None,
+    ):
         """One auto-resetting transition: ``(obs, state, rewards, dones, infos)`` in JaxMARL's dict form.
 
         When the episode ends the returned state/obs are the next episode's first (drawn from
@@ -157,8 +167,14 @@ class OvercookedV2:
         obs = {name: out.obs[i] for i, name in enumerate(self.agents)}
         return (obs, out.state) + self._dicts(out.reward[0], out.shaped_reward, out.done)
 
-    def step_arrays(self, key: jax.Array, state: State, actions: jax.Array, reset_state: State | None = None,
-                    state_buffer: State | None = None) -> StepArrays:
+    def step_arrays(
+        self,
+        key: jax.Array,
+        state: State,
+        actions: jax.Array,
+        reset_state: State | None = None,
+        state_buffer: State | None = None,
+    ) -> StepArrays:
         """Array form of ``step``: actions int32[N] in, ``StepArrays`` out."""
         k_step, k_reset = jax.random.split(key)
         result = transition(self.config, k_step, state, actions)

@@ -80,7 +80,7 @@ def _action_distances(floor: np.ndarray) -> np.ndarray:
     padded[1:-1, 1:-1] = floor
     blocked = np.zeros((height, width, 4), dtype=bool)
     for d, (dx, dy) in enumerate(it.DIRECTION_VECTORS):
-        blocked[:, :, d] = ~padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
+        blocked[:, :, d] = ~padded[1 + dy : 1 + dy + height, 1 + dx : 1 + dx + width]
     blocked &= floor[..., None]
 
     while True:
@@ -167,9 +167,7 @@ class Featurizer:
         # Explicit sizes: with one agent these are empty and -1 could not be inferred.
         other_blocks = blocks[others].reshape(n, (n - 1) * PLAYER_FEATURES)
         offsets = (pos[others] - pos[:, None, :]).reshape(n, (n - 1) * 2)
-        return jnp.concatenate(
-            [blocks, other_blocks, offsets.astype(jnp.float32), pos.astype(jnp.float32)], axis=-1
-        )
+        return jnp.concatenate([blocks, other_blocks, offsets.astype(jnp.float32), pos.astype(jnp.float32)], axis=-1)
 
     def _player_block(self, static, item, timer, x, y, facing, held):
         cell = y * self.width + x
@@ -218,17 +216,19 @@ class Featurizer:
             index, found = closest(pots)
             contents, left = item[index], timer[index]
             count = it.ingredient_count(contents)
-            block = jnp.stack([
-                jnp.int32(1),
-                (contents == it.EMPTY).astype(jnp.int32),
-                (count == 3).astype(jnp.int32),
-                (left > 0).astype(jnp.int32),
-                ((contents & it.COOKED) == it.COOKED).astype(jnp.int32),
-                count,
-                jnp.int32(0),
-                left,
-                *offset(index, True),
-            ])
+            block = jnp.stack(
+                [
+                    jnp.int32(1),
+                    (contents == it.EMPTY).astype(jnp.int32),
+                    (count == 3).astype(jnp.int32),
+                    (left > 0).astype(jnp.int32),
+                    ((contents & it.COOKED) == it.COOKED).astype(jnp.int32),
+                    count,
+                    jnp.int32(0),
+                    left,
+                    *offset(index, True),
+                ]
+            )
             pot_blocks.append(jnp.where(found, block, 0))
             # The next pass looks for the next pot. (When none was found the index is 0 and
             # nothing reachable is left anyway.)
@@ -236,13 +236,15 @@ class Featurizer:
 
         not_floor = static[jnp.asarray(self._neighbours)[cell]] != Static.FLOOR
 
-        return jnp.concatenate([
-            jax.nn.one_hot(facing, 4, dtype=jnp.float32),
-            (held == jnp.array([it.ingredient_unit(0), SOUP, it.PLATE, it.ingredient_unit(1)])).astype(jnp.float32),
-            *(v.astype(jnp.float32) for v in (ingredient_0, ingredient_1, plate, soup, soup_count, goal, counter)),
-            *(b.astype(jnp.float32) for b in pot_blocks),
-            not_floor.astype(jnp.float32),
-        ])
+        return jnp.concatenate(
+            [
+                jax.nn.one_hot(facing, 4, dtype=jnp.float32),
+                (held == jnp.array([it.ingredient_unit(0), SOUP, it.PLATE, it.ingredient_unit(1)])).astype(jnp.float32),
+                *(v.astype(jnp.float32) for v in (ingredient_0, ingredient_1, plate, soup, soup_count, goal, counter)),
+                *(b.astype(jnp.float32) for b in pot_blocks),
+                not_floor.astype(jnp.float32),
+            ]
+        )
 
 
 def make_featurizer(layout) -> Featurizer:

@@ -64,9 +64,7 @@ NUM_ACTIONS = len(Action)
 # (dx, dy) per Direction, row order = Direction ids.
 DIRECTION_VECTORS = np.array([(0, -1), (0, 1), (1, 0), (-1, 0)], dtype=np.int32)
 # Direction per Action; -1 for actions that do not move.
-ACTION_DIRECTION = np.array(
-    [Direction.RIGHT, Direction.DOWN, Direction.LEFT, Direction.UP, -1, -1], dtype=np.int32
-)
+ACTION_DIRECTION = np.array([Direction.RIGHT, Direction.DOWN, Direction.LEFT, Direction.UP, -1, -1], dtype=np.int32)
 
 
 def _select_table(index, table):

@@ -13,7 +13,7 @@ import difflib
 import itertools
 import types
 from collections import deque
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -93,7 +93,9 @@ class Layout:
     def __post_init__(self):
         grid = np.array(self.static_objects, dtype=np.int32)
         if grid.ndim != 2 or grid.size == 0:
-            raise ValueError(f"layout {self.name!r}: static_objects must be a non-empty 2-D array, got shape {grid.shape}")
+            raise ValueError(
+                f"layout {self.name!r}: static_objects must be a non-empty 2-D array, got shape {grid.shape}"
+            )
         grid.setflags(write=False)
         object.__setattr__(self, "static_objects", grid)
         positions = tuple((int(x), int(y)) for x, y in self.agent_positions)
@@ -116,9 +118,13 @@ class Layout:
         rooms = _room_labels(grid == Static.FLOOR)
         for index, (x, y) in enumerate(positions):
             if not (0 <= x < width and 0 <= y < height):
-                raise ValueError(f"layout {self.name!r}: agent {index} at (x={x}, y={y}) is outside the {height}x{width} map")
+                raise ValueError(
+                    f"layout {self.name!r}: agent {index} at (x={x}, y={y}) is outside the {height}x{width} map"
+                )
             if grid[y, x] != Static.FLOOR:
-                raise ValueError(f"layout {self.name!r}: agent {index} starts on a non-floor cell (row {y}, column {x})")
+                raise ValueError(
+                    f"layout {self.name!r}: agent {index} starts on a non-floor cell (row {y}, column {x})"
+                )
             room = rooms == rooms[y, x]
             edge = np.zeros_like(room)
             edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
@@ -155,7 +161,7 @@ class Layout:
         return "\n".join("".join(row) for row in rows)
 
     @staticmethod
-    def from_string(grid: str, possible_recipes=None, swap_agents: bool = False, name: str = "custom") -> "Layout":
+    def from_string(grid: str, possible_recipes=None, swap_agents: bool = False, name: str = "custom") -> Layout:
         """Build a layout from an ASCII map (one line per row; leading/trailing empty line dropped).
 
         Short rows are padded on the right with floor, as in the reference. Agents are numbered in
@@ -238,27 +244,41 @@ _MAPS = {
     "long_room": ("WWWWWWWWWWWWWWW\nB            AP\n0             X\nWWWWWWWWWWWWWWW", [[0, 0, 0]], False),
     "fun_coordination": ("WWWWWWWWW\n0   X   2\nRA  P  AW\n1   B   3\nWWWWWWWWW", [[0, 0, 2], [1, 1, 3]], False),
     "more_fun_coordination": (
-        "WWWWWWWWW\nW   X   W\nRA  P  A1\n0   P   2\nW   B   W\nWWWWWWWWW", [[0, 1, 1], [0, 2, 2]], False),
+        "WWWWWWWWW\nW   X   W\nRA  P  A1\n0   P   2\nW   B   W\nWWWWWWWWW",
+        [[0, 1, 1], [0, 2, 2]],
+        False,
+    ),
     "fun_symmetries": ("WWWWBWW\n2  W  0\nR APA X\n2  W  1\nWWWWBWW", [[0, 0, 0], [1, 1, 1]], False),
     "fun_symmetries_plates": ("WWWWWWW\nB  W  0\nR APA X\nB  W  1\nWWWWWWW", [[0, 0, 0], [1, 1, 1]], False),
     "fun_symmetries1": ("WWWWWBWW\n2  WW  0\nR AWPA X\n2  WW  1\nWWWWWBWW", [[0, 0, 0], [1, 1, 1]], False),
     "grounded_coord_simple": ("WW2WWWWW\nW  WB  0\nR ALPA X\nW  WB  1\nWW2WWWWW", [[0, 0, 0], [1, 1, 1]], False),
     "grounded_coord_ring": (
         "WWW2R2WWW\nW       W\nW WWLWW W\n2 0   B 2\nRAXAP X R\n2 1   B 2\nW WWLWW W\nW       W\nWWW2R2WWW",
-        [[0, 0, 0], [1, 1, 1]], False),
+        [[0, 0, 0], [1, 1, 1]],
+        False,
+    ),
     "test_time_simple": ("WW2WWWWW\nW  WB  0\nR AWPA X\nW  WB  1\nWW2WWWWW", [[0, 0, 0], [1, 1, 1]], False),
     "test_time_wide": ("WWXBWW\n0 A  0\n1    1\nWPWPWW\n3 A  3\nW    W\nWWRWWW", [[0, 0, 0], [1, 1, 1]], False),
     "demo_cook_simple": (
-        "WWWWWR2W0WW\n0      W  B\nW     APA X\n1      W  B\nWWWWWR2W1WW", [[0, 0, 0], [1, 1, 1]], False),
+        "WWWWWR2W0WW\n0      W  B\nW     APA X\n1      W  B\nWWWWWR2W1WW",
+        [[0, 0, 0], [1, 1, 1]],
+        False,
+    ),
     "demo_cook_wide": (
-        "WWWWBXBWWWW\nWWW0 A 1WWW\nWWWWWPWWWWW\nW    A    W\n0  W3R3W  0\nW1WWWWWWW1W", [[0, 0, 0], [1, 1, 1]], False),
+        "WWWWBXBWWWW\nWWW0 A 1WWW\nWWWWWPWWWWW\nW    A    W\n0  W3R3W  0\nW1WWWWWWW1W",
+        [[0, 0, 0], [1, 1, 1]],
+        False,
+    ),
     # The paper's Figure 1 map; not registered in the reference, paired there with these recipes.
     "overcookedv2_demo": ("WWPWW\n0A A1\nL   R\nWBWXW", [[0, 0, 1], [0, 1, 1]], False),
 }
 
 #: Every built-in layout by its reference name (plus ``overcookedv2_demo``), read-only.
 LAYOUTS: Mapping[str, Layout] = types.MappingProxyType(
-    {name: Layout.from_string(grid, recipes, swap_agents=swap, name=name) for name, (grid, recipes, swap) in _MAPS.items()}
+    {
+        name: Layout.from_string(grid, recipes, swap_agents=swap, name=name)
+        for name, (grid, recipes, swap) in _MAPS.items()
+    }
 )
 
 #: The names the reference registers (all but ``overcookedv2_demo``).

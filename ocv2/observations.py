@@ -125,9 +125,9 @@ def _shared_tables(config: EnvConfig):
     timer = np.zeros((256, total), np.int32)
     timer[:, 24 + 5 * n] = np.arange(256)
     recipe = _item_chunk_tables(n, 22 + 4 * n, total)
-    look[_POT:_POT + 256] = look[Static.POT] + timer
-    look[_INDICATOR:_INDICATOR + 256] = look[Static.RECIPE_INDICATOR] + recipe[0]
-    look[_ACTIVE_BUTTON:_ACTIVE_BUTTON + 256] = look[Static.BUTTON] + recipe[0]
+    look[_POT : _POT + 256] = look[Static.POT] + timer
+    look[_INDICATOR : _INDICATOR + 256] = look[Static.RECIPE_INDICATOR] + recipe[0]
+    look[_ACTIVE_BUTTON : _ACTIVE_BUTTON + 256] = look[Static.BUTTON] + recipe[0]
     return dict(
         look=look.astype(dtype),
         items=[t.astype(dtype) for t in _item_chunk_tables(n, 20 + 3 * n, total)],
@@ -142,7 +142,7 @@ def _agent_row(config: EnvConfig, direction, inventory, offset: int) -> jax.Arra
     features = jnp.concatenate(
         [jnp.ones((1,), jnp.int32), jax.nn.one_hot(direction, 4, dtype=jnp.int32), it.item_channels(inventory, n)]
     )
-    row = jnp.zeros((full_channels(config),), jnp.int32).at[offset:offset + 7 + n].set(features)
+    row = jnp.zeros((full_channels(config),), jnp.int32).at[offset : offset + 7 + n].set(features)
     return row.astype(config.obs_dtype)
 
 
@@ -167,10 +167,14 @@ def _cell_codes(config: EnvConfig, state: State) -> jax.Array:
     lit = (static == Static.GOAL) & state.new_correct_delivery if config.indicate_successful_delivery else False
     static_code = jnp.where(lit, _LIT_GOAL, jnp.clip(static, 0, _NUM_STATIC - 1))
     shows_recipe = (static == Static.RECIPE_INDICATOR) | ((static == Static.BUTTON) & (timer > 0))
-    return jnp.stack([
-        static_code, items, jnp.where(shows_recipe, state.recipe, 0),
-        jnp.where(static == Static.POT, jnp.clip(timer, 0, 255), 0),
-    ])
+    return jnp.stack(
+        [
+            static_code,
+            items,
+            jnp.where(shows_recipe, state.recipe, 0),
+            jnp.where(static == Static.POT, jnp.clip(timer, 0, 255), 0),
+        ]
+    )
 
 
 def _look_codes(config: EnvConfig, codes: jax.Array) -> jax.Array:
@@ -237,10 +241,12 @@ def _full_view(config: EnvConfig, state: State) -> jax.Array:
     for o in range(num_agents):
         # Other-play: each observer sees its own ingredient order, so its own lookup.
         obs = _lookup_raw(tables, _seen_codes(config, state, codes, o)) if shared is None else shared
-        rows = jnp.stack([
-            _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n)
-            for b in range(num_agents)
-        ])
+        rows = jnp.stack(
+            [
+                _agent_row(config, agents.dir[b], _seen_inventory(config, state, o, b), 0 if b == o else 7 + n)
+                for b in range(num_agents)
+            ]
+        )
         # One scatter of every agent's row into the materialised shared channels: a masked add (or a
         # lookup of agent codes) lets XLA split the shared lookup into one materialised gather per
         # table, and one scatter per agent costs several kernels each at batch 1.

@@ -24,7 +24,7 @@ from __future__ import annotations
 import functools
 import math
 import os
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -37,7 +37,15 @@ from ocv2.items import Static
 from ocv2.layouts import Layout, get_layout
 from ocv2.state import State
 
-__all__ = ["render", "make_renderer", "render_frames", "rollout_states", "write_gif", "INGREDIENT_COLORS", "AGENT_COLORS"]
+__all__ = [
+    "render",
+    "make_renderer",
+    "render_frames",
+    "rollout_states",
+    "write_gif",
+    "INGREDIENT_COLORS",
+    "AGENT_COLORS",
+]
 
 # --- colours (RGB) ---
 BLACK = (0, 0, 0)
@@ -53,8 +61,18 @@ DELIVERED_GREEN = (170, 255, 170)
 #: Ingredient colour by ingredient index: yellow, dark green, purple, cyan, red, orange, purple, blue,
 #: pink, brown (the reference's table, duplicate purple included).
 INGREDIENT_COLORS = np.array(
-    [(255, 255, 0), (0, 150, 0), (160, 32, 240), (0, 255, 255), (255, 0, 0),
-     (230, 180, 0), (160, 32, 240), (0, 0, 255), (255, 105, 180), (139, 69, 19)],
+    [
+        (255, 255, 0),
+        (0, 150, 0),
+        (160, 32, 240),
+        (0, 255, 255),
+        (255, 0, 0),
+        (230, 180, 0),
+        (160, 32, 240),
+        (0, 0, 255),
+        (255, 105, 180),
+        (139, 69, 19),
+    ],
     dtype=np.float32,
 )
 #: Agent colour by agent index: red, blue, green, purple, yellow, orange (later agents reuse orange).
@@ -69,6 +87,7 @@ DEFAULT_SUBDIVS = 3
 # ---------------------------------------------------------------------------------------------------
 # Constant coverage masks (numpy, once per tile size)
 # ---------------------------------------------------------------------------------------------------
+
 
 def _rect(x0, x1, y0, y1):
     return lambda x, y: (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
@@ -110,8 +129,12 @@ def _rotated(shape, cx, cy, theta):
 
 
 # Facing angle per Direction (UP, DOWN, RIGHT, LEFT) for a triangle drawn pointing right.
-_DIRECTION_ANGLE = {it.Direction.UP: -math.pi / 2, it.Direction.DOWN: math.pi / 2,
-                    it.Direction.RIGHT: 0.0, it.Direction.LEFT: math.pi}
+_DIRECTION_ANGLE = {
+    it.Direction.UP: -math.pi / 2,
+    it.Direction.DOWN: math.pi / 2,
+    it.Direction.RIGHT: 0.0,
+    it.Direction.LEFT: math.pi,
+}
 
 
 @functools.lru_cache(maxsize=16)
@@ -126,8 +149,11 @@ def _masks(tile_size: int, subdivs: int) -> dict[str, np.ndarray]:
         return hit.reshape(tile_size, subdivs, tile_size, subdivs).mean(axis=(1, 3))
 
     def bar(k: int, per_step: float):
-        return cover(_rect(0.1, 0.9 - per_step * k, 0.83, 0.88)) if 0.9 - per_step * k > 0.1 else np.zeros(
-            (tile_size, tile_size), np.float32)
+        return (
+            cover(_rect(0.1, 0.9 - per_step * k, 0.83, 0.88))
+            if 0.9 - per_step * k > 0.1
+            else np.zeros((tile_size, tile_size), np.float32)
+        )
 
     line = max(0.031, 1.0 / tile_size)  # grid lines: 3.1 % of the tile, at least one pixel
     lid = _union(_rect(0.1, 0.9, 0.21, 0.25), _rect(0.4, 0.6, 0.16, 0.21))
@@ -142,8 +168,11 @@ def _masks(tile_size: int, subdivs: int) -> dict[str, np.ndarray]:
         "button_bar": np.stack([bar(k, 0.8 / it.BUTTON_ACTIVE_TIME) for k in range(it.BUTTON_ACTIVE_TIME + 1)]),
         "pot_bar": np.stack([bar(k, 0.8 / it.POT_COOK_TIME) for k in range(it.POT_COOK_TIME + 1)]),
         "plate_pile": cover(_union(*(_circle(cx, cy, 0.2) for cx, cy in [(0.3, 0.3), (0.75, 0.42), (0.4, 0.75)]))),
-        "ingredient_pile": cover(_union(*(
-            _circle(cx, cy, 0.15) for cx, cy in [(0.5, 0.15), (0.3, 0.4), (0.8, 0.35), (0.4, 0.8), (0.75, 0.75)]))),
+        "ingredient_pile": cover(
+            _union(
+                *(_circle(cx, cy, 0.15) for cx, cy in [(0.5, 0.15), (0.3, 0.4), (0.8, 0.35), (0.4, 0.8), (0.75, 0.75)])
+            )
+        ),
         "pot_slots": np.stack([cover(_circle(cx, 0.33, 0.13)) for cx in (0.23, 0.77, 0.50)]),
         "pot_body": cover(_rect(0.1, 0.9, 0.33, 0.9)),
         "lid_closed": cover(lid),
@@ -166,6 +195,7 @@ def _masks(tile_size: int, subdivs: int) -> dict[str, np.ndarray]:
 # ---------------------------------------------------------------------------------------------------
 # Drawing
 # ---------------------------------------------------------------------------------------------------
+
 
 def _paint(img, coverage, where, colour):
     """Blend ``colour`` into ``img`` [H, W, t, t, 3] with ``coverage`` ([t, t] or [H, W, t, t]) on cells ``where``.
@@ -221,7 +251,12 @@ def _render_tiles(state: State, static, agent_view_size, tile_size: int, subdivs
     # delivery: green square; gold frame + lighter square right after a correct delivery
     goal = static == Static.GOAL
     delivered = jnp.asarray(state.new_correct_delivery, bool)
-    img = _paint(img, masks["inner"], goal, jnp.where(delivered, jnp.asarray(DELIVERED_GREEN, jnp.float32), jnp.asarray(GREEN, jnp.float32)))
+    img = _paint(
+        img,
+        masks["inner"],
+        goal,
+        jnp.where(delivered, jnp.asarray(DELIVERED_GREEN, jnp.float32), jnp.asarray(GREEN, jnp.float32)),
+    )
     img = _paint(img, masks["frame"], goal & delivered, GOLD)
 
     # counters' items, recipe indicators (always the order) and active buttons (the order + a timer bar)
@@ -269,7 +304,8 @@ def _render_tiles(state: State, static, agent_view_size, tile_size: int, subdivs
 
     if agent_view_size is not None:
         near = (jnp.abs(agents.y[:, None, None] - rows) <= agent_view_size) & (
-            jnp.abs(agents.x[:, None, None] - cols) <= agent_view_size)
+            jnp.abs(agents.x[:, None, None] - cols) <= agent_view_size
+        )
         seen = near.any(axis=0)
         img = jnp.where(seen[:, :, None, None, None], img + HIGHLIGHT * (255.0 - img), img)
 
@@ -289,12 +325,19 @@ def _check_options(agent_view_size, tile_size, subdivs):
     if isinstance(subdivs, bool) or not isinstance(subdivs, (int, np.integer)) or subdivs < 1:
         raise ValueError(f"subdivs must be a positive integer (supersampling factor), got {subdivs!r}")
     if agent_view_size is not None and (
-            isinstance(agent_view_size, bool) or not isinstance(agent_view_size, (int, np.integer)) or agent_view_size < 0):
+        isinstance(agent_view_size, bool) or not isinstance(agent_view_size, (int, np.integer)) or agent_view_size < 0
+    ):
         raise ValueError(f"agent_view_size must be None or a non-negative integer, got {agent_view_size!r}")
 
 
-def render(state: State, layout_or_none: Layout | str | None = None, *, agent_view_size: int | None = None,
-           tile_size: int = 32, subdivs: int = DEFAULT_SUBDIVS) -> jax.Array:
+def render(
+    state: State,
+    layout_or_none: Layout | str | None = None,
+    *,
+    agent_view_size: int | None = None,
+    tile_size: int = 32,
+    subdivs: int = DEFAULT_SUBDIVS,
+) -> jax.Array:
     """Draw one state: uint8[H * tile_size, W * tile_size, 3].
 
     Pure JAX: call it eagerly (it is jitted inside, compiled once per layout / options), under
@@ -320,27 +363,43 @@ def render(state: State, layout_or_none: Layout | str | None = None, *, agent_vi
     if layout is not None and tuple(state.grid.shape[-3:-1]) != (layout.height, layout.width):
         raise ValueError(
             f"state grid is {tuple(state.grid.shape[-3:-1])} (HxW) but layout {layout.name!r} is "
-            f"{layout.height}x{layout.width}")
+            f"{layout.height}x{layout.width}"
+        )
     if state.grid.ndim != 3:
         raise ValueError(
             f"render draws one state (grid of rank 3), got grid shape {tuple(state.grid.shape)}; "
-            "use jax.vmap(render) or render_frames for stacked states")
+            "use jax.vmap(render) or render_frames for stacked states"
+        )
     view = None if agent_view_size is None else int(agent_view_size)
     return _render_jit(state, layout, view, int(tile_size), int(subdivs))
 
 
-def render_frames(states: State, layout_or_none: Layout | str | None = None, *, agent_view_size: int | None = None,
-                  tile_size: int = 32, batch_size: int = 32) -> np.ndarray:
+def render_frames(
+    states: State,
+    layout_or_none: Layout | str | None = None,
+    *,
+    agent_view_size: int | None = None,
+    tile_size: int = 32,
+    batch_size: int = 32,
+) -> np.ndarray:
     """Render stacked states (one leading axis) to a numpy uint8[T, H*tile, W*tile, 3] array.
 
     Frames are drawn ``batch_size`` at a time (``lax.map``) to bound memory on long episodes.
     """
     if states.grid.ndim != 4:
-        raise ValueError(f"render_frames expects states with one leading (time) axis, got grid shape "
-                         f"{tuple(states.grid.shape)}")
+        raise ValueError(
+            f"render_frames expects states with one leading (time) axis, got grid shape {tuple(states.grid.shape)}"
+        )
     _check_options(agent_view_size, tile_size, DEFAULT_SUBDIVS)
-    return np.asarray(_render_many(states, None if layout_or_none is None else get_layout(layout_or_none),
-                                   agent_view_size, int(tile_size), int(batch_size)))
+    return np.asarray(
+        _render_many(
+            states,
+            None if layout_or_none is None else get_layout(layout_or_none),
+            agent_view_size,
+            int(tile_size),
+            int(batch_size),
+        )
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("layout", "agent_view_size", "tile_size", "batch_size"))
@@ -349,7 +408,9 @@ def _render_many(states, layout, agent_view_size, tile_size, batch_size):
     return jax.lax.map(draw, states, batch_size=batch_size)
 
 
-def make_renderer(env, tile_size: int = 32, *, agent_view_size: int | None | str = "env") -> Callable[[State], jax.Array]:
+def make_renderer(
+    env, tile_size: int = 32, *, agent_view_size: int | None | str = "env"
+) -> Callable[[State], jax.Array]:
     """A jitted ``state -> image`` for ``env`` (an ``ocv2.make`` environment).
 
     The view window is the env's ``config.view_radius`` unless ``agent_view_size`` is given (None
@@ -374,6 +435,7 @@ def make_renderer(env, tile_size: int = 32, *, agent_view_size: int | None | str
 # ---------------------------------------------------------------------------------------------------
 # Episodes
 # ---------------------------------------------------------------------------------------------------
+
 
 def rollout_states(env, key: jax.Array, steps: int, policy: Callable | None = None) -> State:
     """Play ``steps`` transitions from a reset and return the ``steps + 1`` states visited.
@@ -469,7 +531,9 @@ def write_gif(frames, path, fps: float = 5, loop: bool = True) -> str:
         raise ValueError(f"fps must be > 0 and <= 100 (GIF frame delays have 10 ms resolution), got {fps}")
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or 0 in frames.shape:
-        raise ValueError(f"frames must be a non-empty uint8 array of shape [T, height, width, 3], got shape {frames.shape}")
+        raise ValueError(
+            f"frames must be a non-empty uint8 array of shape [T, height, width, 3], got shape {frames.shape}"
+        )
     if frames.dtype != np.uint8:
         if not np.issubdtype(frames.dtype, np.integer) or frames.min() < 0 or frames.max() > 255:
             raise ValueError(f"frames must be uint8 RGB (integers 0..255), got dtype {frames.dtype}")

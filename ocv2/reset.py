@@ -189,7 +189,9 @@ def buffer_reset_state(config: EnvConfig, key: jax.Array, buffer: State) -> Stat
 def validate_buffer(config: EnvConfig, buffer: State) -> None:
     """Shape-check a reset buffer against the layout; raise ValueError naming the bad field."""
     if not isinstance(buffer, State):
-        raise TypeError(f"initial_state_buffer must be an ocv2.State with a leading batch axis, got {type(buffer).__name__}")
+        raise TypeError(
+            f"initial_state_buffer must be an ocv2.State with a leading batch axis, got {type(buffer).__name__}"
+        )
     n_agents, n_ing = config.num_agents, config.num_ingredients
     height, width = config.layout.height, config.layout.width
     size = np.shape(buffer.step)[0] if np.ndim(buffer.step) == 1 else None
@@ -198,15 +200,27 @@ def validate_buffer(config: EnvConfig, buffer: State) -> None:
             f"initial_state_buffer must have a leading batch axis of at least 1 state; step has shape {np.shape(buffer.step)}"
         )
     expected = {
-        "agents.x": (size, n_agents), "agents.y": (size, n_agents), "agents.dir": (size, n_agents),
-        "agents.inventory": (size, n_agents), "grid": (size, height, width, 3), "recipe": (size,),
-        "step": (size,), "done": (size,), "new_correct_delivery": (size,),
+        "agents.x": (size, n_agents),
+        "agents.y": (size, n_agents),
+        "agents.dir": (size, n_agents),
+        "agents.inventory": (size, n_agents),
+        "grid": (size, height, width, 3),
+        "recipe": (size,),
+        "step": (size,),
+        "done": (size,),
+        "new_correct_delivery": (size,),
         "ingredient_permutations": (size, n_agents, n_ing),
     }
     actual = {
-        "agents.x": buffer.agents.x, "agents.y": buffer.agents.y, "agents.dir": buffer.agents.dir,
-        "agents.inventory": buffer.agents.inventory, "grid": buffer.grid, "recipe": buffer.recipe,
-        "step": buffer.step, "done": buffer.done, "new_correct_delivery": buffer.new_correct_delivery,
+        "agents.x": buffer.agents.x,
+        "agents.y": buffer.agents.y,
+        "agents.dir": buffer.agents.dir,
+        "agents.inventory": buffer.agents.inventory,
+        "grid": buffer.grid,
+        "recipe": buffer.recipe,
+        "step": buffer.step,
+        "done": buffer.done,
+        "new_correct_delivery": buffer.new_correct_delivery,
         "ingredient_permutations": buffer.ingredient_permutations,
     }
     for name, shape in expected.items():

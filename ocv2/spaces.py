@@ -21,7 +21,9 @@ class Discrete:
 
     def contains(self, x) -> bool:
         x = jnp.asarray(x)
-        return bool(jnp.issubdtype(x.dtype, jnp.integer) and x.shape == self.shape and (x >= 0).all() and (x < self.n).all())
+        return bool(
+            jnp.issubdtype(x.dtype, jnp.integer) and x.shape == self.shape and (x >= 0).all() and (x < self.n).all()
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,4 +42,6 @@ class Box:
 
     def contains(self, x) -> bool:
         x = jnp.asarray(x)
-        return bool(x.shape == tuple(self.shape) and x.dtype == self.dtype and (x >= self.low).all() and (x <= self.high).all())
+        return bool(
+            x.shape == tuple(self.shape) and x.dtype == self.dtype and (x >= self.low).all() and (x <= self.high).all()
+        )

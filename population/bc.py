@@ -18,8 +18,9 @@ holds its scores, so anything that loads policies plays with it; ``proxy_path(la
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,9 +30,9 @@ import optax
 import ocv2
 from ocv2 import items as it
 from ocv2.items import Action
+from population import policy
 from population.config import MODEL_DEFAULTS, ModelConfig
 from population.evaluation import play_episodes
-from population import policy
 from population.human import Trial
 from population.networks import ActorCritic, init_params, make_network
 
@@ -126,8 +127,9 @@ def make_train_chunk(network: ActorCritic, optimizer: optax.GradientTransformati
 
     @jax.jit
     def chunk(params, opt_state, key, obs, actions):
-        (params, opt_state, key, _, _), losses = jax.lax.scan(step, (params, opt_state, key, obs, actions), None,
-                                                             length=length)
+        (params, opt_state, key, _, _), losses = jax.lax.scan(
+            step, (params, opt_state, key, obs, actions), None, length=length
+        )
         return params, opt_state, key, losses.mean()
 
     return chunk
@@ -140,8 +142,8 @@ def accuracy(network: ActorCritic, params, data: BCData, chunk: int = 4096, excl
     predict = jax.jit(lambda p, o: jnp.argmax(_logits(network, p, o) + mask, axis=-1))
     hits = 0
     for start in range(0, len(data.actions), chunk):
-        predicted = np.asarray(predict(params, jnp.asarray(data.obs[start:start + chunk])))
-        hits += int((predicted == data.actions[start:start + chunk]).sum())
+        predicted = np.asarray(predict(params, jnp.asarray(data.obs[start : start + chunk])))
+        hits += int((predicted == data.actions[start : start + chunk]).sum())
     return hits / max(len(data.actions), 1)
 
 
@@ -156,12 +158,15 @@ def baselines(train: BCData, test: BCData) -> dict:
     majority = int(counts.argmax())
     active = test.actions[test.actions != int(Action.STAY)]
     counts[int(Action.STAY)] = -1
-    return {"uniform_accuracy": 1.0 / it.NUM_ACTIONS, "majority_action": majority,
-            "majority_accuracy": float((test.actions == majority).mean()),
-            "active_share": float((test.actions != int(Action.STAY)).mean()),
-            # among non-stay samples: uniform over the five, and the training split's commonest non-stay action
-            "active_uniform_accuracy": 1.0 / (it.NUM_ACTIONS - 1),
-            "active_majority_accuracy": float((active == int(counts.argmax())).mean()) if len(active) else 0.0}
+    return {
+        "uniform_accuracy": 1.0 / it.NUM_ACTIONS,
+        "majority_action": majority,
+        "majority_accuracy": float((test.actions == majority).mean()),
+        "active_share": float((test.actions != int(Action.STAY)).mean()),
+        # among non-stay samples: uniform over the five, and the training split's commonest non-stay action
+        "active_uniform_accuracy": 1.0 / (it.NUM_ACTIONS - 1),
+        "active_majority_accuracy": float((active == int(counts.argmax())).mean()) if len(active) else 0.0,
+    }
 
 
 def selfplay_return(network: ActorCritic, params, env: ocv2.OvercookedV2, key: jax.Array, episodes: int) -> float:
@@ -196,15 +201,18 @@ def train(config: BCConfig, train_trials: Sequence[Trial], test_trials: Sequence
         if log is not None:
             log(entry)
     scores = {
-        "train_samples": int(len(train_data.actions)), "test_samples": int(len(test_data.actions)),
-        "train_accuracy": accuracy(network, params, train_data), "test_accuracy": history[-1]["test_accuracy"],
+        "train_samples": int(len(train_data.actions)),
+        "test_samples": int(len(test_data.actions)),
+        "train_accuracy": accuracy(network, params, train_data),
+        "test_accuracy": history[-1]["test_accuracy"],
         # STAY dominates the recordings (the game ticks faster than people press keys), and whether a
         # person presses a key on this tick is mostly not in the state; so also: given the person
         # acted, does the proxy's most likely non-stay action match?
         "test_accuracy_active": accuracy(network, params, _active(test_data), exclude_stay=True),
         **baselines(train_data, test_data),
         "selfplay_return": selfplay_return(network, params, env, play_key, config.selfplay_episodes),
-        "selfplay_episodes": config.selfplay_episodes, "selfplay_max_steps": config.max_steps,
+        "selfplay_episodes": config.selfplay_episodes,
+        "selfplay_max_steps": config.max_steps,
     }
     return BCResult(params, model, layout, history, scores)
 
@@ -213,13 +221,26 @@ def train(config: BCConfig, train_trials: Sequence[Trial], test_trials: Sequence
 # Saving and loading a proxy: an ordinary exported policy (population.policy) marked as a human proxy
 # ---------------------------------------------------------------------------------------------------
 
+
 def save_proxy(path, result: BCResult, config: BCConfig, meta: dict | None = None) -> Path:
     """Export the proxy with ``population.policy.export``: ``policy.load`` (and so ``ocv2 xp``) reads it;
     its ``meta`` holds ``kind: human-proxy``, the layout, the BC settings, scores and history."""
-    info = {"name": f"human-proxy:{result.layout}", "kind": PROXY_KIND, "layout": result.layout,
-            "bc": dataclasses.asdict(config), "scores": result.scores, "history": result.history, **(meta or {})}
-    return policy.export(path, params=result.params, model=result.model,
-                         env={"layout": result.layout, "max_steps": config.max_steps}, meta=info)
+    info = {
+        "name": f"human-proxy:{result.layout}",
+        "kind": PROXY_KIND,
+        "layout": result.layout,
+        "bc": dataclasses.asdict(config),
+        "scores": result.scores,
+        "history": result.history,
+        **(meta or {}),
+    }
+    return policy.export(
+        path,
+        params=result.params,
+        model=result.model,
+        env={"layout": result.layout, "max_steps": config.max_steps},
+        meta=info,
+    )
 
 
 def load_proxy(path) -> policy.Policy:

@@ -20,7 +20,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +37,7 @@ BR_STREAM = 0x7FFFFFFF
 # ---------------------------------------------------------------------------------------------------
 # configuration
 # ---------------------------------------------------------------------------------------------------
+
 
 def _is_int(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
@@ -85,8 +87,7 @@ class IQLConfig:
             raise ValueError(f"epsilon must be in [0, 1], got {self.epsilon!r}")
         if not isinstance(self.learning_rate, (int, float)) or not 0.0 < self.learning_rate <= 1.0:
             raise ValueError(f"learning_rate must be in (0, 1], got {self.learning_rate!r}")
-        if not isinstance(self.init_scale, (int, float)) or not math.isfinite(self.init_scale) \
-                or self.init_scale < 0:
+        if not isinstance(self.init_scale, (int, float)) or not math.isfinite(self.init_scale) or self.init_scale < 0:
             raise ValueError(f"init_scale must be a finite number >= 0, got {self.init_scale!r}")
 
 
@@ -94,21 +95,22 @@ class IQLConfig:
 # containers
 # ---------------------------------------------------------------------------------------------------
 
+
 class Transition(NamedTuple):
     """One played game (the whole episode: the game has a single step)."""
 
-    pet: jax.Array      # int, 0 cat / 1 dog
-    button: jax.Array   # int in [0, N)
-    bulb: jax.Array     # int in [0, 2N): 2 * button + pet
-    guess: jax.Array    # int, Bob's guess of the pet
-    reward: jax.Array   # float, +reward or -reward, shared by both players
+    pet: jax.Array  # int, 0 cat / 1 dog
+    button: jax.Array  # int in [0, N)
+    bulb: jax.Array  # int in [0, 2N): 2 * button + pet
+    guess: jax.Array  # int, Bob's guess of the pet
+    reward: jax.Array  # float, +reward or -reward, shared by both players
 
 
 class QTables(NamedTuple):
     """Both players' tables: ``alice[pet, button]`` and ``bob[bulb, guess]``."""
 
-    alice: jax.Array    # (2, N)
-    bob: jax.Array      # (2N, 2)
+    alice: jax.Array  # (2, N)
+    bob: jax.Array  # (2N, 2)
 
 
 class TrainResult(NamedTuple):
@@ -121,8 +123,8 @@ class TrainResult(NamedTuple):
 class Population(NamedTuple):
     """``num_seeds`` self-play pairs (Q-tables stacked on a leading seed axis) and the BR Bob."""
 
-    sp: QTables         # alice (S, 2, N), bob (S, 2N, 2)
-    br_bob: jax.Array   # (2N, 2), trained against a uniformly random Alice
+    sp: QTables  # alice (S, 2, N), bob (S, 2N, 2)
+    br_bob: jax.Array  # (2N, 2), trained against a uniformly random Alice
 
 
 class CrossPlay(NamedTuple):
@@ -136,15 +138,16 @@ class CrossPlay(NamedTuple):
 
     matrix: np.ndarray
     labels: tuple[str, ...]
-    sp_mean: float      # diagonal over SP pairs
-    xp_mean: float      # off-diagonal over SP pairs
-    br_mean: float      # BR Bob with every SP Alice
+    sp_mean: float  # diagonal over SP pairs
+    xp_mean: float  # off-diagonal over SP pairs
+    br_mean: float  # BR Bob with every SP Alice
     br_random_alice: float  # BR Bob with the random Alice he trained with
 
 
 # ---------------------------------------------------------------------------------------------------
 # the environment
 # ---------------------------------------------------------------------------------------------------
+
 
 def sample_pet(key: jax.Array) -> jax.Array:
     """The hidden state: cat (0) or dog (1), uniform."""
@@ -169,13 +172,15 @@ def reward(pet, guess, game: ButtonGameConfig) -> jax.Array:
 def play(pet, button, guess, game: ButtonGameConfig) -> Transition:
     """The whole one-step game for given choices (Bob picks ``guess`` seeing only the lit bulb)."""
     pet, button, guess = jnp.asarray(pet), jnp.asarray(button), jnp.asarray(guess)
-    return Transition(pet=pet, button=button, bulb=bulb_index(button, pet), guess=guess,
-                      reward=reward(pet, guess, game))
+    return Transition(
+        pet=pet, button=button, bulb=bulb_index(button, pet), guess=guess, reward=reward(pet, guess, game)
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
 # independent Q-learning
 # ---------------------------------------------------------------------------------------------------
+
 
 def epsilon_greedy(key: jax.Array, q_row: jax.Array, epsilon: float) -> jax.Array:
     """With probability ``epsilon`` a uniformly random action, else ``argmax q_row``."""
@@ -199,8 +204,9 @@ def init_q_tables(key: jax.Array, game: ButtonGameConfig, iql: IQLConfig) -> QTa
     )
 
 
-def train_episode(q: QTables, key: jax.Array, game: ButtonGameConfig, iql: IQLConfig,
-                  random_alice: bool = False) -> tuple[QTables, Transition]:
+def train_episode(
+    q: QTables, key: jax.Array, game: ButtonGameConfig, iql: IQLConfig, random_alice: bool = False
+) -> tuple[QTables, Transition]:
     """Play one game and update both learners (a ``lax.scan`` body).
 
     ``random_alice``: Alice presses a uniformly random button and does not learn (best-response
@@ -220,15 +226,17 @@ def train_episode(q: QTables, key: jax.Array, game: ButtonGameConfig, iql: IQLCo
     return QTables(alice=alice, bob=bob), game_played
 
 
-def _episode_no_history(q: QTables, key: jax.Array, game: ButtonGameConfig, iql: IQLConfig,
-                        random_alice: bool) -> tuple[QTables, None]:
+def _episode_no_history(
+    q: QTables, key: jax.Array, game: ButtonGameConfig, iql: IQLConfig, random_alice: bool
+) -> tuple[QTables, None]:
     """``train_episode`` that keeps nothing per game (long runs need no O(episodes) memory)."""
     return train_episode(q, key, game, iql, random_alice)[0], None
 
 
 @functools.partial(jax.jit, static_argnames=("game", "iql", "random_alice", "keep_history"))
-def train_pair(key: jax.Array, game: ButtonGameConfig, iql: IQLConfig, random_alice: bool = False,
-               keep_history: bool = True) -> TrainResult:
+def train_pair(
+    key: jax.Array, game: ButtonGameConfig, iql: IQLConfig, random_alice: bool = False, keep_history: bool = True
+) -> TrainResult:
     """Train one Alice/Bob pair for ``iql.episodes`` games with ``lax.scan``."""
     init_key, games_key = jax.random.split(key)
     step = train_episode if keep_history else _episode_no_history
@@ -262,6 +270,7 @@ def train_population(seed: int, num_seeds: int, game: ButtonGameConfig, iql: IQL
 # evaluation: exact expectations of greedy policies
 # ---------------------------------------------------------------------------------------------------
 
+
 def greedy_alice(q_alice: jax.Array) -> jax.Array:
     """Greedy Alice as a policy matrix ``probs[pet, button]`` (one-hot rows)."""
     return jax.nn.one_hot(jnp.argmax(q_alice, axis=-1), q_alice.shape[-1], dtype=jnp.float32)
@@ -281,7 +290,7 @@ def expected_reward(alice_probs: jax.Array, bob_guesses: jax.Array, game: Button
     """Exact expected reward: ``sum_p 1/2 sum_a probs[p, a] * r(p, guess[2a + p])`` (no sampling)."""
     pets = jnp.arange(NUM_PETS)[:, None]
     buttons = jnp.arange(game.num_buttons)[None, :]
-    rewards = reward(pets, bob_guesses[bulb_index(buttons, pets)], game)     # (2, N)
+    rewards = reward(pets, bob_guesses[bulb_index(buttons, pets)], game)  # (2, N)
     return jnp.sum(alice_probs * rewards) / NUM_PETS
 
 
@@ -315,12 +324,14 @@ def evaluate_population(population: Population, game: ButtonGameConfig) -> Cross
     # Rounded: float32 sums of 1/N probabilities leave ~1e-6 noise on the random-Alice row.
     matrix = np.round(np.asarray(cross_play_matrix(alices, bobs, game), dtype=np.float64), 4)
     sp, xp, br, br_random = summarize(matrix, num_seeds)
-    return CrossPlay(matrix=matrix, labels=labels_for(num_seeds), sp_mean=sp, xp_mean=xp, br_mean=br,
-                     br_random_alice=br_random)
+    return CrossPlay(
+        matrix=matrix, labels=labels_for(num_seeds), sp_mean=sp, xp_mean=xp, br_mean=br, br_random_alice=br_random
+    )
 
 
-def run_button_game(seed: int = 0, num_seeds: int = 10, game: ButtonGameConfig = ButtonGameConfig(),
-                    iql: IQLConfig = IQLConfig()) -> CrossPlay:
+def run_button_game(
+    seed: int = 0, num_seeds: int = 10, game: ButtonGameConfig = ButtonGameConfig(), iql: IQLConfig = IQLConfig()
+) -> CrossPlay:
     """Train the population and return its cross-play matrix (what ``ocv2 button-game`` does)."""
     return evaluate_population(train_population(seed, num_seeds, game, iql), game)
 
@@ -328,6 +339,7 @@ def run_button_game(seed: int = 0, num_seeds: int = 10, game: ButtonGameConfig =
 # ---------------------------------------------------------------------------------------------------
 # output
 # ---------------------------------------------------------------------------------------------------
+
 
 def write_csv(path, matrix, labels: Sequence[str]) -> None:
     """The matrix with a header row of Bob labels and a first column of Alice labels."""

@@ -47,8 +47,10 @@ def checkpoint_path(run_dir, seed: int, update: int) -> Path:
 
 def save(path, state, fingerprint: str, **meta) -> Path:
     """Write ``state`` (a pytree) atomically; extra ``meta`` (JSON-able) is stored beside it."""
-    content = {"meta": {"version": FORMAT_VERSION, "fingerprint": fingerprint, **meta},
-               "state": serialization.to_state_dict(jax.tree.map(np.asarray, state))}
+    content = {
+        "meta": {"version": FORMAT_VERSION, "fingerprint": fingerprint, **meta},
+        "state": serialization.to_state_dict(jax.tree.map(np.asarray, state)),
+    }
     return atomic_write(Path(path), seal(FORMAT_NAME, FORMAT_VERSION, content))
 
 
@@ -74,7 +76,8 @@ def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:
     if fingerprint is not None and meta.get("fingerprint") != fingerprint:
         raise CheckpointError(
             f"{path}: checkpoint was written by a different config (fingerprint {meta.get('fingerprint')}, "
-            f"this config {fingerprint}); use the run's own config.yaml or a new run directory")
+            f"this config {fingerprint}); use the run's own config.yaml or a new run directory"
+        )
     if isinstance(state, bytes):  # version 2: checksummed state bytes, metadata not covered
         if hashlib.sha256(state).hexdigest() != meta.get("sha256"):
             raise CorruptCheckpointError(f"{path}: checksum mismatch (the file was damaged after it was written)")

@@ -13,7 +13,8 @@ OvercookedV2 episode ends.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,8 +67,14 @@ def initial_carry(hidden_size, env, num_seats: int, key: jax.Array, episodes: in
     reset_keys = jax.random.split(jax.random.fold_in(key, 0), episodes)
     state = jax.vmap(env.reset_state)(reset_keys)
     hidden = tuple(jnp.zeros((episodes, h), jnp.float32) for h in per_seat(hidden_size, num_seats))
-    return PlayCarry(state, jax.vmap(env.get_obs_arrays)(state), hidden, jnp.ones((episodes,), bool),
-                     jnp.zeros((episodes,), jnp.float32), jax.random.fold_in(key, 1))
+    return PlayCarry(
+        state,
+        jax.vmap(env.get_obs_arrays)(state),
+        hidden,
+        jnp.ones((episodes,), bool),
+        jnp.zeros((episodes,), jnp.float32),
+        jax.random.fold_in(key, 1),
+    )
 
 
 def play_step(apply, env, params: tuple, carry: PlayCarry, _unused=None, greedy=False):
@@ -88,8 +95,9 @@ def play_step(apply, env, params: tuple, carry: PlayCarry, _unused=None, greedy=
     return PlayCarry(out.state, out.obs, tuple(hidden), out.done, carry.total + reward, key), record
 
 
-def play_episodes(apply, hidden_size, env, params: tuple, key: jax.Array, episodes: int,
-                  keep_every: int | None = None, greedy=False) -> PairEpisodes:
+def play_episodes(
+    apply, hidden_size, env, params: tuple, key: jax.Array, episodes: int, keep_every: int | None = None, greedy=False
+) -> PairEpisodes:
     """One pair (one params per seat) plays ``episodes`` episodes. Result arrays have P = 1 squeezed out.
 
     The key is consumed (see ``initial_carry``). ``apply``/``hidden_size``/``greedy``: shared or per seat.
@@ -120,15 +128,33 @@ def play_seats(seats, env, key: jax.Array, episodes: int, keep_every: int | None
     return play_episodes(applies, hiddens, env, tuple(params), key, episodes, keep_every, greedy)
 
 
-def play_pairs(apply, hidden_size, env, params_a, params_b, keys: jax.Array, episodes: int,
-               keep_every: int | None = None, greedy=False) -> PairEpisodes:
+def play_pairs(
+    apply,
+    hidden_size,
+    env,
+    params_a,
+    params_b,
+    keys: jax.Array,
+    episodes: int,
+    keep_every: int | None = None,
+    greedy=False,
+) -> PairEpisodes:
     """P pairs at once: ``params_a``/``params_b`` have a leading [P] axis (seat 0 / seat 1), keys [P]."""
     run = lambda pa, pb, k: play_episodes(apply, hidden_size, env, (pa, pb), k, episodes, keep_every, greedy)
     return jax.vmap(run)(params_a, params_b, keys)
 
 
-def play_row(apply, hidden_size, env, params_a, params_b, key: jax.Array, episodes: int,
-             keep_every: int | None = None, greedy=False) -> PairEpisodes:
+def play_row(
+    apply,
+    hidden_size,
+    env,
+    params_a,
+    params_b,
+    key: jax.Array,
+    episodes: int,
+    keep_every: int | None = None,
+    greedy=False,
+) -> PairEpisodes:
     """One seat-0 policy ``params_a`` with each of P partners ``params_b`` (leading [P] axis), one shared key.
 
     The same episodes as ``play_pairs`` with ``params_a`` repeated P times and ``key`` repeated P times

@@ -29,8 +29,9 @@ import os
 import pickle
 import tarfile
 import warnings
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Callable, Iterable, NamedTuple, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -56,8 +57,10 @@ PICKLE_NAMES = {"train": "clean_train_trials.pickle", "test": "clean_test_trials
 SDIST_NAME = "overcooked_ai-1.1.0.tar.gz"
 #: SHA-256 of the PyPI source distribution (the hash pip checks when it downloads it) and of its two pickles.
 SDIST_SHA256 = "478bf319274bdb6c5bede8048ee901d088912353111ab85e9fb2bf389c6ccddf"
-PICKLE_SHA256 = {"train": "28659cfd09ee033d82b56bed905b239f078877e1b09d1f1b916e4bc0480ca4fa",
-                 "test": "59979552a053f1efe762de976f37dd83e269d70d19b67613c61e856c86705666"}
+PICKLE_SHA256 = {
+    "train": "28659cfd09ee033d82b56bed905b239f078877e1b09d1f1b916e4bc0480ca4fa",
+    "test": "59979552a053f1efe762de976f37dd83e269d70d19b67613c61e856c86705666",
+}
 CACHE_ENV = "OCV2_CACHE"
 
 #: The 2019 game paid 5 points per soup; ocv2 (like overcooked-ai's MDP) pays DELIVERY_REWARD = 20.
@@ -114,7 +117,6 @@ PICKLE_CLASSES = {
     ("pandas.core.indexes.base", "_new_Index"): ("pandas.core.indexes.base", "_new_Index"),
     ("pandas.core.indexes.numeric", "Int64Index"): ("pandas", "Index"),
     ("pandas.core.internals.managers", "BlockManager"): ("pandas.core.internals.managers", "BlockManager"),
-
     ("builtins", "slice"): ("builtins", "slice"),
     ("numpy._core.multiarray", "_reconstruct"): ("numpy._core.multiarray", "_reconstruct"),
     ("numpy._core.numeric", "_frombuffer"): ("numpy._core.numeric", "_frombuffer"),
@@ -135,8 +137,9 @@ class TableUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str):
         target = PICKLE_CLASSES.get((module, name))
         if target is None:
-            raise pickle.UnpicklingError(f"refused to load {module}.{name}: the human data holds only "
-                                         "pandas/numpy tables")
+            raise pickle.UnpicklingError(
+                f"refused to load {module}.{name}: the human data holds only pandas/numpy tables"
+            )
         return getattr(importlib.import_module(target[0]), target[1])
 
     def persistent_load(self, pid):
@@ -196,16 +199,17 @@ def read_frame(source: str | os.PathLike, split: str, warn: Callable[[str], None
     except Exception as error:  # pickle/tar/pandas errors: one line naming the file
         raise HumanDataError(f"{where}: cannot read the {split} trials: {type(error).__name__}: {error}") from None
     if not isinstance(frame, pd.DataFrame):
-        raise HumanDataError(f"{where}: holds a {type(frame).__name__}, not the pandas DataFrame of the {split} "
-                             "trials")
+        raise HumanDataError(f"{where}: holds a {type(frame).__name__}, not the pandas DataFrame of the {split} trials")
     return frame
 
 
 def _check_digest(where, data: bytes, expected: str, what: str, warn: Callable[[str], None]) -> None:
     digest = hashlib.sha256(data).hexdigest()
     if digest != expected:
-        warn(f"{where}: not {what} (sha256 {digest[:16]}..., expected {expected[:16]}...); reading it anyway, "
-             "with an unpickler that only builds pandas/numpy tables")
+        warn(
+            f"{where}: not {what} (sha256 {digest[:16]}..., expected {expected[:16]}...); reading it anyway, "
+            "with an unpickler that only builds pandas/numpy tables"
+        )
 
 
 def rows_from_frame(frame) -> list[dict]:
@@ -220,6 +224,7 @@ def rows_from_frame(frame) -> list[dict]:
 # Converting rows
 # ---------------------------------------------------------------------------------------------------
 
+
 def check_layout(source_layout: str, grid_text: str) -> Layout:
     """The ocv2 layout of a 2019 layout name, checked cell by cell against the recorded map."""
     if source_layout not in LAYOUT_MAP:
@@ -227,15 +232,21 @@ def check_layout(source_layout: str, grid_text: str) -> Layout:
     layout = get_layout(LAYOUT_MAP[source_layout])
     rows = ast.literal_eval(grid_text) if isinstance(grid_text, str) else list(grid_text)
     try:
-        mapped = Layout.from_string("\n".join("".join(_CHAR_MAP[c] for c in row) for row in rows),
-                                    possible_recipes=[[0, 0, 0]], name=source_layout)
+        mapped = Layout.from_string(
+            "\n".join("".join(_CHAR_MAP[c] for c in row) for row in rows),
+            possible_recipes=[[0, 0, 0]],
+            name=source_layout,
+        )
         same = mapped.static_objects.shape == layout.static_objects.shape and bool(
-            (mapped.static_objects == layout.static_objects).all())
+            (mapped.static_objects == layout.static_objects).all()
+        )
     except (KeyError, ValueError):
         same = False
     if not same:
-        raise HumanDataError(f"layout {source_layout!r}: the recorded map {rows} is not ocv2's {layout.name!r} "
-                             f"kitchen {layout.to_string().splitlines()}")
+        raise HumanDataError(
+            f"layout {source_layout!r}: the recorded map {rows} is not ocv2's {layout.name!r} "
+            f"kitchen {layout.to_string().splitlines()}"
+        )
     return layout
 
 
@@ -308,8 +319,12 @@ def state_from_record(layout: Layout, record: dict, step: int = 0, delivered: bo
         else:
             raise HumanDataError(f"{where}: an object on a cell that is neither counter nor pot")
     return State(
-        agents=Agents(x=np.asarray(xs, np.int32), y=np.asarray(ys, np.int32), dir=np.asarray(dirs, np.int32),
-                      inventory=np.asarray(inventory, np.int32)),
+        agents=Agents(
+            x=np.asarray(xs, np.int32),
+            y=np.asarray(ys, np.int32),
+            dir=np.asarray(dirs, np.int32),
+            inventory=np.asarray(inventory, np.int32),
+        ),
         grid=np.stack([static, items, timers], axis=-1),
         recipe=np.asarray(it.recipe_encoding_np([0, 0, 0]), np.int32),
         step=np.asarray(step, np.int32),
@@ -328,8 +343,9 @@ def _parse(text, what: str):
         raise HumanDataError(f"{what}: not a Python literal: {text[:80]!r}") from None
 
 
-def trials_from_rows(rows: Iterable[dict], split: str = "train", layouts: Sequence[str] | None = None,
-                     max_trials: int | None = None) -> list[Trial]:
+def trials_from_rows(
+    rows: Iterable[dict], split: str = "train", layouts: Sequence[str] | None = None, max_trials: int | None = None
+) -> list[Trial]:
     """Group rows by (layout, worker) in first-appearance order, sort each game by ``cur_gameloop``
     and convert it. ``layouts`` filters by ocv2 or overcooked-ai layout name; ``max_trials`` keeps the
     first games only (per call, after filtering)."""
@@ -379,8 +395,15 @@ def _trial(source_layout: str, worker: int, split: str, rows: list[dict]) -> Tri
         raise HumanDataError(f"{where}: needs at least two rows")
     states[-1] = states[-1].replace(done=np.asarray(True))  # the game ended here, as ocv2's max_steps would
     stacked = jax.tree.map(lambda *xs: np.stack(xs), *states)
-    return Trial(layout.name, source_layout, worker, split, stacked, np.asarray(actions, np.int32),
-                 np.asarray(rewards, np.float32))
+    return Trial(
+        layout.name,
+        source_layout,
+        worker,
+        split,
+        stacked,
+        np.asarray(actions, np.int32),
+        np.asarray(rewards, np.float32),
+    )
 
 
 def proxy_path(layout: str) -> Path:
@@ -426,6 +449,7 @@ def _stepper(layout_name: str):
     def step(states, actions):
         out = jax.vmap(lambda s, a: transition(config, jax.random.PRNGKey(0), s, a))(states, actions)
         return out.state, out.reward, out.shaped_reward
+
     return step
 
 
@@ -492,6 +516,7 @@ def reproduce(trials: Sequence[Trial], max_examples: int = 3) -> Reproduction:
 # Which rules the recordings exercise
 # ---------------------------------------------------------------------------------------------------
 
+
 def rule_events(trials: Sequence[Trial]) -> dict:
     """Count what happens in the recorded transitions (per agent and step), read off the recorded
     states: which parts of the rules an exact reproduction has actually checked."""
@@ -508,8 +533,13 @@ def rule_events(trials: Sequence[Trial]) -> dict:
                     vx, vy = it.DIRECTION_VECTORS[it.ACTION_DIRECTION[action]]
                     moved = (x[t + 1, a], y[t + 1, a]) != (x[t, a], y[t, a])
                     target = static[y[t, a] + vy, x[t, a] + vx]
-                    counts["move" if moved else "move blocked by a counter/object" if target != Static.FLOOR
-                           else "move blocked by the other agent"] += 1
+                    counts[
+                        "move"
+                        if moved
+                        else "move blocked by a counter/object"
+                        if target != Static.FLOOR
+                        else "move blocked by the other agent"
+                    ] += 1
                 elif action == Action.INTERACT:
                     fx, fy = x[t + 1, a] + dx[t + 1, a], y[t + 1, a] + dy[t + 1, a]
                     counts[_interaction(static[fy, fx], inv[t, a], inv[t + 1, a])] += 1

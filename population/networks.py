@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import flax.linen as nn
 import jax
@@ -123,7 +123,7 @@ class SameConv(nn.Module):
             return y.reshape(batch, height, width, self.features) + bias
         lo = (k - 1) // 2  # SAME padding puts the odd pixel after, as lax.conv does
         padded = jnp.pad(x, ((0, 0), (lo, k - 1 - lo), (lo, k - 1 - lo), (0, 0)))
-        x = jnp.concatenate([padded[:, i:i + height, j:j + width, :] for i in range(k) for j in range(k)], axis=-1)
+        x = jnp.concatenate([padded[:, i : i + height, j : j + width, :] for i in range(k) for j in range(k)], axis=-1)
         return x @ kernel.reshape(k * k * channels, self.features) + bias
 
 
@@ -140,7 +140,7 @@ def banded_rows(rows: jax.Array, blocks: jax.Array, height: int) -> jax.Array:
     for row in range(height):
         first, stop = max(0, lo - row), min(taps, height + lo - row)  # kernel rows inside the grid
         top = row - lo + first
-        band = rows[:, top * row_in:(top + stop - first) * row_in]
+        band = rows[:, top * row_in : (top + stop - first) * row_in]
         outputs.append(band @ blocks[first:stop].reshape(-1, row_out))
     return jnp.concatenate(outputs, axis=1)
 
@@ -170,8 +170,16 @@ class ConvEncoder(nn.Module):
         """``nn.Conv`` layers under SameConv's names (same parameters, same initial draws)."""
         kernels = (1,) * len(self.mixer_features) + tuple(self.conv_kernels)
         for index, (features, k) in enumerate(zip((*self.mixer_features, *self.conv_features), kernels)):
-            x = act(nn.Conv(features, (k, k), padding="SAME", kernel_init=orthogonal(math.sqrt(2)),
-                            bias_init=constant(0.0), name=f"SameConv_{index}")(x))
+            x = act(
+                nn.Conv(
+                    features,
+                    (k, k),
+                    padding="SAME",
+                    kernel_init=orthogonal(math.sqrt(2)),
+                    bias_init=constant(0.0),
+                    name=f"SameConv_{index}",
+                )(x)
+            )
         return x
 
     def _cpu_convs(self, obs: jax.Array, act) -> jax.Array:
@@ -288,7 +296,8 @@ class ResetGRU(nn.Module):
     @nn.compact
     def __call__(self, hidden, inputs, reset):  # [B, H], [T, B, in], bool[T, B] -> ([B, H], [T, B, H])
         input_kernel, input_bias, hidden_kernel, hidden_bias = _GRUParams(self.features, name="GRUCell_0")(
-            inputs.shape[-1])
+            inputs.shape[-1]
+        )
         flat = inputs.reshape(-1, inputs.shape[-1])  # 2-D: see pointwise_mixer on XLA:CPU and N-D dots
         projected = (flat @ input_kernel + input_bias).reshape(inputs.shape[:-1] + (-1,))  # [T, B, 3H]
         gru = gru_sequence if self.custom_backward else gru_scan
@@ -301,9 +310,9 @@ def gru_step(hidden_kernel, hidden_bias, h, projected, start):
     h = jnp.where(start[:, None], jnp.zeros_like(h), h)
     hh = h @ hidden_kernel
     r = nn.sigmoid(projected[:, :size] + hh[:, :size])
-    z = nn.sigmoid(projected[:, size:2 * size] + hh[:, size:2 * size])
-    hidden_n = hh[:, 2 * size:] + hidden_bias
-    n = jnp.tanh(projected[:, 2 * size:] + r * hidden_n)
+    z = nn.sigmoid(projected[:, size : 2 * size] + hh[:, size : 2 * size])
+    hidden_n = hh[:, 2 * size :] + hidden_bias
+    n = jnp.tanh(projected[:, 2 * size :] + r * hidden_n)
     return h, r, z, n, hidden_n, (1.0 - z) * n + z * h
 
 
@@ -323,6 +332,7 @@ def gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias):
 
 def gru_scan(projected, reset, hidden, hidden_kernel, hidden_bias):
     """``gru_sequence`` differentiated by autodiff of the step scan (what backends other than XLA:CPU run)."""
+
     def step(h, xs):
         h = gru_step(hidden_kernel, hidden_bias, h, *xs)[-1]
         return h, h
@@ -359,7 +369,7 @@ def _gru_backward(residuals, cotangents):
     d_hidden, (d_projected, d_hh) = jax.lax.scan(step, d_last, (d_every, reset, gates), reverse=True)
     h_prev = gates[0]
     d_kernel = h_prev.reshape(-1, size).T @ d_hh.reshape(-1, 3 * size)
-    d_bias = d_hh[..., 2 * size:].sum(axis=(0, 1))
+    d_bias = d_hh[..., 2 * size :].sum(axis=(0, 1))
     return d_projected, None, d_hidden, d_kernel, d_bias
 
 
@@ -385,11 +395,13 @@ class ActorCritic(nn.Module):
         family = kernel_family(self.kernels)
         steps, batch = obs.shape[:2]
         flat = obs.reshape((steps * batch,) + obs.shape[2:])
-        embedding = ConvEncoder(self.mixer_features, self.conv_features, self.conv_kernels, self.fc_dim,
-                                self.activation, family)(flat).reshape(steps, batch, -1)
+        embedding = ConvEncoder(
+            self.mixer_features, self.conv_features, self.conv_kernels, self.fc_dim, self.activation, family
+        )(flat).reshape(steps, batch, -1)
         if self.recurrent:
             hidden, embedding = ResetGRU(self.gru_dim, family == "cpu", name="ScanResetGRUCell_0")(
-                hidden, embedding, reset)
+                hidden, embedding, reset
+            )
         embedding = embedding.reshape(steps * batch, -1)  # 2-D heads: see pointwise_mixer
         actor = act(_dense(self.fc_dim, math.sqrt(2))(embedding))
         logits = _dense(self.num_actions, 0.01)(actor).reshape(steps, batch, -1)

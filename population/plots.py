@@ -118,8 +118,16 @@ def heatmap_layout(row_labels, col_labels) -> HeatmapLayout:
     return HeatmapLayout(font, cell, rotate, (max(width, 3.5), max(height, 3.0)), annotate)
 
 
-def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: float | None = None,
-               col_labels=None, row_title: str = "policy in seat 0", col_title: str = "policy in seat 1") -> str | None:
+def xp_heatmap(
+    matrix: np.ndarray,
+    path,
+    labels=None,
+    title: str = "",
+    vmax: float | None = None,
+    col_labels=None,
+    row_title: str = "policy in seat 0",
+    col_title: str = "policy in seat 1",
+) -> str | None:
     """Cross-play heatmap like the paper's Figure 4: rows = seat 0, columns = seat 1, annotated cells.
 
     ``labels`` name the rows (and the columns, unless ``col_labels`` is given: a rectangular matrix).
@@ -133,7 +141,9 @@ def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: flo
     matrix = np.asarray(matrix, np.float64)
     rows, cols = matrix.shape
     labels = list(labels) if labels is not None else [str(i) for i in range(rows)]
-    col_labels = list(col_labels) if col_labels is not None else (labels if cols == rows else [str(j) for j in range(cols)])
+    col_labels = (
+        list(col_labels) if col_labels is not None else (labels if cols == rows else [str(j) for j in range(cols)])
+    )
     layout = heatmap_layout(labels, col_labels)
     fig, ax = plt.subplots(figsize=layout.figsize, layout="constrained")
     top = vmax if vmax is not None else max(float(np.nanmax(matrix)) if matrix.size else 1.0, 1.0)
@@ -147,8 +157,15 @@ def xp_heatmap(matrix: np.ndarray, path, labels=None, title: str = "", vmax: flo
         for i in range(rows):
             for j in range(cols):
                 value = matrix[i, j]
-                ax.text(j, i, f"{value:.0f}", ha="center", va="center", fontsize=layout.font,
-                        color="white" if value < 0.6 * top else "black")
+                ax.text(
+                    j,
+                    i,
+                    f"{value:.0f}",
+                    ha="center",
+                    va="center",
+                    fontsize=layout.font,
+                    color="white" if value < 0.6 * top else "black",
+                )
     if title:
         ax.set_title(textwrap.fill(title, max(20, int(layout.figsize[0] * 72 / (CHAR_WIDTH * 10)))), fontsize=10)
     out = save_figure(fig, path)

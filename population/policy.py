@@ -28,8 +28,9 @@ import functools
 import json
 import re
 import warnings
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -108,6 +109,7 @@ def act(apply, params, key: jax.Array, obs: jax.Array, hidden: jax.Array, reset:
 # export
 # ---------------------------------------------------------------------------------------------------
 
+
 def export(path, *, params, model: ModelConfig, env, meta: dict | None = None, activation: str = "relu") -> Path:
     """Write ``params`` of a network ``model`` playing ``env`` to one file, atomically.
 
@@ -117,8 +119,14 @@ def export(path, *, params, model: ModelConfig, env, meta: dict | None = None, a
     """
     path = Path(path)
     env_kwargs = _env_kwargs(env)
-    header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "model": _plain(dataclasses.asdict(model)),
-              "activation": activation, "env": _plain(env_kwargs), "meta": meta or {}}
+    header = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "model": _plain(dataclasses.asdict(model)),
+        "activation": activation,
+        "env": _plain(env_kwargs),
+        "meta": meta or {},
+    }
     try:
         header_text = json.dumps(header, sort_keys=True)
     except TypeError as error:
@@ -130,17 +138,25 @@ def export(path, *, params, model: ModelConfig, env, meta: dict | None = None, a
     return atomic_write(path, seal(FORMAT_NAME, FORMAT_VERSION, content))
 
 
-def export_checkpoint(source, out, *, seed: int | None = None, checkpoint: str | int = "final",
-                      meta: dict | None = None) -> Path:
+def export_checkpoint(
+    source, out, *, seed: int | None = None, checkpoint: str | int = "final", meta: dict | None = None
+) -> Path:
     """Export the policy ``load(source, seed=..., checkpoint=...)`` finds (a run, seed dir or checkpoint)."""
     policy = load(source, seed=seed, checkpoint=checkpoint)
-    return export(out, params=policy.params, model=policy.model, env=policy.env, activation=policy.activation,
-                  meta={"exported_from": policy.source, "name": policy.name, **policy.meta, **(meta or {})})
+    return export(
+        out,
+        params=policy.params,
+        model=policy.model,
+        env=policy.env,
+        activation=policy.activation,
+        meta={"exported_from": policy.source, "name": policy.name, **policy.meta, **(meta or {})},
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
 # load
 # ---------------------------------------------------------------------------------------------------
+
 
 def load(source, *, seed: int | None = None, checkpoint: str | int = "final") -> Policy:
     """A ``Policy`` from an exported file, a checkpoint file, a seed directory or a run directory.
@@ -199,12 +215,17 @@ def _load_exported(path: Path, payload: dict, version: int) -> Policy:
     if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
         raise PolicyError(f"{path}: not an {FORMAT_NAME} file")
     if header.get("version") != version:
-        raise PolicyError(f"{path}: {FORMAT_NAME} version {header.get('version')!r}; this ocv2 reads version "
-                          f"{FORMAT_VERSION} (and {UNSEALED_VERSION} without a checksum)")
+        raise PolicyError(
+            f"{path}: {FORMAT_NAME} version {header.get('version')!r}; this ocv2 reads version "
+            f"{FORMAT_VERSION} (and {UNSEALED_VERSION} without a checksum)"
+        )
     if version == UNSEALED_VERSION:
-        warnings.warn(f"{path}: an {FORMAT_NAME} version-{UNSEALED_VERSION} file has no checksum, so damage to it "
-                      f"cannot be detected; export it again to get version {FORMAT_VERSION}",
-                      PolicyFormatWarning, stacklevel=4)
+        warnings.warn(
+            f"{path}: an {FORMAT_NAME} version-{UNSEALED_VERSION} file has no checksum, so damage to it "
+            f"cannot be detected; export it again to get version {FORMAT_VERSION}",
+            PolicyFormatWarning,
+            stacklevel=4,
+        )
     config = _validated(header, str(path))
     params = _restore_params(str(path), _template(config), payload["params"])
     meta = header.get("meta") or {}
@@ -216,8 +237,10 @@ def _load_checkpoint_file(path: Path) -> Policy:
     match = _SEED_DIR.match(seed_dir.name)
     run_dir = seed_dir.parent.parent
     if not match or seed_dir.parent.name != "checkpoints" or not (run_dir / "config.yaml").is_file():
-        raise PolicyError(f"{path}: a checkpoint must lie in RUN_DIR/checkpoints/seed_<i>/ next to its run's "
-                          "config.yaml (or export it with 'ocv2 export')")
+        raise PolicyError(
+            f"{path}: a checkpoint must lie in RUN_DIR/checkpoints/seed_<i>/ next to its run's "
+            "config.yaml (or export it with 'ocv2 export')"
+        )
     config = _run_config(run_dir)
     return _from_checkpoint(config, path, run_dir, int(match.group(1)))
 
@@ -243,11 +266,13 @@ def _pick_update(run_dir: Path, config: Config, seed: int, checkpoint) -> int:
     elif choice.isdigit():
         update = int(choice)
     else:
-        raise PolicyError(f"checkpoint {checkpoint!r}: expected one of {', '.join(CHECKPOINT_CHOICES)} or an "
-                          "update number")
+        raise PolicyError(
+            f"checkpoint {checkpoint!r}: expected one of {', '.join(CHECKPOINT_CHOICES)} or an update number"
+        )
     if update not in available:
-        raise PolicyError(f"{ckpt.seed_dir(run_dir, seed)}: no checkpoint at update {update} ({choice}); "
-                          f"it has updates {available}")
+        raise PolicyError(
+            f"{ckpt.seed_dir(run_dir, seed)}: no checkpoint at update {update} ({choice}); it has updates {available}"
+        )
     return update
 
 
@@ -267,14 +292,19 @@ def _from_checkpoint(config: Config, path: Path, run_dir: Path, seed: int) -> Po
         raise PolicyError(f"{path}: checkpoint holds no network parameters")
     params = _restore_params(str(path), _template(config), raw["params"])
     update = int(meta.get("update", -1))
-    return _policy(config, params, name=f"{run_dir.name}/seed_{seed}@{update}", source=str(path),
-                   meta={"run_dir": str(run_dir), "seed": seed, "update": update,
-                         "method": config.population.method})
+    return _policy(
+        config,
+        params,
+        name=f"{run_dir.name}/seed_{seed}@{update}",
+        source=str(path),
+        meta={"run_dir": str(run_dir), "seed": seed, "update": update, "method": config.population.method},
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------------------
+
 
 def policy_env(env_kwargs: Mapping) -> ocv2.OvercookedV2:
     """``ocv2.make(**env_kwargs)``, one object per distinct settings: jitted rollouts are cached per env
@@ -299,9 +329,17 @@ def hidden_size_of(model: ModelConfig) -> int:
 
 
 def _policy(config: Config, params, *, name: str, source: str, meta: dict) -> Policy:
-    return Policy(name=name, apply=_network(config).apply, params=params, hidden_size=hidden_size_of(config.model),
-                  model=config.model, env=config.env_kwargs, activation=config.ppo.activation, source=source,
-                  meta=meta)
+    return Policy(
+        name=name,
+        apply=_network(config).apply,
+        params=params,
+        hidden_size=hidden_size_of(config.model),
+        model=config.model,
+        env=config.env_kwargs,
+        activation=config.ppo.activation,
+        source=source,
+        meta=meta,
+    )
 
 
 def _network(config: Config):
@@ -317,8 +355,9 @@ def _template(config: Config):
     """Shapes and dtypes of the network's parameters (nothing is computed)."""
     env = policy_env(config.env_kwargs)
     if not isinstance(env.obs_shape, tuple):
-        raise PolicyError(f"layout {config.env_kwargs['layout']!r}: agents with different observation shapes "
-                          "cannot share one network")
+        raise PolicyError(
+            f"layout {config.env_kwargs['layout']!r}: agents with different observation shapes cannot share one network"
+        )
     network = _network(config)
     return jax.eval_shape(lambda k: init_params(network, k, env.obs_shape), jax.random.PRNGKey(0))
 
@@ -365,8 +404,10 @@ def _env_kwargs(env) -> dict:
         env = env.config
     if isinstance(env, ocv2.EnvConfig):
         return _env_config_kwargs(env)
-    raise PolicyError(f"env must be ocv2.make keyword arguments (a mapping), an ocv2 env or EnvConfig, or a run "
-                      f"Config; got {type(env).__name__}")
+    raise PolicyError(
+        f"env must be ocv2.make keyword arguments (a mapping), an ocv2 env or EnvConfig, or a run "
+        f"Config; got {type(env).__name__}"
+    )
 
 
 def _env_config_kwargs(config: ocv2.EnvConfig) -> dict:
@@ -390,5 +431,17 @@ def _plain(value):
     return value
 
 
-__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "Policy", "PolicyError", "SUFFIX", "act", "export", "export_checkpoint",
-           "hidden_size_of", "load", "network", "policy_env"]
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "Policy",
+    "PolicyError",
+    "SUFFIX",
+    "act",
+    "export",
+    "export_checkpoint",
+    "hidden_size_of",
+    "load",
+    "network",
+    "policy_env",
+]

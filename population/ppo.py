@@ -31,10 +31,10 @@ from population.config import Config
 from population.keys import derive_key
 from population.networks import ActorCritic, init_params, make_network
 
-
 # ---------------------------------------------------------------------------------------------------
 # containers
 # ---------------------------------------------------------------------------------------------------
+
 
 class Transition(NamedTuple):
     """One rollout step of the learner sequences; every field is [T, B, ...] once stacked."""
@@ -113,6 +113,7 @@ class UpdateMetrics(NamedTuple):
 # the static part: env, network, optimizer, schedules
 # ---------------------------------------------------------------------------------------------------
 
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Trainer:
     """Static context of a run (hashed by identity, so jit caches per Trainer)."""
@@ -158,8 +159,9 @@ def lr_schedule(config: Config) -> optax.Schedule:
     if not ppo.anneal_lr:
         return optax.constant_schedule(ppo.lr)
     warmup = int(ppo.lr_warmup * total)
-    return optax.warmup_cosine_decay_schedule(0.0, ppo.lr, warmup_steps=warmup, decay_steps=max(total, warmup + 1),
-                                              end_value=0.0)
+    return optax.warmup_cosine_decay_schedule(
+        0.0, ppo.lr, warmup_steps=warmup, decay_steps=max(total, warmup + 1), end_value=0.0
+    )
 
 
 def shaping_coef(config: Config, env_steps) -> jax.Array:
@@ -175,8 +177,9 @@ def make_trainer(config: Config) -> Trainer:
     schedule = lr_schedule(config)
     optimizer = optax.chain(optax.clip_by_global_norm(config.ppo.max_grad_norm), optax.adam(schedule, eps=1e-5))
     codes = jnp.asarray([recipe_encoding_np(r) for r in env.layout.possible_recipes], jnp.int32)
-    return Trainer(config, env, make_network(config.model, env.num_actions, config.ppo.activation), optimizer,
-                   schedule, codes)
+    return Trainer(
+        config, env, make_network(config.model, env.num_actions, config.ppo.activation), optimizer, schedule, codes
+    )
 
 
 def seed_key(config: Config, index: int) -> jax.Array:
@@ -187,6 +190,7 @@ def seed_key(config: Config, index: int) -> jax.Array:
 # ---------------------------------------------------------------------------------------------------
 # initialisation
 # ---------------------------------------------------------------------------------------------------
+
 
 def _recipe_index(trainer: Trainer, recipe: jax.Array) -> jax.Array:
     return jnp.argmax(recipe[..., None] == trainer.recipe_codes, axis=-1).astype(jnp.int32)
@@ -225,25 +229,45 @@ def init_train_state(trainer: Trainer, key: jax.Array, buffer: State | None = No
     zeros = jnp.zeros((num_envs,), jnp.float32)
     recipe = _recipe_index(trainer, env_state.recipe)
     stats = EpisodeStats(zeros, zeros, recipe, nan, nan, recipe, jnp.int32(0))
-    return TrainState(params, trainer.optimizer.init(params), env_state, obs, jnp.ones((num_envs,), bool),
-                      trainer.network.initial_hidden(trainer.num_sequences), key, jnp.int32(0), stats, partner)
+    return TrainState(
+        params,
+        trainer.optimizer.init(params),
+        env_state,
+        obs,
+        jnp.ones((num_envs,), bool),
+        trainer.network.initial_hidden(trainer.num_sequences),
+        key,
+        jnp.int32(0),
+        stats,
+        partner,
+    )
 
 
 def restart_episodes(trainer: Trainer, state: TrainState, key: jax.Array, buffer: State | None = None) -> TrainState:
     """Start new episodes everywhere (SA does this after each new buffer); learning state is kept."""
     env_state, obs = reset_envs(trainer, key, buffer)
-    stats = state.stats.replace(sparse=jnp.zeros_like(state.stats.sparse), shaped=jnp.zeros_like(state.stats.shaped),
-                                recipe=_recipe_index(trainer, env_state.recipe))
+    stats = state.stats.replace(
+        sparse=jnp.zeros_like(state.stats.sparse),
+        shaped=jnp.zeros_like(state.stats.shaped),
+        recipe=_recipe_index(trainer, env_state.recipe),
+    )
     partner = state.partner
     if partner is not None:
         partner = partner.replace(hidden=jnp.zeros_like(partner.hidden))
-    return state.replace(env_state=env_state, obs=obs, start=jnp.ones_like(state.start),
-                         hidden=jnp.zeros_like(state.hidden), stats=stats, partner=partner)
+    return state.replace(
+        env_state=env_state,
+        obs=obs,
+        start=jnp.ones_like(state.start),
+        hidden=jnp.zeros_like(state.hidden),
+        stats=stats,
+        partner=partner,
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
 # acting
 # ---------------------------------------------------------------------------------------------------
+
 
 def sample_actions(key: jax.Array, logits: jax.Array):
     """Categorical sample and its log-probability. logits [..., A] -> (int32[...], float32[...])."""
@@ -261,8 +285,9 @@ def learner_view(trainer: Trainer, state: TrainState):
     return state.obs.reshape((-1,) + state.obs.shape[2:]), jnp.repeat(state.start, num_agents)
 
 
-def partner_actions(network: ActorCritic, pool_params, partner: PartnerState, obs: jax.Array, start: jax.Array,
-                    key: jax.Array):
+def partner_actions(
+    network: ActorCritic, pool_params, partner: PartnerState, obs: jax.Array, start: jax.Array, key: jax.Array
+):
     """Actions of the frozen partners, computed per pool member on its group of environments.
 
     Environments are scattered into [K, G] slots (K pool members, G = ceil(E/K) slots each), so each
@@ -280,8 +305,9 @@ def partner_actions(network: ActorCritic, pool_params, partner: PartnerState, ob
         out = jnp.full((slots,) + x.shape[1:], fill, x.dtype).at[partner.slot].set(x)
         return out.reshape((pool_size, group) + x.shape[1:])
 
-    hidden, logits, _ = jax.vmap(network.apply)(pool_params, scatter(partner.hidden), scatter(partner_obs)[:, None],
-                                                scatter(start, True)[:, None])
+    hidden, logits, _ = jax.vmap(network.apply)(
+        pool_params, scatter(partner.hidden), scatter(partner_obs)[:, None], scatter(start, True)[:, None]
+    )
     actions = jax.random.categorical(key, logits[:, 0]).astype(jnp.int32)  # independent noise per slot
     actions = actions.reshape(slots)[partner.slot]
     hidden = hidden.reshape((slots,) + hidden.shape[2:])[partner.slot]
@@ -303,7 +329,9 @@ def rollout_step(trainer: Trainer, pool_params, buffer, carry: StepCarry, _unuse
     num_envs, num_agents = state.obs.shape[:2]
     partner = state.partner
     if trainer.fcp:
-        other, partner_hidden = partner_actions(trainer.network, pool_params, partner, state.obs, state.start, k_partner)
+        other, partner_hidden = partner_actions(
+            trainer.network, pool_params, partner, state.obs, state.start, k_partner
+        )
         seat = partner.learner_seat
         joint = jnp.where(seat[:, None] == jnp.arange(num_agents), action[:, None], other[:, None])
     else:
@@ -327,10 +355,12 @@ def rollout_step(trainer: Trainer, pool_params, buffer, carry: StepCarry, _unuse
         pool_size = jax.tree.leaves(pool_params)[0].shape[0]
         slot, seat = _draw_partners(trainer, k_draw, pool_size)
         redraw = out.done.all()
-        partner = PartnerState(jnp.where(redraw, slot, partner.slot), jnp.where(redraw, seat, partner.learner_seat),
-                               partner_hidden)
-    state = state.replace(env_state=out.state, obs=out.obs, start=out.done, hidden=hidden, key=key, stats=stats,
-                          partner=partner)
+        partner = PartnerState(
+            jnp.where(redraw, slot, partner.slot), jnp.where(redraw, seat, partner.learner_seat), partner_hidden
+        )
+    state = state.replace(
+        env_state=out.state, obs=out.obs, start=out.done, hidden=hidden, key=key, stats=stats, partner=partner
+    )
     return StepCarry(state, carry.shaping), transition
 
 
@@ -352,11 +382,13 @@ def _track_episodes(trainer: Trainer, stats: EpisodeStats, sparse, shaped, done,
 # learning
 # ---------------------------------------------------------------------------------------------------
 
+
 def compute_gae(rewards, values, terminals, last_value, gamma: float, gae_lambda: float):
     """Generalised advantage estimation over [T, B]; no bootstrap across a terminal step.
 
     Returns (advantages [T, B], value targets [T, B]).
     """
+
     def backward(carry, step):
         gae, next_value = carry
         reward, value, terminal = step
@@ -393,8 +425,9 @@ def ppo_loss(trainer: Trainer, params, hidden, batch: Transition, advantages, ta
     value_loss = 0.5 * jnp.maximum(jnp.square(value - targets), jnp.square(value_clipped - targets)).mean()
     entropy = -(jnp.exp(log_probs) * log_probs).sum(-1).mean()
     total = actor + ppo.vf_coef * value_loss - ppo.ent_coef * entropy
-    info = LossInfo(total, actor, value_loss, entropy, ((ratio - 1) - log_ratio).mean(),
-                    (jnp.abs(ratio - 1) > ppo.clip_eps).mean())
+    info = LossInfo(
+        total, actor, value_loss, entropy, ((ratio - 1) - log_ratio).mean(), (jnp.abs(ratio - 1) > ppo.clip_eps).mean()
+    )
     return total, info
 
 
@@ -409,6 +442,7 @@ class Batch(NamedTuple):
 
 def split_minibatches(batch: Batch, permutation: jax.Array, num_minibatches: int) -> Batch:
     """Shuffle the B sequences and cut them into [M, ...] minibatches of whole sequences."""
+
     def along_time(x):  # [T, B, ...] -> [M, T, B/M, ...]
         x = jnp.take(x, permutation, axis=1)
         x = x.reshape((x.shape[0], num_minibatches, -1) + x.shape[2:])
@@ -416,8 +450,9 @@ def split_minibatches(batch: Batch, permutation: jax.Array, num_minibatches: int
 
     hidden = jnp.take(batch.hidden, permutation, axis=0)
     hidden = hidden.reshape((num_minibatches, hidden.shape[0] // num_minibatches) + hidden.shape[1:])
-    return Batch(hidden, jax.tree.map(along_time, batch.transitions), along_time(batch.advantages),
-                 along_time(batch.targets))
+    return Batch(
+        hidden, jax.tree.map(along_time, batch.transitions), along_time(batch.advantages), along_time(batch.targets)
+    )
 
 
 class OptCarry(NamedTuple):
@@ -427,8 +462,9 @@ class OptCarry(NamedTuple):
 
 def minibatch_step(trainer: Trainer, carry: OptCarry, minibatch: Batch):
     grad_fn = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
-    (_, info), grads = grad_fn(trainer, carry.params, minibatch.hidden, minibatch.transitions, minibatch.advantages,
-                               minibatch.targets)
+    (_, info), grads = grad_fn(
+        trainer, carry.params, minibatch.hidden, minibatch.transitions, minibatch.advantages, minibatch.targets
+    )
     updates, opt_state = trainer.optimizer.update(grads, carry.opt_state, carry.params)
     return OptCarry(optax.apply_updates(carry.params, updates), opt_state), info
 
@@ -454,13 +490,15 @@ def update_step(trainer: Trainer, pool_params, buffer, state: TrainState, _unuse
     state = carry.state
     obs, reset = learner_view(trainer, state)
     _, _, last_value = trainer.network.apply(state.params, state.hidden, obs[None], reset[None])
-    advantages, targets = compute_gae(transitions.reward, transitions.value, transitions.terminal, last_value[0],
-                                      ppo.gamma, ppo.gae_lambda)
+    advantages, targets = compute_gae(
+        transitions.reward, transitions.value, transitions.terminal, last_value[0], ppo.gamma, ppo.gae_lambda
+    )
     batch = Batch(initial_hidden, transitions, advantages, targets)
     key, k_epochs = jax.random.split(state.key)
     epoch = lambda c, x: update_epoch(trainer, batch, c, x)
-    (opt, _), infos = jax.lax.scan(epoch, (OptCarry(state.params, state.opt_state), k_epochs), None,
-                                   length=ppo.update_epochs)
+    (opt, _), infos = jax.lax.scan(
+        epoch, (OptCarry(state.params, state.opt_state), k_epochs), None, length=ppo.update_epochs
+    )
     lr = trainer.lr_schedule(state.update * ppo.update_epochs * ppo.num_minibatches)
     state = state.replace(params=opt.params, opt_state=opt.opt_state, key=key, update=state.update + 1)
     metrics = UpdateMetrics(
@@ -500,6 +538,7 @@ def advance(trainer: Trainer, state: TrainState, num_updates: int, buffer: State
 # populations: seeds on a leading vmap axis
 # ---------------------------------------------------------------------------------------------------
 
+
 def init_population(trainer: Trainer, seeds, buffer: State | None = None, pool_size: int = 0) -> TrainState:
     """TrainStates of the given seed indices stacked on a leading axis (S)."""
     # One jitted init per seed, then stacked: XLA:CPU (jax 0.10.2) deadlocks running a vmapped flax
@@ -515,6 +554,7 @@ def make_advance_population(trainer: Trainer, num_updates: int, pool_per_seed: b
     The buffer is shared by all seeds; the pool is shared unless ``pool_per_seed`` (one pool per
     FCP learner, leading axis S).
     """
+
     def run(states, buffer, pool_params):
         return advance(trainer, states, num_updates, buffer, pool_params)
 
@@ -527,9 +567,34 @@ def take_seed(tree, index: int):
 
 
 __all__ = [
-    "Batch", "EpisodeStats", "LossInfo", "PartnerState", "Trainer", "TrainState", "Transition", "UpdateMetrics",
-    "advance", "compute_gae", "eval_env", "init_population", "init_train_state", "learner_view", "lr_schedule",
-    "make_advance_population", "make_trainer", "partner_actions", "ppo_loss", "replay_reset", "reset_envs",
-    "restart_episodes", "rollout_step", "sample_actions", "seed_key", "shaping_coef", "split_minibatches",
-    "take_seed", "train_env", "update_step",
+    "Batch",
+    "EpisodeStats",
+    "LossInfo",
+    "PartnerState",
+    "Trainer",
+    "TrainState",
+    "Transition",
+    "UpdateMetrics",
+    "advance",
+    "compute_gae",
+    "eval_env",
+    "init_population",
+    "init_train_state",
+    "learner_view",
+    "lr_schedule",
+    "make_advance_population",
+    "make_trainer",
+    "partner_actions",
+    "ppo_loss",
+    "replay_reset",
+    "reset_envs",
+    "restart_episodes",
+    "rollout_step",
+    "sample_actions",
+    "seed_key",
+    "shaping_coef",
+    "split_minibatches",
+    "take_seed",
+    "train_env",
+    "update_step",
 ]

@@ -21,8 +21,15 @@ import jax.numpy as jnp
 from ocv2.state import State
 from population.evaluation import PolicyApply, initial_carry, play_step
 
-__all__ = ["Recorded", "jitted_play_recorded", "jitted_play_recorded_pairs", "jitted_play_recorded_row", "play_recorded",
-           "play_recorded_pairs", "play_recorded_row"]
+__all__ = [
+    "Recorded",
+    "jitted_play_recorded",
+    "jitted_play_recorded_pairs",
+    "jitted_play_recorded_row",
+    "play_recorded",
+    "play_recorded_pairs",
+    "play_recorded_row",
+]
 
 
 class Recorded(NamedTuple):
@@ -36,8 +43,7 @@ class Recorded(NamedTuple):
     returns: jax.Array  # float32[E] sum of rewards
 
 
-def play_recorded(apply: PolicyApply, hidden_size: int, env, params: tuple, key: jax.Array,
-                  episodes: int) -> Recorded:
+def play_recorded(apply: PolicyApply, hidden_size: int, env, params: tuple, key: jax.Array, episodes: int) -> Recorded:
     """One pair (one params per seat) plays ``episodes`` episodes; every transition is returned.
 
     The key is consumed exactly as ``play_episodes`` consumes it. Jit-compatible (``env``, ``apply``,
@@ -60,15 +66,17 @@ def play_recorded(apply: PolicyApply, hidden_size: int, env, params: tuple, key:
     )
 
 
-def play_recorded_pairs(apply: PolicyApply, hidden_size: int, env, params_a, params_b, keys: jax.Array,
-                        episodes: int) -> Recorded:
+def play_recorded_pairs(
+    apply: PolicyApply, hidden_size: int, env, params_a, params_b, keys: jax.Array, episodes: int
+) -> Recorded:
     """P pairs at once: ``params_a``/``params_b`` have a leading [P] axis (seat 0 / seat 1), keys [P]."""
     run = lambda pa, pb, k: play_recorded(apply, hidden_size, env, (pa, pb), k, episodes)
     return jax.vmap(run)(params_a, params_b, keys)
 
 
-def play_recorded_row(apply: PolicyApply, hidden_size: int, env, params_a, params_b, key: jax.Array,
-                      episodes: int) -> Recorded:
+def play_recorded_row(
+    apply: PolicyApply, hidden_size: int, env, params_a, params_b, key: jax.Array, episodes: int
+) -> Recorded:
     """One seat-0 policy with each of P partners (``params_b`` [P]), one shared key: see ``play_row``."""
     run = lambda pb: play_recorded(apply, hidden_size, env, (params_a, pb), key, episodes)
     return jax.vmap(run)(params_b)

@@ -12,7 +12,8 @@ pair results in pair order, so the buffer is identical however the work was spli
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,14 +39,29 @@ def pair_key(key: jax.Array, pair: tuple[int, int], num_policies: int) -> jax.Ar
     return jax.random.fold_in(key, pair[0] * num_policies + pair[1])
 
 
-def collect_pair_states(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array, sa: SAConfig,
-                        pairs: Sequence[tuple[int, int]] | None = None) -> PairStates:
+def collect_pair_states(
+    apply: PolicyApply,
+    hidden_size: int,
+    env,
+    params,
+    key: jax.Array,
+    sa: SAConfig,
+    pairs: Sequence[tuple[int, int]] | None = None,
+) -> PairStates:
     """Play the given ordered pairs of the K stacked ``params`` and keep every ``keep_every``-th state."""
     return collect_pairs(apply, hidden_size, env, params, key, sa, pairs)[0]
 
 
-def collect_pairs(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array, sa: SAConfig,
-                  pairs: Sequence[tuple[int, int]] | None = None, record: bool = False):
+def collect_pairs(
+    apply: PolicyApply,
+    hidden_size: int,
+    env,
+    params,
+    key: jax.Array,
+    sa: SAConfig,
+    pairs: Sequence[tuple[int, int]] | None = None,
+    record: bool = False,
+):
     """``(PairStates, Recorded | None)``: the kept states and, with ``record``, every transition.
 
     Recording plays the very same episodes (same keys, same ``play_step``) and keeps everything; the
@@ -63,12 +79,12 @@ def collect_pairs(apply: PolicyApply, hidden_size: int, env, params, key: jax.Ar
         play = _jitted_collect(apply, hidden_size, env, sa.rollouts_per_pair, sa.keep_every)
     blocks, records = [], []
     for start in range(0, len(pairs), max(num, 1)):  # at most K parameter copies per call
-        chunk = pairs[start:start + num]
+        chunk = pairs[start : start + num]
         keys = jnp.stack([pair_key(key, p, num) for p in chunk])
         result = play(gather_params(params, [p[0] for p in chunk]), gather_params(params, [p[1] for p in chunk]), keys)
         if record:
             records.append(result)
-            kept = jax.tree.map(lambda x: x[:, :, 0:kept_steps:sa.keep_every], result.states)
+            kept = jax.tree.map(lambda x: x[:, :, 0 : kept_steps : sa.keep_every], result.states)
         else:
             kept = result.states
         blocks.append(jax.tree.map(lambda x: x.reshape((x.shape[0], -1) + x.shape[3:]), kept))
@@ -100,8 +116,9 @@ def extend_buffer(buffer: State, extra: State | None) -> State:
     """The collected buffer followed by states from elsewhere (an archive: ``cluster.archive.states_as_buffer``)."""
     if extra is None:
         return buffer
-    return jax.tree.map(lambda a, b: np.concatenate([np.asarray(a), np.asarray(b, dtype=np.asarray(a).dtype)]),
-                        buffer, extra)
+    return jax.tree.map(
+        lambda a, b: np.concatenate([np.asarray(a), np.asarray(b, dtype=np.asarray(a).dtype)]), buffer, extra
+    )
 
 
 def buffer_size(num_policies: int, sa: SAConfig, max_steps: int) -> int:

@@ -24,8 +24,10 @@ def seal(format_name: str, version: int, content: dict) -> bytes:
     body = serialization.msgpack_serialize(content)
     # msgpack itself, not flax (whose tree_map sorts keys): the body stays last, so damage near the
     # file's end lands in the body and reads as a checksum mismatch.
-    return msgpack.packb({"format": format_name, "version": version, "sha256": hashlib.sha256(body).hexdigest(),
-                          "body": body}, use_bin_type=True)
+    return msgpack.packb(
+        {"format": format_name, "version": version, "sha256": hashlib.sha256(body).hexdigest(), "body": body},
+        use_bin_type=True,
+    )
 
 
 def is_sealed(payload) -> bool:

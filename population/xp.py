@@ -21,7 +21,6 @@ import math
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ocv2.items import recipe_encoding_np
@@ -59,9 +58,19 @@ def episode_blocks(episodes: int, block: int = EPISODE_BLOCK) -> tuple[int, int]
     return count, math.ceil(episodes / count)
 
 
-def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array, episodes: int,
-               rows=None, on_block=None, partners: Side | None = None, greedy: bool = False,
-               on_progress=None) -> CrossPlay:
+def cross_play(
+    apply: PolicyApply,
+    hidden_size: int,
+    env,
+    params,
+    key: jax.Array,
+    episodes: int,
+    rows=None,
+    on_block=None,
+    partners: Side | None = None,
+    greedy: bool = False,
+    on_progress=None,
+) -> CrossPlay:
     """Evaluate all ordered pairs of the K stacked ``params`` (or only the given seat-0 ``rows``).
 
     One jitted call per row and block of episodes (C pairs x at most 64 episodes) bounds memory; block
@@ -104,8 +113,8 @@ def cross_play(apply: PolicyApply, hidden_size: int, env, params, key: jax.Array
                 result = jax.tree.map(lambda x: x[:, :n], result)
                 block_returns, block_recipes = result.returns, result.states.recipe[:, :, 0]
                 on_block(i, first, result)
-            returns[i, :, first:first + n] = np.asarray(block_returns)[:, :n]
-            recipes[i, :, first:first + n] = np.asarray(block_recipes)[:, :n]
+            returns[i, :, first : first + n] = np.asarray(block_returns)[:, :n]
+            recipes[i, :, first : first + n] = np.asarray(block_recipes)[:, :n]
             if on_progress is not None:
                 on_progress(1, len(rows) * count)
     return CrossPlay(returns, recipes)
@@ -138,8 +147,9 @@ def _resample_chunks(cells: int, resamples: int):
     return [min(per, resamples - start) for start in range(0, resamples, per)]
 
 
-def bootstrap_block(matrix: np.ndarray, row_ids=None, col_ids=None, resamples: int = BOOTSTRAP_RESAMPLES,
-                    seed: int = BOOTSTRAP_SEED) -> dict:
+def bootstrap_block(
+    matrix: np.ndarray, row_ids=None, col_ids=None, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED
+) -> dict:
     """95 % percentile intervals of the SP and XP means of a [R, C] matrix by bootstrap over seeds.
 
     ``row_ids``/``col_ids`` name the policy of each row/column (default: rows and columns are the same
@@ -179,13 +189,24 @@ def block_summary(matrix: np.ndarray, row_ids, col_ids) -> dict:
     sp_mean, sp_std = _mean_std(matrix[same])
     xp_mean, xp_std = _mean_std(matrix[~same])
     ci = bootstrap_block(matrix, row_ids, col_ids)
-    own_gaps = [matrix[i][same[i]].mean() - matrix[i][~same[i]].mean()
-                for i in range(matrix.shape[0]) if same[i].any() and (~same[i]).any()]
-    return {"sp_mean": sp_mean, "sp_std": sp_std, "xp_mean": xp_mean, "xp_std": xp_std,
-            "gap": sp_mean - xp_mean if same.any() and (~same).any() else math.nan,
-            "gap_std": _mean_std(own_gaps)[1],
-            "sp_ci95_interval": list(ci["sp"]), "xp_ci95_interval": list(ci["xp"]),
-            "gap_ci95_interval": list(ci["gap"]), "rows": len(row_ids), "cols": len(col_ids)}
+    own_gaps = [
+        matrix[i][same[i]].mean() - matrix[i][~same[i]].mean()
+        for i in range(matrix.shape[0])
+        if same[i].any() and (~same[i]).any()
+    ]
+    return {
+        "sp_mean": sp_mean,
+        "sp_std": sp_std,
+        "xp_mean": xp_mean,
+        "xp_std": xp_std,
+        "gap": sp_mean - xp_mean if same.any() and (~same).any() else math.nan,
+        "gap_std": _mean_std(own_gaps)[1],
+        "sp_ci95_interval": list(ci["sp"]),
+        "xp_ci95_interval": list(ci["xp"]),
+        "gap_ci95_interval": list(ci["gap"]),
+        "rows": len(row_ids),
+        "cols": len(col_ids),
+    }
 
 
 def _half_width(interval) -> float:
@@ -210,18 +231,32 @@ def summarize(result: CrossPlay, recipe_names: dict[int, str] | None = None) -> 
         name = (recipe_names or {}).get(int(code), str(int(code)))
         mask = result.start_recipe == code
         sp_cells = [result.returns[i, i][mask[i, i]].mean() for i in range(num) if mask[i, i].any()]
-        xp_cells = [result.returns[i, j][mask[i, j]].mean() for i in range(num) for j in range(num)
-                    if i != j and mask[i, j].any()]
-        per_recipe[name] = {"sp_mean": _mean_std(sp_cells)[0], "xp_mean": _mean_std(xp_cells)[0],
-                            "episodes": int(mask.sum())}
+        xp_cells = [
+            result.returns[i, j][mask[i, j]].mean()
+            for i in range(num)
+            for j in range(num)
+            if i != j and mask[i, j].any()
+        ]
+        per_recipe[name] = {
+            "sp_mean": _mean_std(sp_cells)[0],
+            "xp_mean": _mean_std(xp_cells)[0],
+            "episodes": int(mask.sum()),
+        }
     return {
-        "sp_mean": block["sp_mean"], "sp_std": block["sp_std"], "xp_mean": block["xp_mean"],
-        "xp_std": block["xp_std"], "gap": block["gap"] if num > 1 else math.nan, "gap_std": block["gap_std"],
-        "sp_ci95": _half_width(block["sp_ci95_interval"]), "xp_ci95": _half_width(block["xp_ci95_interval"]),
-        "sp_ci95_interval": block["sp_ci95_interval"], "xp_ci95_interval": block["xp_ci95_interval"],
+        "sp_mean": block["sp_mean"],
+        "sp_std": block["sp_std"],
+        "xp_mean": block["xp_mean"],
+        "xp_std": block["xp_std"],
+        "gap": block["gap"] if num > 1 else math.nan,
+        "gap_std": block["gap_std"],
+        "sp_ci95": _half_width(block["sp_ci95_interval"]),
+        "xp_ci95": _half_width(block["xp_ci95_interval"]),
+        "sp_ci95_interval": block["sp_ci95_interval"],
+        "xp_ci95_interval": block["xp_ci95_interval"],
         "gap_ci95_interval": block["gap_ci95_interval"],
         "ci_method": f"95% percentile bootstrap over seeds ({BOOTSTRAP_RESAMPLES} resamples)",
-        "num_policies": num, "episodes_per_pair": int(result.returns.shape[-1]),
+        "num_policies": num,
+        "episodes_per_pair": int(result.returns.shape[-1]),
         "per_recipe": per_recipe,
     }
 

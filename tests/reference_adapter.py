@@ -22,9 +22,17 @@ import ocv2  # noqa: E402
 from ocv2.state import Agents, State  # noqa: E402
 
 REF_PARAMS = (
-    "max_steps", "observation_type", "agent_view_size", "random_reset", "random_agent_positions",
-    "start_cooking_interaction", "negative_rewards", "sample_recipe_on_delivery",
-    "indicate_successful_delivery", "op_ingredient_permutations", "force_path_planning",
+    "max_steps",
+    "observation_type",
+    "agent_view_size",
+    "random_reset",
+    "random_agent_positions",
+    "start_cooking_interaction",
+    "negative_rewards",
+    "sample_recipe_on_delivery",
+    "indicate_successful_delivery",
+    "op_ingredient_permutations",
+    "force_path_planning",
 )
 
 

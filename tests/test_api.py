@@ -11,14 +11,21 @@ import ocv2
 
 
 def _types(tree):
-    return [(jax.tree_util.keystr(p), jax.typeof(x), jax.typeof(x).weak_type)
-            for p, x in jax.tree_util.tree_leaves_with_path(tree)]
+    return [
+        (jax.tree_util.keystr(p), jax.typeof(x), jax.typeof(x).weak_type)
+        for p, x in jax.tree_util.tree_leaves_with_path(tree)
+    ]
 
 
-@pytest.mark.parametrize("params", [
-    {}, {"random_reset": True}, {"random_agent_positions": True, "agent_view_size": 2},
-    {"op_ingredient_permutations": [0, 1], "layout": "cramped_room_v2"},
-])
+@pytest.mark.parametrize(
+    "params",
+    [
+        {},
+        {"random_reset": True},
+        {"random_agent_positions": True, "agent_view_size": 2},
+        {"op_ingredient_permutations": [0, 1], "layout": "cramped_room_v2"},
+    ],
+)
 def test_reset_and_step_states_have_identical_types(params):
     """Otherwise every jitted rollout recompiles on its second call (a weak-typed field did once)."""
     params = dict(params)
@@ -49,13 +56,16 @@ def test_spaces_and_dict_api():
     assert featurized.observation_space().shape == (96,) and featurized.observation_space().dtype == jnp.float32
 
 
-@pytest.mark.parametrize("layout, params", [
-    ("cramped_room_v2", dict(agent_view_size=1)),
-    # Full view: the shared lookup plus one scatter per agent layer, in each dtype.
-    ("cramped_room_v2", dict()),
-    ("grounded_coord_simple", dict(op_ingredient_permutations=[0, 1, 2], indicate_successful_delivery=True)),
-    ("demo_cook_wide", dict()),  # two 8-bit item chunks, C = 45 (not a multiple of 4)
-])
+@pytest.mark.parametrize(
+    "layout, params",
+    [
+        ("cramped_room_v2", dict(agent_view_size=1)),
+        # Full view: the shared lookup plus one scatter per agent layer, in each dtype.
+        ("cramped_room_v2", dict()),
+        ("grounded_coord_simple", dict(op_ingredient_permutations=[0, 1, 2], indicate_successful_delivery=True)),
+        ("demo_cook_wide", dict()),  # two 8-bit item chunks, C = 45 (not a multiple of 4)
+    ],
+)
 def test_int32_observations_have_the_same_values(layout, params):
     a = ocv2.make(layout, random_reset=True, **params)
     b = ocv2.make(layout, random_reset=True, obs_dtype="int32", **params)
@@ -80,5 +90,6 @@ def test_the_key_alone_decides_a_trajectory():
     for x, y in zip(jax.tree.leaves(compiled(jax.random.PRNGKey(9))), jax.tree.leaves(state), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     other = compiled(jax.random.PRNGKey(10))
-    assert not all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(other),
-                                                                                 jax.tree.leaves(state)))
+    assert not all(
+        np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(other), jax.tree.leaves(state))
+    )

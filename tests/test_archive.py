@@ -8,8 +8,8 @@ import errno
 import io
 import json
 import os
-import shutil
 import pickle
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -24,7 +24,13 @@ from PIL import Image
 
 import ocv2
 from cluster.archive import (
-    ArchiveError, ArchiveReader, ArchiveWriter, record_episodes, record_pairs, recover, states_as_buffer,
+    ArchiveError,
+    ArchiveReader,
+    ArchiveWriter,
+    record_episodes,
+    record_pairs,
+    recover,
+    states_as_buffer,
 )
 from cluster.cli import main
 from cluster.cli.play import _writer as play_writer
@@ -67,14 +73,23 @@ def archive(tmp_path_factory, env, recorded):
 
 
 def _episode(recorded, e):
-    return (jax.tree.map(lambda x: x[e], recorded.states), recorded.actions[e], recorded.rewards[e],
-            recorded.shaped_rewards[e], recorded.dones[e])
+    return (
+        jax.tree.map(lambda x: x[e], recorded.states),
+        recorded.actions[e],
+        recorded.rewards[e],
+        recorded.shaped_rewards[e],
+        recorded.dones[e],
+    )
 
 
 def _assert_same_episode(got, recorded, e):
     states, actions, rewards, shaped, dones = _episode(recorded, e)
-    for name, a, b in [("actions", got.actions, actions), ("rewards", got.rewards, rewards),
-                       ("shaped", got.shaped_rewards, shaped), ("dones", got.dones, dones)]:
+    for name, a, b in [
+        ("actions", got.actions, actions),
+        ("rewards", got.rewards, rewards),
+        ("shaped", got.shaped_rewards, shaped),
+        ("dones", got.dones, dones),
+    ]:
         assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), name
     for a, b in zip(jax.tree.leaves(got.states), jax.tree.leaves(states)):
         assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b)
@@ -119,8 +134,9 @@ def test_record_pairs_writes_every_pair(tmp_path, env):
     keys = jnp.stack([KEY, jax.random.PRNGKey(4)])
     path = tmp_path / "pairs.mcap"
     with ArchiveWriter(path) as writer:
-        indices = record_pairs(writer, _apply, 4, env, params_a, params_b, keys, 1,
-                               [{"policies": [0, 1]}, {"policies": [1, 0]}])
+        indices = record_pairs(
+            writer, _apply, 4, env, params_a, params_b, keys, 1, [{"policies": [0, 1]}, {"policies": [1, 0]}]
+        )
     assert indices == [0, 1]
     metas = ArchiveReader(path).episodes()
     assert [m["policies"] for m in metas] == [[0, 1], [1, 0]]
@@ -159,8 +175,14 @@ def test_killed_writer_is_recovered(tmp_path, recorded, capsys):
     data = tmp_path / "recorded.pkl"
     data.write_bytes(pickle.dumps((recorded, path)))
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": REPO}
-    child = subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(data)], env=env, cwd=REPO,
-                           capture_output=True, text=True, timeout=120)
+    child = subprocess.run(
+        [sys.executable, "-c", _KILLED_WRITER, str(data)],
+        env=env,
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert child.returncode == -9, child.stderr
     assert not os.path.exists(path) and os.path.getsize(path + ".partial") > 0
 
@@ -209,8 +231,9 @@ def test_write_episode_rejects_bad_input(tmp_path, recorded):
     states, actions, rewards, shaped, dones = _episode(recorded, 0)
     with ArchiveWriter(tmp_path / "bad.mcap") as writer:
         with pytest.raises(ValueError, match="T \\+ 1"):
-            writer.write_episode({}, jax.tree.map(lambda x: x[:-1], states), actions, rewards, shaped, dones,
-                                 layout="cramped_room")
+            writer.write_episode(
+                {}, jax.tree.map(lambda x: x[:-1], states), actions, rewards, shaped, dones, layout="cramped_room"
+            )
         with pytest.raises(ValueError, match="reserved"):
             writer.write_episode({"steps": 3}, states, actions, rewards, shaped, dones, layout="cramped_room")
         with pytest.raises(ValueError, match="not layout 'asymm_advantages'"):
@@ -262,8 +285,15 @@ def test_buffer_rejects_mixed_layouts(tmp_path, archive):
     states = jax.tree.map(lambda x: jnp.stack([x] * 3), state)
     path = tmp_path / "mixed.mcap"
     with ArchiveWriter(path) as writer:
-        writer.write_episode({}, states, np.zeros((2, 2), np.int32), np.zeros(2, np.float32),
-                             np.zeros((2, 2), np.float32), np.array([False, True]), layout="asymm_advantages")
+        writer.write_episode(
+            {},
+            states,
+            np.zeros((2, 2), np.int32),
+            np.zeros(2, np.float32),
+            np.zeros((2, 2), np.float32),
+            np.array([False, True]),
+            layout="asymm_advantages",
+        )
     assert states_as_buffer(path, keep_every=1).grid.shape == (2, 5, 9, 3)
     with pytest.raises(ArchiveError, match="one kitchen"):
         states_as_buffer([path, archive])
@@ -289,8 +319,10 @@ def test_bad_input_is_a_clear_error(tmp_path, archive, capsys):
     cases = [
         (["archive", "info", str(text)], "not an MCAP file"),
         (["archive", "info", str(tmp_path / "missing.mcap")], "no such file"),
-        (["archive", "replay", archive, "--episode", "3", "--out", str(tmp_path / "x.gif")],
-         "has no episode 3; its complete episodes are 0..2"),
+        (
+            ["archive", "replay", archive, "--episode", "3", "--out", str(tmp_path / "x.gif")],
+            "has no episode 3; its complete episodes are 0..2",
+        ),
         (["archive", "replay", archive, "--out", str(tmp_path / "x.png")], ".gif"),
         (["archive", "recover", str(text), "--out", str(tmp_path / "fixed.mcap")], "not an MCAP file"),
         (["archive", "recover", archive, "--out", archive], "already exists"),
@@ -342,6 +374,7 @@ def test_foxglove_channel_only_when_enabled(tmp_path, archive, recorded):
 # Faults: full disks, corrupt chunks, crafted records
 # ---------------------------------------------------------------------------------------------------
 
+
 class _FullDisk(io.FileIO):
     """A file on a disk that fills up after ``budget[0]`` more bytes (the last write is torn)."""
 
@@ -352,7 +385,7 @@ class _FullDisk(io.FileIO):
     def write(self, data):
         if len(data) > self.budget[0]:
             if self.budget[0]:
-                super().write(bytes(data)[:self.budget[0]])
+                super().write(bytes(data)[: self.budget[0]])
             self.budget[0] = 0
             raise OSError(errno.ENOSPC, "No space left on device")
         self.budget[0] -= len(data)
@@ -385,8 +418,10 @@ def test_write_error_fails_the_writer_and_keeps_earlier_episodes(tmp_path, recor
         if fault == "ENOSPC":
             budget[0] = 100  # the disk fills up inside episode 1's chunk
         else:
+
             def failing_fsync(fd):
                 raise OSError(errno.EIO, "Input/output error")
+
             monkeypatch.setattr(os, "fsync", failing_fsync)
         with pytest.raises(OSError) as raised:
             writer.write_episode(META, *_episode(recorded, 1), layout="cramped_room")
@@ -440,8 +475,15 @@ def _damage(path, offset, data: bytes):
         f.write(data)
 
 
-@pytest.mark.parametrize("where", ["data of chunk 1", "data of chunk 0 (holds the channels)",
-                                   "data of chunk 0 of an unfinished file", "length of chunk 1"])
+@pytest.mark.parametrize(
+    "where",
+    [
+        "data of chunk 1",
+        "data of chunk 0 (holds the channels)",
+        "data of chunk 0 of an unfinished file",
+        "length of chunk 1",
+    ],
+)
 def test_corrupt_chunk_is_skipped(tmp_path, archive, recorded, where, capsys):
     """One bad chunk costs its own episode only: info, recover and replay keep every later episode."""
     path = str(tmp_path / "damaged.mcap")
@@ -452,7 +494,7 @@ def test_corrupt_chunk_is_skipped(tmp_path, archive, recorded, where, capsys):
     chunk = chunks[bad]
     if where.startswith("data"):  # flip bytes in the middle of the compressed data
         middle = chunk.chunk_start_offset + chunk.chunk_length // 2
-        _damage(path, middle, bytes(b ^ 0xFF for b in open(path, "rb").read()[middle:middle + 16]))
+        _damage(path, middle, bytes(b ^ 0xFF for b in open(path, "rb").read()[middle : middle + 16]))
     else:  # the record's length field: the records after it no longer line up
         _damage(path, chunk.chunk_start_offset + 1, (10**15).to_bytes(8, "little"))
     kept = [e for e in range(EPISODES) if e != bad]
@@ -502,12 +544,13 @@ def test_damaged_chunk_header_times_are_detected(tmp_path, archive, recorded, fi
     shutil.copyfile(archive, path)
     chunk = _chunks(path)[1]
     at = chunk.chunk_start_offset + 1 + 8 + (0 if field == "start" else 8) + 2  # opcode, length, then the field
-    _damage(path, at, bytes(b ^ 0xFF for b in open(path, "rb").read()[at:at + 4]))
+    _damage(path, at, bytes(b ^ 0xFF for b in open(path, "rb").read()[at : at + 4]))
 
     reader = ArchiveReader(path)
     assert len(reader) == EPISODES  # the messages passed their CRC: nothing is lost ...
-    assert any(f"chunk at byte {chunk.chunk_start_offset}: its header gives message log times" in w
-               for w in reader.warnings), reader.warnings  # ... but the damage is reported
+    assert any(
+        f"chunk at byte {chunk.chunk_start_offset}: its header gives message log times" in w for w in reader.warnings
+    ), reader.warnings  # ... but the damage is reported
     _assert_same_episode(reader.episode(1), recorded, 1)  # not skipped by its (wrong) times
     assert main(["archive", "info", path]) == 0
     captured = capsys.readouterr()
@@ -558,6 +601,7 @@ def _field_table_with(path, name, **changes):
 def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
     """Commit records or step metadata that do not follow the format: a one-line error naming file,
     episode and key -- never a traceback, never a huge allocation."""
+
     def edited(**changes):
         return lambda meta: json.dumps({**meta, **changes}).encode()
 
@@ -576,12 +620,18 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
     decoding = [  # refused when an episode is decoded (replay)
         (dict(step_metadata={"fields": "[not json"}), "key 'fields' is not JSON"),
         (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", dtype="|O")}), "dtype '|O'"),
-        (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[4, 5, 2])}),
-         "step message 0 has 311 bytes"),
-        (dict(step_metadata={"fields": _field_table_with(archive, "action", dtype="<f4")}),
-         "action has dtype '<f4', not '<i4'"),
-        (dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[5, 4, 3])}),
-         "states do not fit"),
+        (
+            dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[4, 5, 2])}),
+            "step message 0 has 311 bytes",
+        ),
+        (
+            dict(step_metadata={"fields": _field_table_with(archive, "action", dtype="<f4")}),
+            "action has dtype '<f4', not '<i4'",
+        ),
+        (
+            dict(step_metadata={"fields": _field_table_with(archive, "state.grid", shape=[5, 4, 3])}),
+            "states do not fit",
+        ),
         (dict(step_metadata={"layout": "{}"}), "key 'layout'"),
         (dict(step_metadata={"layout": "[" * 5000 + "]" * 5000}), "nested deeper than 32 levels"),
     ]
@@ -594,8 +644,11 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
     for n, (edit, message) in enumerate(opening + decoding):
         path = str(tmp_path / f"crafted_{n}.mcap")
         _rewrite(archive, path, **edit)
-        argv = (["archive", "info", path] if n < len(opening)
-                else ["archive", "replay", path, "--out", str(tmp_path / f"crafted_{n}.gif")])
+        argv = (
+            ["archive", "info", path]
+            if n < len(opening)
+            else ["archive", "replay", path, "--out", str(tmp_path / f"crafted_{n}.gif")]
+        )
         assert main(argv) == 2, (argv, edit)
         err = capsys.readouterr().err
         assert message in err and path in err and "Traceback" not in err, (message, err)
@@ -608,15 +661,22 @@ def _into_closed_pipe(argv: list[str]) -> subprocess.CompletedProcess:
     read, write = os.pipe()
     os.close(read)
     try:
-        return subprocess.run([sys.executable, "-m", "cluster.cli", *argv], stdout=write, stderr=subprocess.PIPE,
-                              text=True, cwd=REPO, timeout=120,
-                              env={**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": REPO})
+        return subprocess.run(
+            [sys.executable, "-m", "cluster.cli", *argv],
+            stdout=write,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=REPO,
+            timeout=120,
+            env={**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": REPO},
+        )
     finally:
         os.close(write)
 
 
-@pytest.mark.parametrize("argv", [["archive", "info", "ARCHIVE", "--limit", "-1"], ["archive", "info", "ARCHIVE",
-                                  "--json"], ["layouts"]])
+@pytest.mark.parametrize(
+    "argv", [["archive", "info", "ARCHIVE", "--limit", "-1"], ["archive", "info", "ARCHIVE", "--json"], ["layouts"]]
+)
 def test_piping_into_a_reader_that_closes_early_exits_quietly(archive, argv):
     child = _into_closed_pipe([archive if a == "ARCHIVE" else a for a in argv])
     assert child.stderr == "" and child.returncode == 1, child.stderr

@@ -30,14 +30,16 @@ def xp(population):
 
 # --- the environment ---------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("num_buttons", [2, 5])
 def test_reward_rule_bulb_is_2a_plus_pet(num_buttons):
     game = bg.ButtonGameConfig(num_buttons=num_buttons, reward=10.0)
     pet, button, guess = np.meshgrid(np.arange(2), np.arange(num_buttons), np.arange(2), indexing="ij")
     played = jax.jit(jax.vmap(bg.play, in_axes=(0, 0, 0, None)), static_argnums=3)(
-        pet.ravel(), button.ravel(), guess.ravel(), game)
+        pet.ravel(), button.ravel(), guess.ravel(), game
+    )
     np.testing.assert_array_equal(played.bulb, 2 * button.ravel() + pet.ravel())
-    np.testing.assert_array_equal(played.bulb % 2, pet.ravel())          # the parity is the pet
+    np.testing.assert_array_equal(played.bulb % 2, pet.ravel())  # the parity is the pet
     np.testing.assert_array_equal(played.reward, np.where(guess.ravel() == pet.ravel(), 10.0, -10.0))
     obs = bg.bob_observation(played.bulb, game)
     assert obs.shape == (pet.size, 2 * num_buttons)
@@ -51,19 +53,29 @@ def test_pet_is_uniform():
     assert abs(float(pets.mean()) - 0.5) < 0.03
 
 
-@pytest.mark.parametrize("kwargs, bad", [
-    (dict(num_buttons=1), "1"), (dict(num_buttons=2.5), "2.5"), (dict(num_buttons=True), "True"),
-    (dict(reward=0.0), "0.0"),
-])
+@pytest.mark.parametrize(
+    "kwargs, bad",
+    [
+        (dict(num_buttons=1), "1"),
+        (dict(num_buttons=2.5), "2.5"),
+        (dict(num_buttons=True), "True"),
+        (dict(reward=0.0), "0.0"),
+    ],
+)
 def test_game_config_names_bad_value(kwargs, bad):
     with pytest.raises(ValueError, match=rf"{next(iter(kwargs))}.*{bad}"):
         bg.ButtonGameConfig(**kwargs)
 
 
-@pytest.mark.parametrize("kwargs, bad", [
-    (dict(episodes=0), "0"), (dict(epsilon=1.5), "1.5"), (dict(learning_rate=0.0), "0.0"),
-    (dict(init_scale=-1.0), "-1.0"),
-])
+@pytest.mark.parametrize(
+    "kwargs, bad",
+    [
+        (dict(episodes=0), "0"),
+        (dict(epsilon=1.5), "1.5"),
+        (dict(learning_rate=0.0), "0.0"),
+        (dict(init_scale=-1.0), "-1.0"),
+    ],
+)
 def test_iql_config_names_bad_value(kwargs, bad):
     with pytest.raises(ValueError, match=rf"{next(iter(kwargs))}.*{bad}"):
         bg.IQLConfig(**kwargs)
@@ -75,6 +87,7 @@ def test_train_population_rejects_zero_seeds():
 
 
 # --- the learning rule -------------------------------------------------------------------------------
+
 
 def test_q_update_is_one_step_rule():
     q = jnp.array([[1.0, 2.0], [3.0, 4.0]])
@@ -89,7 +102,7 @@ def test_epsilon_greedy_extremes():
     assert set(np.unique(greedy)) == {1}
     random = jax.vmap(bg.epsilon_greedy, in_axes=(0, None, None))(keys, q_row, 1.0)
     counts = np.bincount(np.asarray(random), minlength=4)
-    assert counts.min() > 400                                             # ~500 each
+    assert counts.min() > 400  # ~500 each
 
 
 def test_training_history_follows_the_rules_and_learns():
@@ -98,17 +111,18 @@ def test_training_history_follows_the_rules_and_learns():
     assert h.pet.shape == (DEFAULT_IQL.episodes,)
     np.testing.assert_array_equal(h.bulb, 2 * h.button + h.pet)
     np.testing.assert_array_equal(h.reward, np.where(h.guess == h.pet, 10.0, -10.0))
-    assert float(h.reward[-100:].mean()) > 9.0                          # only exploration costs reward
+    assert float(h.reward[-100:].mean()) > 9.0  # only exploration costs reward
     assert float(h.reward[:5].mean()) < float(h.reward[-100:].mean())
 
 
 # --- exact evaluation --------------------------------------------------------------------------------
 
+
 def test_expected_reward_by_hand():
     game = bg.ButtonGameConfig(num_buttons=2)
-    alice = jnp.array([[1.0, 0.0], [0.0, 1.0]])            # cat -> button 0 (bulb 0), dog -> button 1 (bulb 3)
+    alice = jnp.array([[1.0, 0.0], [0.0, 1.0]])  # cat -> button 0 (bulb 0), dog -> button 1 (bulb 3)
     assert float(bg.expected_reward(alice, jnp.array([0, 1, 0, 1]), game)) == 10.0
-    assert float(bg.expected_reward(alice, jnp.array([0, 1, 0, 0]), game)) == 0.0   # wrong on bulb 3
+    assert float(bg.expected_reward(alice, jnp.array([0, 1, 0, 0]), game)) == 0.0  # wrong on bulb 3
     assert float(bg.expected_reward(alice, jnp.array([1, 0, 1, 0]), game)) == -10.0
     uniform = bg.uniform_alice(game)
     # cat lights bulbs 0 and 2 (guesses 0: right, 1: wrong) -> 0; dog lights 1 and 3 (both right) -> +10
@@ -118,13 +132,13 @@ def test_expected_reward_by_hand():
 def test_expected_reward_matches_sampled_games():
     game = bg.ButtonGameConfig(num_buttons=3)
     rng = np.random.default_rng(0)
-    probs = rng.dirichlet(np.ones(3), size=2)                            # a stochastic Alice
+    probs = rng.dirichlet(np.ones(3), size=2)  # a stochastic Alice
     guesses = rng.integers(0, 2, size=6)
     pets = rng.integers(0, 2, size=200_000)
     buttons = np.where(pets == 0, rng.choice(3, size=pets.size, p=probs[0]), rng.choice(3, size=pets.size, p=probs[1]))
     sampled = np.where(guesses[2 * buttons + pets] == pets, 10.0, -10.0).mean()
     exact = float(bg.expected_reward(jnp.asarray(probs, jnp.float32), jnp.asarray(guesses), game))
-    assert exact == pytest.approx(sampled, abs=0.1)                      # sampling s.e. ~0.02
+    assert exact == pytest.approx(sampled, abs=0.1)  # sampling s.e. ~0.02
 
 
 def test_summarize_by_hand():
@@ -134,6 +148,7 @@ def test_summarize_by_hand():
 
 # --- the paper's result ------------------------------------------------------------------------------
 
+
 def test_every_self_play_pair_scores_10(xp):
     assert xp.matrix.shape == (NUM_SEEDS + 1, NUM_SEEDS + 1)
     np.testing.assert_array_equal(np.diag(xp.matrix)[:NUM_SEEDS], 10.0)
@@ -141,7 +156,7 @@ def test_every_self_play_pair_scores_10(xp):
 
 
 def test_best_response_scores_10_with_every_alice(xp, population):
-    np.testing.assert_array_equal(xp.matrix[:, -1], 10.0)                # every SP Alice and the random one
+    np.testing.assert_array_equal(xp.matrix[:, -1], 10.0)  # every SP Alice and the random one
     assert xp.br_mean == 10.0 and xp.br_random_alice == 10.0
     # why: it reads the pet off the bulb's parity, on every bulb
     np.testing.assert_array_equal(bg.greedy_bob(population.br_bob), np.arange(DEFAULT_GAME.num_bulbs) % 2)
@@ -150,7 +165,7 @@ def test_best_response_scores_10_with_every_alice(xp, population):
 def test_cross_play_fails_between_self_play_pairs(xp, population):
     assert xp.xp_mean < 5.0 < xp.sp_mean
     conventions = {tuple(np.asarray(jnp.argmax(a, axis=-1))) for a in population.sp.alice}
-    assert len(conventions) > 1                                          # pairs settle on different buttons
+    assert len(conventions) > 1  # pairs settle on different buttons
     # the SP Bobs have not learned every bulb: a random Alice does worse with most of them
     assert np.mean(xp.matrix[-1, :NUM_SEEDS] < 10.0) >= 0.5
 
@@ -172,6 +187,7 @@ def test_pair_does_not_depend_on_number_of_seeds(population):
 
 
 # --- output and CLI ----------------------------------------------------------------------------------
+
 
 def test_csv_round_trip(tmp_path, xp):
     path = tmp_path / "m.csv"
@@ -195,9 +211,14 @@ def test_cli_writes_csv_and_png(tmp_path, capsys):
         assert image.format == "PNG" and min(image.size) > 200
 
 
-@pytest.mark.parametrize("argv, flag", [
-    (["--buttons", "1"], "--buttons"), (["--seeds", "0"], "--seeds"), (["--epsilon", "2"], "--epsilon"),
-])
+@pytest.mark.parametrize(
+    "argv, flag",
+    [
+        (["--buttons", "1"], "--buttons"),
+        (["--seeds", "0"], "--seeds"),
+        (["--epsilon", "2"], "--epsilon"),
+    ],
+)
 def test_cli_bad_input(tmp_path, capsys, argv, flag):
     out = tmp_path / "never"
     assert main(["button-game", "--out", str(out), *argv]) == 2
@@ -218,4 +239,7 @@ def test_cli_defaults_match_configs():
 
     assert cmd.DEFAULT_BUTTONS == DEFAULT_GAME.num_buttons
     assert (cmd.DEFAULT_EPISODES, cmd.DEFAULT_EPSILON, cmd.DEFAULT_LR) == (
-        DEFAULT_IQL.episodes, DEFAULT_IQL.epsilon, DEFAULT_IQL.learning_rate)
+        DEFAULT_IQL.episodes,
+        DEFAULT_IQL.epsilon,
+        DEFAULT_IQL.learning_rate,
+    )

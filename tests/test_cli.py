@@ -21,7 +21,7 @@ def test_layouts_lists_every_layout(capsys):
     assert main(["layouts"]) == 0
     out = capsys.readouterr().out
     assert len(LAYOUTS) == 24
-    for name, layout in LAYOUTS.items():
+    for name in LAYOUTS:
         assert name in out
     lines = {line.split()[1]: line for line in out.splitlines() if len(line.split()) > 1}
     row = lines["cramped_room_v2"]
@@ -43,8 +43,24 @@ def test_layouts_show_unknown(capsys):
 
 def test_render_writes_gif(tmp_path, capsys):
     out = tmp_path / "ep.gif"
-    code = main(["render", "cramped_room", "--steps", "3", "--out", str(out), "--seed", "1", "--fps", "4",
-                 "--tile-size", "8", "--view-radius", "1"])
+    code = main(
+        [
+            "render",
+            "cramped_room",
+            "--steps",
+            "3",
+            "--out",
+            str(out),
+            "--seed",
+            "1",
+            "--fps",
+            "4",
+            "--tile-size",
+            "8",
+            "--view-radius",
+            "1",
+        ]
+    )
     assert code == 0
     printed = capsys.readouterr().out
     assert str(out) in printed and "4 frames" in printed
@@ -115,25 +131,42 @@ def test_command_help_in_the_table_matches_each_command_parser():
 
 
 def test_layouts_does_not_import_the_trainer():
-    code = ("import sys; from cluster.cli import main; main(['layouts']); "
-            "print(sorted(m for m in ('cluster.api', 'cluster.runtime.coordinator', 'optax', 'ray', 'population.ppo') if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stdout
+    code = (
+        "import sys; from cluster.cli import main; main(['layouts']); "
+        "print(sorted(m for m in ('cluster.api', 'cluster.runtime.coordinator', 'optax', 'ray', 'population.ppo') if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+    ).stdout
     assert out.strip().splitlines()[-1] == "[]"
 
 
 def test_import_ocv2_loads_no_learning_code():
     code = "import sys, ocv2; print(sorted(m for m in ('optax', 'population') if m in sys.modules))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+    ).stdout
     assert out.strip().splitlines()[-1] == "[]"
 
 
 def _imports(path: Path):
     """(module imported, whether inside a function) for every import statement of a source file."""
     tree = ast.parse(path.read_text())
-    local = {id(node) for fn in ast.walk(tree) if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
-             for node in ast.walk(fn) if isinstance(node, (ast.Import, ast.ImportFrom))}
+    local = {
+        id(node)
+        for fn in ast.walk(tree)
+        if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
+        for node in ast.walk(fn)
+        if isinstance(node, (ast.Import, ast.ImportFrom))
+    }
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             yield from ((alias.name, id(node) in local) for alias in node.names)
@@ -165,10 +198,16 @@ def test_no_module_imports_private_names_from_another():
     for package in ("cluster",):
         for path in (root / package).rglob("*.py"):
             for node in ast.walk(ast.parse(path.read_text())):
-                if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in (
-                        "ocv2", "population", "cluster"):
-                    problems += [f"{path.relative_to(root)}: {alias.name} from {node.module}" for alias in node.names
-                                 if alias.name.startswith("_") and not alias.name.startswith("__")]
+                if (
+                    isinstance(node, ast.ImportFrom)
+                    and node.module
+                    and node.module.split(".")[0] in ("ocv2", "population", "cluster")
+                ):
+                    problems += [
+                        f"{path.relative_to(root)}: {alias.name} from {node.module}"
+                        for alias in node.names
+                        if alias.name.startswith("_") and not alias.name.startswith("__")
+                    ]
     assert problems == []
 
 
@@ -205,9 +244,14 @@ def test_comments_say_why_instead_of_citing_spec_sections_or_issues():
 
     root = Path(__file__).resolve().parents[1]
     pattern = re.compile(r"spec sections?\b|\bspec \d|\bthe issue\b|\bissues? #?\d", re.IGNORECASE)
-    hits = [f"{path.relative_to(root)}:{number}" for package in ("ocv2", "population", "cluster", "tests", "bench")
-            for path in (root / package).rglob("*.py") if path.name != "test_cli.py"
-            for number, line in enumerate(path.read_text().splitlines(), start=1) if pattern.search(line)]
+    hits = [
+        f"{path.relative_to(root)}:{number}"
+        for package in ("ocv2", "population", "cluster", "tests", "bench")
+        for path in (root / package).rglob("*.py")
+        if path.name != "test_cli.py"
+        for number, line in enumerate(path.read_text().splitlines(), start=1)
+        if pattern.search(line)
+    ]
     assert hits == []
 
 
@@ -245,8 +289,9 @@ def log_levels():
         logging.getLogger(name).setLevel(level)
 
 
-@pytest.mark.parametrize("flags, shown", [([], ["INFO", "WARNING"]), (["-q"], ["WARNING"]),
-                                          (["-v"], ["DEBUG", "INFO", "WARNING"])])
+@pytest.mark.parametrize(
+    "flags, shown", [([], ["INFO", "WARNING"]), (["-q"], ["WARNING"]), (["-v"], ["DEBUG", "INFO", "WARNING"])]
+)
 def test_global_verbosity_flags_set_what_the_packages_log_to_stderr(capsys, log_levels, flags, shown):
     assert main([*flags, "layouts"]) == 0
     capsys.readouterr()
@@ -260,15 +305,22 @@ def test_global_verbosity_flags_set_what_the_packages_log_to_stderr(capsys, log_
 def test_each_log_line_is_written_once_even_after_a_library_configures_logging():
     # optax logs through absl, which calls logging.basicConfig() when the root logger has no handler: a
     # second handler there would repeat every line of ours in its own format.
-    code = ("import logging, optax\n"
-            "from cluster.cli import main\n"
-            "main(['layouts'])\n"
-            "optax.polynomial_schedule(1.0, 0.0, 1, transition_steps=0)\n"
-            "logging.getLogger('cluster.runtime.progress').info('progress line')\n"
-            "logging.getLogger('some.library').info('library detail')\n"
-            "logging.getLogger('some.library').warning('library warning')\n")
-    err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}).stderr
+    code = (
+        "import logging, optax\n"
+        "from cluster.cli import main\n"
+        "main(['layouts'])\n"
+        "optax.polynomial_schedule(1.0, 0.0, 1, transition_steps=0)\n"
+        "logging.getLogger('cluster.runtime.progress').info('progress line')\n"
+        "logging.getLogger('some.library').info('library detail')\n"
+        "logging.getLogger('some.library').warning('library warning')\n"
+    )
+    err = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+    ).stderr
     assert err.splitlines() == ["progress line", "warning: library warning"]
 
 

@@ -31,6 +31,7 @@ def _error(raw, overrides=()) -> str:
 # defaults, round trips, fingerprints
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_defaults_parse_to_the_paper_settings():
     config = parse_config({})
     assert isinstance(config, Config)
@@ -49,16 +50,25 @@ def test_defaults_parse_to_the_paper_settings():
     assert parse_config({"model": {"kind": "cnn", "fc_dim": 16}}).model.fc_dim == 16
 
 
-@pytest.mark.parametrize("raw", [
-    {},
-    {"model": {"kind": "cnn"}},
-    {"env": {"layout": "grounded_coord_simple", "max_steps": 50, "agent_view_size": 2},
-     "model": {"conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8, "gru_dim": 8},
-     "ppo": dict(SMALL_PPO, lr=1e-3, paper_done_bug=True),
-     "population": {"method": "op", "num_seeds": 3, "op": {"ingredients": [0, 2]}}},
-    {"ppo": SMALL_PPO, "population": {"method": "fcp", "fcp": {"partners": "runs/sp", "checkpoints": ["init", "120"]}},
-     "eval": {"episodes": 7}, "run": {"checkpoint_every": 3}},
-])
+@pytest.mark.parametrize(
+    "raw",
+    [
+        {},
+        {"model": {"kind": "cnn"}},
+        {
+            "env": {"layout": "grounded_coord_simple", "max_steps": 50, "agent_view_size": 2},
+            "model": {"conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8, "gru_dim": 8},
+            "ppo": dict(SMALL_PPO, lr=1e-3, paper_done_bug=True),
+            "population": {"method": "op", "num_seeds": 3, "op": {"ingredients": [0, 2]}},
+        },
+        {
+            "ppo": SMALL_PPO,
+            "population": {"method": "fcp", "fcp": {"partners": "runs/sp", "checkpoints": ["init", "120"]}},
+            "eval": {"episodes": 7},
+            "run": {"checkpoint_every": 3},
+        },
+    ],
+)
 def test_round_trip_through_to_dict(raw):
     config = parse_config(raw)
     again = parse_config(config.to_dict())
@@ -90,6 +100,7 @@ def test_fingerprint_tracks_training_settings_only():
 # errors name the key
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_unknown_section():
     message = _error({"ppoo": {"lr": 1e-3}})
     assert "ppoo" in message and "section" in message
@@ -103,21 +114,24 @@ def test_unknown_key():
     assert "model.gru" in _error({"model": {"gru": 3}})
 
 
-@pytest.mark.parametrize("raw, key", [
-    ({"ppo": {"num_envs": "abc"}}, "ppo.num_envs"),
-    ({"ppo": {"num_envs": 2.5}}, "ppo.num_envs"),
-    ({"ppo": {"num_envs": True}}, "ppo.num_envs"),
-    ({"ppo": {"lr": "fast"}}, "ppo.lr"),
-    ({"ppo": {"anneal_lr": "yes"}}, "ppo.anneal_lr"),
-    ({"model": {"conv_features": 4}}, "model.conv_features"),
-    ({"model": {"conv_features": [4, "x"]}}, "model.conv_features[1]"),
-    ({"population": {"method": ["sp"]}}, "population.method"),
-    ({"ppo": [1, 2]}, "ppo"),
-    ({"population": "x"}, "population"),  # was a ValueError from dict("x") before the mapping check
-    ({"population": 5}, "population"),  # was a TypeError
-    ({"population": ["ab"]}, "population"),
-    ({"population": {"fcp": "x"}}, "population.fcp"),
-])
+@pytest.mark.parametrize(
+    "raw, key",
+    [
+        ({"ppo": {"num_envs": "abc"}}, "ppo.num_envs"),
+        ({"ppo": {"num_envs": 2.5}}, "ppo.num_envs"),
+        ({"ppo": {"num_envs": True}}, "ppo.num_envs"),
+        ({"ppo": {"lr": "fast"}}, "ppo.lr"),
+        ({"ppo": {"anneal_lr": "yes"}}, "ppo.anneal_lr"),
+        ({"model": {"conv_features": 4}}, "model.conv_features"),
+        ({"model": {"conv_features": [4, "x"]}}, "model.conv_features[1]"),
+        ({"population": {"method": ["sp"]}}, "population.method"),
+        ({"ppo": [1, 2]}, "ppo"),
+        ({"population": "x"}, "population"),  # was a ValueError from dict("x") before the mapping check
+        ({"population": 5}, "population"),  # was a TypeError
+        ({"population": ["ab"]}, "population"),
+        ({"population": {"fcp": "x"}}, "population.fcp"),
+    ],
+)
 def test_wrong_type(raw, key):
     assert _error(raw).startswith(key)
 
@@ -139,8 +153,9 @@ def test_impossible_values_name_the_key():
     assert "model.gru_dim" in _error({"model": {"gru_dim": 0}})
     assert "run.num_checkpoints" in _error({"run": {"num_checkpoints": 1}})
     assert "population.fcp.checkpoints" in _error({"population": {"method": "fcp", "fcp": {"checkpoints": ["later"]}}})
-    assert "population.sa.iterations" in _error({"ppo": SMALL_PPO,
-                                                 "population": {"method": "sa", "sa": {"iterations": 11}}})
+    assert "population.sa.iterations" in _error(
+        {"ppo": SMALL_PPO, "population": {"method": "sa", "sa": {"iterations": 11}}}
+    )
 
 
 def test_bad_method():
@@ -187,6 +202,7 @@ def test_integral_floats_are_accepted_for_ints():
 # overrides
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_overrides():
     raw = {"ppo": {"lr": 2e-4}}
     data = apply_overrides(raw, ["ppo.lr=1e-3", "env.layout=coord_ring", "population.fcp.partner_seeds=4"])
@@ -194,8 +210,17 @@ def test_overrides():
     assert data["env"] == {"layout": "coord_ring"}
     assert data["population"] == {"fcp": {"partner_seeds": 4}}
     assert raw == {"ppo": {"lr": 2e-4}}  # the input is not modified
-    config = parse_config(raw, ["ppo.lr=1e-3", "ppo.total_timesteps=1e7", "model.conv_features=[4, 8]",
-                                "model.conv_kernels=[3, 3]", "env.max_steps=30", "ppo.anneal_lr=false"])
+    config = parse_config(
+        raw,
+        [
+            "ppo.lr=1e-3",
+            "ppo.total_timesteps=1e7",
+            "model.conv_features=[4, 8]",
+            "model.conv_kernels=[3, 3]",
+            "env.max_steps=30",
+            "ppo.anneal_lr=false",
+        ],
+    )
     assert config.ppo.lr == pytest.approx(1e-3)
     assert config.ppo.total_timesteps == 10_000_000
     assert config.model.conv_features == (4, 8)
@@ -221,6 +246,7 @@ def test_override_through_a_non_section():
 # ---------------------------------------------------------------------------------------------------
 # files
 # ---------------------------------------------------------------------------------------------------
+
 
 def test_load_config_errors_name_the_file(tmp_path):
     missing = tmp_path / "nope.yaml"
@@ -274,6 +300,7 @@ def test_configs_are_frozen():
 # bad input: one line naming the file and key, never a traceback, never a silent "run"
 # ---------------------------------------------------------------------------------------------------
 
+
 def _file_error(tmp_path, text: str, overrides=(), start=None) -> str:
     path = tmp_path / "c.yaml"
     path.write_text(text)
@@ -289,14 +316,20 @@ def test_override_with_broken_yaml_is_one_line(tmp_path):
     assert "not valid YAML" in message and "line 1" in message
 
 
-@pytest.mark.parametrize("item, start, hint", [
-    ("ppo.lrr=1e-3", "--set ppo.lrr=1e-3: ppo.lrr: unknown key", "did you mean ppo.lr?"),
-    ("population.num_seed=3", "--set population.num_seed=3: population.num_seed: unknown key",
-     "did you mean population.num_seeds?"),
-    ("ppoo.lr=1e-3", "--set ppoo.lr=1e-3: ppoo: unknown section", "did you mean ppo?"),
-    ("ppo.lr=fast", "--set ppo.lr=fast: ppo.lr: expected a number", ""),
-    ("ppo.lr", "--set ppo.lr: expected section.key=value", ""),
-])
+@pytest.mark.parametrize(
+    "item, start, hint",
+    [
+        ("ppo.lrr=1e-3", "--set ppo.lrr=1e-3: ppo.lrr: unknown key", "did you mean ppo.lr?"),
+        (
+            "population.num_seed=3",
+            "--set population.num_seed=3: population.num_seed: unknown key",
+            "did you mean population.num_seeds?",
+        ),
+        ("ppoo.lr=1e-3", "--set ppoo.lr=1e-3: ppoo: unknown section", "did you mean ppo?"),
+        ("ppo.lr=fast", "--set ppo.lr=fast: ppo.lr: expected a number", ""),
+        ("ppo.lr", "--set ppo.lr: expected section.key=value", ""),
+    ],
+)
 def test_override_errors_name_set_and_the_nearest_key(tmp_path, item, start, hint):
     message = _file_error(tmp_path, "ppo: {num_envs: 4, num_steps: 16, num_minibatches: 2}\n", [item], start=start)
     assert hint in message and str(tmp_path) not in message
@@ -323,13 +356,16 @@ def test_config_file_that_is_not_text(tmp_path):
         load_config(path)
 
 
-@pytest.mark.parametrize("text, key, what", [
-    ("run: {checkpoint_every: 2020-01-01}\n", "run.checkpoint_every", "a date"),
-    ("population: {fcp: {partners: 2024-05-01 10:00:00}}\n", "population.fcp.partners", "a date and time"),
-    ("env: {layout: !!binary aGVsbG8=}\n", "env.layout", "binary data"),
-    ("population: {sa: {archives: !!set {a.mcap}}}\n", "population.sa.archives", "a set"),
-    ("env: &a {layout: cramped_room, again: *a}\n", "env.again", "refers to itself"),
-])
+@pytest.mark.parametrize(
+    "text, key, what",
+    [
+        ("run: {checkpoint_every: 2020-01-01}\n", "run.checkpoint_every", "a date"),
+        ("population: {fcp: {partners: 2024-05-01 10:00:00}}\n", "population.fcp.partners", "a date and time"),
+        ("env: {layout: !!binary aGVsbG8=}\n", "env.layout", "binary data"),
+        ("population: {sa: {archives: !!set {a.mcap}}}\n", "population.sa.archives", "a set"),
+        ("env: &a {layout: cramped_room, again: *a}\n", "env.again", "refers to itself"),
+    ],
+)
 def test_yaml_values_a_config_cannot_hold(tmp_path, text, key, what):
     message = _file_error(tmp_path, text)
     assert key in message and what in message
@@ -347,36 +383,48 @@ def test_plain_anchors_still_work(tmp_path):
     assert load_config(path).model.mixer_features == (8, 8)
 
 
-@pytest.mark.parametrize("item, key", [
-    ("ppo.lr=.nan", "ppo.lr"), ("ppo.lr=nan", "ppo.lr"), ("ppo.ent_coef=.inf", "ppo.ent_coef"),
-    ("ppo.gamma=-.inf", "ppo.gamma"), ("cluster.num_cpus=inf", "cluster.num_cpus"),
-])
+@pytest.mark.parametrize(
+    "item, key",
+    [
+        ("ppo.lr=.nan", "ppo.lr"),
+        ("ppo.lr=nan", "ppo.lr"),
+        ("ppo.ent_coef=.inf", "ppo.ent_coef"),
+        ("ppo.gamma=-.inf", "ppo.gamma"),
+        ("cluster.num_cpus=inf", "cluster.num_cpus"),
+    ],
+)
 def test_non_finite_floats_are_refused(item, key):
     message = _error({}, [item])
     assert message.startswith(f"--set {item}: {key}:") and "finite" in message
 
 
-@pytest.mark.parametrize("item, key, what", [
-    ("ppo.lr=1e308", "ppo.lr", "outside float32's range"),  # finite in float64, inf in float32
-    ("ppo.ent_coef=-1e39", "ppo.ent_coef", "outside float32's range"),
-    ("ppo.lr=1e-50", "ppo.lr", "rounds to 0 in float32"),
-    ("cluster.gpu_memory_fraction=1e-46", "cluster.gpu_memory_fraction", "rounds to 0"),
-    ("ppo.clip_eps=" + "9" * 400, "ppo.clip_eps", "outside float32's range"),  # an int too large for float()
-])
+@pytest.mark.parametrize(
+    "item, key, what",
+    [
+        ("ppo.lr=1e308", "ppo.lr", "outside float32's range"),  # finite in float64, inf in float32
+        ("ppo.ent_coef=-1e39", "ppo.ent_coef", "outside float32's range"),
+        ("ppo.lr=1e-50", "ppo.lr", "rounds to 0 in float32"),
+        ("cluster.gpu_memory_fraction=1e-46", "cluster.gpu_memory_fraction", "rounds to 0"),
+        ("ppo.clip_eps=" + "9" * 400, "ppo.clip_eps", "outside float32's range"),  # an int too large for float()
+    ],
+)
 def test_floats_must_fit_float32(item, key, what):
     message = _error({"ppo": SMALL_PPO}, [item])
     assert message.startswith(f"--set {item}: {key}:") and what in message
 
 
-@pytest.mark.parametrize("item, key, what", [
-    ("ppo.total_timesteps=1e30", "ppo.total_timesteps", "int32"),
-    ("ppo.num_envs=1e10", "ppo.num_envs", "int32"),
-    ("population.num_seeds=-1e12", "population.num_seeds", "int32"),
-    ("model.conv_features=[8, 1e12]", "model.conv_features[1]", "int32"),
-    ("env.max_steps=1.0e+30", "env.max_steps", "int32"),
-    ("population.seed=1e30", "population.seed", "int64"),  # held by Python, then checked against 32 bits
-    ("ppo.rew_shaping_horizon=1e19", "ppo.rew_shaping_horizon", "int64"),
-])
+@pytest.mark.parametrize(
+    "item, key, what",
+    [
+        ("ppo.total_timesteps=1e30", "ppo.total_timesteps", "int32"),
+        ("ppo.num_envs=1e10", "ppo.num_envs", "int32"),
+        ("population.num_seeds=-1e12", "population.num_seeds", "int32"),
+        ("model.conv_features=[8, 1e12]", "model.conv_features[1]", "int32"),
+        ("env.max_steps=1.0e+30", "env.max_steps", "int32"),
+        ("population.seed=1e30", "population.seed", "int64"),  # held by Python, then checked against 32 bits
+        ("ppo.rew_shaping_horizon=1e19", "ppo.rew_shaping_horizon", "int64"),
+    ],
+)
 def test_integers_must_fit_what_holds_them(item, key, what):
     message = _error({"ppo": SMALL_PPO}, [item])
     assert message.startswith(f"--set {item}: {key}:") and f"the {what}" in message
@@ -450,12 +498,16 @@ def test_seed_shards_and_job_blocks_are_one_split():
 # memory: refused before anything runs when this machine cannot hold the run
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_memory_estimate_is_linear_in_seeds_and_rollout_size():
     from population.config import estimate
     from population.config.memory import MEASURED
 
-    cnn = {"env": {"layout": "cramped_room"}, "model": {"kind": "cnn"},
-           "ppo": {"num_envs": 64, "num_steps": 256, "num_minibatches": 16}}
+    cnn = {
+        "env": {"layout": "cramped_room"},
+        "model": {"kind": "cnn"},
+        "ppo": {"num_envs": 64, "num_steps": 256, "num_minibatches": 16},
+    }
     one, ten = (parse_config(cnn, [f"population.num_seeds={n}"]) for n in (1, 10))
     measured = MEASURED["cnn"]  # measured at exactly these sizes
     assert estimate(one).total_mib == pytest.approx(measured.base_mib + measured.per_seed_mib)
@@ -471,8 +523,16 @@ def test_memory_estimate_is_linear_in_seeds_and_rollout_size():
 def test_an_fcp_partner_stage_counts_its_seeds():
     from population.config import estimate
 
-    fcp = parse_config({"ppo": SMALL_PPO, "population": {"method": "fcp", "num_seeds": 2, "fcp": {
-        "pool": "per_seed", "partner_seeds": 4, "partner_ppo": SMALL_PPO}}})
+    fcp = parse_config(
+        {
+            "ppo": SMALL_PPO,
+            "population": {
+                "method": "fcp",
+                "num_seeds": 2,
+                "fcp": {"pool": "per_seed", "partner_seeds": 4, "partner_ppo": SMALL_PPO},
+            },
+        }
+    )
     assert "8 seeds" in estimate(fcp).where  # 2 learners x 4 partner seeds train first
 
 

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from reference_adapter import MISSING_REFERENCE, make_pair, to_ours, to_ref
+
 import ocv2
 
 TESTS = Path(__file__).resolve().parent
@@ -79,7 +79,9 @@ def compare(layout, steps=STEPS, seeds=SEEDS, ref_buffer=None, **params):
         np.testing.assert_array_equal(np.asarray(shaped), np.asarray(rshaped), err_msg=f"shaped rewards of {where}")
         np.testing.assert_array_equal(np.asarray(done), np.asarray(rdone), err_msg=f"dones of {where}")
         mismatch = np.argwhere(np.asarray(obs) != np.asarray(robs))
-        assert mismatch.size == 0, f"observations differ in {where} at [step, agent, y, x, channel] {mismatch[:5].tolist()}"
+        assert mismatch.size == 0, (
+            f"observations differ in {where} at [step, agent, y, x, channel] {mismatch[:5].tolist()}"
+        )
         events["deliveries"] += int((np.asarray(rew) >= 20).sum())
         events["shaped"] += int((np.asarray(shaped) != 0).sum())
         events["buttons"] += int((np.asarray(rew) < 0).sum())
@@ -91,7 +93,9 @@ def compare(layout, steps=STEPS, seeds=SEEDS, ref_buffer=None, **params):
 def _assert_states_equal(ours, theirs, where):
     for name in ("x", "y", "dir", "inventory"):
         np.testing.assert_array_equal(
-            np.asarray(getattr(ours.agents, name)), np.asarray(getattr(theirs.agents, name)), err_msg=f"agents.{name} in {where}"
+            np.asarray(getattr(ours.agents, name)),
+            np.asarray(getattr(theirs.agents, name)),
+            err_msg=f"agents.{name} in {where}",
         )
     for name in ("grid", "recipe", "step", "done", "new_correct_delivery"):
         a, b = np.asarray(getattr(ours, name)), np.asarray(getattr(theirs, name))
@@ -101,6 +105,7 @@ def _assert_states_equal(ours, theirs, where):
 
 # The longest tests first: xdist deals this file's tests out one by one after the whole-file groups
 # (tests/conftest.py), so the long ones start early and the short ones fill the gaps at the end.
+
 
 def test_rollouts_reach_every_kind_of_event():
     """The sweep is only meaningful if deliveries, buttons, cooking and resets actually happen."""
@@ -134,8 +139,14 @@ def test_buffer_reset_matches_reference():
     ref_buffer = to_ref(buffer, with_permutations=False)
     compare("cramped_room_v2", ref_buffer=ref_buffer, initial_state_buffer=buffer, seeds=2, max_steps=30)
     # With other-play the buffer reset re-draws permutations from the same key as the reference.
-    compare("cramped_room_v2", ref_buffer=ref_buffer, initial_state_buffer=buffer, op_ingredient_permutations=[0, 1],
-            seeds=2, max_steps=30)
+    compare(
+        "cramped_room_v2",
+        ref_buffer=ref_buffer,
+        initial_state_buffer=buffer,
+        op_ingredient_permutations=[0, 1],
+        seeds=2,
+        max_steps=30,
+    )
 
 
 ALL_LAYOUTS = list(ocv2.REFERENCE_LAYOUT_NAMES)
@@ -154,20 +165,51 @@ FLAG_CASES = [
     ("cramped_room", dict(random_reset=True, max_steps=50)),
     ("cramped_room", dict(max_steps=400)),
     ("asymm_advantages", dict(random_agent_positions=True, agent_view_size=2, max_steps=40)),
-    ("cramped_room_v2", dict(random_reset=True, negative_rewards=True, sample_recipe_on_delivery=True,
-                             indicate_successful_delivery=True, agent_view_size=2, max_steps=60)),
-    ("grounded_coord_simple", dict(random_agent_positions=True, op_ingredient_permutations=[0, 1],
-                                   agent_view_size=2, max_steps=80)),
+    (
+        "cramped_room_v2",
+        dict(
+            random_reset=True,
+            negative_rewards=True,
+            sample_recipe_on_delivery=True,
+            indicate_successful_delivery=True,
+            agent_view_size=2,
+            max_steps=60,
+        ),
+    ),
+    (
+        "grounded_coord_simple",
+        dict(random_agent_positions=True, op_ingredient_permutations=[0, 1], agent_view_size=2, max_steps=80),
+    ),
     ("grounded_coord_simple", dict(random_reset=True, op_ingredient_permutations=[0, 1, 2], max_steps=50)),
     ("counter_circuit", dict(start_cooking_interaction=True, random_reset=True, agent_view_size=1, max_steps=70)),
-    ("test_time_simple", dict(random_reset=True, indicate_successful_delivery=True, negative_rewards=True,
-                              sample_recipe_on_delivery=True, agent_view_size=3, max_steps=50)),
+    (
+        "test_time_simple",
+        dict(
+            random_reset=True,
+            indicate_successful_delivery=True,
+            negative_rewards=True,
+            sample_recipe_on_delivery=True,
+            agent_view_size=3,
+            max_steps=50,
+        ),
+    ),
     ("demo_cook_wide", dict(random_reset=True, agent_view_size=2, start_cooking_interaction=True, max_steps=70)),
     ("grounded_coord_ring", dict(random_reset=True, agent_view_size=12, max_steps=60)),  # view larger than map
-    ("fun_coordination", dict(random_reset=True, op_ingredient_permutations=[2, 3], negative_rewards=True, max_steps=60)),
+    (
+        "fun_coordination",
+        dict(random_reset=True, op_ingredient_permutations=[2, 3], negative_rewards=True, max_steps=60),
+    ),
     ("long_room", dict(random_reset=True, max_steps=40)),  # one agent
-    ("overcookedv2_demo", dict(random_reset=True, sample_recipe_on_delivery=True, indicate_successful_delivery=True,
-                               agent_view_size=1, max_steps=60)),
+    (
+        "overcookedv2_demo",
+        dict(
+            random_reset=True,
+            sample_recipe_on_delivery=True,
+            indicate_successful_delivery=True,
+            agent_view_size=1,
+            max_steps=60,
+        ),
+    ),
     ("two_rooms_both", dict(agent_view_size=0, random_reset=True, max_steps=50)),  # 0 = whole map (reference)
 ]
 
@@ -188,6 +230,11 @@ def test_mixed_observation_types_build():
 def test_missing_reference_fails_instead_of_skipping():
     """Without jaxmarl, importing the adapter is an error naming the test dependency (no silent skip)."""
     code = "import sys; sys.modules['jaxmarl'] = None; import reference_adapter"
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=TESTS,
-                            env={**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), str(TESTS.parent)])})
+    result = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=TESTS,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), str(TESTS.parent)])},
+    )
     assert result.returncode != 0 and MISSING_REFERENCE in result.stderr

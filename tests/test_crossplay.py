@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from policy_runs import shared_run
+from test_methods import COOK_SCRIPT, SCRIPT_STEPS, _table, script_apply
 
 import ocv2
 from cluster.cli import main
@@ -21,8 +23,6 @@ from population.evaluation import gather_params, play_row, stack_params
 from population.networks import init_params
 from population.record import play_recorded_pairs, play_recorded_row
 from population.xp import Side, bootstrap_block, cross_play
-from policy_runs import shared_run
-from test_methods import COOK_SCRIPT, SCRIPT_STEPS, _table, script_apply
 
 
 @pytest.fixture(scope="module")
@@ -45,8 +45,25 @@ def _episodes(path) -> list[tuple]:
 def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, capsys):
     assert main(["xp", str(run), "--episodes", "8"]) == 0
     out = tmp_path / "xp"
-    assert main(["xp", "--rows", str(run), "--cols", str(run), "--episodes", "8", "--backend", "local",
-                 "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "xp",
+                "--rows",
+                str(run),
+                "--cols",
+                str(run),
+                "--episodes",
+                "8",
+                "--backend",
+                "local",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     in_run = _matrix(run / "xp" / "matrix.csv")
     np.testing.assert_array_equal(_matrix(out / "matrix.csv"), in_run)
     assert (in_run != 0).any() and len(np.unique(in_run)) > 1  # real, policy-dependent numbers
@@ -69,8 +86,25 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, c
     assert main(["export", str(run), "--seed", "1", "--out", str(exported)]) == 0
     mixed = tmp_path / "mixed"
     capsys.readouterr()
-    assert main(["xp", "--rows", str(run / "checkpoints" / "seed_0"), str(exported), "--cols", str(run),
-                 "--episodes", "8", "--backend", "local", "--out", str(mixed)]) == 0
+    assert (
+        main(
+            [
+                "xp",
+                "--rows",
+                str(run / "checkpoints" / "seed_0"),
+                str(exported),
+                "--cols",
+                str(run),
+                "--episodes",
+                "8",
+                "--backend",
+                "local",
+                "--out",
+                str(mixed),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert printed.count("(mean of rows in seat 0: ") == 2 and ", gap " in printed and "matrix_mean.csv" in printed
     np.testing.assert_array_equal(_matrix(mixed / "matrix.csv"), in_run)
@@ -90,8 +124,27 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, c
     assert {"gap", "gap_std", "gap_ci95_low", "gap_ci95_high"} <= set(lines[0])
 
     one = tmp_path / "one_order"  # --seats 0: the rows in seat 0 only, as before
-    assert main(["xp", "--rows", str(run / "checkpoints" / "seed_0"), "--cols", str(run), "--seats", "0",
-                 "--episodes", "8", "--backend", "local", "--out", str(one), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "xp",
+                "--rows",
+                str(run / "checkpoints" / "seed_0"),
+                "--cols",
+                str(run),
+                "--seats",
+                "0",
+                "--episodes",
+                "8",
+                "--backend",
+                "local",
+                "--out",
+                str(one),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((one / "summary.json").read_text())
     assert summary["seats"] == "0" and list(summary["orders"]) == ["rows_seat0"]
     assert summary["blocks"][0]["xp_mean"] == pytest.approx(in_run[0, 1], abs=1e-4)
@@ -131,10 +184,12 @@ def test_cross_play_jobs_spread_over_workers_give_the_same_matrix(run, ray_sessi
 
 def test_sources_of_different_environments_are_refused(run, tmp_path):
     seed_0 = pol.load(run)
-    other = pol.export(tmp_path / "other.ocv2policy", params=seed_0.params, model=seed_0.model,
-                       env={**seed_0.env, "max_steps": 50})
-    assert main(["xp", "--rows", str(run), "--cols", str(other), "--backend", "local", "--out",
-                 str(tmp_path / "xp")]) == 2
+    other = pol.export(
+        tmp_path / "other.ocv2policy", params=seed_0.params, model=seed_0.model, env={**seed_0.env, "max_steps": 50}
+    )
+    assert (
+        main(["xp", "--rows", str(run), "--cols", str(other), "--backend", "local", "--out", str(tmp_path / "xp")]) == 2
+    )
     assert not (tmp_path / "xp").exists()
     with pytest.raises(crossplay.CrossPlayError, match="max_steps"):
         crossplay.check_same_env([crossplay.resolve_source(str(run)), crossplay.resolve_source(str(other))])
@@ -144,13 +199,15 @@ def test_sources_of_different_environments_are_refused(run, tmp_path):
 
 
 def test_human_proxy_columns_resolve_through_population_human(run, tmp_path, monkeypatch):
-    with pytest.raises(crossplay.CrossPlayError, match="human-proxy:overcookedv2_demo: layout 'overcookedv2_demo' "
-                                                       "has no human data"):
+    with pytest.raises(
+        crossplay.CrossPlayError, match="human-proxy:overcookedv2_demo: layout 'overcookedv2_demo' has no human data"
+    ):
         crossplay.resolve_source("human-proxy:overcookedv2_demo")  # the real population.human
     proxy = tmp_path / "proxy.ocv2policy"
     pol.export_checkpoint(run, proxy, seed=0, meta={"name": "human proxy"})
-    monkeypatch.setattr(crossplay, "proxy_path",
-                        lambda layout: proxy if layout == "overcookedv2_demo" else _no_proxy(layout))
+    monkeypatch.setattr(
+        crossplay, "proxy_path", lambda layout: proxy if layout == "overcookedv2_demo" else _no_proxy(layout)
+    )
     group = crossplay.resolve_source("human-proxy:overcookedv2_demo")
     assert group.names == ("human proxy",) and group.ids == crossplay.resolve_source(str(run)).ids[:1]
     assert group.method == "human-proxy"  # blocks.csv names the method of every source
@@ -165,6 +222,7 @@ def _no_proxy(layout):
 # ---------------------------------------------------------------------------------------------------
 # per-seat policies and greedy play, with scripted policies whose returns are known
 # ---------------------------------------------------------------------------------------------------
+
 
 def stay_apply(params, hidden, obs, reset):
     """A different network: always stays, with a hidden state of size 3."""
@@ -194,6 +252,7 @@ def test_seats_with_different_networks_play_together_and_greedy_takes_the_most_l
 # ---------------------------------------------------------------------------------------------------
 # bootstrap over seeds
 # ---------------------------------------------------------------------------------------------------
+
 
 def test_bootstrap_of_two_seeds_is_exact():
     """K = 2: a resample draws seeds (0,0), (0,1), (1,0) or (1,1). SP takes m00, m11 or their mean; XP
@@ -233,8 +292,12 @@ def test_a_row_shares_seat_0_and_plays_exactly_the_pairs_of_repeated_copies():
     program). The paper RNN, where seat 0's GRU and dense layers become one matmul over all pairs."""
     apply, hidden, env, params = _rnn_population(3, 60)
     key = jax.random.PRNGKey(11)
-    row_fn = jax.jit(lambda a, b, k: (play_row(apply, hidden, env, a, b, k, 4).returns,
-                                      play_recorded_row(apply, hidden, env, a, b, k, 4)))
+    row_fn = jax.jit(
+        lambda a, b, k: (
+            play_row(apply, hidden, env, a, b, k, 4).returns,
+            play_recorded_row(apply, hidden, env, a, b, k, 4),
+        )
+    )
     pairs_fn = jax.jit(lambda a, b, k: play_recorded_pairs(apply, hidden, env, a, b, k, 4))
     for row in range(3):
         returns, shared = row_fn(jax.tree.map(lambda x: x[row], params), params, key)
@@ -249,9 +312,11 @@ def test_a_row_shares_seat_0_and_plays_exactly_the_pairs_of_repeated_copies():
 # seat-fair results, without playing: orientation, the mean of both orders, what the files say
 # ---------------------------------------------------------------------------------------------------
 
+
 def _group(label, ids, method):
-    return crossplay.PolicyGroup(label, tuple(f"{label}/{i}" for i in ids), tuple(ids), None, "relu",
-                                 {"layout": "cramped_room"}, None, method)
+    return crossplay.PolicyGroup(
+        label, tuple(f"{label}/{i}" for i in ids), tuple(ids), None, "relu", {"layout": "cramped_room"}, None, method
+    )
 
 
 def test_seat_fair_orders_are_oriented_rows_by_cols_and_averaged(tmp_path):
@@ -280,8 +345,10 @@ def test_seat_fair_orders_are_oriented_rows_by_cols_and_averaged(tmp_path):
     with open(tmp_path / "blocks.csv", newline="") as handle:
         lines = list(csv.DictReader(handle))
     assert [(line["order"], line["cols"], line["col_method"]) for line in lines] == [
-        (order, cols, method) for order in ("rows_seat0", "cols_seat0", "mean")
-        for cols, method in (("B", "fcp"), ("human-proxy:cramped_room", "human-proxy"))]
+        (order, cols, method)
+        for order in ("rows_seat0", "cols_seat0", "mean")
+        for cols, method in (("B", "fcp"), ("human-proxy:cramped_room", "human-proxy"))
+    ]
     assert all(line["row_method"] == "sp" for line in lines)
     np.testing.assert_allclose(_matrix(tmp_path / "matrix_cols_seat0.csv"), [[31, 32], [41, 42], [51, 52], [61, 62]])
     np.testing.assert_allclose(_matrix(tmp_path / "matrix_mean.csv"), result.mean.matrix)

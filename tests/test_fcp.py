@@ -26,8 +26,14 @@ from population.networks import init_params
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
 PAPER = ROOT / "configs" / "paper"
-V2 = ("grounded_coord_simple", "grounded_coord_ring", "test_time_simple", "test_time_wide", "demo_cook_simple",
-      "demo_cook_wide")
+V2 = (
+    "grounded_coord_simple",
+    "grounded_coord_ring",
+    "test_time_simple",
+    "test_time_wide",
+    "demo_cook_simple",
+    "demo_cook_wide",
+)
 PER_SEED = ["population.method=fcp", "population.fcp.pool=per_seed", "population.fcp.partner_seeds=1"]
 NUM_SEEDS, NUM_UPDATES = 2, 4
 
@@ -39,6 +45,7 @@ def smoke(*overrides):
 # ---------------------------------------------------------------------------------------------------
 # configuration
 # ---------------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("layout", V2)
 def test_paper_fcp_partners_default_to_the_self_play_hyperparameters(layout):
@@ -78,8 +85,7 @@ BAD = [
     (["population.fcp.partner_ppo.gamma=2"], "population.fcp.partner_ppo.gamma"),
     (["population.fcp.checkpoints=[mid, '9']"], "population.fcp.checkpoints"),
     # no paper self-play config for this layout and model kind: the key must be set
-    (["population.fcp.partner_ppo=null", "env.layout=cramped_room_v2", "model.kind=cnn"],
-     "population.fcp.partner_ppo"),
+    (["population.fcp.partner_ppo=null", "env.layout=cramped_room_v2", "model.kind=cnn"], "population.fcp.partner_ppo"),
 ]
 
 
@@ -114,6 +120,7 @@ def test_paper_configs_are_read_as_package_data():
 # per-seed pools
 # ---------------------------------------------------------------------------------------------------
 
+
 def _random_pool(trainer, key, members: int = 2):
     """``members`` freshly initialised partners stacked [members, ...] (each pool differs by its key)."""
     keys = jax.random.split(key, members)
@@ -140,8 +147,10 @@ def test_per_seed_advance_gives_each_learner_its_own_pool_only():
         return [jax.tree.leaves((ppo.take_seed(states, s), ppo.take_seed(metrics, s))) for s in (0, 1)]
 
     def same(x, y) -> bool:  # the whole TrainState (env states, partner carries, ...) and the metrics
-        return all(np.allclose(np.asarray(u), np.asarray(v), rtol=1e-6, atol=1e-7, equal_nan=True)
-                   for u, v in zip(x, y, strict=True))
+        return all(
+            np.allclose(np.asarray(u), np.asarray(v), rtol=1e-6, atol=1e-7, equal_nan=True)
+            for u, v in zip(x, y, strict=True)
+        )
 
     ab, ac, cb = learners(a, b), learners(a, c), learners(c, b)
     assert same(ab[0], ac[0]) and not same(ab[1], ac[1])
@@ -170,8 +179,9 @@ class Recorder:
 
 def _partner_params(run, seed, update, trainer):
     stage = RunDir(run / "partners").load_config()
-    return runstate.load_params(ckpt.checkpoint_path(run / "partners", seed, update), stage.fingerprint(),
-                                runstate.params_template(trainer))
+    return runstate.load_params(
+        ckpt.checkpoint_path(run / "partners", seed, update), stage.fingerprint(), runstate.params_template(trainer)
+    )
 
 
 def _assert_pool_is(pool_row, members):
@@ -206,8 +216,9 @@ def test_per_seed_pools_hold_only_each_learners_own_partners(per_seed_run):
     for _, pool in calls:  # every chunk: pool [2 learners, 2 members]; row i = partner seed i only
         assert jax.tree.leaves(pool)[0].shape[:2] == (NUM_SEEDS, 2)
         for learner in range(NUM_SEEDS):
-            _assert_pool_is(jax.tree.map(lambda x: x[learner], pool),
-                            [_partner_params(run, learner, u, trainer) for u in (2, 4)])
+            _assert_pool_is(
+                jax.tree.map(lambda x: x[learner], pool), [_partner_params(run, learner, u, trainer) for u in (2, 4)]
+            )
     first = jax.tree.leaves(calls[0][1])[0]
     assert not np.array_equal(first[0], first[1])
 
@@ -239,8 +250,9 @@ def test_per_seed_run_resumes_where_it_stopped(per_seed_run, tmp_path, monkeypat
     template = runstate.params_template(ppo.make_trainer(config))
     for seed in range(NUM_SEEDS):
         ours = runstate.load_params(ckpt.checkpoint_path(run, seed, NUM_UPDATES), config.fingerprint(), template)
-        theirs = runstate.load_params(ckpt.checkpoint_path(reference, seed, NUM_UPDATES), smoke().fingerprint(),
-                                      template)
+        theirs = runstate.load_params(
+            ckpt.checkpoint_path(reference, seed, NUM_UPDATES), smoke().fingerprint(), template
+        )
         for x, y in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
@@ -264,8 +276,9 @@ def test_per_seed_partner_run_needs_a_pool_of_seeds_per_learner(per_seed_run, tm
     config = smoke("population.fcp.partner_seeds=2", f"population.fcp.partners={run / 'partners'}")
     with pytest.raises(RunDirError, match=r"population.fcp.partner_seeds: 4 partner seeds needed .*has 2 seeds"):
         coordinator.load_pool(config, ppo.make_trainer(config), run / "partners")
-    shared = smoke("population.fcp.pool=shared", "population.fcp.partner_seeds=2",
-                   f"population.fcp.partners={run / 'partners'}")
+    shared = smoke(
+        "population.fcp.pool=shared", "population.fcp.partner_seeds=2", f"population.fcp.partners={run / 'partners'}"
+    )
     pool, labels = coordinator.load_pool(shared, ppo.make_trainer(shared), run / "partners")
     assert labels == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
     assert jax.tree.leaves(pool)[0].shape[0] == 4
@@ -295,9 +308,14 @@ def test_partners_of_the_same_population_seed_are_the_learners_twins_and_it_is_s
     assert caplog.records == []
 
 
-@pytest.mark.parametrize("path, before", [("configs/quickstart.yaml", "c6bf8ae599d8439c"),
-                                          ("configs/paper/v2_grounded_coord_simple_sa.yaml", "f172112564c9ffd6"),
-                                          ("configs/paper/classic_cramped_room_sp.yaml", "e25c665575963c70")])
+@pytest.mark.parametrize(
+    "path, before",
+    [
+        ("configs/quickstart.yaml", "c6bf8ae599d8439c"),
+        ("configs/paper/v2_grounded_coord_simple_sa.yaml", "f172112564c9ffd6"),
+        ("configs/paper/classic_cramped_room_sp.yaml", "e25c665575963c70"),
+    ],
+)
 def test_runs_made_before_the_pool_keys_keep_their_fingerprint(path, before):
     # Values recorded with the code before population.fcp.pool / partner_ppo existed: such runs must resume.
     config = load_config(path)

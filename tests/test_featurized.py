@@ -14,13 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tests.reference_adapter import actions_dict, jaxmarl_ov2, make_pair, ref_layout, state_diff, to_ref
-
 import ocv2
 from ocv2 import items as it
 from ocv2.featurized import PLAYER_FEATURES, SOUP, make_featurizer
 from ocv2.layouts import get_layout
 from ocv2.state import Agents, State
+from tests.reference_adapter import actions_dict, jaxmarl_ov2, make_pair, ref_layout, state_diff, to_ref
 
 TWO_AGENT_LAYOUTS = ["cramped_room", "asymm_advantages", "coord_ring", "forced_coord", "counter_circuit"]
 
@@ -117,7 +116,7 @@ def test_matches_reference_on_random_states(name):
     assert (blocks[..., POT1 + 4] == 1).any()  # a cooked pot
     assert np.abs(blocks[..., 8:22]).max() >= 2
     if name == "forced_coord":  # agent 1 (left room) reaches no pot, agent 0 always does
-        assert (blocks[:, 1, POT1:POT1 + 10] == 0).all() and (blocks[:, 0, POT1] == 1).all()
+        assert (blocks[:, 1, POT1 : POT1 + 10] == 0).all() and (blocks[:, 0, POT1] == 1).all()
     if name in ("asymm_advantages", "counter_circuit"):  # two pots reachable: both blocks filled
         assert (blocks[..., POT2] == 1).all()
     if name == "three_agents":  # agent 1 is alone in the pot-less right room
@@ -140,8 +139,9 @@ def test_single_agent_layout_matches_reference_player_block():
 
     ag = states.agents
     wide = states.replace(
-        agents=Agents(x=widen(ag.x, phantom[0]), y=widen(ag.y, phantom[1]), dir=widen(ag.dir, 0),
-                      inventory=widen(ag.inventory, 0)),
+        agents=Agents(
+            x=widen(ag.x, phantom[0]), y=widen(ag.y, phantom[1]), dir=widen(ag.dir, 0), inventory=widen(ag.inventory, 0)
+        ),
         ingredient_permutations=jnp.zeros((b, 2, 1), jnp.int32),
     )
     got = np.asarray(jax.jit(jax.vmap(featurize))(states))[:, 0]
@@ -187,7 +187,9 @@ def test_env_mixed_observation_types_match_reference_env():
     states = _random_states(layout, seed=3, count=100)
     got = jax.jit(jax.vmap(ours.get_obs))(states)
     want = jax.jit(jax.vmap(ref.get_obs))(to_ref(states, False))
-    assert np.asarray(got["agent_0"]).shape == np.asarray(want["agent_0"]).shape == (100, layout.height, layout.width, 30)
+    assert (
+        np.asarray(got["agent_0"]).shape == np.asarray(want["agent_0"]).shape == (100, layout.height, layout.width, 30)
+    )
     assert np.array_equal(np.asarray(got["agent_0"]).astype(np.int32), np.asarray(want["agent_0"]))
     assert np.asarray(got["agent_1"]).dtype == np.asarray(want["agent_1"]).dtype == np.float32
     assert np.asarray(got["agent_1"]).shape == (100, 96)

@@ -144,7 +144,8 @@ def test_a_crafted_pickle_cannot_run_code(tmp_path, capsys):
             err = capsys.readouterr().err
             assert "warning:" in err and "sha256" in err and "refused to load" in err and "Traceback" not in err
             assert [line for line in err.splitlines() if not line.startswith("warning:")] == [
-                line for line in err.splitlines() if "error:" in line] and err.count("error:") == 1, err
+                line for line in err.splitlines() if "error:" in line
+            ] and err.count("error:") == 1, err
             assert not marker.exists(), f"{what}: the pickle ran code"
             assert not list((tmp_path / "out").iterdir())
 
@@ -178,7 +179,8 @@ def test_imported_archive_is_a_state_augmentation_source(trials, tmp_path):
     env = ocv2.make("cramped_room", initial_state_buffer=buffer)
     state = env.reset_state(jax.random.PRNGKey(3))
     matches = (np.asarray(buffer.agents.x) == np.asarray(state.agents.x)).all(-1) & (
-        np.asarray(buffer.grid) == np.asarray(state.grid)).all((-1, -2, -3))
+        np.asarray(buffer.grid) == np.asarray(state.grid)
+    ).all((-1, -2, -3))
     assert matches.any() and int(state.step) == 0
 
 

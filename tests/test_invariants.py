@@ -7,7 +7,8 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import ocv2
 from ocv2 import items as it
@@ -16,7 +17,7 @@ from ocv2.items import Static
 LAYOUTS = ["cramped_room", "grounded_coord_simple", "counter_circuit", "demo_cook_wide", "two_rooms_both"]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def rollout_fn(layout: str):
     env = ocv2.make(layout, random_reset=True, max_steps=60)
 
@@ -34,8 +35,11 @@ def rollout_fn(layout: str):
 
 
 @settings(max_examples=25, deadline=None)
-@given(layout=st.sampled_from(LAYOUTS), seed=st.integers(0, 2**31 - 1),
-       actions=st.lists(st.integers(0, 5), min_size=240, max_size=240))
+@given(
+    layout=st.sampled_from(LAYOUTS),
+    seed=st.integers(0, 2**31 - 1),
+    actions=st.lists(st.integers(0, 5), min_size=240, max_size=240),
+)
 def test_invariants(layout, seed, actions):
     env, run = rollout_fn(layout)
     acts = jnp.asarray(np.array(actions).reshape(120, 2), jnp.int32)

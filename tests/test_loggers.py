@@ -57,9 +57,9 @@ def read_events(folder: Path) -> list:
     (path,) = folder.glob("events.out.tfevents.*")
     data, offset, events = path.read_bytes(), 0, []
     while offset < len(data):
-        (length,) = struct.unpack("<Q", data[offset:offset + 8])
+        (length,) = struct.unpack("<Q", data[offset : offset + 8])
         event = event_pb2.Event()
-        event.ParseFromString(data[offset + 12:offset + 12 + length])
+        event.ParseFromString(data[offset + 12 : offset + 12 + length])
         events.append(event)
         offset += 12 + length + 4
     return events
@@ -83,9 +83,14 @@ def logged_run(tmp_path_factory):
         patch.setitem(sys.modules, "wandb", wandb)
         patch.setattr(RunDir, "_read_metrics", counted)
         run_dir = tmp_path_factory.mktemp("runs") / "logged"
-        summary = cluster.train_population(load_config(SMOKE, ["eval.episodes=3"]), run_dir, backend="local",
-                                           show_progress=False, on_chunk=events.append,
-                                           loggers=["tensorboard", "wandb"])
+        summary = cluster.train_population(
+            load_config(SMOKE, ["eval.episodes=3"]),
+            run_dir,
+            backend="local",
+            show_progress=False,
+            on_chunk=events.append,
+            loggers=["tensorboard", "wandb"],
+        )
     (run,) = wandb.runs
     events.reads = reads
     return run_dir, summary, events, run
@@ -96,8 +101,9 @@ def test_on_chunk_sees_every_metrics_row_once(logged_run):
     assert [(e.update, e.num_updates) for e in events] == [(2, 4), (4, 4)]  # run.checkpoint_every=2
     rows = [MetricsRow.of(row) for row in RunDir(run_dir).read_metrics()]
     assert len(rows) == 2 * 4 and all(isinstance(r, MetricsRow) for e in events for r in e.rows)
-    assert [(r.seed, r.update, r.env_steps) for e in events for r in e.rows] == [(r.seed, r.update, r.env_steps)
-                                                                                 for r in rows]
+    assert [(r.seed, r.update, r.env_steps) for e in events for r in e.rows] == [
+        (r.seed, r.update, r.env_steps) for r in rows
+    ]
     assert [measurements(r) for e in events for r in e.rows] == [measurements(r) for r in rows]  # CSV floats round-trip
     assert all(e.run_dir == run_dir.resolve() for e in events)
     assert summary["updates"] == 4 and "xp" in summary
@@ -120,8 +126,11 @@ def test_tensorboard_holds_every_metric_of_every_row_and_the_cross_play(logged_r
                 scalars[(value.tag, event.step)] = value.simple_value
             elif value.WhichOneof("value") == "image":
                 images.append(value.tag)
-    expected = {(scalar_tag(name, row.seed), row.env_steps): number
-                for row in map(MetricsRow.of, RunDir(run_dir).read_metrics()) for name, number in measurements(row).items()}
+    expected = {
+        (scalar_tag(name, row.seed), row.env_steps): number
+        for row in map(MetricsRow.of, RunDir(run_dir).read_metrics())
+        for name, number in measurements(row).items()
+    }
     assert {k: v for k, v in scalars.items() if not k[0].startswith("xp/")} == pytest.approx(expected)
     assert {"sparse_return/seed_1", "return_recipe_0_0_0/seed_0"} <= {tag for tag, _ in expected}
     written = json.loads((run_dir / "xp" / "summary.json").read_text())
@@ -146,11 +155,14 @@ def test_wandb_gets_one_step_per_update_and_the_cross_play(logged_run):
     assert run.logged[-1] == (None, {"xp/heatmap": ("image", str(run_dir / "xp" / "heatmap.png"))})
 
 
-@pytest.mark.parametrize("blocked, argv, message", [
-    ("ray", [], "pip install 'ocv2[ray]', or use --backend local"),
-    ("tensorboardX", ["--backend", "local", "--logger", "tensorboard"], "pip install 'ocv2[tensorboard]'"),
-    ("wandb", ["--backend", "local", "--logger", "wandb"], "pip install 'ocv2[wandb]'"),
-])
+@pytest.mark.parametrize(
+    "blocked, argv, message",
+    [
+        ("ray", [], "pip install 'ocv2[ray]', or use --backend local"),
+        ("tensorboardX", ["--backend", "local", "--logger", "tensorboard"], "pip install 'ocv2[tensorboard]'"),
+        ("wandb", ["--backend", "local", "--logger", "wandb"], "pip install 'ocv2[wandb]'"),
+    ],
+)
 def test_missing_extra_is_one_line_before_the_run_starts(tmp_path, capsys, monkeypatch, blocked, argv, message):
     monkeypatch.setitem(sys.modules, blocked, None)  # import raises ImportError, as when not installed
     out = tmp_path / "run"
@@ -159,8 +171,9 @@ def test_missing_extra_is_one_line_before_the_run_starts(tmp_path, capsys, monke
     assert message in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
     with pytest.raises(MissingExtraError):
-        cluster.train_population(SMOKE, out, backend="ray" if blocked == "ray" else "local",
-                                 loggers=[] if blocked == "ray" else [argv[-1]])
+        cluster.train_population(
+            SMOKE, out, backend="ray" if blocked == "ray" else "local", loggers=[] if blocked == "ray" else [argv[-1]]
+        )
 
 
 def test_without_matplotlib_plots_are_skipped_with_a_warning(logged_run, tmp_path, caplog, monkeypatch):

@@ -45,9 +45,17 @@ def _take(tree, index):
 
 def _same_kitchen(a, b) -> bool:
     """Same grid, agents (position, facing, inventory) and recipe."""
-    return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in (
-        (a.grid, b.grid), (a.recipe, b.recipe), (a.agents.x, b.agents.x), (a.agents.y, b.agents.y),
-        (a.agents.dir, b.agents.dir), (a.agents.inventory, b.agents.inventory)))
+    return all(
+        np.array_equal(np.asarray(x), np.asarray(y))
+        for x, y in (
+            (a.grid, b.grid),
+            (a.recipe, b.recipe),
+            (a.agents.x, b.agents.x),
+            (a.agents.y, b.agents.y),
+            (a.agents.dir, b.agents.dir),
+            (a.agents.inventory, b.agents.inventory),
+        )
+    )
 
 
 def _matching_entries(state, buffer) -> list[int]:
@@ -57,6 +65,7 @@ def _matching_entries(state, buffer) -> list[int]:
 # ---------------------------------------------------------------------------------------------------
 # SA: the reset buffer (two untrained CNN policies on the smoke config)
 # ---------------------------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def sa_setup():
@@ -72,8 +81,16 @@ def sa_setup():
     # The same pairs split over two calls, each in a shuffled order.
     part_a = collect_pair_states(apply, hidden, env, states.params, key, sa, pairs=[(1, 1), (0, 0)])
     part_b = collect_pair_states(apply, hidden, env, states.params, key, sa, pairs=[(1, 0), (0, 1)])
-    return dict(config=config, trainer=trainer, states=states, env=env, sa=sa, whole=whole, buffer=buffer,
-                parts=(part_a, part_b))
+    return dict(
+        config=config,
+        trainer=trainer,
+        states=states,
+        env=env,
+        sa=sa,
+        whole=whole,
+        buffer=buffer,
+        parts=(part_a, part_b),
+    )
 
 
 def test_sa_buffer_holds_every_ordered_pair_at_the_kept_steps(sa_setup):
@@ -120,8 +137,9 @@ def test_sa_buffer_split_over_calls_merges_to_the_identical_buffer(sa_setup):
 def test_collect_pair_states_rejects_pairs_out_of_range(sa_setup):
     s = sa_setup
     with pytest.raises(ValueError, match="out of range"):
-        collect_pair_states(s["trainer"].network.apply, 0, s["env"], s["states"].params, jax.random.PRNGKey(0), s["sa"],
-                            pairs=[(0, 2)])
+        collect_pair_states(
+            s["trainer"].network.apply, 0, s["env"], s["states"].params, jax.random.PRNGKey(0), s["sa"], pairs=[(0, 2)]
+        )
 
 
 def test_resets_from_the_buffer_reproduce_stored_states(sa_setup):
@@ -150,8 +168,9 @@ def test_restart_episodes_resets_training_envs_from_the_buffer(sa_setup):
         assert matches, f"env {e} does not start from a buffer entry"
         assert int(env_state.step) == 0 and not bool(env_state.done)
         nontrivial += any(int(buffer.step[i]) > 0 for i in matches)
-    np.testing.assert_array_equal(np.asarray(restarted.obs),
-                                  np.asarray(jax.vmap(trainer.env.get_obs_arrays)(restarted.env_state)))
+    np.testing.assert_array_equal(
+        np.asarray(restarted.obs), np.asarray(jax.vmap(trainer.env.get_obs_arrays)(restarted.env_state))
+    )
     assert np.asarray(restarted.start).all()
     # Learning state is kept.
     _assert_trees_equal(restarted.params, state.params)
@@ -164,6 +183,7 @@ def test_restart_episodes_resets_training_envs_from_the_buffer(sa_setup):
 # ---------------------------------------------------------------------------------------------------
 # OP: permuted observations, unchanged game
 # ---------------------------------------------------------------------------------------------------
+
 
 def _op_config():
     return load_config(SMOKE, ["population.method=op", "env.layout=grounded_coord_simple"])
@@ -208,7 +228,8 @@ def test_op_observations_differ_only_in_permuted_ingredient_channels():
         # Put ingredients everywhere the observation shows them: both inventories and the pot.
         state = state.replace(
             agents=state.agents.replace(inventory=jnp.asarray([ingredient_unit(0), ingredient_unit(1)], jnp.int32)),
-            grid=state.grid.at[pot[0], pot[1], 1].set(ingredient_unit(0) + 2 * ingredient_unit(1)))
+            grid=state.grid.at[pot[0], pot[1], 1].set(ingredient_unit(0) + 2 * ingredient_unit(1)),
+        )
         return state.ingredient_permutations, op_env.get_obs_arrays(state), plain_env.get_obs_arrays(state)
 
     permuted_seen = 0
@@ -246,8 +267,14 @@ def test_op_does_not_change_the_game():
         def body(s, x):
             k, a = x
             out = env.step_arrays(k, s, a)
-            return out.state, (out.state.grid, out.state.agents, out.state.recipe, out.reward, out.shaped_reward,
-                               out.done)
+            return out.state, (
+                out.state.grid,
+                out.state.agents,
+                out.state.recipe,
+                out.reward,
+                out.shaped_reward,
+                out.done,
+            )
 
         return state, jax.lax.scan(body, state, (jax.random.split(k_steps, steps), actions))[1]
 
@@ -256,7 +283,9 @@ def test_op_does_not_change_the_game():
     (start_op, traj_op), (start_plain, traj_plain) = both(keys)
     for e in range(3):
         assert _same_kitchen(_take(start_op, e), _take(start_plain, e))
-    assert not np.array_equal(np.asarray(start_op.ingredient_permutations), np.asarray(start_plain.ingredient_permutations))
+    assert not np.array_equal(
+        np.asarray(start_op.ingredient_permutations), np.asarray(start_plain.ingredient_permutations)
+    )
     _assert_trees_equal(traj_op, traj_plain)
 
 
@@ -264,17 +293,25 @@ def test_op_does_not_change_the_game():
 # Cross-play of hand-made policies
 # ---------------------------------------------------------------------------------------------------
 
-R, D, L, U, S, I = (int(Action.RIGHT), int(Action.DOWN), int(Action.LEFT), int(Action.UP), int(Action.STAY),
-                    int(Action.INTERACT))
+R, D, L, U, S, I = (
+    int(Action.RIGHT),
+    int(Action.DOWN),
+    int(Action.LEFT),
+    int(Action.UP),
+    int(Action.STAY),
+    int(Action.INTERACT),
+)
 # cramped_room ("WWPWW/OA AO/W   W/WBWXW"): seat 0 starts at (3, 1) facing up, seat 1 at (1, 1).
 # Derived by stepping the env by hand; seat 0 cooks and delivers one onion soup alone.
 ONION_TRIP = [R, I, L, U, I]  # face the right onion pile, take, step left under the pot, face it, put in
-COOK_SCRIPT = (ONION_TRIP * 3  # 15 steps: the third onion starts the 20-step cooking
-               + [D, L, D, I]  # to (1, 2), face the plate pile below, take a plate
-               + [R, U]  # back under the pot, facing it
-               + [S] * 14  # wait for the soup
-               + [I]  # t = 35: plate the soup
-               + [D, R, D, I])  # to (3, 2), face the goal below, deliver (t = 39: reward 20)
+COOK_SCRIPT = (
+    ONION_TRIP * 3  # 15 steps: the third onion starts the 20-step cooking
+    + [D, L, D, I]  # to (1, 2), face the plate pile below, take a plate
+    + [R, U]  # back under the pot, facing it
+    + [S] * 14  # wait for the soup
+    + [I]  # t = 35: plate the soup
+    + [D, R, D, I]
+)  # to (3, 2), face the goal below, deliver (t = 39: reward 20)
 SCRIPT_STEPS = 48  # env.max_steps for the scripted episodes
 
 
@@ -365,8 +402,16 @@ def test_cross_play_rows_only_fills_those_rows(scripted):
 def test_cross_play_reports_progress_per_block(scripted):
     env, _, params, full = scripted
     calls = []
-    result = cross_play(script_apply, 1, env, params, jax.random.PRNGKey(5), episodes=3, rows=[0, 1],
-                        on_progress=lambda done, total: calls.append((done, total)))
+    result = cross_play(
+        script_apply,
+        1,
+        env,
+        params,
+        jax.random.PRNGKey(5),
+        episodes=3,
+        rows=[0, 1],
+        on_progress=lambda done, total: calls.append((done, total)),
+    )
     np.testing.assert_array_equal(result.returns, full.returns)  # watching does not change the numbers
     assert calls[0] == (0, 2) and calls[1:] == [(1, 2), (1, 2)]  # 2 rows x 1 block of 3 episodes
 
@@ -374,6 +419,7 @@ def test_cross_play_reports_progress_per_block(scripted):
 # ---------------------------------------------------------------------------------------------------
 # summarize on a synthetic matrix
 # ---------------------------------------------------------------------------------------------------
+
 
 def test_summarize_synthetic_cross_play():
     rng = np.random.default_rng(0)
@@ -422,6 +468,7 @@ def test_summarize_single_policy_has_no_gap():
 # ---------------------------------------------------------------------------------------------------
 # checkpoints
 # ---------------------------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def train_state(sa_setup):
@@ -495,7 +542,7 @@ def test_any_single_byte_flip_of_a_checkpoint_is_refused(tmp_path):
     damaged = tmp_path / "damaged.msgpack"
     for offset in range(len(data)):
         for flip in (0x01, 0x20, 0xFF):  # the lowest bit, the ASCII case bit, every bit
-            damaged.write_bytes(data[:offset] + bytes([data[offset] ^ flip]) + data[offset + 1:])
+            damaged.write_bytes(data[:offset] + bytes([data[offset] ^ flip]) + data[offset + 1 :])
             with pytest.raises(ckpt.CorruptCheckpointError) as error:
                 ckpt.read(damaged, "fp")
             assert str(damaged) in str(error.value) and "\n" not in str(error.value)
@@ -507,8 +554,10 @@ def test_any_single_byte_flip_of_a_checkpoint_is_refused(tmp_path):
 def test_version_2_checkpoints_still_load(tmp_path):
     """The previous format: the state's bytes under a checksum kept in the (unprotected) metadata."""
     state_bytes = serialization.msgpack_serialize(serialization.to_state_dict(SMALL_STATE))
-    payload = {"meta": {"version": 2, "fingerprint": "fp", "sha256": hashlib.sha256(state_bytes).hexdigest(),
-                        **SMALL_META}, "state": state_bytes}
+    payload = {
+        "meta": {"version": 2, "fingerprint": "fp", "sha256": hashlib.sha256(state_bytes).hexdigest(), **SMALL_META},
+        "state": state_bytes,
+    }
     path = tmp_path / "v2.msgpack"
     path.write_bytes(serialization.msgpack_serialize(payload))
     meta, state = ckpt.load(path, SMALL_STATE, "fp")

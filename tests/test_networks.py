@@ -13,12 +13,30 @@ import pytest
 
 import ocv2
 from population.config import ConfigError, ModelConfig, parse_config
-from population.networks import (ActorCritic, SameConv, gru_step, chunk_count, count_params, gru_scan, gru_sequence,
-                                 init_params, kernel_family, make_network, pointwise_mixer, same_function)
+from population.networks import (
+    ActorCritic,
+    SameConv,
+    chunk_count,
+    count_params,
+    gru_scan,
+    gru_sequence,
+    gru_step,
+    init_params,
+    kernel_family,
+    make_network,
+    pointwise_mixer,
+    same_function,
+)
 
 RNN_OBS = (5, 5, 40)
-SMALL_RNN = {"kind": "rnn", "mixer_features": [8], "conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8,
-             "gru_dim": 8}
+SMALL_RNN = {
+    "kind": "rnn",
+    "mixer_features": [8],
+    "conv_features": [4, 4],
+    "conv_kernels": [3, 3],
+    "fc_dim": 8,
+    "gru_dim": 8,
+}
 SMALL_CNN = {"kind": "cnn", "conv_features": [4, 4], "conv_kernels": [3, 3], "fc_dim": 8}
 
 
@@ -40,8 +58,9 @@ def _init(network, key, obs_shape):
 
 
 def _shapes(params) -> dict:
-    return {jax.tree_util.keystr(path): tuple(leaf.shape)
-            for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]}
+    return {
+        jax.tree_util.keystr(path): tuple(leaf.shape) for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]
+    }
 
 
 @pytest.fixture(scope="module")
@@ -62,6 +81,7 @@ def cnn():
 # paper sizes
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_rnn_paper_parameter_count_and_shapes(rnn):
     network, params = rnn
     h, w, c = RNN_OBS
@@ -77,30 +97,47 @@ def test_rnn_paper_parameter_count_and_shapes(rnn):
 
     shapes = _shapes(params)
     enc = "['params']['ConvEncoder_0']"
-    for i, kernel in enumerate([(1, 1, 40, 128), (1, 1, 128, 128), (1, 1, 128, 8),
-                                (3, 3, 8, 16), (3, 3, 16, 32), (3, 3, 32, 32)]):
+    for i, kernel in enumerate(
+        [(1, 1, 40, 128), (1, 1, 128, 128), (1, 1, 128, 8), (3, 3, 8, 16), (3, 3, 16, 32), (3, 3, 32, 32)]
+    ):
         assert shapes[f"{enc}['SameConv_{i}']['kernel']"] == kernel
         assert shapes[f"{enc}['SameConv_{i}']['bias']"] == kernel[-1:]
     assert shapes[f"{enc}['Dense_0']['kernel']"] == (800, 128)
     assert shapes[f"{enc}['LayerNorm_0']['scale']"] == (128,)
     gru_prefix = "['params']['ScanResetGRUCell_0']['GRUCell_0']"
-    gru_shapes = {k[len(gru_prefix):]: v for k, v in shapes.items() if k.startswith(gru_prefix)}
+    gru_shapes = {k[len(gru_prefix) :]: v for k, v in shapes.items() if k.startswith(gru_prefix)}
     assert gru_shapes == {
-        "['ir']['kernel']": (128, 128), "['ir']['bias']": (128,),
-        "['iz']['kernel']": (128, 128), "['iz']['bias']": (128,),
-        "['in']['kernel']": (128, 128), "['in']['bias']": (128,),
-        "['hr']['kernel']": (128, 128), "['hz']['kernel']": (128, 128),
-        "['hn']['kernel']": (128, 128), "['hn']['bias']": (128,),
+        "['ir']['kernel']": (128, 128),
+        "['ir']['bias']": (128,),
+        "['iz']['kernel']": (128, 128),
+        "['iz']['bias']": (128,),
+        "['in']['kernel']": (128, 128),
+        "['in']['bias']": (128,),
+        "['hr']['kernel']": (128, 128),
+        "['hz']['kernel']": (128, 128),
+        "['hn']['kernel']": (128, 128),
+        "['hn']['bias']": (128,),
     }
-    heads_shapes = {name: shapes[f"['params']['{name}']['kernel']"] for name in ("Dense_0", "Dense_1", "Dense_2", "Dense_3")}
+    heads_shapes = {
+        name: shapes[f"['params']['{name}']['kernel']"] for name in ("Dense_0", "Dense_1", "Dense_2", "Dense_3")
+    }
     assert heads_shapes == {"Dense_0": (128, 128), "Dense_1": (128, 6), "Dense_2": (128, 128), "Dense_3": (128, 1)}
 
 
 def test_cnn_paper_parameter_count_and_shapes(cnn):
     network, params, (h, w, c) = cnn
     assert not network.recurrent and network.mixer_features == ()
-    expected = (_conv(5, c, 32) + _conv(3, 32, 32) + _conv(3, 32, 32) + _dense(h * w * 32, 64) + 2 * 64
-                + _dense(64, 64) + _dense(64, 6) + _dense(64, 64) + _dense(64, 1))
+    expected = (
+        _conv(5, c, 32)
+        + _conv(3, 32, 32)
+        + _conv(3, 32, 32)
+        + _dense(h * w * 32, 64)
+        + 2 * 64
+        + _dense(64, 64)
+        + _dense(64, 6)
+        + _dense(64, 64)
+        + _dense(64, 1)
+    )
     assert count_params(params) == expected
     shapes = _shapes(params)
     enc = "['params']['ConvEncoder_0']"
@@ -116,6 +153,7 @@ def test_cnn_paper_parameter_count_and_shapes(cnn):
 # initialisation
 # ---------------------------------------------------------------------------------------------------
 
+
 def _gram(kernel) -> np.ndarray:
     k = np.asarray(kernel, np.float64).reshape(-1, kernel.shape[-1])
     return k.T @ k
@@ -126,7 +164,7 @@ def test_initialisation_scales(rnn):
     p = params["params"]
     policy = p["Dense_1"]["kernel"]
     assert policy.shape == (128, 6)
-    np.testing.assert_allclose(_gram(policy), 0.01 ** 2 * np.eye(6), atol=1e-9)
+    np.testing.assert_allclose(_gram(policy), 0.01**2 * np.eye(6), atol=1e-9)
     np.testing.assert_allclose(_gram(p["Dense_3"]["kernel"]), np.eye(1), atol=1e-5)
     for name in ("Dense_0", "Dense_2"):
         np.testing.assert_allclose(_gram(p[name]["kernel"]), 2.0 * np.eye(128), atol=1e-4)
@@ -150,6 +188,7 @@ def test_initialisation_scales(rnn):
 # SameConv == nn.Conv(padding="SAME")
 # ---------------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("kernel_size", [1, 3, 5, 4])
 def test_same_conv_matches_flax_conv(kernel_size):
     x = jax.random.normal(jax.random.PRNGKey(kernel_size), (2, 5, 7, 3))
@@ -168,6 +207,7 @@ def test_same_conv_matches_flax_conv(kernel_size):
 # recurrence and the calling convention
 # ---------------------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def small_rnn():
     obs_shape = (4, 5, 6)
@@ -175,7 +215,8 @@ def small_rnn():
     params = _init(network, jax.random.PRNGKey(2), obs_shape)
     # a sharper policy head so logits carry the GRU's state visibly
     params = jax.tree_util.tree_map_with_path(
-        lambda path, x: x * 100.0 if "Dense_1" in jax.tree_util.keystr(path) else x, params)
+        lambda path, x: x * 100.0 if "Dense_1" in jax.tree_util.keystr(path) else x, params
+    )
     apply = jax.jit(network.apply)
     steps, batch = 6, 3
     obs = jax.random.randint(jax.random.PRNGKey(3), (steps, batch) + obs_shape, 0, 4).astype(jnp.uint8)
@@ -189,8 +230,9 @@ def test_gru_reset_starts_a_fresh_sequence(small_rnn):
     t = 3
     reset = jnp.zeros((steps, batch), bool).at[t].set(True)
     h_end, logits, value = apply(params, hidden, obs, reset)
-    fresh_h, fresh_logits, fresh_value = apply(params, network.initial_hidden(batch), obs[t:],
-                                               jnp.zeros((steps - t, batch), bool))
+    fresh_h, fresh_logits, fresh_value = apply(
+        params, network.initial_hidden(batch), obs[t:], jnp.zeros((steps - t, batch), bool)
+    )
     np.testing.assert_allclose(logits[t:], fresh_logits, atol=1e-6)
     np.testing.assert_allclose(value[t:], fresh_value, atol=1e-6)
     np.testing.assert_allclose(h_end, fresh_h, atol=1e-6)
@@ -259,8 +301,10 @@ def test_the_chunked_mixer_equals_the_whole_mixer_values_and_gradients():
     pass); chunking must not change the function or its parameter gradients beyond float rounding."""
     key = jax.random.PRNGKey(0)
     shapes = [(6, 16), (16, 16), (16, 3)]
-    weights = [(jax.random.normal(jax.random.fold_in(key, i), (1, 1) + s) * 0.5, jnp.full((s[1],), 0.1 * i))
-               for i, s in enumerate(shapes)]
+    weights = [
+        (jax.random.normal(jax.random.fold_in(key, i), (1, 1) + s) * 0.5, jnp.full((s[1],), 0.1 * i))
+        for i, s in enumerate(shapes)
+    ]
     x = jax.random.randint(jax.random.PRNGKey(1), (12, 5, 5, 6), 0, 3).astype(jnp.uint8)  # 300 cells
     assert chunk_count(300, 64) == 5 and chunk_count(300, 0) == 1 and chunk_count(100, 64) == 1
 
@@ -289,27 +333,37 @@ def test_the_gru_backward_pass_equals_autodiff_of_the_plain_scan():
     def plain(projected, reset, hidden, kernel, bias):
         def step(h, xs):
             return (h := gru_step(kernel, bias, h, *xs)[-1]), h
+
         return jax.lax.scan(step, hidden, (projected, reset))
 
-    assert jax.tree.all(jax.tree.map(lambda x, y: bool((x == y).all()), gru_scan(projected, reset, hidden, kernel, bias),
-                                     plain(projected, reset, hidden, kernel, bias)))  # the "xla" kernels' GRU
+    assert jax.tree.all(
+        jax.tree.map(
+            lambda x, y: bool((x == y).all()),
+            gru_scan(projected, reset, hidden, kernel, bias),
+            plain(projected, reset, hidden, kernel, bias),
+        )
+    )  # the "xla" kernels' GRU
 
     def loss(gru):
         def f(projected, hidden, kernel, bias):
             last, every = gru(projected, reset, hidden, kernel, bias)
             return (last * w_last).sum() + (every * w_every).sum()
+
         return jax.grad(f, argnums=(0, 1, 2, 3))
 
-    np.testing.assert_array_equal(gru_sequence(projected, reset, hidden, kernel, bias)[1],
-                                  plain(projected, reset, hidden, kernel, bias)[1])
-    for ours, theirs in zip(loss(gru_sequence)(projected, hidden, kernel, bias),
-                            loss(plain)(projected, hidden, kernel, bias), strict=True):
+    np.testing.assert_array_equal(
+        gru_sequence(projected, reset, hidden, kernel, bias)[1], plain(projected, reset, hidden, kernel, bias)[1]
+    )
+    for ours, theirs in zip(
+        loss(gru_sequence)(projected, hidden, kernel, bias), loss(plain)(projected, hidden, kernel, bias), strict=True
+    ):
         np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
 
 
 # ---------------------------------------------------------------------------------------------------
 # kernel families: the CPU-tuned matmul forms on CPU, XLA's convolution and autodiff elsewhere
 # ---------------------------------------------------------------------------------------------------
+
 
 def _ops(network, params, obs, reset, hidden) -> str:
     """The network's jaxpr, as text: which primitives it runs (a custom_vjp call keeps its name here)."""
@@ -363,7 +417,8 @@ def test_every_kernel_family_gives_the_same_parameters_outputs_and_gradients(raw
 
         def loss(p):
             h, logits, value = network.apply(p, hidden, obs, reset)
-            return (logits ** 2).sum() + (value ** 2).sum() + (h ** 2).sum(), (h, logits, value)
+            return (logits**2).sum() + (value**2).sum() + (h**2).sum(), (h, logits, value)
+
         results[family] = params, jax.jit(jax.grad(loss, has_aux=True))(params)
     (cpu_params, (cpu_grads, cpu_out)), (xla_params, (xla_grads, xla_out)) = results["cpu"], results["xla"]
     assert _shapes(cpu_params) == _shapes(xla_params)

@@ -18,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_every_shipped_config_is_package_data():
     patterns = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"][
-        "population.config"]
+        "population.config"
+    ]
     files = Path(str(PACKAGED_CONFIGS))
     shipped = [p.relative_to(files.parent).as_posix() for p in files.rglob("*") if p.is_file()]
     assert len(shipped) > 40
@@ -39,10 +40,20 @@ def test_quickstart_header_gives_the_readme_install_command():
     assert not any(re.search(r"pip install -e \.(\s|$)", line) for line in header)  # the core alone has no Ray
 
 
-@pytest.mark.parametrize("path", [".venv/bin/python", "runs/smoke/metrics.csv", "data/overcooked_ai-1.1.0.tar.gz",
-                                  "cook.ocv2policy", "runs/sa/seed_3.ocv2policy", "reports/report.md",
-                                  "dist/ocv2-0.1.0-py3-none-any.whl", "build/lib/ocv2/env.py",
-                                  "ocv2.egg-info/PKG-INFO"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        ".venv/bin/python",
+        "runs/smoke/metrics.csv",
+        "data/overcooked_ai-1.1.0.tar.gz",
+        "cook.ocv2policy",
+        "runs/sa/seed_3.ocv2policy",
+        "reports/report.md",
+        "dist/ocv2-0.1.0-py3-none-any.whl",
+        "build/lib/ocv2/env.py",
+        "ocv2.egg-info/PKG-INFO",
+    ],
+)
 def test_what_the_readme_commands_create_is_ignored(path):
     if not (ROOT / ".git").exists():
         pytest.skip("not a git checkout")

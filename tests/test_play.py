@@ -24,10 +24,10 @@ import ocv2
 from cluster.archive import ArchiveReader, ArchiveWriter, states_as_buffer
 from cluster.cli import main
 from cluster.play.game import HIDDEN_RGB, PartnerError, human_partner, load_policy_partner, make_game, scripted_partner
-from cluster.play.server import PlayServer
-from cluster.runtime.rundir import RunDir
 from cluster.play.protocol import Message, ProtocolError, parse_message
+from cluster.play.server import PlayServer
 from cluster.play.session import GameSession
+from cluster.runtime.rundir import RunDir
 from population import checkpoints as ckpt
 from population import policy as policies
 from population import ppo
@@ -90,6 +90,7 @@ def episodes(writer) -> list:
 # messages
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_valid_messages_parse():
     assert parse_message(b'{"type": "join"}') == Message("join")
     assert parse_message(b'{"type": "join", "seat": 1}').seat == 1
@@ -98,25 +99,28 @@ def test_valid_messages_parse():
     assert parse_message(b'{"type": "poll", "token": "t", "since": 7}').since == 7
 
 
-@pytest.mark.parametrize("body, status, words", [
-    (b"\xff\xfe", 400, "not UTF-8 JSON"),
-    (b"{nope", 400, "not UTF-8 JSON"),
-    (b"[1, 2]", 400, "JSON object"),
-    (b'{"type": "dance"}', 400, "unknown message type 'dance'"),
-    (b'{"action": "up"}', 400, "unknown message type None"),
-    (b'{"type": "action", "token": "t"}', 400, "missing ['action']"),
-    (b'{"type": "poll", "token": "t", "evil": 1}', 400, "unexpected ['evil']"),
-    (b'{"type": "action", "token": "t", "action": "jump"}', 400, "action must be one of"),
-    (b'{"type": "action", "token": "t", "action": 6}', 400, "action must be one of"),
-    (b'{"type": "action", "token": "t", "action": true}', 400, "action must be one of"),
-    (b'{"type": "poll", "token": "t", "since": -1}', 400, "since must be"),
-    (b'{"type": "poll", "token": 12}', 400, "token must be"),
-    (b'{"type": "join", "seat": "0"}', 400, "seat must be"),
-    (b" " * 5000, 413, "limit"),
-    (b"[" * 2040 + b"]" * 2040, 400, "nests deeper than 2 levels"),  # 4 KB that json.loads cannot parse
-    (b'{"type": "join", "seat": ' + b"[" * 2000 + b"]" * 2000 + b"}", 400, "nests deeper than 2 levels"),
-    (b'{"type": "join", "seat": [[1]]}', 400, "nests deeper than 2 levels"),
-])
+@pytest.mark.parametrize(
+    "body, status, words",
+    [
+        (b"\xff\xfe", 400, "not UTF-8 JSON"),
+        (b"{nope", 400, "not UTF-8 JSON"),
+        (b"[1, 2]", 400, "JSON object"),
+        (b'{"type": "dance"}', 400, "unknown message type 'dance'"),
+        (b'{"action": "up"}', 400, "unknown message type None"),
+        (b'{"type": "action", "token": "t"}', 400, "missing ['action']"),
+        (b'{"type": "poll", "token": "t", "evil": 1}', 400, "unexpected ['evil']"),
+        (b'{"type": "action", "token": "t", "action": "jump"}', 400, "action must be one of"),
+        (b'{"type": "action", "token": "t", "action": 6}', 400, "action must be one of"),
+        (b'{"type": "action", "token": "t", "action": true}', 400, "action must be one of"),
+        (b'{"type": "poll", "token": "t", "since": -1}', 400, "since must be"),
+        (b'{"type": "poll", "token": 12}', 400, "token must be"),
+        (b'{"type": "join", "seat": "0"}', 400, "seat must be"),
+        (b" " * 5000, 413, "limit"),
+        (b"[" * 2040 + b"]" * 2040, 400, "nests deeper than 2 levels"),  # 4 KB that json.loads cannot parse
+        (b'{"type": "join", "seat": ' + b"[" * 2000 + b"]" * 2000 + b"}", 400, "nests deeper than 2 levels"),
+        (b'{"type": "join", "seat": [[1]]}', 400, "nests deeper than 2 levels"),
+    ],
+)
 def test_malformed_messages_are_rejected(body, status, words):
     with pytest.raises(ProtocolError, match=words.replace("[", r"\[").replace("]", r"\]")) as info:
         parse_message(body)
@@ -126,6 +130,7 @@ def test_malformed_messages_are_rejected(body, status, words):
 # ---------------------------------------------------------------------------------------------------
 # the game loop
 # ---------------------------------------------------------------------------------------------------
+
 
 def test_an_episode_plays_tick_by_tick_and_is_archived_whole(solo_game, archive):
     session, _ = session_of(solo_game, archive, meta={"participant": "P01"})
@@ -167,7 +172,9 @@ def test_an_episode_plays_tick_by_tick_and_is_archived_whole(solo_game, archive)
     step = jax.jit(lambda s, a: env.step_arrays(jax.random.PRNGKey(0), s, a).terminal_state)
     for t in range(STEPS):
         reached = step(jax.tree.map(lambda x: x[t], episode.states), episode.actions[t])
-        for got, want in zip(jax.tree.leaves(reached), jax.tree.leaves(jax.tree.map(lambda x: x[t + 1], episode.states))):
+        for got, want in zip(
+            jax.tree.leaves(reached), jax.tree.leaves(jax.tree.map(lambda x: x[t + 1], episode.states))
+        ):
             np.testing.assert_array_equal(np.asarray(got), want)
     assert int(states_as_buffer(archive.path, keep_every=2).step.shape[0]) == 3
 
@@ -178,7 +185,7 @@ def test_the_human_sees_only_their_view_window(solo_game):
     frame = np.asarray(views.frames[0])
     x, y = int(carry.state.agents.x[0]), int(carry.state.agents.y[0])
     tile = 8
-    cell = lambda cx, cy: frame[cy * tile:(cy + 1) * tile, cx * tile:(cx + 1) * tile]
+    cell = lambda cx, cy: frame[cy * tile : (cy + 1) * tile, cx * tile : (cx + 1) * tile]
     assert not (cell(x, y) == HIDDEN_RGB).all()  # the own cell is drawn
     far = [(cx, cy) for cy in range(4) for cx in range(5) if max(abs(cx - x), abs(cy - y)) > 1]
     assert far and all((cell(cx, cy) == HIDDEN_RGB).all() for cx, cy in far)
@@ -267,6 +274,7 @@ def test_two_people_play_one_game(duo_game, archive):
 # HTTP
 # ---------------------------------------------------------------------------------------------------
 
+
 def _request(server, method, path, body=None, headers=None, key=True):
     """One request to ``server`` as its page sends it (its key in the query), unless told otherwise."""
     if key:
@@ -311,15 +319,20 @@ def test_the_server_rejects_bad_requests_and_the_game_goes_on(solo_game, archive
         assert _request(server, "GET", "/secrets")[0] == 404
         assert _request(server, "POST", "/elsewhere", b"{}")[0] == 404
         assert _api(server, b"garbage") == (400, {"ok": False, "error": "message is not UTF-8 JSON"})
-        assert _request(server, "POST", "/api", b"x", {"Content-Length": "999999",
-                                                       "Content-Type": "application/json"})[0] == 413
+        assert (
+            _request(server, "POST", "/api", b"x", {"Content-Length": "999999", "Content-Type": "application/json"})[0]
+            == 413
+        )
         status, reply = _api(server, {"type": "join"})
         token = reply["token"]
         assert status == 200 and reply["seat"] == 0
         assert _api(server, {"type": "action", "token": token, "action": "fly"})[0] == 400
         original = session.handle
         monkeypatch.setattr(session, "handle", lambda message: 1 / 0)  # a bug in one request ...
-        assert _api(server, {"type": "ready", "token": token}) == (500, {"ok": False, "error": "internal error (ZeroDivisionError)"})
+        assert _api(server, {"type": "ready", "token": token}) == (
+            500,
+            {"ok": False, "error": "internal error (ZeroDivisionError)"},
+        )
         monkeypatch.setattr(session, "handle", original)  # ... and the game still plays
         assert _api(server, {"type": "ready", "token": token})[0] == 200
         since = 0
@@ -362,18 +375,22 @@ def test_a_request_for_another_host_is_refused(served, host):
 
 def test_requests_without_the_key_are_refused(served):
     for query in ("", "?key=wrong", f"?key={served.key[:-1]}"):
-        status, _, data = _request(served, "POST", "/api" + query, json.dumps(JOIN).encode(),
-                                   {"Content-Type": "application/json"}, key=False)
+        status, _, data = _request(
+            served, "POST", "/api" + query, json.dumps(JOIN).encode(), {"Content-Type": "application/json"}, key=False
+        )
         assert status == 403 and "wrong key" in json.loads(data)["error"], query
         assert _request(served, "GET", "/" + query, key=False)[0] == 403
     assert not served.session.players
 
 
-@pytest.mark.parametrize("content_type", ["text/plain", "application/x-www-form-urlencoded", "multipart/form-data", None])
+@pytest.mark.parametrize(
+    "content_type", ["text/plain", "application/x-www-form-urlencoded", "multipart/form-data", None]
+)
 def test_a_message_that_is_not_json_typed_is_refused(served, content_type):
     """The content types a cross-site form or a preflight-free fetch can send."""
-    status, _, data = _request(served, "POST", "/api", json.dumps(JOIN).encode(),
-                               {"Content-Type": content_type} if content_type else {})
+    status, _, data = _request(
+        served, "POST", "/api", json.dumps(JOIN).encode(), {"Content-Type": content_type} if content_type else {}
+    )
     assert status == 415 and "application/json" in json.loads(data)["error"]
     assert not served.session.players
 
@@ -382,8 +399,9 @@ def test_the_page_itself_is_served(served):
     """Its own Host and Origin, the key, JSON with a charset."""
     status, _, page = _request(served, "GET", "/", headers={"Host": f"localhost:{served.port}"})
     assert status == 200 and b"encodeURIComponent" in page
-    status, reply = _api(served, JOIN, Origin=f"http://127.0.0.1:{served.port}",
-                         **{"Content-Type": "application/json; charset=utf-8"})
+    status, reply = _api(
+        served, JOIN, Origin=f"http://127.0.0.1:{served.port}", **{"Content-Type": "application/json; charset=utf-8"}
+    )
     assert status == 200 and reply["seat"] == 0
 
 
@@ -470,9 +488,12 @@ def test_a_client_leaving_mid_answer_costs_one_log_line(served, caplog, capsys):
     caplog.set_level(logging.INFO, logger="cluster.play")
     token = _api(served, {"type": "join"})[1]["token"]
     client = _connect(served)
-    body = json.dumps({"type": "poll", "token": token, "since": 10 ** 9}).encode()  # answered after a second
-    client.sendall(f"POST /api?key={served.key} HTTP/1.1\r\nHost: 127.0.0.1:{served.port}\r\n"
-                   f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n".encode() + body)
+    body = json.dumps({"type": "poll", "token": token, "since": 10**9}).encode()  # answered after a second
+    client.sendall(
+        f"POST /api?key={served.key} HTTP/1.1\r\nHost: 127.0.0.1:{served.port}\r\n"
+        f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n".encode()
+        + body
+    )
     time.sleep(0.2)  # the server has read the request and waits in the poll
     client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
     client.close()  # a reset: the answer cannot be written
@@ -489,19 +510,28 @@ def test_a_client_leaving_mid_answer_costs_one_log_line(served, caplog, capsys):
 # partners from run directories
 # ---------------------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def rnn_run(tmp_path_factory):
     """A run directory with one RNN checkpoint (untrained parameters: only loading is tested)."""
     run = tmp_path_factory.mktemp("runs") / "rnn"
-    config = load_config(SMOKE, ["model.kind=rnn", "model.gru_dim=8", "model.mixer_features=[8]",
-                                 "model.conv_features=[8]", "model.conv_kernels=[3]", "model.fc_dim=8",
-                                 f"env.max_steps={STEPS}"])
+    config = load_config(
+        SMOKE,
+        [
+            "model.kind=rnn",
+            "model.gru_dim=8",
+            "model.mixer_features=[8]",
+            "model.conv_features=[8]",
+            "model.conv_kernels=[3]",
+            "model.fc_dim=8",
+            f"env.max_steps={STEPS}",
+        ],
+    )
     RunDir(run).create(config)
     env = ppo.eval_env(config)
     params = init_params(ppo.make_trainer(config).network, jax.random.PRNGKey(3), env.obs_shape)
     for update in (0, 2):
-        ckpt.save(ckpt.checkpoint_path(run, 0, update), {"params": params}, config.fingerprint(), seed=0,
-                  update=update)
+        ckpt.save(ckpt.checkpoint_path(run, 0, update), {"params": params}, config.fingerprint(), seed=0, update=update)
     return run
 
 
@@ -528,8 +558,9 @@ def test_a_policy_partner_acts_on_its_own_observation_and_keeps_its_hidden_state
 
 
 def test_an_exported_policy_file_is_a_partner(rnn_run, tmp_path, capsys):
-    exported = policies.export_checkpoint(rnn_run, tmp_path / "cook.ocv2policy", checkpoint="latest",
-                                          meta={"name": "cook"})
+    exported = policies.export_checkpoint(
+        rnn_run, tmp_path / "cook.ocv2policy", checkpoint="latest", meta={"name": "cook"}
+    )
     partner = load_policy_partner(exported)
     original = load_policy_partner(rnn_run / "checkpoints" / "seed_0")
     assert (partner.kind, partner.label, partner.run_dir, partner.config_fingerprint) == ("policy", "cook", None, None)
@@ -537,8 +568,9 @@ def test_an_exported_policy_file_is_a_partner(rnn_run, tmp_path, capsys):
     for got, want in zip(jax.tree.leaves(partner.params), jax.tree.leaves(original.params)):
         np.testing.assert_array_equal(got, want)
     # the command plays the file's environment and refuses flags that change it, like a run's
-    code, err = _cli_error(capsys, "--partner", str(exported), "--agent-view-size", "2", "--port", "0",
-                           "--out", str(tmp_path / "x.mcap"))
+    code, err = _cli_error(
+        capsys, "--partner", str(exported), "--agent-view-size", "2", "--port", "0", "--out", str(tmp_path / "x.mcap")
+    )
     assert code == 2 and "agent_view_size: the partner's run uses None" in err
 
 
@@ -567,6 +599,7 @@ def test_bad_partner_paths_are_clear_errors(rnn_run, tmp_path):
 # ---------------------------------------------------------------------------------------------------
 # the command line: errors before anything starts
 # ---------------------------------------------------------------------------------------------------
+
 
 def _cli_error(capsys, *args) -> tuple[int, str]:
     code = main(["play", *args])

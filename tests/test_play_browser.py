@@ -28,9 +28,17 @@ import pytest
 from cluster.archive import ArchiveReader
 
 ROOT = Path(__file__).resolve().parents[1]
-CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--window-size=820,960")
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--window-size=820,960",
+)
 FPS, STEPS = 8, 24
 UP, DOWN, LEFT, INTERACT, STAY = 3, 1, 2, 5, 4
 
@@ -50,11 +58,17 @@ def _browser_paths(environ=os.environ, which=shutil.which) -> tuple[str, str]:
     pytest.skip(f"no browser: {missing} not found ({BROWSER_PACKAGES} to run this test)")
 
 
-@pytest.mark.parametrize("found, require, outcome", [
-    ({"chromium", "chromedriver"}, "1", None), ({"chromium-browser", "chromedriver"}, "", None),
-    ({"chromium"}, "", pytest.skip.Exception), (set(), "0", pytest.skip.Exception),
-    ({"chromium"}, "1", pytest.fail.Exception), (set(), "1", pytest.fail.Exception),
-])
+@pytest.mark.parametrize(
+    "found, require, outcome",
+    [
+        ({"chromium", "chromedriver"}, "1", None),
+        ({"chromium-browser", "chromedriver"}, "", None),
+        ({"chromium"}, "", pytest.skip.Exception),
+        (set(), "0", pytest.skip.Exception),
+        ({"chromium"}, "1", pytest.fail.Exception),
+        (set(), "1", pytest.fail.Exception),
+    ],
+)
 def test_missing_browser_skips_unless_required(found, require, outcome):
     def which(name):
         return f"/usr/bin/{name}" if name in found else None
@@ -72,10 +86,37 @@ def _start_play(out: Path) -> tuple[subprocess.Popen, str, list[str]]:
     """``ocv2 play`` as a user runs it; returns the process, the URL it printed and its output so far."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     process = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
-         "play", "grounded_coord_simple", "--agent-view-size", "2", "--max-steps", str(STEPS), "--fps", str(FPS),
-         "--port", "0", "--seed", "0", "--disconnect-timeout", "30", "--tile-size", "40", "--out", str(out), "--meta", "participant=e2e"],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        [
+            sys.executable,
+            "-c",
+            "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
+            "play",
+            "grounded_coord_simple",
+            "--agent-view-size",
+            "2",
+            "--max-steps",
+            str(STEPS),
+            "--fps",
+            str(FPS),
+            "--port",
+            "0",
+            "--seed",
+            "0",
+            "--disconnect-timeout",
+            "30",
+            "--tile-size",
+            "40",
+            "--out",
+            str(out),
+            "--meta",
+            "participant=e2e",
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines: queue.Queue = queue.Queue()
     threading.Thread(target=lambda: [lines.put(line) for line in process.stdout], daemon=True).start()
     seen: list[str] = []
@@ -173,7 +214,9 @@ def test_play_in_a_real_browser(tmp_path):
     assert complete.meta["participant"] == "e2e" and complete.meta["env_params"]["agent_view_size"] == 2
     human = complete.actions[:, 0].tolist()
     assert [a for a in human if a != STAY][:4] == [UP, LEFT, INTERACT, DOWN]  # what was pressed, in order
-    moved = np.abs(np.diff(complete.states.agents.x[:, 0])).sum() + np.abs(np.diff(complete.states.agents.dir[:, 0])).sum()
+    moved = (
+        np.abs(np.diff(complete.states.agents.x[:, 0])).sum() + np.abs(np.diff(complete.states.agents.dir[:, 0])).sum()
+    )
     assert moved > 0  # the human's cook turned or walked
     assert cut.meta["cut_short"] and cut.meta["end_reason"] == "left" and 1 <= cut.meta["steps"] < STEPS
     assert stopped.meta["end_reason"] == "server stopped" and 1 <= stopped.meta["steps"] < STEPS

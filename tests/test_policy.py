@@ -12,12 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import serialization
+from policy_runs import shared_run
 
 from cluster.cli import main
 from population import checkpoints as ckpt
 from population import policy as pol
 from population import sealed
-from policy_runs import shared_run
 
 
 @pytest.fixture(scope="module")
@@ -69,16 +69,26 @@ def test_load_accepts_run_seed_dir_and_checkpoint(run):
 
 def test_export_load_round_trip_gives_identical_actions(run, tmp_path):
     original = pol.load(run, seed=1)
-    path = pol.export(tmp_path / "p.ocv2policy", params=original.params, model=original.model, env=original.env,
-                      meta={"note": "round trip"})
+    path = pol.export(
+        tmp_path / "p.ocv2policy",
+        params=original.params,
+        model=original.model,
+        env=original.env,
+        meta={"note": "round trip"},
+    )
     loaded = pol.load(path)
     _assert_trees_equal(original.params, loaded.params)
-    assert (loaded.model, loaded.env, loaded.activation, loaded.hidden_size) == \
-           (original.model, original.env, original.activation, original.hidden_size)
+    assert (loaded.model, loaded.env, loaded.activation, loaded.hidden_size) == (
+        original.model,
+        original.env,
+        original.activation,
+        original.hidden_size,
+    )
     assert loaded.meta == {"note": "round trip"}
     # The environment may also be given as the env object itself.
-    by_env = pol.export(tmp_path / "e.ocv2policy", params=original.params, model=original.model,
-                        env=original.make_env())
+    by_env = pol.export(
+        tmp_path / "e.ocv2policy", params=original.params, model=original.model, env=original.make_env()
+    )
     assert pol.load(by_env).env == original.env
     for greedy in (False, True):
         np.testing.assert_array_equal(_act_trace(original, greedy=greedy), _act_trace(loaded, greedy=greedy))
@@ -130,8 +140,10 @@ def test_bad_sources_are_one_line_errors(run, tmp_path):
 
 
 def test_ocv2_policy_is_population_policy_loaded_lazily():
-    code = ("import sys, ocv2; assert 'population.policy' not in sys.modules and 'population' not in sys.modules; "
-            "from ocv2 import policy; import population.policy as p; assert policy is p and ocv2.policy is p")
+    code = (
+        "import sys, ocv2; assert 'population.policy' not in sys.modules and 'population' not in sys.modules; "
+        "from ocv2 import policy; import population.policy as p; assert policy is p and ocv2.policy is p"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -143,8 +155,13 @@ def _content(path):
 @pytest.fixture(scope="module")
 def exported(run, tmp_path_factory):
     policy = pol.load(run)
-    path = pol.export(tmp_path_factory.mktemp("exported") / "p.ocv2policy", params=policy.params,
-                      model=policy.model, env=policy.env, meta={"note": "checked"})
+    path = pol.export(
+        tmp_path_factory.mktemp("exported") / "p.ocv2policy",
+        params=policy.params,
+        model=policy.model,
+        env=policy.env,
+        meta={"note": "checked"},
+    )
     return policy, path
 
 
@@ -156,7 +173,7 @@ def test_any_flipped_byte_of_an_export_is_refused(exported, tmp_path):
     offsets = [*range(min(len(data), body_start + 400)), *rng.integers(0, len(data), 300), len(data) - 1]
     damaged = tmp_path / "damaged.ocv2policy"
     for offset in offsets:
-        damaged.write_bytes(data[:offset] + bytes([data[offset] ^ 1 << int(offset) % 8]) + data[offset + 1:])
+        damaged.write_bytes(data[:offset] + bytes([data[offset] ^ 1 << int(offset) % 8]) + data[offset + 1 :])
         with pytest.raises(pol.PolicyError) as error:
             pol.load(damaged)
         assert str(damaged) in str(error.value) and "\n" not in str(error.value), offset
@@ -169,12 +186,15 @@ def _reseal(path, out, edit):
     return out
 
 
-@pytest.mark.parametrize("value, message", [
-    (np.nan, "holds NaN or infinite values"),
-    (np.inf, "holds NaN or infinite values"),
-    (1 + 2j, "dtype complex64, not a floating-point one"),
-    (1, "dtype int32, not a floating-point one"),
-])
+@pytest.mark.parametrize(
+    "value, message",
+    [
+        (np.nan, "holds NaN or infinite values"),
+        (np.inf, "holds NaN or infinite values"),
+        (1 + 2j, "dtype complex64, not a floating-point one"),
+        (1, "dtype int32, not a floating-point one"),
+    ],
+)
 def test_non_finite_or_non_float_parameters_are_refused(exported, tmp_path, value, message):
     policy, path = exported
     leaves, treedef = jax.tree.flatten(jax.tree.map(np.asarray, policy.params))

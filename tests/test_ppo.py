@@ -18,7 +18,14 @@ from population.config import parse_config
 
 NUM_ENVS, NUM_STEPS = 4, 16
 # the smallest recurrent net (compile time is what these tests pay for); exact sizes: tests/test_networks.py
-SMALL_MODEL = {"kind": "rnn", "mixer_features": [], "conv_features": [4], "conv_kernels": [3], "fc_dim": 8, "gru_dim": 8}
+SMALL_MODEL = {
+    "kind": "rnn",
+    "mixer_features": [],
+    "conv_features": [4],
+    "conv_kernels": [3],
+    "fc_dim": 8,
+    "gru_dim": 8,
+}
 
 
 def _raw(max_steps: int, **ppo_overrides) -> dict:
@@ -26,8 +33,15 @@ def _raw(max_steps: int, **ppo_overrides) -> dict:
     return {
         "env": {"layout": "cramped_room", "max_steps": max_steps},
         "model": dict(SMALL_MODEL),
-        "ppo": {"num_envs": NUM_ENVS, "num_steps": NUM_STEPS, "num_minibatches": 2, "update_epochs": 2,
-                "total_timesteps": 8 * per_update, "rew_shaping_horizon": 4 * per_update, **ppo_overrides},
+        "ppo": {
+            "num_envs": NUM_ENVS,
+            "num_steps": NUM_STEPS,
+            "num_minibatches": 2,
+            "update_epochs": 2,
+            "total_timesteps": 8 * per_update,
+            "rew_shaping_horizon": 4 * per_update,
+            **ppo_overrides,
+        },
     }
 
 
@@ -41,8 +55,10 @@ def _config(max_steps: int, population: dict | None = None, **ppo_overrides):
 def _leaves_equal(a, b) -> bool:
     la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
     assert len(la) == len(lb)
-    return all(np.array_equal(np.asarray(x), np.asarray(y), equal_nan=np.issubdtype(np.asarray(x).dtype, np.floating))
-               for x, y in zip(la, lb))
+    return all(
+        np.array_equal(np.asarray(x), np.asarray(y), equal_nan=np.issubdtype(np.asarray(x).dtype, np.floating))
+        for x, y in zip(la, lb)
+    )
 
 
 def _assert_trees_close(a, b, rtol=1e-6, atol=1e-7):
@@ -75,6 +91,7 @@ def seed3(inits):
 # GAE
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_compute_gae_matches_a_hand_computation():
     gamma, lam = 0.9, 0.8
     rewards = np.array([[1.0, 0.0], [0.0, 2.0], [3.0, 0.0], [0.0, 1.0], [1.0, -1.0]], np.float32)
@@ -93,8 +110,9 @@ def test_compute_gae_matches_a_hand_computation():
             delta = rewards[t, b] + gamma * next_value * not_done - values[t, b]
             gae = delta + gamma * lam * not_done * gae
             expected_adv[t, b] = gae
-    adv, targets = ppo.compute_gae(jnp.asarray(rewards), jnp.asarray(values), jnp.asarray(terminals),
-                                   jnp.asarray(last_value), gamma, lam)
+    adv, targets = ppo.compute_gae(
+        jnp.asarray(rewards), jnp.asarray(values), jnp.asarray(terminals), jnp.asarray(last_value), gamma, lam
+    )
     np.testing.assert_allclose(adv, expected_adv, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(targets, expected_adv + values, rtol=1e-5, atol=1e-6)
     # the terminal step does not bootstrap: its advantage is r - V
@@ -107,8 +125,10 @@ def test_compute_gae_matches_a_hand_computation():
 # recurrent replay (JaxMARL PR #191 / jax-aht PR #115)
 # ---------------------------------------------------------------------------------------------------
 
+
 def _rollout(trainer, state, pool_params=None, coef=1.0, length=NUM_STEPS):
     """Scan ``rollout_step`` as ``update_step`` does; also records the state each step started from."""
+
     def step(carry, x):
         before = carry.state
         carry, transition = ppo.rollout_step(trainer, pool_params, None, carry, x)
@@ -121,7 +141,8 @@ def _rollout(trainer, state, pool_params=None, coef=1.0, length=NUM_STEPS):
 def _sharpen_policy(params, factor=100.0):
     """Scale the policy head so log-probabilities depend visibly on the GRU state."""
     return jax.tree_util.tree_map_with_path(
-        lambda path, x: x * factor if "['params']['Dense_1']" in jax.tree_util.keystr(path) else x, params)
+        lambda path, x: x * factor if "['params']['Dense_1']" in jax.tree_util.keystr(path) else x, params
+    )
 
 
 def _replay_log_prob(network, params, hidden, batch, reset):
@@ -134,8 +155,9 @@ _replay_jit = jax.jit(_replay_log_prob, static_argnums=0)
 
 
 def _loss_info(trainer, params, hidden, batch):
-    adv, targets = ppo.compute_gae(batch.reward, batch.value, batch.terminal, jnp.zeros(batch.value.shape[1]),
-                                   0.99, 0.95)
+    adv, targets = ppo.compute_gae(
+        batch.reward, batch.value, batch.terminal, jnp.zeros(batch.value.shape[1]), 0.99, 0.95
+    )
     return ppo.ppo_loss(trainer, params, hidden, batch, adv, targets)[1]
 
 
@@ -189,6 +211,7 @@ def test_paper_done_bug_replay_differs_after_episode_boundaries(replay_setup):
 # schedules
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_lr_schedule_warmup_cosine_and_constant():
     lr = 1e-3
     config = _config(max_steps=20, lr=lr, total_timesteps=100 * NUM_ENVS * NUM_STEPS)
@@ -225,6 +248,7 @@ def test_shaping_coef_anneals_linearly():
 # ---------------------------------------------------------------------------------------------------
 # chunking, resume, populations, metrics
 # ---------------------------------------------------------------------------------------------------
+
 
 def _copy(tree):
     return jax.tree.map(jnp.copy, tree)  # the population runner donates its input
@@ -320,8 +344,9 @@ def test_episode_returns_are_the_rewards_of_the_episode_summed(trainer, seed3):
         stats = carry.state.stats
         return carry, (transition, stats.last_sparse + stats.last_shaped)
 
-    run = jax.jit(lambda state: jax.lax.scan(step, ppo.StepCarry(state, jnp.float32(1.0)), None,
-                                             length=episodes * length))
+    run = jax.jit(
+        lambda state: jax.lax.scan(step, ppo.StepCarry(state, jnp.float32(1.0)), None, length=episodes * length)
+    )
     _, (transitions, reported) = run(_copy(seed3))
     terminal = np.asarray(transitions.terminal).reshape(episodes, length, NUM_ENVS, 2)
     assert terminal[:, -1].all() and not terminal[:, :-1].any()
@@ -404,7 +429,7 @@ def test_fcp_grouped_partner_actions_equal_per_env_computation(fcp_setup, t):
     for e in range(NUM_ENVS):  # each environment on its own, with its own partner's parameters
         member = int(partner.slot[e]) // group
         seat = int(partner.learner_seat[e])
-        args = (partner.hidden[e:e + 1], obs_t[e, 1 - seat][None, None], start_t[e][None, None])
+        args = (partner.hidden[e : e + 1], obs_t[e, 1 - seat][None, None], start_t[e][None, None])
         h, logits, _ = apply(ppo.take_seed(pool, member), *args)
         ref_hidden.append(h[0])
         ref_logits.append(logits[0, 0])

@@ -25,16 +25,32 @@ from population import ppo
 from population.config import parse_config
 from population.networks import SameConv, conv_path
 
-_PPO = {"num_envs": 4, "num_steps": 16, "num_minibatches": 2, "update_epochs": 2, "total_timesteps": 512,
-        "rew_shaping_horizon": 256}
+_PPO = {
+    "num_envs": 4,
+    "num_steps": 16,
+    "num_minibatches": 2,
+    "update_epochs": 2,
+    "total_timesteps": 512,
+    "rew_shaping_horizon": 256,
+}
 CONFIGS = {
-    "rnn": {"env": {"layout": "grounded_coord_simple", "agent_view_size": 2, "max_steps": 20, "negative_rewards": True},
-            "model": {"kind": "rnn", "mixer_features": [8, 4], "conv_features": [4, 4], "conv_kernels": [3, 3],
-                      "fc_dim": 8, "gru_dim": 8},
-            "ppo": _PPO},
-    "cnn": {"env": {"layout": "cramped_room", "max_steps": 20},
-            "model": {"kind": "cnn", "conv_features": [4, 4], "conv_kernels": [5, 3], "fc_dim": 8},
-            "ppo": _PPO},
+    "rnn": {
+        "env": {"layout": "grounded_coord_simple", "agent_view_size": 2, "max_steps": 20, "negative_rewards": True},
+        "model": {
+            "kind": "rnn",
+            "mixer_features": [8, 4],
+            "conv_features": [4, 4],
+            "conv_kernels": [3, 3],
+            "fc_dim": 8,
+            "gru_dim": 8,
+        },
+        "ppo": _PPO,
+    },
+    "cnn": {
+        "env": {"layout": "cramped_room", "max_steps": 20},
+        "model": {"kind": "cnn", "conv_features": [4, 4], "conv_kernels": [5, 3], "fc_dim": 8},
+        "ppo": _PPO,
+    },
 }
 
 # Recorded from the previous implementation: per-update mean losses of updates 1 and 2, and per
@@ -123,19 +139,31 @@ def test_two_updates_match_the_reference_implementation(name):
     state, metrics = jax.jit(lambda s: ppo.advance(trainer, s, 2))(state)
     reference = REFERENCE[name]
     for field, expected in reference["loss"].items():
-        np.testing.assert_allclose(np.asarray(getattr(metrics.loss, field)), expected, rtol=1e-4, atol=1e-6,
-                                   err_msg=f"{name} loss {field}")
-    leaves = {"/".join(str(k.key) for k in path[1:]): x
-              for path, x in jax.tree_util.tree_leaves_with_path(state.params)}
+        np.testing.assert_allclose(
+            np.asarray(getattr(metrics.loss, field)), expected, rtol=1e-4, atol=1e-6, err_msg=f"{name} loss {field}"
+        )
+    leaves = {
+        "/".join(str(k.key) for k in path[1:]): x for path, x in jax.tree_util.tree_leaves_with_path(state.params)
+    }
     assert sorted(leaves) == sorted(reference["params"])  # same parameter tree: checkpoints stay loadable
     for key, expected in reference["params"].items():
         np.testing.assert_allclose(_fingerprint(leaves[key]), expected, rtol=1e-4, atol=2e-5, err_msg=f"{name} {key}")
 
 
-@pytest.mark.parametrize("batch, shape, kernel_size, path", [
-    (48, (5, 5), 3, "banded"), (48, (4, 5), 5, "banded"), (48, (9, 9), 3, "banded"), (48, (2, 7), 5, "banded"),
-    (48, (5, 6), 4, "banded"), (47, (5, 5), 3, "im2col"), (48, (4, 15), 3, "im2col"), (48, (6, 11), 3, "im2col"),
-    (3, (5, 7), 1, "pointwise")])
+@pytest.mark.parametrize(
+    "batch, shape, kernel_size, path",
+    [
+        (48, (5, 5), 3, "banded"),
+        (48, (4, 5), 5, "banded"),
+        (48, (9, 9), 3, "banded"),
+        (48, (2, 7), 5, "banded"),
+        (48, (5, 6), 4, "banded"),
+        (47, (5, 5), 3, "im2col"),
+        (48, (4, 15), 3, "im2col"),
+        (48, (6, 11), 3, "im2col"),
+        (3, (5, 7), 1, "pointwise"),
+    ],
+)
 def test_same_conv_paths_match_flax_conv(batch, shape, kernel_size, path):
     assert conv_path(*shape, kernel_size, batch) == path
     x = jax.random.normal(jax.random.PRNGKey(1), (batch,) + shape + (4,))
@@ -145,6 +173,8 @@ def test_same_conv_paths_match_flax_conv(batch, shape, kernel_size, path):
     reference = nn.Conv(5, (kernel_size, kernel_size), padding="SAME").apply(params, x)
     np.testing.assert_allclose(module.apply(params, x), reference, atol=1e-5, rtol=1e-5)
     grads = jax.grad(lambda p: (module.apply(p, x) ** 2).sum())(params)
-    ref_grads = jax.grad(lambda p: (nn.Conv(5, (kernel_size, kernel_size), padding="SAME").apply(p, x) ** 2).sum())(params)
+    ref_grads = jax.grad(lambda p: (nn.Conv(5, (kernel_size, kernel_size), padding="SAME").apply(p, x) ** 2).sum())(
+        params
+    )
     for ours, theirs in zip(jax.tree.leaves(grads), jax.tree.leaves(ref_grads), strict=True):
         np.testing.assert_allclose(ours, theirs, atol=1e-4, rtol=1e-4)

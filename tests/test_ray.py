@@ -22,9 +22,9 @@ import jax
 import numpy as np
 import pytest
 
-from cluster.runtime import evaluate, ray_backend, runstate
 from cluster.archive import ArchiveReader
 from cluster.cli import main
+from cluster.runtime import evaluate, ray_backend, runstate
 from cluster.runtime.rundir import RunDir
 from population import checkpoints as ckpt
 from population import ppo
@@ -98,8 +98,10 @@ def test_cross_play_spread_over_ray_workers_equals_the_local_backend(reference, 
     assert {k: v for k, v in here.items() if k != "wall_s"} == {k: v for k, v in spread.items() if k != "wall_s"}
     archive = xp_archive(reference)
     assert sorted(archive) == [(i, j, e) for i in (0, 1) for j in (0, 1) for e in range(3)]
-    scored = {(int(r["seat0"]), int(r["seat1"]), int(r["episode"])): float(r["return"])
-              for r in csv.DictReader(io.StringIO(spread_csv))}
+    scored = {
+        (int(r["seat0"]), int(r["seat1"]), int(r["episode"])): float(r["return"])
+        for r in csv.DictReader(io.StringIO(spread_csv))
+    }
     for key, (ret, actions) in archive.items():
         assert ret == scored[key]  # the archived episodes are the scored ones
         np.testing.assert_array_equal(actions, spread_archive[key][1])
@@ -140,8 +142,19 @@ def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_number
 def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray_session, capsys):
     run = tmp_path / "driver"
     address = ray_session.get_runtime_context().gcs_address
-    command = [sys.executable, "-c", "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
-               "train", SMOKE, "--out", str(run), "--quiet", "--no-eval", "--address", address]
+    command = [
+        sys.executable,
+        "-c",
+        "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
+        "train",
+        SMOKE,
+        "--out",
+        str(run),
+        "--quiet",
+        "--no-eval",
+        "--address",
+        address,
+    ]
     for item in LONGER:
         command += ["--set", item]
     driver = subprocess.Popen(command, env={**os.environ, "RAY_AUTH_MODE": "disabled"}, cwd=ROOT)
@@ -198,10 +211,21 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
     """The README's main job (Ray backend, the default), shrunk with --set: a 2-seed SA population with
     2 iterations; its buffers hold states of all 4 ordered pairs; cross-play, plot, GIF, archives."""
     quickstart = str(ROOT / "configs" / "quickstart.yaml")
-    tiny = ["ppo.num_envs=4", "ppo.num_steps=16", "ppo.num_minibatches=2", "ppo.update_epochs=1",
-            "ppo.total_timesteps=128", "env.max_steps=24", "model.conv_features=[4]", "model.conv_kernels=[3]",
-            "model.fc_dim=8", "population.sa.rollouts_per_pair=1", "eval.episodes=2", "eval.gifs=1",
-            "run.checkpoint_every=1"]
+    tiny = [
+        "ppo.num_envs=4",
+        "ppo.num_steps=16",
+        "ppo.num_minibatches=2",
+        "ppo.update_epochs=1",
+        "ppo.total_timesteps=128",
+        "env.max_steps=24",
+        "model.conv_features=[4]",
+        "model.conv_kernels=[3]",
+        "model.fc_dim=8",
+        "population.sa.rollouts_per_pair=1",
+        "eval.episodes=2",
+        "eval.gifs=1",
+        "run.checkpoint_every=1",
+    ]
     args = ["train", quickstart, "--out", str(tmp_path / "qs"), "--quiet"]
     for item in tiny:
         args += ["--set", item]
@@ -227,8 +251,13 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
     template = runstate.state_template(trainer, 0)
     for iteration, update in enumerate((0, 1)):
         # Rebuilt here in one process from the checkpointed policies: the Ray buffer is exactly this.
-        params = jax.tree.map(lambda *xs: np.stack(xs), *(
-            ckpt.load(ckpt.checkpoint_path(run, s, update), template, config.fingerprint())[1].params for s in (0, 1)))
+        params = jax.tree.map(
+            lambda *xs: np.stack(xs),
+            *(
+                ckpt.load(ckpt.checkpoint_path(run, s, update), template, config.fingerprint())[1].params
+                for s in (0, 1)
+            ),
+        )
         key = derive_key(config.population.seed, "sa", iteration)
         expected = collect_buffer(trainer.network.apply, 0, ppo.eval_env(config), params, key, config.population.sa)
         meta, stored = ckpt.load(run / "sa" / f"buffer_{iteration:03d}.msgpack", expected, config.fingerprint())
@@ -243,14 +272,16 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
 def test_starting_ray_after_jax_says_one_line_of_its_own_and_no_alarms(tmp_path):
     # A driver where JAX already runs (a notebook, `ocv2 xp` after loading policies) starting Ray with
     # the auth mode unset: no JAX fork warning for Ray's process launches, no Ray token-auth notice.
-    code = ("import logging, jax, ray\n"
-            "jax.numpy.zeros(1).block_until_ready()\n"
-            "logging.basicConfig(level=logging.WARNING, format='%(name)s: %(message)s')\n"
-            "logging.getLogger('cluster').setLevel(logging.INFO)\n"
-            "from cluster.runtime.ray_backend import connect\n"
-            "from population.config import ClusterConfig\n"
-            "assert connect(ClusterConfig(local_cpus=1))\n"
-            "ray.shutdown()\n")
+    code = (
+        "import logging, jax, ray\n"
+        "jax.numpy.zeros(1).block_until_ready()\n"
+        "logging.basicConfig(level=logging.WARNING, format='%(name)s: %(message)s')\n"
+        "logging.getLogger('cluster').setLevel(logging.INFO)\n"
+        "from cluster.runtime.ray_backend import connect\n"
+        "from population.config import ClusterConfig\n"
+        "assert connect(ClusterConfig(local_cpus=1))\n"
+        "ray.shutdown()\n"
+    )
     env = {k: v for k, v in os.environ.items() if k not in ("RAY_AUTH_MODE", "RAY_ADDRESS")}
     env.update(PYTHONPATH=str(Path(__file__).resolve().parents[1]), HOME=str(tmp_path))  # Ray's token file there
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)

@@ -23,9 +23,8 @@ SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
 @pytest.fixture
 def two_nodes():
     import ray
-    from ray.cluster_utils import Cluster
-
     from conftest import ensure_ray
+    from ray.cluster_utils import Cluster
 
     from cluster.runtime.ray_backend import ray_process_launches
 
@@ -53,8 +52,9 @@ def test_seeds_spread_over_two_nodes_and_the_run_survives_losing_one(tmp_path, t
             seen["nodes"] = workers.node_ids()
             cluster.remove_node(worker_node)
 
-    summary = ray_backend.train_population(config, tmp_path / "run", show_progress=False, evaluate=False,
-                                           on_chunk=remove_worker_node)
+    summary = ray_backend.train_population(
+        config, tmp_path / "run", show_progress=False, evaluate=False, on_chunk=remove_worker_node
+    )
     assert len(set(seen["nodes"])) == 2  # one seed per node (SPREAD)
     assert summary["restarts"] >= 1
     manifest = RunDir(tmp_path / "run").read_manifest()

@@ -13,8 +13,7 @@ from PIL import Image, ImageSequence
 import ocv2
 from ocv2 import items as it
 from ocv2.items import Action, Direction, Static
-from ocv2.render import (AGENT_COLORS, INGREDIENT_COLORS, make_renderer, render, render_frames, rollout_states,
-                         write_gif)
+from ocv2.render import AGENT_COLORS, INGREDIENT_COLORS, make_renderer, render, render_frames, rollout_states, write_gif
 
 TILE = 16
 GREY = (100, 100, 100)
@@ -38,7 +37,7 @@ def pixel(img, row, col, fx=0.5, fy=0.5, tile=TILE):
 
 
 def tile_of(img, row, col, tile=TILE):
-    return img[row * tile:(row + 1) * tile, col * tile:(col + 1) * tile]
+    return img[row * tile : (row + 1) * tile, col * tile : (col + 1) * tile]
 
 
 def changed_cells(a, b, tile=TILE):
@@ -55,8 +54,9 @@ def cells(layout, static):
 # --------------------------------------------------------------------------------------- shapes
 
 
-@pytest.mark.parametrize("name,tile", [("cramped_room", 8), ("grounded_coord_ring", 12), ("long_room", 32),
-                                       ("demo_cook_wide", 5)])
+@pytest.mark.parametrize(
+    "name,tile", [("cramped_room", 8), ("grounded_coord_ring", 12), ("long_room", 32), ("demo_cook_wide", 5)]
+)
 def test_shape_and_dtype(name, tile):
     env = ocv2.make(name)
     state = env.reset_state(jax.random.PRNGKey(1))
@@ -87,8 +87,11 @@ def test_fixed_state_pixels(cramped):
     layout = env.layout
     wall = cells(layout, Static.WALL)[0]
     assert pixel(img, *wall) == GREY
-    floor = next(rc for rc in cells(layout, Static.FLOOR)
-                 if rc not in set(zip(np.asarray(state.agents.y).tolist(), np.asarray(state.agents.x).tolist())))
+    floor = next(
+        rc
+        for rc in cells(layout, Static.FLOOR)
+        if rc not in set(zip(np.asarray(state.agents.y).tolist(), np.asarray(state.agents.x).tolist()))
+    )
     assert pixel(img, *floor) == (0, 0, 0)
     assert pixel(img, *floor, fx=0.0, fy=0.0) == GREY  # grid line
     goal = cells(layout, Static.GOAL)[0]
@@ -124,9 +127,13 @@ def test_agent_direction_and_held_item(cramped):
     row, col = int(state.agents.y[0]), int(state.agents.x[0])
     red = tuple(AGENT_COLORS[0].astype(int))
     # two points near the triangle's base corners, per facing direction
-    base = {Direction.UP: [(0.3, 0.8), (0.7, 0.8)], Direction.DOWN: [(0.3, 0.2), (0.7, 0.2)],
-            Direction.RIGHT: [(0.2, 0.3), (0.2, 0.7)], Direction.LEFT: [(0.8, 0.3), (0.8, 0.7)]}
-    for direction, points in base.items():
+    base = {
+        Direction.UP: [(0.3, 0.8), (0.7, 0.8)],
+        Direction.DOWN: [(0.3, 0.2), (0.7, 0.2)],
+        Direction.RIGHT: [(0.2, 0.3), (0.2, 0.7)],
+        Direction.LEFT: [(0.8, 0.3), (0.8, 0.7)],
+    }
+    for direction in base:
         turned = state.replace(agents=state.agents.replace(dir=state.agents.dir.at[0].set(int(direction))))
         img = draw(turned)
         for other, other_points in base.items():
@@ -231,8 +238,9 @@ def test_rollout_and_vmap_over_time():
 
 def test_rollout_with_policy():
     env = ocv2.make("cramped_room")
-    states = rollout_states(env, jax.random.PRNGKey(0), 4,
-                            policy=lambda key, state: jnp.full((env.num_agents,), Action.STAY))
+    states = rollout_states(
+        env, jax.random.PRNGKey(0), 4, policy=lambda key, state: jnp.full((env.num_agents,), Action.STAY)
+    )
     assert (np.asarray(states.agents.x) == np.asarray(states.agents.x)[0]).all()
     with pytest.raises(ValueError, match="steps"):
         rollout_states(env, jax.random.PRNGKey(0), -1)

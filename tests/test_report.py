@@ -20,12 +20,19 @@ from population.config import dump_config, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER_MARK = "# NOT an ocv2 config"  # Ray cluster-launcher files (configs/cluster/ray-*.yaml) say so on line 1
-ALL_CONFIGS = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "configs").rglob("*.yaml")
-                     if not p.read_text().startswith(LAUNCHER_MARK))
+ALL_CONFIGS = sorted(
+    str(p.relative_to(ROOT)) for p in (ROOT / "configs").rglob("*.yaml") if not p.read_text().startswith(LAUNCHER_MARK)
+)
 PAPER = ROOT / "configs" / "paper"
 CLASSIC = ("cramped_room", "asymm_advantages", "coord_ring", "forced_coord", "counter_circuit")
-V2 = ("grounded_coord_simple", "grounded_coord_ring", "test_time_simple", "test_time_wide", "demo_cook_simple",
-      "demo_cook_wide")
+V2 = (
+    "grounded_coord_simple",
+    "grounded_coord_ring",
+    "test_time_simple",
+    "test_time_wide",
+    "demo_cook_simple",
+    "demo_cook_wide",
+)
 METRICS_HEADER = ["seed", "update", "env_steps", "sparse_return", "shaped_return"]
 
 
@@ -33,12 +40,23 @@ METRICS_HEADER = ["seed", "update", "env_steps", "sparse_return", "shaped_return
 # synthetic run directories
 # ---------------------------------------------------------------------------------------------------
 
-def make_run(path: Path, layout: str, method: str, summary: dict | None, metrics: list[list] | None = None,
-             matrix: list[list[float]] | None = None, env: dict | None = None) -> Path:
+
+def make_run(
+    path: Path,
+    layout: str,
+    method: str,
+    summary: dict | None,
+    metrics: list[list] | None = None,
+    matrix: list[list[float]] | None = None,
+    env: dict | None = None,
+) -> Path:
     path.mkdir(parents=True)
-    raw = {"env": {"layout": layout, "max_steps": 400, **(env or {})}, "model": {"kind": "cnn"},
-           "ppo": {"num_envs": 4, "num_steps": 25, "num_minibatches": 2, "total_timesteps": 300},
-           "population": {"method": method, "num_seeds": 2, "sa": {"iterations": 2}}}
+    raw = {
+        "env": {"layout": layout, "max_steps": 400, **(env or {})},
+        "model": {"kind": "cnn"},
+        "ppo": {"num_envs": 4, "num_steps": 25, "num_minibatches": 2, "total_timesteps": 300},
+        "population": {"method": method, "num_seeds": 2, "sa": {"iterations": 2}},
+    }
     dump_config(parse_config(raw), path / "config.yaml")
     (path / "manifest.json").write_text(json.dumps({"status": "finished"}))
     rows = metrics if metrics is not None else [[0, 1, 100, 1.0, 2.0], [0, 2, 200, 3.0, 2.0], [0, 3, 300, 5.0, 2.0]]
@@ -48,8 +66,14 @@ def make_run(path: Path, layout: str, method: str, summary: dict | None, metrics
         writer.writerows(rows)
     if summary is not None:
         (path / "xp").mkdir()
-        full = {"sp_ci95": 1.0, "xp_ci95": 2.0, "num_policies": 2, "episodes_per_pair": 500, "per_recipe": {},
-                **summary}
+        full = {
+            "sp_ci95": 1.0,
+            "xp_ci95": 2.0,
+            "num_policies": 2,
+            "episodes_per_pair": 500,
+            "per_recipe": {},
+            **summary,
+        }
         (path / "xp" / "summary.json").write_text(json.dumps(full))
         matrix = matrix or [[summary["sp_mean"], summary["xp_mean"]], [summary["xp_mean"], summary["sp_mean"]]]
         with open(path / "xp" / "matrix.csv", "w", newline="") as handle:
@@ -74,21 +98,34 @@ def runs(tmp_path):
     cross-play, and an SP run of cramped room in another environment (view 2)."""
     base = tmp_path / "runs"
     return {
-        "cr_sp": make_run(base / "cr_sp", "cramped_room", "sp", table1(259.0, 1.0, 257.0, 2.0, 2.0),
-                          metrics=[[0, 1, 100, 0.0, 1.0], [1, 1, 100, "", 1.0], [0, 2, 200, 10.0, 1.0],
-                                   [1, 2, 200, 30.0, 1.0], [0, 3, 300, 20.0, 1.0], [1, 3, 300, 40.0, 1.0]]),
+        "cr_sp": make_run(
+            base / "cr_sp",
+            "cramped_room",
+            "sp",
+            table1(259.0, 1.0, 257.0, 2.0, 2.0),
+            metrics=[
+                [0, 1, 100, 0.0, 1.0],
+                [1, 1, 100, "", 1.0],
+                [0, 2, 200, 10.0, 1.0],
+                [1, 2, 200, 30.0, 1.0],
+                [0, 3, 300, 20.0, 1.0],
+                [1, 3, 300, 40.0, 1.0],
+            ],
+        ),
         "cr_sa": make_run(base / "cr_sa", "cramped_room", "sa", table1(259.0, 0.0, 255.0, 6.0, 4.0)),
         "ring_sa": make_run(base / "ring_sa", "coord_ring", "sa", table1(269.0, 44.0, 198.0, 50.0, 71.0)),
         "ring_sp": make_run(base / "ring_sp", "coord_ring", "sp", table1(214.0, 8.0, 96.0, 72.0, 118.0)),
         "fc_sa": make_run(base / "fc_sa", "forced_coord", "sa", None),
-        "cr_view": make_run(base / "cr_view", "cramped_room", "sa", table1(100.0, 5.0, 50.0, 10.0, 50.0),
-                            env={"agent_view_size": 2}),
+        "cr_view": make_run(
+            base / "cr_view", "cramped_room", "sa", table1(100.0, 5.0, 50.0, 10.0, 50.0), env={"agent_view_size": 2}
+        ),
     }
 
 
 # ---------------------------------------------------------------------------------------------------
 # ocv2 report
 # ---------------------------------------------------------------------------------------------------
+
 
 def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
     out = tmp_path / "report"
@@ -106,8 +143,13 @@ def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
         return float(row[key]) if row[key] != "" else math.nan
 
     cr_sp, cr_sa, ring_sa = rows["cr_sp"], rows["cr_sa"], rows["ring_sa"]
-    assert (cr_sp["layout"], cr_sp["method"], num(cr_sp, "sp_mean"), num(cr_sp, "xp_std"), num(cr_sp, "gap")) == \
-        ("cramped_room", "sp", 259.0, 2.0, 2.0)
+    assert (cr_sp["layout"], cr_sp["method"], num(cr_sp, "sp_mean"), num(cr_sp, "xp_std"), num(cr_sp, "gap")) == (
+        "cramped_room",
+        "sp",
+        259.0,
+        2.0,
+        2.0,
+    )
     # deltas against the same environment's SP run; the gap delta is Table 1's bracket: 4 (2), 71 (-47)
     assert (num(cr_sa, "delta_sp"), num(cr_sa, "delta_xp"), num(cr_sa, "delta_gap")) == (0.0, -2.0, 2.0)
     assert (num(ring_sa, "delta_sp"), num(ring_sa, "delta_xp"), num(ring_sa, "delta_gap")) == (55.0, 102.0, -47.0)
@@ -115,8 +157,12 @@ def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
     for name in ("cr_sp", "ring_sp", "cr_view", "fc_sa"):  # baselines, other envs, no cross-play: no delta
         assert rows[name]["delta_gap"] == "" and rows[name]["baseline_run"] == ""
     assert rows["cr_view"]["env"].startswith("view 2") and cr_sp["env"] == "full view"
-    assert (cr_sp["num_seeds"], cr_sp["env_steps_per_seed"], cr_sp["updates_done"], cr_sp["num_updates"]) == \
-        ("2", "300", "3", "3")
+    assert (cr_sp["num_seeds"], cr_sp["env_steps_per_seed"], cr_sp["updates_done"], cr_sp["num_updates"]) == (
+        "2",
+        "300",
+        "3",
+        "3",
+    )
 
     # the run without xp/summary.json is listed with a note, not a crash
     note = f"no cross-play yet: run ocv2 xp {runs['fc_sa']}"
@@ -126,10 +172,13 @@ def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
 
     # Markdown: the paper's layout of a row, one line per run
     lines = {line.split(" | ")[-1].rstrip(" |"): line for line in md.splitlines() if line.startswith("| ")}
-    assert lines[str(runs["cr_sp"])].startswith("| cramped_room | full view | Self-Play | 2 | 300 | 259.0 ± 1.0 | "
-                                                "257.0 ± 2.0 | 2.0 | n/a | n/a | n/a |")
-    assert "| coord_ring | full view | State-Augmented | 2 | 300 | 269.0 ± 44.0 | 198.0 ± 50.0 | 71.0 | +55.0 | " \
-           "+102.0 | -47.0 |" in lines[str(runs["ring_sa"])]
+    assert lines[str(runs["cr_sp"])].startswith(
+        "| cramped_room | full view | Self-Play | 2 | 300 | 259.0 ± 1.0 | 257.0 ± 2.0 | 2.0 | n/a | n/a | n/a |"
+    )
+    assert (
+        "| coord_ring | full view | State-Augmented | 2 | 300 | 269.0 ± 44.0 | 198.0 ± 50.0 | 71.0 | +55.0 | "
+        "+102.0 | -47.0 |" in lines[str(runs["ring_sa"])]
+    )
     header = md.splitlines()[4]
     assert header.startswith("| Layout | Env | Method | Seeds | Env steps/seed | SP | XP | Gap | Δ SP | Δ XP | Δ Gap |")
     assert "259.0 ± 1.0" in printed and "State-Augmented" in printed
@@ -138,8 +187,13 @@ def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
     for layout in ("cramped_room", "coord_ring", "forced_coord"):
         assert (out / f"curves_{layout}.png").stat().st_size > 0
     heatmaps = sorted(p.name for p in out.glob("heatmap_*.png"))
-    assert heatmaps == ["heatmap_cr_sa.png", "heatmap_cr_sp.png", "heatmap_cr_view.png", "heatmap_ring_sa.png",
-                        "heatmap_ring_sp.png"]
+    assert heatmaps == [
+        "heatmap_cr_sa.png",
+        "heatmap_cr_sp.png",
+        "heatmap_cr_view.png",
+        "heatmap_ring_sa.png",
+        "heatmap_ring_sp.png",
+    ]
     assert "curves_cramped_room.png" in md and "heatmap_ring_sp.png" in md
 
 
@@ -181,6 +235,7 @@ def test_report_out_must_be_a_folder(runs, tmp_path, capsys):
 # ---------------------------------------------------------------------------------------------------
 # ocv2 validate
 # ---------------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("config", ALL_CONFIGS)
 def test_every_config_validates(config, capsys, monkeypatch):
@@ -250,11 +305,14 @@ def test_validate_checks_fcp_partner_directory(tmp_path, capsys):
 # the paper configs
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_one_paper_config_per_experiment():
     names = sorted(p.stem for p in PAPER.glob("*.yaml"))
-    expected = sorted([f"classic_{layout}_{m}" for layout in CLASSIC for m in ("sp", "sa")]
-                      + [f"adapted_{layout}" for layout in CLASSIC + ("cramped_room_v2", "asymm_advantages_recipes_right")]
-                      + [f"v2_{layout}_{m}" for layout in V2 for m in ("sp", "sa", "op", "fcp")])
+    expected = sorted(
+        [f"classic_{layout}_{m}" for layout in CLASSIC for m in ("sp", "sa")]
+        + [f"adapted_{layout}" for layout in CLASSIC + ("cramped_room_v2", "asymm_advantages_recipes_right")]
+        + [f"v2_{layout}_{m}" for layout in V2 for m in ("sp", "sa", "op", "fcp")]
+    )
     assert names == expected
     for name in names:
         config = load_config(PAPER / f"{name}.yaml")
@@ -274,21 +332,44 @@ def test_v2_configs_follow_appendix_d():
             # FCP partners must play the same game with the same network as the SP run passed to them
             assert config.env == configs["sp"].env and config.model == configs["sp"].model, method
         sp, op, fcp = configs["sp"].ppo, configs["op"].ppo, configs["fcp"].ppo
-        assert (sp.lr, sp.ent_coef, sp.num_envs, sp.total_timesteps, sp.rew_shaping_horizon) == \
-            (2.5e-4, 0.01, 256, 30_000_000, 15_000_000)
+        assert (sp.lr, sp.ent_coef, sp.num_envs, sp.total_timesteps, sp.rew_shaping_horizon) == (
+            2.5e-4,
+            0.01,
+            256,
+            30_000_000,
+            15_000_000,
+        )
         assert configs["sa"].ppo == sp and configs["sa"].population.sa.iterations == 10
-        assert (op.num_envs, op.total_timesteps, op.ent_coef, op.rew_shaping_horizon) == (64, 50_000_000, 0.02, 25_000_000)
+        assert (op.num_envs, op.total_timesteps, op.ent_coef, op.rew_shaping_horizon) == (
+            64,
+            50_000_000,
+            0.02,
+            25_000_000,
+        )
         assert configs["op"].population.op.ingredients == (0, 1)
         assert (fcp.lr, fcp.gae_lambda, fcp.ent_coef) == (7e-4, 0.9, 0.04)
         assert configs["fcp"].population.fcp.partner_seeds == 8
         assert configs["fcp"].population.fcp.checkpoints == ("mid", "final")
 
 
-SHRINK = ["ppo.num_envs=2", "ppo.num_steps=8", "ppo.num_minibatches=1", "ppo.update_epochs=1",
-          "ppo.total_timesteps=16", "population.num_seeds=2", "population.sa.iterations=1",
-          "population.sa.rollouts_per_pair=1", "env.max_steps=20", "model.fc_dim=8", "model.gru_dim=8",
-          "model.conv_features=[4]", "model.conv_kernels=[3]", "model.mixer_features=[4]",
-          "run.checkpoint_every=1", "run.num_checkpoints=2"]
+SHRINK = [
+    "ppo.num_envs=2",
+    "ppo.num_steps=8",
+    "ppo.num_minibatches=1",
+    "ppo.update_epochs=1",
+    "ppo.total_timesteps=16",
+    "population.num_seeds=2",
+    "population.sa.iterations=1",
+    "population.sa.rollouts_per_pair=1",
+    "env.max_steps=20",
+    "model.fc_dim=8",
+    "model.gru_dim=8",
+    "model.conv_features=[4]",
+    "model.conv_kernels=[3]",
+    "model.mixer_features=[4]",
+    "run.checkpoint_every=1",
+    "run.num_checkpoints=2",
+]
 
 
 # One per model kind and method family (FCP is covered by tests/test_train_cli.py):
@@ -307,6 +388,10 @@ def test_paper_config_trains_at_tiny_size(name, tmp_path, capsys):
         capsys.readouterr()
         assert main(["report", str(run), "--out", str(tmp_path / "report")]) == 0
         row = read_csv(tmp_path / "report" / "report.csv")[0]
-        assert (row["layout"], row["method"], row["updates_done"], row["env_steps_per_seed"]) == \
-            ("counter_circuit", "sa", "1", "16")
+        assert (row["layout"], row["method"], row["updates_done"], row["env_steps_per_seed"]) == (
+            "counter_circuit",
+            "sa",
+            "1",
+            "16",
+        )
         assert row["note"].startswith("no cross-play yet")

@@ -37,9 +37,14 @@ def start(env, key=0):
 
 def place(state, agent, x, y, direction, inventory=0):
     a = state.agents
-    return state.replace(agents=a.replace(
-        x=a.x.at[agent].set(x), y=a.y.at[agent].set(y), dir=a.dir.at[agent].set(direction),
-        inventory=a.inventory.at[agent].set(inventory)))
+    return state.replace(
+        agents=a.replace(
+            x=a.x.at[agent].set(x),
+            y=a.y.at[agent].set(y),
+            dir=a.dir.at[agent].set(direction),
+            inventory=a.inventory.at[agent].set(inventory),
+        )
+    )
 
 
 def set_cell(state, x, y, item=None, timer=None):
@@ -256,8 +261,18 @@ def test_recipe_resampling_on_delivery():
         recipes.add(int(out.state.recipe))
     assert len(recipes) > 1  # re-drawn (sometimes the same one again, as the reference)
     assert recipes <= {int(it.recipe_encoding_np(r)) for r in env.layout.possible_recipes}
-    no = act(ocv2.make(layout), place(place(s.replace(recipe=jnp.int32(12)), 0, 3, 1, Direction.RIGHT,
-                                                   inventory=12 | it.PLATE | it.COOKED), 1, 1, 1, Direction.UP), I, S)
+    no = act(
+        ocv2.make(layout),
+        place(
+            place(s.replace(recipe=jnp.int32(12)), 0, 3, 1, Direction.RIGHT, inventory=12 | it.PLATE | it.COOKED),
+            1,
+            1,
+            1,
+            Direction.UP,
+        ),
+        I,
+        S,
+    )
     assert int(no.state.recipe) == 12
 
 
@@ -276,10 +291,12 @@ def test_op_permutes_each_agents_view_only():
         pile = 20 + 2 * n
         for a in range(2):
             m = perms[a]
-            np.testing.assert_array_equal(np.asarray(obs[a][..., pile:pile + n]), np.asarray(base[a][..., pile + m]))
+            np.testing.assert_array_equal(np.asarray(obs[a][..., pile : pile + n]), np.asarray(base[a][..., pile + m]))
         # dynamics are not permuted
         acts = jnp.array([I, I])
-        np.testing.assert_array_equal(np.asarray(act(env, state, *acts).state.grid), np.asarray(act(plain, state, *acts).state.grid))
+        np.testing.assert_array_equal(
+            np.asarray(act(env, state, *acts).state.grid), np.asarray(act(plain, state, *acts).state.grid)
+        )
     assert len(seen) > 1
 
 
@@ -321,9 +338,15 @@ def test_paper_obs_truncation_drops_last_channels():
     full = ocv2.make("grounded_coord_simple", agent_view_size=2)
     assert env.obs_shape == (5, 5, 38) and full.obs_shape == (5, 5, 40)
     state = start(full)
-    np.testing.assert_array_equal(np.asarray(env.get_obs_arrays(state)), np.asarray(full.get_obs_arrays(state))[..., :38])
-    assert ocv2.make("test_time_wide", agent_view_size=2, indicate_successful_delivery=True,
-                     paper_obs_truncation=True).obs_shape[-1] == 43
+    np.testing.assert_array_equal(
+        np.asarray(env.get_obs_arrays(state)), np.asarray(full.get_obs_arrays(state))[..., :38]
+    )
+    assert (
+        ocv2.make(
+            "test_time_wide", agent_view_size=2, indicate_successful_delivery=True, paper_obs_truncation=True
+        ).obs_shape[-1]
+        == 43
+    )
     assert ocv2.make("cramped_room", paper_obs_truncation=True, agent_view_size=2).obs_shape[-1] == 30
 
 
@@ -343,4 +366,6 @@ def test_tick_timers_counts_pots_and_buttons_down():
     out = np.asarray(tick_timers(jnp.asarray(grid)))
     np.testing.assert_array_equal(out[0, :, 0], grid[0, :, 0])
     np.testing.assert_array_equal(out[0, :, 2], [4, 0, 0, 2, 0, 7])
-    np.testing.assert_array_equal(out[0, :, 1], [grid[0, 0, 1], grid[0, 1, 1] | it.COOKED, grid[0, 2, 1], 0, 0, it.PLATE])
+    np.testing.assert_array_equal(
+        out[0, :, 1], [grid[0, 0, 1], grid[0, 1, 1] | it.COOKED, grid[0, 2, 1], 0, 0, it.PLATE]
+    )

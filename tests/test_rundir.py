@@ -69,8 +69,22 @@ def test_out_below_a_file_names_the_file(tmp_path, config, capsys, sub):
 @pytest.mark.parametrize("backend", ["local", "ray"])
 def test_a_population_this_machine_cannot_hold_is_refused_before_any_file(tmp_path, capsys, backend):
     out = tmp_path / "run"
-    assert main(["train", SMOKE, "--out", str(out), "--quiet", "--backend", backend,
-                 "--set", "population.num_seeds=1000000000"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                SMOKE,
+                "--out",
+                str(out),
+                "--quiet",
+                "--backend",
+                backend,
+                "--set",
+                "population.num_seeds=1000000000",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "the run needs about" in err and "of memory on this machine" in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
@@ -96,9 +110,15 @@ def test_a_refused_directory_is_left_as_it_was(tmp_path, config):
     assert not (tmp_path / "missing").exists()
 
 
-@pytest.mark.parametrize("text, message", [("", "is empty"), ("{\"status\": ", "is not valid JSON"),
-                                           ("[1, 2]", "holds a JSON list, not an object"),
-                                           ("[" * 100_000 + "]" * 100_000, "nested deeper than 32 levels")])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "is empty"),
+        ('{"status": ', "is not valid JSON"),
+        ("[1, 2]", "holds a JSON list, not an object"),
+        ("[" * 100_000 + "]" * 100_000, "nested deeper than 32 levels"),
+    ],
+)
 def test_an_empty_or_invalid_manifest_is_reported(tmp_path, config, capsys, text, message):
     run, _ = RunDir.open(tmp_path / "run", config)
     run.close()
@@ -113,8 +133,10 @@ def test_an_empty_or_invalid_manifest_is_reported(tmp_path, config, capsys, text
 def test_stale_temporaries_are_removed_when_a_run_is_opened(tmp_path, config, caplog):
     run, _ = RunDir.open(tmp_path / "run", config)
     run.close()
-    stale = [run.path / ".manifest.tmp-123-abcdef01.json",
-             run.path / "checkpoints" / "seed_0" / ".update_0000002.tmp-123-abcdef01.msgpack"]
+    stale = [
+        run.path / ".manifest.tmp-123-abcdef01.json",
+        run.path / "checkpoints" / "seed_0" / ".update_0000002.tmp-123-abcdef01.msgpack",
+    ]
     for path in stale:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"half")
@@ -302,8 +324,16 @@ def test_json_files_are_strict_json_with_null_for_undefined_numbers(tmp_path):
     def refuse(constant):
         raise ValueError(f"bare {constant} in a JSON file")
 
-    data = {"sp_mean": np.float32(3.5), "gap_ci95_interval": [float("nan"), np.float64("inf")], "n": np.int64(2),
-            "cells": np.array([1.0, np.nan])}
+    data = {
+        "sp_mean": np.float32(3.5),
+        "gap_ci95_interval": [float("nan"), np.float64("inf")],
+        "n": np.int64(2),
+        "cells": np.array([1.0, np.nan]),
+    }
     write_json(tmp_path / "summary.json", data)
     assert json.loads((tmp_path / "summary.json").read_text(), parse_constant=refuse) == {
-        "sp_mean": 3.5, "gap_ci95_interval": [None, None], "n": 2, "cells": [1.0, None]}
+        "sp_mean": 3.5,
+        "gap_ci95_interval": [None, None],
+        "n": 2,
+        "cells": [1.0, None],
+    }

@@ -31,8 +31,12 @@ STUDY = {
     "description": "two tiny runs",
     "set": ["eval.episodes=2", "eval.gifs=0", "archive.xp=false", "archive.sa_collection=false"],
     "runs": [
-        {"name": "sp", "config": str(SMOKE), "set": ["population.method=sp"],
-         "paper": {"source": "Table 9, a made-up row", "sp": [123, 4], "xp": 56, "gap": [67, 8]}},
+        {
+            "name": "sp",
+            "config": str(SMOKE),
+            "set": ["population.method=sp"],
+            "paper": {"source": "Table 9, a made-up row", "sp": [123, 4], "xp": 56, "gap": [67, 8]},
+        },
         {"name": "sa", "config": str(SMOKE), "set": ["population.method=sa", "ppo.total_timesteps=1024"]},
     ],
     "over_training": ["sp"],
@@ -63,10 +67,14 @@ def read_csv(path) -> list[dict]:
 def numbers(out: Path) -> dict:
     """What a study reports, without wall times and dates."""
     summary = json.loads((out / "summary.json").read_text())
-    return {"runs": [{k: r[k] for k in ("name", "xp", "paper", "fingerprint", "seeds", "env_steps_per_seed")}
-                     for r in summary["runs"]],
-            "comparisons": [{k: c.get(k) for k in ("name", "pairs", "blocks")} for c in summary["comparisons"]],
-            "over_training": summary["over_training"]}
+    return {
+        "runs": [
+            {k: r[k] for k in ("name", "xp", "paper", "fingerprint", "seeds", "env_steps_per_seed")}
+            for r in summary["runs"]
+        ],
+        "comparisons": [{k: c.get(k) for k in ("name", "pairs", "blocks")} for c in summary["comparisons"]],
+        "over_training": summary["over_training"],
+    }
 
 
 def assert_same_runs(out: Path, reference: Path) -> None:
@@ -80,8 +88,9 @@ def assert_same_runs(out: Path, reference: Path) -> None:
         reference_rows = read_csv(reference / "runs" / name / "metrics.csv")
         assert len(rows) == len(reference_rows) == seeds * updates
         for row, other in zip(rows, reference_rows):
-            assert {k: v for k, v in row.items() if k not in TIMING_COLUMNS} == \
-                   {k: v for k, v in other.items() if k not in TIMING_COLUMNS}
+            assert {k: v for k, v in row.items() if k not in TIMING_COLUMNS} == {
+                k: v for k, v in other.items() if k not in TIMING_COLUMNS
+            }
 
 
 def test_the_report_puts_the_paper_numbers_beside_ours(finished):
@@ -105,8 +114,16 @@ def test_a_compact_copy_of_the_report(finished, tmp_path, capsys):
     dest = tmp_path / "results"
     assert main(["study", "report", str(finished), "--out", str(dest)]) == 0
     names = {p.name for p in dest.iterdir()}
-    assert {"report.md", "summary.json", "xp_sp.csv", "xp_sa.csv", "xp_sp_vs_sa.csv", "heatmap_sp_vs_sa.png",
-            "over_training_sp.png", "curves_cramped_room.png"} <= names
+    assert {
+        "report.md",
+        "summary.json",
+        "xp_sp.csv",
+        "xp_sa.csv",
+        "xp_sp_vs_sa.csv",
+        "heatmap_sp_vs_sa.png",
+        "over_training_sp.png",
+        "curves_cramped_room.png",
+    } <= names
     assert not any(name.endswith((".msgpack", ".mcap")) for name in names)
     assert numbers(dest) == numbers(finished)
 
@@ -130,8 +147,19 @@ def test_a_finished_study_is_never_trained_again(finished, tmp_path, capsys):
 def test_a_study_killed_mid_run_resumes_to_the_same_numbers(finished, tmp_path):
     study = write_study(tmp_path / "tiny.yaml", STUDY)
     out = tmp_path / "killed"
-    command = [sys.executable, "-c", "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
-               "study", "run", str(study), "--backend", "local", "--out", str(out), "--quiet"]
+    command = [
+        sys.executable,
+        "-c",
+        "import sys; from cluster.cli import main; sys.exit(main(sys.argv[1:]))",
+        "study",
+        "run",
+        str(study),
+        "--backend",
+        "local",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     child = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     # Kill it while the second run trains: the first run is finished, the second has its update-2
     # checkpoints (of 8 updates).
@@ -163,8 +191,9 @@ def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
 
 def test_budget_scales_steps_and_schedules_of_every_stage():
     config = load_config(ROOT / "configs" / "paper" / "v2_grounded_coord_simple_fcp.yaml")
-    scaled = load_config(ROOT / "configs" / "paper" / "v2_grounded_coord_simple_fcp.yaml",
-                         budget_overrides(config, 0.1))
+    scaled = load_config(
+        ROOT / "configs" / "paper" / "v2_grounded_coord_simple_fcp.yaml", budget_overrides(config, 0.1)
+    )
     assert scaled.ppo.total_timesteps == 3_000_000 and scaled.ppo.rew_shaping_horizon == 1_500_000
     partner = scaled.population.fcp.partner_ppo
     assert partner.total_timesteps == 3_000_000 and partner.rew_shaping_horizon == 1_500_000
@@ -173,25 +202,32 @@ def test_budget_scales_steps_and_schedules_of_every_stage():
 
 
 def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
-    data = {"study": "fcp", "runs": [
-        {"name": "sp", "config": str(SMOKE)},
-        {"name": "fcp", "config": str(SMOKE), "set": ["population.method=fcp"], "partners_from": "sp"}]}
+    data = {
+        "study": "fcp",
+        "runs": [
+            {"name": "sp", "config": str(SMOKE)},
+            {"name": "fcp", "config": str(SMOKE), "set": ["population.method=fcp"], "partners_from": "sp"},
+        ],
+    }
     study = load_study(write_study(tmp_path / "s.yaml", data))
     config = run_config(study, study.run("fcp"), tmp_path / "out", budget=1.0, seeds=3)
     fcp = config.population.fcp
     assert (fcp.pool, fcp.partners, fcp.partner_seeds) == ("shared", str(tmp_path / "out" / "runs" / "sp"), 3)
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: d["runs"][0].update(config="nowhere.yaml"), "run 'sp'.config: no such config file nowhere.yaml"),
-    (lambda d: d["runs"][1].update(sett=["a=b"]), "run 'sa': unknown key 'sett'; did you mean 'set'?"),
-    (lambda d: d.update(comparsons=[]), "unknown key 'comparsons'; did you mean 'comparisons'?"),
-    (lambda d: d["runs"][1].update(name="sp"), "run 'sp': duplicate run name (runs[0] has it too)"),
-    (lambda d: d["comparisons"][0].update(runs=["sp", "op"]), "comparison 'sp_vs_sa'.runs: no run is named 'op'"),
-    (lambda d: d["runs"][0].update(set=["ppo.lrr=1"]), "run 'sp': "),
-    (lambda d: d["runs"][0]["paper"].update(sp="high"), "run 'sp'.paper.sp: expected a number or [mean, std]"),
-    (lambda d: d.update(over_training=["spp"]), "over_training: no run is named 'spp'; did you mean 'sp'?"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d["runs"][0].update(config="nowhere.yaml"), "run 'sp'.config: no such config file nowhere.yaml"),
+        (lambda d: d["runs"][1].update(sett=["a=b"]), "run 'sa': unknown key 'sett'; did you mean 'set'?"),
+        (lambda d: d.update(comparsons=[]), "unknown key 'comparsons'; did you mean 'comparisons'?"),
+        (lambda d: d["runs"][1].update(name="sp"), "run 'sp': duplicate run name (runs[0] has it too)"),
+        (lambda d: d["comparisons"][0].update(runs=["sp", "op"]), "comparison 'sp_vs_sa'.runs: no run is named 'op'"),
+        (lambda d: d["runs"][0].update(set=["ppo.lrr=1"]), "run 'sp': "),
+        (lambda d: d["runs"][0]["paper"].update(sp="high"), "run 'sp'.paper.sp: expected a number or [mean, std]"),
+        (lambda d: d.update(over_training=["spp"]), "over_training: no run is named 'spp'; did you mean 'sp'?"),
+    ],
+)
 def test_bad_study_files_are_one_line_errors_naming_the_entry(tmp_path, capsys, change, message):
     data = json.loads(json.dumps(STUDY))
     change(data)

@@ -24,11 +24,11 @@ import ocv2.atomic
 from cluster.cli import main
 from cluster.runtime import coordinator, evaluate, runstate
 from cluster.runtime.rundir import METRIC_FIELDS, RunDir, RunDirError
+from ocv2.atomic import is_temporary
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import dump_config, load_config
 from population.keys import derive_key
-from ocv2.atomic import is_temporary
 from population.sa import collect_buffer
 
 SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
@@ -81,6 +81,7 @@ def sp_run(tmp_path_factory):
 # the run directory
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_train_writes_the_whole_run_directory(sp_run):
     config = load_config(SMOKE, [SP_EVAL])
     assert (config.population.num_seeds, config.ppo.num_updates) == (NUM_SEEDS, NUM_UPDATES)
@@ -113,7 +114,7 @@ def test_train_writes_the_whole_run_directory(sp_run):
     assert summary["num_policies"] == NUM_SEEDS and summary["episodes_per_pair"] == config.eval.episodes
     assert summary["sp_mean"] == pytest.approx(np.diag(values).mean(), abs=1e-3)
     assert summary["xp_mean"] == pytest.approx((values[0, 1] + values[1, 0]) / 2, abs=1e-3)
-    assert len(read_csv(sp_run / "xp" / "episodes.csv")) == NUM_SEEDS ** 2 * config.eval.episodes
+    assert len(read_csv(sp_run / "xp" / "episodes.csv")) == NUM_SEEDS**2 * config.eval.episodes
     for image in ("xp/heatmap.png", "plots/training.png"):
         assert (sp_run / image).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     gifs = sorted((sp_run / "gifs").glob("*.gif"))
@@ -133,7 +134,7 @@ def test_xp_command_rewrites_the_summary(sp_run, tmp_path):
     assert main(["xp", str(run), "--episodes", "3"]) == 0
     summary = json.loads((run / "xp" / "summary.json").read_text())
     assert summary["episodes_per_pair"] == 3 and summary["num_policies"] == NUM_SEEDS
-    assert len(read_csv(run / "xp" / "episodes.csv")) == NUM_SEEDS ** 2 * 3
+    assert len(read_csv(run / "xp" / "episodes.csv")) == NUM_SEEDS**2 * 3
     assert (run / "xp" / "matrix.csv").exists() and (run / "xp" / "heatmap.png").exists()
     # The same evaluation keys as after training: the same numbers.
     for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "per_recipe"):
@@ -143,6 +144,7 @@ def test_xp_command_rewrites_the_summary(sp_run, tmp_path):
 # ---------------------------------------------------------------------------------------------------
 # methods
 # ---------------------------------------------------------------------------------------------------
+
 
 def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp_path):
     run = tmp_path / "sa"
@@ -158,19 +160,25 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
     assert schedule.iteration_starts == (0, 2)
 
     def params_at(update):
-        states = [ckpt.load(ckpt.checkpoint_path(run, s, update), template, config.fingerprint())[1]
-                  for s in range(NUM_SEEDS)]
+        states = [
+            ckpt.load(ckpt.checkpoint_path(run, s, update), template, config.fingerprint())[1] for s in range(NUM_SEEDS)
+        ]
         return jax.tree.map(lambda *xs: np.stack(xs), *(s.params for s in states))
 
     # The first buffer comes from the untrained networks (the update-0 checkpoint = fresh init) ...
     untrained = params_at(0)
     _assert_trees_equal(untrained, ppo.init_population(trainer, range(NUM_SEEDS)).params)
     for iteration, update in enumerate(schedule.iteration_starts):  # ... the second from the update-2 policies
-        expected = collect_buffer(trainer.network.apply, runstate.hidden_size(trainer), ppo.eval_env(config),
-                                  params_at(update), derive_key(config.population.seed, "sa", iteration),
-                                  config.population.sa)
+        expected = collect_buffer(
+            trainer.network.apply,
+            runstate.hidden_size(trainer),
+            ppo.eval_env(config),
+            params_at(update),
+            derive_key(config.population.seed, "sa", iteration),
+            config.population.sa,
+        )
         meta, stored = ckpt.load(run / "sa" / f"buffer_{iteration:03d}.msgpack", expected, config.fingerprint())
-        assert meta["iteration"] == iteration and meta["states"] == NUM_SEEDS ** 2 * 2 * 4
+        assert meta["iteration"] == iteration and meta["states"] == NUM_SEEDS**2 * 2 * 4
         _assert_trees_equal(stored, expected)
     first = ckpt.read(run / "sa" / "buffer_000.msgpack")[1]
     second = ckpt.read(run / "sa" / "buffer_001.msgpack")[1]
@@ -195,11 +203,14 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
     archive = run / "archive" / "sa" / "iteration_001.mcap"
     augmented = tmp_path / "sa_augmented"
     assert train(augmented, "population.method=sa", f"population.sa.archives=[{archive}]", extra=["--no-eval"]) == 0
-    collected, extended = ckpt.read(run / "sa" / "buffer_000.msgpack"), ckpt.read(augmented / "sa" / "buffer_000.msgpack")
+    collected, extended = (
+        ckpt.read(run / "sa" / "buffer_000.msgpack"),
+        ckpt.read(augmented / "sa" / "buffer_000.msgpack"),
+    )
     archived = states_as_buffer([archive], keep_every=10)
     assert extended[0]["states"] == collected[0]["states"] + archived.step.shape[0] == 2 * collected[0]["states"]
-    head = jax.tree.map(lambda x: x[:collected[0]["states"]], extended[1])
-    tail = jax.tree.map(lambda x: x[collected[0]["states"]:], extended[1])
+    head = jax.tree.map(lambda x: x[: collected[0]["states"]], extended[1])
+    tail = jax.tree.map(lambda x: x[collected[0]["states"] :], extended[1])
     _assert_trees_equal(head, collected[1])
     _assert_trees_equal(tail, jax.tree.map(np.asarray, serialization.to_state_dict(archived)))
 
@@ -250,8 +261,9 @@ def test_fcp_reuses_a_given_partner_run(sp_run, tmp_path):
 def test_fcp_partner_run_of_another_model_is_a_clear_error(tmp_path, capsys):
     other = tmp_path / "other"
     RunDir(other).create(load_config(SMOKE, ["model.fc_dim=32"]))
-    assert train(tmp_path / "fcp", "population.method=fcp", f"population.fcp.partners={other}",
-                 extra=["--no-eval"]) == 2
+    assert (
+        train(tmp_path / "fcp", "population.method=fcp", f"population.fcp.partners={other}", extra=["--no-eval"]) == 2
+    )
     err = capsys.readouterr().err
     assert "population.fcp.partners" in err and "different env or model" in err
 
@@ -259,19 +271,30 @@ def test_fcp_partner_run_of_another_model_is_a_clear_error(tmp_path, capsys):
 def test_fcp_partner_errors(tmp_path, sp_run, capsys):
     assert train(tmp_path / "a", "population.method=fcp", f"population.fcp.partners={tmp_path / 'nothing'}") == 2
     assert "population.fcp.partners" in capsys.readouterr().err
-    assert train(tmp_path / "b", "population.method=fcp", f"population.fcp.partners={sp_run}",
-                 "population.fcp.partner_seeds=3") == 2
+    assert (
+        train(
+            tmp_path / "b",
+            "population.method=fcp",
+            f"population.fcp.partners={sp_run}",
+            "population.fcp.partner_seeds=3",
+        )
+        == 2
+    )
     assert "population.fcp.partner_seeds" in capsys.readouterr().err
 
 
 def test_op_runs_and_archives_training_episodes(tmp_path):
     run = tmp_path / "op"
-    assert train(run, "population.method=op", "env.layout=cramped_room_v2", "archive.train_every=2",
-                 extra=["--no-eval"]) == 0
+    assert (
+        train(run, "population.method=op", "env.layout=cramped_room_v2", "archive.train_every=2", extra=["--no-eval"])
+        == 0
+    )
     from cluster.archive import ArchiveReader
 
-    assert sorted(p.name for p in (run / "archive" / "train").iterdir()) == ["update_0000002.mcap",
-                                                                               "update_0000004.mcap"]
+    assert sorted(p.name for p in (run / "archive" / "train").iterdir()) == [
+        "update_0000002.mcap",
+        "update_0000004.mcap",
+    ]
     with ArchiveReader(run / "archive" / "train" / "update_0000004.mcap") as reader:  # one self-play episode per seed
         metas = reader.episodes()
         assert [m["seeds"] for m in metas] == [[0, 0], [1, 1]]
@@ -288,6 +311,7 @@ def test_op_runs_and_archives_training_episodes(tmp_path):
 # ---------------------------------------------------------------------------------------------------
 # resume and determinism
 # ---------------------------------------------------------------------------------------------------
+
 
 def test_resume_after_an_interruption_matches_the_uninterrupted_run(sp_run, tmp_path):
     run = tmp_path / "interrupted"
@@ -417,6 +441,7 @@ def test_two_fresh_runs_are_identical(sp_run, tmp_path):
 # errors
 # ---------------------------------------------------------------------------------------------------
 
+
 def test_existing_run_without_resume_is_refused(sp_run, capsys):
     before = (sp_run / "manifest.json").read_text()
     assert train(sp_run) == 2
@@ -430,11 +455,16 @@ def test_non_run_directory_is_refused(tmp_path, capsys):
     assert "not an ocv2 run directory" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("override, key", [("ppo.num_minibatches=3", "ppo.num_minibatches"),
-                                           ("ppo.bogus=1", "ppo.bogus"),
-                                           ("population.method=xx", "population.method"),
-                                           ("ppo.total_timesteps=1e30", "ppo.total_timesteps"),  # int32
-                                           ("ppo.lr=1e308", "ppo.lr")])  # inf in float32
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("ppo.num_minibatches=3", "ppo.num_minibatches"),
+        ("ppo.bogus=1", "ppo.bogus"),
+        ("population.method=xx", "population.method"),
+        ("ppo.total_timesteps=1e30", "ppo.total_timesteps"),  # int32
+        ("ppo.lr=1e308", "ppo.lr"),
+    ],
+)  # inf in float32
 def test_config_errors_exit_2_naming_the_key(tmp_path, capsys, override, key):
     assert train(tmp_path / "run", override) == 2
     assert f"--set {override}: {key}" in capsys.readouterr().err  # the override, not the file, is named

@@ -43,7 +43,9 @@ def test_good_layout_and_roundtrip():
     assert layout.num_agents == 2 and layout.num_ingredients == 1
     assert ocv2.Layout.from_string(layout.to_string()).agent_positions == layout.agent_positions
     for name, built_in in ocv2.LAYOUTS.items():
-        again = ocv2.Layout.from_string(built_in.to_string(), possible_recipes=[list(r) for r in built_in.possible_recipes])
+        again = ocv2.Layout.from_string(
+            built_in.to_string(), possible_recipes=[list(r) for r in built_in.possible_recipes]
+        )
         assert (again.static_objects == built_in.static_objects).all(), name
 
 
@@ -86,10 +88,14 @@ def test_bad_state_buffer():
     env = ocv2.make("cramped_room")
     good = ocv2.stack_states([env.reset_state(jax.random.PRNGKey(k)) for k in range(3)])
     ocv2.make("cramped_room", initial_state_buffer=good)
-    with pytest.raises(ValueError, match=r"initial_state_buffer.grid has shape \(3, 5, 9, 3\), expected \(3, 4, 5, 3\)"):
+    with pytest.raises(
+        ValueError, match=r"initial_state_buffer.grid has shape \(3, 5, 9, 3\), expected \(3, 4, 5, 3\)"
+    ):
         other = ocv2.make("asymm_advantages")
-        ocv2.make("cramped_room", initial_state_buffer=ocv2.stack_states(
-            [other.reset_state(jax.random.PRNGKey(k)) for k in range(3)]))
+        ocv2.make(
+            "cramped_room",
+            initial_state_buffer=ocv2.stack_states([other.reset_state(jax.random.PRNGKey(k)) for k in range(3)]),
+        )
     with pytest.raises(ValueError, match="leading batch axis"):
         ocv2.make("cramped_room", initial_state_buffer=env.reset_state(jax.random.PRNGKey(0)))
     with pytest.raises(ValueError, match="different kitchen"):

@@ -21,7 +21,13 @@ Modules, each importing only those before it: ``format`` (constants, schemas, fi
 """
 
 from cluster.archive.format import (
-    FORMAT_VERSION, PARTIAL_SUFFIX, RESERVED_KEYS, ArchiveError, Episode, RecoveryReport, env_meta,
+    FORMAT_VERSION,
+    PARTIAL_SUFFIX,
+    RESERVED_KEYS,
+    ArchiveError,
+    Episode,
+    RecoveryReport,
+    env_meta,
 )
 from cluster.archive.reader import ArchiveReader
 from cluster.archive.record import record_episodes, record_pairs, states_as_buffer
@@ -29,6 +35,17 @@ from cluster.archive.recover import recover
 from cluster.archive.writer import ArchiveWriter
 
 __all__ = [
-    "ArchiveError", "ArchiveReader", "ArchiveWriter", "Episode", "RecoveryReport", "env_meta", "record_episodes",
-    "record_pairs", "recover", "states_as_buffer", "FORMAT_VERSION", "PARTIAL_SUFFIX", "RESERVED_KEYS",
+    "ArchiveError",
+    "ArchiveReader",
+    "ArchiveWriter",
+    "Episode",
+    "RecoveryReport",
+    "env_meta",
+    "record_episodes",
+    "record_pairs",
+    "recover",
+    "states_as_buffer",
+    "FORMAT_VERSION",
+    "PARTIAL_SUFFIX",
+    "RESERVED_KEYS",
 ]

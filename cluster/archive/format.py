@@ -9,7 +9,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -34,8 +35,18 @@ MAX_CHUNK_BYTES = 1 << 28
 
 #: Keys the writer sets in every episode's metadata (a caller's ``meta`` must not use them, except
 #: ``layout``, which must then name the episode's layout).
-RESERVED_KEYS = ("format_version", "episode", "layout", "steps", "num_agents", "return", "shaped_return",
-                 "sequence_start", "log_time_start", "log_time_end")
+RESERVED_KEYS = (
+    "format_version",
+    "episode",
+    "layout",
+    "steps",
+    "num_agents",
+    "return",
+    "shaped_return",
+    "sequence_start",
+    "log_time_start",
+    "log_time_end",
+)
 
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -63,9 +74,14 @@ RAW_IMAGE_SCHEMA = {
     "description": "A raw image",
     "type": "object",
     "properties": {
-        "timestamp": {"type": "object", "title": "time", "properties": {
-            "sec": {"type": "integer", "minimum": 0},
-            "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}},
+        "timestamp": {
+            "type": "object",
+            "title": "time",
+            "properties": {
+                "sec": {"type": "integer", "minimum": 0},
+                "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999},
+            },
+        },
         "frame_id": {"type": "string"},
         "width": {"type": "integer", "minimum": 0},
         "height": {"type": "integer", "minimum": 0},
@@ -107,9 +123,12 @@ class RecoveryReport(NamedTuple):
 # State fields
 # ---------------------------------------------------------------------------------------------------
 
+
 def _state_treedef_and_names():
-    dummy = State(agents=Agents(**{f.name: 0 for f in dataclasses.fields(Agents)}),
-                  **{f.name: 0 for f in dataclasses.fields(State) if f.name != "agents"})
+    dummy = State(
+        agents=Agents(**{f.name: 0 for f in dataclasses.fields(Agents)}),
+        **{f.name: 0 for f in dataclasses.fields(State) if f.name != "agents"},
+    )
     leaves, treedef = jax.tree_util.tree_flatten_with_path(dummy)
     names = [jax.tree_util.keystr(path, simple=True, separator=".") for path, _ in leaves]
     return treedef, names
@@ -123,8 +142,10 @@ TRANSITION_FIELDS = tuple(TRANSITION_DTYPES)
 
 def field_table(state_leaves: Sequence[np.ndarray], num_agents: int) -> list[dict]:
     """(name, little-endian dtype, per-step shape) of every field of a step message, in order."""
-    table = [{"name": "state." + name, "dtype": leaf.dtype.newbyteorder("<").str, "shape": list(leaf.shape[1:])}
-             for name, leaf in zip(STATE_NAMES, state_leaves)]
+    table = [
+        {"name": "state." + name, "dtype": leaf.dtype.newbyteorder("<").str, "shape": list(leaf.shape[1:])}
+        for name, leaf in zip(STATE_NAMES, state_leaves)
+    ]
     shapes = {"action": [num_agents], "reward": [], "shaped_reward": [num_agents], "done": []}
     table += [{"name": name, "dtype": dtype, "shape": shapes[name]} for name, dtype in TRANSITION_DTYPES.items()]
     return table
@@ -137,6 +158,7 @@ def field_sizes(table: list[dict]) -> list[int]:
 # ---------------------------------------------------------------------------------------------------
 # Layouts and metadata
 # ---------------------------------------------------------------------------------------------------
+
 
 def layout_spec(layout: Layout) -> dict:
     return {
@@ -154,9 +176,13 @@ def layout_from_spec(spec: dict) -> Layout:
     if builtin is not None and layout_spec(builtin) == spec:
         return builtin
     static = Layout.from_string(spec["map"], spec["possible_recipes"], name=spec["name"]).static_objects
-    return Layout(static_objects=static, agent_positions=tuple(tuple(p) for p in spec["agent_positions"]),
-                  num_ingredients=spec["num_ingredients"],
-                  possible_recipes=tuple(tuple(r) for r in spec["possible_recipes"]), name=spec["name"])
+    return Layout(
+        static_objects=static,
+        agent_positions=tuple(tuple(p) for p in spec["agent_positions"]),
+        num_ingredients=spec["num_ingredients"],
+        possible_recipes=tuple(tuple(r) for r in spec["possible_recipes"]),
+        name=spec["name"],
+    )
 
 
 def _json_default(value):
@@ -178,5 +204,3 @@ def env_meta(env) -> dict:
     config = env.config
     params = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name != "layout"}
     return {"layout": config.layout.name, "env_params": json.loads(to_json(params))}
-
-

@@ -15,7 +15,8 @@ import dataclasses
 import io
 import os
 import struct
-from typing import Iterator, NamedTuple, Sequence
+from collections.abc import Iterator, Sequence
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -25,8 +26,20 @@ from mcap.records import Channel, Chunk, Header, Message, Schema
 from mcap.stream_reader import breakup_chunk
 
 from cluster.archive.format import (
-    EPISODE_TOPIC, FRAMES_TOPIC, MAGIC, MAX_CHUNK_BYTES, PROFILE, STATE_NAMES, STATE_TREEDEF, STEP_TOPIC,
-    TRANSITION_DTYPES, TRANSITION_FIELDS, ArchiveError, Episode, field_sizes, layout_from_spec,
+    EPISODE_TOPIC,
+    FRAMES_TOPIC,
+    MAGIC,
+    MAX_CHUNK_BYTES,
+    PROFILE,
+    STATE_NAMES,
+    STATE_TREEDEF,
+    STEP_TOPIC,
+    TRANSITION_DTYPES,
+    TRANSITION_FIELDS,
+    ArchiveError,
+    Episode,
+    field_sizes,
+    layout_from_spec,
 )
 from ocv2 import boundedjson
 from ocv2.config import build_config
@@ -72,7 +85,7 @@ def check_file(path: str) -> int:
     if size:
         with open(path, "rb") as f:
             head = f.read(len(MAGIC))
-        if head != MAGIC[:len(head)] or len(head) < len(MAGIC):
+        if head != MAGIC[: len(head)] or len(head) < len(MAGIC):
             raise ArchiveError(f"{path!r} is not an MCAP file (it does not start with the MCAP magic bytes)")
     return size
 
@@ -80,6 +93,7 @@ def check_file(path: str) -> int:
 # ---------------------------------------------------------------------------------------------------
 # Records
 # ---------------------------------------------------------------------------------------------------
+
 
 class _FileBytes:
     """An open file indexed like bytes, read on demand with ``pread``.
@@ -114,18 +128,18 @@ def _chunk_at(data, offset: int, size: int) -> tuple[Chunk, list, int] | None:
     """The chunk record at ``offset`` and its records, if one is there whole and checks out; else None."""
     if offset + _RECORD_HEAD.size + _CHUNK_HEAD.size > size or data[offset] != Opcode.CHUNK:
         return None
-    _, length = _RECORD_HEAD.unpack(data[offset:offset + _RECORD_HEAD.size])
+    _, length = _RECORD_HEAD.unpack(data[offset : offset + _RECORD_HEAD.size])
     end = offset + _RECORD_HEAD.size + length
     if end > size:
         return None
     start = offset + _RECORD_HEAD.size
-    *_, uncompressed, _, name_length = _CHUNK_HEAD.unpack(data[start:start + _CHUNK_HEAD.size])
+    *_, uncompressed, _, name_length = _CHUNK_HEAD.unpack(data[start : start + _CHUNK_HEAD.size])
     if name_length > 4 or uncompressed > MAX_CHUNK_BYTES:
         return None
     name_end = start + _CHUNK_HEAD.size + name_length
-    if data[start + _CHUNK_HEAD.size:name_end] not in (b"", b"zstd", b"lz4"):
+    if data[start + _CHUNK_HEAD.size : name_end] not in (b"", b"zstd", b"lz4"):
         return None
-    if name_end + 8 > end or struct.unpack("<Q", data[name_end:name_end + 8])[0] != end - name_end - 8:
+    if name_end + 8 > end or struct.unpack("<Q", data[name_end : name_end + 8])[0] != end - name_end - 8:
         return None
     try:
         chunk = Chunk.read(ReadDataStream(io.BytesIO(data[start:end])))
@@ -143,7 +157,7 @@ def _resync(data, offset: int, size: int):
     opcode = bytes([Opcode.CHUNK])
     block_start = offset + 1
     while block_start < size:
-        block = data[block_start:block_start + _RESYNC_BLOCK]
+        block = data[block_start : block_start + _RESYNC_BLOCK]
         if not block:
             return None
         hit = block.find(opcode)
@@ -167,19 +181,19 @@ def _summary_definitions(data, size: int, status: ScanStatus) -> None:
 
 def _read_summary_definitions(data, size: int, status: ScanStatus) -> None:
     footer = size - len(MAGIC) - _FOOTER_BYTES
-    if footer <= len(MAGIC) or data[size - len(MAGIC):size] != MAGIC or data[footer] != Opcode.FOOTER:
+    if footer <= len(MAGIC) or data[size - len(MAGIC) : size] != MAGIC or data[footer] != Opcode.FOOTER:
         return
-    summary_start = struct.unpack("<Q", data[footer + _RECORD_HEAD.size:footer + _RECORD_HEAD.size + 8])[0]
+    summary_start = struct.unpack("<Q", data[footer + _RECORD_HEAD.size : footer + _RECORD_HEAD.size + 8])[0]
     offset = summary_start if len(MAGIC) <= summary_start < footer else footer
     while offset + _RECORD_HEAD.size <= footer:
-        opcode, length = _RECORD_HEAD.unpack(data[offset:offset + _RECORD_HEAD.size])
+        opcode, length = _RECORD_HEAD.unpack(data[offset : offset + _RECORD_HEAD.size])
         end = offset + _RECORD_HEAD.size + length
         if end > footer:
             return
         if opcode not in (Opcode.SCHEMA, Opcode.CHANNEL):
             return  # the summary lists schemas and channels first; chunk indexes and the rest follow
         try:
-            record = _parse(opcode, data[offset + _RECORD_HEAD.size:end])
+            record = _parse(opcode, data[offset + _RECORD_HEAD.size : end])
         except Exception:  # noqa: BLE001 -- a damaged summary only means no fallback definitions
             return
         (status.schemas if opcode == Opcode.SCHEMA else status.channels).setdefault(record.id, record)
@@ -203,23 +217,28 @@ def _records(path: str, status: ScanStatus, time_range: tuple[int, int] | None) 
                 if offset + _RECORD_HEAD.size > size:
                     status.tail_error = f"truncated record at byte {offset} (the file ends inside it)"
                     return
-                opcode, length = _RECORD_HEAD.unpack(data[offset:offset + _RECORD_HEAD.size])
+                opcode, length = _RECORD_HEAD.unpack(data[offset : offset + _RECORD_HEAD.size])
                 end = offset + _RECORD_HEAD.size + length
                 if opcode not in _KNOWN_OPCODES or end > size:
                     found = _resync(data, offset, size)
-                    what = (f"unknown record type {opcode:#x}" if opcode not in _KNOWN_OPCODES
-                            else f"record of {length} bytes that runs past the end of the file")
+                    what = (
+                        f"unknown record type {opcode:#x}"
+                        if opcode not in _KNOWN_OPCODES
+                        else f"record of {length} bytes that runs past the end of the file"
+                    )
                     if found is None:
                         status.tail_error = f"truncated or corrupt record at byte {offset} ({what})"
                         return
                     position, _ = found
-                    status.warnings.append(f"skipped bytes {offset}..{position} (corrupt: {what} at byte "
-                                           f"{offset})")
+                    status.warnings.append(f"skipped bytes {offset}..{position} (corrupt: {what} at byte {offset})")
                     offset = position
                     continue
                 if opcode == Opcode.CHUNK:
-                    if (time_range is not None and offset not in status.untrusted_times
-                            and _outside(data, offset, size, time_range)):
+                    if (
+                        time_range is not None
+                        and offset not in status.untrusted_times
+                        and _outside(data, offset, size, time_range)
+                    ):
                         offset = end  # another episode's chunk: not even decompressed
                         continue
                     found = _chunk_at(data, offset, size)
@@ -235,10 +254,12 @@ def _records(path: str, status: ScanStatus, time_range: tuple[int, int] | None) 
                     return
                 elif opcode in (Opcode.HEADER, Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
                     try:
-                        record = _parse(opcode, data[offset + _RECORD_HEAD.size:end])
+                        record = _parse(opcode, data[offset + _RECORD_HEAD.size : end])
                     except Exception as error:  # noqa: BLE001 -- mcap raises assorted errors on garbage
-                        status.warnings.append(f"skipped corrupt {Opcode(opcode).name.lower()} record at byte "
-                                               f"{offset} ({type(error).__name__}: {error})")
+                        status.warnings.append(
+                            f"skipped corrupt {Opcode(opcode).name.lower()} record at byte "
+                            f"{offset} ({type(error).__name__}: {error})"
+                        )
                     else:
                         _learn(record, status, fallback)
                         yield record
@@ -264,14 +285,15 @@ def _check_chunk_times(offset: int, chunk: Chunk, records: list, status: ScanSta
             f"chunk at byte {offset}: its header gives message log times {chunk.message_start_time}.."
             f"{chunk.message_end_time} but its {len(times)} messages span {first}..{last} (the header is "
             "damaged; its messages passed the CRC check and are read; 'ocv2 archive recover' writes a "
-            "file with correct headers)")
+            "file with correct headers)"
+        )
 
 
 def _outside(data, offset: int, size: int, time_range: tuple[int, int]) -> bool:
     if offset + _RECORD_HEAD.size + _CHUNK_HEAD.size > size:
         return False
     head = offset + _RECORD_HEAD.size
-    start, end, *_ = _CHUNK_HEAD.unpack(data[head:head + _CHUNK_HEAD.size])
+    start, end, *_ = _CHUNK_HEAD.unpack(data[head : head + _CHUNK_HEAD.size])
     return end < time_range[0] or start > time_range[1]
 
 
@@ -279,7 +301,7 @@ def _describe_chunk(data, offset: int, end: int) -> str:
     """Which chunk failed (byte offset, time range when readable) and why, for the warning."""
     name = f"chunk at byte {offset}"
     try:
-        chunk = Chunk.read(ReadDataStream(io.BytesIO(data[offset + _RECORD_HEAD.size:end])))
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(data[offset + _RECORD_HEAD.size : end])))
         name = f"{name} (messages at log times {chunk.message_start_time}..{chunk.message_end_time})"
         if chunk.uncompressed_size > MAX_CHUNK_BYTES:
             return f"{name}: it claims {chunk.uncompressed_size} bytes uncompressed (at most {MAX_CHUNK_BYTES})"
@@ -307,8 +329,17 @@ def _learn(record, status: ScanStatus, fallback: ScanStatus) -> None:
 # Episodes
 # ---------------------------------------------------------------------------------------------------
 
-_COMMIT_KEYS = {"episode": int, "layout": str, "steps": int, "num_agents": int, "return": (int, float),
-                "shaped_return": list, "sequence_start": int, "log_time_start": int, "log_time_end": int}
+_COMMIT_KEYS = {
+    "episode": int,
+    "layout": str,
+    "steps": int,
+    "num_agents": int,
+    "return": (int, float),
+    "shaped_return": list,
+    "sequence_start": int,
+    "log_time_start": int,
+    "log_time_end": int,
+}
 
 
 def _commit_meta(path: str, message: Message) -> dict:
@@ -327,15 +358,18 @@ def _commit_meta(path: str, message: Message) -> dict:
             raise ArchiveError(f"{where}: the episode record has no {key!r}")
         value = meta[key]
         if isinstance(value, bool) or not isinstance(value, kind):
-            raise ArchiveError(f"{where}: key {key!r} is {value!r}, not of type "
-                               f"{kind.__name__ if isinstance(kind, type) else 'number'}")
+            raise ArchiveError(
+                f"{where}: key {key!r} is {value!r}, not of type "
+                f"{kind.__name__ if isinstance(kind, type) else 'number'}"
+            )
     if not 1 <= meta["steps"] <= MAX_STEPS:
         raise ArchiveError(f"{where}: key 'steps' is {meta['steps']}, not a transition count in 1..{MAX_STEPS}")
     if not 1 <= meta["num_agents"] <= 64:
         raise ArchiveError(f"{where}: key 'num_agents' is {meta['num_agents']}, not an agent count in 1..64")
     if len(meta["shaped_return"]) != meta["num_agents"]:
-        raise ArchiveError(f"{where}: key 'shaped_return' has {len(meta['shaped_return'])} values for "
-                           f"{meta['num_agents']} agents")
+        raise ArchiveError(
+            f"{where}: key 'shaped_return' has {len(meta['shaped_return'])} values for {meta['num_agents']} agents"
+        )
     return meta
 
 
@@ -353,8 +387,9 @@ def scan(path: str, status: ScanStatus, time_range: tuple[int, int] | None = Non
             first = False
             if not isinstance(record, Header) or record.profile != PROFILE:
                 profile = record.profile if isinstance(record, Header) else "?"
-                raise ArchiveError(f"{path!r} is an MCAP file but not an ocv2 archive (profile {profile!r}, "
-                                   f"expected {PROFILE!r})")
+                raise ArchiveError(
+                    f"{path!r} is an MCAP file but not an ocv2 archive (profile {profile!r}, expected {PROFILE!r})"
+                )
             status.header = record
             continue
         if not isinstance(record, Message):
@@ -372,16 +407,22 @@ def scan(path: str, status: ScanStatus, time_range: tuple[int, int] | None = Non
         first_sequence = meta["sequence_start"]
         if len(steps) != meta["steps"] + 1 or any(m.sequence != first_sequence + t for t, m in enumerate(steps)):
             status.bad_episodes += 1
-            status.warnings.append(f"episode {meta['episode']}: {len(steps)} of its {meta['steps'] + 1} step "
-                                   "messages are readable; skipped")
+            status.warnings.append(
+                f"episode {meta['episode']}: {len(steps)} of its {meta['steps'] + 1} step "
+                "messages are readable; skipped"
+            )
             previous = max(previous, meta["episode"])  # reported here, not again as missing
             continue
         if time_range is None:
             if meta["episode"] > previous + 1:
-                lost = (f"episode {previous + 1}" if meta["episode"] == previous + 2
-                        else f"episodes {previous + 1}..{meta['episode'] - 1}")
-                status.warnings.append(f"{lost} missing (in a skipped part of this file, or of the file it "
-                                       "was recovered from)")
+                lost = (
+                    f"episode {previous + 1}"
+                    if meta["episode"] == previous + 2
+                    else f"episodes {previous + 1}..{meta['episode'] - 1}"
+                )
+                status.warnings.append(
+                    f"{lost} missing (in a skipped part of this file, or of the file it was recovered from)"
+                )
             previous = meta["episode"]
         others = [m for m in mine if _topic(status, m) != STEP_TOPIC]
         yield Group(meta, record, steps, others)
@@ -405,8 +446,9 @@ def _step_table(path: str, meta: dict, channel: Channel) -> list[dict]:
         raise ArchiveError(f"{where} has no 'fields'") from None
     except ValueError as error:
         raise ArchiveError(f"{where} key 'fields' is not JSON ({error})") from None
-    if not isinstance(table, list) or not all(isinstance(f, dict) and {"name", "dtype", "shape"} <= set(f)
-                                              for f in table):
+    if not isinstance(table, list) or not all(
+        isinstance(f, dict) and {"name", "dtype", "shape"} <= set(f) for f in table
+    ):
         raise ArchiveError(f"{where} key 'fields' is not a list of {{name, dtype, shape}} objects")
     names = [f["name"] for f in table]
     expected = ["state." + n for n in STATE_NAMES] + list(TRANSITION_FIELDS)
@@ -423,11 +465,13 @@ def _step_table(path: str, meta: dict, channel: Channel) -> list[dict]:
             raise ArchiveError(f"{where} 'fields': {name} has dtype {field['dtype']!r}, not {wanted!r}")
         plain = dtype is not None and dtype.kind in "biu" and dtype.itemsize <= 8  # ocv2.State: ints, bools
         if wanted is None and not plain:
-            raise ArchiveError(f"{where} 'fields': {name} has dtype {field['dtype']!r}, not an integer or "
-                               "boolean one")
+            raise ArchiveError(f"{where} 'fields': {name} has dtype {field['dtype']!r}, not an integer or boolean one")
         shape = field["shape"]
-        if (not isinstance(shape, list) or len(shape) > 4
-                or not all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n <= 4096 for n in shape)):
+        if (
+            not isinstance(shape, list)
+            or len(shape) > 4
+            or not all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n <= 4096 for n in shape)
+        ):
             raise ArchiveError(f"{where} 'fields': {field['name']} has shape {shape!r}, not a list of sizes")
     return table
 
@@ -451,33 +495,36 @@ def decode_steps(path: str, meta: dict, channel: Channel, steps: Sequence[Messag
     where = f"{path!r}: episode {meta['episode']}"
     bad = [t for t, m in enumerate(steps) if len(m.data) != width]
     if bad:  # checked per message before joining: nothing is allocated from a crafted size
-        raise ArchiveError(f"{where}: step message {bad[0]} has {len(steps[bad[0]].data)} bytes, the field "
-                           f"table says {width}")
+        raise ArchiveError(
+            f"{where}: step message {bad[0]} has {len(steps[bad[0]].data)} bytes, the field table says {width}"
+        )
     rows = np.frombuffer(b"".join(m.data for m in steps), dtype=np.uint8).reshape(count, width)
     columns, offset = {}, 0
     for field, size in zip(table, sizes):
         dtype = np.dtype(field["dtype"])
-        column = rows[:, offset:offset + size].copy().view(dtype).reshape([count] + field["shape"])
+        column = rows[:, offset : offset + size].copy().view(dtype).reshape([count] + field["shape"])
         columns[field["name"]] = column.astype(dtype.newbyteorder("="))
         offset += size
     agents = meta["num_agents"]
     for name, shape in {"action": (agents,), "reward": (), "shaped_reward": (agents,), "done": ()}.items():
         if columns[name].shape[1:] != shape:
-            raise ArchiveError(f"{where}: field {name!r} has per-step shape {list(columns[name].shape[1:])}, "
-                               f"expected {list(shape)} for {agents} agents")
+            raise ArchiveError(
+                f"{where}: field {name!r} has per-step shape {list(columns[name].shape[1:])}, "
+                f"expected {list(shape)} for {agents} agents"
+            )
     states = jax.tree_util.tree_unflatten(STATE_TREEDEF, [columns["state." + n] for n in STATE_NAMES])
     layout = _channel_layout(path, meta, channel)
     try:
         validate_buffer(build_config(layout), states)
     except (TypeError, ValueError) as error:
         raise ArchiveError(f"{where}: the stored states do not fit layout {layout.name!r}: {error}") from None
-    return (states, columns["action"][:-1], columns["reward"][:-1], columns["shaped_reward"][:-1],
-            columns["done"][:-1])
+    return (states, columns["action"][:-1], columns["reward"][:-1], columns["shaped_reward"][:-1], columns["done"][:-1])
 
 
 # ---------------------------------------------------------------------------------------------------
 # The reader
 # ---------------------------------------------------------------------------------------------------
+
 
 class ArchiveReader:
     """Read an archive (finished, or an unfinished ``.partial`` whose writer died or still runs).
@@ -537,16 +584,20 @@ class ArchiveReader:
             if meta["episode"] == episode:
                 return index
         lost = " (episodes lost to damage are listed in the warnings)" if self._status.warnings else ""
-        raise ArchiveError(f"{self.path!r} has no episode {episode}; its complete episodes are "
-                           f"{_number_ranges([m['episode'] for m in self._metas]) or 'none'}{lost}")
+        raise ArchiveError(
+            f"{self.path!r} has no episode {episode}; its complete episodes are "
+            f"{_number_ranges([m['episode'] for m in self._metas]) or 'none'}{lost}"
+        )
 
     def _index(self, index: int) -> int:
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
             raise ArchiveError(f"episode position must be an integer, got {index!r}")
         if not -len(self._metas) <= index < len(self._metas):
-            raise ArchiveError(f"episode position {index} is out of range: {self.path!r} has {len(self._metas)} "
-                               f"complete episode(s) (positions 0..{len(self._metas) - 1}; position(N) finds "
-                               "stored episode number N)")
+            raise ArchiveError(
+                f"episode position {index} is out of range: {self.path!r} has {len(self._metas)} "
+                f"complete episode(s) (positions 0..{len(self._metas) - 1}; position(N) finds "
+                "stored episode number N)"
+            )
         return int(index) % len(self._metas)
 
     def layout(self, index: int) -> Layout:
@@ -558,8 +609,11 @@ class ArchiveReader:
     def _group(self, index: int) -> Group:
         index = self._index(index)
         meta = self._metas[index]
-        status = ScanStatus(channels=dict(self._status.channels), schemas=dict(self._status.schemas),
-                            untrusted_times=set(self._status.untrusted_times))
+        status = ScanStatus(
+            channels=dict(self._status.channels),
+            schemas=dict(self._status.schemas),
+            untrusted_times=set(self._status.untrusted_times),
+        )
         for group in scan(self.path, status, (meta["log_time_start"], meta["log_time_end"])):
             if group.meta["episode"] == meta["episode"] and group.meta["log_time_start"] == meta["log_time_start"]:
                 return group
@@ -595,8 +649,10 @@ class ArchiveReader:
                 pixels = np.frombuffer(base64.b64decode(image["data"]), np.uint8)
                 images.append(pixels.reshape(image["height"], image["width"], 3))
             except (ValueError, TypeError, KeyError) as error:
-                raise ArchiveError(f"{self.path!r}: episode {group.meta['episode']}: frame {t} is not an rgb8 "
-                                   f"foxglove.RawImage ({type(error).__name__}: {error})") from None
+                raise ArchiveError(
+                    f"{self.path!r}: episode {group.meta['episode']}: frame {t} is not an rgb8 "
+                    f"foxglove.RawImage ({type(error).__name__}: {error})"
+                ) from None
         return np.stack(images)
 
     def topics(self) -> list[str]:
@@ -665,5 +721,9 @@ def _stats(values: Sequence[float]) -> dict | None:
     if not values:
         return None
     array = np.asarray(values, np.float64)
-    return {"mean": float(array.mean()), "std": float(array.std()), "min": float(array.min()),
-            "max": float(array.max())}
+    return {
+        "mean": float(array.mean()),
+        "std": float(array.std()),
+        "min": float(array.min()),
+        "max": float(array.max()),
+    }

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -51,7 +51,8 @@ def states_as_buffer(paths, keep_every: int = 10, layout: Layout | str | None = 
                     f"{path!r} episode {meta['episode']} is on layout {episode_layout.name!r} "
                     f"({episode_layout.height}x{episode_layout.width}, {episode_layout.num_agents} agents), not "
                     f"{target.name!r} ({target.height}x{target.width}, {target.num_agents} agents): a reset buffer "
-                    "holds states of one kitchen")
+                    "holds states of one kitchen"
+                )
         for episode in reader.iter_episodes():
             steps = episode.meta["steps"]
             parts.append(jax.tree.map(lambda x: x[0:steps:keep_every], episode.states))
@@ -66,12 +67,17 @@ def states_as_buffer(paths, keep_every: int = 10, layout: Layout | str | None = 
 
 
 def _same_kitchen(a: Layout, b: Layout) -> bool:
-    return (a.static_objects.shape == b.static_objects.shape and (a.static_objects == b.static_objects).all()
-            and a.num_agents == b.num_agents and a.num_ingredients == b.num_ingredients)
+    return (
+        a.static_objects.shape == b.static_objects.shape
+        and (a.static_objects == b.static_objects).all()
+        and a.num_agents == b.num_agents
+        and a.num_ingredients == b.num_ingredients
+    )
 
 
-def record_episodes(writer: ArchiveWriter, env, recorded, meta: dict | None = None,
-                    first_episode: int = 0) -> list[int]:
+def record_episodes(
+    writer: ArchiveWriter, env, recorded, meta: dict | None = None, first_episode: int = 0
+) -> list[int]:
     """Write the E episodes of one pair's ``population.record.Recorded`` (no leading pair axis).
 
     Each episode's metadata is ``env_meta(env)`` + ``meta`` + ``{"pair_episode": first_episode + e}``.
@@ -83,13 +89,23 @@ def record_episodes(writer: ArchiveWriter, env, recorded, meta: dict | None = No
     for e in range(np.shape(host.actions)[0]):
         states = jax.tree.map(lambda x: x[e], host.states)
         meta_e = {**base, "pair_episode": first_episode + e}
-        indices.append(writer.write_episode(meta_e, states, host.actions[e], host.rewards[e], host.shaped_rewards[e],
-                                            host.dones[e], layout=env.layout))
+        indices.append(
+            writer.write_episode(
+                meta_e,
+                states,
+                host.actions[e],
+                host.rewards[e],
+                host.shaped_rewards[e],
+                host.dones[e],
+                layout=env.layout,
+            )
+        )
     return indices
 
 
-def record_pairs(writer: ArchiveWriter, apply, hidden_size: int, env, params_a, params_b, keys, episodes: int,
-                 metas: Sequence[dict]) -> list[int]:
+def record_pairs(
+    writer: ArchiveWriter, apply, hidden_size: int, env, params_a, params_b, keys, episodes: int, metas: Sequence[dict]
+) -> list[int]:
     """P pairs play ``episodes`` episodes each (``population.record``) and every episode is archived.
 
     ``params_a``/``params_b`` have a leading [P] axis (seat 0 / seat 1), ``keys`` is [P], ``metas``

@@ -28,19 +28,18 @@ def recover(src, dst, *, overwrite: bool = False) -> RecoveryReport:
     groups = scan(src, status)
     first = next(groups, None)  # raises ArchiveError for a non-archive before dst is created
     # Not dst.partial: that is usually the source itself.
-    out = Output(dst, chunk_size=1 << 20, compression="zstd", overwrite=overwrite, fsync=False,
-                  suffix=".recovering")
+    out = Output(dst, chunk_size=1 << 20, compression="zstd", overwrite=overwrite, fsync=False, suffix=".recovering")
     episodes = transitions = 0
     ids: dict[int, int] = {}
     try:
         group = first
         while group is not None:
             ordered = sorted(  # steps and frames interleave by time, as written
-                [*group.steps, *group.others], key=lambda m: (m.log_time, m.channel_id))
+                [*group.steps, *group.others], key=lambda m: (m.log_time, m.channel_id)
+            )
             for message in [*ordered, group.commit]:
                 channel_id = _copy_channel(out, status, message.channel_id, ids)
-                out.mcap.add_message(channel_id, message.log_time, message.data, message.publish_time,
-                                     message.sequence)
+                out.mcap.add_message(channel_id, message.log_time, message.data, message.publish_time, message.sequence)
             out.commit()
             episodes += 1
             transitions += group.meta["steps"]
@@ -51,8 +50,15 @@ def recover(src, dst, *, overwrite: bool = False) -> RecoveryReport:
         if os.path.exists(out.partial):
             os.unlink(out.partial)  # a half-copied file is no recovery: leave nothing behind
         raise
-    return RecoveryReport(dst, episodes, transitions, status.orphan_messages, status.finished,
-                          None if status.finished else status.tail_error, tuple(status.warnings))
+    return RecoveryReport(
+        dst,
+        episodes,
+        transitions,
+        status.orphan_messages,
+        status.finished,
+        None if status.finished else status.tail_error,
+        tuple(status.warnings),
+    )
 
 
 def _copy_channel(out: Output, status: ScanStatus, old_id: int, ids: dict[int, int]) -> int:
@@ -64,5 +70,3 @@ def _copy_channel(out: Output, status: ScanStatus, old_id: int, ids: dict[int, i
             schema_id = out.schema(schema.name, schema.encoding, schema.data)
         ids[old_id] = out.channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))
     return ids[old_id]
-
-

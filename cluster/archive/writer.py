@@ -14,9 +14,26 @@ from mcap.records import Channel, Schema
 from mcap.writer import IndexType, Writer
 
 from cluster.archive.format import (
-    COMPRESSION, EPISODE_SCHEMA, EPISODE_TOPIC, FORMAT_VERSION, FRAMES_TOPIC, LIBRARY, MAX_CHUNK_BYTES,
-    PARTIAL_SUFFIX, PROFILE, RAW_IMAGE_SCHEMA, RESERVED_KEYS, STATE_NAMES, STATE_TREEDEF, STEP_ENCODING, STEP_TOPIC,
-    TRANSITION_FIELDS, ArchiveError, field_table, layout_spec, to_json,
+    COMPRESSION,
+    EPISODE_SCHEMA,
+    EPISODE_TOPIC,
+    FORMAT_VERSION,
+    FRAMES_TOPIC,
+    LIBRARY,
+    MAX_CHUNK_BYTES,
+    PARTIAL_SUFFIX,
+    PROFILE,
+    RAW_IMAGE_SCHEMA,
+    RESERVED_KEYS,
+    STATE_NAMES,
+    STATE_TREEDEF,
+    STEP_ENCODING,
+    STEP_TOPIC,
+    TRANSITION_FIELDS,
+    ArchiveError,
+    field_table,
+    layout_spec,
+    to_json,
 )
 from ocv2 import boundedjson
 from ocv2.layouts import Layout, get_layout
@@ -32,16 +49,28 @@ class Output:
     with the last complete episode instead of a torn chunk.
     """
 
-    def __init__(self, path, *, chunk_size: int, compression: str, overwrite: bool, fsync: bool,
-                 message_index: bool = True, suffix: str = PARTIAL_SUFFIX):
+    def __init__(
+        self,
+        path,
+        *,
+        chunk_size: int,
+        compression: str,
+        overwrite: bool,
+        fsync: bool,
+        message_index: bool = True,
+        suffix: str = PARTIAL_SUFFIX,
+    ):
         if compression not in COMPRESSION:
             raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, got {compression!r}")
         self.path = os.fspath(path)
         self.partial = self.path + suffix
         for existing in (self.path, self.partial):
             if os.path.exists(existing) and not overwrite:
-                hint = " (an unfinished archive: recover it with 'ocv2 archive recover')" \
-                    if existing == self.partial else ""
+                hint = (
+                    " (an unfinished archive: recover it with 'ocv2 archive recover')"
+                    if existing == self.partial
+                    else ""
+                )
                 raise ArchiveError(f"{existing!r} already exists{hint}; pass overwrite=True to replace it")
         if overwrite and os.path.exists(self.path):
             os.unlink(self.path)
@@ -51,8 +80,9 @@ class Output:
         self._file = open(self.partial, "wb")
         try:
             index_types = IndexType.ALL if message_index else IndexType.ALL & ~IndexType.MESSAGE
-            self.mcap = Writer(self._file, chunk_size=int(chunk_size), compression=COMPRESSION[compression],
-                               index_types=index_types)
+            self.mcap = Writer(
+                self._file, chunk_size=int(chunk_size), compression=COMPRESSION[compression], index_types=index_types
+            )
             self.mcap.start(profile=PROFILE, library=LIBRARY)
             self._file.flush()  # the header is on disk: an empty file never looks like a broken archive
         except BaseException:
@@ -75,8 +105,15 @@ class Output:
         key = (topic, encoding, schema_id, tuple(sorted(metadata.items())))
         if key not in self._channels:
             self._channels[key] = self.mcap.register_channel(topic, encoding, schema_id, metadata)
-            self._outside_chunks(Channel(id=self._channels[key], topic=topic, message_encoding=encoding,
-                                         schema_id=schema_id, metadata=metadata))
+            self._outside_chunks(
+                Channel(
+                    id=self._channels[key],
+                    topic=topic,
+                    message_encoding=encoding,
+                    schema_id=schema_id,
+                    metadata=metadata,
+                )
+            )
         return self._channels[key]
 
     def _outside_chunks(self, record) -> None:
@@ -179,17 +216,32 @@ class ArchiveWriter:
         start_time_ns: log time of the first message (default: now). Messages are ``step_ns`` apart.
     """
 
-    def __init__(self, path, *, foxglove_frames: bool = False, frame_tile_size: int = 16,
-                 chunk_size: int = 1 << 20, compression: str = "zstd", fsync: bool = False,
-                 overwrite: bool = False, message_index: bool = True, start_time_ns: int | None = None,
-                 step_ns: int = 100_000_000):
+    def __init__(
+        self,
+        path,
+        *,
+        foxglove_frames: bool = False,
+        frame_tile_size: int = 16,
+        chunk_size: int = 1 << 20,
+        compression: str = "zstd",
+        fsync: bool = False,
+        overwrite: bool = False,
+        message_index: bool = True,
+        start_time_ns: int | None = None,
+        step_ns: int = 100_000_000,
+    ):
         if not 0 < int(chunk_size) <= MAX_CHUNK_BYTES // 4:
             raise ValueError(f"chunk_size must be in 1..{MAX_CHUNK_BYTES // 4} bytes, got {chunk_size}")
         self.path = os.fspath(path)
         self.foxglove_frames = bool(foxglove_frames)
         self.frame_tile_size = int(frame_tile_size)
-        self._options = dict(chunk_size=chunk_size, compression=compression, overwrite=overwrite, fsync=fsync,
-                             message_index=message_index)
+        self._options = dict(
+            chunk_size=chunk_size,
+            compression=compression,
+            overwrite=overwrite,
+            fsync=fsync,
+            message_index=message_index,
+        )
         self._clock = time.time_ns() if start_time_ns is None else int(start_time_ns)
         self._step_ns = int(step_ns)
         self._sequence = 0
@@ -199,15 +251,14 @@ class ArchiveWriter:
         self.failed: BaseException | None = None  # the write error that stopped this writer, if any
 
     # -- lifecycle
-    def open(self) -> "ArchiveWriter":
+    def open(self) -> ArchiveWriter:
         if self._out is not None or self._done:
             raise ArchiveError(f"archive writer for {self.path!r} was already opened")
         self._out = Output(self.path, **self._options)
         out = self._out
         try:
             schema = out.schema("ocv2.Episode", "jsonschema", to_json(EPISODE_SCHEMA))
-            self._episode_channel = out.channel(EPISODE_TOPIC, "json", schema,
-                                                {"format_version": str(FORMAT_VERSION)})
+            self._episode_channel = out.channel(EPISODE_TOPIC, "json", schema, {"format_version": str(FORMAT_VERSION)})
             if self.foxglove_frames:
                 schema = out.schema("foxglove.RawImage", "jsonschema", to_json(RAW_IMAGE_SCHEMA))
                 self._frames_channel = out.channel(FRAMES_TOPIC, "json", schema, {})
@@ -239,7 +290,7 @@ class ArchiveWriter:
         self._done = True
         self._out.abandon()
 
-    def __enter__(self) -> "ArchiveWriter":
+    def __enter__(self) -> ArchiveWriter:
         return self.open()
 
     def __exit__(self, exc_type, exc, tb):
@@ -247,8 +298,17 @@ class ArchiveWriter:
         return False
 
     # -- episodes
-    def write_episode(self, meta: dict | None, states: State, actions, rewards, shaped_rewards, dones, *,
-                      layout: Layout | str | None = None) -> int:
+    def write_episode(
+        self,
+        meta: dict | None,
+        states: State,
+        actions,
+        rewards,
+        shaped_rewards,
+        dones,
+        *,
+        layout: Layout | str | None = None,
+    ) -> int:
         """Append one complete episode; returns its index in the file.
 
         Args:
@@ -271,13 +331,13 @@ class ArchiveWriter:
             raise ArchiveError(
                 f"archive writer for {self.path!r} failed earlier ({self.failed}); refusing more episodes. "
                 f"The {kept} episode(s) written before are in {self.partial_path!r}: finish them with "
-                f"'ocv2 archive recover {self.partial_path}'")
+                f"'ocv2 archive recover {self.partial_path}'"
+            )
         if self._out is None or self._done:
             raise ArchiveError("write_episode needs an open ArchiveWriter (use it as a context manager)")
         meta = dict(meta or {})
         layout = self._resolve_layout(meta, layout)
-        leaves, table, rows, steps, num_agents = _episode_rows(states, actions, rewards, shaped_rewards, dones,
-                                                               layout)
+        leaves, table, rows, steps, num_agents = _episode_rows(states, actions, rewards, shaped_rewards, dones, layout)
         try:  # the reader refuses deeper records: never write one it cannot read back
             user = boundedjson.loads(to_json(meta))
         except (boundedjson.JSONDepthError, RecursionError):
@@ -303,20 +363,27 @@ class ArchiveWriter:
 
         out = self._out
         try:
-            step_channel = out.channel(STEP_TOPIC, STEP_ENCODING, 0, {
-                "format_version": str(FORMAT_VERSION),
-                "byte_order": "little",
-                "fields": json.dumps(table),
-                "layout": json.dumps(layout_spec(layout)),
-            })
+            step_channel = out.channel(
+                STEP_TOPIC,
+                STEP_ENCODING,
+                0,
+                {
+                    "format_version": str(FORMAT_VERSION),
+                    "byte_order": "little",
+                    "fields": json.dumps(table),
+                    "layout": json.dumps(layout_spec(layout)),
+                },
+            )
             for t in range(steps + 1):
                 log_time = t0 + t * self._step_ns
                 out.mcap.add_message(step_channel, log_time, rows[t].tobytes(), log_time, self._sequence + t)
                 if frames is not None:
-                    out.mcap.add_message(self._frames_channel, log_time, _raw_image(frames[t], log_time),
-                                         log_time, self._sequence + t)
-            out.mcap.add_message(self._episode_channel, record["log_time_end"], commit,
-                                 record["log_time_end"], record["episode"])
+                    out.mcap.add_message(
+                        self._frames_channel, log_time, _raw_image(frames[t], log_time), log_time, self._sequence + t
+                    )
+            out.mcap.add_message(
+                self._episode_channel, record["log_time_end"], commit, record["log_time_end"], record["episode"]
+            )
             out.commit()
         except BaseException as error:  # the MCAP writer's state is unknown now: write nothing more
             self._fail(error)
@@ -373,35 +440,41 @@ def _episode_rows(states, actions, rewards, shaped_rewards, dones, layout: Layou
         if leaf.ndim == 0 or leaf.shape[0] != steps + 1:
             raise ValueError(
                 f"states.{name} has shape {leaf.shape}: states need a leading axis of T + 1 = {steps + 1} "
-                f"(s_0 ... s_T) for {steps} actions")
+                f"(s_0 ... s_T) for {steps} actions"
+            )
     grid = leaves[STATE_NAMES.index("grid")]
     if grid.shape[1:3] != (layout.height, layout.width) or not (grid[..., 0] == layout.static_objects).all():
-        raise ValueError(f"the states' kitchen (grid {grid.shape[1:3]}) is not layout {layout.name!r} "
-                         f"({layout.height}x{layout.width})")
+        raise ValueError(
+            f"the states' kitchen (grid {grid.shape[1:3]}) is not layout {layout.name!r} "
+            f"({layout.height}x{layout.width})"
+        )
     table = field_table(leaves, num_agents)
     padded = {  # the final state's message carries a padding transition
         "action": np.concatenate([actions.astype(np.int32), np.full((1, num_agents), -1, np.int32)]),
         "reward": np.concatenate([arrays["rewards"].astype(np.float32), np.zeros(1, np.float32)]),
-        "shaped_reward": np.concatenate([arrays["shaped_rewards"].astype(np.float32),
-                                         np.zeros((1, num_agents), np.float32)]),
+        "shaped_reward": np.concatenate(
+            [arrays["shaped_rewards"].astype(np.float32), np.zeros((1, num_agents), np.float32)]
+        ),
         "done": np.concatenate([arrays["dones"], np.zeros(1, bool)]),
     }
     columns = list(leaves) + [padded[name] for name in TRANSITION_FIELDS]
-    packed = [np.ascontiguousarray(col, dtype=np.dtype(f["dtype"])).reshape(steps + 1, -1).view(np.uint8)
-              for col, f in zip(columns, table)]
+    packed = [
+        np.ascontiguousarray(col, dtype=np.dtype(f["dtype"])).reshape(steps + 1, -1).view(np.uint8)
+        for col, f in zip(columns, table)
+    ]
     return leaves, table, np.concatenate(packed, axis=1), steps, num_agents
 
 
 def _raw_image(frame: np.ndarray, log_time: int) -> bytes:
     height, width, _ = frame.shape
-    return to_json({
-        "timestamp": {"sec": log_time // 1_000_000_000, "nsec": log_time % 1_000_000_000},
-        "frame_id": "kitchen",
-        "width": width,
-        "height": height,
-        "encoding": "rgb8",
-        "step": width * 3,
-        "data": base64.b64encode(np.ascontiguousarray(frame, np.uint8).tobytes()).decode("ascii"),
-    })
-
-
+    return to_json(
+        {
+            "timestamp": {"sec": log_time // 1_000_000_000, "nsec": log_time % 1_000_000_000},
+            "frame_id": "kitchen",
+            "width": width,
+            "height": height,
+            "encoding": "rgb8",
+            "step": width * 3,
+            "data": base64.b64encode(np.ascontiguousarray(frame, np.uint8).tobytes()).decode("ascii"),
+        }
+    )

@@ -1,8 +1,8 @@
 """``ocv2 archive``: inspect, replay and recover MCAP trajectory archives (``docs/archive.md``).
 
-    ocv2 archive info FILE [--limit N] [--json]
-    ocv2 archive replay FILE --episode N --out EPISODE.gif [--fps F] [--tile-size T] [--view-radius V]
-    ocv2 archive recover FILE [--out FIXED.mcap] [--force]
+ocv2 archive info FILE [--limit N] [--json]
+ocv2 archive replay FILE --episode N --out EPISODE.gif [--fps F] [--tile-size T] [--view-radius V]
+ocv2 archive recover FILE [--out FIXED.mcap] [--force]
 """
 
 from __future__ import annotations
@@ -18,37 +18,59 @@ from ocv2.render import render_frames, write_gif
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("archive", help="inspect, replay or recover an MCAP trajectory archive",
-                            description="Work with the MCAP trajectory archives of a run (RUN_DIR/archive/*.mcap).")
+    parser = sub.add_parser(
+        "archive",
+        help="inspect, replay or recover an MCAP trajectory archive",
+        description="Work with the MCAP trajectory archives of a run (RUN_DIR/archive/*.mcap).",
+    )
     actions = parser.add_subparsers(dest="archive_command", metavar="ACTION")
     actions.required = True
 
-    info = actions.add_parser("info", help="episodes, layouts, policies and returns of an archive",
-                              description="Summarise an archive: episodes, layouts, methods, policies, returns, "
-                                          "size; then one line per episode. Works on unfinished (.partial) files.")
+    info = actions.add_parser(
+        "info",
+        help="episodes, layouts, policies and returns of an archive",
+        description="Summarise an archive: episodes, layouts, methods, policies, returns, "
+        "size; then one line per episode. Works on unfinished (.partial) files.",
+    )
     info.add_argument("file", help="archive (.mcap, or a .mcap.partial being written or left by a killed writer)")
-    info.add_argument("--limit", type=int, default=50, metavar="N",
-                      help="list at most N episodes (default 50; 0 lists none, -1 all)")
+    info.add_argument(
+        "--limit", type=int, default=50, metavar="N", help="list at most N episodes (default 50; 0 lists none, -1 all)"
+    )
     info.add_argument("--json", action="store_true", help="print the summary and episode metadata as JSON")
 
-    replay = actions.add_parser("replay", help="render an archived episode to a GIF",
-                                description="Render every stored state of one episode (T + 1 frames for T "
-                                            "transitions) to a looping GIF.")
+    replay = actions.add_parser(
+        "replay",
+        help="render an archived episode to a GIF",
+        description="Render every stored state of one episode (T + 1 frames for T transitions) to a looping GIF.",
+    )
     replay.add_argument("file", help="archive file")
-    replay.add_argument("--episode", type=int, default=0, metavar="N",
-                        help="episode number, as 'info' lists it in its # column (default 0)")
+    replay.add_argument(
+        "--episode",
+        type=int,
+        default=0,
+        metavar="N",
+        help="episode number, as 'info' lists it in its # column (default 0)",
+    )
     replay.add_argument("--out", required=True, help="GIF file to write")
     replay.add_argument("--fps", type=float, default=5.0, help="frames per second (default 5)")
     replay.add_argument("--tile-size", type=int, default=32, help="pixels per cell (default 32)")
-    replay.add_argument("--view-radius", type=int, default=None,
-                        help="highlight every cell within this radius of an agent (default: none)")
+    replay.add_argument(
+        "--view-radius",
+        type=int,
+        default=None,
+        help="highlight every cell within this radius of an agent (default: none)",
+    )
 
-    recover = actions.add_parser("recover", help="rescue the complete episodes of a killed writer's file",
-                                 description="Read FILE up to its first truncated or corrupt record and write "
-                                             "every complete episode to a new, finished archive.")
+    recover = actions.add_parser(
+        "recover",
+        help="rescue the complete episodes of a killed writer's file",
+        description="Read FILE up to its first truncated or corrupt record and write "
+        "every complete episode to a new, finished archive.",
+    )
     recover.add_argument("file", help="damaged or unfinished archive (typically NAME.mcap.partial)")
-    recover.add_argument("--out", help="clean archive to write (default: FILE without '.partial', "
-                                       "else NAME.recovered.mcap)")
+    recover.add_argument(
+        "--out", help="clean archive to write (default: FILE without '.partial', else NAME.recovered.mcap)"
+    )
     recover.add_argument("--force", action="store_true", help="replace --out if it exists")
     return parser
 
@@ -78,36 +100,54 @@ def _info(args) -> int:
     reader = _reader(args.file)
     summary = reader.info()
     metas = reader.episodes()
-    shown = metas if args.limit < 0 else metas[:args.limit]
+    shown = metas if args.limit < 0 else metas[: args.limit]
     if args.json:
         print(json.dumps({"summary": summary, "episodes": shown}, indent=2))
         return EXIT_OK
     state = "finished" if summary["finished"] else "UNFINISHED"
     per = summary["bytes_per_transition"]
-    print(f"{args.file}: {state} ocv2 archive, {summary['episodes']} complete episode(s), "
-          f"{summary['transitions']} transitions, {_size(summary['size_bytes'])}"
-          + (f" ({per:.1f} B/transition)" if per else ""))
+    print(
+        f"{args.file}: {state} ocv2 archive, {summary['episodes']} complete episode(s), "
+        f"{summary['transitions']} transitions, {_size(summary['size_bytes'])}"
+        + (f" ({per:.1f} B/transition)" if per else "")
+    )
     if not summary["finished"]:
         dropped = summary["uncommitted_messages"]
-        print(f"  the writer did not finish (killed, or still writing); {dropped} message(s) of an incomplete "
-              f"episode are not counted. Rescue the rest with: ocv2 archive recover {args.file}")
+        print(
+            f"  the writer did not finish (killed, or still writing); {dropped} message(s) of an incomplete "
+            f"episode are not counted. Rescue the rest with: ocv2 archive recover {args.file}"
+        )
     print(f"layouts: {_counts(summary['layouts'])}")
     print(f"methods: {_counts(summary['methods'])}")
     print(f"policies: {_counts(summary['policies'])}")
     returns = summary["returns"]
     if returns:
-        print(f"returns: mean {returns['mean']:.2f}, std {returns['std']:.2f}, min {returns['min']:.2f}, "
-              f"max {returns['max']:.2f}")
+        print(
+            f"returns: mean {returns['mean']:.2f}, std {returns['std']:.2f}, min {returns['min']:.2f}, "
+            f"max {returns['max']:.2f}"
+        )
         if len(summary["returns_by_layout"]) > 1:
             for name, stats in summary["returns_by_layout"].items():
                 print(f"  {name}: mean {stats['mean']:.2f} (min {stats['min']:.2f}, max {stats['max']:.2f})")
-    print(f"channels: {', '.join(summary['topics'])}"
-          + (" (Foxglove frames: yes)" if summary["foxglove_frames"] else ""))
+    print(
+        f"channels: {', '.join(summary['topics'])}" + (" (Foxglove frames: yes)" if summary["foxglove_frames"] else "")
+    )
     if shown:
         header = ("#", "layout", "steps", "return", "shaped", "method", "iter", "policies", "seed")
-        rows = [(str(m["episode"]), m["layout"], str(m["steps"]), f"{m['return']:g}",
-                 "/".join(f"{v:g}" for v in m["shaped_return"]), _text(m.get("method")), _text(m.get("iteration")),
-                 _text(m.get("policies")), _text(m.get("seed"))) for m in shown]
+        rows = [
+            (
+                str(m["episode"]),
+                m["layout"],
+                str(m["steps"]),
+                f"{m['return']:g}",
+                "/".join(f"{v:g}" for v in m["shaped_return"]),
+                _text(m.get("method")),
+                _text(m.get("iteration")),
+                _text(m.get("policies")),
+                _text(m.get("seed")),
+            )
+            for m in shown
+        ]
         widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
         for row in [header, *rows]:
             print("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip())
@@ -140,8 +180,10 @@ def _replay(args) -> int:
     except OSError as error:
         raise CLIError(f"could not write {args.out!r}: {error}", EXIT_FAILURE) from None
     meta = episode.meta
-    print(f"wrote {path}: {len(frames)} frames (episode {meta['episode']}: {meta['steps']} steps of {layout.name}, "
-          f"return {meta['return']:g})")
+    print(
+        f"wrote {path}: {len(frames)} frames (episode {meta['episode']}: {meta['steps']} steps of {layout.name}, "
+        f"return {meta['return']:g})"
+    )
     return EXIT_OK
 
 
@@ -149,9 +191,9 @@ def _recover(args) -> int:
     out = args.out
     if out is None:
         if args.file.endswith(PARTIAL_SUFFIX):
-            out = args.file[:-len(PARTIAL_SUFFIX)]
+            out = args.file[: -len(PARTIAL_SUFFIX)]
         else:
-            stem = args.file[:-len(".mcap")] if args.file.endswith(".mcap") else args.file
+            stem = args.file[: -len(".mcap")] if args.file.endswith(".mcap") else args.file
             out = stem + ".recovered.mcap"
     if os.path.exists(out) and not args.force:
         raise CLIError(f"{out!r} already exists; choose another --out or pass --force")
@@ -165,11 +207,14 @@ def _recover(args) -> int:
     if report.source_finished and not report.warnings:
         print(f"{args.file} was a finished archive; copied its {report.episodes} episode(s) to {report.path}")
         return EXIT_OK
-    dropped = (f"; dropped {report.dropped_messages} message(s) of an incomplete episode"
-               if report.dropped_messages else "")
+    dropped = (
+        f"; dropped {report.dropped_messages} message(s) of an incomplete episode" if report.dropped_messages else ""
+    )
     stop = f" (the file ends in: {report.tail_error})" if report.tail_error else ""
-    print(f"recovered {report.episodes} complete episode(s), {report.transitions} transitions, into "
-          f"{report.path}{dropped}{stop}")
+    print(
+        f"recovered {report.episodes} complete episode(s), {report.transitions} transitions, into "
+        f"{report.path}{dropped}{stop}"
+    )
     return EXIT_OK
 
 

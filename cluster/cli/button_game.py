@@ -31,34 +31,66 @@ PNG_NAME = "button_game_xp.png"
 def add_parser(sub) -> argparse.ArgumentParser:
     """Declare ``button-game`` and its arguments; out-of-range values are argparse usage errors."""
     parser = sub.add_parser(
-        "button-game", help="the paper's Button Game: IQL self-play pairs, a best response, cross-play",
+        "button-game",
+        help="the paper's Button Game: IQL self-play pairs, a best response, cross-play",
         description="Train SEEDS self-play Alice/Bob pairs with tabular independent Q-learning and a Bob that "
-                    "best-responds to a uniformly random Alice, then write the cross-play matrix (exact "
-                    "expected reward of greedy policies) as CSV and as a heatmap PNG.")
+        "best-responds to a uniformly random Alice, then write the cross-play matrix (exact "
+        "expected reward of greedy policies) as CSV and as a heatmap PNG.",
+    )
     positive = "an integer in [1, {}]".format
-    parser.add_argument("--buttons", metavar="N", type=bounded(int, 2, 10_000, "an integer in [2, 10000]"),
-                        default=DEFAULT_BUTTONS, help=f"number of buttons N (2N bulbs; default {DEFAULT_BUTTONS})")
-    parser.add_argument("--seeds", metavar="SEEDS", type=bounded(int, 1, 100, positive(100)), default=10,
-                        help="self-play pairs to train (default 10)")
+    parser.add_argument(
+        "--buttons",
+        metavar="N",
+        type=bounded(int, 2, 10_000, "an integer in [2, 10000]"),
+        default=DEFAULT_BUTTONS,
+        help=f"number of buttons N (2N bulbs; default {DEFAULT_BUTTONS})",
+    )
+    parser.add_argument(
+        "--seeds",
+        metavar="SEEDS",
+        type=bounded(int, 1, 100, positive(100)),
+        default=10,
+        help="self-play pairs to train (default 10)",
+    )
     parser.add_argument("--out", metavar="DIR", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
-    parser.add_argument("--seed", metavar="S", type=bounded(int, 0, 2 ** 32 - 1, "an integer in [0, 2**32)"),
-                        default=0,
-                        help="root PRNG seed; pair i uses fold_in(PRNGKey(seed), i) (default 0)")
-    parser.add_argument("--episodes", metavar="E", type=bounded(int, 1, 10_000_000, positive(10_000_000)),
-                        default=DEFAULT_EPISODES, help=f"training games per agent (default {DEFAULT_EPISODES})")
-    parser.add_argument("--epsilon", metavar="EPS", type=bounded(float, 0.0, 1.0, "a number in [0, 1]"),
-                        default=DEFAULT_EPSILON,
-                        help=f"epsilon-greedy exploration rate (default {DEFAULT_EPSILON:g})")
-    parser.add_argument("--lr", metavar="LR", type=bounded(float, 0.0, 1.0, "a number in (0, 1]", low_open=True),
-                        default=DEFAULT_LR, help=f"Q-learning rate (default {DEFAULT_LR:g})")
+    parser.add_argument(
+        "--seed",
+        metavar="S",
+        type=bounded(int, 0, 2**32 - 1, "an integer in [0, 2**32)"),
+        default=0,
+        help="root PRNG seed; pair i uses fold_in(PRNGKey(seed), i) (default 0)",
+    )
+    parser.add_argument(
+        "--episodes",
+        metavar="E",
+        type=bounded(int, 1, 10_000_000, positive(10_000_000)),
+        default=DEFAULT_EPISODES,
+        help=f"training games per agent (default {DEFAULT_EPISODES})",
+    )
+    parser.add_argument(
+        "--epsilon",
+        metavar="EPS",
+        type=bounded(float, 0.0, 1.0, "a number in [0, 1]"),
+        default=DEFAULT_EPSILON,
+        help=f"epsilon-greedy exploration rate (default {DEFAULT_EPSILON:g})",
+    )
+    parser.add_argument(
+        "--lr",
+        metavar="LR",
+        type=bounded(float, 0.0, 1.0, "a number in (0, 1]", low_open=True),
+        default=DEFAULT_LR,
+        help=f"Q-learning rate (default {DEFAULT_LR:g})",
+    )
     return parser
 
 
 def _configs(args):
     """Build the configs (argparse types have already range-checked every flag)."""
     try:
-        return (ButtonGameConfig(num_buttons=args.buttons),
-                IQLConfig(episodes=args.episodes, epsilon=args.epsilon, learning_rate=args.lr))
+        return (
+            ButtonGameConfig(num_buttons=args.buttons),
+            IQLConfig(episodes=args.episodes, epsilon=args.epsilon, learning_rate=args.lr),
+        )
     except ValueError as error:  # pragma: no cover - the argparse types reject these first
         raise CLIError(str(error)) from None
 
@@ -80,8 +112,10 @@ def run(args) -> int:
 
     csv_path = os.path.join(args.out, CSV_NAME)
     png_path = os.path.join(args.out, PNG_NAME)
-    title = (f"Button Game cross-play (N={game.num_buttons}, {args.seeds} SP pairs, "
-             f"{iql.episodes} games, eps={DEFAULT_EPSILON:g})")
+    title = (
+        f"Button Game cross-play (N={game.num_buttons}, {args.seeds} SP pairs, "
+        f"{iql.episodes} games, eps={DEFAULT_EPSILON:g})"
+    )
     written = [csv_path]
     try:
         write_csv(csv_path, result.matrix, result.labels)
@@ -93,9 +127,11 @@ def run(args) -> int:
         raise CLIError(f"could not write to {args.out!r}: {error}", EXIT_FAILURE) from None
 
     xp = "n/a (one pair)" if args.seeds < 2 else f"{result.xp_mean:+.2f}"
-    print(f"button game: N={game.num_buttons} buttons, {args.seeds} self-play pairs + 1 best response, "
-          f"{iql.episodes} games each, epsilon {iql.epsilon:g}, lr {iql.learning_rate:g}, seed {args.seed} "
-          f"({seconds:.1f} s)")
+    print(
+        f"button game: N={game.num_buttons} buttons, {args.seeds} self-play pairs + 1 best response, "
+        f"{iql.episodes} games each, epsilon {iql.epsilon:g}, lr {iql.learning_rate:g}, seed {args.seed} "
+        f"({seconds:.1f} s)"
+    )
     print(f"  SP  (diagonal, SP pairs)          {result.sp_mean:+.2f}")
     print(f"  XP  (off-diagonal, SP pairs)      {xp}")
     print(f"  BR  (BR Bob with every SP Alice)  {result.br_mean:+.2f}")

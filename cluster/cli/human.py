@@ -31,40 +31,78 @@ DEFAULT_OUT = os.path.join("runs", "human")
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("human", help="2019 human-human trials: import as archives, train a BC human proxy",
-                            description="Convert the overcooked-ai 1.1.0 human-human trials into ocv2 archives "
-                                        "(with a check of ocv2's rules against them), or behaviour-clone a human "
-                                        "proxy policy from them (docs/human.md).")
+    parser = sub.add_parser(
+        "human",
+        help="2019 human-human trials: import as archives, train a BC human proxy",
+        description="Convert the overcooked-ai 1.1.0 human-human trials into ocv2 archives "
+        "(with a check of ocv2's rules against them), or behaviour-clone a human "
+        "proxy policy from them (docs/human.md).",
+    )
     commands = parser.add_subparsers(dest="human_command", metavar="{import,proxy}")
     commands.required = True
     imp = commands.add_parser("import", help="write the trials as MCAP archives + a dynamics reproduction report")
-    imp.add_argument("source", metavar="SOURCE",
-                     help="overcooked_ai-1.1.0.tar.gz, a folder with the pickles, or one pickle")
+    imp.add_argument(
+        "source", metavar="SOURCE", help="overcooked_ai-1.1.0.tar.gz, a folder with the pickles, or one pickle"
+    )
     imp.add_argument("--out", metavar="DIR", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
-    imp.add_argument("--splits", metavar="S", default="train,test", type=_splits,
-                     help="comma-separated splits to import (default train,test)")
-    imp.add_argument("--layouts", metavar="L", nargs="+", default=None,
-                     help="only these layouts (ocv2 or overcooked-ai names; default all five)")
-    imp.add_argument("--max-trials", metavar="N", type=positive_int, default=None,
-                     help="import at most N games per split (a quick look)")
+    imp.add_argument(
+        "--splits",
+        metavar="S",
+        default="train,test",
+        type=_splits,
+        help="comma-separated splits to import (default train,test)",
+    )
+    imp.add_argument(
+        "--layouts",
+        metavar="L",
+        nargs="+",
+        default=None,
+        help="only these layouts (ocv2 or overcooked-ai names; default all five)",
+    )
+    imp.add_argument(
+        "--max-trials",
+        metavar="N",
+        type=positive_int,
+        default=None,
+        help="import at most N games per split (a quick look)",
+    )
     imp.add_argument("--overwrite", action="store_true", help="replace existing archives in DIR")
 
     proxy = commands.add_parser("proxy", help="behaviour-clone a human proxy on one layout")
     proxy.add_argument("layout", metavar="LAYOUT", help="ocv2 layout: " + ", ".join(human.LAYOUT_MAP.values()))
     proxy.add_argument("--source", metavar="SOURCE", required=True, help="as for `ocv2 human import`")
-    proxy.add_argument("--out", metavar="FILE", default=None,
-                       help="proxy file (default: the cache, population.human.proxy_path(LAYOUT))")
+    proxy.add_argument(
+        "--out",
+        metavar="FILE",
+        default=None,
+        help="proxy file (default: the cache, population.human.proxy_path(LAYOUT))",
+    )
     defaults = bc.BCConfig()
     proxy.add_argument("--steps", metavar="N", type=positive_int, default=defaults.steps, help="optimizer steps")
     proxy.add_argument("--batch-size", metavar="B", type=positive_int, default=defaults.batch_size)
-    proxy.add_argument("--eval-every", metavar="K", type=positive_int, default=defaults.eval_every,
-                       help="held-out accuracy every K steps")
+    proxy.add_argument(
+        "--eval-every",
+        metavar="K",
+        type=positive_int,
+        default=defaults.eval_every,
+        help="held-out accuracy every K steps",
+    )
     proxy.add_argument("--lr", metavar="LR", type=float, default=defaults.learning_rate)
     proxy.add_argument("--seed", metavar="S", type=seed, default=defaults.seed)
-    proxy.add_argument("--episodes", metavar="E", type=positive_int, default=defaults.selfplay_episodes,
-                       help="self-play episodes for the proxy's own return")
-    proxy.add_argument("--max-trials", metavar="N", type=positive_int, default=None,
-                       help="use at most N games per split (a quick look)")
+    proxy.add_argument(
+        "--episodes",
+        metavar="E",
+        type=positive_int,
+        default=defaults.selfplay_episodes,
+        help="self-play episodes for the proxy's own return",
+    )
+    proxy.add_argument(
+        "--max-trials",
+        metavar="N",
+        type=positive_int,
+        default=None,
+        help="use at most N games per split (a quick look)",
+    )
     return parser
 
 
@@ -108,9 +146,13 @@ def write_trials(path: str, trials: list[human.Trial], overwrite: bool = False) 
             _, _, shaped = human.step_recorded(trial)
             meta = {
                 **env_meta(ocv2.make(trial.layout, max_steps=steps)),
-                "method": "human", "kind": "human-human", "human_seats": [0, 1],
-                "source": f"overcooked-ai==1.1.0 {human.PICKLE_NAMES[trial.split]}", "split": trial.split,
-                "source_layout": trial.source_layout, "worker": trial.worker,
+                "method": "human",
+                "kind": "human-human",
+                "human_seats": [0, 1],
+                "source": f"overcooked-ai==1.1.0 {human.PICKLE_NAMES[trial.split]}",
+                "split": trial.split,
+                "source_layout": trial.source_layout,
+                "worker": trial.worker,
                 "recorded_score": float(trial.rewards.sum() / human.REWARD_SCALE),
                 "reward_scale": human.REWARD_SCALE,
             }
@@ -136,8 +178,11 @@ def run_import(args) -> int:
         report["splits"][split] = {}
         for layout in dict.fromkeys(t.layout for t in trials):
             games = [t for t in trials if t.layout == layout]
-            report["splits"][split][layout] = {**human.reproduce(games)._asdict(), "games": len(games),
-                                               "events": human.rule_events(games)}
+            report["splits"][split][layout] = {
+                **human.reproduce(games)._asdict(),
+                "games": len(games),
+                "events": human.rule_events(games),
+            }
     try:
         for path, trials in targets:
             write_trials(path, trials, overwrite=args.overwrite)
@@ -162,26 +207,43 @@ def run_proxy(args) -> int:
     if layout not in human.LAYOUT_MAP.values():
         raise CLIError(f"layout {layout!r} has no human data; choose one of {', '.join(human.LAYOUT_MAP.values())}")
     try:
-        config = bc.BCConfig(steps=args.steps, batch_size=args.batch_size, learning_rate=args.lr,
-                             eval_every=min(args.eval_every, args.steps), seed=args.seed,
-                             selfplay_episodes=args.episodes)
+        config = bc.BCConfig(
+            steps=args.steps,
+            batch_size=args.batch_size,
+            learning_rate=args.lr,
+            eval_every=min(args.eval_every, args.steps),
+            seed=args.seed,
+            selfplay_episodes=args.episodes,
+        )
     except ValueError as error:
         raise CLIError(str(error)) from None
     train = _load(args.source, "train", [layout], args.max_trials)
     test = _load(args.source, "test", [layout], args.max_trials)
-    result = bc.train(config, train, test, log=lambda e: print(
-        f"step {e['step']:>6}  loss {e['loss']:.4f}  held-out accuracy {e['test_accuracy']:.3f}", flush=True))
+    result = bc.train(
+        config,
+        train,
+        test,
+        log=lambda e: print(
+            f"step {e['step']:>6}  loss {e['loss']:.4f}  held-out accuracy {e['test_accuracy']:.3f}", flush=True
+        ),
+    )
     out = args.out or human.proxy_path(layout)
     try:
-        path = bc.save_proxy(out, result, config, meta={"source": os.fspath(args.source),
-                                                        "train_games": len(train), "test_games": len(test)})
+        path = bc.save_proxy(
+            out,
+            result,
+            config,
+            meta={"source": os.fspath(args.source), "train_games": len(train), "test_games": len(test)},
+        )
     except OSError as error:
         raise CLIError(f"could not write {out}: {error}", EXIT_FAILURE) from None
     s = result.scores
-    print(f"{layout}: held-out accuracy {s['test_accuracy']:.3f} (uniform {s['uniform_accuracy']:.3f}, majority "
-          f"{s['majority_accuracy']:.3f}); which action when the person acted {s['test_accuracy_active']:.3f} "
-          f"(uniform {s['active_uniform_accuracy']:.3f}, majority {s['active_majority_accuracy']:.3f}); "
-          f"self-play return {s['selfplay_return']:.1f} over {s['selfplay_episodes']} episodes of "
-          f"{s['selfplay_max_steps']} steps")
+    print(
+        f"{layout}: held-out accuracy {s['test_accuracy']:.3f} (uniform {s['uniform_accuracy']:.3f}, majority "
+        f"{s['majority_accuracy']:.3f}); which action when the person acted {s['test_accuracy_active']:.3f} "
+        f"(uniform {s['active_uniform_accuracy']:.3f}, majority {s['active_majority_accuracy']:.3f}); "
+        f"self-play return {s['selfplay_return']:.1f} over {s['selfplay_episodes']} episodes of "
+        f"{s['selfplay_max_steps']} steps"
+    )
     print(f"wrote {path}")
     return EXIT_OK

@@ -36,7 +36,8 @@ import importlib.metadata
 import logging
 import os
 import sys
-from typing import Callable, NamedTuple, Sequence
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax
 from rich.console import Console
@@ -52,6 +53,7 @@ from ocv2.render import render_frames, rollout_states, write_gif
 # helpers
 # ---------------------------------------------------------------------------------------------------
 
+
 def _console(stream=None):
     stream = sys.stdout if stream is None else stream
     # Not a terminal (pipes, tests): wide enough that layout names are never wrapped.
@@ -63,16 +65,28 @@ def _console(stream=None):
 # ocv2 layouts
 # ---------------------------------------------------------------------------------------------------
 
+
 def _add_layouts(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("layouts", help="list the built-in kitchen layouts",
-                            description="List every built-in layout, or print one layout's ASCII map.")
+    parser = sub.add_parser(
+        "layouts",
+        help="list the built-in kitchen layouts",
+        description="List every built-in layout, or print one layout's ASCII map.",
+    )
     parser.add_argument("--show", metavar="NAME", help="print the ASCII map of layout NAME")
     return parser
 
 
 #: What each character of ``Layout.to_string`` stands for (``ocv2.layouts`` builds maps from the same).
-LEGEND = {"W": "counter", "X": "delivery", "B": "plate pile", "P": "pot", "R": "recipe indicator",
-          "L": "button recipe indicator", "A": "agent start", " ": "floor"}
+LEGEND = {
+    "W": "counter",
+    "X": "delivery",
+    "B": "plate pile",
+    "P": "pot",
+    "R": "recipe indicator",
+    "L": "button recipe indicator",
+    "A": "agent start",
+    " ": "floor",
+}
 
 
 def legend(layout: Layout) -> list[str]:
@@ -87,8 +101,10 @@ def legend(layout: Layout) -> list[str]:
 def _cmd_layouts(args) -> int:
     if args.show is not None:
         layout = layout_or_error(args.show)
-        print(f"{layout.name}: {layout.height}x{layout.width}, {layout.num_agents} agents, "
-              f"{layout.num_ingredients} ingredients, recipes {[list(r) for r in layout.possible_recipes]}")
+        print(
+            f"{layout.name}: {layout.height}x{layout.width}, {layout.num_agents} agents, "
+            f"{layout.num_ingredients} ingredients, recipes {[list(r) for r in layout.possible_recipes]}"
+        )
         print(layout.to_string())
         print("legend:")
         print("\n".join(legend(layout)))
@@ -102,8 +118,9 @@ def _cmd_layouts(args) -> int:
     table.add_column("recipes")
     for name, layout in LAYOUTS.items():
         recipes = ", ".join(str(list(r)) for r in layout.possible_recipes)
-        table.add_row(name, f"{layout.height}x{layout.width}", str(layout.num_agents), str(layout.num_ingredients),
-                      recipes)
+        table.add_row(
+            name, f"{layout.height}x{layout.width}", str(layout.num_agents), str(layout.num_ingredients), recipes
+        )
     _console().print(table)
     return EXIT_OK
 
@@ -112,17 +129,25 @@ def _cmd_layouts(args) -> int:
 # ocv2 render
 # ---------------------------------------------------------------------------------------------------
 
+
 def _add_render(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("render", help="render a random-action episode to a GIF",
-                            description="Play uniformly random actions on LAYOUT and write the frames "
-                                        "(the reset state plus one per step) to a looping GIF.")
+    parser = sub.add_parser(
+        "render",
+        help="render a random-action episode to a GIF",
+        description="Play uniformly random actions on LAYOUT and write the frames "
+        "(the reset state plus one per step) to a looping GIF.",
+    )
     parser.add_argument("layout", help="layout name (see 'ocv2 layouts')")
     parser.add_argument("--steps", type=non_negative_int, default=50, help="transitions to play (default 50)")
     parser.add_argument("--out", required=True, help="GIF file to write")
     parser.add_argument("--seed", type=seed, default=0, help="PRNG seed (default 0)")
     parser.add_argument("--fps", type=fps, default=5.0, help="frames per second (default 5)")
-    parser.add_argument("--view-radius", type=non_negative_int, default=None,
-                        help="highlight every cell within this radius of an agent (default: none)")
+    parser.add_argument(
+        "--view-radius",
+        type=non_negative_int,
+        default=None,
+        help="highlight every cell within this radius of an agent (default: none)",
+    )
     parser.add_argument("--tile-size", type=positive_int, default=32, help="pixels per cell (default 32)")
     return parser
 
@@ -142,8 +167,10 @@ def _cmd_render(args) -> int:
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
     needed = gif_bytes(layout, args.steps, args.tile_size)
     if needed > MAX_GIF_BYTES:
-        raise CLIError(f"--steps {args.steps} with --tile-size {args.tile_size} needs {needed / 2**30:.1f} GiB of "
-                       f"frames (at most {MAX_GIF_BYTES / 2**30:.0f} GiB); use fewer steps or a smaller tile size")
+        raise CLIError(
+            f"--steps {args.steps} with --tile-size {args.tile_size} needs {needed / 2**30:.1f} GiB of "
+            f"frames (at most {MAX_GIF_BYTES / 2**30:.0f} GiB); use fewer steps or a smaller tile size"
+        )
     folder = os.path.dirname(os.path.abspath(args.out))
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise CLIError(f"--out: {folder!r} exists and is not a folder")
@@ -156,8 +183,10 @@ def _cmd_render(args) -> int:
     except OSError as error:
         raise CLIError(f"could not write {args.out!r}: {error}", EXIT_FAILURE) from None
     height, width = frames.shape[1:3]
-    print(f"wrote {path}: {len(frames)} frames ({args.steps} steps of {layout.name}), {width}x{height} px, "
-          f"{args.fps:g} fps")
+    print(
+        f"wrote {path}: {len(frames)} frames ({args.steps} steps of {layout.name}), {width}x{height} px, "
+        f"{args.fps:g} fps"
+    )
     return EXIT_OK
 
 
@@ -225,6 +254,7 @@ def configure_logging(verbosity: int = 0) -> None:
 # entry point
 # ---------------------------------------------------------------------------------------------------
 
+
 class Command(NamedTuple):
     name: str
     help: str  # the one-liner of ``ocv2 --help`` (the command's own parser repeats it; a test checks)
@@ -236,26 +266,63 @@ class Command(NamedTuple):
 COMMANDS: list[Command] = [
     Command("layouts", "list the built-in kitchen layouts", _add_layouts, _cmd_layouts),
     Command("render", "render a random-action episode to a GIF", _add_render, _cmd_render),
-    Command("train", "train a population from a YAML config", "cluster.cli.train:add_train",
-            "cluster.cli.train:run_train"),
-    Command("xp", "cross-play matrix of a trained population, or across runs and policy files",
-            "cluster.cli.xp:add_xp", "cluster.cli.xp:run_xp"),
-    Command("export", "write one policy (params + network + env settings) to a file", "cluster.cli.xp:add_export",
-            "cluster.cli.xp:run_export"),
-    Command("study", "run many population jobs and their comparisons as one resumable study",
-            "cluster.cli.study:add_parser", "cluster.cli.study:run"),
-    Command("validate", "check YAML configs without running anything", "cluster.cli.report:add_validate",
-            "cluster.cli.report:run_validate"),
-    Command("report", "paper-style SP/XP tables, curves and heatmaps of run directories",
-            "cluster.cli.report:add_report", "cluster.cli.report:run_report"),
-    Command("button-game", "the paper's Button Game: IQL self-play pairs, a best response, cross-play",
-            "cluster.cli.button_game:add_parser", "cluster.cli.button_game:run"),
-    Command("archive", "inspect, replay or recover an MCAP trajectory archive", "cluster.cli.archive:add_parser",
-            "cluster.cli.archive:run"),
-    Command("play", "play in the browser with a trained agent or another person (recorded to MCAP)",
-            "cluster.cli.play:add_play", "cluster.cli.play:run_play"),
-    Command("human", "2019 human-human trials: import as archives, train a BC human proxy",
-            "cluster.cli.human:add_parser", "cluster.cli.human:run"),
+    Command(
+        "train", "train a population from a YAML config", "cluster.cli.train:add_train", "cluster.cli.train:run_train"
+    ),
+    Command(
+        "xp",
+        "cross-play matrix of a trained population, or across runs and policy files",
+        "cluster.cli.xp:add_xp",
+        "cluster.cli.xp:run_xp",
+    ),
+    Command(
+        "export",
+        "write one policy (params + network + env settings) to a file",
+        "cluster.cli.xp:add_export",
+        "cluster.cli.xp:run_export",
+    ),
+    Command(
+        "study",
+        "run many population jobs and their comparisons as one resumable study",
+        "cluster.cli.study:add_parser",
+        "cluster.cli.study:run",
+    ),
+    Command(
+        "validate",
+        "check YAML configs without running anything",
+        "cluster.cli.report:add_validate",
+        "cluster.cli.report:run_validate",
+    ),
+    Command(
+        "report",
+        "paper-style SP/XP tables, curves and heatmaps of run directories",
+        "cluster.cli.report:add_report",
+        "cluster.cli.report:run_report",
+    ),
+    Command(
+        "button-game",
+        "the paper's Button Game: IQL self-play pairs, a best response, cross-play",
+        "cluster.cli.button_game:add_parser",
+        "cluster.cli.button_game:run",
+    ),
+    Command(
+        "archive",
+        "inspect, replay or recover an MCAP trajectory archive",
+        "cluster.cli.archive:add_parser",
+        "cluster.cli.archive:run",
+    ),
+    Command(
+        "play",
+        "play in the browser with a trained agent or another person (recorded to MCAP)",
+        "cluster.cli.play:add_play",
+        "cluster.cli.play:run_play",
+    ),
+    Command(
+        "human",
+        "2019 human-human trials: import as archives, train a BC human proxy",
+        "cluster.cli.human:add_parser",
+        "cluster.cli.human:run",
+    ),
 ]
 
 
@@ -283,10 +350,20 @@ def build_parser(argv: Sequence[str] = (), full: bool = False) -> argparse.Argum
     """The parser, with the arguments of the command ``argv`` names only (``full``: of every command)."""
     parser = argparse.ArgumentParser(prog="ocv2", description="OvercookedV2 in pure JAX: layouts, rendering, training.")
     parser.add_argument("--version", action="version", version=f"ocv2 {version()}")
-    parser.add_argument("-v", "--verbose", dest="log_verbose", action="store_true",
-                        help="also show debug messages (before the command: ocv2 -v train ...)")
-    parser.add_argument("-q", "--quiet", dest="log_quiet", action="store_true",
-                        help="only warnings and errors: no progress (before the command: ocv2 -q train ...)")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        dest="log_verbose",
+        action="store_true",
+        help="also show debug messages (before the command: ocv2 -v train ...)",
+    )
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        dest="log_quiet",
+        action="store_true",
+        help="only warnings and errors: no progress (before the command: ocv2 -q train ...)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     chosen = _chosen_command(argv)

@@ -45,45 +45,100 @@ def _key_value(text: str) -> tuple[str, str]:
 
 def add_play(sub) -> argparse.ArgumentParser:
     parser = sub.add_parser(
-        "play", help="play in the browser with a trained agent or another person (recorded to MCAP)",
+        "play",
+        help="play in the browser with a trained agent or another person (recorded to MCAP)",
         description="Start a local web server for human play: arrow keys move, space interacts, the game "
-                    "advances at a fixed tick (stay when no key is pressed). Every episode is recorded to an "
-                    "MCAP archive (ocv2 archive info|replay FILE). See docs/play.md.")
-    parser.add_argument("layout", nargs="?",
-                        help="layout name (see 'ocv2 layouts'); optional with a policy partner (the run's layout)")
-    parser.add_argument("--partner", default="stay", metavar="WHO",
-                        help="RUN_DIR/checkpoints/seed_<i> (its latest checkpoint) or a checkpoint file in it; "
-                             "'human' (a second browser tab plays the other seat); 'stay' or 'random' "
-                             "(scripted; default stay)")
-    parser.add_argument("--seat", type=non_negative_int, default=0,
-                        help="the human's seat, 0 (red) or 1 (blue); with --partner human, the first tab's seat "
-                             "(default 0)")
-    parser.add_argument("--host", default=DEFAULT_HOST,
-                        help=f"address to listen on (default {DEFAULT_HOST}: this machine only; 0.0.0.0 lets "
-                             "other machines join)")
-    parser.add_argument("--port", type=bounded(int, 0, 65535, "a port number 0..65535 (0: any free port)"),
-                        default=DEFAULT_PORT,
-                        help=f"TCP port (default {DEFAULT_PORT}; 0 picks a free one)")
+        "advances at a fixed tick (stay when no key is pressed). Every episode is recorded to an "
+        "MCAP archive (ocv2 archive info|replay FILE). See docs/play.md.",
+    )
+    parser.add_argument(
+        "layout", nargs="?", help="layout name (see 'ocv2 layouts'); optional with a policy partner (the run's layout)"
+    )
+    parser.add_argument(
+        "--partner",
+        default="stay",
+        metavar="WHO",
+        help="RUN_DIR/checkpoints/seed_<i> (its latest checkpoint) or a checkpoint file in it; "
+        "'human' (a second browser tab plays the other seat); 'stay' or 'random' "
+        "(scripted; default stay)",
+    )
+    parser.add_argument(
+        "--seat",
+        type=non_negative_int,
+        default=0,
+        help="the human's seat, 0 (red) or 1 (blue); with --partner human, the first tab's seat (default 0)",
+    )
+    parser.add_argument(
+        "--host",
+        default=DEFAULT_HOST,
+        help=f"address to listen on (default {DEFAULT_HOST}: this machine only; 0.0.0.0 lets other machines join)",
+    )
+    parser.add_argument(
+        "--port",
+        type=bounded(int, 0, 65535, "a port number 0..65535 (0: any free port)"),
+        default=DEFAULT_PORT,
+        help=f"TCP port (default {DEFAULT_PORT}; 0 picks a free one)",
+    )
     parser.add_argument("--fps", type=fps, default=5.0, help="environment steps per second (default 5)")
-    parser.add_argument("--agent-view-size", type=non_negative_int, default=None, metavar="V",
-                        help="view radius: each player sees only the cells within V of their cook")
-    parser.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
-                        help="steps per episode (default the env's 400, or the partner run's)")
-    parser.add_argument("--env", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
-                        help="any other ocv2.make parameter (YAML value), e.g. --env sample_recipe_on_delivery=true")
-    parser.add_argument("--tile-size", type=int_at_least(8, "tile size (>= 8)"), default=48,
-                        help="pixels per grid cell of the picture (default 48)")
-    parser.add_argument("--out", metavar="FILE.mcap",
-                        help="archive to record to (default runs/play/<layout>_<time>.mcap)")
-    parser.add_argument("--seed", type=bounded(int, 0, 2 ** 32 - 1, "an integer in [0, 2**32)"), default=None,
-                        help="root PRNG seed (default: random, and recorded in every episode's metadata)")
-    parser.add_argument("--episodes", type=positive_int, default=None, metavar="N",
-                        help="stop after N recorded episodes (default: run until Ctrl-C)")
-    parser.add_argument("--meta", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
-                        help="extra metadata for every episode, e.g. --meta participant=P07 (repeatable)")
-    parser.add_argument("--disconnect-timeout", type=bounded(float, 0, 3600, "seconds in (0, 3600]", low_open=True),
-                        default=10.0, metavar="S",
-                        help="a tab silent this many seconds has left: its episode ends (default 10)")
+    parser.add_argument(
+        "--agent-view-size",
+        type=non_negative_int,
+        default=None,
+        metavar="V",
+        help="view radius: each player sees only the cells within V of their cook",
+    )
+    parser.add_argument(
+        "--max-steps",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="steps per episode (default the env's 400, or the partner run's)",
+    )
+    parser.add_argument(
+        "--env",
+        type=_key_value,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="any other ocv2.make parameter (YAML value), e.g. --env sample_recipe_on_delivery=true",
+    )
+    parser.add_argument(
+        "--tile-size",
+        type=int_at_least(8, "tile size (>= 8)"),
+        default=48,
+        help="pixels per grid cell of the picture (default 48)",
+    )
+    parser.add_argument(
+        "--out", metavar="FILE.mcap", help="archive to record to (default runs/play/<layout>_<time>.mcap)"
+    )
+    parser.add_argument(
+        "--seed",
+        type=bounded(int, 0, 2**32 - 1, "an integer in [0, 2**32)"),
+        default=None,
+        help="root PRNG seed (default: random, and recorded in every episode's metadata)",
+    )
+    parser.add_argument(
+        "--episodes",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="stop after N recorded episodes (default: run until Ctrl-C)",
+    )
+    parser.add_argument(
+        "--meta",
+        type=_key_value,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra metadata for every episode, e.g. --meta participant=P07 (repeatable)",
+    )
+    parser.add_argument(
+        "--disconnect-timeout",
+        type=bounded(float, 0, 3600, "seconds in (0, 3600]", low_open=True),
+        default=10.0,
+        metavar="S",
+        help="a tab silent this many seconds has left: its episode ends (default 10)",
+    )
     parser.add_argument("--verbose", action="store_true", help="log every HTTP request")
     return parser
 
@@ -103,8 +158,16 @@ def run_play(args) -> int:
         print(f"ocv2 play: preparing {env.layout.name} (compiling the game takes a few seconds)...", flush=True)
         game = make_game(env, partner, human_seats, args.tile_size)
         warm_up(game)
-        session = GameSession(game, writer, seed=seed, fps=args.fps, first_seat=args.seat,
-                              disconnect_s=args.disconnect_timeout, max_episodes=args.episodes, meta=meta)
+        session = GameSession(
+            game,
+            writer,
+            seed=seed,
+            fps=args.fps,
+            first_seat=args.seat,
+            disconnect_s=args.disconnect_timeout,
+            max_episodes=args.episodes,
+            meta=meta,
+        )
         server.start(session)
         _announce(args, server, game, seed, path)
         try:
@@ -119,11 +182,12 @@ def run_play(args) -> int:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     if failure:
-        raise CLIError(failure + (f"; {recorded} episode(s) were recorded to {path}" if recorded else ""),
-                       EXIT_FAILURE)
+        raise CLIError(failure + (f"; {recorded} episode(s) were recorded to {path}" if recorded else ""), EXIT_FAILURE)
     if recorded:
-        print(f"recorded {recorded} episode(s) to {path}; replay one with: "
-              f"ocv2 archive replay {path} --episode 0 --out episode.gif")
+        print(
+            f"recorded {recorded} episode(s) to {path}; replay one with: "
+            f"ocv2 archive replay {path} --episode 0 --out episode.gif"
+        )
     else:
         print("no episode was played: nothing recorded")
     return EXIT_OK
@@ -132,6 +196,7 @@ def run_play(args) -> int:
 # ---------------------------------------------------------------------------------------------------
 # checks (each a CLIError with a message, never a traceback)
 # ---------------------------------------------------------------------------------------------------
+
 
 def _partner(text: str):
 
@@ -167,18 +232,25 @@ def _env(args, partner):
     if partner.kind == "policy":
         trained = partner.env_kwargs
         if args.layout is not None and layout_or_error(args.layout).name != trained["layout"]:
-            raise CLIError(f"the partner was trained on layout {trained['layout']!r}, not {args.layout!r}; "
-                           "omit LAYOUT or pick a partner trained on it")
+            raise CLIError(
+                f"the partner was trained on layout {trained['layout']!r}, not {args.layout!r}; "
+                "omit LAYOUT or pick a partner trained on it"
+            )
         try:
             wanted = build_config(**{**trained, **flags})
         except (TypeError, ValueError) as error:
             raise CLIError(f"environment parameters: {error}") from None
         reference = build_config(**trained)
-        differ = [f"{key}: the partner's run uses {getattr(reference, key)!r}, you asked for {getattr(wanted, key)!r}"
-                  for key in flags if getattr(wanted, key) != getattr(reference, key)]
+        differ = [
+            f"{key}: the partner's run uses {getattr(reference, key)!r}, you asked for {getattr(wanted, key)!r}"
+            for key in flags
+            if getattr(wanted, key) != getattr(reference, key)
+        ]
         if differ:
-            raise CLIError("the partner plays the environment it was evaluated in (its run's config.yaml, or "
-                           "the exported file's); " + "; ".join(differ) + ". Omit those flags")
+            raise CLIError(
+                "the partner plays the environment it was evaluated in (its run's config.yaml, or "
+                "the exported file's); " + "; ".join(differ) + ". Omit those flags"
+            )
         return ocv2.make(**trained)
     if args.layout is None:
         raise CLIError("give a LAYOUT (see 'ocv2 layouts'), or a trained --partner whose run fixes it")
@@ -213,8 +285,11 @@ def _bind(host: str, port: int, verbose: bool):
         return PlayServer(host, port, verbose)
     except OSError as error:
         if error.errno == errno.EADDRINUSE:
-            raise CLIError(f"port {port} on {host} is in use (another 'ocv2 play'?); pass --port with another "
-                           "number, or --port 0 for any free one", EXIT_FAILURE) from None
+            raise CLIError(
+                f"port {port} on {host} is in use (another 'ocv2 play'?); pass --port with another "
+                "number, or --port 0 for any free one",
+                EXIT_FAILURE,
+            ) from None
         raise CLIError(f"cannot listen on {host}:{port}: {error.strerror or error}", EXIT_FAILURE) from None
 
 
@@ -254,9 +329,11 @@ def _announce(args, server, game, seed: int, path: str) -> None:
     print(f"ocv2 play: {env.layout.name}, {who}, {env.max_steps} steps at {args.fps:g} steps/s{view}, seed {seed}")
     print(f"recording to {path}")
     if not _loopback(args.host):
-        print(f"note: listening on {args.host}: other machines join at "
-              f"http://<this machine's name or address>:{server.port}/?key={server.key}; give that address only to "
-              "your players (the key is the only password)")
+        print(
+            f"note: listening on {args.host}: other machines join at "
+            f"http://<this machine's name or address>:{server.port}/?key={server.key}; give that address only to "
+            "your players (the key is the only password)"
+        )
     print(f"open {server.url}   (Ctrl-C to stop)", flush=True)
 
 

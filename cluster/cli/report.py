@@ -42,23 +42,55 @@ from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure
 METHOD_ORDER = ("sp", "sa", "op", "fcp")
 METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
 NO_XP_NOTE = "no cross-play yet: run ocv2 xp {run}"
-CSV_FIELDS = ("layout", "method", "env", "run_dir", "status", "num_seeds", "updates_done", "num_updates",
-              "env_steps_per_seed", "sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "sp_ci95", "xp_ci95",
-              "num_policies", "episodes_per_pair", "baseline_run", "delta_sp", "delta_xp", "delta_gap", "note")
+CSV_FIELDS = (
+    "layout",
+    "method",
+    "env",
+    "run_dir",
+    "status",
+    "num_seeds",
+    "updates_done",
+    "num_updates",
+    "env_steps_per_seed",
+    "sp_mean",
+    "sp_std",
+    "xp_mean",
+    "xp_std",
+    "gap",
+    "sp_ci95",
+    "xp_ci95",
+    "num_policies",
+    "episodes_per_pair",
+    "baseline_run",
+    "delta_sp",
+    "delta_xp",
+    "delta_gap",
+    "note",
+)
 
 
 # ---------------------------------------------------------------------------------------------------
 # ocv2 validate
 # ---------------------------------------------------------------------------------------------------
 
+
 def add_validate(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("validate", help="check YAML configs without running anything",
-                            description="Parse and validate each config exactly as 'ocv2 train' would (with the "
-                                        "same --set overrides) and print what it would train. Exit 1 if any "
-                                        "config is invalid (every file is checked).")
+    parser = sub.add_parser(
+        "validate",
+        help="check YAML configs without running anything",
+        description="Parse and validate each config exactly as 'ocv2 train' would (with the "
+        "same --set overrides) and print what it would train. Exit 1 if any "
+        "config is invalid (every file is checked).",
+    )
     parser.add_argument("configs", nargs="+", metavar="CONFIG", help="YAML config(s), e.g. configs/paper/*.yaml")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                        help="override a config value in every file (repeatable)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a config value in every file (repeatable)",
+    )
     return parser
 
 
@@ -67,17 +99,24 @@ def describe_config(config) -> str:
     ppo, pop = config.ppo, config.population
     steps = ppo.num_updates * ppo.steps_per_update
     view = config.env_kwargs.get("agent_view_size")
-    text = (f"{pop.method} on {config.env_kwargs['layout']} ({'full view' if view is None else f'view {view}'}, "
-            f"{config.model.kind}), {pop.num_seeds} seeds x {ppo.num_updates} updates x {ppo.steps_per_update:,} "
-            f"= {steps:,} env steps per seed")
+    text = (
+        f"{pop.method} on {config.env_kwargs['layout']} ({'full view' if view is None else f'view {view}'}, "
+        f"{config.model.kind}), {pop.num_seeds} seeds x {ppo.num_updates} updates x {ppo.steps_per_update:,} "
+        f"= {steps:,} env steps per seed"
+    )
     if pop.method == "sa":
         text += f"; {pop.sa.iterations} SA iterations"
     if pop.method == "fcp":
         fcp = pop.fcp
-        pool = f"{fcp.partner_seeds} partner seeds x {list(fcp.checkpoints)} {'per learner' if fcp.per_seed else 'shared'}"
-        text += (f"; pool {pool} from {fcp.partners}" if fcp.partners
-                 else f"; first an SP partner stage of {fcp.stage_seeds(pop.num_seeds)} seeds x "
-                      f"{fcp.partner_ppo.num_updates} updates, pool {pool}")
+        pool = (
+            f"{fcp.partner_seeds} partner seeds x {list(fcp.checkpoints)} {'per learner' if fcp.per_seed else 'shared'}"
+        )
+        text += (
+            f"; pool {pool} from {fcp.partners}"
+            if fcp.partners
+            else f"; first an SP partner stage of {fcp.stage_seeds(pop.num_seeds)} seeds x "
+            f"{fcp.partner_ppo.num_updates} updates, pool {pool}"
+        )
     return text
 
 
@@ -92,8 +131,9 @@ def check_config_file(path: str, overrides) -> tuple[str, object]:
         # driver) must fit; what it needs when it trains here is shown.
         check_fits(config, "cluster")
     except ConfigError as error:
-        problems = error.problems if all(p.startswith(f"{path}:") for p in error.problems) \
-            else error.prefixed(path).problems
+        problems = (
+            error.problems if all(p.startswith(f"{path}:") for p in error.problems) else error.prefixed(path).problems
+        )
         return "fail", problems
     partners = config.population.fcp.partners
     if config.population.method == "fcp" and partners and not (Path(partners) / "config.yaml").is_file():
@@ -121,6 +161,7 @@ def run_validate(args) -> int:
 # ---------------------------------------------------------------------------------------------------
 # reading run directories
 # ---------------------------------------------------------------------------------------------------
+
 
 def _nan(value) -> float:
     try:
@@ -155,19 +196,33 @@ def load_run(path) -> dict:
         with open(matrix_path, newline="") as handle:
             rows = list(csv.reader(handle))
         matrix = [[_nan(v) for v in row[1:]] for row in rows[1:] if row]
-    return {"path": str(path), "name": run.path.resolve().name, "config": config, "summary": summary,
-            "metrics": metrics, "matrix": matrix, "status": run.read_manifest().get("status", "")}
+    return {
+        "path": str(path),
+        "name": run.path.resolve().name,
+        "config": config,
+        "summary": summary,
+        "metrics": metrics,
+        "matrix": matrix,
+        "status": run.read_manifest().get("status", ""),
+    }
 
 
 def env_label(config) -> str:
     """Short description of the env section: view radius and the flags that are switched on."""
     env = config.env_kwargs
     parts = ["full view" if env.get("agent_view_size") is None else f"view {env['agent_view_size']}"]
-    flags = {"random_agent_positions": "random starts", "negative_rewards": "negative rewards",
-             "sample_recipe_on_delivery": "recipe resampling", "indicate_successful_delivery": "delivery indicator"}
+    flags = {
+        "random_agent_positions": "random starts",
+        "negative_rewards": "negative rewards",
+        "sample_recipe_on_delivery": "recipe resampling",
+        "indicate_successful_delivery": "delivery indicator",
+    }
     parts += [label for key, label in flags.items() if env.get(key)]
-    others = sorted(k for k, v in env.items() if k not in flags and k not in ("layout", "agent_view_size")
-                    and not (k == "max_steps" and v == 400))
+    others = sorted(
+        k
+        for k, v in env.items()
+        if k not in flags and k not in ("layout", "agent_view_size") and not (k == "max_steps" and v == 400)
+    )
     parts += [f"{k}={env[k]}" for k in others]
     return ", ".join(parts)
 
@@ -187,11 +242,20 @@ def report_rows(runs: list[dict]) -> list[dict]:
             steps = [_nan(r.get("env_steps")) for r in run["metrics"]]
             steps = [s for s in steps if not math.isnan(s)]
             row = {
-                "layout": config.env_kwargs["layout"], "method": config.population.method,
-                "env": env_label(config), "run_dir": run["path"], "status": run["status"],
-                "num_seeds": config.population.num_seeds, "updates_done": max(updates) if updates else 0,
-                "num_updates": config.ppo.num_updates, "env_steps_per_seed": int(max(steps)) if steps else 0,
-                "baseline_run": "", "delta_sp": math.nan, "delta_xp": math.nan, "delta_gap": math.nan, "note": "",
+                "layout": config.env_kwargs["layout"],
+                "method": config.population.method,
+                "env": env_label(config),
+                "run_dir": run["path"],
+                "status": run["status"],
+                "num_seeds": config.population.num_seeds,
+                "updates_done": max(updates) if updates else 0,
+                "num_updates": config.ppo.num_updates,
+                "env_steps_per_seed": int(max(steps)) if steps else 0,
+                "baseline_run": "",
+                "delta_sp": math.nan,
+                "delta_xp": math.nan,
+                "delta_gap": math.nan,
+                "note": "",
             }
             for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "sp_ci95", "xp_ci95"):
                 row[key] = _nan(summary.get(key)) if summary else math.nan
@@ -212,6 +276,7 @@ def report_rows(runs: list[dict]) -> list[dict]:
 # ---------------------------------------------------------------------------------------------------
 # formatting
 # ---------------------------------------------------------------------------------------------------
+
 
 def fmt(value, signed: bool = False) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
@@ -238,9 +303,14 @@ def table_cells(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
     header.append("Run")
     cells = []
     for r in rows:
-        line = [r["layout"], r["env"], METHOD_NAMES.get(r["method"], r["method"]), str(r["num_seeds"]),
-                _steps(r["env_steps_per_seed"]) + ("" if r["updates_done"] >= r["num_updates"]
-                                                   else f" ({r['updates_done']}/{r['num_updates']} updates)")]
+        line = [
+            r["layout"],
+            r["env"],
+            METHOD_NAMES.get(r["method"], r["method"]),
+            str(r["num_seeds"]),
+            _steps(r["env_steps_per_seed"])
+            + ("" if r["updates_done"] >= r["num_updates"] else f" ({r['updates_done']}/{r['num_updates']} updates)"),
+        ]
         if r["note"]:
             line += ["n/a", "n/a", "n/a"]
         else:
@@ -264,6 +334,7 @@ def markdown_table(header: list[str], cells: list[list[str]]) -> str:
 # ---------------------------------------------------------------------------------------------------
 # pictures
 # ---------------------------------------------------------------------------------------------------
+
 
 def curve(metrics: list[dict], field: str = "sparse_return"):
     """(env steps, mean, std) across seeds per update; None if no finished episode was recorded."""
@@ -293,8 +364,10 @@ def write_curves(runs: list[dict], out: Path) -> list[str]:
         fig, ax = plt.subplots(figsize=(6.5, 4))
         for run, (x, mean, std) in lines:
             config = run["config"]
-            label = (f"{config.population.method.upper()} ({env_label(config)}, {config.population.num_seeds} "
-                     f"seeds): {run['name']}")
+            label = (
+                f"{config.population.method.upper()} ({env_label(config)}, {config.population.num_seeds} "
+                f"seeds): {run['name']}"
+            )
             (line,) = ax.plot(x, mean, label=label)
             ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
         ax.set_xlabel("environment steps per seed")
@@ -332,11 +405,15 @@ def write_heatmaps(runs: list[dict], out: Path) -> dict[str, str]:
 # ocv2 report
 # ---------------------------------------------------------------------------------------------------
 
+
 def add_report(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("report", help="paper-style SP/XP tables, curves and heatmaps of run directories",
-                            description="Read run directories and write report.md, report.csv (one row per run: "
-                                        "SP, XP, gap and, against the same environment's self-play run, the "
-                                        "deltas), curves_<layout>.png and heatmap_<run>.png into --out.")
+    parser = sub.add_parser(
+        "report",
+        help="paper-style SP/XP tables, curves and heatmaps of run directories",
+        description="Read run directories and write report.md, report.csv (one row per run: "
+        "SP, XP, gap and, against the same environment's self-play run, the "
+        "deltas), curves_<layout>.png and heatmap_<run>.png into --out.",
+    )
     parser.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
     parser.add_argument("--out", default="reports", help="folder to write into (default reports/)")
     return parser
@@ -362,11 +439,16 @@ def run_report(args) -> int:
     for row in rows:
         writer.writerow({k: ("" if isinstance(row[k], float) and math.isnan(row[k]) else row[k]) for k in CSV_FIELDS})
     atomic_write(out / "report.csv", buffer.getvalue())
-    md = ["# ocv2 report", "",
-          "SP: mean ± std over the self-play cells (diagonal) of the cross-play matrix; XP: mean ± std over the "
-          "off-diagonal ordered pairs; Gap = SP - XP (the paper's Tables 1 and 2). Δ: this run minus the self-play "
-          "run of the same environment (Δ Gap is the paper's Table 1 bracket).", "",
-          markdown_table(header, cells), ""]
+    md = [
+        "# ocv2 report",
+        "",
+        "SP: mean ± std over the self-play cells (diagonal) of the cross-play matrix; XP: mean ± std over the "
+        "off-diagonal ordered pairs; Gap = SP - XP (the paper's Tables 1 and 2). Δ: this run minus the self-play "
+        "run of the same environment (Δ Gap is the paper's Table 1 bracket).",
+        "",
+        markdown_table(header, cells),
+        "",
+    ]
     notes = [r for r in rows if r["note"]]
     if notes:
         md += ["## Notes", ""] + [f"- {r['run_dir']}: {r['note']}" for r in notes] + [""]

@@ -29,20 +29,31 @@ from population.checkpoints import CheckpointError
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("study", help="run many population jobs and their comparisons as one resumable study",
-                            description="Studies: a YAML file lists runs (config + overrides, with the paper's "
-                                        "numbers) and comparisons; `run` trains, cross-plays and reports, and "
-                                        "continues where it stopped after any interruption.")
+    parser = sub.add_parser(
+        "study",
+        help="run many population jobs and their comparisons as one resumable study",
+        description="Studies: a YAML file lists runs (config + overrides, with the paper's "
+        "numbers) and comparisons; `run` trains, cross-plays and reports, and "
+        "continues where it stopped after any interruption.",
+    )
     commands = parser.add_subparsers(dest="study_command", metavar="{run,status,report}")
     commands.required = True
     run = commands.add_parser("run", help="train every unfinished run, cross-play, write DIR/report.md")
     run.add_argument("study", help="study file (see configs/studies/)")
-    run.add_argument("--budget", type=_budget, default=None,
-                     help="fraction of every run's env steps (total_timesteps and the schedules that follow it); "
-                          "default 1 = the configs as written")
+    run.add_argument(
+        "--budget",
+        type=_budget,
+        default=None,
+        help="fraction of every run's env steps (total_timesteps and the schedules that follow it); "
+        "default 1 = the configs as written",
+    )
     run.add_argument("--seeds", type=_seeds, default=None, help="seeds per run (default: each config's own)")
-    run.add_argument("--backend", choices=["ray", "local"], default="ray",
-                     help="ray (default; a Ray started here unless --address) or local (one process, no Ray)")
+    run.add_argument(
+        "--backend",
+        choices=["ray", "local"],
+        default="ray",
+        help="ray (default; a Ray started here unless --address) or local (one process, no Ray)",
+    )
     run.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT")
     run.add_argument("--out", help="study directory (default studies/<study name>)")
     run.add_argument("--quiet", action="store_true", help="no progress output")
@@ -50,8 +61,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
     status.add_argument("dir", help="study directory")
     report = commands.add_parser("report", help="write DIR/report.md again from what is finished")
     report.add_argument("dir", help="study directory")
-    report.add_argument("--out", help="write the report, summary, pictures and cross-play matrices into this folder "
-                                      "instead (a compact record to keep: no checkpoints, no archives)")
+    report.add_argument(
+        "--out",
+        help="write the report, summary, pictures and cross-play matrices into this folder "
+        "instead (a compact record to keep: no checkpoints, no archives)",
+    )
     return parser
 
 
@@ -95,8 +109,16 @@ def _run(args) -> int:
     out = Path(args.out or os.path.join("studies", study.name))
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
     try:
-        state = run_study(study, out, budget=args.budget, seeds=args.seeds, backend=args.backend,
-                          address=args.address, show_progress=not args.quiet, say=say)
+        state = run_study(
+            study,
+            out,
+            budget=args.budget,
+            seeds=args.seeds,
+            backend=args.backend,
+            address=args.address,
+            show_progress=not args.quiet,
+            say=say,
+        )
     except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     blocked = {name: step for name, step in state["steps"].items() if step.get("status") != "done"}
@@ -104,8 +126,9 @@ def _run(args) -> int:
     if blocked:
         for name, step in blocked.items():
             print(f"not done: {name}: {step.get('reason') or step.get('status')}")
-        raise CLIError(f"{len(blocked)} step(s) could not run (above); fix them and run the same command again",
-                       EXIT_FAILURE)
+        raise CLIError(
+            f"{len(blocked)} step(s) could not run (above); fix them and run the same command again", EXIT_FAILURE
+        )
     return EXIT_OK
 
 
@@ -125,11 +148,15 @@ def _status(directory: str) -> int:
             else:
                 eta_total += eta
         eta_text = "" if entry["status"] == "done" or eta is None else f"  ETA {_duration(eta)}"
-        print(f"{entry['step']:<{width}}  {entry['status']:<11}  {detail}{eta_text}  (wall {_duration(entry['wall_s'])})")
+        print(
+            f"{entry['step']:<{width}}  {entry['status']:<11}  {detail}{eta_text}  (wall {_duration(entry['wall_s'])})"
+        )
     counts = {s: sum(e["status"] == s for e in entries) for s in dict.fromkeys(e["status"] for e in entries)}
-    print(", ".join(f"{n} {s}" for s, n in counts.items())
-          + f"; training left: {_duration(eta_total)}{' + runs of unmeasured speed' if unknown else ''} "
-            "(cross-play steps not included)")
+    print(
+        ", ".join(f"{n} {s}" for s, n in counts.items())
+        + f"; training left: {_duration(eta_total)}{' + runs of unmeasured speed' if unknown else ''} "
+        "(cross-play steps not included)"
+    )
     return EXIT_OK
 
 
@@ -152,4 +179,6 @@ def _duration(seconds) -> str:
     if seconds is None:
         return "?"
     seconds = int(seconds)
-    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+    return (
+        f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+    )

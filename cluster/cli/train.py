@@ -1,7 +1,7 @@
 """``ocv2 train``: train a population (``ocv2 xp`` lives in ``cluster.cli.xp``).
 
-    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--backend ray|local] [--address A] [--resume]
-              [--logger tensorboard|wandb]
+ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--backend ray|local] [--address A] [--resume]
+          [--logger tensorboard|wandb]
 """
 
 from __future__ import annotations
@@ -21,22 +21,43 @@ from population.config import ConfigError, check_fits, load_config
 
 
 def add_train(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("train", help="train a population from a YAML config",
-                            description="Train a population (SP, SA, OP or FCP) from a YAML config, then "
-                                        "evaluate cross-play and write plots and GIFs into the run directory.")
+    parser = sub.add_parser(
+        "train",
+        help="train a population from a YAML config",
+        description="Train a population (SP, SA, OP or FCP) from a YAML config, then "
+        "evaluate cross-play and write plots and GIFs into the run directory.",
+    )
     parser.add_argument("config", help="YAML config (see configs/)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                        help="override a config value (repeatable), e.g. --set ppo.total_timesteps=1e6")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a config value (repeatable), e.g. --set ppo.total_timesteps=1e6",
+    )
     parser.add_argument("--out", help="run directory (default runs/<layout>_<method>_<time>)")
-    parser.add_argument("--backend", choices=["ray", "local"], default="ray",
-                        help="ray (default): one Ray actor per shard of seeds (cluster: section); "
-                             "local: one process, seeds vmapped in one jitted program, no Ray")
-    parser.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT (default: cluster.address, "
-                                          "else start Ray on this machine)")
+    parser.add_argument(
+        "--backend",
+        choices=["ray", "local"],
+        default="ray",
+        help="ray (default): one Ray actor per shard of seeds (cluster: section); "
+        "local: one process, seeds vmapped in one jitted program, no Ray",
+    )
+    parser.add_argument(
+        "--address",
+        help="Ray cluster to join: auto or HOST:PORT (default: cluster.address, else start Ray on this machine)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoints")
-    parser.add_argument("--logger", dest="loggers", action="append", default=[], choices=LOGGERS,
-                        help="also log metrics, cross-play and heatmap to tensorboard (RUN_DIR/tensorboard/) or "
-                             "wandb (repeatable; needs ocv2[tensorboard] / ocv2[wandb])")
+    parser.add_argument(
+        "--logger",
+        dest="loggers",
+        action="append",
+        default=[],
+        choices=LOGGERS,
+        help="also log metrics, cross-play and heatmap to tensorboard (RUN_DIR/tensorboard/) or "
+        "wandb (repeatable; needs ocv2[tensorboard] / ocv2[wandb])",
+    )
     parser.add_argument("--no-eval", action="store_true", help="skip cross-play, plots and GIFs after training")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser
@@ -72,8 +93,15 @@ def run_train(args) -> int:
     except MissingExtraError as error:
         raise CLIError(str(error)) from None
     try:
-        summary = train_population(config, out, backend=args.backend, resume=args.resume,
-                                   show_progress=not args.quiet, evaluate=not args.no_eval, loggers=args.loggers)
+        summary = train_population(
+            config,
+            out,
+            backend=args.backend,
+            resume=args.resume,
+            show_progress=not args.quiet,
+            evaluate=not args.no_eval,
+            loggers=args.loggers,
+        )
     except (RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     except OSError as error:  # a full disk, a read-only or vanished directory: every write is atomic
@@ -84,11 +112,12 @@ def run_train(args) -> int:
 
 def _os_error_message(error: OSError, out: str) -> str:
     where = f" writing {error.filename}" if error.filename else ""
-    return (f"{error.strerror or error}{where}. {out} keeps its last complete checkpoint and metrics; fix the "
-            f"cause (e.g. free disk space) and continue with `ocv2 train CONFIG --out {out} --resume`")
+    return (
+        f"{error.strerror or error}{where}. {out} keeps its last complete checkpoint and metrics; fix the "
+        f"cause (e.g. free disk space) and continue with `ocv2 train CONFIG --out {out} --resume`"
+    )
 
 
 def _default_run_dir(config) -> str:
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     return os.path.join("runs", f"{config.env_kwargs['layout']}_{config.population.method}_{stamp}")
-

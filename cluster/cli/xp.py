@@ -30,35 +30,55 @@ from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
 
 def add_xp(sub) -> argparse.ArgumentParser:
     parser = sub.add_parser(
-        "xp", help="cross-play matrix of a trained population, or across runs and policy files",
+        "xp",
+        help="cross-play matrix of a trained population, or across runs and policy files",
         description="With RUN_DIR: evaluate every ordered pair of the run's final policies (diagonal = self-play) "
-                    "and write RUN_DIR/xp/matrix.csv, episodes.csv, summary.json, heatmap.png (the run's lock is "
-                    "taken: a run that trains or is evaluated elsewhere is refused unless --wait). With "
-                    "--rows/--cols: every row policy with every column policy across runs (SP vs SA vs OP vs FCP), "
-                    "exported files or human-proxy:LAYOUT, in both seat orders (--seats 0: rows in seat 0 only), "
-                    "written to --out (matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png, blocks.png; "
-                    "with both orders also *_cols_seat0 and *_mean files). Confidence intervals: bootstrap over seeds.")
+        "and write RUN_DIR/xp/matrix.csv, episodes.csv, summary.json, heatmap.png (the run's lock is "
+        "taken: a run that trains or is evaluated elsewhere is refused unless --wait). With "
+        "--rows/--cols: every row policy with every column policy across runs (SP vs SA vs OP vs FCP), "
+        "exported files or human-proxy:LAYOUT, in both seat orders (--seats 0: rows in seat 0 only), "
+        "written to --out (matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png, blocks.png; "
+        "with both orders also *_cols_seat0 and *_mean files). Confidence intervals: bootstrap over seeds.",
+    )
     parser.add_argument("run_dir", nargs="?", help="a run directory: its own cross-play (in-run form)")
-    parser.add_argument("--rows", nargs="+", metavar="SRC", help="row policy sources: run dir (all seeds), "
-                        "seed dir, checkpoint, exported file or human-proxy:LAYOUT")
+    parser.add_argument(
+        "--rows",
+        nargs="+",
+        metavar="SRC",
+        help="row policy sources: run dir (all seeds), seed dir, checkpoint, exported file or human-proxy:LAYOUT",
+    )
     parser.add_argument("--cols", nargs="+", metavar="SRC", help="column policy sources (default: the --rows)")
-    parser.add_argument("--checkpoint",
-                        help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an "
-                             "update number")
+    parser.add_argument(
+        "--checkpoint",
+        help="which checkpoint of run/seed-dir sources: final (default), mid, init, latest or an update number",
+    )
     parser.add_argument("--greedy", action="store_true", help="argmax actions instead of sampled ones")
-    parser.add_argument("--seats", choices=crossplay.SEATS,
-                        help="with --rows: both (default) plays every pair in both seat orders and reports each "
-                             "order and their mean; 0 plays the row policies in seat 0 only")
-    parser.add_argument("--wait", action="store_true",
-                        help="with RUN_DIR: wait for the process that holds the run (training, another xp) "
-                             "instead of refusing")
-    parser.add_argument("--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes; "
-                                                     "500 with --rows)")
-    parser.add_argument("--seed", type=int, help="episode key stream (default: the first row run's population.seed, "
-                                                 "so a run against itself reproduces its in-run matrix; else 0)")
+    parser.add_argument(
+        "--seats",
+        choices=crossplay.SEATS,
+        help="with --rows: both (default) plays every pair in both seat orders and reports each "
+        "order and their mean; 0 plays the row policies in seat 0 only",
+    )
+    parser.add_argument(
+        "--wait",
+        action="store_true",
+        help="with RUN_DIR: wait for the process that holds the run (training, another xp) instead of refusing",
+    )
+    parser.add_argument(
+        "--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes; 500 with --rows)"
+    )
+    parser.add_argument(
+        "--seed",
+        type=int,
+        help="episode key stream (default: the first row run's population.seed, "
+        "so a run against itself reproduces its in-run matrix; else 0)",
+    )
     parser.add_argument("--out", help="output directory for --rows (default runs/xp_<time>)")
-    parser.add_argument("--backend", choices=["ray", "local"],
-                        help="with --rows: ray (default) spreads the jobs over Ray workers; local plays them here")
+    parser.add_argument(
+        "--backend",
+        choices=["ray", "local"],
+        help="with --rows: ray (default) spreads the jobs over Ray workers; local plays them here",
+    )
     parser.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT (default: start Ray here)")
     parser.add_argument("--workers", type=int, help="Ray workers (default: one per available CPU, at most one per job)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -73,14 +93,25 @@ def run_xp(args) -> int:
             raise CLIError("give RUN_DIR (its own cross-play) or --rows SRC ... [--cols SRC ...]")
         if args.cols:
             raise CLIError("--cols needs --rows")
-        given = [flag for flag, value in (("--checkpoint", args.checkpoint), ("--greedy", args.greedy or None),
-                                          ("--seed", args.seed), ("--out", args.out), ("--backend", args.backend),
-                                          ("--address", args.address), ("--workers", args.workers),
-                                          ("--seats", args.seats))
-                 if value is not None]
+        given = [
+            flag
+            for flag, value in (
+                ("--checkpoint", args.checkpoint),
+                ("--greedy", args.greedy or None),
+                ("--seed", args.seed),
+                ("--out", args.out),
+                ("--backend", args.backend),
+                ("--address", args.address),
+                ("--workers", args.workers),
+                ("--seats", args.seats),
+            )
+            if value is not None
+        ]
         if given:
-            raise CLIError(f"{', '.join(given)}: only with --rows (the in-run form evaluates RUN_DIR's final "
-                           "policies here and writes RUN_DIR/xp/; its matrix holds both seat orders)")
+            raise CLIError(
+                f"{', '.join(given)}: only with --rows (the in-run form evaluates RUN_DIR's final "
+                "policies here and writes RUN_DIR/xp/; its matrix holds both seat orders)"
+            )
         return _in_run(args)
     if args.run_dir is not None:
         raise CLIError(f"give either RUN_DIR ({args.run_dir}) or --rows, not both")
@@ -139,16 +170,28 @@ def _cross_run(args) -> int:
     started = time.perf_counter()
     label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
     try:
-        with crossplay.players(backend, jobs, args.address, args.workers) as workers, \
-                Bar(label, enabled=not args.quiet) as bar:
-            result = crossplay.play_seat_fair(rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar,
-                                              seats=seats)
+        with (
+            crossplay.players(backend, jobs, args.address, args.workers) as workers,
+            Bar(label, enabled=not args.quiet) as bar,
+        ):
+            result = crossplay.play_seat_fair(
+                rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar, seats=seats
+            )
     except RayBackendError as error:
         raise CLIError(str(error)) from None
     summary = crossplay.summarize_seat_fair(result)
-    summary.update({"rows": list(args.rows), "cols": list(args.cols or args.rows), "checkpoint": str(checkpoint),
-                    "greedy": bool(args.greedy), "seed": seed, "env": env_kwargs, "backend": backend,
-                    "wall_s": round(time.perf_counter() - started, 2)})
+    summary.update(
+        {
+            "rows": list(args.rows),
+            "cols": list(args.cols or args.rows),
+            "checkpoint": str(checkpoint),
+            "greedy": bool(args.greedy),
+            "seed": seed,
+            "env": env_kwargs,
+            "backend": backend,
+            "wall_s": round(time.perf_counter() - started, 2),
+        }
+    )
     crossplay.write_seat_fair_outputs(result, out, summary, crossplay.policy_env(env_kwargs))
     if not args.quiet:
         _print_blocks(summary)
@@ -176,14 +219,20 @@ def _checkpoint(text: str):
 
 
 def add_export(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("export", help="write one policy (params + network + env settings) to a file",
-                            description="Export one trained policy to a single file that 'ocv2 xp', "
-                                        "ocv2.policy.load and 'ocv2 play' read without the run directory.")
+    parser = sub.add_parser(
+        "export",
+        help="write one policy (params + network + env settings) to a file",
+        description="Export one trained policy to a single file that 'ocv2 xp', "
+        "ocv2.policy.load and 'ocv2 play' read without the run directory.",
+    )
     parser.add_argument("source", help="run directory, RUN_DIR/checkpoints/seed_<i>, or a checkpoint file")
     parser.add_argument("--out", required=True, help="the file to write (e.g. cook.ocv2policy)")
     parser.add_argument("--seed", type=int, help="which seed of a run directory (default 0)")
-    parser.add_argument("--checkpoint", default="final",
-                        help="final (default), mid, init, latest or an update number (run or seed directory)")
+    parser.add_argument(
+        "--checkpoint",
+        default="final",
+        help="final (default), mid, init, latest or an update number (run or seed directory)",
+    )
     return parser
 
 

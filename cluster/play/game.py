@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import functools
 import re
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -94,6 +95,7 @@ class Game(NamedTuple):
 # partners
 # ---------------------------------------------------------------------------------------------------
 
+
 def _scripted_apply(kind: str) -> Callable:
     """A network-convention policy: always STAY, or uniformly random actions."""
     favoured = jnp.where(jnp.arange(it.NUM_ACTIONS) == it.Action.STAY, 0.0, -1e9)
@@ -127,19 +129,26 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
     """
     path = Path(path)
     if not path.exists():
-        raise PartnerError(f"--partner: {str(path)!r} does not exist (expected RUN_DIR/checkpoints/seed_<i>, "
-                           f"a checkpoint file in it, an exported *{policies.SUFFIX} file, 'human', 'stay' or "
-                           "'random')")
+        raise PartnerError(
+            f"--partner: {str(path)!r} does not exist (expected RUN_DIR/checkpoints/seed_<i>, "
+            f"a checkpoint file in it, an exported *{policies.SUFFIX} file, 'human', 'stay' or "
+            "'random')"
+        )
     seed_folder = path if path.is_dir() else path.parent
     match = _SEED_DIR.match(seed_folder.name)
     if match is None or seed_folder.parent.name != "checkpoints":
         hint = ""
         if path.is_dir() and (path / "checkpoints").is_dir():
             seeds = sorted(p.name for p in (path / "checkpoints").iterdir() if _SEED_DIR.match(p.name))
-            hint = f"; this looks like a run directory: pick a seed, e.g. {path / 'checkpoints' / seeds[0]}" \
-                if seeds else "; its checkpoints/ folder holds no seed"
-        raise PartnerError(f"--partner: {str(path)!r} is not RUN_DIR/checkpoints/seed_<i>, a checkpoint file "
-                           f"in one or an exported *{policies.SUFFIX} file{hint}")
+            hint = (
+                f"; this looks like a run directory: pick a seed, e.g. {path / 'checkpoints' / seeds[0]}"
+                if seeds
+                else "; its checkpoints/ folder holds no seed"
+            )
+        raise PartnerError(
+            f"--partner: {str(path)!r} is not RUN_DIR/checkpoints/seed_<i>, a checkpoint file "
+            f"in one or an exported *{policies.SUFFIX} file{hint}"
+        )
     run_dir, seed = seed_folder.parent.parent, int(match.group(1))
     if path.is_dir():
         latest = ckpt.latest(run_dir, seed)
@@ -162,20 +171,31 @@ def load_policy_partner(path) -> Partner:
     except policies.PolicyError as error:
         raise PartnerError(f"--partner: {error}") from None
     if exported:
-        return Partner("policy", policy.name, policy.apply, policy.params, policy.hidden_size, str(path),
-                       env_kwargs=policy.env)
+        return Partner(
+            "policy", policy.name, policy.apply, policy.params, policy.hidden_size, str(path), env_kwargs=policy.env
+        )
     try:
         fingerprint = load_config(run_dir / "config.yaml").fingerprint()  # policy.load read the same file
     except ConfigError as error:
         raise PartnerError(f"--partner: {error}") from None
     label = f"seed_{policy.meta['seed']}@update_{policy.meta['update']}"
-    return Partner("policy", label, policy.apply, policy.params,
-                   policy.hidden_size, str(path), str(run_dir), policy.env, fingerprint)
+    return Partner(
+        "policy",
+        label,
+        policy.apply,
+        policy.params,
+        policy.hidden_size,
+        str(path),
+        str(run_dir),
+        policy.env,
+        fingerprint,
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
 # the game: pure functions, jitted once by make_game
 # ---------------------------------------------------------------------------------------------------
+
 
 def reset_game(env, hidden_size: int, key: jax.Array) -> GameCarry:
     state = env.reset_state(key)
@@ -183,8 +203,15 @@ def reset_game(env, hidden_size: int, key: jax.Array) -> GameCarry:
     return GameCarry(state, env.get_obs_arrays(state), hidden, jnp.array(True))
 
 
-def game_step(env, apply: Callable, human_seats: tuple[int, ...], params, carry: GameCarry,
-              human_actions: jax.Array, key: jax.Array) -> tuple[GameCarry, StepRecord]:
+def game_step(
+    env,
+    apply: Callable,
+    human_seats: tuple[int, ...],
+    params,
+    carry: GameCarry,
+    human_actions: jax.Array,
+    key: jax.Array,
+) -> tuple[GameCarry, StepRecord]:
     """Partners act on their own observations, humans' actions are taken as given; the env steps once.
 
     No auto-reset: the episode ends at ``done`` and the session resets explicitly (the archive
@@ -197,15 +224,15 @@ def game_step(env, apply: Callable, human_seats: tuple[int, ...], params, carry:
             actions.append(human_actions[seat].astype(jnp.int32))
             hidden.append(carry.hidden[seat])
             continue
-        h, logits, _ = apply(params, carry.hidden[seat][None], carry.obs[seat][None, None],
-                                     carry.start[None, None])
+        h, logits, _ = apply(params, carry.hidden[seat][None], carry.obs[seat][None, None], carry.start[None, None])
         actions.append(jax.random.categorical(jax.random.fold_in(k_policy, seat), logits[0, 0]).astype(jnp.int32))
         hidden.append(h[0])
     joint = jnp.stack(actions)
     result = transition(env.config, k_env, carry.state, joint)
     carry = GameCarry(result.state, env.get_obs_arrays(result.state), jnp.stack(hidden), jnp.array(False))
-    return carry, StepRecord(joint, result.reward.astype(jnp.float32), result.shaped_reward.astype(jnp.float32),
-                             result.state.done)
+    return carry, StepRecord(
+        joint, result.reward.astype(jnp.float32), result.shaped_reward.astype(jnp.float32), result.state.done
+    )
 
 
 def seat_views(env, seats: tuple[int, ...], tile_size: int, state: State) -> Views:
@@ -221,8 +248,7 @@ def seat_views(env, seats: tuple[int, ...], tile_size: int, state: State) -> Vie
         if radius is None:
             window = jnp.ones((env.height, env.width), bool)
         else:
-            window = ((jnp.abs(rows - state.agents.y[seat]) <= radius)
-                      & (jnp.abs(cols - state.agents.x[seat]) <= radius))
+            window = (jnp.abs(rows - state.agents.y[seat]) <= radius) & (jnp.abs(cols - state.agents.x[seat]) <= radius)
         pixels = jnp.repeat(jnp.repeat(window, tile_size, axis=0), tile_size, axis=1)
         frames.append(jnp.where(pixels[:, :, None], image, jnp.asarray(HIDDEN_RGB, jnp.uint8)))
         # With a single possible recipe the order is common knowledge, indicator or not.
@@ -234,10 +260,14 @@ def make_game(env, partner: Partner, human_seats, tile_size: int = 48) -> Game:
     """Jit the reset, the step and the views for this env, partner and set of human seats."""
     seats = tuple(sorted(int(s) for s in human_seats))
     step = functools.partial(game_step, env, partner.apply, seats)
-    return Game(env, partner, seats,
-                reset=jax.jit(functools.partial(reset_game, env, partner.hidden_size)),
-                step=jax.jit(step),
-                views=jax.jit(functools.partial(seat_views, env, seats, int(tile_size))))
+    return Game(
+        env,
+        partner,
+        seats,
+        reset=jax.jit(functools.partial(reset_game, env, partner.hidden_size)),
+        step=jax.jit(step),
+        views=jax.jit(functools.partial(seat_views, env, seats, int(tile_size))),
+    )
 
 
 def warm_up(game: Game) -> None:

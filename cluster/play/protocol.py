@@ -12,8 +12,14 @@ from typing import NamedTuple
 from ocv2 import boundedjson
 from ocv2 import items as it
 
-ACTIONS = {"right": it.Action.RIGHT, "down": it.Action.DOWN, "left": it.Action.LEFT, "up": it.Action.UP,
-           "stay": it.Action.STAY, "interact": it.Action.INTERACT}
+ACTIONS = {
+    "right": it.Action.RIGHT,
+    "down": it.Action.DOWN,
+    "left": it.Action.LEFT,
+    "up": it.Action.UP,
+    "stay": it.Action.STAY,
+    "interact": it.Action.INTERACT,
+}
 MAX_MESSAGE_BYTES = 4096
 MAX_TOKEN_CHARS = 64
 #: Every message is one flat JSON object; deeper text is refused before anything walks it.
@@ -54,8 +60,9 @@ def parse_message(body: bytes) -> Message:
     try:
         data = boundedjson.loads(body.decode("utf-8"), MAX_MESSAGE_DEPTH)
     except boundedjson.JSONDepthError:
-        raise ProtocolError(f"message nests deeper than {MAX_MESSAGE_DEPTH} levels; it must be one flat JSON "
-                            "object") from None
+        raise ProtocolError(
+            f"message nests deeper than {MAX_MESSAGE_DEPTH} levels; it must be one flat JSON object"
+        ) from None
     except (UnicodeDecodeError, ValueError):
         raise ProtocolError("message is not UTF-8 JSON") from None
     if not isinstance(data, dict):
@@ -71,8 +78,13 @@ def parse_message(body: bytes) -> Message:
     token = data.get("token")
     if token is not None and (not isinstance(token, str) or not 0 < len(token) <= MAX_TOKEN_CHARS):
         raise ProtocolError("token must be the string the join reply gave")
-    return Message(kind, token, _action(data["action"]) if kind == "action" else None,
-                   _non_negative(data.get("since", 0), "since"), _seat(data.get("seat")))
+    return Message(
+        kind,
+        token,
+        _action(data["action"]) if kind == "action" else None,
+        _non_negative(data.get("since", 0), "since"),
+        _seat(data.get("seat")),
+    )
 
 
 def _action(value) -> int:

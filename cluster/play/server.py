@@ -61,7 +61,7 @@ _SECURITY_HEADERS = {
     "Referrer-Policy": "no-referrer",  # the page's URL holds the key
     # One self-contained page: inline script and style, frames as data: URLs, requests to itself only.
     "Content-Security-Policy": "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; "
-                               "img-src data:; connect-src 'self'",
+    "img-src data:; connect-src 'self'",
 }
 
 
@@ -211,8 +211,11 @@ class _Handler(BaseHTTPRequestHandler):
         elif path not in ("/", "/index.html"):
             self._json(404, {"ok": False, "error": f"no page {path!r} here; the game is at /"})
         elif not self._key_given():
-            self._send(403, b"ocv2 play: open the whole address 'ocv2 play' printed (it ends with ?key=...)\n",
-                       "text/plain; charset=utf-8")
+            self._send(
+                403,
+                b"ocv2 play: open the whole address 'ocv2 play' printed (it ends with ?key=...)\n",
+                "text/plain; charset=utf-8",
+            )
         else:
             self._send(200, self.server.page, "text/html; charset=utf-8")
 
@@ -300,8 +303,15 @@ class PlayServer:
     draws the per-launch ``key`` (``url`` carries it); ``start(session)`` starts serving and ticking.
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0, verbose: bool = False, *,
-                 request_timeout: float = REQUEST_TIMEOUT_S, max_connections: int = MAX_CONNECTIONS):
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        verbose: bool = False,
+        *,
+        request_timeout: float = REQUEST_TIMEOUT_S,
+        max_connections: int = MAX_CONNECTIONS,
+    ):
         self.key = secrets.token_urlsafe(16)
         self.http = _Server((host, port), verbose, self.key, request_timeout, max_connections)
         self.session: GameSession | None = None
@@ -319,10 +329,12 @@ class PlayServer:
         address = f"[{host}]:{self.port}" if ":" in host else f"{host}:{self.port}"
         return f"http://{address}/?key={self.key}"
 
-    def start(self, session: GameSession) -> "PlayServer":
+    def start(self, session: GameSession) -> PlayServer:
         self.session = self.http.session = session
-        self._threads = [threading.Thread(target=session.run, args=(self._stop,), name="ocv2-play-clock", daemon=True),
-                         threading.Thread(target=self.http.serve_forever, name="ocv2-play-http", daemon=True)]
+        self._threads = [
+            threading.Thread(target=session.run, args=(self._stop,), name="ocv2-play-clock", daemon=True),
+            threading.Thread(target=self.http.serve_forever, name="ocv2-play-http", daemon=True),
+        ]
         for thread in self._threads:
             thread.start()
         return self

@@ -22,7 +22,7 @@ import logging
 import secrets
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import numpy as np
@@ -40,9 +40,25 @@ SEAT_COLOURS = ("red", "blue", "green", "purple", "yellow", "orange")  # ocv2.re
 POLL_TIMEOUT_S = 1.0  # a poll with nothing new answers after this long: it doubles as the heartbeat
 WAITING, PLAYING, OVER = "waiting", "playing", "over"
 #: Episode metadata keys a session writes itself (``docs/play.md`` explains each); extra ``meta`` may not use them.
-PLAY_META_KEYS = ("env_params", "method", "kind", "human_seats", "partner", "policies", "checkpoints", "partner_run",
-                  "config_fingerprint", "seed", "tick_hz", "session", "play_episode", "cut_short", "end_reason",
-                  "started_at", "wall_s")
+PLAY_META_KEYS = (
+    "env_params",
+    "method",
+    "kind",
+    "human_seats",
+    "partner",
+    "policies",
+    "checkpoints",
+    "partner_run",
+    "config_fingerprint",
+    "seed",
+    "tick_hz",
+    "session",
+    "play_episode",
+    "cut_short",
+    "end_reason",
+    "started_at",
+    "wall_s",
+)
 
 
 class Player:
@@ -77,8 +93,15 @@ class EpisodeLog:
         """Write the episode (None when no transition was played: an archive episode needs one)."""
         if not self.actions:
             return None
-        return writer.write_episode(meta, stack_states(self.states), np.stack(self.actions), np.stack(self.rewards),
-                                    np.stack(self.shaped), np.stack(self.dones), layout=layout)
+        return writer.write_episode(
+            meta,
+            stack_states(self.states),
+            np.stack(self.actions),
+            np.stack(self.rewards),
+            np.stack(self.shaped),
+            np.stack(self.dones),
+            layout=layout,
+        )
 
 
 class GameSession:
@@ -96,9 +119,19 @@ class GameSession:
         clock: monotonic seconds (tests pass a fake one).
     """
 
-    def __init__(self, game: Game, writer: ArchiveWriter, *, seed: int, fps: float, first_seat: int | None = None,
-                 disconnect_s: float = 10.0, max_episodes: int | None = None, meta: dict | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self,
+        game: Game,
+        writer: ArchiveWriter,
+        *,
+        seed: int,
+        fps: float,
+        first_seat: int | None = None,
+        disconnect_s: float = 10.0,
+        max_episodes: int | None = None,
+        meta: dict | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.game, self.writer = game, writer
         self.seed, self.fps = int(seed), float(fps)
         self.disconnect_s, self.max_episodes, self.clock = float(disconnect_s), max_episodes, clock
@@ -238,7 +271,7 @@ class GameSession:
     # ---------------------------------------------------------------------------------------------
 
     def _everyone_ready(self) -> bool:
-        return (len(self.players) == len(self.game.human_seats) and all(p.ready for p in self.players.values()))
+        return len(self.players) == len(self.game.human_seats) and all(p.ready for p in self.players.values())
 
     def _prepare_next(self) -> None:
         """Reset the next episode now, so that waiting players see the kitchen they will play."""
@@ -256,8 +289,14 @@ class GameSession:
 
     def _end(self, reason: str) -> None:
         log, cut_short = self._log, reason != "completed"
-        meta = {**self.base_meta, "play_episode": self._number, "cut_short": cut_short, "end_reason": reason,
-                "started_at": round(log.started, 3), "wall_s": round(time.time() - log.started, 3)}
+        meta = {
+            **self.base_meta,
+            "play_episode": self._number,
+            "cut_short": cut_short,
+            "end_reason": reason,
+            "started_at": round(log.started, 3),
+            "wall_s": round(time.time() - log.started, 3),
+        }
         index = None
         try:
             index = log.write(self.writer, meta, self.env.layout)
@@ -266,8 +305,13 @@ class GameSession:
             log.warning("ocv2 play: %s", self.last_error)
         if index is not None:
             self.episodes_recorded += 1
-        self.last_episode = {"score": self.score, "steps": log.steps, "cut_short": cut_short, "end_reason": reason,
-                             "archive_index": index}
+        self.last_episode = {
+            "score": self.score,
+            "steps": log.steps,
+            "cut_short": cut_short,
+            "end_reason": reason,
+            "archive_index": index,
+        }
         self.phase = OVER if reason == "completed" else WAITING
         for player in self.players.values():
             player.ready = False
@@ -302,16 +346,29 @@ class GameSession:
             ingredients = recipe_ingredients(int(self._state.recipe), self.env.layout.num_ingredients)
             recipe = {"ingredients": ingredients, "colours": [ingredient_colour(i) for i in ingredients]}
         reply = {
-            "ok": True, "version": self._version, "phase": self.phase, "closed": self._closed,
-            "seat": player.seat, "colour": SEAT_COLOURS[player.seat % len(SEAT_COLOURS)],
-            "layout": self.env.layout.name, "partner": self.game.partner.label, "fps": self.fps,
+            "ok": True,
+            "version": self._version,
+            "phase": self.phase,
+            "closed": self._closed,
+            "seat": player.seat,
+            "colour": SEAT_COLOURS[player.seat % len(SEAT_COLOURS)],
+            "layout": self.env.layout.name,
+            "partner": self.game.partner.label,
+            "fps": self.fps,
             "view_radius": self.env.config.view_radius,
-            "step": step, "max_steps": max_steps, "steps_left": max_steps - step,
-            "seconds_left": round((max_steps - step) / self.fps, 1), "score": self.score,
-            "recipe": recipe, "episodes_recorded": self.episodes_recorded, "last_episode": self.last_episode,
+            "step": step,
+            "max_steps": max_steps,
+            "steps_left": max_steps - step,
+            "seconds_left": round((max_steps - step) / self.fps, 1),
+            "score": self.score,
+            "recipe": recipe,
+            "episodes_recorded": self.episodes_recorded,
+            "last_episode": self.last_episode,
             "joined": sorted(p.seat for p in self.players.values()),
             "ready": sorted(p.seat for p in self.players.values() if p.ready),
-            "human_seats": list(self.game.human_seats), "you_ready": player.ready, "error": self.last_error,
+            "human_seats": list(self.game.human_seats),
+            "you_ready": player.ready,
+            "error": self.last_error,
             "dropped": player.token not in self.players,
         }
         if since < self._frame_version:

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import jax
 import numpy as np
@@ -35,7 +35,8 @@ from cluster.runtime.runstate import Schedule, archive_meta, load_params, pair_m
 from cluster.runtime.shard import SABuffer
 from population import checkpoints as ckpt
 from population import ppo
-from population.config import Config, shards as seed_shards
+from population.config import Config
+from population.config import shards as seed_shards
 from population.evaluation import stack_params
 from population.networks import same_function
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
@@ -46,6 +47,7 @@ log = logging.getLogger(__name__)
 # ---------------------------------------------------------------------------------------------------
 # SA buffer
 # ---------------------------------------------------------------------------------------------------
+
 
 def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, extra=None) -> SABuffer:
     """The iteration's buffer: loaded if this run already collected it (resume), else collected and saved.
@@ -61,7 +63,9 @@ def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, ext
     params = workers.share(gather_params(workers))
     num = config.population.num_seeds
     record = config.archive.sa_collection
-    results = workers.call("collect", spread_jobs(workers, all_pairs(num), lambda pairs: (params, pairs, iteration, record)))
+    results = workers.call(
+        "collect", spread_jobs(workers, all_pairs(num), lambda pairs: (params, pairs, iteration, record))
+    )
     by_pair = {}
     for result in results:  # keyed by pair: a task that ran twice overwrites its own entry
         for index, pair in enumerate(result.pairs):
@@ -73,8 +77,9 @@ def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, ext
     if record:
         _archive_collection(config, run, iteration, by_pair)
     pairs = sorted(by_pair)
-    buffer = merge_buffers([PairStates(tuple(pairs), jax.tree.map(lambda *xs: np.stack(xs),
-                                                                   *[by_pair[p][0] for p in pairs]))])
+    buffer = merge_buffers(
+        [PairStates(tuple(pairs), jax.tree.map(lambda *xs: np.stack(xs), *[by_pair[p][0] for p in pairs]))]
+    )
     buffer = extend_buffer(jax.tree.map(np.asarray, buffer), extra)
     ckpt.save(path, buffer, config.fingerprint(), iteration=iteration, states=int(buffer.step.shape[0]))
     return SABuffer(iteration, buffer)
@@ -84,8 +89,9 @@ def archived_states(config: Config):
     """``population.sa.archives`` as one numpy state batch (None without archives). Raises ArchiveError."""
     if config.population.method != "sa" or not config.population.sa.archives:
         return None
-    states = states_as_buffer(list(config.population.sa.archives), config.population.sa.keep_every,
-                              layout=ppo.eval_env(config).layout)
+    states = states_as_buffer(
+        list(config.population.sa.archives), config.population.sa.keep_every, layout=ppo.eval_env(config).layout
+    )
     return jax.tree.map(np.asarray, states)
 
 
@@ -94,9 +100,8 @@ def _archive_collection(config: Config, run: RunDir, iteration: int, by_pair: di
     base = archive_meta(config, "sa-collection", iteration=iteration)
     path = run.sub("archive", "sa", f"iteration_{iteration:03d}.mcap")
     with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:
-        for (i, j) in sorted(by_pair):
-            record_episodes(writer, env, by_pair[(i, j)][1],
-                            {**base, **pair_meta(i, j)})
+        for i, j in sorted(by_pair):
+            record_episodes(writer, env, by_pair[(i, j)][1], {**base, **pair_meta(i, j)})
 
 
 def buffer_template(config: Config, size: int):
@@ -108,6 +113,7 @@ def buffer_template(config: Config, size: int):
 # ---------------------------------------------------------------------------------------------------
 # FCP partner pools
 # ---------------------------------------------------------------------------------------------------
+
 
 def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object, list]:
     """Stack the frozen partners from an SP run directory: partner_seeds x checkpoints per pool.
@@ -122,17 +128,27 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
     except RunDirError as error:
         raise RunDirError(f"population.fcp.partners: {error}") from None
     if partner_config.env != config.env or same_function(partner_config.model) != same_function(config.model):
-        raise RunDirError(f"population.fcp.partners: {partner_run} was trained with a different env or model "
-                          "section; FCP partners must play the same game with the same network")
+        raise RunDirError(
+            f"population.fcp.partners: {partner_run} was trained with a different env or model "
+            "section; FCP partners must play the same game with the same network"
+        )
     twin = twin_seed_warning(config, partner_config, partner_run)
     if twin:
         log.warning(twin)
     needed = fcp.stage_seeds(config.population.num_seeds)
     if partner_config.population.num_seeds < needed:
-        per_learner = (f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed; "
-                       "population.fcp.pool=shared needs partner_seeds)") if fcp.per_seed else ""
-        raise RunDirError(f"population.fcp.partner_seeds: {needed} partner seeds needed{per_learner} but {partner_run} has "
-                          f"{partner_config.population.num_seeds} seeds")
+        per_learner = (
+            (
+                f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed; "
+                "population.fcp.pool=shared needs partner_seeds)"
+            )
+            if fcp.per_seed
+            else ""
+        )
+        raise RunDirError(
+            f"population.fcp.partner_seeds: {needed} partner seeds needed{per_learner} but {partner_run} has "
+            f"{partner_config.population.num_seeds} seeds"
+        )
     snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
     template = params_template(trainer)
 
@@ -158,9 +174,11 @@ def twin_seed_warning(config: Config, partner_config: Config, partner_run) -> st
     seed = config.population.seed
     if partner_config.population.seed != seed:
         return None
-    return (f"population.fcp.partners: {partner_run} was trained with the same population.seed ({seed}), so "
-            f"learner i starts from the very parameters of partner seed i; give the FCP run another seed "
-            f"(--set population.seed={seed + PARTNER_SEED_OFFSET}) for learners independent of their partners")
+    return (
+        f"population.fcp.partners: {partner_run} was trained with the same population.seed ({seed}), so "
+        f"learner i starts from the very parameters of partner seed i; give the FCP run another seed "
+        f"(--set population.seed={seed + PARTNER_SEED_OFFSET}) for learners independent of their partners"
+    )
 
 
 #: population.seed of the SP partner stage = the FCP run's seed + this (learners never start as their partners)
@@ -177,9 +195,11 @@ def partner_stage(config: Config) -> Config:
     seeds = fcp.stage_seeds(pop.num_seeds)
     workers = min(len(seed_shards(config)), seeds)
     return dataclasses.replace(
-        config, ppo=fcp.partner_ppo,
+        config,
+        ppo=fcp.partner_ppo,
         population=dataclasses.replace(pop, method="sp", num_seeds=seeds, seed=pop.seed + PARTNER_SEED_OFFSET),
-        cluster=dataclasses.replace(config.cluster, workers=workers, seeds_per_actor=1))
+        cluster=dataclasses.replace(config.cluster, workers=workers, seeds_per_actor=1),
+    )
 
 
 def fcp_pool(config: Config, run: RunDir, factory: WorkersFactory, show_progress: bool):
@@ -191,14 +211,22 @@ def fcp_pool(config: Config, run: RunDir, factory: WorkersFactory, show_progress
         stage_dir = RunDir(partner_run)
         started = stage_dir.config_path.exists()
         if not (started and stage_dir.read_manifest().get("status") == "finished"):
-            train(stage, partner_run, factory, resume=started, show_progress=show_progress,
-                  evaluate=False, label="FCP partner stage (SP)")
+            train(
+                stage,
+                partner_run,
+                factory,
+                resume=started,
+                show_progress=show_progress,
+                evaluate=False,
+                label="FCP partner stage (SP)",
+            )
     return load_pool(config, ppo.make_trainer(config), partner_run)
 
 
 # ---------------------------------------------------------------------------------------------------
 # the training loop
 # ---------------------------------------------------------------------------------------------------
+
 
 def merge_rows(results, since: int, until: int | None = None) -> list[dict]:
     """Rows of (since, until] from every shard, each (seed, update) once, ordered by seed then update."""
@@ -210,8 +238,17 @@ def merge_rows(results, since: int, until: int | None = None) -> list[dict]:
     return [merged[k] for k in sorted(merged)]
 
 
-def train(config: Config, run_dir, factory: WorkersFactory, *, resume: bool = False, show_progress: bool = True,
-          evaluate: bool = True, label: str | None = None, on_chunk: Callable | None = None) -> dict:
+def train(
+    config: Config,
+    run_dir,
+    factory: WorkersFactory,
+    *,
+    resume: bool = False,
+    show_progress: bool = True,
+    evaluate: bool = True,
+    label: str | None = None,
+    on_chunk: Callable | None = None,
+) -> dict:
     """Train (or resume) a population into ``run_dir`` with the given backend; then evaluate.
 
     The run directory stays locked until this returns (a second driver of the same run is refused).
@@ -231,7 +268,7 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
     past_events = run.read_manifest().get("restart_events", []) if resuming else []
     method = config.population.method
     schedule = Schedule.of(config, run.path)
-    pool, pool_labels = (fcp_pool(config, run, factory, show_progress) if method == "fcp" else (None, []))
+    pool, pool_labels = fcp_pool(config, run, factory, show_progress) if method == "fcp" else (None, [])
     workers = factory(config, run.path, pool)
     workers.events[:0] = past_events  # restarts of earlier drivers of this run stay on record
     try:
@@ -248,13 +285,23 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
         caught_up_rows = []
         if since < update:
             caught_up = workers.call("advance", [(i, (update, None, since)) for i in range(len(workers.shards))])
-            caught_up_rows = [row for row in merge_rows(caught_up, since, update)
-                              if (int(row["seed"]), int(row["update"])) not in kept]
+            caught_up_rows = [
+                row
+                for row in merge_rows(caught_up, since, update)
+                if (int(row["seed"]), int(row["update"])) not in kept
+            ]
             run.append_metrics(caught_up_rows)
-        run.update_manifest(status="training", method=method, num_updates=schedule.num_updates, update=update,
-                            snapshots=list(schedule.snapshots), pool=pool_labels,
-                            seeds=list(range(config.population.num_seeds)), shards=workers.shards,
-                            resumed_from=update if resuming else None)
+        run.update_manifest(
+            status="training",
+            method=method,
+            num_updates=schedule.num_updates,
+            update=update,
+            snapshots=list(schedule.snapshots),
+            pool=pool_labels,
+            seeds=list(range(config.population.num_seeds)),
+            shards=workers.shards,
+            resumed_from=update if resuming else None,
+        )
         _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra, caught_up_rows)
         summary = {"run_dir": str(run.path), "updates": schedule.num_updates, "restarts": workers.restarts()}
         if evaluate:
@@ -268,9 +315,13 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
 def _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra, unreported) -> None:
     num_shards = len(workers.shards)
     buffer, buffer_handle = None, None
-    progress = PopulationProgress(label or f"{config.population.method.upper()} {config.env_kwargs['layout']}",
-                                  config.population.num_seeds, schedule.num_updates, config.ppo.steps_per_update,
-                                  enabled=show_progress)
+    progress = PopulationProgress(
+        label or f"{config.population.method.upper()} {config.env_kwargs['layout']}",
+        config.population.num_seeds,
+        schedule.num_updates,
+        config.ppo.steps_per_update,
+        enabled=show_progress,
+    )
     with progress:
         progress.advance_to(update, None)
         while update < schedule.num_updates:
@@ -309,7 +360,6 @@ def _archive_training(config: Config, run: RunDir, workers: Workers, before: int
     with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:
         for seeds, (_, recorded) in zip(workers.shards, results):
             for index, seed in enumerate(seeds):
-                record_episodes(writer, env, jax.tree.map(lambda x: x[index], recorded),
-                                {**base, **pair_meta(seed, seed)})
-
-
+                record_episodes(
+                    writer, env, jax.tree.map(lambda x: x[index], recorded), {**base, **pair_meta(seed, seed)}
+                )

@@ -75,10 +75,11 @@ class PolicyGroup:
 # sources
 # ---------------------------------------------------------------------------------------------------
 
+
 def resolve_source(text: str, checkpoint="final") -> PolicyGroup:
     """A column/row spec -> its policies. Errors name the spec."""
     if text.startswith(HUMAN_PROXY):
-        group = _single(text, _human_proxy_path(text[len(HUMAN_PROXY):]), "final")
+        group = _single(text, _human_proxy_path(text[len(HUMAN_PROXY) :]), "final")
         return dataclasses.replace(group, method=HUMAN_PROXY_METHOD)
     path = Path(text)
     if path.is_dir() and (path / "config.yaml").is_file():
@@ -100,17 +101,32 @@ def _run_group(text: str, path: Path, checkpoint) -> PolicyGroup:
         raise CrossPlayError(str(error)) from None
     policies = [_load(text, path, checkpoint, seed) for seed in range(config.population.num_seeds)]
     first = policies[0]
-    return PolicyGroup(text, tuple(f"{path.name}/seed_{i}" for i in range(len(policies))),
-                       tuple(policy_id(p) for p in policies), first.model, first.activation,
-                       first.env, stack_params([jax.tree.map(np.asarray, p.params) for p in policies]),
-                       config.population.method, config.population.seed)
+    return PolicyGroup(
+        text,
+        tuple(f"{path.name}/seed_{i}" for i in range(len(policies))),
+        tuple(policy_id(p) for p in policies),
+        first.model,
+        first.activation,
+        first.env,
+        stack_params([jax.tree.map(np.asarray, p.params) for p in policies]),
+        config.population.method,
+        config.population.seed,
+    )
 
 
 def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
     policy = _load(text, path, checkpoint)
     meta = policy.meta
-    return PolicyGroup(text, (policy.name,), (policy_id(policy),), policy.model, policy.activation,
-                       policy.env, stack_params([jax.tree.map(np.asarray, policy.params)]), meta.get("method"))
+    return PolicyGroup(
+        text,
+        (policy.name,),
+        (policy_id(policy),),
+        policy.model,
+        policy.activation,
+        policy.env,
+        stack_params([jax.tree.map(np.asarray, policy.params)]),
+        meta.get("method"),
+    )
 
 
 def policy_id(policy) -> str:
@@ -135,14 +151,17 @@ def check_same_env(groups) -> dict:
     for group in groups[1:]:
         if group.env != first.env:
             differ = sorted(k for k in set(first.env) | set(group.env) if first.env.get(k) != group.env.get(k))
-            raise CrossPlayError(f"{group.label} plays another environment than {first.label} (differs in "
-                                 f"{', '.join(differ)}: {group.env.get(differ[0])!r} vs {first.env.get(differ[0])!r})")
+            raise CrossPlayError(
+                f"{group.label} plays another environment than {first.label} (differs in "
+                f"{', '.join(differ)}: {group.env.get(differ[0])!r} vs {first.env.get(differ[0])!r})"
+            )
     return first.env
 
 
 # ---------------------------------------------------------------------------------------------------
 # workers
 # ---------------------------------------------------------------------------------------------------
+
 
 class RowsResult(NamedTuple):
     job: tuple  # (row group, col group, rows)
@@ -153,16 +172,34 @@ class RowsResult(NamedTuple):
 class CrossPlayPlayer:
     """Plays jobs: seat-0 ``rows`` of one group against every policy of another group."""
 
-    def play(self, row_spec, row_params, col_spec, col_params, rows, key, episodes: int, greedy: bool,
-             job) -> RowsResult:
+    def play(
+        self, row_spec, row_params, col_spec, col_params, rows, key, episodes: int, greedy: bool, job
+    ) -> RowsResult:
         env = policy_env(row_spec[2])
         row_side = _side(row_spec, row_params, env)
         if col_spec is None:  # the row group against itself: the in-run code path, numbers included
-            result = cross_play(row_side.apply, row_side.hidden_size, env, row_side.params, jnp.asarray(key), episodes,
-                                rows=rows, greedy=greedy)
+            result = cross_play(
+                row_side.apply,
+                row_side.hidden_size,
+                env,
+                row_side.params,
+                jnp.asarray(key),
+                episodes,
+                rows=rows,
+                greedy=greedy,
+            )
         else:
-            result = cross_play(row_side.apply, row_side.hidden_size, env, row_side.params, jnp.asarray(key), episodes,
-                                rows=rows, partners=_side(col_spec, col_params, env), greedy=greedy)
+            result = cross_play(
+                row_side.apply,
+                row_side.hidden_size,
+                env,
+                row_side.params,
+                jnp.asarray(key),
+                episodes,
+                rows=rows,
+                partners=_side(col_spec, col_params, env),
+                greedy=greedy,
+            )
         rows = list(rows)
         return RowsResult(job, result.returns[rows], result.start_recipe[rows])
 
@@ -193,8 +230,13 @@ class RayPlayers(RayWorkers):
         self.config = Config(cluster=cluster)  # RayWorkers.call reads cluster.max_restarts
         self.shards = [[i] for i in range(num_workers)]
         self._pool = None
-        options = dict(num_cpus=cluster.num_cpus or 1, max_restarts=cluster.max_restarts, max_task_retries=0,
-                       scheduling_strategy="SPREAD", runtime_env={"env_vars": actor_env(cluster)})
+        options = dict(
+            num_cpus=cluster.num_cpus or 1,
+            max_restarts=cluster.max_restarts,
+            max_task_retries=0,
+            scheduling_strategy="SPREAD",
+            runtime_env={"env_vars": actor_env(cluster)},
+        )
         actor = ray.remote(CrossPlayPlayer)
         self.actors = [actor.options(**options).remote() for _ in range(num_workers)]
         self.events = []
@@ -230,6 +272,7 @@ def players(backend: str, jobs: int, address: str | None = None, workers: int | 
 # the matrix
 # ---------------------------------------------------------------------------------------------------
 
+
 @dataclasses.dataclass(frozen=True)
 class Matrix:
     returns: np.ndarray  # float32[R, C, E]
@@ -261,14 +304,29 @@ def play_matrix(row_groups, col_groups, workers, key, episodes: int, greedy: boo
     recipes = np.zeros((num_rows, num_cols, episodes), np.int32)
     row_params = [workers.share(g.params) for g in row_groups]
     col_params = [workers.share(g.params) for g in col_groups]
-    items = [(r, c, i) for r, group in enumerate(row_groups) for c in range(len(col_groups))
-             for i in range(len(group.names))]
+    items = [
+        (r, c, i) for r, group in enumerate(row_groups) for c in range(len(col_groups)) for i in range(len(group.names))
+    ]
     jobs = []
     for shard, block in spread_jobs(workers, items, lambda block: block):  # consecutive blocks, one per worker
         for r, c, i in block:
             same = row_groups[r].ids == col_groups[c].ids and row_groups[r].spec == col_groups[c].spec
-            jobs.append((shard, (row_groups[r].spec, row_params[r], None if same else col_groups[c].spec,
-                                 None if same else col_params[c], [i], np.asarray(key), episodes, greedy, (r, c, i))))
+            jobs.append(
+                (
+                    shard,
+                    (
+                        row_groups[r].spec,
+                        row_params[r],
+                        None if same else col_groups[c].spec,
+                        None if same else col_params[c],
+                        [i],
+                        np.asarray(key),
+                        episodes,
+                        greedy,
+                        (r, c, i),
+                    ),
+                )
+            )
     # A wave holds at most one job per worker (consecutive blocks interleaved), then the bar moves.
     by_shard = [[job for job in jobs if job[0] == s] for s in range(len(workers.shards))]
     waves = [[queue[w] for queue in by_shard if w < len(queue)] for w in range(max(map(len, by_shard), default=0))]
@@ -324,11 +382,13 @@ class SeatFairMatrix:
 def same_groups(row_groups, col_groups) -> bool:
     """Whether the column groups are the row groups (same policies, same networks, same order)."""
     return len(row_groups) == len(col_groups) and all(
-        r.ids == c.ids and r.spec == c.spec for r, c in zip(row_groups, col_groups))
+        r.ids == c.ids and r.spec == c.spec for r, c in zip(row_groups, col_groups)
+    )
 
 
-def play_seat_fair(row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None,
-                   seats: str = "both") -> SeatFairMatrix:
+def play_seat_fair(
+    row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None, seats: str = "both"
+) -> SeatFairMatrix:
     """``play_matrix`` in both seat orders (``seats="both"``) or with the rows in seat 0 only ("0").
 
     Both orders use the same episode keys. When the columns are the row groups, the one matrix already
@@ -362,10 +422,13 @@ def summarize_matrix(result: Matrix) -> dict:
     """One entry per (row source, column source) block: SP/XP means, std across cells, the gap with its
     std, seed-bootstrap CIs."""
     matrix = result.matrix
-    return {"num_rows": int(matrix.shape[0]), "num_cols": int(matrix.shape[1]),
-            "episodes_per_pair": int(result.returns.shape[-1]),
-            "ci_method": "95% percentile bootstrap over seeds (rows and columns resampled by policy)",
-            "blocks": _blocks(result)}
+    return {
+        "num_rows": int(matrix.shape[0]),
+        "num_cols": int(matrix.shape[1]),
+        "episodes_per_pair": int(result.returns.shape[-1]),
+        "ci_method": "95% percentile bootstrap over seeds (rows and columns resampled by policy)",
+        "blocks": _blocks(result),
+    }
 
 
 def _blocks(result: Matrix) -> list[dict]:
@@ -374,7 +437,7 @@ def _blocks(result: Matrix) -> list[dict]:
     blocks = []
     for r, rg in enumerate(result.row_groups):
         for c, cg in enumerate(result.col_groups):
-            cells = matrix[row_offsets[r]:row_offsets[r + 1], col_offsets[c]:col_offsets[c + 1]]
+            cells = matrix[row_offsets[r] : row_offsets[r + 1], col_offsets[c] : col_offsets[c + 1]]
             entry = {"rows": rg.label, "cols": cg.label, "row_method": rg.method, "col_method": cg.method}
             entry.update(block_summary(cells, list(rg.ids), list(cg.ids)))
             entry["rows"], entry["cols"] = rg.label, cg.label
@@ -393,16 +456,42 @@ def summarize_seat_fair(result: SeatFairMatrix) -> dict:
     return summary
 
 
-_BLOCK_FIELDS = ["rows", "cols", "row_method", "col_method", "num_rows", "num_cols", "sp_mean", "sp_std", "xp_mean",
-                 "xp_std", "gap", "gap_std", "xp_ci95_low", "xp_ci95_high", "sp_ci95_low", "sp_ci95_high",
-                 "gap_ci95_low", "gap_ci95_high"]
+_BLOCK_FIELDS = [
+    "rows",
+    "cols",
+    "row_method",
+    "col_method",
+    "num_rows",
+    "num_cols",
+    "sp_mean",
+    "sp_std",
+    "xp_mean",
+    "xp_std",
+    "gap",
+    "gap_std",
+    "xp_ci95_low",
+    "xp_ci95_high",
+    "sp_ci95_low",
+    "sp_ci95_high",
+    "gap_ci95_low",
+    "gap_ci95_high",
+]
 
 
 def _block_row(order: str, b: dict) -> list:
-    return [order, b["rows"], b["cols"], b["row_method"] or "", b["col_method"] or "", b["num_rows"], b["num_cols"],
-            *(_round(b[k]) for k in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "gap_std")),
-            *(_round(v) for v in b["xp_ci95_interval"]), *(_round(v) for v in b["sp_ci95_interval"]),
-            *(_round(v) for v in b["gap_ci95_interval"])]
+    return [
+        order,
+        b["rows"],
+        b["cols"],
+        b["row_method"] or "",
+        b["col_method"] or "",
+        b["num_rows"],
+        b["num_cols"],
+        *(_round(b[k]) for k in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "gap_std")),
+        *(_round(v) for v in b["xp_ci95_interval"]),
+        *(_round(v) for v in b["sp_ci95_interval"]),
+        *(_round(v) for v in b["gap_ci95_interval"]),
+    ]
 
 
 def write_outputs(result: Matrix, out, summary: dict, env) -> dict:
@@ -430,17 +519,29 @@ def write_seat_fair_outputs(result: SeatFairMatrix, out, summary: dict, env) -> 
         _write_order(result.cols_seat0, out, env, "_cols_seat0")
     mean = result.mean
     rows, cols = _names(mean.row_groups), _names(mean.col_groups)
-    write_csv(out / "matrix_mean.csv", ["row\\col (mean of both seat orders)"] + cols,
-              [[rows[i]] + [round(float(v), 4) for v in mean.matrix[i]] for i in range(len(rows))])
-    xp_heatmap(mean.matrix, out / "heatmap_mean.png", labels=rows, col_labels=cols, row_title="row policy",
-               col_title="column policy", title=f"cross-play, mean of both seat orders, "
-                                                f"{mean.returns.shape[-1]} episodes/pair/order")
+    write_csv(
+        out / "matrix_mean.csv",
+        ["row\\col (mean of both seat orders)"] + cols,
+        [[rows[i]] + [round(float(v), 4) for v in mean.matrix[i]] for i in range(len(rows))],
+    )
+    xp_heatmap(
+        mean.matrix,
+        out / "heatmap_mean.png",
+        labels=rows,
+        col_labels=cols,
+        row_title="row policy",
+        col_title="column policy",
+        title=f"cross-play, mean of both seat orders, {mean.returns.shape[-1]} episodes/pair/order",
+    )
     lines = [_block_row(order, b) for order in result.orders for b in summary["orders"][order]]
     write_csv(out / "blocks.csv", ["order", *_BLOCK_FIELDS], lines + [_block_row("mean", b) for b in summary["blocks"]])
     write_json(out / "summary.json", summary)
     _write_blocks_png(mean, out, summary["blocks"], "mean cross-play return by source (both seat orders)")
-    paths = {"matrix": str(out / "matrix.csv"), "matrix_mean": str(out / "matrix_mean.csv"),
-             "summary": str(out / "summary.json")}
+    paths = {
+        "matrix": str(out / "matrix.csv"),
+        "matrix_mean": str(out / "matrix_mean.csv"),
+        "summary": str(out / "summary.json"),
+    }
     if result.cols_seat0 is not result.rows_seat0:
         paths["matrix_cols_seat0"] = str(out / "matrix_cols_seat0.csv")
     return paths
@@ -455,22 +556,43 @@ def _write_order(result: Matrix, out: Path, env, suffix: str) -> None:
     rows, cols = _names(result.row_groups), _names(result.col_groups)
     matrix = result.matrix
     names = recipe_names(env)
-    write_csv(out / f"matrix{suffix}.csv", ["seat0\\seat1"] + cols,
-              [[rows[i]] + [round(float(v), 4) for v in matrix[i]] for i in range(len(rows))])
-    write_csv(out / f"episodes{suffix}.csv", ["seat0", "seat1", "episode", "return", "start_recipe"],
-              [[rows[i], cols[j], e, float(result.returns[i, j, e]), names.get(int(result.start_recipe[i, j, e]), "")]
-               for i in range(len(rows)) for j in range(len(cols)) for e in range(result.returns.shape[-1])])
-    xp_heatmap(matrix, out / f"heatmap{suffix}.png", labels=rows, col_labels=cols,
-               title=f"cross-play (rows in seat 0), {result.returns.shape[-1]} episodes/pair")
+    write_csv(
+        out / f"matrix{suffix}.csv",
+        ["seat0\\seat1"] + cols,
+        [[rows[i]] + [round(float(v), 4) for v in matrix[i]] for i in range(len(rows))],
+    )
+    write_csv(
+        out / f"episodes{suffix}.csv",
+        ["seat0", "seat1", "episode", "return", "start_recipe"],
+        [
+            [rows[i], cols[j], e, float(result.returns[i, j, e]), names.get(int(result.start_recipe[i, j, e]), "")]
+            for i in range(len(rows))
+            for j in range(len(cols))
+            for e in range(result.returns.shape[-1])
+        ],
+    )
+    xp_heatmap(
+        matrix,
+        out / f"heatmap{suffix}.png",
+        labels=rows,
+        col_labels=cols,
+        title=f"cross-play (rows in seat 0), {result.returns.shape[-1]} episodes/pair",
+    )
 
 
 def _write_blocks_png(result: Matrix, out: Path, blocks: list[dict], title: str) -> None:
     if len(result.row_groups) > 1 or len(result.col_groups) > 1:
         block_means = np.asarray([b["xp_mean"] for b in blocks], np.float64)  # row-source major
         block_means = block_means.reshape(len(result.row_groups), len(result.col_groups))
-        xp_heatmap(block_means, out / "blocks.png", labels=[_short(g) for g in result.row_groups],
-                   col_labels=[_short(g) for g in result.col_groups], title=title, row_title="row source",
-                   col_title="column source")
+        xp_heatmap(
+            block_means,
+            out / "blocks.png",
+            labels=[_short(g) for g in result.row_groups],
+            col_labels=[_short(g) for g in result.col_groups],
+            title=title,
+            row_title="row source",
+            col_title="column source",
+        )
 
 
 def _short(group: PolicyGroup) -> str:

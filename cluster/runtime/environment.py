@@ -43,13 +43,17 @@ def git_state(directory: Path = _CHECKOUT) -> dict | None:
 
 
 def _git(directory: Path, *args: str) -> str:
-    done = subprocess.run(["git", "-C", str(directory), *args], capture_output=True, text=True, timeout=10,
-                          check=True)
+    done = subprocess.run(["git", "-C", str(directory), *args], capture_output=True, text=True, timeout=10, check=True)
     return done.stdout.strip()
 
 
 def environment_record() -> dict:
     """This process: versions, git commit (or None), JAX devices, argv and the time."""
-    return {"time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "versions": package_versions(), "git": git_state(), "argv": list(sys.argv),
-            "devices": [str(device) for device in jax.devices()], "platform": platform.platform()}
+    return {
+        "time": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "versions": package_versions(),
+        "git": git_state(),
+        "argv": list(sys.argv),
+        "devices": [str(device) for device in jax.devices()],
+        "platform": platform.platform(),
+    }

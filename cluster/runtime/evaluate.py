@@ -45,8 +45,9 @@ def final_params(run_dir) -> tuple[Config, ppo.Trainer, object]:
     for seed in range(config.population.num_seeds):
         path = ckpt.checkpoint_path(run.path, seed, config.ppo.num_updates)
         if not path.exists():
-            raise RunDirError(f"{run_dir}: seed {seed} has not finished training (no {path.name}); "
-                              "resume the run first")
+            raise RunDirError(
+                f"{run_dir}: seed {seed} has not finished training (no {path.name}); resume the run first"
+            )
         params.append(load_params(path, config.fingerprint(), template))
     return config, trainer, stack_params(params)
 
@@ -54,12 +55,17 @@ def final_params(run_dir) -> tuple[Config, ppo.Trainer, object]:
 def post_training(run_dir, workers=None, show_progress: bool = True) -> dict:
     config = RunDir(run_dir).load_config()
     xp = evaluate_run(run_dir, show_progress=show_progress, workers=workers)
-    return {"xp": xp, "plot": write_training_plot(run_dir), "gifs": write_gifs(run_dir, config.eval.gifs),
-            "archive": xp.get("archive")}
+    return {
+        "xp": xp,
+        "plot": write_training_plot(run_dir),
+        "gifs": write_gifs(run_dir, config.eval.gifs),
+        "archive": xp.get("archive"),
+    }
 
 
-def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes: int, archive_dir=None,
-              on_progress=None) -> CrossPlay:
+def play_rows(
+    config: Config, trainer: ppo.Trainer, params, rows, key, episodes: int, archive_dir=None, on_progress=None
+) -> CrossPlay:
     """Cross-play of seat-0 ``rows``; with ``archive_dir`` every episode also goes to its row's MCAP file.
 
     ``on_progress(done, total)`` counts blocks of episodes (``population.xp.cross_play``)."""
@@ -71,16 +77,22 @@ def play_rows(config: Config, trainer: ppo.Trainer, params, rows, key, episodes:
     base = archive_meta(config, "cross-play", scored=True, checkpoint_update=config.ppo.num_updates)
     num = jax.tree.leaves(params)[0].shape[0]
     with ExitStack() as files:
-        writers = {i: files.enter_context(ArchiveWriter(xp_archive_path(archive_dir, i), overwrite=True,
-                                                        foxglove_frames=config.archive.foxglove)) for i in rows}
+        writers = {
+            i: files.enter_context(
+                ArchiveWriter(xp_archive_path(archive_dir, i), overwrite=True, foxglove_frames=config.archive.foxglove)
+            )
+            for i in rows
+        }
 
         def write(row, first, recorded):
             for j in range(num):
-                record_episodes(writers[row], env, jax.tree.map(lambda x: x[j], recorded),
-                                {**base, **pair_meta(row, j)}, first)
+                record_episodes(
+                    writers[row], env, jax.tree.map(lambda x: x[j], recorded), {**base, **pair_meta(row, j)}, first
+                )
 
-        return cross_play(apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows, on_block=write,
-                          on_progress=on_progress)
+        return cross_play(
+            apply, hidden, env, params, jnp.asarray(key), episodes, rows=rows, on_block=write, on_progress=on_progress
+        )
 
 
 def xp_archive_path(archive_dir, row: int) -> Path:
@@ -121,20 +133,36 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     if archive_dir is not None:
         summary["archive"] = str(archive_dir)
     num = result.matrix.shape[0]
-    write_csv(run.sub("xp", "matrix.csv"), ["seat0\\seat1"] + [f"seed_{j}" for j in range(num)],
-              [[f"seed_{i}"] + [round(float(v), 4) for v in result.matrix[i]] for i in range(num)])
+    write_csv(
+        run.sub("xp", "matrix.csv"),
+        ["seat0\\seat1"] + [f"seed_{j}" for j in range(num)],
+        [[f"seed_{i}"] + [round(float(v), 4) for v in result.matrix[i]] for i in range(num)],
+    )
     names = recipe_names(env)
-    write_csv(run.sub("xp", "episodes.csv"), ["seat0", "seat1", "episode", "return", "start_recipe"],
-              [[i, j, e, float(result.returns[i, j, e]), names.get(int(result.start_recipe[i, j, e]), "")]
-               for i in range(num) for j in range(num) for e in range(episodes)])
+    write_csv(
+        run.sub("xp", "episodes.csv"),
+        ["seat0", "seat1", "episode", "return", "start_recipe"],
+        [
+            [i, j, e, float(result.returns[i, j, e]), names.get(int(result.start_recipe[i, j, e]), "")]
+            for i in range(num)
+            for j in range(num)
+            for e in range(episodes)
+        ],
+    )
     write_json(run.sub("xp", "summary.json"), summary)
     layout = config.env_kwargs["layout"]
-    xp_heatmap(result.matrix, run.sub("xp", "heatmap.png"), title=f"{config.population.method.upper()} {layout}: "
-               f"SP {summary['sp_mean']:.1f}, XP {summary['xp_mean']:.1f} ({episodes} episodes/pair)")
+    xp_heatmap(
+        result.matrix,
+        run.sub("xp", "heatmap.png"),
+        title=f"{config.population.method.upper()} {layout}: "
+        f"SP {summary['sp_mean']:.1f}, XP {summary['xp_mean']:.1f} ({episodes} episodes/pair)",
+    )
     if show_progress:
-        log.info(f"cross-play ({num}x{num}, {episodes} episodes/pair): SP {summary['sp_mean']:.1f} +- "
-                 f"{summary['sp_std']:.1f}, XP {summary['xp_mean']:.1f} +- {summary['xp_std']:.1f}, "
-                 f"gap {summary['gap']:.1f}")
+        log.info(
+            f"cross-play ({num}x{num}, {episodes} episodes/pair): SP {summary['sp_mean']:.1f} +- "
+            f"{summary['sp_std']:.1f}, XP {summary['xp_mean']:.1f} +- {summary['xp_std']:.1f}, "
+            f"gap {summary['gap']:.1f}"
+        )
     return summary
 
 
@@ -146,9 +174,12 @@ def write_training_plot(run_dir) -> str | None:
     config = run.load_config()
     curves = seed_curves(rows, ("sparse_return", "shaped_return"))
     steps = np.asarray(curves.updates) * config.ppo.steps_per_update
-    return training_curves(steps, curves.values, run.sub("plots", "training.png"),
-                           title=f"{config.population.method.upper()} {config.env_kwargs['layout']} "
-                                 f"({len(curves.seeds)} seeds)")
+    return training_curves(
+        steps,
+        curves.values,
+        run.sub("plots", "training.png"),
+        title=f"{config.population.method.upper()} {config.env_kwargs['layout']} ({len(curves.seeds)} seeds)",
+    )
 
 
 def write_gifs(run_dir, count: int) -> list[str]:

@@ -8,8 +8,9 @@ result depends only on its arguments, so the split never changes a number.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Protocol, Sequence
+from typing import Protocol
 
 import jax
 import numpy as np

@@ -22,9 +22,16 @@ class LocalWorkers(InProcessWorkers):
         super().__init__([seeds], SeedShard(config, run_dir, seeds, pool))
 
 
-def train_population(config: Config, run_dir, *, resume: bool = False, show_progress: bool = True,
-                     evaluate: bool = True, label: str | None = None) -> dict:
+def train_population(
+    config: Config,
+    run_dir,
+    *,
+    resume: bool = False,
+    show_progress: bool = True,
+    evaluate: bool = True,
+    label: str | None = None,
+) -> dict:
     """Train (or resume) a population into ``run_dir`` in this process; then cross-play, plots, GIFs, archive."""
-    return coordinator.train(config, run_dir, LocalWorkers, resume=resume, show_progress=show_progress,
-                             evaluate=evaluate, label=label)
-
+    return coordinator.train(
+        config, run_dir, LocalWorkers, resume=resume, show_progress=show_progress, evaluate=evaluate, label=label
+    )

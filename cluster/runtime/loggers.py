@@ -19,8 +19,9 @@ import math
 import os
 import re
 from collections import defaultdict
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Iterable, Mapping, Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 from PIL import Image
@@ -66,8 +67,11 @@ def scalar_tag(name: str, seed) -> str:
 
 def xp_scalars(summary: Mapping) -> dict[str, float]:
     """The top-level numbers of a cross-play summary (sp_mean, xp_mean, gap, ...)."""
-    return {k: float(v) for k, v in summary.items()
-            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))}
+    return {
+        k: float(v)
+        for k, v in summary.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
+    }
 
 
 def _image(path: Path | None) -> np.ndarray | None:
@@ -107,8 +111,14 @@ class WandbLogger:
     def __init__(self, run_dir: Path, config: Config):
         self.wandb = require("wandb", "wandb", "--logger wandb")
         run_dir = Path(run_dir)
-        self.run = self.wandb.init(project=os.environ.get("WANDB_PROJECT", "ocv2"), dir=str(run_dir), name=run_dir.name, id=_wandb_id(run_dir.name),
-                                   resume="allow", config=config.to_dict())
+        self.run = self.wandb.init(
+            project=os.environ.get("WANDB_PROJECT", "ocv2"),
+            dir=str(run_dir),
+            name=run_dir.name,
+            id=_wandb_id(run_dir.name),
+            resume="allow",
+            config=config.to_dict(),
+        )
 
     def log_rows(self, rows: Sequence[MetricsRow]) -> None:
         # W&B steps must grow: one log call per update, holding every seed's numbers.

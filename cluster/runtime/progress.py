@@ -41,8 +41,13 @@ class PopulationProgress:
     def __enter__(self):
         if self.enabled:
             log.info(header(self.label, self.num_seeds, self.total, self.steps_per_update))
-            self._bar = _bar(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                             TextColumn("{task.fields[info]}"), TimeRemainingColumn())
+            self._bar = _bar(
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[info]}"),
+                TimeRemainingColumn(),
+            )
         if self._bar is not None:
             self._bar.__enter__()
             self._task = self._bar.add_task(self.label, total=self.total, info="compiling...")
@@ -90,8 +95,9 @@ class Bar:
 
     def __enter__(self):
         if self.enabled:
-            self._bar = _bar(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                             TimeRemainingColumn())
+            self._bar = _bar(
+                TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()
+            )
         if self._bar is not None:
             self._bar.__enter__()
         return self
@@ -114,8 +120,10 @@ class Bar:
 
 def header(label: str, num_seeds: int, num_updates: int, steps_per_update: int) -> str:
     """The first line of a run, worded as ``ocv2 validate`` describes a config."""
-    return (f"{label}: {num_seeds} seeds x {num_updates} updates x {steps_per_update:,} "
-            f"= {num_updates * steps_per_update:,} env steps per seed")
+    return (
+        f"{label}: {num_seeds} seeds x {num_updates} updates x {steps_per_update:,} "
+        f"= {num_updates * steps_per_update:,} env steps per seed"
+    )
 
 
 def _latest(rows, name: str) -> np.ndarray:
@@ -137,4 +145,6 @@ def _duration(seconds: float) -> str:
     if math.isnan(seconds):
         return "?"
     seconds = int(seconds)
-    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+    return (
+        f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+    )

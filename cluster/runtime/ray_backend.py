@@ -35,7 +35,8 @@ from cluster.runtime import coordinator
 from cluster.runtime.rundir import RunDirError
 from cluster.runtime.shard import SeedShard
 from population.checkpoints import CheckpointError
-from population.config import ClusterConfig, Config, shards as seed_shards
+from population.config import ClusterConfig, Config
+from population.config import shards as seed_shards
 
 RESTART_TIMEOUT_S = 600.0  # how long a restarting actor may take to answer again
 
@@ -49,6 +50,7 @@ class RayBackendError(RuntimeError):
 # ---------------------------------------------------------------------------------------------------
 # connecting
 # ---------------------------------------------------------------------------------------------------
+
 
 def connect(cluster: ClusterConfig) -> bool:
     """Join ``cluster.address`` or start Ray here. Returns True if this call started/joined (then shut down)."""
@@ -65,13 +67,17 @@ def connect(cluster: ClusterConfig) -> bool:
     try:
         ray.init(address=address, configure_logging=False)
     except ConnectionError as error:
-        raise RayBackendError(f"cluster.address {address!r}: no Ray cluster found ({error}). Start one with "
-                              "`ray start --head` or leave cluster.address unset to run Ray on this machine") from None
+        raise RayBackendError(
+            f"cluster.address {address!r}: no Ray cluster found ({error}). Start one with "
+            "`ray start --head` or leave cluster.address unset to run Ray on this machine"
+        ) from None
     except Exception as error:  # Ray raises its own types for auth problems; name the usual cause
         if "auth" in str(error).lower():
-            raise RayBackendError(f"cluster.address {address!r}: authentication failed ({error}). Export the same "
-                                  "RAY_AUTH_MODE (and RAY_AUTH_TOKEN for token mode) as the cluster; see "
-                                  "docs/cluster.md") from None
+            raise RayBackendError(
+                f"cluster.address {address!r}: authentication failed ({error}). Export the same "
+                "RAY_AUTH_MODE (and RAY_AUTH_TOKEN for token mode) as the cluster; see "
+                "docs/cluster.md"
+            ) from None
         raise
     return True
 
@@ -99,8 +105,10 @@ def start_local(num_cpus: int | None = None) -> None:
     finally:
         notices.removeFilter(_token_auth_notice)
     if mode_before is None and os.environ.get("RAY_AUTH_MODE") == "token":  # Ray chose its default
-        log.info("started Ray on this machine with token authentication, Ray's default for a local instance "
-                 "(RAY_AUTH_MODE=disabled turns it off; docs/cluster.md)")
+        log.info(
+            "started Ray on this machine with token authentication, Ray's default for a local instance "
+            "(RAY_AUTH_MODE=disabled turns it off; docs/cluster.md)"
+        )
 
 
 @contextlib.contextmanager
@@ -123,8 +131,10 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
         with socket.create_connection((host, int(port)), timeout=timeout_s):
             pass
     except OSError as error:
-        raise RayBackendError(f"cluster.address {address!r}: cannot reach the Ray head ({error}); is "
-                              f"`ray start --head --port={port}` running there and the port open?") from None
+        raise RayBackendError(
+            f"cluster.address {address!r}: cannot reach the Ray head ({error}); is "
+            f"`ray start --head --port={port}` running there and the port open?"
+        ) from None
 
 
 def check_resources(config: Config, num_actors: int) -> None:
@@ -140,18 +150,24 @@ def check_resources(config: Config, num_actors: int) -> None:
         key = "num_gpus" if name == "GPU" else "num_cpus"
         largest = max((r.get(name, 0.0) for r in per_node), default=0.0)
         if want > largest:
-            raise RayBackendError(f"cluster.{key}: each worker actor asks for {want:g} {name}s but no node has more "
-                                  f"than {largest:g} (the cluster has {total.get(name, 0.0):g} in all)")
+            raise RayBackendError(
+                f"cluster.{key}: each worker actor asks for {want:g} {name}s but no node has more "
+                f"than {largest:g} (the cluster has {total.get(name, 0.0):g} in all)"
+            )
         if want * num_actors > total.get(name, 0.0) + 1e-9:
             raise RayBackendError(
                 f"cluster.{key}: {num_actors} worker actors x {want:g} {name}s = {want * num_actors:g}, but the "
-                f"cluster has {total.get(name, 0.0):g}; lower cluster.{key} or raise cluster.seeds_per_actor")
+                f"cluster has {total.get(name, 0.0):g}; lower cluster.{key} or raise cluster.seeds_per_actor"
+            )
 
 
 def actor_env(cluster: ClusterConfig) -> dict[str, str]:
     """Environment of a worker process, set before it imports JAX (settings made later are ignored)."""
-    env = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"} if cluster.gpu_memory_fraction == 0 else {
-        "XLA_PYTHON_CLIENT_PREALLOCATE": "true", "XLA_CLIENT_MEM_FRACTION": f"{cluster.gpu_memory_fraction:.3f}"}
+    env = (
+        {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+        if cluster.gpu_memory_fraction == 0
+        else {"XLA_PYTHON_CLIENT_PREALLOCATE": "true", "XLA_CLIENT_MEM_FRACTION": f"{cluster.gpu_memory_fraction:.3f}"}
+    )
     if cluster.num_gpus == 0:
         env["JAX_PLATFORMS"] = "cpu"  # no GPU is visible to the actor anyway; skip the CUDA probe
     return env
@@ -202,11 +218,17 @@ class RayWorkers:
         cluster = config.cluster
         check_resources(config, len(self.shards))
         self._pool = None if pool is None else ray.put(pool)  # held here so the object outlives restarts
-        options = dict(num_cpus=cluster.num_cpus, num_gpus=cluster.num_gpus, max_restarts=cluster.max_restarts,
-                       max_task_retries=0, scheduling_strategy="SPREAD",
-                       runtime_env={"env_vars": actor_env(cluster)})
-        self.actors = [_actor_class().options(**options).remote(config, str(run_dir), seeds, self._pool)
-                       for seeds in self.shards]
+        options = dict(
+            num_cpus=cluster.num_cpus,
+            num_gpus=cluster.num_gpus,
+            max_restarts=cluster.max_restarts,
+            max_task_retries=0,
+            scheduling_strategy="SPREAD",
+            runtime_env={"env_vars": actor_env(cluster)},
+        )
+        self.actors = [
+            _actor_class().options(**options).remote(config, str(run_dir), seeds, self._pool) for seeds in self.shards
+        ]
         self.events: list[dict] = []  # one per observed worker death: shard, seeds, method, restored_update
 
     def pids(self) -> list[int]:
@@ -236,11 +258,20 @@ class RayWorkers:
                 shard = jobs[index][0]
                 failures[index] += 1
                 if failures[index] > self.config.cluster.max_restarts + 1:
-                    raise RayBackendError(f"worker for seeds {self.shards[shard]} kept dying during {method} "
-                                          f"({failures[index]} times): {error}") from None
+                    raise RayBackendError(
+                        f"worker for seeds {self.shards[shard]} kept dying during {method} "
+                        f"({failures[index]} times): {error}"
+                    ) from None
                 restored = self._wait_until_back(shard, error)
-                self.events.append({"shard": shard, "seeds": self.shards[shard], "method": method,
-                                    "restored_update": restored, "time": time.time()})
+                self.events.append(
+                    {
+                        "shard": shard,
+                        "seeds": self.shards[shard],
+                        "method": method,
+                        "restored_update": restored,
+                        "time": time.time(),
+                    }
+                )
                 pending[submit(index)] = index
         return results
 
@@ -257,10 +288,13 @@ class RayWorkers:
                 raise RayBackendError(
                     f"worker for seeds {self.shards[shard]} died and cannot be restarted (cluster.max_restarts="
                     f"{self.config.cluster.max_restarts} used up, or no node can host it): {error}. Its checkpoints "
-                    "are in the run directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`") from None
-        raise RayBackendError(f"worker for seeds {self.shards[shard]} did not come back within "
-                              f"{RESTART_TIMEOUT_S:.0f} s after it died ({cause}). Its checkpoints are in the run "
-                              "directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`")
+                    "are in the run directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`"
+                ) from None
+        raise RayBackendError(
+            f"worker for seeds {self.shards[shard]} did not come back within "
+            f"{RESTART_TIMEOUT_S:.0f} s after it died ({cause}). Its checkpoints are in the run "
+            "directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`"
+        )
 
     def close(self) -> None:
         for actor in self.actors:
@@ -279,15 +313,31 @@ def _get(ref, timeout: float | None = None):
         raise
 
 
-def train_population(config: Config, run_dir, *, resume: bool = False, show_progress: bool = True,
-                     evaluate: bool = True, label: str | None = None, on_chunk=None) -> dict:
+def train_population(
+    config: Config,
+    run_dir,
+    *,
+    resume: bool = False,
+    show_progress: bool = True,
+    evaluate: bool = True,
+    label: str | None = None,
+    on_chunk=None,
+) -> dict:
     """Train (or resume) a population on Ray: join/start Ray, check resources, run the coordinator."""
 
     started = connect(config.cluster)
     try:
         check_resources(config, len(seed_shards(config)))
-        return coordinator.train(config, run_dir, RayWorkers, resume=resume, show_progress=show_progress,
-                                 evaluate=evaluate, label=label, on_chunk=on_chunk)
+        return coordinator.train(
+            config,
+            run_dir,
+            RayWorkers,
+            resume=resume,
+            show_progress=show_progress,
+            evaluate=evaluate,
+            label=label,
+            on_chunk=on_chunk,
+        )
     finally:
         if started:
             ray.shutdown()

@@ -26,8 +26,8 @@ import math
 import os
 import time
 import warnings
-from pathlib import Path
 from collections.abc import Mapping
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -39,8 +39,24 @@ from population.config import Config, ConfigError, dump_config, load_config
 
 log = logging.getLogger(__name__)
 
-METRIC_FIELDS = ("seed", "update", "env_steps", "sparse_return", "shaped_return", "episodes", "loss", "actor_loss",
-                 "value_loss", "entropy", "approx_kl", "clip_frac", "lr", "shaping_coef", "steps_per_s", "wall_s")
+METRIC_FIELDS = (
+    "seed",
+    "update",
+    "env_steps",
+    "sparse_return",
+    "shaped_return",
+    "episodes",
+    "loss",
+    "actor_loss",
+    "value_loss",
+    "entropy",
+    "approx_kl",
+    "clip_frac",
+    "lr",
+    "shaping_coef",
+    "steps_per_s",
+    "wall_s",
+)
 LOCK_NAME = ".lock"
 
 
@@ -55,8 +71,12 @@ class MetricsRow(NamedTuple):
     @classmethod
     def of(cls, row: Mapping) -> MetricsRow:
         """From a row as ``metric_rows`` builds it or as ``csv`` reads it back (strings, "" = no value)."""
-        return cls(int(float(row["seed"])), int(float(row["update"])), int(float(row["env_steps"])),
-                   {key: _float_or_nan(value) for key, value in row.items() if key not in _INDEX_FIELDS})
+        return cls(
+            int(float(row["seed"])),
+            int(float(row["update"])),
+            int(float(row["env_steps"])),
+            {key: _float_or_nan(value) for key, value in row.items() if key not in _INDEX_FIELDS},
+        )
 
 
 _INDEX_FIELDS = ("seed", "update", "env_steps")
@@ -83,7 +103,7 @@ class RunDir:
 
     # opening ----------------------------------------------------------------------------------------
     @classmethod
-    def open(cls, path, config: Config, resume: bool = False) -> tuple["RunDir", bool]:
+    def open(cls, path, config: Config, resume: bool = False) -> tuple[RunDir, bool]:
         """(the run directory, resuming?) for a driver that trains ``config`` into ``path``.
 
         Takes the run's lock (held until ``close``), then checks the directory (see ``create``) and
@@ -94,7 +114,7 @@ class RunDir:
         return run, resuming
 
     @classmethod
-    def existing(cls, path) -> "RunDir":
+    def existing(cls, path) -> RunDir:
         """A run directory to read (``ocv2 xp``, reports, FCP partners): it must hold a usable run."""
         run = cls(path)
         run._check_not_a_file()
@@ -131,16 +151,22 @@ class RunDir:
         if self.config_path.exists():
             existing = self.load_config()
             if existing.fingerprint() != config.fingerprint():
-                raise RunDirError(f"{self.path}: holds a run of a different config (fingerprint "
-                                  f"{existing.fingerprint()} vs {config.fingerprint()}); choose another --out")
+                raise RunDirError(
+                    f"{self.path}: holds a run of a different config (fingerprint "
+                    f"{existing.fingerprint()} vs {config.fingerprint()}); choose another --out"
+                )
             if not resume:
-                raise RunDirError(f"{self.path}: already holds a run; pass --resume to continue it or choose another --out")
+                raise RunDirError(
+                    f"{self.path}: already holds a run; pass --resume to continue it or choose another --out"
+                )
             self.read_manifest()
             for path in remove_stale_temporaries(self.path):  # safe: the lock keeps other writers out
                 _warn(f"{self.path}: removed {path.relative_to(self.path)} (left by an interrupted write)")
             return True
         if any(p.name != LOCK_NAME and not is_temporary(p) for p in self.path.iterdir()):
-            raise RunDirError(f"{self.path}: exists and is not an ocv2 run directory (no config.yaml); choose another --out")
+            raise RunDirError(
+                f"{self.path}: exists and is not an ocv2 run directory (no config.yaml); choose another --out"
+            )
         if resume:
             raise RunDirError(f"{self.path}: nothing to resume (no config.yaml)")
         remove_stale_temporaries(self.path)
@@ -154,8 +180,9 @@ class RunDir:
         for parent in self.path.parents:  # --out DIR/sub with DIR a file: mkdir would fail with ENOTDIR
             if parent.exists():
                 if not parent.is_dir():
-                    raise RunDirError(f"{self.path}: cannot be a run directory: {parent} is a file, not a "
-                                      f"directory{advice}")
+                    raise RunDirError(
+                        f"{self.path}: cannot be a run directory: {parent} is a file, not a directory{advice}"
+                    )
                 break
 
     # the lock -----------------------------------------------------------------------------------------
@@ -243,8 +270,9 @@ class RunDir:
             data = boundedjson.loads(text)
         except ValueError as error:  # not JSON, or nested deeper than any manifest ocv2 writes
             what = "is empty" if not text.strip() else f"is not valid JSON ({error})"
-            raise RunDirError(f"{self.manifest_path}: {what}; restore it from a backup or delete it to resume "
-                              "from the checkpoints") from None
+            raise RunDirError(
+                f"{self.manifest_path}: {what}; restore it from a backup or delete it to resume from the checkpoints"
+            ) from None
         if not isinstance(data, dict):
             raise RunDirError(f"{self.manifest_path}: holds a JSON {type(data).__name__}, not an object")
         return data
@@ -323,11 +351,15 @@ class RunDir:
         for number, row in enumerate(records, start=2):
             if None in row or None in row.values() or not _is_int(row.get("update")) or not _is_int(row.get("seed")):
                 if number == len(records) + 1:  # the last row: what an appending writer's kill leaves
-                    _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped "
-                          "(--resume refills it from the checkpoint if it belongs to the last chunk)")
+                    _warn(
+                        f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped "
+                        "(--resume refills it from the checkpoint if it belongs to the last chunk)"
+                    )
                 else:  # ocv2 rewrites the file atomically: a bad row before the last is damage
-                    _warn(f"{self.metrics_path}: the file is damaged: line {number} (row {number - 1}) is not a "
-                          f"complete metrics row ({_shown(row)}); dropped")
+                    _warn(
+                        f"{self.metrics_path}: the file is damaged: line {number} (row {number - 1}) is not a "
+                        f"complete metrics row ({_shown(row)}); dropped"
+                    )
                 torn = True
                 continue
             rows.append(row)
@@ -401,13 +433,21 @@ def metric_rows(seeds, metrics, steps_per_s: float, wall_s: float, recipe_labels
     for s, seed in enumerate(seeds):
         for u in range(np.shape(metrics.update)[1]):
             row = {
-                "seed": seed, "update": int(metrics.update[s, u]), "env_steps": int(metrics.env_steps[s, u]),
-                "sparse_return": _num(metrics.sparse_return[s, u]), "shaped_return": _num(metrics.shaped_return[s, u]),
-                "episodes": int(metrics.episodes[s, u]), "loss": _num(loss.total[s, u]),
-                "actor_loss": _num(loss.actor[s, u]), "value_loss": _num(loss.value[s, u]),
-                "entropy": _num(loss.entropy[s, u]), "approx_kl": _num(loss.approx_kl[s, u]),
-                "clip_frac": _num(loss.clip_frac[s, u]), "lr": _num(metrics.lr[s, u]),
-                "shaping_coef": _num(metrics.shaping_coef[s, u]), "steps_per_s": round(steps_per_s, 1),
+                "seed": seed,
+                "update": int(metrics.update[s, u]),
+                "env_steps": int(metrics.env_steps[s, u]),
+                "sparse_return": _num(metrics.sparse_return[s, u]),
+                "shaped_return": _num(metrics.shaped_return[s, u]),
+                "episodes": int(metrics.episodes[s, u]),
+                "loss": _num(loss.total[s, u]),
+                "actor_loss": _num(loss.actor[s, u]),
+                "value_loss": _num(loss.value[s, u]),
+                "entropy": _num(loss.entropy[s, u]),
+                "approx_kl": _num(loss.approx_kl[s, u]),
+                "clip_frac": _num(loss.clip_frac[s, u]),
+                "lr": _num(metrics.lr[s, u]),
+                "shaping_coef": _num(metrics.shaping_coef[s, u]),
+                "steps_per_s": round(steps_per_s, 1),
                 "wall_s": round(wall_s, 2),
             }
             for r, label in enumerate(recipe_labels):

@@ -35,7 +35,7 @@ class Schedule:
     protected: tuple[int, ...] = ()  # never pruned: snapshots of the config the run was created with
 
     @staticmethod
-    def of(config: Config, run_dir=None) -> "Schedule":
+    def of(config: Config, run_dir=None) -> Schedule:
         """``config``'s schedule; with ``run_dir``, the snapshots its ``config.yaml`` names stay protected.
 
         ``run.num_checkpoints`` may change on ``--resume`` (it is not part of the fingerprint), but FCP
@@ -51,8 +51,13 @@ class Schedule:
             created = _created_config(run_dir)
             if created is not None:
                 protected = tuple(ckpt.snapshot_updates(created.ppo.num_updates, created.run.num_checkpoints))
-        return Schedule(updates, tuple(ckpt.snapshot_updates(updates, config.run.num_checkpoints)), starts,
-                        config.run.checkpoint_every, protected)
+        return Schedule(
+            updates,
+            tuple(ckpt.snapshot_updates(updates, config.run.num_checkpoints)),
+            starts,
+            config.run.checkpoint_every,
+            protected,
+        )
 
     def next_stop(self, update: int) -> int:
         candidates = [b for b in (*self.snapshots, *self.iteration_starts) if b > update]
@@ -112,8 +117,9 @@ def restore(trainer: ppo.Trainer, run_dir, config: Config, seeds, pool_size: int
     template = state_template(trainer, pool_size)
 
     def at(update):
-        loaded = [ckpt.load(ckpt.checkpoint_path(run_dir, seed, update), template, config.fingerprint())
-                  for seed in seeds]
+        loaded = [
+            ckpt.load(ckpt.checkpoint_path(run_dir, seed, update), template, config.fingerprint()) for seed in seeds
+        ]
         rows = [row for meta, _ in loaded for row in meta.get("metrics", [])]
         return jax.tree.map(lambda *xs: jnp.stack(xs), *[state for _, state in loaded]), update, rows
 
@@ -125,12 +131,14 @@ def restore(trainer: ppo.Trainer, run_dir, config: Config, seeds, pool_size: int
     try:
         return at(common[-1])
     except ckpt.CorruptCheckpointError as error:
-        raise ckpt.CheckpointError(f"{error}; no older checkpoint of seeds {list(seeds)} to fall back to: "
-                                   "start a new run") from None
+        raise ckpt.CheckpointError(
+            f"{error}; no older checkpoint of seeds {list(seeds)} to fall back to: start a new run"
+        ) from None
 
 
-def save_checkpoints(run_dir, config: Config, seeds, states, update: int, schedule: Schedule,
-                     rows: list[dict] = ()) -> None:
+def save_checkpoints(
+    run_dir, config: Config, seeds, states, update: int, schedule: Schedule, rows: list[dict] = ()
+) -> None:
     """Every seed's checkpoint at ``update`` (with its metrics rows), then prune superseded ones.
 
     All seeds are written before any old file is removed, so a kill at any moment leaves an update
@@ -139,11 +147,17 @@ def save_checkpoints(run_dir, config: Config, seeds, states, update: int, schedu
     host = jax.tree.map(np.asarray, states)
     for index, seed in enumerate(seeds):
         seed_rows = [r for r in rows if r["seed"] == seed]
-        ckpt.save(ckpt.checkpoint_path(run_dir, seed, update), ppo.take_seed(host, index), config.fingerprint(),
-                  seed=seed, update=update, method=config.population.method, metrics=seed_rows)
+        ckpt.save(
+            ckpt.checkpoint_path(run_dir, seed, update),
+            ppo.take_seed(host, index),
+            config.fingerprint(),
+            seed=seed,
+            update=update,
+            method=config.population.method,
+            metrics=seed_rows,
+        )
     keep = schedule.kept(update)
     for seed in seeds:
         for old in ckpt.list_updates(run_dir, seed):
             if old not in keep:
                 ckpt.checkpoint_path(run_dir, seed, old).unlink(missing_ok=True)
-

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import os
 import time
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -61,8 +62,9 @@ def record_pairs(trainer: ppo.Trainer, env, params, pairs, keys, episodes: int):
     """``pairs`` of the K stacked ``params`` play ``episodes`` each with every transition kept (numpy)."""
     params = jax.tree.map(jnp.asarray, params)
     play = jitted_play_recorded_pairs(trainer.network.apply, hidden_size(trainer), env, episodes)
-    recorded = play(gather_params(params, [p[0] for p in pairs]), gather_params(params, [p[1] for p in pairs]),
-                    jnp.asarray(keys))
+    recorded = play(
+        gather_params(params, [p[0] for p in pairs]), gather_params(params, [p[1] for p in pairs]), jnp.asarray(keys)
+    )
     return jax.tree.map(np.asarray, recorded)
 
 
@@ -87,8 +89,11 @@ class SeedShard:
         pool_size = 0 if pool is None else int(jax.tree.leaves(self.pool)[0].shape[int(self.pool_per_seed)])
         restored = restore(self.trainer, self.run_dir, config, self.seeds, pool_size)
         if restored is None:
-            self.states, self.update, self._saved_rows = ppo.init_population(self.trainer, self.seeds, None,
-                                                                             pool_size), 0, []
+            self.states, self.update, self._saved_rows = (
+                ppo.init_population(self.trainer, self.seeds, None, pool_size),
+                0,
+                [],
+            )
             save_checkpoints(self.run_dir, config, self.seeds, self.states, 0, self.schedule)
         else:
             self.states, self.update, self._saved_rows = restored
@@ -96,8 +101,9 @@ class SeedShard:
         self._restarted_iteration = None  # SA: the iteration whose episode restart self.states has had
         self._buffer = None  # SA: (iteration, jnp State) converted once per iteration
         self._compiled = {}
-        self._restart = jax.jit(jax.vmap(lambda s, k, b: ppo.restart_episodes(self.trainer, s, k, b),
-                                         in_axes=(0, 0, None)))
+        self._restart = jax.jit(
+            jax.vmap(lambda s, k, b: ppo.restart_episodes(self.trainer, s, k, b), in_axes=(0, 0, None))
+        )
         env = self.trainer.env
         self._recipe_labels = ["+".join(map(str, r)) for r in env.layout.possible_recipes]
 
@@ -107,7 +113,9 @@ class SeedShard:
             return pool
         learners = int(jax.tree.leaves(pool)[0].shape[0])
         if learners != self.config.population.num_seeds:
-            raise ValueError(f"FCP per_seed pool has {learners} learner pools for {self.config.population.num_seeds} seeds")
+            raise ValueError(
+                f"FCP per_seed pool has {learners} learner pools for {self.config.population.num_seeds} seeds"
+            )
         return jax.tree.map(lambda x: np.asarray(x)[self.seeds], pool)
 
     # -- training
@@ -148,11 +156,14 @@ class SeedShard:
             return
         iteration = self.schedule.iteration_at(self.update)
         if buffer is None or buffer.iteration != iteration:
-            raise ValueError(f"SA shard at update {self.update} needs the buffer of iteration {iteration}, got "
-                             f"{None if buffer is None else buffer.iteration}")
+            raise ValueError(
+                f"SA shard at update {self.update} needs the buffer of iteration {iteration}, got "
+                f"{None if buffer is None else buffer.iteration}"
+            )
         if self.update == starts[iteration] and self._restarted_iteration != iteration:
-            keys = jnp.stack([derive_key(self.config.population.seed, "sa_restart", iteration, member=s)
-                              for s in self.seeds])
+            keys = jnp.stack(
+                [derive_key(self.config.population.seed, "sa_restart", iteration, member=s) for s in self.seeds]
+            )
             self.states = self._restart(self.states, keys, self._device_buffer(buffer))
         self._restarted_iteration = iteration
 
@@ -174,10 +185,21 @@ class SeedShard:
         key = derive_key(self.config.population.seed, "sa", iteration)
         env = ppo.eval_env(self.config)
         params = jax.tree.map(jnp.asarray, params)
-        part, recorded = collect_pairs(self.trainer.network.apply, hidden_size(self.trainer), env, params, key,
-                                             self.config.population.sa, pairs, record=record)
-        return CollectResult([tuple(p) for p in part.pairs], jax.tree.map(np.asarray, part.states),
-                             None if recorded is None else jax.tree.map(np.asarray, recorded))
+        part, recorded = collect_pairs(
+            self.trainer.network.apply,
+            hidden_size(self.trainer),
+            env,
+            params,
+            key,
+            self.config.population.sa,
+            pairs,
+            record=record,
+        )
+        return CollectResult(
+            [tuple(p) for p in part.pairs],
+            jax.tree.map(np.asarray, part.states),
+            None if recorded is None else jax.tree.map(np.asarray, recorded),
+        )
 
     def cross_play(self, params, rows, key, episodes: int, archive_dir=None) -> CrossPlayRows:
         """Cross-play of seat-0 ``rows``; with ``archive_dir`` their episodes are archived there, one file per row."""
@@ -187,8 +209,12 @@ class SeedShard:
 
     def record_selfplay(self):
         """One self-play episode per seed of the current policies (``archive.train_every``)."""
-        keys = np.stack([np.asarray(derive_key(self.config.population.seed, "train_archive", self.update, member=s))
-                         for s in self.seeds])
+        keys = np.stack(
+            [
+                np.asarray(derive_key(self.config.population.seed, "train_archive", self.update, member=s))
+                for s in self.seeds
+            ]
+        )
         local = [(i, i) for i in range(len(self.seeds))]
         return self.update, record_pairs(self.trainer, ppo.eval_env(self.config), self.params(), local, keys, 1)
 

@@ -38,11 +38,19 @@ def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path
     runs = [_run_entry(study, run, out, configs[run.name], state) for run in study.runs]
     comparisons = [_comparison_entry(c.name, out, state) for c in study.comparisons]
     over = [_over_training_entry(name, out) for name in study.over_training]
-    summary = {"study": study.name, "source": str(study.path), "budget": state["budget"], "seeds": state["seeds"],
-               "backend": state.get("backend"), "written": _now(), "runs": runs, "comparisons": comparisons,
-               "over_training": over,
-               "ci_method": "95% percentile bootstrap over training seeds",
-               "wall_s": round(sum(s.get("wall_s", 0.0) for s in state.get("steps", {}).values()), 1)}
+    summary = {
+        "study": study.name,
+        "source": str(study.path),
+        "budget": state["budget"],
+        "seeds": state["seeds"],
+        "backend": state.get("backend"),
+        "written": _now(),
+        "runs": runs,
+        "comparisons": comparisons,
+        "over_training": over,
+        "ci_method": "95% percentile bootstrap over training seeds",
+        "wall_s": round(sum(s.get("wall_s", 0.0) for s in state.get("steps", {}).values()), 1),
+    }
     pictures = _curves(study, out, configs, dest) + _heatmaps(out, comparisons, dest) + _over_training_plots(dest, over)
     summary["pictures"] = [Path(p).name for p in pictures]
     write_json(dest / "summary.json", _strict(summary))
@@ -62,18 +70,32 @@ def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
 # collecting
 # ---------------------------------------------------------------------------------------------------
 
+
 def _run_entry(study: Study, spec, out: Path, config, state: dict) -> dict:
     path = run_dir(out, spec.name)
     step = state.get("steps", {}).get(f"train {spec.name}", {})
-    entry = {"name": spec.name, "config": str(spec.config), "overrides": list(spec.overrides),
-             "method": config.population.method, "layout": config.env_kwargs["layout"],
-             "model": config.model.kind, "seeds": config.population.num_seeds,
-             "env_steps_per_seed": config.ppo.num_updates * config.ppo.steps_per_update,
-             "fingerprint": config.fingerprint(), "status": "not started", "wall_s": step.get("wall_s"),
-             "commits": [], "xp": None,
-             "paper": None if spec.paper is None else {
-                 "source": spec.paper.source, "note": spec.paper.note,
-                 **{k: _paper(getattr(spec.paper, k)) for k in ("sp", "xp", "gap")}}}
+    entry = {
+        "name": spec.name,
+        "config": str(spec.config),
+        "overrides": list(spec.overrides),
+        "method": config.population.method,
+        "layout": config.env_kwargs["layout"],
+        "model": config.model.kind,
+        "seeds": config.population.num_seeds,
+        "env_steps_per_seed": config.ppo.num_updates * config.ppo.steps_per_update,
+        "fingerprint": config.fingerprint(),
+        "status": "not started",
+        "wall_s": step.get("wall_s"),
+        "commits": [],
+        "xp": None,
+        "paper": None
+        if spec.paper is None
+        else {
+            "source": spec.paper.source,
+            "note": spec.paper.note,
+            **{k: _paper(getattr(spec.paper, k)) for k in ("sp", "xp", "gap")},
+        },
+    }
     if not (path / "config.yaml").is_file():
         return entry
     run = RunDir(path)
@@ -84,9 +106,21 @@ def _run_entry(study: Study, spec, out: Path, config, state: dict) -> dict:
     summary_path = path / "xp" / "summary.json"
     if summary_path.is_file():
         xp = json.loads(summary_path.read_text())
-        entry["xp"] = {key: xp.get(key) for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap",
-                                                     "sp_ci95_interval", "xp_ci95_interval", "gap_ci95_interval",
-                                                     "episodes_per_pair", "num_policies")}
+        entry["xp"] = {
+            key: xp.get(key)
+            for key in (
+                "sp_mean",
+                "sp_std",
+                "xp_mean",
+                "xp_std",
+                "gap",
+                "sp_ci95_interval",
+                "xp_ci95_interval",
+                "gap_ci95_interval",
+                "episodes_per_pair",
+                "num_policies",
+            )
+        }
     return entry
 
 
@@ -111,27 +145,51 @@ def _commits(path: Path) -> list[str]:
 
 def _comparison_entry(name: str, out: Path, state: dict) -> dict:
     step = state.get("steps", {}).get(f"compare {name}", {})
-    entry = {"name": name, "status": step.get("status", "left"), "reason": step.get("reason", ""),
-             "wall_s": step.get("wall_s")}
+    entry = {
+        "name": name,
+        "status": step.get("status", "left"),
+        "reason": step.get("reason", ""),
+        "wall_s": step.get("wall_s"),
+    }
     path = out / "comparisons" / name / "summary.json"
     if path.is_file():
         data = json.loads(path.read_text())
-        entry.update(pairs=data.get("pairs", []), blocks=data.get("blocks", []),
-                     episodes_per_pair=data.get("episodes_per_pair"))
+        entry.update(
+            pairs=data.get("pairs", []), blocks=data.get("blocks", []), episodes_per_pair=data.get("episodes_per_pair")
+        )
     return entry
 
 
 def _over_training_entry(name: str, out: Path) -> dict:
     folder = out / "over_training" / name
     points = [json.loads(p.read_text()) for p in sorted(folder.glob("update_*.json"))]
-    return {"run": name, "points": [{k: p.get(k) for k in ("update", "env_steps_per_seed", "sp_mean", "xp_mean", "gap",
-                                                           "sp_ci95_interval", "xp_ci95_interval", "gap_ci95_interval",
-                                                           "episodes_per_pair", "matrix")} for p in points]}
+    return {
+        "run": name,
+        "points": [
+            {
+                k: p.get(k)
+                for k in (
+                    "update",
+                    "env_steps_per_seed",
+                    "sp_mean",
+                    "xp_mean",
+                    "gap",
+                    "sp_ci95_interval",
+                    "xp_ci95_interval",
+                    "gap_ci95_interval",
+                    "episodes_per_pair",
+                    "matrix",
+                )
+            }
+            for p in points
+        ],
+    }
 
 
 # ---------------------------------------------------------------------------------------------------
 # pictures
 # ---------------------------------------------------------------------------------------------------
+
 
 def _curves(study: Study, out: Path, configs: dict, dest: Path) -> list[str]:
     by_layout: dict = {}
@@ -153,8 +211,11 @@ def _curves(study: Study, out: Path, configs: dict, dest: Path) -> list[str]:
             if steps.size == 0:
                 continue
             config = configs[spec.name]
-            (line,) = ax.plot(steps, mean, label=f"{spec.name} ({config.population.method.upper()}, "
-                                                 f"{config.population.num_seeds} seeds)")
+            (line,) = ax.plot(
+                steps,
+                mean,
+                label=f"{spec.name} ({config.population.method.upper()}, {config.population.num_seeds} seeds)",
+            )
             ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
         ax.set_xlabel("environment steps per seed")
         ax.set_ylabel("sparse return (mean ± std across seeds)")
@@ -189,8 +250,13 @@ def _heatmaps(out: Path, comparisons: list[dict], dest: Path) -> list[str]:
             rows = list(csv.reader(handle))
         labels = [r[0] for r in rows[1:]]
         matrix = np.asarray([[float(v) for v in r[1:]] for r in rows[1:]], np.float64)
-        picture = xp_heatmap(matrix, dest / f"heatmap_{entry['name']}.png", labels=labels, col_labels=rows[0][1:],
-                             title=f"{entry['name']}: cross-play, {entry.get('episodes_per_pair')} episodes/pair")
+        picture = xp_heatmap(
+            matrix,
+            dest / f"heatmap_{entry['name']}.png",
+            labels=labels,
+            col_labels=rows[0][1:],
+            title=f"{entry['name']}: cross-play, {entry.get('episodes_per_pair')} episodes/pair",
+        )
         if picture is not None:
             pictures.append(picture)
     return pictures
@@ -230,25 +296,36 @@ def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
 # markdown
 # ---------------------------------------------------------------------------------------------------
 
+
 def markdown(study: Study, summary: dict, state: dict) -> str:
     lines = [f"# Study `{study.name}`", ""]
     if study.description:
         lines += [study.description, ""]
     budget = summary["budget"]
-    lines += [f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps"
-              + (" (the paper's experiment)" if budget == 1 else " (**reduced: not the paper's experiment**)"),
-              f"- seeds per run: {summary['seeds'] or 'as each config'}; backend: {summary['backend']}; "
-              f"wall time so far: {_duration(summary['wall_s'])}",
-              f"- intervals: {summary['ci_method']}; 'in CI': the paper's mean lies inside our interval",
-              f"- written {summary['written']}", ""]
-    lines += ["## Runs: ours beside the paper's", "",
-              "| run | method | layout | seeds x env steps | SP ours [95% CI] | SP paper | XP ours [95% CI] | XP paper "
-              "| gap ours [95% CI] | gap paper | paper source |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps"
+        + (" (the paper's experiment)" if budget == 1 else " (**reduced: not the paper's experiment**)"),
+        f"- seeds per run: {summary['seeds'] or 'as each config'}; backend: {summary['backend']}; "
+        f"wall time so far: {_duration(summary['wall_s'])}",
+        f"- intervals: {summary['ci_method']}; 'in CI': the paper's mean lies inside our interval",
+        f"- written {summary['written']}",
+        "",
+    ]
+    lines += [
+        "## Runs: ours beside the paper's",
+        "",
+        "| run | method | layout | seeds x env steps | SP ours [95% CI] | SP paper | XP ours [95% CI] | XP paper "
+        "| gap ours [95% CI] | gap paper | paper source |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for run in summary["runs"]:
         xp, paper = run["xp"], run["paper"] or {}
-        cells = [run["name"], METHOD_NAMES.get(run["method"], run["method"]), run["layout"],
-                 f"{run['seeds']} x {run['env_steps_per_seed'] / 1e6:.2f}M"]
+        cells = [
+            run["name"],
+            METHOD_NAMES.get(run["method"], run["method"]),
+            run["layout"],
+            f"{run['seeds']} x {run['env_steps_per_seed'] / 1e6:.2f}M",
+        ]
         for key, mean_key in (("sp", "sp_mean"), ("xp", "xp_mean"), ("gap", "gap")):
             if xp is None:
                 cells.append(f"n/a ({run['status']})")
@@ -259,35 +336,56 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
         lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     lines += ["", "Per run: "]
     for run in summary["runs"]:
-        lines.append(f"- `{run['name']}`: status {run['status']}, wall {_duration(run['wall_s'])}, config "
-                     f"`{Path(run['config']).name}`" + (f" with `{' '.join(run['overrides'])}`" if run["overrides"] else "")
-                     + f", fingerprint `{run['fingerprint']}`, commits {', '.join(run['commits']) or 'n/a'}")
+        lines.append(
+            f"- `{run['name']}`: status {run['status']}, wall {_duration(run['wall_s'])}, config "
+            f"`{Path(run['config']).name}`"
+            + (f" with `{' '.join(run['overrides'])}`" if run["overrides"] else "")
+            + f", fingerprint `{run['fingerprint']}`, commits {', '.join(run['commits']) or 'n/a'}"
+        )
     if summary["comparisons"]:
-        lines += ["", "## Cross-play between runs (both seat orders)", "",
-                  "| comparison | A | B | A seat 0, B seat 1 | B seat 0, A seat 1 | mean of both [95% CI] |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "## Cross-play between runs (both seat orders)",
+            "",
+            "| comparison | A | B | A seat 0, B seat 1 | B seat 0, A seat 1 | mean of both [95% CI] |",
+            "|---|---|---|---|---|---|",
+        ]
         for entry in summary["comparisons"]:
             if not entry.get("pairs"):
-                lines.append(f"| {entry['name']} | | | n/a ({entry['status']}{': ' + entry['reason'] if entry['reason'] else ''}) | | |")
+                lines.append(
+                    f"| {entry['name']} | | | n/a ({entry['status']}{': ' + entry['reason'] if entry['reason'] else ''}) | | |"
+                )
                 continue
             for pair in entry["pairs"]:
-                lines.append(f"| {entry['name']} | {_label(pair['a'], pair['a_method'])} | "
-                             f"{_label(pair['b'], pair['b_method'])} | {_pm(pair['a_seat0'], pair['a_seat0_std'])} | "
-                             f"{_pm(pair['a_seat1'], pair['a_seat1_std'])} | "
-                             f"{_with_ci(pair['mean'], pair['mean_ci95_interval'])} |")
+                lines.append(
+                    f"| {entry['name']} | {_label(pair['a'], pair['a_method'])} | "
+                    f"{_label(pair['b'], pair['b_method'])} | {_pm(pair['a_seat0'], pair['a_seat0_std'])} | "
+                    f"{_pm(pair['a_seat1'], pair['a_seat1_std'])} | "
+                    f"{_with_ci(pair['mean'], pair['mean_ci95_interval'])} |"
+                )
     for entry in summary["over_training"]:
         if not entry["points"]:
             continue
-        lines += ["", f"## When does the gap open? `{entry['run']}`, cross-play of every kept snapshot", "",
-                  "| env steps per seed | SP [95% CI] | XP [95% CI] | gap [95% CI] |", "|---|---|---|---|"]
+        lines += [
+            "",
+            f"## When does the gap open? `{entry['run']}`, cross-play of every kept snapshot",
+            "",
+            "| env steps per seed | SP [95% CI] | XP [95% CI] | gap [95% CI] |",
+            "|---|---|---|---|",
+        ]
         for p in entry["points"]:
-            lines.append(f"| {p['env_steps_per_seed'] / 1e6:.2f}M | {_with_ci(p['sp_mean'], p['sp_ci95_interval'])} | "
-                         f"{_with_ci(p['xp_mean'], p['xp_ci95_interval'])} | "
-                         f"{_with_ci(p['gap'], p['gap_ci95_interval'])} |")
+            lines.append(
+                f"| {p['env_steps_per_seed'] / 1e6:.2f}M | {_with_ci(p['sp_mean'], p['sp_ci95_interval'])} | "
+                f"{_with_ci(p['xp_mean'], p['xp_ci95_interval'])} | "
+                f"{_with_ci(p['gap'], p['gap_ci95_interval'])} |"
+            )
     if summary["pictures"]:
         lines += ["", "## Pictures", ""] + [f"![{name}]({name})" for name in summary["pictures"]]
-    left = [f"- {name}: {step.get('status')}" + (f" ({step['reason']})" if step.get("reason") else "")
-            for name, step in state.get("steps", {}).items() if step.get("status") != "done"]
+    left = [
+        f"- {name}: {step.get('status')}" + (f" ({step['reason']})" if step.get("reason") else "")
+        for name, step in state.get("steps", {}).items()
+        if step.get("status") != "done"
+    ]
     if left:
         lines += ["", "## Not finished", ""] + left
     return "\n".join(lines) + "\n"
@@ -332,11 +430,15 @@ def _duration(seconds) -> str:
     if seconds is None:
         return "n/a"
     seconds = int(seconds)
-    return f"{seconds // 3600} h {seconds % 3600 // 60:02d} min" if seconds >= 3600 else f"{seconds // 60} min {seconds % 60:02d} s"
+    return (
+        f"{seconds // 3600} h {seconds % 3600 // 60:02d} min"
+        if seconds >= 3600
+        else f"{seconds // 60} min {seconds % 60:02d} s"
+    )
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def _strict(value):

@@ -23,8 +23,8 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -57,6 +57,7 @@ class StudyOptions:
 # the study directory's state
 # ---------------------------------------------------------------------------------------------------
 
+
 def read_state(out: Path) -> dict:
     path = Path(out) / STATE_NAME
     try:
@@ -79,15 +80,22 @@ def open_state(study: Study, out: Path, budget: float | None, seeds: int | None,
             raise StudyError(f"{out}: holds study {state.get('study')!r}, not {study.name!r}; choose another --out")
         for flag, given, kept in (("--budget", budget, state.get("budget")), ("--seeds", seeds, state.get("seeds"))):
             if given is not None and given != kept:
-                raise StudyError(f"{out}: was started with {flag} {kept}; pass the same value (or none) to continue "
-                                 "it, or choose another --out")
+                raise StudyError(
+                    f"{out}: was started with {flag} {kept}; pass the same value (or none) to continue "
+                    "it, or choose another --out"
+                )
     else:
         if out.exists() and not out.is_dir():
             raise StudyError(f"{out}: is a file, not a study directory")
         if out.is_dir() and any(p.name not in ("runs", ".lock") for p in out.iterdir()):
             raise StudyError(f"{out}: exists and is not a study directory (no {STATE_NAME}); choose another --out")
-        state = {"study": study.name, "budget": 1.0 if budget is None else budget, "seeds": seeds, "steps": {},
-                 "created": time.time()}
+        state = {
+            "study": study.name,
+            "budget": 1.0 if budget is None else budget,
+            "seeds": seeds,
+            "steps": {},
+            "created": time.time(),
+        }
     state.update(source=str(study.path), spec=study.raw, backend=backend)
     state.setdefault("steps", {})
     return state
@@ -109,7 +117,7 @@ class StateFile:
         self.step(name).update(changes)
         self.save()
 
-    def timer(self, name: str) -> "StepTimer":
+    def timer(self, name: str) -> StepTimer:
         return StepTimer(self, name)
 
 
@@ -131,9 +139,17 @@ class StepTimer:
 # running
 # ---------------------------------------------------------------------------------------------------
 
-def run_study(study: Study, out, budget: float | None = None, seeds: int | None = None, backend: str = "ray",
-              address: str | None = None, show_progress: bool = True,
-              say: Callable[[str], None] = log.info) -> dict:
+
+def run_study(
+    study: Study,
+    out,
+    budget: float | None = None,
+    seeds: int | None = None,
+    backend: str = "ray",
+    address: str | None = None,
+    show_progress: bool = True,
+    say: Callable[[str], None] = log.info,
+) -> dict:
     """Train every unfinished run, run the cross-play steps, write the report. Returns the state
     (``steps``: name -> status "done" or "blocked" with a reason)."""
     out = Path(out).resolve()
@@ -213,8 +229,15 @@ def _train_step(name: str):
         if options.address:
             config = dataclasses.replace(config, cluster=dataclasses.replace(config.cluster, address=options.address))
         resume = (path / "config.yaml").is_file()
-        train_population(config, path, backend=options.backend, resume=resume, show_progress=options.show_progress,
-                         evaluate=True, on_chunk=lambda event: timer.tick(update=event.update))
+        train_population(
+            config,
+            path,
+            backend=options.backend,
+            resume=resume,
+            show_progress=options.show_progress,
+            evaluate=True,
+            on_chunk=lambda event: timer.tick(update=event.update),
+        )
         return {"update": config.ppo.num_updates}
 
     return action
@@ -235,12 +258,17 @@ def _over_training_step(name: str):
             with crossplay.players(options.backend, jobs, options.address) as workers:
                 for update in todo:
                     group = groups[update]
-                    result = crossplay.play_matrix([group], [group], workers, crossplay.xp_key(created.population.seed),
-                                                   created.eval.episodes)
+                    result = crossplay.play_matrix(
+                        [group], [group], workers, crossplay.xp_key(created.population.seed), created.eval.episodes
+                    )
                     ids = list(group.ids)
                     summary = block_summary(result.matrix, ids, ids)
-                    summary.update(update=update, env_steps_per_seed=update * created.ppo.steps_per_update,
-                                   episodes_per_pair=created.eval.episodes, matrix=result.matrix.round(4).tolist())
+                    summary.update(
+                        update=update,
+                        env_steps_per_seed=update * created.ppo.steps_per_update,
+                        episodes_per_pair=created.eval.episodes,
+                        matrix=result.matrix.round(4).tolist(),
+                    )
                     write_json(folder / f"update_{update:07d}.json", summary)
                     timer.tick()
         done = snapshots
@@ -277,9 +305,10 @@ def _source(text: str, checkpoint: str = "final") -> crossplay.PolicyGroup:
         return crossplay.resolve_source(text, checkpoint)
     except crossplay.CrossPlayError as error:
         if text.startswith(crossplay.HUMAN_PROXY):
-            layout = text[len(crossplay.HUMAN_PROXY):]
-            raise StudyBlocked(f"{error} (train it with: ocv2 human proxy {layout} --source "
-                               "overcooked_ai-1.1.0.tar.gz; docs/human.md)") from None
+            layout = text[len(crossplay.HUMAN_PROXY) :]
+            raise StudyBlocked(
+                f"{error} (train it with: ocv2 human proxy {layout} --source overcooked_ai-1.1.0.tar.gz; docs/human.md)"
+            ) from None
         raise StudyError(str(error)) from None
 
 
@@ -293,14 +322,16 @@ def _play(options: StudyOptions, rows, cols, seed: int, episodes: int) -> crossp
 # cross-run cross-play, both seat orders
 # ---------------------------------------------------------------------------------------------------
 
+
 @dataclasses.dataclass(frozen=True)
 class ComparisonResult:
     matrix: crossplay.Matrix  # every group against every group (rows = seat 0)
     summary: dict
 
 
-def compare(groups, options: StudyOptions, seed: int, episodes: int, timer: StepTimer | None = None
-            ) -> ComparisonResult:
+def compare(
+    groups, options: StudyOptions, seed: int, episodes: int, timer: StepTimer | None = None
+) -> ComparisonResult:
     """Every group against every other group in both seats; a group against itself is its own in-run
     cross-play (same episode keys). Returns the full matrix and, per pair of groups, each seat order's
     XP, their mean and seed-bootstrap 95 % intervals."""
@@ -321,13 +352,23 @@ def seat_orders(result: crossplay.Matrix) -> list[dict]:
     for a, group_a in enumerate(result.row_groups):
         for b in range(a + 1, len(result.row_groups)):
             group_b = result.row_groups[b]
-            ab = matrix[offsets[a]:offsets[a + 1], offsets[b]:offsets[b + 1]]
-            ba = matrix[offsets[b]:offsets[b + 1], offsets[a]:offsets[a + 1]]
+            ab = matrix[offsets[a] : offsets[a + 1], offsets[b] : offsets[b + 1]]
+            ba = matrix[offsets[b] : offsets[b + 1], offsets[a] : offsets[a + 1]]
             both = block_summary((ab + ba.T) / 2, list(group_a.ids), list(group_b.ids))
-            pairs.append({"a": group_a.label, "b": group_b.label, "a_method": group_a.method,
-                          "b_method": group_b.method, "a_seat0": float(ab.mean()), "a_seat0_std": _std(ab),
-                          "a_seat1": float(ba.mean()), "a_seat1_std": _std(ba),
-                          "mean": both["xp_mean"], "mean_ci95_interval": both["xp_ci95_interval"]})
+            pairs.append(
+                {
+                    "a": group_a.label,
+                    "b": group_b.label,
+                    "a_method": group_a.method,
+                    "b_method": group_b.method,
+                    "a_seat0": float(ab.mean()),
+                    "a_seat0_std": _std(ab),
+                    "a_seat1": float(ba.mean()),
+                    "a_seat1_std": _std(ba),
+                    "mean": both["xp_mean"],
+                    "mean_ci95_interval": both["xp_ci95_interval"],
+                }
+            )
     return pairs
 
 
@@ -338,6 +379,7 @@ def _std(cells: np.ndarray) -> float:
 # ---------------------------------------------------------------------------------------------------
 # status
 # ---------------------------------------------------------------------------------------------------
+
 
 def study_status(out) -> list[dict]:
     """One entry per step: name, status (done / running / partial / blocked / left), progress, ETA in seconds
@@ -358,8 +400,13 @@ def study_status(out) -> list[dict]:
     for name, _ in _steps(study):
         step = state.get("steps", {}).get(name, {})
         status = step.get("status", "left")
-        entry = {"step": name, "status": status, "wall_s": step.get("wall_s", 0.0), "detail": step.get("reason", ""),
-                 "eta_s": None}
+        entry = {
+            "step": name,
+            "status": status,
+            "wall_s": step.get("wall_s", 0.0),
+            "detail": step.get("reason", ""),
+            "eta_s": None,
+        }
         if name.startswith("train "):
             entry.update(_train_progress(out / "runs" / name[6:], configs.get(name[6:]), rates))
             if status != "done" and entry.pop("finished", False):
@@ -411,9 +458,11 @@ def _train_progress(path: Path, planned, rates: dict) -> dict:
     total = config.ppo.num_updates
     remaining = (total - update) * config.ppo.steps_per_update * config.population.num_seeds
     rate = rates.get(config.model.kind)
-    return {"progress": f"update {update}/{total} ({manifest.get('status', 'created')})",
-            "eta_s": remaining / rate if rate else (0.0 if not remaining else None),
-            "finished": manifest.get("status") != "not started" and run_finished(path)}
+    return {
+        "progress": f"update {update}/{total} ({manifest.get('status', 'created')})",
+        "eta_s": remaining / rate if rate else (0.0 if not remaining else None),
+        "finished": manifest.get("status") != "not started" and run_finished(path),
+    }
 
 
 def finite(value) -> float | None:

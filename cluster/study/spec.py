@@ -33,8 +33,9 @@ import dataclasses
 import difflib
 import math
 import re
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from population.config import Config, ConfigError, load_config, read_yaml
 
@@ -102,6 +103,7 @@ class Study:
 # ---------------------------------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------------------------------
+
 
 def load_study(path) -> Study:
     """Read and check a study file (every config it names is loaded once, so a typo fails here)."""
@@ -258,6 +260,7 @@ def _finite_number(value) -> bool:
 # runs at a budget
 # ---------------------------------------------------------------------------------------------------
 
+
 def run_dir(out: Path, name: str) -> Path:
     return Path(out) / "runs" / name
 
@@ -272,12 +275,14 @@ def run_config(study: Study, run: RunSpec, out: Path, budget: float, seeds: int 
     if run.partners_from is not None:
         partner = study.run(run.partners_from)
         partner_seeds = run_config(study, partner, out, budget, seeds).population.num_seeds
-        overrides += ["population.fcp.pool=shared", f"population.fcp.partners={run_dir(out, partner.name)}",
-                      f"population.fcp.partner_seeds={partner_seeds}"]
+        overrides += [
+            "population.fcp.pool=shared",
+            f"population.fcp.partners={run_dir(out, partner.name)}",
+            f"population.fcp.partner_seeds={partner_seeds}",
+        ]
     base = _load(where, run.config, overrides)
     if run.partners_from is not None and base.population.method != "fcp":
-        raise StudyError(f"{where}.partners_from: only FCP runs take partners (this run is "
-                         f"{base.population.method})")
+        raise StudyError(f"{where}.partners_from: only FCP runs take partners (this run is {base.population.method})")
     overrides += budget_overrides(base, budget)
     return _load(where, run.config, overrides)
 
@@ -289,8 +294,10 @@ def budget_overrides(config: Config, budget: float) -> list[str]:
 
     def scaled(prefix: str, ppo) -> list[str]:
         steps = max(ppo.steps_per_update, round(ppo.total_timesteps * budget))
-        return [f"{prefix}.total_timesteps={steps}",
-                f"{prefix}.rew_shaping_horizon={round(ppo.rew_shaping_horizon * budget)}"]
+        return [
+            f"{prefix}.total_timesteps={steps}",
+            f"{prefix}.rew_shaping_horizon={round(ppo.rew_shaping_horizon * budget)}",
+        ]
 
     out = scaled("ppo", config.ppo)
     fcp = config.population.fcp

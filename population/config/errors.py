@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 #: Problems caused by a command-line override start with this; they name the override, not the file.
 SET_PREFIX = "--set "
@@ -20,11 +21,13 @@ class ConfigError(ValueError):
         self.partial = partial  # what could be parsed (bad keys at their defaults), to check the rest against
         first = self.problems[0]
         more = len(self.problems) - 1
-        super().__init__(first if not more else f"{first} (and {more} more problem{'s' * (more > 1)}; "
-                                                 "ocv2 validate lists them all)")
+        super().__init__(
+            first if not more else f"{first} (and {more} more problem{'s' * (more > 1)}; ocv2 validate lists them all)"
+        )
 
-    def prefixed(self, prefix: str) -> "ConfigError":
+    def prefixed(self, prefix: str) -> ConfigError:
         """The same problems with ``prefix`` (e.g. the file) in front of each, except those of ``--set``
         overrides, which did not come from the file."""
-        return ConfigError([problem if problem.startswith(SET_PREFIX) else f"{prefix}: {problem}"
-                            for problem in self.problems])
+        return ConfigError(
+            [problem if problem.startswith(SET_PREFIX) else f"{prefix}: {problem}" for problem in self.problems]
+        )

@@ -8,7 +8,8 @@ import difflib
 import math
 import types
 import typing
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -25,7 +26,7 @@ INT64_FIELDS = frozenset({(PPOConfig, "rew_shaping_horizon"), (PopulationConfig,
 
 
 def nearest(word: str, choices, prefix: str = "") -> str:
-    """"; did you mean PREFIX.X?" for the closest of ``choices`` to ``word`` (empty if none is close)."""
+    """ "; did you mean PREFIX.X?" for the closest of ``choices`` to ``word`` (empty if none is close)."""
     close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1)
     return f"; did you mean {prefix}{'.' * bool(prefix)}{close[0]}?" if close else ""
 
@@ -125,8 +126,9 @@ def finite_float32(key: str, value: float) -> float:
     if not math.isfinite(value):
         raise ConfigError(f"{key}: expected a finite number, got {value!r}")
     if abs(value) > FLOAT32_MAX:
-        raise ConfigError(f"{key}: {value:.4g} is outside float32's range (|x| <= {FLOAT32_MAX:.4g}), the "
-                          "precision training runs in")
+        raise ConfigError(
+            f"{key}: {value:.4g} is outside float32's range (|x| <= {FLOAT32_MAX:.4g}), the precision training runs in"
+        )
     if value != 0 and np.float32(value) == 0:
         raise ConfigError(f"{key}: {value:.4g} rounds to 0 in float32, the precision training runs in")
     return value

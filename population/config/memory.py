@@ -38,8 +38,9 @@ class Measured:
 #: Measured 2026-11-25, x86-64 CPU, jax 0.10.2 (bench/memory.py; docs/cluster.md lists the points).
 MEASURED = {
     "cnn": Measured("classic_cramped_room_sp.yaml", base_mib=650, per_seed_mib=129, elements=64 * 256 * 2 * 4 * 5 * 30),
-    "rnn": Measured("v2_grounded_coord_simple_sp.yaml", base_mib=1006, per_seed_mib=394,
-                    elements=256 * 256 * 2 * 5 * 5 * 40),
+    "rnn": Measured(
+        "v2_grounded_coord_simple_sp.yaml", base_mib=1006, per_seed_mib=394, elements=256 * 256 * 2 * 5 * 5 * 40
+    ),
 }
 #: Ray's own processes on a machine that starts it (GCS, raylet, log monitor, dashboard agent), measured
 #: in shared notes at 300-400 MB resident.
@@ -107,10 +108,13 @@ def estimate(config: Config, place: str = "local") -> MemoryEstimate:
         elif place == "local":
             found = MemoryEstimate(base + seeds * per_seed_mib(config, ppo), f"{seeds:,} seeds in one process")
         else:
-            actors = shard_count(dataclasses.replace(
-                config, population=dataclasses.replace(config.population, num_seeds=seeds)))
-            found = MemoryEstimate((actors + 1) * base + seeds * per_seed_mib(config, ppo) + RAY_SYSTEM_MIB,
-                                   f"{seeds:,} seeds in {actors:,} Ray actors, the driver and Ray")
+            actors = shard_count(
+                dataclasses.replace(config, population=dataclasses.replace(config.population, num_seeds=seeds))
+            )
+            found = MemoryEstimate(
+                (actors + 1) * base + seeds * per_seed_mib(config, ppo) + RAY_SYSTEM_MIB,
+                f"{seeds:,} seeds in {actors:,} Ray actors, the driver and Ray",
+            )
         if worst is None or found.total_mib > worst.total_mib:
             worst = found
     return worst
@@ -134,7 +138,8 @@ def check_fits(config: Config, place: str = "local", available_mib: float | None
         raise ConfigError(
             f"population.num_seeds: the run needs about {_gib(found.total_mib)} of memory on this machine "
             f"({found.where}; docs/cluster.md, Memory) but it has {_gib(available)}: lower "
-            f"population.num_seeds{' or ppo.num_envs' * (place != 'cluster')}{advice}")
+            f"population.num_seeds{' or ppo.num_envs' * (place != 'cluster')}{advice}"
+        )
     return found
 
 

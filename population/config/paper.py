@@ -25,15 +25,20 @@ PAPER_CONFIGS: Traversable = PACKAGED_CONFIGS / "paper"
 
 def paper_config_files() -> list[Traversable]:
     """The shipped paper configs, by name; a ConfigError if the package lacks them (a broken install)."""
-    files = sorted((f for f in PAPER_CONFIGS.iterdir() if f.name.endswith(".yaml")), key=lambda f: f.name) \
-        if PAPER_CONFIGS.is_dir() else []
+    files = (
+        sorted((f for f in PAPER_CONFIGS.iterdir() if f.name.endswith(".yaml")), key=lambda f: f.name)
+        if PAPER_CONFIGS.is_dir()
+        else []
+    )
     if not files:
-        raise ConfigError(f"the paper configs that ship with ocv2 are missing ({PAPER_CONFIGS}): the installation "
-                          "is incomplete; reinstall ocv2")
+        raise ConfigError(
+            f"the paper configs that ship with ocv2 are missing ({PAPER_CONFIGS}): the installation "
+            "is incomplete; reinstall ocv2"
+        )
     return files
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def paper_sp_ppo(layout: str, model_kind: str) -> PPOConfig | None:
     """The ppo section of the paper's self-play config for ``layout`` and ``model_kind`` (None: there is none)."""
     found = {}
@@ -46,6 +51,8 @@ def paper_sp_ppo(layout: str, model_kind: str) -> PPOConfig | None:
         if pop.get("method") == "sp" and env.get("layout") == layout and model.get("kind") == model_kind:
             found[file.name] = parse_section(f"{file.name}: ppo", PPOConfig, raw.get("ppo"))
     if len(set(found.values())) > 1:
-        raise ConfigError(f"population.fcp.partner_ppo: paper self-play configs {', '.join(found)} disagree "
-                          f"for layout {layout!r}; set population.fcp.partner_ppo")
+        raise ConfigError(
+            f"population.fcp.partner_ppo: paper self-play configs {', '.join(found)} disagree "
+            f"for layout {layout!r}; set population.fcp.partner_ppo"
+        )
     return next(iter(found.values()), None)

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from ocv2.config import build_config
 from population.config.errors import SET_PREFIX, ConfigError
@@ -51,8 +52,10 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     if is_ray_launcher_config(raw):
         raise ConfigError("a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config")
     raw = apply_overrides(raw, overrides)
-    problems = [f"{name}: unknown section{nearest(name, SECTIONS)} (sections: {', '.join(SECTIONS)})"
-                for name in sorted(set(raw) - set(SECTIONS), key=str)]
+    problems = [
+        f"{name}: unknown section{nearest(name, SECTIONS)} (sections: {', '.join(SECTIONS)})"
+        for name in sorted(set(raw) - set(SECTIONS), key=str)
+    ]
 
     def parsed(parse, *args, default):
         try:
@@ -62,8 +65,9 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
             return default if error.partial is None else error.partial
 
     env = parsed(_parse_env, raw.get("env") or {}, default=Config().env)
-    model = _resolve_model(parsed(parse_section, "model", ModelConfig, raw.get("model"), default=ModelConfig()),
-                           problems)
+    model = _resolve_model(
+        parsed(parse_section, "model", ModelConfig, raw.get("model"), default=ModelConfig()), problems
+    )
     ppo = parsed(parse_section, "ppo", PPOConfig, raw.get("ppo"), default=PPOConfig())
     pop_raw = raw.get("population") or {}
     if not isinstance(pop_raw, Mapping):
@@ -76,19 +80,26 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
         fcp_raw = None
     fcp_raw = dict(fcp_raw or {})
     partner_raw = fcp_raw.pop("partner_ppo", None)
-    subs = {name: parsed(parse_section, f"population.{name}", cls, pop_raw.pop(name, None), default=cls())
-            for name, cls in (("sa", SAConfig), ("op", OPConfig))}
+    subs = {
+        name: parsed(parse_section, f"population.{name}", cls, pop_raw.pop(name, None), default=cls())
+        for name, cls in (("sa", SAConfig), ("op", OPConfig))
+    }
     subs["fcp"] = parsed(parse_section, "population.fcp", FCPConfig, fcp_raw, default=FCPConfig())
     population = dataclasses.replace(
-        parsed(parse_section, "population", PopulationConfig, pop_raw, default=PopulationConfig()), **subs)
+        parsed(parse_section, "population", PopulationConfig, pop_raw, default=PopulationConfig()), **subs
+    )
     partner_ppo = parsed(_partner_ppo, partner_raw, env, model, population, default=None)
     population = dataclasses.replace(population, fcp=dataclasses.replace(population.fcp, partner_ppo=partner_ppo))
-    config = Config(env=env, model=model, ppo=ppo, population=population,
-                    eval=parsed(_parse_eval, raw.get("eval"), default=EvalConfig()),
-                    run=parsed(parse_section, "run", RunConfig, raw.get("run"), default=RunConfig()),
-                    archive=parsed(parse_section, "archive", ArchiveConfig, raw.get("archive"),
-                                   default=ArchiveConfig()),
-                    cluster=parsed(_parse_cluster, raw.get("cluster"), default=ClusterConfig()))
+    config = Config(
+        env=env,
+        model=model,
+        ppo=ppo,
+        population=population,
+        eval=parsed(_parse_eval, raw.get("eval"), default=EvalConfig()),
+        run=parsed(parse_section, "run", RunConfig, raw.get("run"), default=RunConfig()),
+        archive=parsed(parse_section, "archive", ArchiveConfig, raw.get("archive"), default=ArchiveConfig()),
+        cluster=parsed(_parse_cluster, raw.get("cluster"), default=ClusterConfig()),
+    )
     # Values are checked with every key that did not parse at its default; a key already reported is
     # not reported again.
     reported = {problem.split(":", 1)[0] for problem in problems}
@@ -105,8 +116,11 @@ def blame_overrides(problems: Sequence[str], overrides: Sequence[str]) -> list[s
     blamed = []
     for problem in problems:
         key = problem.split(":", 1)[0]
-        hits = [item for name, item in dotted
-                if name == key or key.startswith((f"{name}.", f"{name}[")) or name.startswith(f"{key}.")]
+        hits = [
+            item
+            for name, item in dotted
+            if name == key or key.startswith((f"{name}.", f"{name}[")) or name.startswith(f"{key}.")
+        ]
         blamed.append(f"{SET_PREFIX}{hits[-1]}: {problem}" if hits else problem)
     return blamed
 
@@ -156,15 +170,19 @@ def _number_problems(key: str, value) -> list[str]:
 
 def _parse_eval(raw) -> EvalConfig:
     if isinstance(raw, Mapping) and "archive_episodes" in raw:
-        raise ConfigError("eval.archive_episodes: replaced by archive.xp (default true), which archives every "
-                          "scored cross-play episode to archive/xp/")
+        raise ConfigError(
+            "eval.archive_episodes: replaced by archive.xp (default true), which archives every "
+            "scored cross-play episode to archive/xp/"
+        )
     return parse_section("eval", EvalConfig, raw)
 
 
 def _parse_cluster(raw) -> ClusterConfig:
     if isinstance(raw, Mapping) and "checkpoint_every" in raw:
-        raise ConfigError("cluster.checkpoint_every: checkpoints are set by run.checkpoint_every, which both "
-                          "backends use (it is also the chunk between coordinator steps)")
+        raise ConfigError(
+            "cluster.checkpoint_every: checkpoints are set by run.checkpoint_every, which both "
+            "backends use (it is also the chunk between coordinator steps)"
+        )
     return parse_section("cluster", ClusterConfig, raw)
 
 
@@ -188,8 +206,10 @@ def _partner_ppo(raw, env, model: ModelConfig, population: PopulationConfig) -> 
     layout = dict(env)["layout"]
     base = paper_sp_ppo(layout, model.kind)
     if base is None and raw is None:
-        raise ConfigError(f"{key}: no paper self-play config for layout {layout!r} with model.kind={model.kind} "
-                          "to take the partner stage's hyperparameters from; set it (a ppo mapping)")
+        raise ConfigError(
+            f"{key}: no paper self-play config for layout {layout!r} with model.kind={model.kind} "
+            "to take the partner stage's hyperparameters from; set it (a ppo mapping)"
+        )
     values = dataclasses.asdict(base) if base is not None else {}
     values.update(raw or {})
     return parse_section(key, PPOConfig, values)

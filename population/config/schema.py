@@ -10,7 +10,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 #: JAX's default PRNG keys are built from 32-bit seeds: a larger seed would silently wrap around.
 MAX_SEED = 2**32 - 1
@@ -246,8 +247,11 @@ class Config:
 
 
 #: Keys added after 0.1.0 and their defaults, left out of the fingerprint at those defaults.
-_LATER_KEYS = {("population", "fcp", "pool"): "shared", ("population", "fcp", "partner_ppo"): None,
-               ("model", "kernels"): "auto"}
+_LATER_KEYS = {
+    ("population", "fcp", "pool"): "shared",
+    ("population", "fcp", "partner_ppo"): None,
+    ("model", "kernels"): "auto",
+}
 
 
 def _plain(value):

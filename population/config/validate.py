@@ -34,8 +34,16 @@ def _validate_ppo(prefix: str, ppo: PPOConfig) -> list[str]:
     problems: list[str] = []
     if ppo.activation not in ACTIVATIONS:
         problems.append(f"{prefix}.activation: expected one of {', '.join(ACTIVATIONS)}, got {ppo.activation!r}")
-    for key in ("lr", "clip_eps", "max_grad_norm", "num_envs", "num_steps", "num_minibatches",
-                "update_epochs", "total_timesteps"):
+    for key in (
+        "lr",
+        "clip_eps",
+        "max_grad_norm",
+        "num_envs",
+        "num_steps",
+        "num_minibatches",
+        "update_epochs",
+        "total_timesteps",
+    ):
         problems += _positive(f"{prefix}.{key}", getattr(ppo, key))
     for key in ("ent_coef", "vf_coef", "rew_shaping_horizon"):
         problems += _positive(f"{prefix}.{key}", getattr(ppo, key), allow_zero=True)
@@ -43,18 +51,24 @@ def _validate_ppo(prefix: str, ppo: PPOConfig) -> list[str]:
         if not 0.0 <= getattr(ppo, key) <= 1.0:
             problems.append(f"{prefix}.{key}: must lie in [0, 1], got {getattr(ppo, key)}")
     if ppo.num_envs > 0 and ppo.num_steps > 0 and ppo.num_updates < 1:
-        problems.append(f"{prefix}.total_timesteps: {ppo.total_timesteps} is less than one update "
-                        f"(num_envs x num_steps = {ppo.steps_per_update})")
+        problems.append(
+            f"{prefix}.total_timesteps: {ppo.total_timesteps} is less than one update "
+            f"(num_envs x num_steps = {ppo.steps_per_update})"
+        )
     # Training counts env steps and optimiser steps in int32 arrays: past 2**31 they would wrap negative.
     high = INT32[1]
     if ppo.steps_per_update > high:
-        problems.append(f"{prefix}.num_envs: num_envs x num_steps = {ppo.steps_per_update:,} env steps per update "
-                        f"exceed the int32 step counter ({high:,})")
+        problems.append(
+            f"{prefix}.num_envs: num_envs x num_steps = {ppo.steps_per_update:,} env steps per update "
+            f"exceed the int32 step counter ({high:,})"
+        )
     optimiser_steps = ppo.num_updates * ppo.update_epochs * ppo.num_minibatches
     if optimiser_steps > high:
-        problems.append(f"{prefix}.total_timesteps: {ppo.num_updates:,} updates x {ppo.update_epochs} epochs x "
-                        f"{ppo.num_minibatches} minibatches = {optimiser_steps:,} optimiser steps exceed the int32 "
-                        f"step counter ({high:,})")
+        problems.append(
+            f"{prefix}.total_timesteps: {ppo.num_updates:,} updates x {ppo.update_epochs} epochs x "
+            f"{ppo.num_minibatches} minibatches = {optimiser_steps:,} optimiser steps exceed the int32 "
+            f"step counter ({high:,})"
+        )
     return problems
 
 
@@ -78,13 +92,17 @@ def _validate_fcp(fcp: FCPConfig, num_agents: int) -> list[str]:
     if partner_problems:  # the checks below divide by these sizes
         return problems
     if (partner.num_envs * num_agents) % partner.num_minibatches:
-        problems.append(f"{key}.num_minibatches: {partner.num_minibatches} does not divide the "
-                        f"{partner.num_envs * num_agents} self-play sequences per update of the partner stage "
-                        f"(num_envs x {num_agents} agents)")
+        problems.append(
+            f"{key}.num_minibatches: {partner.num_minibatches} does not divide the "
+            f"{partner.num_envs * num_agents} self-play sequences per update of the partner stage "
+            f"(num_envs x {num_agents} agents)"
+        )
     late = [c for c in fcp.checkpoints if str(c).isdigit() and int(c) > partner.num_updates]
     if late:
-        problems.append(f"population.fcp.checkpoints: update {late[0]} is past the partner stage's "
-                        f"{partner.num_updates} updates ({key}.total_timesteps)")
+        problems.append(
+            f"population.fcp.checkpoints: update {late[0]} is past the partner stage's "
+            f"{partner.num_updates} updates ({key}.total_timesteps)"
+        )
     return problems
 
 
@@ -98,8 +116,11 @@ def validate(config: Config) -> list[str]:
         problems.append(f"model.kernels: expected one of {', '.join(KERNELS)}, got {model.kernels!r}")
     for key in ("fc_dim", "gru_dim"):
         problems += _positive(f"model.{key}", getattr(model, key))
-    for key, values in (("conv_features", model.conv_features), ("conv_kernels", model.conv_kernels),
-                        ("mixer_features", model.mixer_features)):
+    for key, values in (
+        ("conv_features", model.conv_features),
+        ("conv_kernels", model.conv_kernels),
+        ("mixer_features", model.mixer_features),
+    ):
         for v in values:
             problems += _positive(f"model.{key}", v)
     problems += _validate_ppo("ppo", ppo)
@@ -108,8 +129,10 @@ def validate(config: Config) -> list[str]:
     learner_actors = ppo.num_envs if pop.method == "fcp" else ppo.num_envs * env.num_agents
     if sizes_ok and learner_actors % ppo.num_minibatches:
         seats = "1 learner seat" if pop.method == "fcp" else f"{env.num_agents} agents"
-        problems.append(f"ppo.num_minibatches: {ppo.num_minibatches} does not divide the {learner_actors} "
-                        f"learner sequences per update (num_envs x {seats})")
+        problems.append(
+            f"ppo.num_minibatches: {ppo.num_minibatches} does not divide the {learner_actors} "
+            f"learner sequences per update (num_envs x {seats})"
+        )
     if pop.method not in METHODS:
         problems.append(f"population.method: expected one of {', '.join(METHODS)}, got {pop.method!r}")
     problems += _positive("population.num_seeds", pop.num_seeds)
@@ -118,8 +141,10 @@ def validate(config: Config) -> list[str]:
         problems += _positive(f"population.sa.{key}", getattr(pop.sa, key))
     if pop.method == "sa":
         if sizes_ok and pop.sa.iterations > ppo.num_updates:
-            problems.append(f"population.sa.iterations: {pop.sa.iterations} iterations need at least as many "
-                            f"updates, the config has {ppo.num_updates}")
+            problems.append(
+                f"population.sa.iterations: {pop.sa.iterations} iterations need at least as many "
+                f"updates, the config has {ppo.num_updates}"
+            )
         if pop.sa.keep_every > env.max_steps:
             problems.append(f"population.sa.keep_every: {pop.sa.keep_every} exceeds env.max_steps={env.max_steps}")
     if pop.method == "op":
@@ -127,11 +152,15 @@ def validate(config: Config) -> list[str]:
         if len(pop.op.ingredients) < 2 or len(set(pop.op.ingredients)) != len(pop.op.ingredients):
             problems.append("population.op.ingredients: needs at least two distinct ingredient indices")
         if any(not 0 <= i < n for i in pop.op.ingredients):
-            problems.append(f"population.op.ingredients: indices must lie in [0, {n}) for layout "
-                            f"{env.layout.name!r}, got {list(pop.op.ingredients)}")
+            problems.append(
+                f"population.op.ingredients: indices must lie in [0, {n}) for layout "
+                f"{env.layout.name!r}, got {list(pop.op.ingredients)}"
+            )
         if env.op_enabled:
-            problems.append("env.op_ingredient_permutations: set population.op.ingredients instead "
-                            "(evaluation must run without permutations)")
+            problems.append(
+                "env.op_ingredient_permutations: set population.op.ingredients instead "
+                "(evaluation must run without permutations)"
+            )
     if pop.method == "fcp":
         problems += _validate_fcp(pop.fcp, env.num_agents)
     problems += _positive("eval.episodes", config.eval.episodes)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 import os
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
@@ -56,8 +57,9 @@ def check_plain_data(value, where: str = "") -> None:
     def walk(node, key: str, parents: tuple[int, ...]) -> None:
         budget[0] -= 1
         if budget[0] < 0:
-            raise ConfigError(f"the YAML expands to more than {MAX_YAML_NODES} values (anchors and aliases "
-                              "repeated too often)")
+            raise ConfigError(
+                f"the YAML expands to more than {MAX_YAML_NODES} values (anchors and aliases repeated too often)"
+            )
         name = key or "the config"
         if isinstance(node, (dict, list)):
             if id(node) in parents:
@@ -67,14 +69,21 @@ def check_plain_data(value, where: str = "") -> None:
             for child_key, child in items:
                 if isinstance(node, dict) and not isinstance(child_key, str):
                     raise ConfigError(f"{name}: key {child_key!r} is not a string")
-                child_name = f"{key}.{child_key}" if isinstance(node, dict) and key else (
-                    str(child_key) if isinstance(node, dict) else f"{name}[{child_key}]")
+                child_name = (
+                    f"{key}.{child_key}"
+                    if isinstance(node, dict) and key
+                    else (str(child_key) if isinstance(node, dict) else f"{name}[{child_key}]")
+                )
                 walk(child, child_name, inner)
             return
         if node is None or isinstance(node, (bool, int, float, str)):
             return
-        kind = {"date": "a date", "datetime": "a date and time", "bytes": "binary data (!!binary)",
-                "set": "a set (!!set)"}.get(type(node).__name__, f"a {type(node).__name__}")
+        kind = {
+            "date": "a date",
+            "datetime": "a date and time",
+            "bytes": "binary data (!!binary)",
+            "set": "a set (!!set)",
+        }.get(type(node).__name__, f"a {type(node).__name__}")
         hint = "; quote it to make it a string" if type(node).__name__ in ("date", "datetime") else ""
         raise ConfigError(f"{name}: {kind} is not a config value, got {node!r}{hint}")
 
