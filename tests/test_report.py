@@ -20,8 +20,11 @@ from population.config import dump_config, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER_MARK = "# NOT an ocv2 config"  # Ray cluster-launcher files (configs/cluster/ray-*.yaml) say so on line 1
+# Study files are not experiment configs: tests/test_study.py loads them.
 ALL_CONFIGS = sorted(
-    str(p.relative_to(ROOT)) for p in (ROOT / "configs").rglob("*.yaml") if not p.read_text().startswith(LAUNCHER_MARK)
+    str(p.relative_to(ROOT))
+    for p in (ROOT / "configs").rglob("*.yaml")
+    if not p.read_text().startswith(LAUNCHER_MARK) and p.parent.name != "studies"
 )
 PAPER = ROOT / "configs" / "paper"
 CLASSIC = ("cramped_room", "asymm_advantages", "coord_ring", "forced_coord", "counter_circuit")
