@@ -12,20 +12,23 @@ stopped. ``status`` lists every step with its progress and an ETA from the throu
 from __future__ import annotations
 
 import argparse
-import math
 import os
 from pathlib import Path
 
 from cluster.api import require_backend
 from cluster.archive import ArchiveError
+from cluster.cli.args import bounded, positive_int
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.loggers import MissingExtraError
+from cluster.runtime.progress import duration
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.report import write_report
 from cluster.study.runner import read_state, run_study, study_status
 from cluster.study.spec import StudyError, load_study, parse_study, run_config
 from population.checkpoints import CheckpointError
+
+BUDGET = bounded(float, 0, 100, "a fraction of the env steps in (0, 100], such as 0.25", low_open=True)
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -42,12 +45,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
     run.add_argument("study", help="study file (see configs/studies/)")
     run.add_argument(
         "--budget",
-        type=_budget,
+        type=BUDGET,
         default=None,
         help="fraction of every run's env steps (total_timesteps and the schedules that follow it); "
         "default 1 = the configs as written",
     )
-    run.add_argument("--seeds", type=_seeds, default=None, help="seeds per run (default: each config's own)")
+    run.add_argument("--seeds", type=positive_int, default=None, help="seeds per run (default: each config's own)")
     run.add_argument(
         "--backend",
         choices=["ray", "local"],
@@ -67,26 +70,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "instead (a compact record to keep: no checkpoints, no archives)",
     )
     return parser
-
-
-def _budget(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a fraction such as 0.25, got {text!r}") from None
-    if not (math.isfinite(value) and 0 < value <= 100):
-        raise argparse.ArgumentTypeError(f"expected a budget in (0, 100], got {text}")
-    return value
-
-
-def _seeds(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seeds, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least one seed, got {value}")
-    return value
 
 
 def run(args) -> int:
@@ -147,14 +130,14 @@ def _status(directory: str) -> int:
                 unknown = True
             else:
                 eta_total += eta
-        eta_text = "" if entry["status"] == "done" or eta is None else f"  ETA {_duration(eta)}"
+        eta_text = "" if entry["status"] == "done" or eta is None else f"  ETA {duration(eta)}"
         print(
-            f"{entry['step']:<{width}}  {entry['status']:<11}  {detail}{eta_text}  (wall {_duration(entry['wall_s'])})"
+            f"{entry['step']:<{width}}  {entry['status']:<11}  {detail}{eta_text}  (wall {duration(entry['wall_s'])})"
         )
     counts = {s: sum(e["status"] == s for e in entries) for s in dict.fromkeys(e["status"] for e in entries)}
     print(
         ", ".join(f"{n} {s}" for s, n in counts.items())
-        + f"; training left: {_duration(eta_total)}{' + runs of unmeasured speed' if unknown else ''} "
+        + f"; training left: {duration(eta_total)}{' + runs of unmeasured speed' if unknown else ''} "
         "(cross-play steps not included)"
     )
     return EXIT_OK
@@ -173,12 +156,3 @@ def _report(directory: str, dest: str | None) -> int:
         raise CLIError(str(error)) from None
     print(f"wrote {paths['report']}")
     return EXIT_OK
-
-
-def _duration(seconds) -> str:
-    if seconds is None:
-        return "?"
-    seconds = int(seconds)
-    return (
-        f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
-    )

@@ -82,7 +82,7 @@ class PopulationProgress:
         if self._bar is not None:
             self._bar.update(self._task, completed=update, info=info)
         elif self.enabled:
-            log.info(f"  update {update}/{self.total}  {info}  ETA {_duration(eta)}")
+            log.info(f"  update {update}/{self.total}  {info}  ETA {duration(eta)}")
 
 
 class Bar:
@@ -141,8 +141,9 @@ def _fmt(values: np.ndarray) -> str:
     return f"{values.mean():.1f}+-{values.std():.1f}"
 
 
-def _duration(seconds: float) -> str:
-    if math.isnan(seconds):
+def duration(seconds: float | None) -> str:
+    """``1h05m`` or ``4m07s``; ``?`` for an unknown (None or NaN) time."""
+    if seconds is None or math.isnan(seconds):
         return "?"
     seconds = int(seconds)
     return (

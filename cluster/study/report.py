@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, write_json
 from cluster.study.spec import PaperValue, Study, run_dir
 from ocv2.atomic import atomic_write
@@ -217,14 +218,30 @@ def _curves(study: Study, out: Path, configs: dict, dest: Path) -> list[str]:
                 label=f"{spec.name} ({config.population.method.upper()}, {config.population.num_seeds} seeds)",
             )
             ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-        ax.set_xlabel("environment steps per seed")
-        ax.set_ylabel("sparse return (mean ± std across seeds)")
-        ax.set_title(f"{study.name}: {layout}")
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", fontsize=8)
-        pictures.append(save_figure(fig, target))
-        plt.close(fig)
+        pictures.append(
+            _finish(
+                plt,
+                fig,
+                ax,
+                target,
+                "environment steps per seed",
+                "sparse return (mean ± std across seeds)",
+                f"{study.name}: {layout}",
+            )
+        )
     return pictures
+
+
+def _finish(plt, fig, ax, target: Path, xlabel: str, ylabel: str, title: str) -> str:
+    """Labels, grid and legend of a line plot; saves and closes it."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    path = save_figure(fig, target)
+    plt.close(fig)
+    return path
 
 
 def _curve(rows: list[dict]):
@@ -282,13 +299,17 @@ def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
             high = np.asarray([_float((p[f"{key}_ci95_interval"] or [None, None])[1]) for p in points])
             (line,) = ax.plot(steps, mean, marker="o", label=label)
             ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.2)
-        ax.set_xlabel("environment steps per seed (snapshot)")
-        ax.set_ylabel("team return (95 % seed-bootstrap interval)")
-        ax.set_title(f"{entry['run']}: cross-play of the kept snapshots")
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", fontsize=8)
-        pictures.append(save_figure(fig, target))
-        plt.close(fig)
+        pictures.append(
+            _finish(
+                plt,
+                fig,
+                ax,
+                target,
+                "environment steps per seed (snapshot)",
+                "team return (95 % seed-bootstrap interval)",
+                f"{entry['run']}: cross-play of the kept snapshots",
+            )
+        )
     return pictures
 
 
@@ -306,7 +327,7 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
         f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps"
         + (" (the paper's experiment)" if budget == 1 else " (**reduced: not the paper's experiment**)"),
         f"- seeds per run: {summary['seeds'] or 'as each config'}; backend: {summary['backend']}; "
-        f"wall time so far: {_duration(summary['wall_s'])}",
+        f"wall time so far: {duration(summary['wall_s'])}",
         f"- intervals: {summary['ci_method']}; 'in CI': the paper's mean lies inside our interval",
         f"- written {summary['written']}",
         "",
@@ -337,7 +358,7 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
     lines += ["", "Per run: "]
     for run in summary["runs"]:
         lines.append(
-            f"- `{run['name']}`: status {run['status']}, wall {_duration(run['wall_s'])}, config "
+            f"- `{run['name']}`: status {run['status']}, wall {duration(run['wall_s'])}, config "
             f"`{Path(run['config']).name}`"
             + (f" with `{' '.join(run['overrides'])}`" if run["overrides"] else "")
             + f", fingerprint `{run['fingerprint']}`, commits {', '.join(run['commits']) or 'n/a'}"
@@ -424,17 +445,6 @@ def _float(value) -> float:
         return float(value)
     except (TypeError, ValueError):
         return math.nan
-
-
-def _duration(seconds) -> str:
-    if seconds is None:
-        return "n/a"
-    seconds = int(seconds)
-    return (
-        f"{seconds // 3600} h {seconds % 3600 // 60:02d} min"
-        if seconds >= 3600
-        else f"{seconds // 60} min {seconds % 60:02d} s"
-    )
 
 
 def _now() -> str:
