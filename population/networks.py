@@ -31,7 +31,7 @@ from population.config import ModelConfig
 
 # SameConv's banded path is used while W <= this x k: each output row's matmul spans all W cells of
 # its k input rows, W / k times the multiply-adds im2col does, and up to about 3x that still costs
-# less than im2col's shifted copies on XLA:CPU (measured per grid size: docs/dev/optimisation-journal.md).
+# less than im2col's shifted copies on XLA:CPU (measured on the grid sizes of the layouts).
 BANDED_CELLS_PER_TAP = 3
 # ... and while a call has at least this many samples: with fewer (acting in a few environments per
 # policy under vmap, as SA collection and cross-play do), banded's H matmuls of `batch` rows each cost
