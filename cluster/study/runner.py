@@ -44,7 +44,7 @@ STATE_NAME = "study.json"
 @dataclasses.dataclass(frozen=True)
 class StudyOptions:
     """How a study runs. ``budget``: fraction of every run's env steps; ``seeds``: seeds per run (None:
-    each config's own); ``backend``/``address``: as ``ocv2 train``; ``only``: run names to run (None: all)."""
+    each config's own); ``backend``/``address``: as ``ocv2 train``."""
 
     budget: float = 1.0
     seeds: int | None = None
@@ -170,6 +170,7 @@ def run_study(
                 continue
             say(f"study {study.name}: [{number}/{len(steps)}] {name}")
             timer = state.timer(name)
+            state.step(name).pop("reason", None)  # a step blocked before may run now
             state.mark(name, status="running", started=time.time())
             try:
                 result = action(study, out, configs, options, timer)
