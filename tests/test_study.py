@@ -223,6 +223,10 @@ def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
         (lambda d: d.update(comparsons=[]), "unknown key 'comparsons'; did you mean 'comparisons'?"),
         (lambda d: d["runs"][1].update(name="sp"), "run 'sp': duplicate run name (runs[0] has it too)"),
         (lambda d: d["comparisons"][0].update(runs=["sp", "op"]), "comparison 'sp_vs_sa'.runs: no run is named 'op'"),
+        (
+            lambda d: d["comparisons"].append({"name": "sp_vs_sa", "runs": ["sa", "sp"]}),
+            "comparison 'sp_vs_sa': duplicate comparison name (comparisons[0] has it too)",
+        ),
         (lambda d: d["runs"][0].update(set=["ppo.lrr=1"]), "run 'sp': "),
         (lambda d: d["runs"][0]["paper"].update(sp="high"), "run 'sp'.paper.sp: expected a number or [mean, std]"),
         (lambda d: d.update(over_training=["spp"]), "over_training: no run is named 'spp'; did you mean 'sp'?"),

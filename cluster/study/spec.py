@@ -149,16 +149,7 @@ def parse_study(raw: Any, path: Path) -> Study:
 
 
 def _parse_run(where: str, index: int, entry, base: Path, shared: tuple[str, ...], earlier: list[str]) -> RunSpec:
-    label = f"runs[{index}]"
-    if not isinstance(entry, Mapping):
-        raise StudyError(f"{where}: {label}: expected a mapping with keys {', '.join(RUN_KEYS)}")
-    name = entry.get("name")
-    if not isinstance(name, str) or not NAME.match(name):
-        raise StudyError(f"{where}: {label}.name: expected a name (letters, digits, _ . -), got {name!r}")
-    label = f"run {name!r}"
-    _unknown(where, f"{label}: ", entry, RUN_KEYS)
-    if name in earlier:
-        raise StudyError(f"{where}: {label}: duplicate run name (runs[{earlier.index(name)}] has it too)")
+    name, label = _named_entry(where, "runs", "run", index, entry, RUN_KEYS, earlier)
     config = entry.get("config")
     if not isinstance(config, str) or not config:
         raise StudyError(f"{where}: {label}.config: expected a config file path")
@@ -203,16 +194,7 @@ def _paper_value(where: str, key: str, raw) -> PaperValue | None:
 
 
 def _parse_comparison(where: str, index: int, entry, names: list[str], earlier: list[str]) -> Comparison:
-    label = f"comparisons[{index}]"
-    if not isinstance(entry, Mapping):
-        raise StudyError(f"{where}: {label}: expected a mapping with keys {', '.join(COMPARISON_KEYS)}")
-    name = entry.get("name")
-    if not isinstance(name, str) or not NAME.match(name):
-        raise StudyError(f"{where}: {label}.name: expected a name (letters, digits, _ . -), got {name!r}")
-    label = f"comparison {name!r}"
-    _unknown(where, f"{label}: ", entry, COMPARISON_KEYS)
-    if name in earlier:
-        raise StudyError(f"{where}: {label}: duplicate comparison name")
+    name, label = _named_entry(where, "comparisons", "comparison", index, entry, COMPARISON_KEYS, earlier)
     runs = entry.get("runs")
     if not isinstance(runs, list) or not all(isinstance(r, str) for r in runs):
         raise StudyError(f"{where}: {label}.runs: expected a list of run names")
@@ -226,6 +208,22 @@ def _parse_comparison(where: str, index: int, entry, names: list[str], earlier: 
     if len(runs) + human < 2:
         raise StudyError(f"{where}: {label}: needs two runs, or one run and human_proxy: true")
     return Comparison(name, tuple(runs), human)
+
+
+def _named_entry(where: str, section: str, noun: str, index: int, entry, keys, earlier: list[str]) -> tuple[str, str]:
+    """The name of entry ``index`` of a list of named mappings (``runs``, ``comparisons``) and the label its
+    errors go by; checks its keys and that no earlier entry has its name."""
+    label = f"{section}[{index}]"
+    if not isinstance(entry, Mapping):
+        raise StudyError(f"{where}: {label}: expected a mapping with keys {', '.join(keys)}")
+    name = entry.get("name")
+    if not isinstance(name, str) or not NAME.match(name):
+        raise StudyError(f"{where}: {label}.name: expected a name (letters, digits, _ . -), got {name!r}")
+    label = f"{noun} {name!r}"
+    _unknown(where, f"{label}: ", entry, keys)
+    if name in earlier:
+        raise StudyError(f"{where}: {label}: duplicate {noun} name ({section}[{earlier.index(name)}] has it too)")
+    return name, label
 
 
 def _unknown(where: str, label: str, raw: Mapping, keys) -> None:
