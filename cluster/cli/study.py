@@ -135,11 +135,11 @@ def _status(directory: str) -> int:
             f"{entry['step']:<{width}}  {entry['status']:<11}  {detail}{eta_text}  (wall {duration(entry['wall_s'])})"
         )
     counts = {s: sum(e["status"] == s for e in entries) for s in dict.fromkeys(e["status"] for e in entries)}
-    print(
-        ", ".join(f"{n} {s}" for s, n in counts.items())
-        + f"; training left: {duration(eta_total)}{' + runs of unmeasured speed' if unknown else ''} "
-        "(cross-play steps not included)"
-    )
+    if unknown and not eta_total:
+        left = "unknown until this study has timed a chunk of training"
+    else:
+        left = duration(eta_total) + (" + runs of a model kind not timed yet" if unknown else "")
+    print(", ".join(f"{n} {s}" for s, n in counts.items()) + f"; training left: {left} (cross-play not included)")
     return EXIT_OK
 
 
