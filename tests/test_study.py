@@ -245,6 +245,18 @@ def test_bad_study_files_are_one_line_errors_naming_the_entry(tmp_path, capsys, 
     assert not (tmp_path / "out").exists()  # nothing written
 
 
+def test_status_lists_every_step(finished, capsys):
+    assert main(["study", "status", str(finished)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [line.split()[:3] for line in out[:4]] == [
+        ["train", "sp", "done"],
+        ["over_training", "sp", "done"],
+        ["train", "sa", "done"],
+        ["compare", "sp_vs_sa", "done"],
+    ]
+    assert out[-1].startswith("4 done; training left: 0m00s")
+
+
 def test_status_of_a_folder_that_is_no_study(tmp_path, capsys):
     assert main(["study", "status", str(tmp_path)]) == 2
     assert "not a study directory" in capsys.readouterr().err
