@@ -177,29 +177,19 @@ class CrossPlayPlayer:
     ) -> RowsResult:
         env = policy_env(row_spec[2])
         row_side = _side(row_spec, row_params, env)
-        if col_spec is None:  # the row group against itself: the in-run code path, numbers included
-            result = cross_play(
-                row_side.apply,
-                row_side.hidden_size,
-                env,
-                row_side.params,
-                jnp.asarray(key),
-                episodes,
-                rows=rows,
-                greedy=greedy,
-            )
-        else:
-            result = cross_play(
-                row_side.apply,
-                row_side.hidden_size,
-                env,
-                row_side.params,
-                jnp.asarray(key),
-                episodes,
-                rows=rows,
-                partners=_side(col_spec, col_params, env),
-                greedy=greedy,
-            )
+        # No column group: the row group against itself, through the in-run code path (numbers included).
+        partners = None if col_spec is None else _side(col_spec, col_params, env)
+        result = cross_play(
+            row_side.apply,
+            row_side.hidden_size,
+            env,
+            row_side.params,
+            jnp.asarray(key),
+            episodes,
+            rows=rows,
+            partners=partners,
+            greedy=greedy,
+        )
         rows = list(rows)
         return RowsResult(job, result.returns[rows], result.start_recipe[rows])
 
