@@ -341,3 +341,51 @@ def test_the_progress_header_counts_env_steps_per_seed(caplog):
     with PopulationProgress("SP cramped_room", num_seeds=3, total_updates=10, steps_per_update=128):
         pass
     assert caplog.messages == ["SP cramped_room: 3 seeds x 10 updates x 128 = 1,280 env steps per seed"]
+
+
+def _record_ray_first(monkeypatch, events):
+    """``ray_backend.connect`` records itself (and starts nothing): what a command does before it."""
+    from cluster.runtime import ray_backend
+
+    def connect(cluster):
+        events.append("ray")
+        return False
+
+    monkeypatch.setattr(ray_backend, "connect", connect)
+
+
+@pytest.mark.parametrize("backend, expected", [("ray", ["ray", "load"]), ("local", ["load"])])
+def test_xp_starts_ray_before_loading_policies_starts_jax(monkeypatch, tmp_path, backend, expected):
+    # Ray forks its processes; once JAX runs in this process that fork draws JAX's deadlock warning.
+    from cluster.runtime import crossplay
+
+    events = []
+    _record_ray_first(monkeypatch, events)
+
+    def resolve_source(source, checkpoint):
+        events.append("load")
+        raise crossplay.CrossPlayError(f"{source}: stop here")
+
+    monkeypatch.setattr(crossplay, "resolve_source", resolve_source)
+    args = ["xp", "--rows", "somewhere", "--out", str(tmp_path / "xp"), "--backend", backend]
+    assert main(args) == 2
+    assert events == expected
+
+
+@pytest.mark.parametrize("command", ["train", "study"])
+def test_train_and_study_start_ray_once_before_any_work(monkeypatch, tmp_path, command):
+    import cluster.cli.study as study_cli
+    import cluster.cli.train as train_cli
+
+    events = []
+    _record_ray_first(monkeypatch, events)
+    monkeypatch.setattr(train_cli, "train_population", lambda *a, **k: events.append("work") or {"run_dir": "r"})
+    done = {"steps": {}, "report": {"report": "r"}}
+    monkeypatch.setattr(study_cli, "run_study", lambda *a, **k: events.append("work") or done)
+    root = Path(__file__).resolve().parents[1] / "configs"
+    argv = {
+        "train": ["train", str(root / "quickstart.yaml")],
+        "study": ["study", "run", str(root / "studies" / "table1_coord_ring.yaml")],
+    }[command]
+    assert main([*argv, "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert events == ["ray", "work"]

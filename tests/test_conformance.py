@@ -103,19 +103,99 @@ def _assert_states_equal(ours, theirs, where):
         assert bad.size == 0, f"state.{name} differs in {where} at {bad[:5].tolist()}"
 
 
-# The longest tests first: xdist deals this file's tests out one by one after the whole-file groups
-# (tests/conftest.py), so the long ones start early and the short ones fill the gaps at the end.
+# xdist deals this file's tests out one by one after the whole-file groups (tests/conftest.py), so they fill
+# the workers' gaps at the end.
+
+
+# Each case compiles both envs once (most of this file's time), so every built-in layout runs exactly once:
+# with a flag combination of its own where one is listed, otherwise with random full starts or random positions
+# and a view radius of 2, alternately.
+FLAG_CASES = [
+    ("cramped_room", dict(random_reset=True, max_steps=50)),
+    ("coord_ring", dict(max_steps=400)),  # episodes as long as the paper's, fixed starts
+    ("asymm_advantages", dict(random_agent_positions=True, agent_view_size=2, max_steps=40)),
+    (
+        "cramped_room_v2",
+        dict(
+            random_reset=True,
+            negative_rewards=True,
+            sample_recipe_on_delivery=True,
+            indicate_successful_delivery=True,
+            agent_view_size=2,
+            max_steps=60,
+        ),
+    ),
+    (
+        "grounded_coord_simple",
+        dict(random_agent_positions=True, op_ingredient_permutations=[0, 1], agent_view_size=2, max_steps=80),
+    ),
+    ("fun_symmetries", dict(random_reset=True, op_ingredient_permutations=[0, 1, 2], max_steps=50)),
+    ("counter_circuit", dict(start_cooking_interaction=True, random_reset=True, agent_view_size=1, max_steps=70)),
+    (
+        "test_time_simple",
+        dict(
+            random_reset=True,
+            indicate_successful_delivery=True,
+            negative_rewards=True,
+            sample_recipe_on_delivery=True,
+            agent_view_size=3,
+            max_steps=50,
+        ),
+    ),
+    ("demo_cook_wide", dict(random_reset=True, agent_view_size=2, start_cooking_interaction=True, max_steps=70)),
+    ("grounded_coord_ring", dict(random_reset=True, agent_view_size=12, max_steps=60)),  # view larger than map
+    (
+        "fun_coordination",
+        dict(random_reset=True, op_ingredient_permutations=[2, 3], negative_rewards=True, max_steps=60),
+    ),
+    ("long_room", dict(random_reset=True, max_steps=40)),  # one agent
+    (
+        "overcookedv2_demo",
+        dict(
+            random_reset=True,
+            sample_recipe_on_delivery=True,
+            indicate_successful_delivery=True,
+            agent_view_size=1,
+            max_steps=60,
+        ),
+    ),
+    ("two_rooms_both", dict(agent_view_size=0, random_reset=True, max_steps=50)),  # 0 = whole map (reference)
+    ("cramped_room_v2", dict(random_reset=True, negative_rewards=True, max_steps=50)),  # buttons pressed often
+]
+ALL_LAYOUTS = list(ocv2.REFERENCE_LAYOUT_NAMES)
+_PLAIN = [name for name in ALL_LAYOUTS if name not in {layout for layout, _ in FLAG_CASES}]
+CASES = FLAG_CASES + [
+    (
+        name,
+        dict(random_agent_positions=True, agent_view_size=2, max_steps=50)
+        if i % 2
+        else dict(random_reset=True, max_steps=50),
+    )
+    for i, name in enumerate(_PLAIN)
+]
+
+
+def _case_id(case):
+    layout, params = case
+    return f"{layout}-{CASES.index(case)}"
+
+
+@pytest.mark.parametrize("layout,params", CASES, ids=[_case_id(c) for c in CASES])
+def test_every_layout_and_flag_combination(layout, params):
+    compare(layout, **params)
+
+
+def test_every_builtin_layout_is_compared():
+    assert set(ALL_LAYOUTS) <= {layout for layout, _ in CASES}
 
 
 def test_rollouts_reach_every_kind_of_event():
-    """The sweep is only meaningful if deliveries, buttons, cooking and resets actually happen."""
+    """The sweep is only meaningful if deliveries, buttons, cooking and resets actually happen. These are three
+    of the cases above with the same arguments: the compiled programs come from the session's compilation
+    cache, so this costs only the (fast) rollouts."""
     totals = {}
-    for layout, params in [
-        ("cramped_room", dict(random_reset=True, max_steps=50)),
-        ("grounded_coord_simple", dict(random_reset=True, max_steps=50)),
-        ("cramped_room_v2", dict(random_reset=True, negative_rewards=True, max_steps=50)),
-    ]:
-        for k, v in compare(layout, seeds=2, steps=300, **params).items():
+    for layout, params in (FLAG_CASES[0], FLAG_CASES[-1], FLAG_CASES[3]):
+        for k, v in compare(layout, **params).items():
             totals[k] = totals.get(k, 0) + v
     assert totals["deliveries"] > 0, totals
     assert totals["buttons"] > 0, totals
@@ -147,76 +227,6 @@ def test_buffer_reset_matches_reference():
         seeds=2,
         max_steps=30,
     )
-
-
-ALL_LAYOUTS = list(ocv2.REFERENCE_LAYOUT_NAMES)
-
-
-@pytest.mark.parametrize("layout", ALL_LAYOUTS)
-def test_every_layout(layout):
-    """Every built-in layout: random full starts, or random positions with a view radius of 2, alternately."""
-    if ALL_LAYOUTS.index(layout) % 2:
-        compare(layout, seeds=2, steps=150, max_steps=50, random_agent_positions=True, agent_view_size=2)
-    else:
-        compare(layout, seeds=2, steps=150, max_steps=50, random_reset=True)
-
-
-FLAG_CASES = [
-    ("cramped_room", dict(random_reset=True, max_steps=50)),
-    ("cramped_room", dict(max_steps=400)),
-    ("asymm_advantages", dict(random_agent_positions=True, agent_view_size=2, max_steps=40)),
-    (
-        "cramped_room_v2",
-        dict(
-            random_reset=True,
-            negative_rewards=True,
-            sample_recipe_on_delivery=True,
-            indicate_successful_delivery=True,
-            agent_view_size=2,
-            max_steps=60,
-        ),
-    ),
-    (
-        "grounded_coord_simple",
-        dict(random_agent_positions=True, op_ingredient_permutations=[0, 1], agent_view_size=2, max_steps=80),
-    ),
-    ("grounded_coord_simple", dict(random_reset=True, op_ingredient_permutations=[0, 1, 2], max_steps=50)),
-    ("counter_circuit", dict(start_cooking_interaction=True, random_reset=True, agent_view_size=1, max_steps=70)),
-    (
-        "test_time_simple",
-        dict(
-            random_reset=True,
-            indicate_successful_delivery=True,
-            negative_rewards=True,
-            sample_recipe_on_delivery=True,
-            agent_view_size=3,
-            max_steps=50,
-        ),
-    ),
-    ("demo_cook_wide", dict(random_reset=True, agent_view_size=2, start_cooking_interaction=True, max_steps=70)),
-    ("grounded_coord_ring", dict(random_reset=True, agent_view_size=12, max_steps=60)),  # view larger than map
-    (
-        "fun_coordination",
-        dict(random_reset=True, op_ingredient_permutations=[2, 3], negative_rewards=True, max_steps=60),
-    ),
-    ("long_room", dict(random_reset=True, max_steps=40)),  # one agent
-    (
-        "overcookedv2_demo",
-        dict(
-            random_reset=True,
-            sample_recipe_on_delivery=True,
-            indicate_successful_delivery=True,
-            agent_view_size=1,
-            max_steps=60,
-        ),
-    ),
-    ("two_rooms_both", dict(agent_view_size=0, random_reset=True, max_steps=50)),  # 0 = whole map (reference)
-]
-
-
-@pytest.mark.parametrize("layout,params", FLAG_CASES, ids=[f"{l}-{i}" for i, (l, _) in enumerate(FLAG_CASES)])
-def test_flag_combinations(layout, params):
-    compare(layout, **params)
 
 
 def test_mixed_observation_types_build():

@@ -19,6 +19,7 @@ from cluster.api import require_backend
 from cluster.archive import ArchiveError
 from cluster.cli.args import bounded, positive_int
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from cluster.runtime import ray_backend
 from cluster.runtime.loggers import MissingExtraError
 from cluster.runtime.progress import duration
 from cluster.runtime.ray_backend import RayBackendError
@@ -27,6 +28,7 @@ from cluster.study.report import write_report
 from cluster.study.runner import read_state, run_study, study_status
 from cluster.study.spec import StudyError, load_study, parse_study, run_config
 from population.checkpoints import CheckpointError
+from population.config import ClusterConfig
 
 BUDGET = bounded(float, 0, 100, "a fraction of the env steps in (0, 100], such as 0.25", low_open=True)
 
@@ -92,16 +94,18 @@ def _run(args) -> int:
     out = Path(args.out or os.path.join("studies", study.name))
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
     try:
-        state = run_study(
-            study,
-            out,
-            budget=args.budget,
-            seeds=args.seeds,
-            backend=args.backend,
-            address=args.address,
-            show_progress=not args.quiet,
-            say=say,
-        )
+        # One Ray for every run and comparison, started before the driver runs JAX (ray_backend.session)
+        with ray_backend.session(args.backend, ClusterConfig(address=args.address)):
+            state = run_study(
+                study,
+                out,
+                budget=args.budget,
+                seeds=args.seeds,
+                backend=args.backend,
+                address=args.address,
+                show_progress=not args.quiet,
+                say=say,
+            )
     except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     blocked = {name: step for name, step in state["steps"].items() if step.get("status") != "done"}

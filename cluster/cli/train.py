@@ -13,6 +13,7 @@ import os
 from cluster.api import require_backend, train_population
 from cluster.archive import ArchiveError
 from cluster.cli.errors import EXIT_OK, CLIError
+from cluster.runtime import ray_backend
 from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
@@ -93,15 +94,16 @@ def run_train(args) -> int:
     except MissingExtraError as error:
         raise CLIError(str(error)) from None
     try:
-        summary = train_population(
-            config,
-            out,
-            backend=args.backend,
-            resume=args.resume,
-            show_progress=not args.quiet,
-            evaluate=not args.no_eval,
-            loggers=args.loggers,
-        )
+        with ray_backend.session(args.backend, config.cluster):  # Ray before JAX starts here (its docstring)
+            summary = train_population(
+                config,
+                out,
+                backend=args.backend,
+                resume=args.resume,
+                show_progress=not args.quiet,
+                evaluate=not args.no_eval,
+                loggers=args.loggers,
+            )
     except (RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     except OSError as error:  # a full disk, a read-only or vanished directory: every write is atomic

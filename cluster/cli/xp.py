@@ -19,12 +19,13 @@ import time
 from pathlib import Path
 
 from cluster.cli.errors import EXIT_OK, CLIError
-from cluster.runtime import crossplay
+from cluster.runtime import crossplay, ray_backend
 from cluster.runtime.evaluate import evaluate_run
 from cluster.runtime.progress import Bar
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDir, RunDirError
 from population.checkpoints import CheckpointError
+from population.config import ClusterConfig
 from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
 
 
@@ -158,25 +159,26 @@ def _cross_run(args) -> int:
     out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     _check_out(out)
     try:
-        rows = [crossplay.resolve_source(s, checkpoint) for s in args.rows]
-        cols = rows if not args.cols else [crossplay.resolve_source(s, checkpoint) for s in args.cols]
-        env_kwargs = crossplay.check_same_env([*rows, *cols])
-    except crossplay.CrossPlayError as error:
-        raise CLIError(str(error)) from None
-    episodes = args.episodes or 500
-    seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
-    seats = args.seats or "both"
-    jobs = sum(len(g.names) for g in rows) * len(cols)
-    started = time.perf_counter()
-    label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
-    try:
-        with (
-            crossplay.players(backend, jobs, args.address, args.workers) as workers,
-            Bar(label, enabled=not args.quiet) as bar,
-        ):
-            result = crossplay.play_seat_fair(
-                rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar, seats=seats
-            )
+        # Ray first: loading the policies starts JAX, and Ray must fork before that (ray_backend.session)
+        with ray_backend.session(backend, ClusterConfig(address=args.address)):
+            try:
+                rows = [crossplay.resolve_source(s, checkpoint) for s in args.rows]
+                cols = rows if not args.cols else [crossplay.resolve_source(s, checkpoint) for s in args.cols]
+                env_kwargs = crossplay.check_same_env([*rows, *cols])
+            except crossplay.CrossPlayError as error:
+                raise CLIError(str(error)) from None
+            episodes = args.episodes or 500
+            seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
+            jobs = sum(len(g.names) for g in rows) * len(cols)
+            started = time.perf_counter()
+            label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
+            with (
+                crossplay.players(backend, jobs, args.address, args.workers) as workers,
+                Bar(label, enabled=not args.quiet) as bar,
+            ):
+                result = crossplay.play_seat_fair(
+                    rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar, seats=args.seats or "both"
+                )
     except RayBackendError as error:
         raise CLIError(str(error)) from None
     summary = crossplay.summarize_seat_fair(result)

@@ -82,6 +82,25 @@ def connect(cluster: ClusterConfig) -> bool:
     return True
 
 
+@contextlib.contextmanager
+def session(backend: str, cluster: ClusterConfig):
+    """Ray for the whole of a command (nothing for ``backend="local"``): joined or started once, and shut
+    down at the end if started here.
+
+    The CLI enters it before anything runs JAX in the driver (loading policies, evaluation). Ray starts
+    its processes with ``subprocess.Popen(preexec_fn=...)``, which runs the interpreter's at-fork hooks;
+    once JAX is running, its hook warns that forking a multithreaded process may deadlock. Starting Ray
+    first means that fork happens before JAX has any threads, and the calls inside (training, cross-play,
+    every run of a study) join this instance instead of starting and stopping their own.
+    """
+    started = backend == "ray" and connect(cluster)
+    try:
+        yield
+    finally:
+        if started:
+            ray.shutdown()
+
+
 def start_local(num_cpus: int | None = None) -> None:
     """Start a fresh Ray instance on this machine (never one that RAY_ADDRESS or `ray start` left running).
 
@@ -91,10 +110,11 @@ def start_local(num_cpus: int | None = None) -> None:
       default since 2.59) and logs a warning about it every time. That warning is dropped and this
       module says the same once, as an INFO record.
     * ``os.fork()``: Ray launches its processes with ``subprocess.Popen(preexec_fn=...)``, and a
-      ``preexec_fn`` runs the interpreter's at-fork hooks, where JAX (initialised in this process by
-      then, in a notebook or a test session) warns that forking a multithreaded process may deadlock.
-      The child only masks SIGINT and sets its parent-death signal before ``exec``: it never runs
-      JAX's threads or locks, so that warning is filtered out for exactly these launches.
+      ``preexec_fn`` runs the interpreter's at-fork hooks, where JAX warns that forking a
+      multithreaded process may deadlock. The CLI avoids it at the cause: it starts Ray (``session``)
+      before JAX runs. Library callers (a notebook, a test session) may already run JAX; for them the
+      warning is filtered for exactly these launches, because the child only masks SIGINT and sets its
+      parent-death signal before ``exec``: it never runs JAX's threads or locks.
     """
     mode_before = os.environ.get("RAY_AUTH_MODE")
     notices = logging.getLogger("ray._private.authentication.authentication_token_setup")
