@@ -155,9 +155,7 @@ def test_env_featurized_obs_match_reference_env():
     """Full env path: reset and 100 auto-resetting steps of both envs with the same keys and random
     actions (random_reset and 30-step episodes, so fresh random kitchens appear along the way)."""
     ours, ref = make_pair("cramped_room", observation_type="featurized", random_reset=True, max_steps=30)
-    # The reference step jitted too: 100 steps of it run op by op cost ~20 s.
-    ours_step, ours_reset = jax.jit(ours.step), jax.jit(ours.reset)
-    ref_step, ref_reset = jax.jit(ref.step), jax.jit(ref.reset)
+    ours_step, ours_reset, ref_reset = jax.jit(ours.step), jax.jit(ours.reset), jax.jit(ref.reset)
     key, k_reset = jax.random.split(jax.random.PRNGKey(5))
     obs, state = ours_reset(k_reset)
     ref_obs, ref_state = ref_reset(k_reset)
@@ -172,7 +170,7 @@ def test_env_featurized_obs_match_reference_env():
         key, k_step = jax.random.split(key)
         actions = actions_dict(jnp.asarray(rng.integers(0, it.NUM_ACTIONS, ours.num_agents)), ours.agents)
         obs, state, _, dones, _ = ours_step(k_step, state, actions)
-        ref_obs, ref_state, *_ = ref_step(k_step, ref_state, actions)
+        ref_obs, ref_state, *_ = ref.step(k_step, ref_state, actions)
         episodes += bool(dones["__all__"])
     assert episodes == 4
     # More random-reset kitchens through the (already compiled) reset path.
