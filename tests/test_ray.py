@@ -5,7 +5,8 @@ Every run is configs/smoke.yaml (2 seeds, one actor each). One Ray instance serv
 (``tests/conftest.py``). Actors are fresh processes: they compile their programs or, when this process
 or an earlier actor compiled the same ones, load them from the session's persistent compilation cache.
 So the reference run trains here, on in-process shards shaped like the actors' (one seed each): the
-same programs, compiled once instead of by two actors at once, and every later actor loads them.
+same programs, compiled once instead of by two actors at once, and the actors of the later runs of
+that config load them (the FCP and quickstart runs compile their own).
 """
 
 from __future__ import annotations
