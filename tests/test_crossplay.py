@@ -277,12 +277,29 @@ def test_bootstrap_resamples_seeds_not_cells():
     assert bootstrap_block(rect, ["a", "b"], ["c", "d"]) == bootstrap_block(rect, ["a", "b"], ["c", "d"])
 
 
+def _random_leaf(rng, path, leaf, num: int):
+    """``num`` draws of one parameter at an initialiser's scale: weights ~ N(0, 1 / fan-in), LayerNorm
+    scales near 1, biases near 0."""
+    shape = (num, *leaf.shape)
+    if leaf.ndim >= 2:
+        values = rng.normal(0.0, 1.0 / np.sqrt(np.prod(leaf.shape[:-1])), shape)
+    else:
+        values = float(jax.tree_util.keystr(path).endswith("['scale']")) + rng.normal(0.0, 0.1, shape)
+    return jnp.asarray(values, leaf.dtype)
+
+
 def _rnn_population(num: int, max_steps: int):
-    """``num`` freshly initialised paper RNNs (GRU) and their environment with short episodes."""
+    """``num`` random paper RNNs (GRU) and their environment with short episodes.
+
+    Drawn with numpy from the parameter shapes (``jax.eval_shape`` traces the init without compiling it):
+    flax's init of this network costs ~10 s to compile or to run op by op, and what is tested holds for
+    any parameters."""
     config = load_config(str(Path(__file__).resolve().parents[1] / "configs/paper/v2_grounded_coord_simple_sp.yaml"))
     env = pol.policy_env({**config.env_kwargs, "max_steps": max_steps})
     net = pol.network(config.model, config.ppo.activation, env.num_actions)
-    params = stack_params([init_params(net, jax.random.PRNGKey(s), env.obs_shape) for s in range(num)])
+    shapes = jax.eval_shape(lambda key: init_params(net, key, env.obs_shape), jax.random.PRNGKey(0))
+    rng = np.random.default_rng(0)
+    params = jax.tree_util.tree_map_with_path(lambda path, leaf: _random_leaf(rng, path, leaf, num), shapes)
     return net.apply, pol.hidden_size_of(config.model), env, params
 
 

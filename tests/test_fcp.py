@@ -121,10 +121,11 @@ def test_paper_configs_are_read_as_package_data():
 # ---------------------------------------------------------------------------------------------------
 
 
-def _random_pool(trainer, key, members: int = 2):
-    """``members`` freshly initialised partners stacked [members, ...] (each pool differs by its key)."""
+def _random_pool(init, key, members: int = 2):
+    """``members`` partners freshly initialised by ``init(key)``, stacked [members, ...] (each pool differs
+    by its key)."""
     keys = jax.random.split(key, members)
-    params = [init_params(trainer.network, k, trainer.env.obs_shape) for k in keys]
+    params = [init(k) for k in keys]
     # Scaled up: freshly initialised policies are near uniform (tiny logits), so any two would sample
     # the same actions from the same key; these act near deterministically, each in its own way.
     return jax.tree.map(lambda *xs: 30.0 * jnp.stack(xs), *params)
@@ -138,7 +139,9 @@ def test_per_seed_advance_gives_each_learner_its_own_pool_only():
     """
     config = smoke()
     trainer = ppo.make_trainer(config)
-    a, b, c = (_random_pool(trainer, jax.random.PRNGKey(k)) for k in (1, 2, 3))
+    # Jitted: one compile for all six members, where flax's init run op by op compiles each of its ops.
+    init = jax.jit(lambda key: init_params(trainer.network, key, trainer.env.obs_shape))
+    a, b, c = (_random_pool(init, jax.random.PRNGKey(k)) for k in (1, 2, 3))
     advance = ppo.make_advance_population(trainer, 2, pool_per_seed=True)
 
     def learners(pool0, pool1):

@@ -529,7 +529,9 @@ def rnn_run(tmp_path_factory):
     )
     RunDir(run).create(config)
     env = ppo.eval_env(config)
-    params = init_params(ppo.make_trainer(config).network, jax.random.PRNGKey(3), env.obs_shape)
+    network = ppo.make_trainer(config).network
+    # Jitted: op by op, the GRU's scan compiles anew on every call (seconds).
+    params = jax.jit(lambda key: init_params(network, key, env.obs_shape))(jax.random.PRNGKey(3))
     for update in (0, 2):
         ckpt.save(ckpt.checkpoint_path(run, 0, update), {"params": params}, config.fingerprint(), seed=0, update=update)
     return run

@@ -2,7 +2,11 @@
 killed with SIGKILL mid-training, a killed driver resumed, bad input, and the quickstart.
 
 Every run is configs/smoke.yaml (2 seeds, one actor each). One Ray instance serves the whole session
-(``tests/conftest.py``); actors compile their own programs, so each run costs ~10-20 s.
+(``tests/conftest.py``). Actors are fresh processes: they compile their programs or, when this process
+or an earlier actor compiled the same ones, load them from the session's persistent compilation cache.
+So the reference run trains here, on in-process shards shaped like the actors' (one seed each): the
+same programs, compiled once instead of by two actors at once, and the actors of the later runs of
+that config load them (the FCP and quickstart runs compile their own).
 """
 
 from __future__ import annotations
@@ -24,11 +28,13 @@ import pytest
 
 from cluster.archive import ArchiveReader
 from cluster.cli import main
-from cluster.runtime import evaluate, ray_backend, runstate
+from cluster.runtime import coordinator, evaluate, ray_backend, runstate
 from cluster.runtime.rundir import RunDir
+from cluster.runtime.shard import SeedShard
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import load_config
+from population.config import shards as seed_shards
 from population.keys import derive_key
 from population.sa import collect_buffer
 
@@ -58,14 +64,35 @@ def assert_same_tree(a, b):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+class ShardsHere:
+    """The Ray backend's shards (``seed_shards``: one seed each), as in-process ``SeedShard``s."""
+
+    def __init__(self, config, run_dir, pool=None):
+        self.shards, self.events = seed_shards(config), []
+        self.targets = [SeedShard(config, run_dir, seeds, pool) for seeds in self.shards]
+
+    def call(self, method, jobs):
+        return [getattr(self.targets[shard], method)(*args) for shard, args in jobs]
+
+    def share(self, value):
+        return value
+
+    def restarts(self) -> int:
+        return 0
+
+    def close(self) -> None:
+        self.targets = []
+
+
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
-    """An uninterrupted 8-update SP run on Ray: what the fault-tolerance tests must reproduce."""
-    from conftest import ensure_ray
-
-    ensure_ray()
+    """An uninterrupted 8-update SP run, the actors' programs trained here: what the Ray runs of the
+    fault-tolerance tests must reproduce (so they also show that an actor computes what this process does)."""
     run = tmp_path_factory.mktemp("ray") / "reference"
-    assert train(run, *LONGER, extra=["--no-eval"]) == 0
+    config = load_config(SMOKE, LONGER)
+    assert [len(shard) for shard in seed_shards(config)] == [1, 1]  # as on Ray: one actor per seed
+    coordinator.train(config, run, ShardsHere, show_progress=False, evaluate=False)
+    assert RunDir(run).read_manifest()["status"] == "finished"
     return run
 
 
@@ -84,7 +111,11 @@ def xp_archive(run):
 
 def test_cross_play_spread_over_ray_workers_equals_the_local_backend(reference, ray_session):
     """Pairs spread over two actors give the matrix and archived episodes computed in one process,
-    and every scored episode is in the archive (once)."""
+    and every scored episode is in the archive (once). In-process first: the actors play the same
+    row programs, and load them from the compilation cache."""
+    here = evaluate.evaluate_run(reference, episodes=3, show_progress=False)
+    here_csv = (reference / "xp" / "episodes.csv").read_text()
+    here_archive = xp_archive(reference)
     config = RunDir(reference).load_config()
     workers = ray_backend.RayWorkers(config, reference)
     try:
@@ -92,9 +123,7 @@ def test_cross_play_spread_over_ray_workers_equals_the_local_backend(reference, 
     finally:
         workers.close()
     spread_csv = (reference / "xp" / "episodes.csv").read_text()
-    spread_archive = xp_archive(reference)
-    here = evaluate.evaluate_run(reference, episodes=3, show_progress=False)
-    assert (reference / "xp" / "episodes.csv").read_text() == spread_csv
+    assert spread_csv == here_csv
     assert {k: v for k, v in here.items() if k != "wall_s"} == {k: v for k, v in spread.items() if k != "wall_s"}
     archive = xp_archive(reference)
     assert sorted(archive) == [(i, j, e) for i in (0, 1) for j in (0, 1) for e in range(3)]
@@ -104,7 +133,7 @@ def test_cross_play_spread_over_ray_workers_equals_the_local_backend(reference, 
     }
     for key, (ret, actions) in archive.items():
         assert ret == scored[key]  # the archived episodes are the scored ones
-        np.testing.assert_array_equal(actions, spread_archive[key][1])
+        np.testing.assert_array_equal(actions, here_archive[key][1])
 
 
 def test_fcp_on_ray_trains_against_a_pool_from_an_sp_run(tmp_path, reference, ray_session):

@@ -22,14 +22,18 @@ SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
 
 @pytest.fixture
 def two_nodes():
+    import os
+
     import ray
-    from conftest import ensure_ray
     from ray.cluster_utils import Cluster
 
     from cluster.runtime.ray_backend import ray_process_launches
 
-    ensure_ray()  # sets RAY_AUTH_MODE (the compilation cache is in the environment the nodes inherit)
-    ray.shutdown()
+    # The auth mode conftest's ensure_ray sets for the session's Ray, without starting that Ray only to
+    # shut it down (the compilation cache is in the environment the nodes inherit).
+    os.environ["RAY_AUTH_MODE"] = "disabled"
+    if ray.is_initialized():
+        ray.shutdown()
     with ray_process_launches():
         cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
         worker_node = cluster.add_node(num_cpus=1)

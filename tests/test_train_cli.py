@@ -197,21 +197,27 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
         _assert_trees_equal(_raw_checkpoint(resumed, seed, NUM_UPDATES), _raw_checkpoint(run, seed, NUM_UPDATES))
     _assert_same_metrics(read_csv(resumed / "metrics.csv"), read_csv(run / "metrics.csv"))
 
-    # "Augment from last month's cross-play": archived states join every iteration's buffer.
+    # "Augment from last month's cross-play": archived states join every iteration's buffer. Every 20th
+    # state instead of every 10th, so that collected + archived states are as many as the run above
+    # kept: the same training programs, loaded from the compilation cache instead of compiled again.
     from cluster.archive import states_as_buffer
 
     archive = run / "archive" / "sa" / "iteration_001.mcap"
     augmented = tmp_path / "sa_augmented"
-    assert train(augmented, "population.method=sa", f"population.sa.archives=[{archive}]", extra=["--no-eval"]) == 0
+    sparser = ["population.sa.keep_every=20", f"population.sa.archives=[{archive}]"]
+    assert train(augmented, "population.method=sa", *sparser, extra=["--no-eval"]) == 0
     collected, extended = (
         ckpt.read(run / "sa" / "buffer_000.msgpack"),
         ckpt.read(augmented / "sa" / "buffer_000.msgpack"),
     )
-    archived = states_as_buffer([archive], keep_every=10)
-    assert extended[0]["states"] == collected[0]["states"] + archived.step.shape[0] == 2 * collected[0]["states"]
-    head = jax.tree.map(lambda x: x[: collected[0]["states"]], extended[1])
-    tail = jax.tree.map(lambda x: x[collected[0]["states"] :], extended[1])
-    _assert_trees_equal(head, collected[1])
+    archived = states_as_buffer([archive], keep_every=20)
+    kept = collected[0]["states"] // 2  # t = 0, 20 of the t = 0, 10, 20, 30 above
+    assert extended[0]["states"] == kept + archived.step.shape[0] == collected[0]["states"]
+    head = jax.tree.map(lambda x: x[:kept], extended[1])
+    tail = jax.tree.map(lambda x: x[kept:], extended[1])
+    # The same episodes as the run above (same keys, untrained policies); ordered (pair, rollout, t).
+    every_other = lambda x: x.reshape((-1, 4) + x.shape[1:])[:, ::2].reshape((-1,) + x.shape[1:])
+    _assert_trees_equal(head, jax.tree.map(every_other, collected[1]))
     _assert_trees_equal(tail, jax.tree.map(np.asarray, serialization.to_state_dict(archived)))
 
 
