@@ -32,9 +32,17 @@ _CACHE_OPTIONS = {
 _FAST_COMPILE_FLAG = "--xla_backend_optimization_level=0"
 
 
+# Ray starts idle Python workers ahead of time (as many as the node's CPUs) for tasks; ocv2 runs only
+# actors, which get workers of their own (their runtime env differs), so those idle ones only cost
+# start-up CPU at every Ray start of the session.
+_RAY_NO_PRESTART = {"RAY_prestart_worker_first_driver": "0", "RAY_enable_worker_prestart": "0"}
+
+
 def pytest_configure(config):
     if hasattr(config, "workerinput"):
         return  # an xdist worker: it inherits the controller's environment
+    for name, value in _RAY_NO_PRESTART.items():
+        os.environ.setdefault(name, value)
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_backend_optimization_level" not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} {_FAST_COMPILE_FLAG}".strip()

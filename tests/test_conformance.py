@@ -160,7 +160,6 @@ FLAG_CASES = [
         ),
     ),
     ("two_rooms_both", dict(agent_view_size=0, random_reset=True, max_steps=50)),  # 0 = whole map (reference)
-    ("cramped_room_v2", dict(random_reset=True, negative_rewards=True, max_steps=50)),  # buttons pressed often
 ]
 ALL_LAYOUTS = list(ocv2.REFERENCE_LAYOUT_NAMES)
 _PLAIN = [name for name in ALL_LAYOUTS if name not in {layout for layout, _ in FLAG_CASES}]
@@ -181,11 +180,11 @@ def test_every_layout_and_flag_combination(layout, params):
 
 
 def test_rollouts_reach_every_kind_of_event():
-    """The sweep is only meaningful if deliveries, buttons, cooking and resets actually happen. These are three
+    """The sweep is only meaningful if deliveries, buttons, cooking and resets actually happen. These are two
     of the cases above with the same arguments: the compiled programs come from the session's compilation
     cache, so this costs only the (fast) rollouts."""
     totals = {}
-    for layout, params in (FLAG_CASES[0], FLAG_CASES[-1], FLAG_CASES[3]):
+    for layout, params in (FLAG_CASES[0], FLAG_CASES[3]):  # deliveries in the first, button presses in the second
         for k, v in compare(layout, **params).items():
             totals[k] = totals.get(k, 0) + v
     assert totals["deliveries"] > 0, totals
@@ -197,8 +196,7 @@ def test_rollouts_reach_every_kind_of_event():
 
 def test_more_than_two_agents():
     layout = ocv2.Layout.from_string("WWPWWW\nOA AAW\nW    X\nWBWRWW", possible_recipes=[[0, 0, 0]], name="three")
-    compare(layout, seeds=2, random_reset=True, max_steps=50)
-    compare(layout, seeds=1, agent_view_size=1, max_steps=50)
+    compare(layout, random_reset=True, agent_view_size=1, max_steps=50)
 
 
 def test_buffer_reset_matches_reference():
