@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cluster.runtime.jobs import InProcessWorkers, spread_jobs
-from cluster.runtime.ray_backend import RayWorkers, actor_env, connect, ray
+from cluster.runtime.ray_backend import RayWorkers, actor_env, ray, session
 from cluster.runtime.rundir import write_csv, write_json
 from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_config
 from population.evaluation import stack_params
@@ -246,16 +246,12 @@ def players(backend: str, jobs: int, address: str | None = None, workers: int | 
         yield LocalPlayers()
         return
     cluster = ClusterConfig(address=address)
-    started = connect(cluster)
-    try:
+    with session("ray", cluster):
         ray_players = RayPlayers(ray_worker_count(workers, jobs, 1), cluster)
         try:
             yield ray_players
         finally:
             ray_players.close()
-    finally:
-        if started:
-            ray.shutdown()
 
 
 # ---------------------------------------------------------------------------------------------------

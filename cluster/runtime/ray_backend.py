@@ -345,8 +345,7 @@ def train_population(
 ) -> dict:
     """Train (or resume) a population on Ray: join/start Ray, check resources, run the coordinator."""
 
-    started = connect(config.cluster)
-    try:
+    with session("ray", config.cluster):
         check_resources(config, len(seed_shards(config)))
         return coordinator.train(
             config,
@@ -358,6 +357,3 @@ def train_population(
             label=label,
             on_chunk=on_chunk,
         )
-    finally:
-        if started:
-            ray.shutdown()
