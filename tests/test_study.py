@@ -105,7 +105,13 @@ def test_the_report_puts_the_paper_numbers_beside_ours(finished):
     assert (pair["a"].endswith("sp"), pair["b"].endswith("sa")) == (True, True)
     assert {"a_seat0", "a_seat1", "mean", "mean_ci95_interval"} <= set(pair)
     assert [p["update"] for p in summary["over_training"][0]["points"]] == [0, 2, 4]
-    for picture in ("curves_cramped_room.png", "heatmap_sp_vs_sa.png", "over_training_sp.png"):
+    for picture in (
+        "curves_cramped_room.png",
+        "heatmap_sp.png",
+        "heatmap_sa.png",
+        "heatmap_sp_vs_sa.png",
+        "over_training_sp.png",
+    ):
         assert (finished / picture).is_file()
     json.loads((finished / "summary.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
 
@@ -120,6 +126,7 @@ def test_a_compact_copy_of_the_report(finished, tmp_path, capsys):
         "xp_sp.csv",
         "xp_sa.csv",
         "xp_sp_vs_sa.csv",
+        "heatmap_sp.png",
         "heatmap_sp_vs_sa.png",
         "over_training_sp.png",
         "curves_cramped_room.png",
@@ -226,6 +233,10 @@ def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
         (
             lambda d: d["comparisons"].append({"name": "sp_vs_sa", "runs": ["sa", "sp"]}),
             "comparison 'sp_vs_sa': duplicate comparison name (comparisons[0] has it too)",
+        ),
+        (
+            lambda d: d["comparisons"].append({"name": "sa", "runs": ["sa", "sp"]}),
+            "comparison 'sa': a run has this name too; give the comparison another name",
         ),
         (lambda d: d["runs"][0].update(set=["ppo.lrr=1"]), "run 'sp': "),
         (lambda d: d["runs"][0]["paper"].update(sp="high"), "run 'sp'.paper.sp: expected a number or [mean, std]"),

@@ -2,6 +2,7 @@
 
 ``STUDY_DIR/report.md`` (for people), ``STUDY_DIR/summary.json`` (strict JSON: NaN is written as null),
 ``curves_<layout>.png`` (training curves of every run, mean ± std across seeds),
+``heatmap_<run>.png`` (a run's seeds' final cross-play, as the paper's Figure 4),
 ``heatmap_<comparison>.png`` (the full cross-play matrix of a comparison) and
 ``over_training_<run>.png`` (SP, XP and the gap at every kept snapshot).
 
@@ -52,7 +53,9 @@ def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path
         "ci_method": "95% percentile bootstrap over training seeds",
         "wall_s": round(sum(s.get("wall_s", 0.0) for s in state.get("steps", {}).values()), 1),
     }
-    pictures = _curves(study, out, configs, dest) + _heatmaps(out, comparisons, dest) + _over_training_plots(dest, over)
+    pictures = (
+        _curves(study, out, configs, dest) + _heatmaps(out, runs, comparisons, dest) + _over_training_plots(dest, over)
+    )
     summary["pictures"] = [Path(p).name for p in pictures]
     write_json(dest / "summary.json", _strict(summary))
     atomic_write(dest / "report.md", markdown(study, summary, state))
@@ -257,10 +260,16 @@ def _curve(rows: list[dict]):
     return steps, np.asarray([v.mean() for v in values]), np.asarray([v.std() for v in values])
 
 
-def _heatmaps(out: Path, comparisons: list[dict], dest: Path) -> list[str]:
+def _heatmaps(out: Path, runs: list[dict], comparisons: list[dict], dest: Path) -> list[str]:
+    """One heatmap per run (its seeds' final cross-play, the paper's Figure 4) and per comparison."""
+    sources = [
+        (run_dir(out, r["name"]) / "xp" / "matrix.csv", r["name"], "cross-play of its seeds (final)", r["xp"])
+        for r in runs
+        if r["xp"] is not None
+    ]
+    sources += [(out / "comparisons" / c["name"] / "matrix.csv", c["name"], "cross-play", c) for c in comparisons]
     pictures = []
-    for entry in comparisons:
-        path = out / "comparisons" / entry["name"] / "matrix.csv"
+    for path, name, what, entry in sources:
         if not path.is_file():
             continue
         with open(path, newline="") as handle:
@@ -269,10 +278,10 @@ def _heatmaps(out: Path, comparisons: list[dict], dest: Path) -> list[str]:
         matrix = np.asarray([[float(v) for v in r[1:]] for r in rows[1:]], np.float64)
         picture = xp_heatmap(
             matrix,
-            dest / f"heatmap_{entry['name']}.png",
+            dest / f"heatmap_{name}.png",
             labels=labels,
             col_labels=rows[0][1:],
-            title=f"{entry['name']}: cross-play, {entry.get('episodes_per_pair')} episodes/pair",
+            title=f"{name}: {what}, {entry.get('episodes_per_pair')} episodes/pair",
         )
         if picture is not None:
             pictures.append(picture)

@@ -207,6 +207,8 @@ def _parse_comparison(where: str, index: int, entry, names: list[str], earlier: 
         raise StudyError(f"{where}: {label}.human_proxy: expected true or false, got {human!r}")
     if len(runs) + human < 2:
         raise StudyError(f"{where}: {label}: needs two runs, or one run and human_proxy: true")
+    if name in names:  # their matrices and heatmaps would be written to the same files
+        raise StudyError(f"{where}: {label}: a run has this name too; give the comparison another name")
     return Comparison(name, tuple(runs), human)
 
 
