@@ -16,6 +16,7 @@ import pytest
 
 from cluster.cli import main
 from cluster.cli.report import curve
+from cluster.runtime.rundir import read_matrix_csv, write_matrix_csv
 from population.config import dump_config, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -226,6 +227,24 @@ def test_report_on_a_non_run_directory_fails_naming_it(tmp_path, capsys):
     assert main(["report", str(missing)]) != 0
     assert str(missing) in capsys.readouterr().err
     assert not (tmp_path / "r").exists()  # nothing written before the inputs were checked
+
+
+def test_a_matrix_file_reads_back_as_written_with_nan_for_a_pair_without_a_number(tmp_path):
+    values = [[1.25, math.nan, -3.0], [0.0, 2.5, 7.125]]
+    write_matrix_csv(tmp_path / "m.csv", values, ["a", "b"], ["x", "y", "z"])
+    table = read_matrix_csv(tmp_path / "m.csv")
+    assert table.rows == ["a", "b"] and table.cols == ["x", "y", "z"]
+    assert table.values.shape == (2, 3) and math.isnan(table.values[0, 1])
+    assert table.values[0, 0] == 1.25 and table.values[1, 2] == 7.125 and table.values[0, 2] == -3.0
+
+
+def test_report_on_a_damaged_matrix_names_file_row_and_column(runs, tmp_path, capsys):
+    matrix = runs["cr_sp"] / "xp" / "matrix.csv"
+    matrix.write_text("seat0\\seat1,seed_0,seed_1\nseed_0,259.0,25O.0\nseed_1,257.0,259.0\n")
+    assert main(["report", str(runs["cr_sp"]), "--out", str(tmp_path / "r")]) != 0
+    err = capsys.readouterr().err
+    assert str(matrix) in err and "row 2" in err and "'seed_1'" in err and "'25O.0'" in err
+    assert "Traceback" not in err and not (tmp_path / "r").exists()
 
 
 def test_report_out_must_be_a_folder(runs, tmp_path, capsys):

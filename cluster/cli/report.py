@@ -33,7 +33,7 @@ from rich.console import Console
 from rich.table import Table
 
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-from cluster.runtime.rundir import RunDir, RunDirError, seed_curves
+from cluster.runtime.rundir import RunDir, RunDirError, read_matrix_csv, seed_curves
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.config import ConfigError, check_fits, estimate, is_ray_launcher_config, parse_config, read_yaml
@@ -193,9 +193,10 @@ def load_run(path) -> dict:
     matrix = None
     matrix_path = run.path / "xp" / "matrix.csv"
     if matrix_path.is_file():
-        with open(matrix_path, newline="") as handle:
-            rows = list(csv.reader(handle))
-        matrix = [[_nan(v) for v in row[1:]] for row in rows[1:] if row]
+        try:
+            matrix = read_matrix_csv(matrix_path).values.tolist()
+        except (OSError, ValueError) as error:
+            raise CLIError(f"unreadable cross-play matrix: {error}") from None
     return {
         "path": str(path),
         "name": run.path.resolve().name,

@@ -31,7 +31,7 @@ import numpy as np
 
 from cluster.runtime.jobs import InProcessWorkers, spread_jobs
 from cluster.runtime.ray_backend import RayWorkers, actor_env, ray, session
-from cluster.runtime.rundir import write_csv, write_json
+from cluster.runtime.rundir import write_csv, write_json, write_matrix_csv
 from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_config
 from population.evaluation import stack_params
 from population.human import proxy_path
@@ -505,11 +505,7 @@ def write_seat_fair_outputs(result: SeatFairMatrix, out, summary: dict, env) -> 
         _write_order(result.cols_seat0, out, env, "_cols_seat0")
     mean = result.mean
     rows, cols = _names(mean.row_groups), _names(mean.col_groups)
-    write_csv(
-        out / "matrix_mean.csv",
-        ["row\\col (mean of both seat orders)"] + cols,
-        [[rows[i]] + [round(float(v), 4) for v in mean.matrix[i]] for i in range(len(rows))],
-    )
+    write_matrix_csv(out / "matrix_mean.csv", mean.matrix, rows, cols, corner="row\\col (mean of both seat orders)")
     xp_heatmap(
         mean.matrix,
         out / "heatmap_mean.png",
@@ -542,11 +538,7 @@ def _write_order(result: Matrix, out: Path, env, suffix: str) -> None:
     rows, cols = _names(result.row_groups), _names(result.col_groups)
     matrix = result.matrix
     names = recipe_names(env)
-    write_csv(
-        out / f"matrix{suffix}.csv",
-        ["seat0\\seat1"] + cols,
-        [[rows[i]] + [round(float(v), 4) for v in matrix[i]] for i in range(len(rows))],
-    )
+    write_matrix_csv(out / f"matrix{suffix}.csv", matrix, rows, cols)
     write_csv(
         out / f"episodes{suffix}.csv",
         ["seat0", "seat1", "episode", "return", "start_recipe"],

@@ -21,7 +21,7 @@ import numpy as np
 from cluster.archive import ArchiveWriter, record_episodes
 from cluster.runtime.jobs import spread_jobs
 from cluster.runtime.progress import Bar
-from cluster.runtime.rundir import RunDir, RunDirError, seed_curves, write_csv, write_json
+from cluster.runtime.rundir import RunDir, RunDirError, seed_curves, write_csv, write_json, write_matrix_csv
 from cluster.runtime.runstate import archive_meta, hidden_size, load_params, pair_meta, params_template
 from ocv2.render import render_frames, write_gif
 from population import checkpoints as ckpt
@@ -133,11 +133,8 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     if archive_dir is not None:
         summary["archive"] = str(archive_dir)
     num = result.matrix.shape[0]
-    write_csv(
-        run.sub("xp", "matrix.csv"),
-        ["seat0\\seat1"] + [f"seed_{j}" for j in range(num)],
-        [[f"seed_{i}"] + [round(float(v), 4) for v in result.matrix[i]] for i in range(num)],
-    )
+    labels = [f"seed_{i}" for i in range(num)]
+    write_matrix_csv(run.sub("xp", "matrix.csv"), result.matrix, labels, labels)
     names = recipe_names(env)
     write_csv(
         run.sub("xp", "episodes.csv"),

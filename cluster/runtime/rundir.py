@@ -478,6 +478,51 @@ def write_csv(path: Path, header, rows) -> None:
     atomic_write(path, buffer.getvalue())  # CSV rows keep their \r\n
 
 
+MATRIX_CORNER = "seat0\\seat1"
+
+
+class LabelledMatrix(NamedTuple):
+    """A cross-play matrix as ``matrix.csv`` holds it: seat-0 players down the rows, seat-1 across."""
+
+    rows: list[str]
+    cols: list[str]
+    values: np.ndarray  # float64 [len(rows), len(cols)]; NaN where a cell has no number
+
+
+def write_matrix_csv(path: Path, values, rows, cols, corner: str = MATRIX_CORNER) -> None:
+    """``matrix.csv``: a corner cell, the seat-1 labels, then one row per seat-0 player (mean return, 4 places)."""
+    values = np.asarray(values, np.float64)
+    write_csv(
+        path,
+        [corner] + list(cols),
+        [[rows[i]] + [round(float(v), 4) for v in values[i]] for i in range(len(rows))],
+    )
+
+
+def read_matrix_csv(path) -> LabelledMatrix:
+    """Read what ``write_matrix_csv`` wrote; ``ValueError`` naming the file, row and column of a bad cell.
+    An empty cell or ``nan`` reads as NaN (a pair that has no number), anything else that is not a number
+    is an error rather than a silent NaN."""
+    path = Path(path)
+    with open(path, newline="") as handle:
+        table = [row for row in csv.reader(handle) if row]
+    if not table or len(table[0]) < 2:
+        raise ValueError(f"{path}: not a cross-play matrix (no header row with seat-1 labels)")
+    cols = table[0][1:]
+    values = np.full((len(table) - 1, len(cols)), np.nan)
+    for i, row in enumerate(table[1:]):
+        if len(row) != len(cols) + 1:
+            raise ValueError(f"{path}: row {i + 2} has {len(row) - 1} cells, the header has {len(cols)}")
+        for j, cell in enumerate(row[1:]):
+            if cell.strip() == "":
+                continue
+            try:
+                values[i, j] = float(cell)
+            except ValueError:
+                raise ValueError(f"{path}: row {i + 2}, column {cols[j]!r}: {cell!r} is not a number") from None
+    return LabelledMatrix([row[0] for row in table[1:]], cols, values)
+
+
 def strict_json(data) -> str:
     """``data`` as strict JSON: a NaN or infinite number becomes ``null``.
 

@@ -12,7 +12,6 @@ paper's mean lies inside our interval: a plain check, not a test of the paper's 
 
 from __future__ import annotations
 
-import csv
 import datetime as _dt
 import json
 import math
@@ -21,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from cluster.runtime.progress import duration
-from cluster.runtime.rundir import RunDir, write_json
+from cluster.runtime.rundir import RunDir, read_matrix_csv, write_json
 from cluster.study.spec import PaperValue, Study, run_dir
 from ocv2.atomic import atomic_write
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
@@ -272,15 +271,12 @@ def _heatmaps(out: Path, runs: list[dict], comparisons: list[dict], dest: Path) 
     for path, name, what, entry in sources:
         if not path.is_file():
             continue
-        with open(path, newline="") as handle:
-            rows = list(csv.reader(handle))
-        labels = [r[0] for r in rows[1:]]
-        matrix = np.asarray([[float(v) for v in r[1:]] for r in rows[1:]], np.float64)
+        table = read_matrix_csv(path)
         picture = xp_heatmap(
-            matrix,
+            table.values,
             dest / f"heatmap_{name}.png",
-            labels=labels,
-            col_labels=rows[0][1:],
+            labels=table.rows,
+            col_labels=table.cols,
             title=f"{name}: {what}, {entry.get('episodes_per_pair')} episodes/pair",
         )
         if picture is not None:
