@@ -1,34 +1,43 @@
-"""Which way round Coordination Ring each SP seed's agents walk, read from the study's cross-play archive.
+"""Which way round Coordination Ring each SP seed's agents walk.
 
-    python docs/results/table1_coord_ring/ring_direction.py STUDY_DIR/runs/sp/archive/xp [EPISODES_PER_PAIR]
+    python docs/results/table1_coord_ring/ring_direction.py archive STUDY_DIR/runs/sp/archive/xp [--episodes 100]
+    python docs/results/table1_coord_ring/ring_direction.py snapshots STUDY_DIR/runs/sp [--updates 0,30,61,122,305]
 
-For every ordered pair (seat-0 seed, seat-1 seed) of the final checkpoints: the share of each seat's moves
-between ring cells that go clockwise as the layout is drawn (y grows downward, so a rise of
-atan2(y - 2, x - 2) about the centre counter is clockwise on screen), and the pair's mean return over the
-same episodes. Two populations that walk opposite ways block each other in the one-cell-wide ring; one
-that all walks the same way has no such conflict.
+``archive``: every ordered pair (seat-0 seed, seat-1 seed) of the final checkpoints, read from the study's
+cross-play archive (the first N episodes of each pair). ``snapshots``: each seed in self-play at kept
+checkpoints, N fresh episodes each (sampled actions, a fixed key).
+
+The share of each seat's moves between ring cells that go clockwise as the layout is drawn (y grows
+downward, so a rise of atan2(y - 2, x - 2) about the centre counter is clockwise on screen), and the mean
+return over the same episodes. Two agents that walk opposite ways block each other in the one-cell-wide
+ring; a population that all walks the same way has no such conflict.
 """
 
+import argparse
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from cluster.archive.reader import ArchiveReader
+from population.evaluation import play_episodes
+from population.policy import load, policy_env
 
 CENTRE = 2  # the ring's centre counter is at (2, 2) in coord_ring
 
 
-def clockwise_moves(episode) -> tuple[np.ndarray, np.ndarray]:
-    """Per seat: how many of its moves went clockwise, and how many moves it made."""
-    agents = episode.states.agents
-    angle = np.arctan2(agents.y.astype(float) - CENTRE, agents.x.astype(float) - CENTRE)
-    turn = (np.diff(angle, axis=0) + np.pi) % (2 * np.pi) - np.pi
+def clockwise_moves(x, y, time_axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """How many moves went clockwise and how many moves were made, summed over every axis but the last
+    (the seat)."""
+    angle = np.arctan2(np.asarray(y, float) - CENTRE, np.asarray(x, float) - CENTRE)
+    turn = (np.diff(angle, axis=time_axis) + np.pi) % (2 * np.pi) - np.pi
     moved = np.abs(turn) > 1e-9
-    return (moved & (turn > 0)).sum(0), moved.sum(0)
+    axes = tuple(range(turn.ndim - 1))
+    return (moved & (turn > 0)).sum(axes), moved.sum(axes)
 
 
-def main(folder: str, per_pair: int) -> None:
+def from_archive(folder: str, per_pair: int) -> None:
     files = sorted(Path(folder).glob("seat0_seed_*.mcap"), key=lambda p: int(p.stem.rsplit("_", 1)[1]))
     if not files:
         sys.exit(f"{folder}: no seat0_seed_<i>.mcap cross-play archive here")
@@ -42,7 +51,7 @@ def main(folder: str, per_pair: int) -> None:
             clockwise, moves, returns = np.zeros(2), np.zeros(2), []
             for k in chosen:
                 episode = reader.episode(k)
-                c, m = clockwise_moves(episode)
+                c, m = clockwise_moves(episode.states.agents.x, episode.states.agents.y)
                 clockwise += c
                 moves += m
                 returns.append(episode.meta["return"])
@@ -53,5 +62,45 @@ def main(folder: str, per_pair: int) -> None:
             )
 
 
+def from_snapshots(run_dir: str, updates: list[int], episodes: int, seeds: int) -> None:
+    print(
+        "| update | " + " | ".join(f"seed {s}: clockwise share (seat 0, seat 1), return" for s in range(seeds)) + " |"
+    )
+    print("|---:|" + "---|" * seeds)
+    for update in updates:
+        cells = []
+        for seed in range(seeds):
+            policy = load(run_dir, seed=seed, checkpoint=update)
+            env = policy_env(policy.env)
+            played = jax.jit(
+                lambda params, key: play_episodes(
+                    policy.apply, policy.hidden_size, env, (params, params), key, episodes, keep_every=1
+                )
+            )(policy.params, jax.random.PRNGKey(7))
+            agents = played.states.agents  # [R, S, seat]
+            clockwise, moves = clockwise_moves(agents.x, agents.y, time_axis=1)
+            share = clockwise / np.maximum(moves, 1)
+            cells.append(f"{share[0]:.2f}, {share[1]:.2f}, {float(np.mean(played.returns)):.0f}")
+        print(f"| {update} | " + " | ".join(cells) + " |", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="source", required=True)
+    archive = sub.add_parser("archive")
+    archive.add_argument("folder")
+    archive.add_argument("--episodes", type=int, default=100)
+    snapshots = sub.add_parser("snapshots")
+    snapshots.add_argument("run_dir")
+    snapshots.add_argument("--updates", default="0,30,61,122,305")
+    snapshots.add_argument("--episodes", type=int, default=32)
+    snapshots.add_argument("--seeds", type=int, default=4)
+    args = parser.parse_args()
+    if args.source == "archive":
+        from_archive(args.folder, args.episodes)
+    else:
+        from_snapshots(args.run_dir, [int(u) for u in args.updates.split(",")], args.episodes, args.seeds)
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else 100)
+    main()
