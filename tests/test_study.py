@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import pytest
 import yaml
 
 from cluster.cli import main
+from cluster.runtime.rundir import RunDir
 from cluster.study.runner import run_study, study_status
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config
 from population import checkpoints as ckpt
@@ -266,6 +268,23 @@ def test_status_lists_every_step(finished, capsys):
         ["compare", "sp_vs_sa", "done"],
     ]
     assert out[-1].startswith("4 done; training left: 0m00s")
+
+
+def test_status_of_a_running_step_counts_the_time_since_its_last_save(finished, tmp_path):
+    out = tmp_path / "study"
+    shutil.copytree(finished, out)
+    state = json.loads((out / "study.json").read_text())
+    state["steps"]["compare sp_vs_sa"].update(status="running", wall_s=60.0, ticked=time.time() - 120)
+    (out / "study.json").write_text(json.dumps(state))
+    wall = lambda: {e["step"]: e for e in study_status(out)}["compare sp_vs_sa"]
+    assert wall()["status"] == "interrupted" and wall()["wall_s"] == 60.0  # nobody runs it: no time added
+    holder = RunDir(out)
+    holder.lock()  # as the study process holds it while it runs
+    try:
+        entry = wall()
+        assert entry["status"] == "running" and 180.0 <= entry["wall_s"] < 240.0
+    finally:
+        holder.close()
 
 
 def test_status_of_a_folder_that_is_no_study(tmp_path, capsys):

@@ -131,7 +131,7 @@ class StepTimer:
         now = time.time()
         step = self.state.step(self.name)
         step["wall_s"] = round(step.get("wall_s", 0.0) + now - self.last, 1)
-        self.last = now
+        self.last = step["ticked"] = now  # lets ``study_status`` add the time since, while the step runs
         self.state.mark(self.name, **changes)
 
 
@@ -171,7 +171,7 @@ def run_study(
             say(f"study {study.name}: [{number}/{len(steps)}] {name}")
             timer = state.timer(name)
             state.step(name).pop("reason", None)  # a step blocked before may run now
-            state.mark(name, status="running", started=time.time())
+            state.mark(name, status="running", started=timer.last, ticked=timer.last)
             try:
                 result = action(study, out, configs, options, timer)
             except StudyBlocked as blocked:
@@ -412,8 +412,11 @@ def study_status(out) -> list[dict]:
             entry.update(_train_progress(out / "runs" / name[6:], configs.get(name[6:]), rates))
             if status != "done" and entry.pop("finished", False):
                 entry["status"] = "done"
-        if status == "running" and not _locked(out):
-            entry["status"] = "interrupted"
+        if status == "running":
+            if not _locked(out):
+                entry["status"] = "interrupted"
+            elif "ticked" in step:  # wall time is saved per chunk; add the running chunk's so far
+                entry["wall_s"] += max(0.0, time.time() - step["ticked"])
         entries.append(entry)
     return entries
 
