@@ -17,6 +17,7 @@ from test_methods import COOK_SCRIPT, SCRIPT_STEPS, _table, script_apply
 import ocv2
 from cluster.cli import main
 from cluster.runtime import crossplay
+from cluster.runtime.rundir import read_matrix_csv
 from population import policy as pol
 from population.config import ClusterConfig, load_config
 from population.evaluation import gather_params, play_row, stack_params
@@ -28,12 +29,6 @@ from population.xp import Side, bootstrap_block, cross_play
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     return shared_run(tmp_path_factory)
-
-
-def _matrix(path) -> np.ndarray:
-    with open(path, newline="") as handle:
-        rows = list(csv.reader(handle))
-    return np.asarray([[float(v) for v in row[1:]] for row in rows[1:]])
 
 
 def _episodes(path) -> list[tuple]:
@@ -64,8 +59,8 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, c
         )
         == 0
     )
-    in_run = _matrix(run / "xp" / "matrix.csv")
-    np.testing.assert_array_equal(_matrix(out / "matrix.csv"), in_run)
+    in_run = read_matrix_csv(run / "xp" / "matrix.csv").values
+    np.testing.assert_array_equal(read_matrix_csv(out / "matrix.csv").values, in_run)
     assert (in_run != 0).any() and len(np.unique(in_run)) > 1  # real, policy-dependent numbers
     assert _episodes(out / "episodes.csv") == _episodes(run / "xp" / "episodes.csv")
     summary = json.loads((out / "summary.json").read_text())
@@ -75,7 +70,7 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, c
         assert block[key] == pytest.approx(own[key])
     # a run against itself: its one matrix holds both seat orders, so it is played once
     assert summary["seats"] == "both" and not (out / "matrix_cols_seat0.csv").exists()
-    np.testing.assert_allclose(_matrix(out / "matrix_mean.csv"), (in_run + in_run.T) / 2, atol=1e-4)
+    np.testing.assert_allclose(read_matrix_csv(out / "matrix_mean.csv").values, (in_run + in_run.T) / 2, atol=1e-4)
     for name in ("matrix.csv", "episodes.csv", "blocks.csv", "summary.json", "heatmap.png", "heatmap_mean.png"):
         assert (out / name).exists()
 
@@ -107,8 +102,10 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, c
     )
     printed = capsys.readouterr().out
     assert printed.count("(mean of rows in seat 0: ") == 2 and ", gap " in printed and "matrix_mean.csv" in printed
-    np.testing.assert_array_equal(_matrix(mixed / "matrix.csv"), in_run)
-    np.testing.assert_array_equal(_matrix(mixed / "matrix_cols_seat0.csv"), in_run)  # the run's seeds in seat 0
+    np.testing.assert_array_equal(read_matrix_csv(mixed / "matrix.csv").values, in_run)
+    np.testing.assert_array_equal(
+        read_matrix_csv(mixed / "matrix_cols_seat0.csv").values, in_run
+    )  # the run's seeds in seat 0
     summary = json.loads((mixed / "summary.json").read_text())
     first, second = summary["orders"]["rows_seat0"], summary["orders"]["cols_seat0"]
     assert [b["sp_mean"] for b in first] == pytest.approx([in_run[0, 0], in_run[1, 1]], abs=1e-4)
@@ -367,8 +364,10 @@ def test_seat_fair_orders_are_oriented_rows_by_cols_and_averaged(tmp_path):
         for cols, method in (("B", "fcp"), ("human-proxy:cramped_room", "human-proxy"))
     ]
     assert all(line["row_method"] == "sp" for line in lines)
-    np.testing.assert_allclose(_matrix(tmp_path / "matrix_cols_seat0.csv"), [[31, 32], [41, 42], [51, 52], [61, 62]])
-    np.testing.assert_allclose(_matrix(tmp_path / "matrix_mean.csv"), result.mean.matrix)
+    np.testing.assert_allclose(
+        read_matrix_csv(tmp_path / "matrix_cols_seat0.csv").values, [[31, 32], [41, 42], [51, 52], [61, 62]]
+    )
+    np.testing.assert_allclose(read_matrix_csv(tmp_path / "matrix_mean.csv").values, result.mean.matrix)
     with pytest.raises(ValueError, match="no 'cols_seat0' order"):
         crossplay.SeatFairMatrix(result.rows_seat0).oriented("cols_seat0")
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, read_matrix_csv, write_json
-from cluster.study.spec import PaperValue, Study, run_dir
+from cluster.study.spec import PaperValue, Study, comparison_dir, run_dir
 from ocv2.atomic import atomic_write
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
 
@@ -63,7 +63,7 @@ def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path
 
 def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
     sources = [(run_dir(out, r.name) / "xp" / "matrix.csv", f"xp_{r.name}.csv") for r in study.runs]
-    sources += [(out / "comparisons" / c.name / "matrix.csv", f"xp_{c.name}.csv") for c in study.comparisons]
+    sources += [(comparison_dir(out, c.name) / "matrix.csv", f"xp_{c.name}.csv") for c in study.comparisons]
     for source, name in sources:
         if source.is_file():
             atomic_write(dest / name, source.read_text())
@@ -154,7 +154,7 @@ def _comparison_entry(name: str, out: Path, state: dict) -> dict:
         "reason": step.get("reason", ""),
         "wall_s": step.get("wall_s"),
     }
-    path = out / "comparisons" / name / "summary.json"
+    path = comparison_dir(out, name) / "summary.json"
     if path.is_file():
         data = json.loads(path.read_text())
         entry.update(
@@ -266,7 +266,7 @@ def _heatmaps(out: Path, runs: list[dict], comparisons: list[dict], dest: Path) 
         for r in runs
         if r["xp"] is not None
     ]
-    sources += [(out / "comparisons" / c["name"] / "matrix.csv", c["name"], "cross-play", c) for c in comparisons]
+    sources += [(comparison_dir(out, c["name"]) / "matrix.csv", c["name"], "cross-play", c) for c in comparisons]
     pictures = []
     for path, name, what, entry in sources:
         if not path.is_file():

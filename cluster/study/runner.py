@@ -32,7 +32,7 @@ from cluster.api import train_population
 from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir, RunDirError, write_json
 from cluster.study.report import write_report
-from cluster.study.spec import Comparison, Study, StudyError, parse_study, run_config, run_dir
+from cluster.study.spec import Comparison, Study, StudyError, comparison_dir, parse_study, run_config, run_dir
 from population import checkpoints as ckpt
 from population.xp import block_summary
 
@@ -207,7 +207,7 @@ def _still_done(step: str, out: Path) -> bool:
     if kind == "train":
         return run_finished(run_dir(out, name))
     if kind == "compare":
-        return (out / "comparisons" / name / "summary.json").is_file()
+        return (comparison_dir(out, name) / "summary.json").is_file()
     return (out / "over_training" / name / "done.json").is_file()
 
 
@@ -294,7 +294,7 @@ def _compare_step(comparison: Comparison):
         except crossplay.CrossPlayError as error:
             raise StudyError(f"comparison {comparison.name!r}: {error}") from None
         result = compare(groups, options, first.population.seed, first.eval.episodes, timer)
-        folder = out / "comparisons" / comparison.name
+        folder = comparison_dir(out, comparison.name)
         crossplay.write_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
         return {}
 

@@ -265,6 +265,10 @@ def run_dir(out: Path, name: str) -> Path:
     return Path(out) / "runs" / name
 
 
+def comparison_dir(out: Path, name: str) -> Path:
+    return Path(out) / "comparisons" / name
+
+
 def run_config(study: Study, run: RunSpec, out: Path, budget: float, seeds: int | None) -> Config:
     """The config ``run`` trains with in study directory ``out`` at ``budget`` (a fraction of
     ``total_timesteps``) and ``seeds`` (None: the config's own)."""
