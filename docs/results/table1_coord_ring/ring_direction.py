@@ -14,6 +14,7 @@ ring; a population that all walks the same way has no such conflict.
 """
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 
@@ -62,6 +63,14 @@ def from_archive(folder: str, per_pair: int) -> None:
             )
 
 
+@functools.lru_cache
+def self_play(apply, hidden_size: int, env, episodes: int):
+    """One compiled self-play rollout (every state kept) shared by all seeds and snapshots of a run."""
+    return jax.jit(
+        lambda params, key: play_episodes(apply, hidden_size, env, (params, params), key, episodes, keep_every=1)
+    )
+
+
 def from_snapshots(run_dir: str, updates: list[int], episodes: int, seeds: int) -> None:
     print(
         "| update | " + " | ".join(f"seed {s}: clockwise share (seat 0, seat 1), return" for s in range(seeds)) + " |"
@@ -71,12 +80,8 @@ def from_snapshots(run_dir: str, updates: list[int], episodes: int, seeds: int) 
         cells = []
         for seed in range(seeds):
             policy = load(run_dir, seed=seed, checkpoint=update)
-            env = policy_env(policy.env)
-            played = jax.jit(
-                lambda params, key: play_episodes(
-                    policy.apply, policy.hidden_size, env, (params, params), key, episodes, keep_every=1
-                )
-            )(policy.params, jax.random.PRNGKey(7))
+            play = self_play(policy.apply, policy.hidden_size, policy_env(policy.env), episodes)
+            played = play(policy.params, jax.random.PRNGKey(7))
             agents = played.states.agents  # [R, S, seat]
             clockwise, moves = clockwise_moves(agents.x, agents.y, time_axis=1)
             share = clockwise / np.maximum(moves, 1)
