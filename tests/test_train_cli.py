@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import errno
+import importlib
 import json
 import os
 import shutil
@@ -22,7 +23,7 @@ from flax import serialization
 
 import ocv2.atomic
 from cluster.cli import main
-from cluster.runtime import coordinator, evaluate, runstate
+from cluster.runtime import coordinator, evaluate, interrupt, runstate
 from cluster.runtime.rundir import METRIC_FIELDS, RunDir, RunDirError
 from ocv2.atomic import is_temporary
 from population import checkpoints as ckpt
@@ -34,6 +35,7 @@ from population.sa import collect_buffer
 SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
 NUM_SEEDS, NUM_UPDATES, SNAPSHOTS = 2, 4, [0, 2, 4]  # smoke.yaml: 512 steps / (4 envs x 32 steps); 3 snapshots
 TIMING_COLUMNS = {"steps_per_s", "wall_s"}
+cli_main = importlib.import_module("cluster.cli.main")  # the module; ``cluster.cli.main`` is also its function
 
 
 def train(out, *overrides, extra=()) -> int:
@@ -359,6 +361,51 @@ def _assert_same_run(run, reference):
     for seed in range(NUM_SEEDS):
         _assert_trees_equal(_raw_checkpoint(run, seed, NUM_UPDATES), _raw_checkpoint(reference, seed, NUM_UPDATES))
     _assert_same_metrics(read_csv(run / "metrics.csv"), read_csv(reference / "metrics.csv"))
+
+
+def _ctrl_c_while_polling(monkeypatch, presses: int) -> None:
+    """Ctrl-C ``presses`` times while the first training chunk is awaited (as the default SIGINT handler
+    raises it: ``KeyboardInterrupt`` in the main thread, here inside ``ChunkWait``'s poll)."""
+    ready = interrupt._ready
+    left = [presses]
+
+    def pressed(tree):
+        if left[0]:
+            left[0] -= 1
+            raise KeyboardInterrupt
+        return ready(tree)
+
+    monkeypatch.setattr(interrupt, "_ready", pressed)
+
+
+def test_ctrl_c_lets_the_running_chunk_finish_and_save_then_stops(sp_run, tmp_path, capsys, monkeypatch):
+    run = tmp_path / "ctrl_c"
+    _ctrl_c_while_polling(monkeypatch, presses=1)
+    assert train(run, SP_EVAL) == 130
+    err = capsys.readouterr().err
+    assert "Ctrl-C: letting updates 1-2 finish" in err and "press Ctrl-C again to stop now" in err
+    assert "resuming continues from update 0" in err and "ocv2 train: interrupted" in err
+    assert all(ckpt.list_updates(run, seed) == [0, 2] for seed in range(NUM_SEEDS))  # the chunk was saved
+    assert manifest(run)["update"] == 2 and len(read_csv(run / "metrics.csv")) == NUM_SEEDS * 2
+    assert train(run, SP_EVAL, extra=["--resume", "--no-eval"]) == 0
+    _assert_same_run(run, sp_run)
+
+
+def test_a_second_ctrl_c_stops_at_once_and_the_run_resumes_from_its_last_checkpoint(
+    sp_run, tmp_path, capsys, monkeypatch
+):
+    run = tmp_path / "ctrl_c_twice"
+    exits = []
+    monkeypatch.setattr(cli_main, "exit_now", exits.append)  # os._exit would end pytest too
+    _ctrl_c_while_polling(monkeypatch, presses=2)
+    assert train(run, SP_EVAL) == 130
+    assert exits == [130]  # the chunk still runs on XLA's threads: the process ends without waiting for it
+    err = capsys.readouterr().err
+    assert "second Ctrl-C: stopping now without updates 1-2; resuming continues from update 0" in err
+    assert all(ckpt.list_updates(run, seed) == [0] for seed in range(NUM_SEEDS))
+    assert manifest(run)["update"] == 0
+    assert train(run, SP_EVAL, extra=["--resume", "--no-eval"]) == 0
+    _assert_same_run(run, sp_run)
 
 
 def test_a_full_disk_is_a_one_line_error_and_the_run_resumes(sp_run, tmp_path, capsys, monkeypatch):

@@ -46,6 +46,7 @@ from rich.table import Table
 import ocv2
 from cluster.cli.args import fps, layout_or_error, non_negative_int, positive_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
+from cluster.runtime.interrupt import ChunkAbandoned, exit_now
 from ocv2.layouts import LAYOUTS, Layout
 from ocv2.render import render_frames, rollout_states, write_gif
 
@@ -397,8 +398,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CLIError as error:
         print(f"ocv2 {args.command}: error: {error}", file=sys.stderr)
         return error.code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as interrupt:
         print(f"ocv2 {args.command}: interrupted", file=sys.stderr)
+        if isinstance(interrupt, ChunkAbandoned):  # a jitted chunk still runs; a normal exit would wait for it
+            exit_now(130)
         return 130
     except BrokenPipeError:
         return _reader_gone()

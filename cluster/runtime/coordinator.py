@@ -345,6 +345,8 @@ def _train_loop(config, run, workers, schedule, update, show_progress, label, on
             if on_chunk is not None:
                 on_chunk(update, workers, [*unreported, *rows])
                 unreported = []
+            if any(r.stop_requested for r in results):
+                raise KeyboardInterrupt  # the first Ctrl-C (cluster.runtime.interrupt), now that the chunk is on disk
     run.update_manifest(status="trained", update=update)
 
 

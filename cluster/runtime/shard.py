@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cluster.runtime.evaluate import play_rows
+from cluster.runtime.interrupt import ChunkWait
 from cluster.runtime.rundir import metric_rows
 from cluster.runtime.runstate import Schedule, hidden_size, restore, save_checkpoints
 from population import ppo
@@ -44,6 +45,7 @@ class AdvanceResult(NamedTuple):
     rows: list  # metrics.csv rows of updates in (since, update]
     trained_updates: int  # updates actually computed by this call (0 if it only reported)
     wall_s: float
+    stop_requested: bool = False  # Ctrl-C during the chunk (local backend): stop once it is recorded
 
 
 class CollectResult(NamedTuple):
@@ -138,7 +140,10 @@ class SeedShard:
             if count not in self._compiled:
                 self._compiled[count] = ppo.make_advance_population(self.trainer, count, self.pool_per_seed)
             chunk_start = time.perf_counter()
-            self.states, metrics = self._compiled[count](self.states, self._device_buffer(buffer), self.pool)
+            wait = ChunkWait(f"updates {self.update + 1}-{stop}", f"resuming continues from update {self.update}")
+            self.states, metrics = wait.until_ready(
+                self._compiled[count](self.states, self._device_buffer(buffer), self.pool)
+            )
             metrics = jax.tree.map(np.asarray, metrics)
             wall = time.perf_counter() - chunk_start
             steps_per_s = len(self.seeds) * count * self.config.ppo.steps_per_update / wall
@@ -147,6 +152,8 @@ class SeedShard:
             self.update, self._saved_rows = stop, chunk_rows
             rows += chunk_rows
             trained += count
+            if wait.stop_requested:  # Ctrl-C: this chunk is saved; the coordinator records it, then stops
+                return AdvanceResult(self.update, rows, trained, time.perf_counter() - started, stop_requested=True)
         return AdvanceResult(self.update, rows, trained, time.perf_counter() - started)
 
     def _start_iteration(self, buffer: SABuffer | None) -> None:

@@ -1,0 +1,62 @@
+"""Real Ctrl-C (SIGINT) while a jitted computation runs: answered at once, and two of them end the process.
+
+The computation here never ends (a ``while_loop`` whose condition stays true), so the test can only pass if
+the process exits without waiting for XLA: without ``ChunkWait``'s polling the first SIGINT would never be
+heard, and without ``exit_now`` the interpreter's exit would wait forever. What the command line does with
+each Ctrl-C (save the chunk, or stop and resume) is tested in tests/test_train_cli.py.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CHILD = textwrap.dedent(
+    """
+    import logging, sys
+    import jax, jax.numpy as jnp
+    from cluster.runtime.interrupt import ChunkAbandoned, ChunkWait, exit_now
+
+    logging.basicConfig(stream=sys.stderr, format="%(message)s")
+    # The matrix product makes the program costly enough that XLA:CPU runs it on its own threads (a
+    # scalar-only program would run inline in this thread, as no training chunk does).
+    step = lambda c: (jnp.tanh(c[0] @ c[0]), c[1] + 1.0)
+    forever = jax.jit(lambda m: jax.lax.while_loop(lambda c: c[1] >= 0.0, step, (m, jnp.float32(0.0))))
+    wait = ChunkWait("updates 1-2", "resuming continues from update 0")
+    result = forever(jnp.full((256, 256), 0.01))  # returns at once; the loop runs on XLA's threads
+    print("waiting", flush=True)
+    try:
+        wait.until_ready(result)
+    except ChunkAbandoned:
+        print("abandoned", flush=True)
+        exit_now(130)
+    print("the loop ended?!", flush=True)
+    """
+)
+
+
+def test_two_real_ctrl_cs_end_a_process_whose_computation_never_ends():
+    child = subprocess.Popen(
+        [sys.executable, "-c", CHILD], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    watchdog = threading.Timer(120, child.kill)  # a failure must not hang the suite on a blocked readline
+    watchdog.start()
+    try:
+        assert child.stdout.readline().strip() == "waiting"
+        child.send_signal(signal.SIGINT)
+        first = child.stderr.readline()  # the first Ctrl-C is answered while the loop still runs
+        assert first.startswith("Ctrl-C: letting updates 1-2 finish") and "press Ctrl-C again" in first
+        child.send_signal(signal.SIGINT)
+        out, err = child.communicate(timeout=60)
+    finally:
+        watchdog.cancel()
+        child.kill()
+    assert child.returncode == 130
+    assert out.strip() == "abandoned"
+    assert "second Ctrl-C: stopping now without updates 1-2; resuming continues from update 0" in err
