@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -16,6 +17,8 @@ from test_methods import COOK_SCRIPT, SCRIPT_STEPS, _table, script_apply
 
 import ocv2
 from cluster.cli import main
+from cluster.cli.errors import CLIError
+from cluster.cli.xp import _check_poolable
 from cluster.runtime import crossplay
 from cluster.runtime.rundir import read_matrix_csv
 from population import policy as pol
@@ -146,6 +149,48 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, c
     assert summary["seats"] == "0" and list(summary["orders"]) == ["rows_seat0"]
     assert summary["blocks"][0]["xp_mean"] == pytest.approx(in_run[0, 1], abs=1e-4)
     assert not (one / "matrix_cols_seat0.csv").exists() and not (one / "matrix_mean.csv").exists()
+
+
+def _xp(out, *args) -> int:
+    return main(["xp", *args, "--episodes", "8", "--backend", "local", "--out", str(out), "--quiet"])
+
+
+def test_pooled_sources_read_as_one_population(run, tmp_path, capsys):
+    """--pool over the run's two seed directories gives the run's own population numbers: the same
+    policies, the same matrix, the same seed bootstrap."""
+    whole, pooled = tmp_path / "whole", tmp_path / "pooled"
+    assert _xp(whole, "--rows", str(run)) == 0
+    seeds = [str(run / "checkpoints" / f"seed_{i}") for i in (0, 1)]
+    capsys.readouterr()
+    assert main(["xp", "--rows", *seeds, "--pool", "--episodes", "8", "--backend", "local", "--out", str(pooled)]) == 0
+    assert "pooled (2 policies of 2 sources): SP " in capsys.readouterr().out
+    (own,) = json.loads((whole / "summary.json").read_text())["blocks"]
+    summary = json.loads((pooled / "summary.json").read_text())
+    assert len(summary["blocks"]) == 4  # each source against each, as without --pool
+    block = summary["pooled"]
+    assert block["sources"] == seeds and block["row_method"] == "sp" and block["num_rows"] == 2
+    for key in ("sp_mean", "xp_mean", "gap", "sp_ci95_interval", "xp_ci95_interval", "gap_ci95_interval"):
+        assert block[key] == pytest.approx(own[key], abs=1e-4)
+    assert list(summary["pooled_orders"]) == ["rows_seat0", "cols_seat0"]
+    with open(pooled / "blocks.csv", newline="") as handle:
+        lines = [line for line in csv.DictReader(handle) if line["rows"] == "pooled"]
+    assert [line["order"] for line in lines] == ["rows_seat0", "cols_seat0", "mean"]
+    assert float(lines[-1]["gap"]) == pytest.approx(own["gap"], abs=1e-3)
+
+
+def test_pool_errors_name_the_problem(run, tmp_path, capsys):
+    assert _xp(tmp_path / "bad", "--rows", str(run), "--cols", str(run), "--pool") == 2
+    assert "--pool: pools the --rows sources against themselves" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    assert main(["xp", str(run), "--pool"]) == 2
+    assert "--pool: only with --rows" in capsys.readouterr().err
+
+
+def test_pool_refuses_runs_of_different_methods():
+    rows = [SimpleNamespace(label="runs/sp", method="sp"), SimpleNamespace(label="runs/sa", method="sa")]
+    with pytest.raises(CLIError, match=r"different methods: runs/sp \(sp\), runs/sa \(sa\)"):
+        _check_poolable(SimpleNamespace(cols=None), rows)
+    _check_poolable(SimpleNamespace(cols=None), rows[:1] * 2)  # one method: fine
 
 
 class ThreeLocalPlayers(crossplay.LocalPlayers):

@@ -2,8 +2,8 @@
 
     ocv2 xp RUN_DIR [--episodes N] [--wait]
     ocv2 xp --rows SRC [SRC ...] [--cols SRC ...] [--checkpoint final|mid|init|latest|N] [--greedy]
-            [--seats both|0] [--episodes N] [--seed S] [--out DIR] [--backend ray|local] [--address A]
-            [--workers N]
+            [--seats both|0] [--pool] [--episodes N] [--seed S] [--out DIR] [--backend ray|local]
+            [--address A] [--workers N]
     ocv2 export SRC --out FILE [--seed I] [--checkpoint final|mid|init|latest|N]
 
 A source SRC is a run directory (all its seeds), a seed directory RUN_DIR/checkpoints/seed_<i>, a
@@ -74,6 +74,13 @@ def add_xp(sub) -> argparse.ArgumentParser:
         help="episode key stream (default: the first row run's population.seed, "
         "so a run against itself reproduces its in-run matrix; else 0)",
     )
+    parser.add_argument(
+        "--pool",
+        action="store_true",
+        help="with --rows only: also report every row source's policies as one population (SP = diagonal, "
+        "XP = all other cells, bootstrap over all of them), e.g. two runs of one config with different "
+        "population.seed; the sources must be runs of one method",
+    )
     parser.add_argument("--out", help="output directory for --rows (default runs/xp_<time>)")
     parser.add_argument(
         "--backend",
@@ -105,6 +112,7 @@ def run_xp(args) -> int:
                 ("--address", args.address),
                 ("--workers", args.workers),
                 ("--seats", args.seats),
+                ("--pool", args.pool or None),
             )
             if value is not None
         ]
@@ -167,6 +175,8 @@ def _cross_run(args) -> int:
                 env_kwargs = crossplay.check_same_env([*rows, *cols])
             except crossplay.CrossPlayError as error:
                 raise CLIError(str(error)) from None
+            if args.pool:
+                _check_poolable(args, rows)
             episodes = args.episodes or 500
             seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
             jobs = sum(len(g.names) for g in rows) * len(cols)
@@ -182,6 +192,8 @@ def _cross_run(args) -> int:
     except RayBackendError as error:
         raise CLIError(str(error)) from None
     summary = crossplay.summarize_seat_fair(result)
+    if args.pool:
+        crossplay.add_pooled(summary, result)
     summary.update(
         {
             "rows": list(args.rows),
@@ -201,6 +213,19 @@ def _cross_run(args) -> int:
     return EXIT_OK
 
 
+def _check_poolable(args, rows) -> None:
+    """--pool: one population means the rows are the columns and every source is a run of one method."""
+    if args.cols:
+        raise CLIError("--pool: pools the --rows sources against themselves; leave out --cols")
+    methods = {g.label: g.method for g in rows}
+    unknown = [label for label, method in methods.items() if method is None]
+    if unknown:
+        raise CLIError(f"--pool: {', '.join(unknown)}: not a run or seed directory (no method to pool by)")
+    if len(set(methods.values())) > 1:
+        listed = ", ".join(f"{label} ({method})" for label, method in methods.items())
+        raise CLIError(f"--pool: the sources are runs of different methods: {listed}; pool runs of one method")
+
+
 def _print_blocks(summary: dict) -> None:
     both = summary["seats"] == "both"
     for index, block in enumerate(summary["blocks"]):
@@ -212,6 +237,14 @@ def _print_blocks(summary: dict) -> None:
         if block["sp_mean"] == block["sp_mean"]:
             line += f", SP {block['sp_mean']:.1f}, gap {block['gap']:.1f} +- {block['gap_std']:.1f}"
         print(line)
+    if "pooled" in summary:
+        block = summary["pooled"]
+        sp, xp, gap = (block[f"{k}_ci95_interval"] for k in ("sp", "xp", "gap"))
+        print(
+            f"pooled ({block['num_rows']} policies of {len(block['sources'])} sources): "
+            f"SP {block['sp_mean']:.1f} [{sp[0]:.1f}, {sp[1]:.1f}], XP {block['xp_mean']:.1f} "
+            f"[{xp[0]:.1f}, {xp[1]:.1f}], gap {block['gap']:.1f} [{gap[0]:.1f}, {gap[1]:.1f}]"
+        )
 
 
 def _checkpoint(text: str):

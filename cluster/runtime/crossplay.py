@@ -432,6 +432,32 @@ def _blocks(result: Matrix) -> list[dict]:
     return blocks
 
 
+POOLED = "pooled"  # the rows/cols label of pooled_block
+
+
+def pooled_block(result: Matrix) -> dict:
+    """Every source of a square cross-play as one population (``ocv2 xp --pool``): SP is the diagonal,
+    XP every other cell, seed-bootstrap intervals over all the policies; e.g. two runs of one config with
+    different ``population.seed`` read as one population of their seeds together."""
+    row_ids = [i for g in result.row_groups for i in g.ids]
+    col_ids = [i for g in result.col_groups for i in g.ids]
+    methods = sorted({g.method or "" for g in result.row_groups})
+    entry = {"row_method": "+".join(methods), "col_method": "+".join(methods)}
+    entry.update(block_summary(result.matrix, row_ids, col_ids))
+    entry["rows"], entry["cols"] = POOLED, POOLED
+    entry["num_rows"], entry["num_cols"] = len(row_ids), len(col_ids)
+    entry["sources"] = [g.label for g in result.row_groups]
+    return entry
+
+
+def add_pooled(summary: dict, result: SeatFairMatrix) -> dict:
+    """``summary`` with ``pooled``: ``pooled_block`` of the seat-averaged matrix, and ``pooled_orders``:
+    of each seat order."""
+    summary["pooled"] = pooled_block(result.mean)
+    summary["pooled_orders"] = {order: pooled_block(result.oriented(order)) for order in result.orders}
+    return summary
+
+
 def summarize_seat_fair(result: SeatFairMatrix) -> dict:
     """``summarize_matrix`` of the seat-averaged matrix (``blocks``), plus ``orders``: the blocks of
     each seat order, (row source, column source) keyed as in ``blocks`` (``cols_seat0``: the column
@@ -484,7 +510,10 @@ def write_outputs(result: Matrix, out, summary: dict, env) -> dict:
     """matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png (+ blocks.png) under ``out``: one order."""
     out = Path(out)
     _write_order(result, out, env, "")
-    write_csv(out / "blocks.csv", ["order", *_BLOCK_FIELDS], [_block_row("rows_seat0", b) for b in summary["blocks"]])
+    lines = [_block_row("rows_seat0", b) for b in summary["blocks"]]
+    if "pooled" in summary:
+        lines.append(_block_row("rows_seat0", summary["pooled"]))
+    write_csv(out / "blocks.csv", ["order", *_BLOCK_FIELDS], lines)
     write_json(out / "summary.json", summary)
     _write_blocks_png(result, out, summary["blocks"], "mean cross-play return by source (rows in seat 0)")
     return {"matrix": str(out / "matrix.csv"), "summary": str(out / "summary.json")}
@@ -516,7 +545,11 @@ def write_seat_fair_outputs(result: SeatFairMatrix, out, summary: dict, env) -> 
         title=f"cross-play, mean of both seat orders, {mean.returns.shape[-1]} episodes/pair/order",
     )
     lines = [_block_row(order, b) for order in result.orders for b in summary["orders"][order]]
-    write_csv(out / "blocks.csv", ["order", *_BLOCK_FIELDS], lines + [_block_row("mean", b) for b in summary["blocks"]])
+    lines += [_block_row("mean", b) for b in summary["blocks"]]
+    if "pooled" in summary:
+        lines += [_block_row(order, summary["pooled_orders"][order]) for order in result.orders]
+        lines.append(_block_row("mean", summary["pooled"]))
+    write_csv(out / "blocks.csv", ["order", *_BLOCK_FIELDS], lines)
     write_json(out / "summary.json", summary)
     _write_blocks_png(mean, out, summary["blocks"], "mean cross-play return by source (both seat orders)")
     paths = {
