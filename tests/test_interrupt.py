@@ -21,7 +21,16 @@ CHILD = textwrap.dedent(
     """
     import logging, sys
     import jax, jax.numpy as jnp
+    from cluster.runtime import interrupt
     from cluster.runtime.interrupt import ChunkAbandoned, ChunkWait, exit_now
+
+    ready = interrupt._ready
+    def announce_then_check(tree):  # "waiting" from inside the poll: a Ctrl-C cannot come before it
+        if not announced:
+            announced.append(print("waiting", flush=True))
+        return ready(tree)
+    announced = []
+    interrupt._ready = announce_then_check
 
     logging.basicConfig(stream=sys.stderr, format="%(message)s")
     # The matrix product makes the program costly enough that XLA:CPU runs it on its own threads (a
@@ -30,7 +39,6 @@ CHILD = textwrap.dedent(
     forever = jax.jit(lambda m: jax.lax.while_loop(lambda c: c[1] >= 0.0, step, (m, jnp.float32(0.0))))
     wait = ChunkWait("updates 1-2", "resuming continues from update 0")
     result = forever(jnp.full((256, 256), 0.01))  # returns at once; the loop runs on XLA's threads
-    print("waiting", flush=True)
     try:
         wait.until_ready(result)
     except ChunkAbandoned:

@@ -14,6 +14,7 @@ import importlib
 import json
 import os
 import shutil
+import signal
 from pathlib import Path
 
 import jax
@@ -364,15 +365,14 @@ def _assert_same_run(run, reference):
 
 
 def _ctrl_c_while_polling(monkeypatch, presses: int) -> None:
-    """Ctrl-C ``presses`` times while the first training chunk is awaited (as the default SIGINT handler
-    raises it: ``KeyboardInterrupt`` in the main thread, here inside ``ChunkWait``'s poll)."""
+    """A real SIGINT at each of the first ``presses`` polls of the first training chunk."""
     ready = interrupt._ready
     left = [presses]
 
     def pressed(tree):
         if left[0]:
             left[0] -= 1
-            raise KeyboardInterrupt
+            signal.raise_signal(signal.SIGINT)
         return ready(tree)
 
     monkeypatch.setattr(interrupt, "_ready", pressed)

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 
 import jax
@@ -47,27 +49,43 @@ class ChunkWait:
         self.stop_requested = False  # a first Ctrl-C arrived: save this chunk, then stop
 
     def until_ready(self, tree):
-        """Return ``tree`` once every array in it is computed, answering Ctrl-C meanwhile (see module doc)."""
+        """Return ``tree`` once every array in it is computed, answering Ctrl-C meanwhile (see module doc).
+
+        Ctrl-C is taken over only where Python's own handler (``KeyboardInterrupt``) is in place: a job
+        started in the background ignores SIGINT, and a host process (a Ray worker) may have its own.
+        """
+        own = threading.current_thread() is threading.main_thread()  # only there can a handler be set
+        if not own or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+            while not _ready(tree):
+                time.sleep(POLL_S)
+            return tree
         started = time.monotonic()
-        while True:
-            try:
-                while not _ready(tree):
-                    time.sleep(POLL_S)
-                return tree
-            except ChunkAbandoned:
-                raise
-            except KeyboardInterrupt:
-                if self.stop_requested:
-                    log.warning("second Ctrl-C: stopping now without %s; %s", self.what, self.resume_hint)
-                    raise ChunkAbandoned from None
-                self.stop_requested = True
-                log.warning(
-                    "Ctrl-C: letting %s finish (running for %s) so it is saved, then stopping; "
-                    "press Ctrl-C again to stop now and lose it (%s)",
-                    self.what,
-                    _duration(time.monotonic() - started),
-                    self.resume_hint,
-                )
+        # A handler, not ``except KeyboardInterrupt``: a second press that lands while the first one's
+        # message is written must still stop at once, not escape as a plain KeyboardInterrupt whose
+        # exit then waits for the chunk.
+        previous = signal.signal(signal.SIGINT, self._pressed)
+        try:
+            warned = False
+            while not _ready(tree):
+                if self.stop_requested and not warned:
+                    warned = True
+                    log.warning(
+                        "Ctrl-C: letting %s finish (running for %s) so it is saved, then stopping; "
+                        "press Ctrl-C again to stop now and lose it (%s)",
+                        self.what,
+                        _duration(time.monotonic() - started),
+                        self.resume_hint,
+                    )
+                time.sleep(POLL_S)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+        return tree
+
+    def _pressed(self, signum, frame) -> None:
+        if self.stop_requested:
+            log.warning("second Ctrl-C: stopping now without %s; %s", self.what, self.resume_hint)
+            raise ChunkAbandoned
+        self.stop_requested = True
 
 
 def _duration(seconds: float) -> str:
