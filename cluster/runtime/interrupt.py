@@ -2,7 +2,8 @@
 
 Python runs a signal handler only between bytecodes of the main thread, so a main thread blocked in
 XLA (``np.asarray`` of a chunk's results) hears Ctrl-C only when the chunk ends: up to tens of minutes.
-``ChunkWait`` instead polls ``jax.Array.is_ready`` with short sleeps, which Ctrl-C does interrupt:
+``ChunkWait`` instead polls ``jax.Array.is_ready`` with short sleeps, between which its own SIGINT
+handler runs at once:
 
 - the first Ctrl-C says what is running and lets that chunk finish: ``stop_requested`` tells the caller
   to save it and stop (the coordinator records the chunk, then raises ``KeyboardInterrupt``);
