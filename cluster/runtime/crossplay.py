@@ -424,12 +424,18 @@ def _blocks(result: Matrix) -> list[dict]:
     for r, rg in enumerate(result.row_groups):
         for c, cg in enumerate(result.col_groups):
             cells = matrix[row_offsets[r] : row_offsets[r + 1], col_offsets[c] : col_offsets[c + 1]]
-            entry = {"rows": rg.label, "cols": cg.label, "row_method": rg.method, "col_method": cg.method}
-            entry.update(block_summary(cells, list(rg.ids), list(cg.ids)))
-            entry["rows"], entry["cols"] = rg.label, cg.label
-            entry["num_rows"], entry["num_cols"] = len(rg.ids), len(cg.ids)
-            blocks.append(entry)
+            blocks.append(_block_entry(cells, list(rg.ids), list(cg.ids), (rg.label, cg.label), (rg.method, cg.method)))
     return blocks
+
+
+def _block_entry(cells, row_ids: list, col_ids: list, labels: tuple, methods: tuple) -> dict:
+    """``block_summary`` of one block under its (rows, cols) source labels and methods; its policy counts
+    are ``num_rows``/``num_cols``."""
+    entry = {"rows": labels[0], "cols": labels[1], "row_method": methods[0], "col_method": methods[1]}
+    entry.update(block_summary(cells, row_ids, col_ids))
+    entry["rows"], entry["cols"] = labels  # block_summary's "rows"/"cols" are counts
+    entry["num_rows"], entry["num_cols"] = len(row_ids), len(col_ids)
+    return entry
 
 
 POOLED = "pooled"  # the rows/cols label of pooled_block
@@ -441,11 +447,8 @@ def pooled_block(result: Matrix) -> dict:
     different ``population.seed`` read as one population of their seeds together."""
     row_ids = [i for g in result.row_groups for i in g.ids]
     col_ids = [i for g in result.col_groups for i in g.ids]
-    methods = sorted({g.method or "" for g in result.row_groups})
-    entry = {"row_method": "+".join(methods), "col_method": "+".join(methods)}
-    entry.update(block_summary(result.matrix, row_ids, col_ids))
-    entry["rows"], entry["cols"] = POOLED, POOLED
-    entry["num_rows"], entry["num_cols"] = len(row_ids), len(col_ids)
+    method = "+".join(sorted({g.method or "" for g in result.row_groups}))
+    entry = _block_entry(result.matrix, row_ids, col_ids, (POOLED, POOLED), (method, method))
     entry["sources"] = [g.label for g in result.row_groups]
     return entry
 

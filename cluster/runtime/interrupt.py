@@ -24,6 +24,8 @@ import time
 
 import jax
 
+from cluster.runtime.progress import duration
+
 log = logging.getLogger(__name__)
 
 POLL_S = 0.05  # Ctrl-C is answered within this; the chunks it waits for take seconds to minutes
@@ -55,16 +57,15 @@ class ChunkWait:
         Ctrl-C is taken over only where Python's own handler (``KeyboardInterrupt``) is in place: a job
         started in the background ignores SIGINT, and a host process (a Ray worker) may have its own.
         """
-        own = threading.current_thread() is threading.main_thread()  # only there can a handler be set
-        if not own or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-            while not _ready(tree):
-                time.sleep(POLL_S)
-            return tree
         started = time.monotonic()
+        take_over = (  # only the main thread can set a handler
+            threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        )
         # A handler, not ``except KeyboardInterrupt``: a second press that lands while the first one's
         # message is written must still stop at once, not escape as a plain KeyboardInterrupt whose
         # exit then waits for the chunk.
-        previous = signal.signal(signal.SIGINT, self._pressed)
+        previous = signal.signal(signal.SIGINT, self._pressed) if take_over else None
         try:
             warned = False
             while not _ready(tree):
@@ -74,12 +75,13 @@ class ChunkWait:
                         "Ctrl-C: letting %s finish (running for %s) so it is saved, then stopping; "
                         "press Ctrl-C again to stop now and lose it (%s)",
                         self.what,
-                        _duration(time.monotonic() - started),
+                        duration(time.monotonic() - started),
                         self.resume_hint,
                     )
                 time.sleep(POLL_S)
         finally:
-            signal.signal(signal.SIGINT, previous)
+            if take_over:
+                signal.signal(signal.SIGINT, previous)
         return tree
 
     def _pressed(self, signum, frame) -> None:
@@ -87,11 +89,6 @@ class ChunkWait:
             log.warning("second Ctrl-C: stopping now without %s; %s", self.what, self.resume_hint)
             raise ChunkAbandoned
         self.stop_requested = True
-
-
-def _duration(seconds: float) -> str:
-    minutes, seconds = divmod(int(seconds), 60)
-    return f"{minutes}m{seconds:02d}s" if minutes else f"{seconds}s"
 
 
 def exit_now(code: int) -> None:  # pragma: no cover - ends the process; tested in a subprocess
