@@ -19,7 +19,7 @@ import yaml
 
 from cluster.cli import main
 from cluster.runtime.rundir import RunDir
-from cluster.study.runner import run_study, study_status
+from cluster.study.runner import StateFile, kept_study, open_state, run_study, study_status
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config
 from population import checkpoints as ckpt
 from population.config import load_config
@@ -196,6 +196,40 @@ def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
     study = write_study(tmp_path / "tiny.yaml", STUDY)
     with pytest.raises(StudyError, match="--budget 1.0"):
         run_study(load_study(study), finished, budget=0.5, backend="local", say=lambda _: None)
+    with pytest.raises(StudyError, match="was started with no --set"):
+        run_study(load_study(study), finished, overrides=["eval.episodes=3"], backend="local", say=lambda _: None)
+
+
+def test_set_overrides_every_run_after_the_study_file_and_the_directory_keeps_it(tmp_path, capsys):
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    out = tmp_path / "out"
+    StateFile(out, open_state(study, out, None, None, "local", ["eval.episodes=3"])).save()
+    kept = kept_study(json.loads((out / "study.json").read_text()), out)
+    for run in kept.runs:  # the study file sets eval.episodes=2 for every run; --set comes after it
+        assert run_config(kept, run, out, 1.0, None).eval.episodes == 3
+    assert open_state(study, out, None, None, "local", [])["set"] == ["eval.episodes=3"]  # left out: kept
+    with pytest.raises(StudyError, match="was started with --set eval.episodes=3; pass the same"):
+        open_state(study, out, None, None, "local", ["eval.episodes=4"])
+    assert main(["study", "report", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    assert "- every run also with `eval.episodes=3` (`--set`)" in report
+    assert "population.method=sp eval.episodes=3`" in report  # in the run's own list, last
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--set", "ppo.lrr=1"], "run 'sp': --set ppo.lrr=1: ppo.lrr: unknown key; did you mean ppo.lr?"),
+        # SA's 2 iterations need 2 updates; 1e-4 of the smoke config's steps is one
+        (["--budget", "0.0001"], "run 'sa' at --budget 0.0001: "),
+    ],
+)
+def test_a_bad_set_or_budget_is_a_one_line_error_before_anything_is_written(tmp_path, capsys, options, message):
+    path = write_study(tmp_path / "tiny.yaml", STUDY)
+    assert main(["study", "run", str(path), "--backend", "local", "--out", str(tmp_path / "out"), *options]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err, err
+    assert not (tmp_path / "out").exists()  # so the same command with a good value starts afresh
 
 
 def test_budget_scales_steps_and_schedules_of_every_stage():

@@ -1,6 +1,6 @@
 """``ocv2 study``: many population runs and their comparisons as one resumable command.
 
-    ocv2 study run STUDY.yaml [--budget F] [--seeds N] [--backend ray|local] [--address A] [--out DIR]
+    ocv2 study run STUDY.yaml [--budget F] [--seeds N] [--set K=V ...] [--backend ray|local] [--address A] [--out DIR]
     ocv2 study status DIR
     ocv2 study report DIR [--out FOLDER]
 
@@ -25,8 +25,8 @@ from cluster.runtime.progress import duration
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.report import write_report
-from cluster.study.runner import read_state, run_study, study_status
-from cluster.study.spec import StudyError, load_study, parse_study, run_config
+from cluster.study.runner import kept_study, read_state, run_study, study_status
+from cluster.study.spec import StudyError, load_study, run_config, with_overrides
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
 
@@ -53,6 +53,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "default 1 = the configs as written",
     )
     run.add_argument("--seeds", type=positive_int, default=None, help="seeds per run (default: each config's own)")
+    run.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a config value in every run, after the study file's own (repeatable; kept by the "
+        "study directory), e.g. --set eval.episodes=8 for a quick pilot of the whole study",
+    )
     run.add_argument(
         "--backend",
         choices=["ray", "local"],
@@ -89,6 +98,7 @@ def _run(args) -> int:
     try:
         require_backend(args.backend)
         study = load_study(args.study)
+        with_overrides(study, args.overrides)  # a bad --set fails here, before anything runs
     except (StudyError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     out = Path(args.out or os.path.join("studies", study.name))
@@ -105,6 +115,7 @@ def _run(args) -> int:
                 address=args.address,
                 show_progress=not args.quiet,
                 say=say,
+                overrides=args.overrides,
             )
     except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
@@ -153,7 +164,7 @@ def _report(directory: str, dest: str | None) -> int:
         state = read_state(out)
         if not state:
             raise StudyError(f"{out}: not a study directory (no study.json)")
-        study = parse_study(state["spec"], Path(state["source"]))
+        study = kept_study(state, out)
         configs = {r.name: run_config(study, r, out, state["budget"], state["seeds"]) for r in study.runs}
         paths = write_report(study, out, state, configs, None if dest is None else Path(dest))
     except (StudyError, RunDirError) as error:

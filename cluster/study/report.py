@@ -44,6 +44,7 @@ def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path
         "source": str(study.path),
         "budget": state["budget"],
         "seeds": state["seeds"],
+        "set": state.get("set", []),
         "backend": state.get("backend"),
         "written": _now(),
         "runs": runs,
@@ -333,6 +334,7 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
         + (" (the paper's experiment)" if budget == 1 else " (**reduced: not the paper's experiment**)"),
         f"- seeds per run: {summary['seeds'] or 'as each config'}; backend: {summary['backend']}; "
         f"wall time so far: {duration(summary['wall_s'])}",
+        *([f"- every run also with `{' '.join(summary['set'])}` (`--set`)"] if summary["set"] else []),
         f"- intervals: {summary['ci_method']}; 'in CI': the paper's mean lies inside our interval",
         f"- written {summary['written']}",
         "",

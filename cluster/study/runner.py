@@ -2,7 +2,8 @@
 
 The study directory::
 
-    STUDY_DIR/study.json                 the study file's data, budget, seeds, backend; per step: status, wall time
+    STUDY_DIR/study.json                 the study file's data, budget, seeds, --set overrides, backend; per step:
+                                         status, wall time
               .lock                      held (flock) by the one ``ocv2 study run`` driving it
               runs/<name>/               one ordinary run directory per run (``ocv2 train``'s layout)
               over_training/<run>/update_<n>.json   in-run cross-play of one kept snapshot
@@ -23,7 +24,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,16 @@ from cluster.api import train_population
 from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir, RunDirError, write_json
 from cluster.study.report import write_report
-from cluster.study.spec import Comparison, Study, StudyError, comparison_dir, parse_study, run_config, run_dir
+from cluster.study.spec import (
+    Comparison,
+    Study,
+    StudyError,
+    comparison_dir,
+    parse_study,
+    run_config,
+    run_dir,
+    with_overrides,
+)
 from population import checkpoints as ckpt
 from population.xp import block_summary
 
@@ -71,17 +81,28 @@ def read_state(out: Path) -> dict:
     return data
 
 
-def open_state(study: Study, out: Path, budget: float | None, seeds: int | None, backend: str) -> dict:
-    """The study directory's state, created or checked: a directory keeps the budget and seed count it was
-    started with (options left out on a later run take those values)."""
+def open_state(
+    study: Study, out: Path, budget: float | None, seeds: int | None, backend: str, overrides: Sequence[str] = ()
+) -> dict:
+    """The study directory's state, created or checked: a directory keeps the budget, seed count and
+    ``--set`` overrides it was started with (options left out on a later run take those values)."""
     state = read_state(out)
+    overrides = list(overrides) or None
     if state:
         if state.get("study") != study.name:
             raise StudyError(f"{out}: holds study {state.get('study')!r}, not {study.name!r}; choose another --out")
-        for flag, given, kept in (("--budget", budget, state.get("budget")), ("--seeds", seeds, state.get("seeds"))):
+        kept_options = (
+            ("--budget", budget, state.get("budget")),
+            ("--seeds", seeds, state.get("seeds")),
+            ("--set", overrides, state.get("set", [])),
+        )
+        for flag, given, kept in kept_options:
             if given is not None and given != kept:
+                shown = f"{flag} {kept}"
+                if flag == "--set":
+                    shown = " ".join(f"--set {o}" for o in kept) or "no --set"
                 raise StudyError(
-                    f"{out}: was started with {flag} {kept}; pass the same value (or none) to continue "
+                    f"{out}: was started with {shown}; pass the same value (or none) to continue "
                     "it, or choose another --out"
                 )
     else:
@@ -93,12 +114,20 @@ def open_state(study: Study, out: Path, budget: float | None, seeds: int | None,
             "study": study.name,
             "budget": 1.0 if budget is None else budget,
             "seeds": seeds,
+            "set": overrides or [],
             "steps": {},
             "created": time.time(),
         }
     state.update(source=str(study.path), spec=study.raw, backend=backend)
     state.setdefault("steps", {})
+    state.setdefault("set", [])  # a study directory from before --set
     return state
+
+
+def kept_study(state: dict, out: Path) -> Study:
+    """The study a study directory runs: the file's data it keeps, with the ``--set`` overrides it was started with."""
+    study = parse_study(state["spec"], Path(state.get("source", out / "study.yaml")))
+    return with_overrides(study, state.get("set", []))
 
 
 class StateFile:
@@ -149,11 +178,17 @@ def run_study(
     address: str | None = None,
     show_progress: bool = True,
     say: Callable[[str], None] = log.info,
+    overrides: Sequence[str] = (),
 ) -> dict:
-    """Train every unfinished run, run the cross-play steps, write the report. Returns the state
-    (``steps``: name -> status "done" or "blocked" with a reason)."""
+    """Train every unfinished run, run the cross-play steps, write the report. ``overrides``: config
+    overrides for every run after the study file's own (``--set``). Returns the state (``steps``: name ->
+    status "done" or "blocked" with a reason)."""
     out = Path(out).resolve()
-    state = StateFile(out, open_state(study, out, budget, seeds, backend))
+    state = StateFile(out, open_state(study, out, budget, seeds, backend, overrides))
+    study = with_overrides(study, state.state["set"])
+    options = StudyOptions(state.state["budget"], state.state["seeds"], backend, address, show_progress)
+    # Every config at this budget and seed count first: one they refuse fails before the directory is written.
+    configs = {run.name: run_config(study, run, out, options.budget, options.seeds) for run in study.runs}
     out.mkdir(parents=True, exist_ok=True)
     lock = RunDir(out)
     try:
@@ -162,8 +197,6 @@ def run_study(
         raise StudyError(str(error).replace("before resuming", "before running the study again")) from None
     try:
         state.save()
-        options = StudyOptions(state.state["budget"], state.state["seeds"], backend, address, show_progress)
-        configs = {run.name: run_config(study, run, out, options.budget, options.seeds) for run in study.runs}
         steps = _steps(study)
         for number, (name, action) in enumerate(steps, start=1):
             if state.step(name).get("status") == "done" and _still_done(name, out):
@@ -389,7 +422,7 @@ def study_status(out) -> list[dict]:
     state = read_state(out)
     if not state:
         raise StudyError(f"{out}: not a study directory (no {STATE_NAME})")
-    study = parse_study(state["spec"], Path(state.get("source", out / "study.yaml")))
+    study = kept_study(state, out)
     rates = _rates(study, out, state)
     configs = {}
     for run in study.runs:  # what a run not started yet will train (the budget and seeds the study keeps)

@@ -33,7 +33,7 @@ import dataclasses
 import difflib
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +74,7 @@ class PaperNumbers:
 class RunSpec:
     name: str
     config: Path  # absolute
-    overrides: tuple[str, ...] = ()  # the study's then the run's
+    overrides: tuple[str, ...] = ()  # the study file's, the run's, then ``ocv2 study run --set``
     partners_from: str | None = None
     paper: PaperNumbers | None = None
 
@@ -269,6 +269,19 @@ def comparison_dir(out: Path, name: str) -> Path:
     return Path(out) / "comparisons" / name
 
 
+def with_overrides(study: Study, overrides: Sequence[str]) -> Study:
+    """``study`` with ``overrides`` (``ocv2 study run --set``) applied to every run after the study file's
+    own, e.g. ``eval.episodes=8`` for a quick pilot of the whole pipeline. Checked here, so a bad key fails
+    before anything trains."""
+    if not overrides:
+        return study
+    runs = tuple(dataclasses.replace(r, overrides=(*r.overrides, *overrides)) for r in study.runs)
+    study = dataclasses.replace(study, runs=runs)
+    for run in runs:
+        run_config(study, run, Path("/nonexistent-study-dir"), budget=1.0, seeds=None)
+    return study
+
+
 def run_config(study: Study, run: RunSpec, out: Path, budget: float, seeds: int | None) -> Config:
     """The config ``run`` trains with in study directory ``out`` at ``budget`` (a fraction of
     ``total_timesteps``) and ``seeds`` (None: the config's own)."""
@@ -288,7 +301,7 @@ def run_config(study: Study, run: RunSpec, out: Path, budget: float, seeds: int 
     if run.partners_from is not None and base.population.method != "fcp":
         raise StudyError(f"{where}.partners_from: only FCP runs take partners (this run is {base.population.method})")
     overrides += budget_overrides(base, budget)
-    return _load(where, run.config, overrides)
+    return _load(where if budget == 1.0 else f"{where} at --budget {budget:g}", run.config, overrides)
 
 
 def budget_overrides(config: Config, budget: float) -> list[str]:
