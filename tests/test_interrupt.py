@@ -19,7 +19,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = textwrap.dedent(
     """
-    import logging, sys
+    import logging, signal, sys
+    # As in a terminal. A child of a background job (nohup, `&` in a script, some CI runners) starts with
+    # SIGINT ignored, and then ChunkWait rightly leaves Ctrl-C alone.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     import jax, jax.numpy as jnp
     from cluster.runtime import interrupt
     from cluster.runtime.interrupt import ChunkAbandoned, ChunkWait, exit_now
@@ -68,3 +71,27 @@ def test_two_real_ctrl_cs_end_a_process_whose_computation_never_ends():
     assert child.returncode == 130
     assert out.strip() == "abandoned"
     assert "second Ctrl-C: stopping now without updates 1-2; resuming continues from update 0" in err
+
+
+def test_ctrl_c_is_taken_over_only_where_python_s_own_handler_is_in_place(monkeypatch):
+    """A background job (nohup, `&` in a script) ignores SIGINT: the wait must leave it ignored. In a terminal
+    it answers Ctrl-C itself while it waits and gives Python's handler back afterwards."""
+    import jax.numpy as jnp
+
+    from cluster.runtime import interrupt
+    from cluster.runtime.interrupt import ChunkWait
+
+    seen = []
+    monkeypatch.setattr(interrupt, "_ready", lambda tree: seen.append(signal.getsignal(signal.SIGINT)) or True)
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        wait = ChunkWait("updates 1-2", "resuming continues from update 0")
+        wait.until_ready(jnp.zeros(2))
+        assert seen == [signal.SIG_IGN] and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        seen.clear()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        wait.until_ready(jnp.zeros(2))
+        assert seen == [wait._pressed] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert not wait.stop_requested
+    finally:
+        signal.signal(signal.SIGINT, previous)

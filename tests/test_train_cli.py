@@ -364,8 +364,18 @@ def _assert_same_run(run, reference):
     _assert_same_metrics(read_csv(run / "metrics.csv"), read_csv(reference / "metrics.csv"))
 
 
+@pytest.fixture
+def terminal_sigint():
+    """SIGINT as in a terminal. Tests run by a background job (nohup, `&` in a script, some CI runners)
+    inherit SIGINT ignored, and then ChunkWait rightly leaves Ctrl-C alone."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def _ctrl_c_while_polling(monkeypatch, presses: int) -> None:
     """A real SIGINT at each of the first ``presses`` polls of the first training chunk."""
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the terminal_sigint fixture
     ready = interrupt._ready
     left = [presses]
 
@@ -378,7 +388,9 @@ def _ctrl_c_while_polling(monkeypatch, presses: int) -> None:
     monkeypatch.setattr(interrupt, "_ready", pressed)
 
 
-def test_ctrl_c_lets_the_running_chunk_finish_and_save_then_stops(sp_run, tmp_path, capsys, monkeypatch):
+def test_ctrl_c_lets_the_running_chunk_finish_and_save_then_stops(
+    sp_run, tmp_path, capsys, monkeypatch, terminal_sigint
+):
     run = tmp_path / "ctrl_c"
     _ctrl_c_while_polling(monkeypatch, presses=1)
     assert train(run, SP_EVAL) == 130
@@ -392,7 +404,7 @@ def test_ctrl_c_lets_the_running_chunk_finish_and_save_then_stops(sp_run, tmp_pa
 
 
 def test_a_second_ctrl_c_stops_at_once_and_the_run_resumes_from_its_last_checkpoint(
-    sp_run, tmp_path, capsys, monkeypatch
+    sp_run, tmp_path, capsys, monkeypatch, terminal_sigint
 ):
     run = tmp_path / "ctrl_c_twice"
     exits = []
