@@ -26,7 +26,7 @@ from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.report import write_report
 from cluster.study.runner import kept_study, read_state, run_study, study_status
-from cluster.study.spec import StudyError, load_study, run_config, with_overrides
+from cluster.study.spec import StudyError, check_runs, load_study, run_config, with_overrides
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
 
@@ -98,7 +98,8 @@ def _run(args) -> int:
     try:
         require_backend(args.backend)
         study = load_study(args.study)
-        with_overrides(study, args.overrides)  # a bad --set fails here, before anything runs
+        if args.overrides:  # a bad --set fails here, before Ray starts (run_study applies it)
+            check_runs(with_overrides(study, args.overrides))
     except (StudyError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     out = Path(args.out or os.path.join("studies", study.name))

@@ -112,8 +112,13 @@ def load_study(path) -> Study:
         raw = read_yaml(str(path))
     except ConfigError as error:
         raise StudyError(str(error)) from None
-    study = parse_study(raw, path)
-    for run in study.runs:  # each config must load with its overrides (at budget 1, one seed count as written)
+    return check_runs(parse_study(raw, path))
+
+
+def check_runs(study: Study) -> Study:
+    """``study``, once each run's config has loaded with its overrides (at budget 1, the seed count as
+    written); the first that does not is a ``StudyError`` naming the run."""
+    for run in study.runs:
         run_config(study, run, Path("/nonexistent-study-dir"), budget=1.0, seeds=None)
     return study
 
@@ -271,15 +276,11 @@ def comparison_dir(out: Path, name: str) -> Path:
 
 def with_overrides(study: Study, overrides: Sequence[str]) -> Study:
     """``study`` with ``overrides`` (``ocv2 study run --set``) applied to every run after the study file's
-    own, e.g. ``eval.episodes=8`` for a quick pilot of the whole pipeline. Checked here, so a bad key fails
-    before anything trains."""
+    own, e.g. ``eval.episodes=8`` for a quick pilot of the whole pipeline (not checked: ``check_runs``)."""
     if not overrides:
         return study
     runs = tuple(dataclasses.replace(r, overrides=(*r.overrides, *overrides)) for r in study.runs)
-    study = dataclasses.replace(study, runs=runs)
-    for run in runs:
-        run_config(study, run, Path("/nonexistent-study-dir"), budget=1.0, seeds=None)
-    return study
+    return dataclasses.replace(study, runs=runs)
 
 
 def run_config(study: Study, run: RunSpec, out: Path, budget: float, seeds: int | None) -> Config:
