@@ -153,6 +153,24 @@ def test_a_finished_study_is_never_trained_again(finished, tmp_path, capsys):
     assert set(statuses.values()) == {"done"} and len(statuses) == 4
 
 
+def test_cross_play_steps_show_progress_and_a_deleted_result_is_redone_the_same(finished, tmp_path, caplog):
+    out = tmp_path / "redo"
+    shutil.copytree(finished, out)
+    snapshots = sorted((out / "over_training" / "sp").glob("update_*.json"))
+    snapshots[-1].unlink()
+    (out / "over_training" / "sp" / "done.json").unlink()
+    (out / "comparisons" / "sp_vs_sa" / "summary.json").unlink()
+    with caplog.at_level("INFO", logger="cluster"):
+        run_study(load_study(write_study(tmp_path / "tiny.yaml", STUDY)), out, backend="local", say=lambda _: None)
+    lines = [record.getMessage() for record in caplog.records]
+    last = int(snapshots[-1].stem.split("_")[1])
+    said = f"over_training sp: snapshot {len(snapshots)}/{len(snapshots)} (update {last}): SP "
+    assert [line for line in lines if said in line], lines
+    assert [line for line in lines if "sp_vs_sa: 8/8 jobs" in line], lines  # 4 seat-0 policies x 2 column groups
+    assert not [line for line in lines if "over_training sp: snapshot 1/" in line]  # kept results are not replayed
+    assert numbers(out) == numbers(finished)
+
+
 def test_a_study_killed_mid_run_resumes_to_the_same_numbers(finished, tmp_path):
     study = write_study(tmp_path / "tiny.yaml", STUDY)
     out = tmp_path / "killed"

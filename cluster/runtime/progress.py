@@ -115,7 +115,9 @@ class Bar:
                 self._task = self._bar.add_task(self.label, total=total)
             self._bar.update(self._task, completed=self.done)
         elif self.enabled and done:
-            log.info(f"  {self.label}: {self.done}/{total} {self.unit} ({time.perf_counter() - self.started:.0f} s)")
+            elapsed = time.perf_counter() - self.started
+            eta = f", ETA {duration(elapsed / self.done * (total - self.done))}" if self.done < total else ""
+            log.info(f"  {self.label}: {self.done}/{total} {self.unit} ({elapsed:.0f} s{eta})")
 
 
 def header(label: str, num_seeds: int, num_updates: int, steps_per_update: int) -> str:

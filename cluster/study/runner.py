@@ -31,6 +31,7 @@ import numpy as np
 
 from cluster.api import train_population
 from cluster.runtime import crossplay
+from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import RunDir, RunDirError, write_json
 from cluster.study.report import write_report
 from cluster.study.spec import (
@@ -297,6 +298,11 @@ def _over_training_step(name: str):
                     )
                     ids = list(group.ids)
                     summary = block_summary(result.matrix, ids, ids)
+                    if options.show_progress:  # minutes per snapshot: say where it is and what it found
+                        log.info(
+                            f"  over_training {name}: snapshot {snapshots.index(update) + 1}/{len(snapshots)} (update {update}): "
+                            f"SP {summary['sp_mean']:.1f}, XP {summary['xp_mean']:.1f}, gap {summary['gap']:.1f}"
+                        )
                     summary.update(
                         update=update,
                         env_steps_per_seed=update * created.ppo.steps_per_update,
@@ -326,7 +332,7 @@ def _compare_step(comparison: Comparison):
             crossplay.check_same_env(groups)
         except crossplay.CrossPlayError as error:
             raise StudyError(f"comparison {comparison.name!r}: {error}") from None
-        result = compare(groups, options, first.population.seed, first.eval.episodes, timer)
+        result = compare(groups, options, first.population.seed, first.eval.episodes, timer, comparison.name)
         folder = comparison_dir(out, comparison.name)
         crossplay.write_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
         return {}
@@ -346,10 +352,10 @@ def _source(text: str, checkpoint: str = "final") -> crossplay.PolicyGroup:
         raise StudyError(str(error)) from None
 
 
-def _play(options: StudyOptions, rows, cols, seed: int, episodes: int) -> crossplay.Matrix:
+def _play(options: StudyOptions, rows, cols, seed: int, episodes: int, label: str) -> crossplay.Matrix:
     jobs = sum(len(g.names) for g in rows) * len(cols)
-    with crossplay.players(options.backend, jobs, options.address) as workers:
-        return crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes)
+    with crossplay.players(options.backend, jobs, options.address) as workers, Bar(label, options.show_progress) as bar:
+        return crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes, progress=bar)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -364,12 +370,12 @@ class ComparisonResult:
 
 
 def compare(
-    groups, options: StudyOptions, seed: int, episodes: int, timer: StepTimer | None = None
+    groups, options: StudyOptions, seed: int, episodes: int, timer: StepTimer | None = None, label: str = "compare"
 ) -> ComparisonResult:
     """Every group against every other group in both seats; a group against itself is its own in-run
     cross-play (same episode keys). Returns the full matrix and, per pair of groups, each seat order's
     XP, their mean and seed-bootstrap 95 % intervals."""
-    result = _play(options, groups, groups, seed, episodes)
+    result = _play(options, groups, groups, seed, episodes, label)
     if timer is not None:
         timer.tick()
     summary = crossplay.summarize_matrix(result)
