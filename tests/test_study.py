@@ -99,6 +99,7 @@ def test_the_report_puts_the_paper_numbers_beside_ours(finished):
     report = (finished / "report.md").read_text()
     assert "Table 9, a made-up row" in report
     assert "123 ± 4" in report and "| 56" in report and "67 ± 8" in report
+    assert "; wall time: " in report and "Not finished" not in report  # not "so far": every step is done
     summary = json.loads((finished / "summary.json").read_text())
     sp = summary["runs"][0]
     assert sp["paper"]["sp"] == {"mean": 123.0, "std": 4.0} and sp["paper"]["xp"] == {"mean": 56.0, "std": None}
@@ -203,6 +204,9 @@ def test_a_study_killed_mid_run_resumes_to_the_same_numbers(finished, tmp_path):
     statuses = {e["step"]: e["status"] for e in study_status(out)}
     assert statuses["train sp"] == "done" and statuses["train sa"] in ("interrupted", "left")
     sp_files = {p: p.stat().st_mtime_ns for p in (out / "runs" / "sp").rglob("*") if p.is_file()}
+    assert main(["study", "report", str(out), "--out", str(tmp_path / "partial")]) == 0
+    partial = (tmp_path / "partial" / "report.md").read_text()
+    assert "; wall time so far: " in partial and "## Not finished" in partial and "- train sa: " in partial
 
     assert main(["study", "run", str(study), "--backend", "local", "--out", str(out), "--quiet"]) == 0
     assert {p: p.stat().st_mtime_ns for p in (out / "runs" / "sp").rglob("*") if p.is_file()} == sp_files

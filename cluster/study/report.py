@@ -325,6 +325,11 @@ def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
 
 
 def markdown(study: Study, summary: dict, state: dict) -> str:
+    left = [
+        f"- {name}: {step.get('status')}" + (f" ({step['reason']})" if step.get("reason") else "")
+        for name, step in state.get("steps", {}).items()
+        if step.get("status") != "done"
+    ]
     lines = [f"# Study `{study.name}`", ""]
     if study.description:
         lines += [study.description, ""]
@@ -333,7 +338,7 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
         f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps"
         + (" (the paper's experiment)" if budget == 1 else " (**reduced: not the paper's experiment**)"),
         f"- seeds per run: {summary['seeds'] or 'as each config'}; backend: {summary['backend']}; "
-        f"wall time so far: {duration(summary['wall_s'])}",
+        f"wall time{' so far' if left else ''}: {duration(summary['wall_s'])}",
         *([f"- every run also with `{' '.join(summary['set'])}` (`--set`)"] if summary["set"] else []),
         f"- intervals: {summary['ci_method']}; 'in CI': the paper's mean lies inside our interval",
         f"- written {summary['written']}",
@@ -409,11 +414,6 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
             )
     if summary["pictures"]:
         lines += ["", "## Pictures", ""] + [f"![{name}]({name})" for name in summary["pictures"]]
-    left = [
-        f"- {name}: {step.get('status')}" + (f" ({step['reason']})" if step.get("reason") else "")
-        for name, step in state.get("steps", {}).items()
-        if step.get("status") != "done"
-    ]
     if left:
         lines += ["", "## Not finished", ""] + left
     return "\n".join(lines) + "\n"
