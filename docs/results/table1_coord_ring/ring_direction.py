@@ -1,4 +1,4 @@
-"""Which way round Coordination Ring each SP seed's agents walk.
+"""Which way round Coordination Ring each seed's agents walk (SP, SA or any run of the layout).
 
     python docs/results/table1_coord_ring/ring_direction.py archive STUDY_DIR/runs/sp/archive/xp [--episodes 100]
     python docs/results/table1_coord_ring/ring_direction.py snapshots STUDY_DIR/runs/sp [--updates 0,30,61,122,305]
