@@ -332,7 +332,7 @@ def _compare_step(comparison: Comparison):
             crossplay.check_same_env(groups)
         except crossplay.CrossPlayError as error:
             raise StudyError(f"comparison {comparison.name!r}: {error}") from None
-        result = compare(groups, options, first.population.seed, first.eval.episodes, timer, comparison.name)
+        result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer)
         folder = comparison_dir(out, comparison.name)
         crossplay.write_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
         return {}
@@ -370,10 +370,10 @@ class ComparisonResult:
 
 
 def compare(
-    groups, options: StudyOptions, seed: int, episodes: int, timer: StepTimer | None = None, label: str = "compare"
+    groups, options: StudyOptions, seed: int, episodes: int, label: str, timer: StepTimer | None = None
 ) -> ComparisonResult:
     """Every group against every other group in both seats; a group against itself is its own in-run
-    cross-play (same episode keys). Returns the full matrix and, per pair of groups, each seat order's
+    cross-play (same episode keys); ``label`` names its progress lines. Returns the full matrix and, per pair of groups, each seat order's
     XP, their mean and seed-bootstrap 95 % intervals."""
     result = _play(options, groups, groups, seed, episodes, label)
     if timer is not None:
