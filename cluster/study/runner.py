@@ -373,8 +373,8 @@ def compare(
     groups, options: StudyOptions, seed: int, episodes: int, label: str, timer: StepTimer | None = None
 ) -> ComparisonResult:
     """Every group against every other group in both seats; a group against itself is its own in-run
-    cross-play (same episode keys); ``label`` names its progress lines. Returns the full matrix and, per pair of groups, each seat order's
-    XP, their mean and seed-bootstrap 95 % intervals."""
+    cross-play (same episode keys); ``label`` names its progress lines. Returns the full matrix and, per
+    pair of groups, each seat order's XP, their mean and seed-bootstrap 95 % intervals."""
     result = _play(options, groups, groups, seed, episodes, label)
     if timer is not None:
         timer.tick()
