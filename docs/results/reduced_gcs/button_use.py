@@ -9,9 +9,10 @@ ingredients 0 and 1 and the delivery window. So only seat 0 can press the button
 button for BUTTON_ACTIVE_TIME steps, for BUTTON_COST) and only seat 1 can cook. That splits a team's return
 into its parts: 20 per correct delivery, -20 per wrong one, -BUTTON_COST per press.
 
-A press is counted when the button's timer rises above where the previous step's countdown would have left it,
-so a press on the step right after another press (the timer already full) is missed: the counts are lower
-bounds, and the wrong deliveries are derived from the return with them.
+A press is counted when the button's timer rises above where the previous step's countdown would have left it:
+a press leaves the timer at BUTTON_ACTIVE_TIME - 1 after the step's tick, one above a countdown from there, so
+a press on the step right after another one counts too. The wrong deliveries are derived from the return with
+these counts; a return that does not split into whole deliveries stops the script.
 """
 
 import argparse
@@ -62,19 +63,20 @@ def signal_counters(env) -> np.ndarray:
     return out
 
 
-def pair_record(seat0, seat1, episodes: int, key) -> dict:
-    env = policy_env(seat0.env)
+def pair_record(seat0, seat1, env, counters: np.ndarray, episodes: int, key) -> dict:
+    """``counters``: ``signal_counters(env)``, computed once by the caller."""
     play = compiled_play(env, episodes)
     played = play((seat0.params, seat1.params), (seat0.apply, seat1.apply), (seat0.hidden_size, seat1.hidden_size), key)
     grid = np.asarray(played.states.grid)  # [R, T, H, W, 3]
-    ys, xs = np.nonzero(signal_counters(env))
+    ys, xs = np.nonzero(counters)
     shown = (grid[:, :, ys, xs, 1] != 0).mean(axis=1)  # [R, counters]: share of steps with an item there
     button = grid[..., 0] == Static.BUTTON
     timer = np.where(button, grid[..., 2], 0).max(axis=(-1, -2))  # [R, T]
     presses = (timer[:, 1:] > np.maximum(timer[:, :-1] - 1, 0)).sum(axis=1)
     correct = np.asarray(played.states.new_correct_delivery).sum(axis=1)
     returns = np.asarray(played.returns).reshape(-1)
-    wrong = (20 * correct - items.BUTTON_COST * presses - returns) / 20
+    delivery = items.DELIVERY_REWARD
+    wrong = (delivery * correct - items.BUTTON_COST * presses - returns) / delivery
     if not np.allclose(wrong, np.round(wrong)):  # a reward this split does not know of, or a missed press
         raise SystemExit(f"returns {returns[wrong != np.round(wrong)][:5]} do not split into deliveries and presses")
     recipe = np.asarray(played.start_recipe).reshape(-1)
@@ -97,17 +99,18 @@ def main() -> None:
     policies = [(f"{Path(run).name}/{seed}", load(run, seed=seed)) for run in args.runs for seed in range(args.seeds)]
     env = policy_env(policies[0][1].env)
     names = recipe_names(env)
-    counters = [f"item on ({x}, {y})" for y, x in zip(*np.nonzero(signal_counters(env)))]
+    counters = signal_counters(env)
+    labels = [f"item on ({x}, {y})" for y, x in zip(*np.nonzero(counters))]
     print(
         "| seat 0 | seat 1 | recipe | episodes | button presses | "
-        + " | ".join(counters)
+        + " | ".join(labels)
         + " | correct deliveries | wrong deliveries | return |"
     )
-    print("|---|---|---|---:|---:|" + "---:|" * len(counters) + "---:|---:|---:|")
+    print("|---|---|---|---:|---:|" + "---:|" * len(labels) + "---:|---:|---:|")
     key = jax.random.PRNGKey(11)
     for name0, seat0 in policies:
         for name1, seat1 in policies:
-            rec = pair_record(seat0, seat1, args.episodes, key)
+            rec = pair_record(seat0, seat1, env, counters, args.episodes, key)
             for code in sorted(set(rec["recipe"].tolist())):
                 mask = rec["recipe"] == code
                 cells = [rec["presses"][mask].mean(), *rec["shown"][mask].mean(axis=0)]
