@@ -10,6 +10,8 @@ import tempfile
 
 import pytest
 
+from population.xla_flags import extend_xla_flags
+
 RAY_CPUS = 4  # logical CPUs, pinned so scheduling does not depend on the CI machine (actors use 0.5 each)
 
 # Compilation dominates the training, cross-play and Ray tests, and many of them build the same
@@ -25,16 +27,22 @@ _CACHE_OPTIONS = {
 }
 
 
-# LLVM optimisation off: compiling is most of the suite's time and the programs it runs are tiny
-# (9.5 instead of 13.5 minutes for the whole suite on 2 cores). XLA keeps its HLO passes (fusion) and fast-math
-# stays off, so values agree with optimised code up to float rounding (a smoke RNN run's metrics: to 1e-6
-# absolute), and no test compares with numbers stored from another build. An explicit level in
-# XLA_FLAGS wins: XLA_FLAGS=--xla_backend_optimization_level=2 tests the optimised code.
-_FAST_COMPILE_FLAG = "--xla_backend_optimization_level=0"
-# XLA's classic CPU fusion emitters instead of its newer MLIR ones: a conformance rollout compiles in 7 s of
-# CPU instead of 11 s, and the whole suite took 14 instead of 17 minutes on 2 cores. Values again agree to
-# float rounding (the same smoke run: to 1e-5 relative). An explicit setting in XLA_FLAGS wins here too.
-_CLASSIC_EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"
+# XLA flags for the tests. Each is set only where the running jaxlib knows it (population/xla_flags.py probes
+# that in a subprocess): XLA ends the whole process at an unknown flag in XLA_FLAGS, before any test can
+# report, and flags come and go between jaxlib releases. An explicit setting in XLA_FLAGS wins over each.
+_TEST_XLA_FLAGS = [
+    # LLVM optimisation off: compiling is most of the suite's time and the programs it runs are tiny (9.5
+    # instead of 13.5 minutes for the whole suite on 2 cores). XLA keeps its HLO passes (fusion) and fast-math
+    # stays off, so values agree with optimised code up to float rounding (a smoke RNN run's metrics: to 1e-6
+    # absolute), and no test compares with numbers stored from another build.
+    # XLA_FLAGS=--xla_backend_optimization_level=2 tests the optimised code.
+    "--xla_backend_optimization_level=0",
+    # XLA's classic CPU fusion emitters instead of its newer MLIR ones: a conformance rollout compiles in 7 s
+    # of CPU instead of 11 s, and the whole suite took 14 instead of 17 minutes on 2 cores (jaxlib 0.10.2).
+    # Values again agree to float rounding (the same smoke run: to 1e-5 relative). jaxlib 0.11.2 no longer
+    # knows the flag (the MLIR emitters are the only ones), so there it is left out.
+    "--xla_cpu_use_fusion_emitters=false",
+]
 
 
 # Ray starts idle Python workers ahead of time (as many as the node's CPUs) for tasks; ocv2 runs only
@@ -48,14 +56,8 @@ def pytest_configure(config):
         return  # an xdist worker: it inherits the controller's environment
     for name, value in _RAY_NO_PRESTART.items():
         os.environ.setdefault(name, value)
-    flags = os.environ.get("XLA_FLAGS", "")
-    for name, flag in (
-        ("xla_backend_optimization_level", _FAST_COMPILE_FLAG),
-        ("xla_cpu_use_fusion_emitters", _CLASSIC_EMITTERS_FLAG),
-    ):
-        if name not in flags:
-            flags = f"{flags} {flag}".strip()
-    os.environ["XLA_FLAGS"] = flags
+    # Before JAX starts a backend here; xdist workers, Ray actors and subprocesses inherit the result.
+    os.environ["XLA_FLAGS"] = extend_xla_flags(os.environ.get("XLA_FLAGS", ""), _TEST_XLA_FLAGS)
     if "JAX_COMPILATION_CACHE_DIR" in os.environ:
         return  # the caller chose a cache
     config._ocv2_jax_cache = tempfile.mkdtemp(prefix="ocv2-tests-jax-cache-")
