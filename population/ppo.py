@@ -153,9 +153,10 @@ def eval_env(config: Config) -> ocv2.OvercookedV2:
 
 
 def lr_schedule(config: Config) -> optax.Schedule:
-    """Linear warm-up from 0 to lr over ``lr_warmup`` of all optimizer steps, then cosine to 0."""
+    """Linear warm-up from 0 to lr over ``lr_warmup`` of all optimizer steps, then cosine to 0 (over the
+    schedule's steps: a truncated run follows the first part of the longer run's schedule)."""
     ppo = config.ppo
-    total = ppo.num_updates * ppo.update_epochs * ppo.num_minibatches
+    total = ppo.schedule_updates * ppo.update_epochs * ppo.num_minibatches
     if not ppo.anneal_lr:
         return optax.constant_schedule(ppo.lr)
     warmup = int(ppo.lr_warmup * total)

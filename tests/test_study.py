@@ -19,10 +19,12 @@ import yaml
 
 from cluster.cli import main
 from cluster.runtime.rundir import RunDir
+from cluster.runtime.runstate import Schedule
 from cluster.study.runner import StateFile, kept_study, open_state, run_study, study_status
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config
 from population import checkpoints as ckpt
-from population.config import load_config
+from population import ppo
+from population.config import ConfigError, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -101,6 +103,7 @@ def test_the_report_puts_the_paper_numbers_beside_ours(finished):
     assert "123 ± 4" in report and "| 56" in report and "67 ± 8" in report
     assert "; wall time: " in report and "Not finished" not in report  # not "so far": every step is done
     summary = json.loads((finished / "summary.json").read_text())
+    assert summary["budget_mode"] == "truncate" and "budget: **1 x** the configs' env steps (the paper's" in report
     sp = summary["runs"][0]
     assert sp["paper"]["sp"] == {"mean": 123.0, "std": 4.0} and sp["paper"]["xp"] == {"mean": 56.0, "std": None}
     assert sp["xp"]["sp_ci95_interval"] and sp["xp"]["num_policies"] == 2
@@ -220,6 +223,17 @@ def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
         run_study(load_study(study), finished, budget=0.5, backend="local", say=lambda _: None)
     with pytest.raises(StudyError, match="was started with no --set"):
         run_study(load_study(study), finished, overrides=["eval.episodes=3"], backend="local", say=lambda _: None)
+    with pytest.raises(StudyError, match="was started with --budget-mode truncate"):
+        run_study(load_study(study), finished, mode="compress", backend="local", say=lambda _: None)
+    # a directory from before --budget-mode compressed its budget, and keeps doing so
+    old = tmp_path / "old"
+    shutil.copytree(finished, old)
+    state = json.loads((old / "study.json").read_text())
+    del state["budget_mode"]
+    (old / "study.json").write_text(json.dumps(state))
+    with pytest.raises(StudyError, match="was started with --budget-mode compress"):
+        open_state(load_study(study), old, None, None, "local", mode="truncate")
+    assert open_state(load_study(study), old, None, None, "local")["budget"] == 1.0
 
 
 def test_set_overrides_every_run_after_the_study_file_and_the_directory_keeps_it(tmp_path, capsys):
@@ -242,8 +256,8 @@ def test_set_overrides_every_run_after_the_study_file_and_the_directory_keeps_it
     "options, message",
     [
         (["--set", "ppo.lrr=1"], "run 'sp': --set ppo.lrr=1: ppo.lrr: unknown key; did you mean ppo.lr?"),
-        # SA's 2 iterations need 2 updates; 1e-4 of the smoke config's steps is one
-        (["--budget", "0.0001"], "run 'sa' at --budget 0.0001: "),
+        # compressed, SA's 2 iterations need 2 updates; 1e-4 of the smoke config's steps is one
+        (["--budget", "0.0001", "--budget-mode", "compress"], "run 'sa' at --budget 0.0001: "),
     ],
 )
 def test_a_bad_set_or_budget_is_a_one_line_error_before_anything_is_written(tmp_path, capsys, options, message):
@@ -254,16 +268,41 @@ def test_a_bad_set_or_budget_is_a_one_line_error_before_anything_is_written(tmp_
     assert not (tmp_path / "out").exists()  # so the same command with a good value starts afresh
 
 
-def test_budget_scales_steps_and_schedules_of_every_stage():
+def test_compressed_budget_scales_steps_and_schedules_of_every_stage():
     config = load_config(ROOT / "configs" / "paper" / "v2_grounded_coord_simple_fcp.yaml")
     scaled = load_config(
-        ROOT / "configs" / "paper" / "v2_grounded_coord_simple_fcp.yaml", budget_overrides(config, 0.1)
+        ROOT / "configs" / "paper" / "v2_grounded_coord_simple_fcp.yaml", budget_overrides(config, 0.1, "compress")
     )
     assert scaled.ppo.total_timesteps == 3_000_000 and scaled.ppo.rew_shaping_horizon == 1_500_000
+    assert not scaled.ppo.truncated
     partner = scaled.population.fcp.partner_ppo
     assert partner.total_timesteps == 3_000_000 and partner.rew_shaping_horizon == 1_500_000
     assert partner.lr == config.population.fcp.partner_ppo.lr  # only the budget changes
-    assert budget_overrides(config, 1.0) == []
+    assert budget_overrides(config, 1.0, "compress") == budget_overrides(config, 1.0) == []
+
+
+def test_truncated_budget_is_the_first_part_of_the_paper_schedule():
+    """Truncation trains the first 0.1 of the paper's run: the same LR at every optimiser step it reaches,
+    the same shaping weight at every env step, SA's iteration starts of the full run that it reaches."""
+    path = ROOT / "configs" / "paper" / "v2_grounded_coord_simple_sa.yaml"
+    full = load_config(path)
+    cut = load_config(path, budget_overrides(full, 0.1))
+    assert cut.ppo.total_timesteps == 3_000_000 and cut.ppo.schedule_timesteps == 30_000_000
+    assert cut.ppo.rew_shaping_horizon == full.ppo.rew_shaping_horizon and cut.ppo.truncated
+    assert cut.ppo.num_updates == full.ppo.num_updates // 10 and cut.ppo.schedule_updates == full.ppo.num_updates
+    steps = np.arange(cut.ppo.num_updates * cut.ppo.update_epochs * cut.ppo.num_minibatches)
+    np.testing.assert_array_equal(ppo.lr_schedule(cut)(steps), ppo.lr_schedule(full)(steps))
+    env_steps = np.arange(0, cut.ppo.total_timesteps, 12_345)
+    np.testing.assert_array_equal(ppo.shaping_coef(cut, env_steps), ppo.shaping_coef(full, env_steps))
+    full_starts, cut_starts = Schedule.of(full).iteration_starts, Schedule.of(cut).iteration_starts
+    assert cut_starts == tuple(s for s in full_starts if s < cut.ppo.num_updates) and len(cut_starts) == 1
+    # compressing the same budget decays the LR to 0 by its last step; truncated, it is still near its peak
+    squeezed = load_config(path, budget_overrides(full, 0.1, "compress"))
+    assert ppo.lr_schedule(squeezed)(steps[-1]) < 1e-9 and ppo.lr_schedule(cut)(steps[-1]) > 0.9 * full.ppo.lr
+    with pytest.raises(StudyError, match="--budget-mode: expected one of truncate, compress"):
+        budget_overrides(full, 0.1, "squeeze")
+    with pytest.raises(ConfigError, match="ppo.schedule_timesteps: 1000 is less than total_timesteps"):
+        load_config(path, ["ppo.schedule_timesteps=1000"])
 
 
 def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):

@@ -1,6 +1,6 @@
 """``ocv2 study``: many population runs and their comparisons as one resumable command.
 
-    ocv2 study run STUDY.yaml [--budget F] [--seeds N] [--set K=V ...] [--backend ray|local] [--address A] [--out DIR]
+    ocv2 study run STUDY.yaml [--budget F [--budget-mode truncate|compress]] [--seeds N] [--set K=V ...] [--backend ray|local] [--address A] [--out DIR]
     ocv2 study status DIR
     ocv2 study report DIR [--out FOLDER]
 
@@ -26,7 +26,7 @@ from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.report import write_report
 from cluster.study.runner import kept_study, read_state, run_study, study_status
-from cluster.study.spec import StudyError, check_runs, load_study, run_config, with_overrides
+from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, check_runs, load_study, run_config, with_overrides
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
 
@@ -49,8 +49,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "--budget",
         type=BUDGET,
         default=None,
-        help="fraction of every run's env steps (total_timesteps and the schedules that follow it); "
-        "default 1 = the configs as written",
+        help="fraction of every run's env steps; default 1 = the configs as written",
+    )
+    run.add_argument(
+        "--budget-mode",
+        choices=BUDGET_MODES,
+        default=None,
+        help="truncate (default for a new study): each config's schedule as written (LR warm-up and decay, "
+        "reward shaping, SA iterations), stopped after the budget's share of its steps; compress: the whole "
+        "schedule squeezed into the shorter run (how studies ran before truncation; kept by such directories)",
     )
     run.add_argument("--seeds", type=positive_int, default=None, help="seeds per run (default: each config's own)")
     run.add_argument(
@@ -111,6 +118,7 @@ def _run(args) -> int:
                 study,
                 out,
                 budget=args.budget,
+                mode=args.budget_mode,
                 seeds=args.seeds,
                 backend=args.backend,
                 address=args.address,
@@ -166,7 +174,9 @@ def _report(directory: str, dest: str | None) -> int:
         if not state:
             raise StudyError(f"{out}: not a study directory (no study.json)")
         study = kept_study(state, out)
-        configs = {r.name: run_config(study, r, out, state["budget"], state["seeds"]) for r in study.runs}
+        configs = {
+            r.name: run_config(study, r, out, state["budget"], state["seeds"], budget_mode(state)) for r in study.runs
+        }
         paths = write_report(study, out, state, configs, None if dest is None else Path(dest))
     except (StudyError, RunDirError) as error:
         raise CLIError(str(error)) from None

@@ -44,8 +44,10 @@ class Schedule:
         updates = config.ppo.num_updates
         starts = ()
         if config.population.method == "sa":
-            iterations = config.population.sa.iterations
-            starts = tuple(sorted({round(i * updates / iterations) for i in range(iterations)}))
+            # Laid over the schedule: a truncated run keeps the longer run's iteration starts it reaches.
+            iterations, horizon = config.population.sa.iterations, config.ppo.schedule_updates
+            starts = {round(i * horizon / iterations) for i in range(iterations)}
+            starts = tuple(sorted(s for s in starts if s < updates))
         protected = ()
         if run_dir is not None:
             created = _created_config(run_dir)

@@ -21,7 +21,7 @@ import numpy as np
 
 from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, read_matrix_csv, write_json
-from cluster.study.spec import PaperValue, Study, comparison_dir, run_dir
+from cluster.study.spec import PaperValue, Study, budget_mode, comparison_dir, run_dir
 from ocv2.atomic import atomic_write
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
 
@@ -43,6 +43,7 @@ def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path
         "study": study.name,
         "source": str(study.path),
         "budget": state["budget"],
+        "budget_mode": budget_mode(state),
         "seeds": state["seeds"],
         "set": state.get("set", []),
         "backend": state.get("backend"),
@@ -333,10 +334,14 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
     lines = [f"# Study `{study.name}`", ""]
     if study.description:
         lines += [study.description, ""]
-    budget = summary["budget"]
+    budget, mode = summary["budget"], summary.get("budget_mode", "compress")
+    how = {
+        "truncate": "each config's schedule as written, stopped after that share of its steps (truncated)",
+        "compress": "each config's whole schedule squeezed into that share of its steps (compressed)",
+    }[mode]
     lines += [
         f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps"
-        + (" (the paper's experiment)" if budget == 1 else " (**reduced: not the paper's experiment**)"),
+        + (" (the paper's experiment)" if budget == 1 else f" (**reduced: not the paper's experiment**; {how})"),
         f"- seeds per run: {summary['seeds'] or 'as each config'}; backend: {summary['backend']}; "
         f"wall time{' so far' if left else ''}: {duration(summary['wall_s'])}",
         *([f"- every run also with `{' '.join(summary['set'])}` (`--set`)"] if summary["set"] else []),

@@ -38,6 +38,7 @@ from cluster.study.spec import (
     Comparison,
     Study,
     StudyError,
+    budget_mode,
     comparison_dir,
     parse_study,
     run_config,
@@ -62,6 +63,7 @@ class StudyOptions:
     backend: str = "ray"
     address: str | None = None
     show_progress: bool = True
+    budget_mode: str = "truncate"  # how the budget applies (cluster.study.spec.budget_overrides)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -83,10 +85,16 @@ def read_state(out: Path) -> dict:
 
 
 def open_state(
-    study: Study, out: Path, budget: float | None, seeds: int | None, backend: str, overrides: Sequence[str] = ()
+    study: Study,
+    out: Path,
+    budget: float | None,
+    seeds: int | None,
+    backend: str,
+    overrides: Sequence[str] = (),
+    mode: str | None = None,
 ) -> dict:
-    """The study directory's state, created or checked: a directory keeps the budget, seed count and
-    ``--set`` overrides it was started with (options left out on a later run take those values)."""
+    """The study directory's state, created or checked: a directory keeps the budget, its mode, the seed
+    count and ``--set`` overrides it was started with (options left out on a later run take those values)."""
     state = read_state(out)
     overrides = list(overrides) or None
     if state:
@@ -94,6 +102,7 @@ def open_state(
             raise StudyError(f"{out}: holds study {state.get('study')!r}, not {study.name!r}; choose another --out")
         kept_options = (
             ("--budget", budget, state.get("budget")),
+            ("--budget-mode", mode, budget_mode(state)),
             ("--seeds", seeds, state.get("seeds")),
             ("--set", overrides, state.get("set", [])),
         )
@@ -114,6 +123,7 @@ def open_state(
         state = {
             "study": study.name,
             "budget": 1.0 if budget is None else budget,
+            "budget_mode": "truncate" if mode is None else mode,
             "seeds": seeds,
             "set": overrides or [],
             "steps": {},
@@ -180,16 +190,21 @@ def run_study(
     show_progress: bool = True,
     say: Callable[[str], None] = log.info,
     overrides: Sequence[str] = (),
+    mode: str | None = None,
 ) -> dict:
     """Train every unfinished run, run the cross-play steps, write the report. ``overrides``: config
     overrides for every run after the study file's own (``--set``). Returns the state (``steps``: name ->
     status "done" or "blocked" with a reason)."""
     out = Path(out).resolve()
-    state = StateFile(out, open_state(study, out, budget, seeds, backend, overrides))
+    state = StateFile(out, open_state(study, out, budget, seeds, backend, overrides, mode))
     study = with_overrides(study, state.state["set"])
-    options = StudyOptions(state.state["budget"], state.state["seeds"], backend, address, show_progress)
+    options = StudyOptions(
+        state.state["budget"], state.state["seeds"], backend, address, show_progress, budget_mode(state.state)
+    )
     # Every config at this budget and seed count first: one they refuse fails before the directory is written.
-    configs = {run.name: run_config(study, run, out, options.budget, options.seeds) for run in study.runs}
+    configs = {
+        run.name: run_config(study, run, out, options.budget, options.seeds, options.budget_mode) for run in study.runs
+    }
     out.mkdir(parents=True, exist_ok=True)
     lock = RunDir(out)
     try:
@@ -433,7 +448,9 @@ def study_status(out) -> list[dict]:
     configs = {}
     for run in study.runs:  # what a run not started yet will train (the budget and seeds the study keeps)
         try:
-            configs[run.name] = run_config(study, run, out, state.get("budget", 1.0), state.get("seeds"))
+            configs[run.name] = run_config(
+                study, run, out, state.get("budget", 1.0), state.get("seeds"), budget_mode(state)
+            )
         except StudyError:
             pass
     entries = []

@@ -23,7 +23,8 @@ A study file is YAML::
 
 ``load_study`` reads and checks it; every error is one line naming the file and the entry at fault.
 ``resolve_runs`` turns the runs into ``population.config.Config`` objects at a budget fraction and seed
-count; the budget scales ``total_timesteps`` and ``rew_shaping_horizon`` (the LR schedule follows the
+count; the budget stops every run after that fraction of its schedule (truncate, the default) or scales
+``total_timesteps`` and ``rew_shaping_horizon`` (compress; the LR schedule follows the
 number of updates by itself), of the FCP partner stage too.
 """
 
@@ -283,16 +284,28 @@ def with_overrides(study: Study, overrides: Sequence[str]) -> Study:
     return dataclasses.replace(study, runs=runs)
 
 
-def run_config(study: Study, run: RunSpec, out: Path, budget: float, seeds: int | None) -> Config:
+BUDGET_MODES = ("truncate", "compress")
+
+
+def budget_mode(state: dict) -> str:
+    """How a study directory (its study.json ``state``) applies its budget: directories from before
+    ``--budget-mode`` existed compressed."""
+    return state.get("budget_mode", "compress")
+
+
+def run_config(
+    study: Study, run: RunSpec, out: Path, budget: float, seeds: int | None, budget_mode: str = "truncate"
+) -> Config:
     """The config ``run`` trains with in study directory ``out`` at ``budget`` (a fraction of
-    ``total_timesteps``) and ``seeds`` (None: the config's own)."""
+    ``total_timesteps``, applied as ``budget_mode``: see ``budget_overrides``) and ``seeds`` (None: the
+    config's own)."""
     where = f"{study.path}: run {run.name!r}"
     overrides = list(run.overrides)
     if seeds is not None:
         overrides.append(f"population.num_seeds={seeds}")
     if run.partners_from is not None:
         partner = study.run(run.partners_from)
-        partner_seeds = run_config(study, partner, out, budget, seeds).population.num_seeds
+        partner_seeds = run_config(study, partner, out, budget, seeds, budget_mode).population.num_seeds
         overrides += [
             "population.fcp.pool=shared",
             f"population.fcp.partners={run_dir(out, partner.name)}",
@@ -301,17 +314,27 @@ def run_config(study: Study, run: RunSpec, out: Path, budget: float, seeds: int 
     base = _load(where, run.config, overrides)
     if run.partners_from is not None and base.population.method != "fcp":
         raise StudyError(f"{where}.partners_from: only FCP runs take partners (this run is {base.population.method})")
-    overrides += budget_overrides(base, budget)
+    overrides += budget_overrides(base, budget, budget_mode)
     return _load(where if budget == 1.0 else f"{where} at --budget {budget:g}", run.config, overrides)
 
 
-def budget_overrides(config: Config, budget: float) -> list[str]:
-    """Overrides that scale a run to ``budget`` x its env steps (at least one update)."""
+def budget_overrides(config: Config, budget: float, mode: str = "truncate") -> list[str]:
+    """Overrides that make a run train ``budget`` x its env steps (at least one update).
+
+    ``truncate``: the config's schedule (LR warm-up and decay, reward-shaping horizon, SA iterations) as
+    written, stopped after ``budget`` of its steps: the first part of the full run, whose snapshots are
+    that run's intermediate checkpoints. ``compress``: the whole schedule squeezed into the shorter run
+    (warm-up, decay and shaping end ``budget`` times sooner) -- how studies ran before truncation existed.
+    """
+    if mode not in BUDGET_MODES:
+        raise StudyError(f"--budget-mode: expected one of {', '.join(BUDGET_MODES)}, got {mode!r}")
     if budget == 1.0:
         return []
 
     def scaled(prefix: str, ppo) -> list[str]:
         steps = max(ppo.steps_per_update, round(ppo.total_timesteps * budget))
+        if mode == "truncate":
+            return [f"{prefix}.total_timesteps={steps}", f"{prefix}.schedule_timesteps={ppo.total_timesteps}"]
         return [
             f"{prefix}.total_timesteps={steps}",
             f"{prefix}.rew_shaping_horizon={round(ppo.rew_shaping_horizon * budget)}",

@@ -69,7 +69,12 @@ class PPOConfig:
     num_steps: int = 256
     num_minibatches: int = 64
     update_epochs: int = 4
-    total_timesteps: int = 30_000_000
+    total_timesteps: int = 30_000_000  # env steps this run trains
+    # Env steps the learning-rate schedule (warm-up, cosine decay) and SA's iterations are laid over; None: the
+    # same as total_timesteps. Larger than total_timesteps trains the first part of a longer run, unchanged
+    # ("truncation": `ocv2 study run --budget F` keeps the paper's schedule and stops after F of its steps).
+    # The reward-shaping horizon is counted in env steps already, so it needs no counterpart.
+    schedule_timesteps: int | None = None
     rew_shaping_horizon: int = 15_000_000
     activation: str = "relu"
     # Reproduce the paper code's recurrent bug (post-step done used as the replay's reset flag).
@@ -83,7 +88,18 @@ class PPOConfig:
     @property
     def num_updates(self) -> int:
         return self.total_timesteps // self.steps_per_update
+        """Updates this run trains."""
 
+
+    @property
+    def schedule_updates(self) -> int:
+        """Updates of the schedule the run follows (``num_updates`` unless truncated)."""
+        steps = self.total_timesteps if self.schedule_timesteps is None else self.schedule_timesteps
+        return steps // self.steps_per_update
+
+    @property
+    def truncated(self) -> bool:
+        return self.schedule_updates > self.num_updates
 
 @dataclasses.dataclass(frozen=True)
 class SAConfig:
@@ -240,7 +256,7 @@ class Config:
         for *path, key in _LATER_KEYS:
             section = data
             for name in path:
-                section = section.get(name, {})
+                section = section.get(name) or {}  # a section set to None (e.g. no partner_ppo) has no keys
             if key in section and section[key] == _LATER_KEYS[(*path, key)]:
                 del section[key]
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
@@ -260,3 +276,7 @@ def _plain(value):
     if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
     return value
+    ("ppo", "schedule_timesteps"): None,
+    ("population", "fcp", "partner_ppo", "schedule_timesteps"): None,
+    ("run", "precision"): "float32",
+    ("run", "deterministic"): True,

@@ -55,6 +55,11 @@ def _validate_ppo(prefix: str, ppo: PPOConfig) -> list[str]:
             f"{prefix}.total_timesteps: {ppo.total_timesteps} is less than one update "
             f"(num_envs x num_steps = {ppo.steps_per_update})"
         )
+    if ppo.schedule_timesteps is not None and ppo.schedule_timesteps < ppo.total_timesteps:
+        problems.append(
+            f"{prefix}.schedule_timesteps: {ppo.schedule_timesteps} is less than total_timesteps "
+            f"({ppo.total_timesteps}); a schedule can be stopped early (truncated), not overrun"
+        )
     # Training counts env steps and optimiser steps in int32 arrays: past 2**31 they would wrap negative.
     high = INT32[1]
     if ppo.steps_per_update > high:
@@ -62,10 +67,10 @@ def _validate_ppo(prefix: str, ppo: PPOConfig) -> list[str]:
             f"{prefix}.num_envs: num_envs x num_steps = {ppo.steps_per_update:,} env steps per update "
             f"exceed the int32 step counter ({high:,})"
         )
-    optimiser_steps = ppo.num_updates * ppo.update_epochs * ppo.num_minibatches
+    optimiser_steps = ppo.schedule_updates * ppo.update_epochs * ppo.num_minibatches
     if optimiser_steps > high:
         problems.append(
-            f"{prefix}.total_timesteps: {ppo.num_updates:,} updates x {ppo.update_epochs} epochs x "
+            f"{prefix}.total_timesteps: {ppo.schedule_updates:,} updates x {ppo.update_epochs} epochs x "
             f"{ppo.num_minibatches} minibatches = {optimiser_steps:,} optimiser steps exceed the int32 "
             f"step counter ({high:,})"
         )
@@ -140,10 +145,10 @@ def validate(config: Config) -> list[str]:
     for key in ("iterations", "rollouts_per_pair", "keep_every"):
         problems += _positive(f"population.sa.{key}", getattr(pop.sa, key))
     if pop.method == "sa":
-        if sizes_ok and pop.sa.iterations > ppo.num_updates:
+        if sizes_ok and pop.sa.iterations > ppo.schedule_updates:
             problems.append(
                 f"population.sa.iterations: {pop.sa.iterations} iterations need at least as many "
-                f"updates, the config has {ppo.num_updates}"
+                f"updates, the config's schedule has {ppo.schedule_updates}"
             )
         if pop.sa.keep_every > env.max_steps:
             problems.append(f"population.sa.keep_every: {pop.sa.keep_every} exceeds env.max_steps={env.max_steps}")
