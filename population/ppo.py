@@ -10,7 +10,8 @@ One PPO serves every method; the methods are switches, not copies:
   member, redrawn at every episode end, with environments grouped by partner (``population.fcp``).
 
 Shapes: T = ppo.num_steps, E = ppo.num_envs, N = agents, B = learner sequences. ``advance(trainer,
-state, n)`` runs n updates in one ``lax.scan``; a population is ``jax.vmap`` of it over seeds.
+state, n)`` runs n updates in one ``lax.scan``; ``advance_upto`` runs a traced number of them (one program
+for every chunk length of a run); a population is ``jax.vmap`` of either over seeds.
 """
 
 from __future__ import annotations
@@ -535,6 +536,36 @@ def advance(trainer: Trainer, state: TrainState, num_updates: int, buffer: State
     return jax.lax.scan(step, state, None, length=num_updates)
 
 
+def advance_upto(
+    trainer: Trainer,
+    state: TrainState,
+    count: jax.Array,
+    max_updates: int,
+    buffer: State | None = None,
+    pool_params=None,
+):
+    """Run ``count`` PPO updates, ``count`` traced (0 <= count <= ``max_updates``, static).
+
+    The same updates as ``advance(trainer, state, count)`` -- each ``update_step`` draws its keys from
+    the state it is given, so the key flow does not depend on the loop -- in a ``lax.fori_loop`` whose
+    trip count is an argument: every count up to ``max_updates`` runs one compiled program. Returns
+    (state, UpdateMetrics with leading [max_updates]): row i holds update i of this call for i < count;
+    the rows after ``count`` are zeros, to be dropped by the caller. A count above ``max_updates``
+    cannot be reported from inside the program (its extra rows would overwrite the last one): callers
+    check it on the host.
+    """
+    template = jax.eval_shape(lambda s: update_step(trainer, pool_params, buffer, s, None)[1], state)
+    rows = jax.tree.map(lambda x: jnp.zeros((max_updates,) + x.shape, x.dtype), template)
+
+    def body(i, carry):
+        state, rows = carry
+        state, metrics = update_step(trainer, pool_params, buffer, state, None)
+        rows = jax.tree.map(lambda buf, x: jax.lax.dynamic_update_index_in_dim(buf, x, i, 0), rows, metrics)
+        return state, rows
+
+    return jax.lax.fori_loop(0, count, body, (state, rows))
+
+
 # ---------------------------------------------------------------------------------------------------
 # populations: seeds on a leading vmap axis
 # ---------------------------------------------------------------------------------------------------
@@ -562,6 +593,25 @@ def make_advance_population(trainer: Trainer, num_updates: int, pool_per_seed: b
     return jax.jit(jax.vmap(run, in_axes=(0, None, 0 if pool_per_seed else None)), donate_argnums=(0,))
 
 
+def make_advance_chunks(trainer: Trainer, max_updates: int, pool_per_seed: bool = False):
+    """A jitted ``(states [S], buffer, pool, count) -> (states, metrics [S, max_updates])``: ``count``
+    updates of every seed (``advance_upto``), one compiled program for every ``count <= max_updates``.
+
+    What the run drivers train with (``cluster.runtime.shard``): a run stops at checkpoints, snapshots
+    and SA iteration starts, so its chunks have many lengths (1 to 50 in a Coordination Ring SA run),
+    and ``make_advance_population`` would compile a program per length (seconds each on a CPU, tens
+    of seconds on a GPU). ``count`` is an int32 scalar shared by all seeds; metrics rows ``[:, count:]``
+    are padding. Buffer and pool as ``make_advance_population``.
+    """
+    if max_updates < 1:
+        raise ValueError(f"max_updates must be at least 1, got {max_updates}")
+
+    def run(states, buffer, pool_params, count):
+        return advance_upto(trainer, states, count, max_updates, buffer, pool_params)
+
+    return jax.jit(jax.vmap(run, in_axes=(0, None, 0 if pool_per_seed else None, None)), donate_argnums=(0,))
+
+
 def take_seed(tree, index: int):
     """One seed's slice of a population pytree."""
     return jax.tree.map(lambda x: x[index], tree)
@@ -577,12 +627,14 @@ __all__ = [
     "Transition",
     "UpdateMetrics",
     "advance",
+    "advance_upto",
     "compute_gae",
     "eval_env",
     "init_population",
     "init_train_state",
     "learner_view",
     "lr_schedule",
+    "make_advance_chunks",
     "make_advance_population",
     "make_trainer",
     "partner_actions",

@@ -161,23 +161,24 @@ def test_per_seed_advance_gives_each_learner_its_own_pool_only():
 
 
 class Recorder:
-    """Wraps ``ppo.make_advance_population`` to keep every pool a shard hands to the trainer."""
+    """Wraps ``ppo.make_advance_chunks`` (what shards train with) to keep every pool a shard hands to the
+    trainer."""
 
     def __init__(self, monkeypatch):
         self.calls = []  # (pool_per_seed, numpy pool)
-        original = ppo.make_advance_population
+        original = ppo.make_advance_chunks
 
-        def make(trainer, num_updates, pool_per_seed=False):
-            compiled = original(trainer, num_updates, pool_per_seed)
+        def make(trainer, max_updates, pool_per_seed=False):
+            compiled = original(trainer, max_updates, pool_per_seed)
 
-            def run(states, buffer, pool):
+            def run(states, buffer, pool, count):
                 if trainer.fcp:
                     self.calls.append((pool_per_seed, jax.tree.map(np.asarray, pool)))
-                return compiled(states, buffer, pool)
+                return compiled(states, buffer, pool, count)
 
             return run
 
-        monkeypatch.setattr(ppo, "make_advance_population", make)
+        monkeypatch.setattr(ppo, "make_advance_chunks", make)
 
 
 def _partner_params(run, seed, update, trainer):

@@ -295,6 +295,37 @@ def test_save_restore_continues_bit_for_bit(run2, inits, four_updates, two_updat
     assert _leaves_equal(metrics, jax.tree.map(lambda x: x[:, 2:], metrics4))
 
 
+def test_traced_count_chunks_equal_the_scan(trainer, inits, four_updates, monkeypatch):
+    """``make_advance_chunks`` (one program, the count traced) gives the scan's numbers for any cut.
+
+    Chunks of 3 then 1 update and of 1 then 3, all through one program of at most 3 updates, equal the
+    4-update ``lax.scan`` of ``make_advance_population`` bit for bit: the same update steps, the same key
+    flow; only the loop around them differs. The padding rows past each count are zeros.
+    """
+    state4, metrics4 = four_updates
+    traces = []
+    advance_upto = ppo.advance_upto
+
+    def counted(*args, **kwargs):
+        traces.append(args[2])
+        return advance_upto(*args, **kwargs)
+
+    monkeypatch.setattr(ppo, "advance_upto", counted)  # runs at each trace of the program
+    chunks = ppo.make_advance_chunks(trainer, 3)
+    for cut in ((3, 1), (1, 3)):
+        state, pieces = _copy(inits[0]), []
+        for count in cut:
+            state, metrics = chunks(state, None, None, np.int32(count))
+            pieces.append(jax.tree.map(lambda x, n=count: x[:, :n], metrics))
+            assert all(not np.any(np.asarray(x)[:, count:]) for x in jax.tree.leaves(metrics))
+        joined = jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=1), *pieces)
+        assert _leaves_equal(state, state4), cut
+        assert _leaves_equal(joined, metrics4), cut
+    assert len(traces) == 1  # four calls, three counts, one program
+    with pytest.raises(ValueError, match="at least 1"):
+        ppo.make_advance_chunks(trainer, 0)
+
+
 def test_seed_alone_equals_seed_in_a_batch(run2, inits, two_updates):
     alone_init, batch_init = inits
     assert _leaves_equal(ppo.take_seed(alone_init, 0), ppo.take_seed(batch_init, 1))

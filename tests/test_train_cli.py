@@ -593,3 +593,33 @@ def test_schedule_stops_at_snapshots_checkpoints_and_sa_iterations():
     assert stops == [2, 3, 4]
     assert [schedule.iteration_at(u) for u in range(4)] == [0, 0, 1, 1]
     assert dataclasses.replace(schedule, iteration_starts=()).next_stop(0) == 2
+
+
+def test_one_training_program_per_run(tmp_path, monkeypatch):
+    """Chunks of 3, 1 and 2 updates (an SA run of 6 updates: iteration start 3, snapshot 3, checkpoint 4)
+    all run one compiled program: the chunk length is an argument of it (``ppo.make_advance_chunks``).
+
+    Traces are counted with a Python side effect in the traced function, which runs once per program
+    JAX builds (a compile-cache hit still traces, so this counts programs, not cache misses).
+    """
+    overrides = ["population.method=sa", "ppo.total_timesteps=768", "run.checkpoint_every=4"]
+    schedule = runstate.Schedule.of(load_config(SMOKE, overrides))
+    stops, update = [], 0
+    while update < schedule.num_updates:
+        stops.append(schedule.next_stop(update) - update)
+        update += stops[-1]
+    assert stops == [3, 1, 2] and schedule.longest_chunk == 4
+    traces = []
+    advance_upto = ppo.advance_upto
+
+    def counted(trainer, state, count, max_updates, *args):
+        traces.append(max_updates)
+        return advance_upto(trainer, state, count, max_updates, *args)
+
+    monkeypatch.setattr(ppo, "advance_upto", counted)
+    run = tmp_path / "sa"
+    assert train(run, *overrides, extra=["--no-eval"]) == 0
+    assert traces == [4]
+    rows = read_csv(run / "metrics.csv")
+    assert sorted(seed_keys(rows)) == [(s, u) for s in range(NUM_SEEDS) for u in range(1, 7)]
+    assert all(float(r["entropy"]) > 0 for r in rows)  # no padding row (all zeros) slipped into the metrics

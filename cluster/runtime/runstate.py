@@ -66,6 +66,12 @@ class Schedule:
         candidates.append((update // self.checkpoint_every + 1) * self.checkpoint_every)
         return min(min(candidates), self.num_updates)
 
+    @property
+    def longest_chunk(self) -> int:
+        """The most updates ``next_stop`` puts between two stops: never past the next multiple of
+        ``checkpoint_every``, nor past the last update (at least 1)."""
+        return max(1, min(self.checkpoint_every, self.num_updates))
+
     def iteration_at(self, update: int) -> int:
         return max(i for i, start in enumerate(self.iteration_starts) if start <= update)
 

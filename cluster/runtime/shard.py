@@ -102,7 +102,13 @@ class SeedShard:
         self.restored_update = self.update
         self._restarted_iteration = None  # SA: the iteration whose episode restart self.states has had
         self._buffer = None  # SA: (iteration, jnp State) converted once per iteration
-        self._compiled = {}
+        # One training program per shard, built at the first chunk. Chunks end at checkpoints, snapshots
+        # and SA iteration starts, so their lengths vary (1 to 50 updates in a Coordination Ring SA run);
+        # the length is a traced argument of the program (``ppo.make_advance_chunks``), not a constant
+        # compiled into it, so every chunk reuses one executable. Stops on a common grid would need no
+        # traced count, but the grid of those stops is their greatest common divisor (often 1 update): a
+        # host round trip per update, or checkpoints and SA iterations moved off the config's updates.
+        self._advance = None
         self._restart = jax.jit(
             jax.vmap(lambda s, k, b: ppo.restart_episodes(self.trainer, s, k, b), in_axes=(0, 0, None))
         )
@@ -137,14 +143,17 @@ class SeedShard:
             self._start_iteration(buffer)
             stop = self.schedule.next_stop(self.update)
             count = stop - self.update
-            if count not in self._compiled:
-                self._compiled[count] = ppo.make_advance_population(self.trainer, count, self.pool_per_seed)
+            longest = self.schedule.longest_chunk
+            if count > longest:  # the program's metrics buffer holds `longest` rows; it cannot say so itself
+                raise RuntimeError(f"chunk of {count} updates from update {self.update}: more than {longest}")
+            if self._advance is None:
+                self._advance = ppo.make_advance_chunks(self.trainer, longest, self.pool_per_seed)
             chunk_start = time.perf_counter()
             wait = ChunkWait(f"updates {self.update + 1}-{stop}", f"resuming continues from update {self.update}")
             self.states, metrics = wait.until_ready(
-                self._compiled[count](self.states, self._device_buffer(buffer), self.pool)
+                self._advance(self.states, self._device_buffer(buffer), self.pool, np.int32(count))
             )
-            metrics = jax.tree.map(np.asarray, metrics)
+            metrics = jax.tree.map(lambda x: np.asarray(x)[:, :count], metrics)  # rows past count: padding
             wall = time.perf_counter() - chunk_start
             steps_per_s = len(self.seeds) * count * self.config.ppo.steps_per_update / wall
             chunk_rows = metric_rows(self.seeds, metrics, steps_per_s, wall, self._recipe_labels)
