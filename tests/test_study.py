@@ -21,7 +21,7 @@ from cluster.cli import main
 from cluster.runtime.rundir import RunDir
 from cluster.runtime.runstate import Schedule
 from cluster.study.runner import StateFile, kept_study, open_state, run_study, study_status
-from cluster.study.spec import StudyError, budget_overrides, load_study, run_config
+from cluster.study.spec import StudyError, budget_overrides, load_study, run_config, with_overrides
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import ConfigError, load_config
@@ -395,3 +395,15 @@ def test_shipped_studies_load(tmp_path):
         for run in study.runs:
             run_config(study, run, tmp_path, budget=0.05, seeds=4)
         assert all(run.paper is not None for run in study.runs), path
+
+
+def test_study_runs_keep_no_xp_archive_unless_asked(tmp_path):
+    """The report reads each run's cross-play scores, not its XP archive (every transition of every scored
+    episode, gigabytes at paper sizes): studies train with ``archive.xp=false`` unless a ``set`` asks."""
+    data = {**STUDY, "set": ["eval.episodes=2"]}
+    data["runs"] = [{**STUDY["runs"][0]}, {**STUDY["runs"][1], "set": [*STUDY["runs"][1]["set"], "archive.xp=true"]}]
+    study = load_study(write_study(tmp_path / "archive.yaml", data))
+    assert load_config(SMOKE).archive.xp  # the config alone (ocv2 train) archives
+    assert [run_config(study, run, tmp_path, 1.0, None).archive.xp for run in study.runs] == [False, True]
+    asked = with_overrides(study, ["archive.xp=true"])  # ocv2 study run --set archive.xp=true
+    assert [run_config(asked, run, tmp_path, 1.0, None).archive.xp for run in asked.runs] == [True, True]

@@ -293,6 +293,14 @@ def budget_mode(state: dict) -> str:
     return state.get("budget_mode", "compress")
 
 
+#: Overrides every study run starts from; the study file's ``set``, the run's ``set`` and ``ocv2 study run --set``
+#: come after them and win. The report reads each run's cross-play scores (``xp/summary.json``, ``xp/matrix.csv``:
+#: returns and start recipes, 400 KB for a paper matrix), never its XP archive, which keeps every transition of every
+#: scored episode: 7.4 GB copied from the device and written for a 10-seed, 500-episode Coordination Ring matrix,
+#: 11-12 GB on the V2 layouts. ``set: [archive.xp=true]`` asks for it (docs/studies.md).
+STUDY_DEFAULTS = ("archive.xp=false",)
+
+
 def run_config(
     study: Study, run: RunSpec, out: Path, budget: float, seeds: int | None, budget_mode: str = "truncate"
 ) -> Config:
@@ -300,7 +308,7 @@ def run_config(
     ``total_timesteps``, applied as ``budget_mode``: see ``budget_overrides``) and ``seeds`` (None: the
     config's own)."""
     where = f"{study.path}: run {run.name!r}"
-    overrides = list(run.overrides)
+    overrides = [*STUDY_DEFAULTS, *run.overrides]
     if seeds is not None:
         overrides.append(f"population.num_seeds={seeds}")
     if run.partners_from is not None:
