@@ -1,0 +1,410 @@
+#!/usr/bin/env python
+"""The prepared GPU run: measure, plan from what was measured, train until a deadline, pack what came out.
+
+A lent GPU machine is ours for minutes (one command of at most 10 minutes, no network, no Ray): this
+script makes one such command count. ``bench/gpu_run.sh`` calls it after installing the carried wheels;
+it can also run by itself (``python bench/gpu_run.py --out DIR``).
+
+1. **environment**: device, driver (nvidia-smi), Python and package versions, XLA flags -> environment.json.
+2. **measure** (``--measure-s``, about 2 minutes): the same GPU's float32 and bf16 matmul rates; trainer env
+   steps/s of Coordination Ring SP (PPO-CNN) at 10, 4 and 1 seeds and of Grounded Coord. Simple SP
+   (PPO-RNN) at 1 and 10 seeds in both kernel families (``model.kernels`` cpu/xla); the environment
+   alone (ours, and JaxMARL's if it imports). Most important first; what the time leaves out is recorded as
+   skipped, never guessed -> bench.json.
+3. **plan**: the largest run that ends before the deadline at the measured 10-seed CNN rate: Table 1
+   Coordination Ring SP (configs/studies/gpu_coord_ring_sp.yaml), 10 seeds, the paper's 10M
+   schedule -- truncated (stopped early, ``--budget-mode truncate``), never compressed, when it does not
+   fit. When SP fits with time to spare, SA follows in the time left (gpu_coord_ring_sa.yaml) -> plan.json.
+4. **train**: ``ocv2 study run --backend local`` in a child process; at the deadline it gets SIGINT, which
+   stops training after the chunk in flight (saved), so what it has is packed and a later window resumes it.
+5. **pack**: each study's report folder (``ocv2 study report --out``), every seed's exported policy (its
+   latest checkpoint and every kept snapshot) with sha256 sums, metrics.csv -> results.tar.gz; the latest
+   checkpoints of every seed (what ``--resume`` needs) -> checkpoints.tar.gz when it fits in one returned
+   file (16 MiB), else left out and said so. ``bench/gpu_run.sh`` adds the log.
+
+``GPU_RUN_SMOKE=1`` (or ``--smoke``) shrinks every size (2 seeds, a few updates of a few envs, 4 episodes per
+pair): the same steps end to end in about 2 minutes on a CPU, which is how the script is rehearsed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from importlib import metadata
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from population import ppo  # noqa: E402
+from population.config import load_config  # noqa: E402
+
+STUDIES = ROOT / "configs" / "studies"  # gpu_coord_ring_sp.yaml, gpu_coord_ring_sa.yaml: one run each
+CR_SP = ROOT / "configs" / "paper" / "classic_coord_ring_sp.yaml"
+GCS_SP = ROOT / "configs" / "paper" / "v2_grounded_coord_simple_sp.yaml"
+# What the smoke rehearsal shrinks every config to: the same programs, tiny.
+SMOKE_SETS = ["ppo.num_envs=4", "ppo.num_steps=8", "ppo.num_minibatches=2", "ppo.update_epochs=1"]
+PACKAGES = ("jax", "jaxlib", "jax-cuda13-plugin", "jax-cuda12-plugin", "flax", "optax", "numpy", "mcap", "ray")
+
+
+def log(message: str) -> None:
+    print(f"[gpu_run {time.strftime('%H:%M:%S')}] {message}", flush=True)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 1. environment
+# ---------------------------------------------------------------------------------------------------
+
+
+def environment() -> dict:
+    """What ran where: device, driver, versions, flags."""
+    devices = jax.devices()
+    smi = None
+    try:
+        smi = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name,driver_version,memory.total,clocks.max.sm", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+            timeout=20,
+        ).stdout.strip()
+    except (OSError, subprocess.TimeoutExpired):
+        pass
+    versions = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return {
+        "backend": jax.default_backend(),
+        "devices": [f"{d.platform}: {d.device_kind}" for d in devices],
+        "nvidia_smi": smi,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "versions": versions,
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
+        "JAX_DEFAULT_MATMUL_PRECISION": os.environ.get("JAX_DEFAULT_MATMUL_PRECISION"),
+    }
+
+
+# ---------------------------------------------------------------------------------------------------
+# 2. measure
+# ---------------------------------------------------------------------------------------------------
+
+
+def matmul_rate(size: int, dtype, precision: str, repeats: int = 10) -> dict:
+    """TFLOP/s of a jitted size^3 matmul (median of ``repeats``, after a warm-up), random operands."""
+    k_a, k_b = jax.random.split(jax.random.PRNGKey(0))
+    a, b = (jax.random.normal(k, (size, size), jnp.float32).astype(dtype) for k in (k_a, k_b))
+    with jax.default_matmul_precision(precision):
+        fn = jax.jit(jnp.dot)
+        jax.block_until_ready(fn(a, b))
+        times = []
+        for _ in range(repeats):
+            started = time.perf_counter()
+            jax.block_until_ready(fn(a, b))
+            times.append(time.perf_counter() - started)
+    return {
+        "size": size,
+        "dtype": jnp.dtype(dtype).name,
+        "precision": precision,
+        "tflops": 2 * size**3 / statistics.median(times) / 1e12,
+    }
+
+
+def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -> dict:
+    """Env steps/s of ``seeds`` seeds trained together (one vmapped program, as the local backend does):
+    ``updates`` updates timed once after a compile-and-run call of the same program."""
+    from train_throughput import flops_per_env_step
+
+    config = load_config(config_path, [*sets, f"population.num_seeds={seeds}"])
+    trainer = ppo.make_trainer(config)
+    states = ppo.init_population(trainer, list(range(seeds)))
+    advance = ppo.make_advance_population(trainer, updates)
+    started = time.perf_counter()
+    states, _ = jax.block_until_ready(advance(states, None, None))
+    compile_s = time.perf_counter() - started
+    started = time.perf_counter()
+    states, metrics = jax.block_until_ready(advance(states, None, None))
+    seconds = time.perf_counter() - started
+    steps = seeds * updates * config.ppo.steps_per_update
+    flops = flops_per_env_step(trainer, ppo.take_seed(states.params, 0)) * steps
+    return {
+        "config": config_path.name,
+        "model": config.model.kind,
+        "kernels": config.model.kernels,
+        "seeds": seeds,
+        "updates": updates,
+        "steps_per_update": config.ppo.steps_per_update,
+        "compile_plus_first_s": round(compile_s, 2),
+        "timed_s": round(seconds, 3),
+        "env_steps_per_s": steps / seconds,
+        "model_tflops": flops / seconds / 1e12,
+        "finite": bool(jnp.isfinite(metrics.loss.total).all()) if hasattr(metrics.loss, "total") else None,
+    }
+
+
+def env_rate(impl: str, batch: int, steps: int) -> dict:
+    """Env steps/s of random-action rollouts alone (bench/env_throughput.py's case), Coordination Ring."""
+    from env_throughput import Case
+
+    case = Case(impl, "coord_ring", None, batch, steps)
+    case.time(3)
+    result = case.result()
+    return {k: result[k] for k in ("impl", "layout", "batch", "steps", "env_steps_per_s", "compile_plus_first_run_s")}
+
+
+def measurements(smoke: bool) -> list[tuple[str, object]]:
+    """(name, thunk) in order of importance: the plan needs the first one."""
+    sets = SMOKE_SETS if smoke else []
+    cnn_updates, rnn_updates = (2, 2) if smoke else (10, 3)
+    cases = [("matmul_f32", lambda: matmul_rate(512 if smoke else 8192, jnp.float32, "float32"))]
+    for seeds in (2, 1) if smoke else (10, 4, 1):
+        cases.append((f"cnn_sp_{seeds}", lambda s=seeds: trainer_rate(CR_SP, s, cnn_updates, sets)))
+    cases.append(("matmul_bf16", lambda: matmul_rate(512 if smoke else 8192, jnp.bfloat16, "bfloat16")))
+    for seeds in (1,) if smoke else (1, 10):
+        for kernels in ("xla", "cpu"):
+            cases.append(
+                (
+                    f"rnn_sp_{seeds}_{kernels}",
+                    lambda s=seeds, k=kernels: trainer_rate(GCS_SP, s, rnn_updates, [*sets, f"model.kernels={k}"]),
+                )
+            )
+    # What XLA's deterministic GPU ops (run.deterministic, on in every measurement above: gpu_run.sh sets the
+    # flag as the run's own process does) cost: the plan's case again in a process without the flag.
+    plan_case = f"cnn_sp_{2 if smoke else 10}"
+    cases.append((f"{plan_case}_nondeterministic", lambda: without_determinism(plan_case, smoke)))
+    batch, steps = (64, 16) if smoke else (16384, 400)
+    cases += [(f"env_{impl}", lambda i=impl: env_rate(i, batch, steps)) for impl in ("ocv2", "jaxmarl")]
+    return cases
+
+
+def without_determinism(name: str, smoke: bool) -> dict:
+    """Measurement ``name`` in a child process whose XLA_FLAGS lack ``--xla_gpu_deterministic_ops``."""
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_gpu_deterministic_ops" not in f)
+    command = [sys.executable, __file__, "--measure-one", name, "--out", "-"] + (["--smoke"] if smoke else [])
+    done = subprocess.run(command, env={**os.environ, "XLA_FLAGS": flags}, capture_output=True, text=True, timeout=300)
+    if done.returncode != 0:
+        raise RuntimeError(done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"rc {done.returncode}")
+    return {**json.loads(done.stdout.strip().splitlines()[-1]), "XLA_FLAGS": flags}
+
+
+def measure(deadline: float, smoke: bool) -> dict:
+    """Every measurement that starts before ``deadline`` (each is one compile and a few seconds)."""
+    results = {}
+    for name, thunk in measurements(smoke):
+        if time.time() > deadline:
+            results[name] = {"skipped": "the measuring time was spent"}
+            continue
+        started = time.perf_counter()
+        try:
+            results[name] = thunk()
+        except Exception as error:  # a failed measurement is a result too (e.g. jaxmarl not carried)
+            results[name] = {"error": f"{type(error).__name__}: {error}"[:500]}
+        results[name]["wall_s"] = round(time.perf_counter() - started, 1)
+        log(f"measured {name}: {json.dumps(results[name])[:300]}")
+    return results
+
+
+# ---------------------------------------------------------------------------------------------------
+# 3. plan
+# ---------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Step:
+    """One study to run: ``run`` of the GPU study at ``budget`` (truncated) with ``seeds``."""
+
+    run: str
+    budget: float
+    seeds: int
+    train_s: float  # the planned training time at the measured rate
+
+    def command(self, out: Path, smoke: bool) -> list[str]:
+        sets = [x for s in (SMOKE_SETS + ["eval.episodes=4"] if smoke else []) for x in ("--set", s)]
+        return [
+            sys.executable, "-m", "cluster.cli", "study", "run", str(STUDIES / f"gpu_coord_ring_{self.run}.yaml"),
+            "--backend", "local", "--budget", f"{self.budget:.6g}", "--budget-mode", "truncate",
+            "--seeds", str(self.seeds), "--out", str(out / f"study_{self.run}"), *sets,
+        ]  # fmt: skip
+
+
+def plan(measured: dict, seconds_left: float, smoke: bool) -> list[Step]:
+    """SP at the largest truncation that ends in time (at least 1 %), then SA in what SP leaves, if it is
+    worth it. Reserve: a compile, the cross-play (500 episodes per ordered pair, both orders), the export."""
+    seeds = 2 if smoke else 10
+    rate = measured.get(f"cnn_sp_{seeds}", {}).get("env_steps_per_s")
+    config = load_config(CR_SP, SMOKE_SETS if smoke else [])
+    full_steps = seeds * config.ppo.total_timesteps
+    if smoke:  # 20 tiny updates: two chunks, a snapshot between them, then the cross-play
+        return [Step("sp", 20 * config.ppo.steps_per_update / config.ppo.total_timesteps, seeds, float("nan"))]
+    if not rate:
+        log("no 10-seed CNN rate measured: training SP at 10 % and letting the deadline stop it")
+        return [Step("sp", 0.1, seeds, float("nan"))]
+    reserve = 90.0  # compile (~30 s) + 10x10 cross-play in both orders + export, from the CPU's proportions
+    budget = max(0.01, min(1.0, (seconds_left - reserve) * rate / full_steps))
+    steps = [Step("sp", round(budget, 3), seeds, budget * full_steps / rate)]
+    left = seconds_left - reserve - steps[0].train_s
+    if budget == 1.0 and left > reserve + 60:
+        # SA trains as fast as SP between its iterations, plus 10 collections of 100 pairs x 10 rollouts.
+        sa_budget = min(1.0, (left - reserve) * rate / full_steps / 1.3)
+        if sa_budget >= 0.1:
+            steps.append(Step("sa", round(sa_budget, 3), seeds, sa_budget * full_steps / rate * 1.3))
+    return steps
+
+
+# ---------------------------------------------------------------------------------------------------
+# 4. train
+# ---------------------------------------------------------------------------------------------------
+
+
+def train(step: Step, out: Path, deadline: float, smoke: bool) -> dict:
+    """Run one planned study; SIGINT at ``deadline`` (it stops after the chunk in flight, saved)."""
+    command = step.command(out, smoke)
+    log("running " + " ".join(command))
+    started = time.time()
+    child = subprocess.Popen(command, cwd=ROOT, start_new_session=True)
+    interrupted = False
+    while child.poll() is None:
+        if time.time() > deadline and not interrupted:
+            log("deadline: asking the study to stop after its chunk in flight")
+            child.send_signal(signal.SIGINT)
+            interrupted = True
+        time.sleep(1.0)
+    return {"step": dataclasses.asdict(step), "rc": child.returncode, "wall_s": round(time.time() - started, 1),
+            "stopped_at_deadline": interrupted}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------------
+# 5. export and pack
+# ---------------------------------------------------------------------------------------------------
+
+MAX_FILE = 16 << 20  # the largest file the device tool brings back
+
+
+POLICY_BYTES = 12 << 20  # exported policies per run, inside results.tar.gz's 16 MiB (about 0.4 MB per CNN policy)
+
+
+def export_policies(run_dir: Path, dest: Path) -> list[dict]:
+    """Every seed's latest checkpoint, then kept snapshots from the newest back while ``POLICY_BYTES`` allows,
+    as ``ocv2 export`` files with their sha256 sums."""
+    import hashlib
+
+    from population import checkpoints as ckpt
+    from population.policy import export_checkpoint
+
+    config = load_config(run_dir / "config.yaml")
+    seeds = range(config.population.num_seeds)
+    updates = {seed: ckpt.list_updates(run_dir, seed) for seed in seeds}
+    order = [(seed, updates[seed][-1]) for seed in seeds if updates[seed]]
+    depth = max((len(u) for u in updates.values()), default=0)
+    order += [(s, updates[s][-1 - k]) for k in range(1, depth) for s in seeds if k < len(updates[s])]
+    exported, total = [], 0
+    for seed, update in order:
+        path = dest / f"{run_dir.name}_seed{seed}_update{update}.ocv2policy"
+        export_checkpoint(run_dir, path, seed=seed, checkpoint=update)
+        if total + path.stat().st_size > POLICY_BYTES and exported:
+            path.unlink()
+            break
+        total += path.stat().st_size
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        exported.append({"file": path.name, "seed": seed, "update": update, "sha256": digest})
+    return exported
+
+
+def pack(out: Path, steps_done: list[dict]) -> dict:
+    """results.tar.gz (reports, policies, metrics) and checkpoints.tar.gz (latest state, when it fits)."""
+    import shutil
+    import tarfile
+
+    from population import checkpoints as ckpt
+
+    staging, packed = out / "results", {}
+    staging.mkdir(exist_ok=True)
+    checkpoint_files = []
+    for study_dir in sorted(out.glob("study_*")):
+        report = staging / f"{study_dir.name}_report"
+        subprocess.run(
+            [sys.executable, "-m", "cluster.cli", "study", "report", str(study_dir), "--out", str(report)],
+            cwd=ROOT,
+            check=False,
+        )
+        for run_dir in sorted((study_dir / "runs").iterdir()):
+            if not (run_dir / "config.yaml").exists():
+                continue
+            policies = staging / f"{study_dir.name}_policies"
+            policies.mkdir(exist_ok=True)
+            listing = export_policies(run_dir, policies)
+            (policies / "SHA256SUMS.json").write_text(json.dumps(listing, indent=1))
+            for name in ("metrics.csv", "config.yaml"):
+                if (run_dir / name).exists():
+                    shutil.copy(run_dir / name, staging / f"{study_dir.name}_{run_dir.name}_{name}")
+            config = load_config(run_dir / "config.yaml")
+            checkpoint_files += [ckpt.latest(run_dir, s) for s in range(config.population.num_seeds)]
+            checkpoint_files.append(run_dir / "config.yaml")
+    with tarfile.open(out / "results.tar.gz", "w:gz") as tar:
+        tar.add(staging, arcname="results")
+    packed["results.tar.gz"] = (out / "results.tar.gz").stat().st_size
+    with tarfile.open(out / "checkpoints.tar.gz", "w:gz") as tar:
+        for path in filter(None, checkpoint_files):
+            tar.add(path, arcname=str(path.relative_to(out)))
+    size = (out / "checkpoints.tar.gz").stat().st_size
+    if size > MAX_FILE:
+        (out / "checkpoints.tar.gz").unlink()
+        packed["checkpoints.tar.gz"] = f"left out: {size:,} bytes exceed the {MAX_FILE:,} a returned file may hold"
+    else:
+        packed["checkpoints.tar.gz"] = size
+    return packed
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True, help="folder for everything this run writes")
+    parser.add_argument("--deadline-s", type=float, default=480.0, help="seconds from start to stop training")
+    parser.add_argument("--measure-s", type=float, default=120.0, help="seconds for measuring")
+    parser.add_argument("--smoke", action="store_true", default=os.environ.get("GPU_RUN_SMOKE") == "1")
+    parser.add_argument("--measure-one", help=argparse.SUPPRESS)  # one measurement, as JSON on stdout
+    args = parser.parse_args(argv)
+    if args.measure_one:
+        print(json.dumps(dict(measurements(args.smoke))[args.measure_one]()))
+        return 0
+    start = time.time()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    env = environment()
+    (out / "environment.json").write_text(json.dumps(env, indent=1))
+    log(f"devices {env['devices']}; {env['nvidia_smi']}; smoke={args.smoke}")
+    measured = measure(start + args.measure_s, args.smoke)
+    (out / "bench.json").write_text(json.dumps({"environment": env, "results": measured}, indent=1))
+    deadline = start + args.deadline_s
+    steps = plan(measured, deadline - time.time(), args.smoke)
+    (out / "plan.json").write_text(json.dumps([dataclasses.asdict(s) for s in steps], indent=1))
+    log(f"plan: {[dataclasses.asdict(s) for s in steps]}")
+    done = []
+    for step in steps:
+        if time.time() > deadline - 30:
+            done.append({"step": dataclasses.asdict(step), "skipped": "no time left"})
+            continue
+        done.append(train(step, out, deadline, args.smoke))
+    packed = pack(out, done)
+    (out / "trained.json").write_text(json.dumps({"trained": done, "packed": packed}, indent=1))
+    log(f"trained: {json.dumps(done)}; packed: {packed}; wall {time.time() - start:.0f} s")
+    # A study's rc 1 (a step blocked) or 130 (stopped at the deadline) leaves a resumable directory.
+    return 0 if all(d.get("rc", 0) in (0, 1, 130) for d in done) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
