@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 
 import pytest
 import yaml
 
 from population.config import (
+    PRECISIONS,
     Config,
     ConfigError,
     ModelConfig,
     PPOConfig,
+    RunConfig,
     apply_overrides,
     dump_config,
     load_config,
@@ -94,6 +98,45 @@ def test_fingerprint_tracks_training_settings_only():
     assert base.fingerprint() != parse_config({"ppo": SMALL_PPO, "model": {"gru_dim": 64}}).fingerprint()
     assert base.fingerprint() == parse_config({"ppo": SMALL_PPO, "eval": {"episodes": 3}}).fingerprint()
     assert base.fingerprint() == parse_config({"ppo": SMALL_PPO, "run": {"checkpoint_every": 1}}).fingerprint()
+
+
+def test_run_precision_is_in_the_fingerprint_and_the_rest_of_run_is_not(monkeypatch):
+    """Another matmul precision trains other numbers (on a GPU), so its checkpoints are another run's; float32,
+    the default, leaves the fingerprint of runs made before the key existed as it was."""
+    base = parse_config({"ppo": SMALL_PPO})
+    assert (base.run.precision, base.run.deterministic) == ("float32", True)
+    fingerprints = {p: parse_config({"ppo": SMALL_PPO, "run": {"precision": p}}).fingerprint() for p in PRECISIONS}
+    assert fingerprints["float32"] == base.fingerprint() and len(set(fingerprints.values())) == 3
+    # determinism is not part of it: resuming with it off (or on) continues the same run
+    assert parse_config({"ppo": SMALL_PPO, "run": {"deterministic": False}}).fingerprint() == base.fingerprint()
+    hashed = []  # what fingerprint hashes: no trace of run at its defaults, only run.precision otherwise
+    real_sha256 = hashlib.sha256
+    monkeypatch.setattr(hashlib, "sha256", lambda data=b"": hashed.append(json.loads(data)) or real_sha256(data))
+    parse_config({"ppo": SMALL_PPO, "run": {"checkpoint_every": 2, "deterministic": False}}).fingerprint()
+    assert "run" not in hashed[-1]
+    parse_config({"ppo": SMALL_PPO, "run": {"checkpoint_every": 2, "precision": "tf32"}}).fingerprint()
+    assert hashed[-1]["run"] == {"precision": "tf32"}
+
+
+def test_run_precision_and_deterministic_are_checked_naming_the_key():
+    assert "run.precision: expected one of float32, tf32, bf16, got 'fp16'" in _error({"run": {"precision": "fp16"}})
+    assert "run.deterministic: expected true or false" in _error({"run": {"deterministic": "yes"}})
+    assert parse_config({}, ["run.precision=bf16", "run.deterministic=false"]).run == RunConfig(
+        precision="bf16", deterministic=False
+    )
+
+
+def test_cluster_num_gpus_is_auto_unless_a_number_is_given(tmp_path):
+    assert parse_config({}).cluster.num_gpus == "auto"
+    assert parse_config({"cluster": {"num_gpus": 1}}).cluster.num_gpus == 1.0
+    assert parse_config({}, ["cluster.num_gpus=0.5"]).cluster.num_gpus == 0.5
+    assert parse_config({}, ["cluster.num_gpus=0"]).cluster.num_gpus == 0.0
+    assert "cluster.num_gpus: expected auto or a number >= 0, got 'many'" in _error({"cluster": {"num_gpus": "many"}})
+    assert "cluster.num_gpus: must be >= 0" in _error({"cluster": {"num_gpus": -1}})
+    assert "cluster.num_gpus: expected a number, got True" in _error({"cluster": {"num_gpus": True}})
+    path = tmp_path / "config.yaml"
+    dump_config(parse_config({}), path)
+    assert load_config(path).cluster.num_gpus == "auto"
 
 
 # ---------------------------------------------------------------------------------------------------

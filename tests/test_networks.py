@@ -27,6 +27,7 @@ from population.networks import (
     pointwise_mixer,
     same_function,
 )
+from population.numerics import matmul_precision, precision_in_force, relative_tolerance
 
 RNN_OBS = (5, 5, 40)
 SMALL_RNN = {
@@ -200,7 +201,8 @@ def test_same_conv_matches_flax_conv(kernel_size):
     ours = module.apply(params, x)
     reference = nn.Conv(6, (kernel_size, kernel_size), padding="SAME").apply(params, x)
     assert ours.shape == reference.shape == (2, 5, 7, 6)
-    np.testing.assert_allclose(ours, reference, atol=1e-5, rtol=1e-5)
+    tolerance = relative_tolerance()  # of the matmul precision in force: 1e-5 for float32 (a CPU's)
+    np.testing.assert_allclose(ours, reference, atol=tolerance, rtol=tolerance)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -314,8 +316,9 @@ def test_the_chunked_mixer_equals_the_whole_mixer_values_and_gradients():
     whole, chunked = pointwise_mixer(weights, x, nn.relu, 0), pointwise_mixer(weights, x, nn.relu, 64)
     assert chunked.shape == whole.shape == (12, 5, 5, 3) and float(jnp.abs(whole).max()) > 0
     np.testing.assert_allclose(chunked, whole, rtol=1e-6, atol=1e-6)
+    tolerance = relative_tolerance()
     for ours, theirs in zip(jax.tree.leaves(jax.grad(loss)(weights, 64)), jax.tree.leaves(jax.grad(loss)(weights, 0))):
-        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(ours, theirs, rtol=tolerance, atol=tolerance)
 
 
 def test_the_gru_backward_pass_equals_autodiff_of_the_plain_scan():
@@ -357,7 +360,7 @@ def test_the_gru_backward_pass_equals_autodiff_of_the_plain_scan():
     for ours, theirs in zip(
         loss(gru_sequence)(projected, hidden, kernel, bias), loss(plain)(projected, hidden, kernel, bias), strict=True
     ):
-        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(ours, theirs, rtol=relative_tolerance(), atol=relative_tolerance())
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -432,14 +435,26 @@ def test_every_kernel_family_gives_the_same_parameters_outputs_and_gradients(raw
 
 
 def _assert_same_to_rounding(ours, theirs):
-    """Equal up to float32 rounding of sums whose order differs between the two families, measured against
-    the array's own scale: a gradient entry near 0 in a leaf whose entries reach 30 carries the rounding
-    of those large terms (one such entry differed by 1.4e-5 on one CPU and not on another; the largest
-    difference seen is 1.6e-6 of the leaf's largest entry). A wrong kernel differs by the order of the
-    values themselves."""
+    """Equal up to the rounding of sums whose order differs between two arrangements of the same matmuls,
+    measured against the array's own scale: a gradient entry near 0 in a leaf whose entries reach 30 carries
+    the rounding of those large terms (one such entry differed by 1.4e-5 on one CPU and not on another; the
+    largest difference seen is 1.6e-6 of the leaf's largest entry). The rounding is that of the matmul
+    precision in force (``population.numerics.relative_tolerance``: 1e-5 for float32, what a CPU always
+    computes; 1e-3 for TF32, a GPU's default). A wrong kernel differs by the order of the values themselves."""
     ours, theirs = np.asarray(ours), np.asarray(theirs)
     scale = float(np.abs(theirs).max()) if theirs.size else 0.0
-    np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5 * max(scale, 1.0))
+    tolerance = relative_tolerance()
+    np.testing.assert_allclose(ours, theirs, rtol=tolerance, atol=tolerance * max(scale, 1.0))
+
+
+@pytest.mark.parametrize("precision, expected", [("float32", 1e-5), ("tf32", 1e-3), ("bf16", 1e-2)])
+def test_the_tolerance_follows_the_matmul_precision(precision, expected):
+    assert relative_tolerance(precision) == expected
+    with matmul_precision(precision):
+        in_force, tolerance = precision_in_force(), relative_tolerance()
+    assert tolerance == relative_tolerance(in_force)
+    if jax.default_backend() == "cpu" or precision == "float32":  # a CPU computes float32 whatever is asked
+        assert in_force == "float32"
 
 
 def test_configs_that_differ_only_in_kernels_describe_the_same_network():

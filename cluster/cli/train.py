@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import logging
 import os
 
 from cluster.api import require_backend, train_population
@@ -19,6 +20,9 @@ from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from population.checkpoints import CheckpointError
 from population.config import ConfigError, check_fits, load_config
+from population.numerics import enable_deterministic_ops
+
+log = logging.getLogger(__name__)
 
 
 def add_train(sub) -> argparse.ArgumentParser:
@@ -93,6 +97,9 @@ def run_train(args) -> int:
         check_loggers(args.loggers)
     except MissingExtraError as error:
         raise CLIError(str(error)) from None
+    if config.run.deterministic:  # XLA reads XLA_FLAGS once, when JAX starts: before anything runs JAX here
+        applied, message = enable_deterministic_ops()
+        log.log(logging.DEBUG if applied else logging.INFO, message)
     try:
         with ray_backend.session(args.backend, config.cluster):  # Ray before JAX starts here (its docstring)
             summary = train_population(

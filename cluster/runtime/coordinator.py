@@ -27,6 +27,7 @@ import jax
 import numpy as np
 
 from cluster.archive import ArchiveWriter, record_episodes, states_as_buffer
+from cluster.runtime.environment import process_record
 from cluster.runtime.evaluate import post_training
 from cluster.runtime.jobs import Workers, WorkersFactory, gather_params, on_every_shard, spread_jobs
 from cluster.runtime.progress import PopulationProgress
@@ -39,6 +40,7 @@ from population.config import Config
 from population.config import shards as seed_shards
 from population.evaluation import stack_params
 from population.networks import same_function
+from population.numerics import matmul_precision
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
 
 log = logging.getLogger(__name__)
@@ -255,13 +257,17 @@ def train(
     ``on_chunk(update, workers, rows)`` is called after every merged chunk with the metrics rows it added
     to metrics.csv (on a resume the first call also carries the rows caught up from checkpoints); tests
     use it to kill workers.
+
+    Everything this process traces (in-process shards, evaluation, GIFs) uses ``run.precision``; Ray actors
+    set it themselves (``ray_backend._ShardActor``).
     """
-    extra = archived_states(config)  # a bad archive fails here, before the run directory is touched
-    run, resuming = RunDir.open(run_dir, config, resume=resume)
-    try:
-        return _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra)
-    finally:
-        run.close()
+    with matmul_precision(config.run.precision):
+        extra = archived_states(config)  # a bad archive fails here, before the run directory is touched
+        run, resuming = RunDir.open(run_dir, config, resume=resume)
+        try:
+            return _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra)
+        finally:
+            run.close()
 
 
 def _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra) -> dict:
@@ -274,6 +280,7 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
     try:
         # Shards restore themselves; the slowest decides where the population stands.
         update = min(workers.call("position", on_every_shard(workers)))
+        devices = record_workers(config, run, workers)
         # A driver killed after the shards saved a chunk but before it merged their rows, or a last row
         # dropped from a torn metrics.csv: those rows live in the checkpoints' meta; collect them before
         # training on, from the seed whose rows stop earliest.
@@ -302,7 +309,9 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
             shards=workers.shards,
             resumed_from=update if resuming else None,
         )
-        _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra, caught_up_rows)
+        _train_loop(
+            config, run, workers, schedule, update, show_progress, label, on_chunk, extra, caught_up_rows, devices
+        )
         summary = {"run_dir": str(run.path), "updates": schedule.num_updates, "restarts": workers.restarts()}
         if evaluate:
             summary.update(post_training(run.path, workers, show_progress=show_progress))
@@ -312,7 +321,9 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
     return summary
 
 
-def _train_loop(config, run, workers, schedule, update, show_progress, label, on_chunk, extra, unreported) -> None:
+def _train_loop(
+    config, run, workers, schedule, update, show_progress, label, on_chunk, extra, unreported, devices
+) -> None:
     num_shards = len(workers.shards)
     buffer, buffer_handle = None, None
     progress = PopulationProgress(
@@ -321,6 +332,7 @@ def _train_loop(config, run, workers, schedule, update, show_progress, label, on
         schedule.num_updates,
         config.ppo.steps_per_update,
         enabled=show_progress,
+        details=devices,
     )
     with progress:
         progress.advance_to(update, None)
@@ -348,6 +360,71 @@ def _train_loop(config, run, workers, schedule, update, show_progress, label, on
             if any(r.stop_requested for r in results):
                 raise KeyboardInterrupt  # the first Ctrl-C (cluster.runtime.interrupt), now that the chunk is on disk
     run.update_manifest(status="trained", update=update)
+
+
+def describe_workers(workers: Workers) -> list[dict]:
+    """Per shard, where it trains (``Workers.describe``; in-process shards without it train here)."""
+    describe = getattr(workers, "describe", None)
+    if describe is None:
+        return [{**process_record(), "worker": "this process", "num_gpus": None} for _ in workers.shards]
+    return describe()
+
+
+def record_workers(config: Config, run: RunDir, workers: Workers) -> list[str]:
+    """Ask every worker where it trains, add that to this driver's record in ``environment.json`` with
+    ``run.precision`` and ``run.deterministic``, warn about a worker given a GPU it cannot use, and return
+    the lines that say it in the run's header."""
+    records = [
+        {"shard": index, "seeds": list(seeds), **record}
+        for index, (seeds, record) in enumerate(zip(workers.shards, describe_workers(workers), strict=True))
+    ]
+    run.amend_environment(
+        run={"precision": config.run.precision, "deterministic": config.run.deterministic}, workers=records
+    )
+    for record in records:
+        gpus, seeds = record.get("num_gpus") or 0, seed_ranges(record["seeds"])
+        if gpus > 0 and record["device"] == "cpu":
+            log.warning(
+                f"seeds {seeds}: their Ray actor was given {gpus:g} GPU (ids {record.get('gpu_ids')}) but JAX trains "
+                "on the CPU there: that node's jaxlib has no GPU support (install JAX's CUDA build there, "
+                'pip install -U "jax[cuda12]==<the installed jax version>")'
+            )
+        if config.run.deterministic and record["device"] != "cpu" and not record["xla_gpu_deterministic_ops"]:
+            log.warning(
+                f"seeds {seeds}: run.deterministic is on but XLA's deterministic GPU ops are not "
+                f"(XLA_FLAGS there: {record['xla_flags']!r}); repeated runs may differ"
+            )
+    groups: dict[tuple, list[dict]] = {}
+    for record in records:
+        groups.setdefault((record["device"], record["worker"], record.get("num_gpus")), []).append(record)
+    if any(record["xla_gpu_deterministic_ops"] for record in records):
+        determinism = "XLA's deterministic GPU ops on"
+    elif all(record["device"] == "cpu" for record in records):
+        determinism = "CPU only, deterministic as it is"
+    else:
+        determinism = "XLA's deterministic GPU ops off"
+    computes = ", ".join(sorted({record["computes"] for record in records}))
+    lines = [
+        f"run.precision {config.run.precision} (matmuls compute {computes}), "
+        f"run.deterministic {str(config.run.deterministic).lower()} ({determinism})"
+    ]
+    for (device, worker, gpus), members in groups.items():
+        seeds = seed_ranges([seed for record in members for seed in record["seeds"]])
+        where = worker if worker == "this process" else f"{len(members)} {worker}{'s' * (len(members) > 1)}"
+        each = "" if gpus is None else f", {gpus:g} GPU{'s' * (gpus != 1)} each"
+        lines.append(f"seeds {seeds} train on {device} ({where}{each})")
+    return lines
+
+
+def seed_ranges(seeds) -> str:
+    """``[0, 1, 2, 5]`` -> ``0-2, 5``."""
+    parts, seeds = [], sorted(seeds)
+    for seed in seeds:
+        if parts and seed == parts[-1][1] + 1:
+            parts[-1][1] = seed
+        else:
+            parts.append([seed, seed])
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in parts)
 
 
 def _archive_training(config: Config, run: RunDir, workers: Workers, before: int, stop: int) -> None:

@@ -1,19 +1,24 @@
 """What a run was made with: package versions, the git commit, the devices and the command line.
 
 Every driver that trains into a run directory appends one record to ``RUN_DIR/environment.json``, so a
-result can be traced to the code and hardware that produced it (a resumed run has one per driver).
+result can be traced to the code and hardware that produced it (a resumed run has one per driver). Once
+its workers have started, the record gets one ``process_record`` per worker (the device it trains on, its
+matmul precision and XLA flags) and the run's ``run.precision`` and ``run.deterministic``.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import importlib.metadata
+import os
 import platform
 import subprocess
 import sys
 from pathlib import Path
 
 import jax
+
+from population.numerics import deterministic_ops_in, precision_in_force
 
 PACKAGES = ("ocv2", "jax", "jaxlib", "flax", "optax", "numpy", "ray")
 _CHECKOUT = Path(__file__).resolve().parents[2]  # the source tree ocv2 is imported from
@@ -56,4 +61,33 @@ def environment_record() -> dict:
         "argv": list(sys.argv),
         "devices": [str(device) for device in jax.devices()],
         "platform": platform.platform(),
+    }
+
+
+def describe_devices(devices=None) -> str:
+    """What JAX computes on, in words: ``cpu``, ``gpu: NVIDIA H100 80GB HBM3`` or ``gpu: 2 x NVIDIA H100 ...``
+    (the platform, and the device kind unless it is the CPU)."""
+    devices = jax.devices() if devices is None else devices
+    kinds: dict[str, int] = {}
+    for device in devices:
+        name = "cpu" if device.platform == "cpu" else f"{device.platform}: {device.device_kind}"
+        kinds[name] = kinds.get(name, 0) + 1
+    return ", ".join(name if count == 1 else name.replace(": ", f": {count} x ", 1) for name, count in kinds.items())
+
+
+def process_record() -> dict:
+    """This process as a worker: the device JAX trains on, the matmul precision and XLA flags in force
+    (``jax.default_matmul_precision`` here and now; None is the backend's default), and the variables that
+    decide which devices it sees."""
+    xla_flags = os.environ.get("XLA_FLAGS", "")
+    return {
+        "pid": os.getpid(),
+        "device": describe_devices(),
+        "devices": [str(device) for device in jax.devices()],
+        "matmul_precision": jax.config.jax_default_matmul_precision,
+        "computes": precision_in_force(),
+        "xla_gpu_deterministic_ops": deterministic_ops_in(xla_flags),
+        "xla_flags": xla_flags,
+        "jax_platforms": os.environ.get("JAX_PLATFORMS"),
+        "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"),
     }

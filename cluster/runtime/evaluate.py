@@ -29,6 +29,7 @@ from population import ppo
 from population.config import Config
 from population.evaluation import play_episodes, stack_params
 from population.keys import derive_key
+from population.numerics import matmul_precision
 from population.plots import training_curves, xp_heatmap
 from population.xp import CrossPlay, cross_play, recipe_names, summarize
 
@@ -124,7 +125,10 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     archive_dir = run.subdir("archive", "xp") if config.archive.xp else None
     if workers is None:
         num = config.population.num_seeds
-        with Bar(f"cross-play {num}x{num}, {episodes} episodes/pair", enabled=show_progress, unit="blocks") as bar:
+        with (
+            Bar(f"cross-play {num}x{num}, {episodes} episodes/pair", enabled=show_progress, unit="blocks") as bar,
+            matmul_precision(config.run.precision),  # as the run trained (Ray actors set it themselves)
+        ):
             result = play_rows(config, trainer, params, range(num), key, episodes, archive_dir, on_progress=bar)
     else:
         result = _cross_play_spread(workers, params, key, episodes, archive_dir)
@@ -188,7 +192,8 @@ def write_gifs(run_dir, count: int) -> list[str]:
     play = jax.jit(lambda p, k: play_episodes(trainer.network.apply, hidden_size(trainer), env, (p, p), k, 1, 1))
     paths = []
     for seed in range(min(count, config.population.num_seeds)):
-        episode = play(ppo.take_seed(params, seed), derive_key(config.population.seed, "gif", member=seed))
+        with matmul_precision(config.run.precision):
+            episode = play(ppo.take_seed(params, seed), derive_key(config.population.seed, "gif", member=seed))
         states = jax.tree.map(lambda x: x[0], episode.states)
         frames = render_frames(states, env.layout, agent_view_size=env.config.view_radius, tile_size=24)
         path = RunDir(run_dir).sub("gifs", f"seed_{seed}_selfplay.gif")

@@ -15,6 +15,7 @@ from typing import Protocol
 import jax
 import numpy as np
 
+from cluster.runtime.environment import process_record
 from population.config import Config, spread
 
 
@@ -33,6 +34,9 @@ class Workers(Protocol):
         """Worker restarts so far (0 for in-process shards)."""
 
     events: list[dict]  # one per worker death: shard, seeds, method, restored_update
+
+    def describe(self) -> list[dict]:
+        """Per shard, where it trains (``cluster.runtime.environment.process_record`` and more)."""
 
     def close(self) -> None: ...
 
@@ -57,6 +61,10 @@ class InProcessWorkers:
 
     def restarts(self) -> int:
         return 0
+
+    def describe(self) -> list[dict]:
+        """This process, once per shard (all of them train here)."""
+        return [{**process_record(), "worker": "this process", "num_gpus": None} for _ in self.shards]
 
     def close(self) -> None:
         self.target = None

@@ -11,6 +11,7 @@ import logging
 import math
 import sys
 import time
+from collections.abc import Sequence
 
 import numpy as np
 from rich.console import Console
@@ -29,8 +30,18 @@ def _bar(*columns) -> Progress | None:
 class PopulationProgress:
     """A rich progress bar on a terminal; one plain line per chunk otherwise (logs, CI)."""
 
-    def __init__(self, label: str, num_seeds: int, total_updates: int, steps_per_update: int, enabled: bool = True):
+    def __init__(
+        self,
+        label: str,
+        num_seeds: int,
+        total_updates: int,
+        steps_per_update: int,
+        enabled: bool = True,
+        details: Sequence[str] = (),
+    ):
+        """``details``: more lines of the run's header, after the first (e.g. where the seeds train)."""
         self.label, self.num_seeds, self.total = label, num_seeds, total_updates
+        self.details = list(details)
         self.steps_per_update = steps_per_update
         self.enabled = enabled
         self.started = time.perf_counter()
@@ -41,6 +52,8 @@ class PopulationProgress:
     def __enter__(self):
         if self.enabled:
             log.info(header(self.label, self.num_seeds, self.total, self.steps_per_update))
+            for line in self.details:
+                log.info(f"  {line}")
             self._bar = _bar(
                 TextColumn("[bold]{task.description}"),
                 BarColumn(),

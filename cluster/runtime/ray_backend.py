@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import math
 import os
 import socket
 import time
@@ -32,11 +33,14 @@ except ModuleNotFoundError:  # Ray is the optional ocv2[ray] extra: --backend lo
     ray = None
 
 from cluster.runtime import coordinator
+from cluster.runtime.environment import process_record
 from cluster.runtime.rundir import RunDirError
 from cluster.runtime.shard import SeedShard
+from population import numerics
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig, Config
 from population.config import shards as seed_shards
+from population.xla_flags import flag_name
 
 RESTART_TIMEOUT_S = 600.0  # how long a restarting actor may take to answer again
 
@@ -101,8 +105,11 @@ def session(backend: str, cluster: ClusterConfig):
             ray.shutdown()
 
 
-def start_local(num_cpus: int | None = None) -> None:
+def start_local(num_cpus: int | None = None, num_gpus: float | None = None) -> None:
     """Start a fresh Ray instance on this machine (never one that RAY_ADDRESS or `ray start` left running).
+
+    ``num_cpus``/``num_gpus``: the logical CPUs and GPUs it declares (None: Ray counts them; the tests declare
+    GPUs a CPU machine does not have, to check what actors are given).
 
     Quietly: Ray's own notices on this path are alarming and not about anything wrong.
 
@@ -121,7 +128,13 @@ def start_local(num_cpus: int | None = None) -> None:
     notices.addFilter(_token_auth_notice)
     try:
         with ray_process_launches():
-            ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, configure_logging=False)
+            ray.init(
+                address="local",
+                num_cpus=num_cpus,
+                num_gpus=num_gpus,
+                include_dashboard=False,
+                configure_logging=False,
+            )
     finally:
         notices.removeFilter(_token_auth_notice)
     if mode_before is None and os.environ.get("RAY_AUTH_MODE") == "token":  # Ray chose its default
@@ -157,14 +170,37 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
         ) from None
 
 
+def _node_resources() -> list[dict]:
+    return [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
+
+
+def gpus_per_actor(cluster: ClusterConfig, num_actors: int) -> float:
+    """The GPUs each worker actor asks Ray for: ``cluster.num_gpus``, with ``auto`` resolved.
+
+    ``auto`` shares the GPUs of the cluster's alive nodes evenly among the actors, never more than one per
+    actor (a shard is one vmapped program on one device; more than one GPU each only when asked for with a
+    number): each whole GPU hosts k actors of 1/k GPU, k the smallest number that places every actor (1 GPU
+    and 2 actors: 0.5 each; 2 GPUs and 3 actors: 0.5 each; 4 GPUs and 2 actors: 1 each). 0 only when Ray
+    reports no GPU at all.
+    """
+    if cluster.num_gpus != "auto":
+        return float(cluster.num_gpus)
+    per_node = [r.get("GPU", 0.0) for r in _node_resources()]
+    if not any(per_node) or num_actors < 1:
+        return 0.0
+    whole = sum(int(gpus) for gpus in per_node)
+    if whole == 0:  # only fractions of a GPU declared: the largest node's share
+        return max(per_node) / num_actors
+    return 1.0 / math.ceil(num_actors / whole)
+
+
 def check_resources(config: Config, num_actors: int) -> None:
     """Refuse requests the cluster cannot place: all actors must run at once (the coordinator waits for all)."""
 
     cluster = config.cluster
-    nodes = [n for n in ray.nodes() if n.get("Alive")]
-    per_node = [n.get("Resources", {}) for n in nodes]
+    per_node = _node_resources()
     total = ray.cluster_resources()
-    for name, want in (("GPU", cluster.num_gpus), ("CPU", cluster.num_cpus)):
+    for name, want in (("GPU", gpus_per_actor(cluster, num_actors)), ("CPU", cluster.num_cpus)):
         if want <= 0:
             continue
         key = "num_gpus" if name == "GPU" else "num_cpus"
@@ -181,15 +217,34 @@ def check_resources(config: Config, num_actors: int) -> None:
             )
 
 
-def actor_env(cluster: ClusterConfig) -> dict[str, str]:
-    """Environment of a worker process, set before it imports JAX (settings made later are ignored)."""
+def actor_env(cluster: ClusterConfig, num_gpus: float | None = None, deterministic: bool = True) -> dict[str, str]:
+    """Environment of a worker process, set before it imports JAX (settings made later are ignored).
+
+    ``num_gpus``: the GPUs the actor asks Ray for (None: ``cluster.num_gpus`` when it is a number; ``auto``
+    left unresolved counts as 0, an actor that asks for none). An actor without a GPU gets
+    ``JAX_PLATFORMS=cpu`` (Ray hides every GPU from it anyway; this skips the CUDA probe); an actor with
+    one never does. ``deterministic`` (``run.deterministic``): an actor with a GPU gets
+    ``--xla_gpu_deterministic_ops=true`` appended to the node's own ``XLA_FLAGS`` (Ray expands
+    ``${XLA_FLAGS}`` there), if the driver's jaxlib knows the flag and the driver's ``XLA_FLAGS`` does not
+    turn it off explicitly. Actors without a GPU are left without it: XLA:CPU is deterministic anyway, and
+    the flag would only change their compilation-cache keys.
+    """
+    if num_gpus is None:
+        num_gpus = 0.0 if cluster.num_gpus == "auto" else float(cluster.num_gpus)
     env = (
         {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
         if cluster.gpu_memory_fraction == 0
         else {"XLA_PYTHON_CLIENT_PREALLOCATE": "true", "XLA_CLIENT_MEM_FRACTION": f"{cluster.gpu_memory_fraction:.3f}"}
     )
-    if cluster.num_gpus == 0:
-        env["JAX_PLATFORMS"] = "cpu"  # no GPU is visible to the actor anyway; skip the CUDA probe
+    if num_gpus == 0:
+        env["JAX_PLATFORMS"] = "cpu"
+    elif deterministic:
+        here = os.environ.get("XLA_FLAGS", "")
+        turned_off = flag_name(numerics.DETERMINISTIC_FLAG) in {flag_name(t) for t in here.split()} and not (
+            numerics.deterministic_ops_in(here)
+        )
+        if not turned_off and numerics.deterministic_flag_known():
+            env["XLA_FLAGS"] = f"${{XLA_FLAGS}} {numerics.DETERMINISTIC_FLAG}"
     return env
 
 
@@ -207,10 +262,15 @@ class _ShardActor(SeedShard):
     An exception in an actor's constructor reaches the driver only as "the actor died" (and Ray does
     not restart it), which reads like a crash. A shard that cannot restore keeps its error instead and
     raises it from ``position``, the first call the coordinator and every restart check make.
+
+    The actor's process serves this one shard of one run, so ``run.precision`` is made its default before
+    anything is traced: every program it compiles (training, SA collection, cross-play, recorded episodes)
+    uses it, as the driver's ``numerics.matmul_precision`` context does for in-process shards.
     """
 
     def __init__(self, *args):
         self._load_error = None
+        numerics.set_process_precision(args[0].run.precision)
         try:
             super().__init__(*args)
         except SHARD_ERRORS as error:
@@ -223,6 +283,17 @@ class _ShardActor(SeedShard):
 
     def node_id(self) -> str:
         return ray.get_runtime_context().get_node_id()
+
+    def describe(self) -> dict:
+        """Where this actor trains: ``environment.process_record`` and what Ray gave it."""
+        context = ray.get_runtime_context()
+        return {
+            **process_record(),
+            "worker": "Ray actor",
+            "node_id": context.get_node_id(),
+            "num_gpus": context.get_assigned_resources().get("GPU", 0.0),
+            "gpu_ids": [str(i) for i in ray.get_gpu_ids()],
+        }
 
 
 @functools.lru_cache(maxsize=1)
@@ -237,14 +308,21 @@ class RayWorkers:
         self.config, self.shards = config, seed_shards(config)
         cluster = config.cluster
         check_resources(config, len(self.shards))
+        self.num_gpus = gpus_per_actor(cluster, len(self.shards))
+        cluster_gpus = ray.cluster_resources().get("GPU", 0.0)
+        if self.num_gpus == 0 and cluster_gpus > 0:  # asked for explicitly: say so, never silently
+            log.warning(
+                f"cluster.num_gpus=0: the worker actors train on the CPU although the cluster has "
+                f"{cluster_gpus:g} GPUs (cluster.num_gpus: auto shares them)"
+            )
         self._pool = None if pool is None else ray.put(pool)  # held here so the object outlives restarts
         options = dict(
             num_cpus=cluster.num_cpus,
-            num_gpus=cluster.num_gpus,
+            num_gpus=self.num_gpus,
             max_restarts=cluster.max_restarts,
             max_task_retries=0,
             scheduling_strategy="SPREAD",
-            runtime_env={"env_vars": actor_env(cluster)},
+            runtime_env={"env_vars": actor_env(cluster, self.num_gpus, config.run.deterministic)},
         )
         self.actors = [
             _actor_class().options(**options).remote(config, str(run_dir), seeds, self._pool) for seeds in self.shards
@@ -256,6 +334,10 @@ class RayWorkers:
 
     def node_ids(self) -> list[str]:
         return ray.get([actor.node_id.remote() for actor in self.actors])
+
+    def describe(self) -> list[dict]:
+        """Each actor's ``_ShardActor.describe``, in shard order."""
+        return self.call("describe", [(shard, ()) for shard in range(len(self.shards))])
 
     def share(self, value):
         return ray.put(value)

@@ -297,6 +297,18 @@ class RunDir:
         history.append(environment_record())
         write_json(self.environment_path, {"drivers": history})
 
+    def amend_environment(self, **fields) -> None:
+        """Add ``fields`` to this driver's record in ``environment.json`` (the last one), e.g. its workers once
+        they have started."""
+        try:
+            data = boundedjson.loads(self.environment_path.read_text())
+            history = data["drivers"]
+            history[-1].update(fields)
+        except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError):
+            _warn(f"{self.environment_path}: unreadable; not amended with {', '.join(fields)}")
+            return
+        write_json(self.environment_path, {"drivers": history})
+
     # metrics ----------------------------------------------------------------------------------------
     def append_metrics(self, rows: list[dict]) -> None:
         """Add ``rows`` to ``metrics.csv``, rewriting the file atomically (a kill never leaves a torn row).

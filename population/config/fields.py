@@ -61,8 +61,13 @@ def coerce(key: str, value, hint, bounds: tuple[int, int] = INT32):
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        inner = [a for a in args if a is not type(None)]
-        return coerce(key, value, inner[0], bounds)
+        errors = []
+        for option in (a for a in args if a is not type(None)):  # the first that takes the value, e.g.
+            try:  # cluster.num_gpus: float | str, a number or "auto" (its value is checked in validate)
+                return coerce(key, value, option, bounds)
+            except ConfigError as error:
+                errors.append(error)
+        raise errors[0]
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{key}: expected a list, got {value!r}")

@@ -21,6 +21,7 @@ FCP_STAGE_SEED_OFFSET = 7919
 METHODS = ("sp", "sa", "op", "fcp")
 ACTIVATIONS = ("relu", "tanh")
 KERNELS = ("auto", "cpu", "xla")  # model.kernels
+PRECISIONS = ("float32", "tf32", "bf16")  # run.precision (population.numerics)
 SECTIONS = ("env", "model", "ppo", "population", "eval", "run", "archive", "cluster")
 
 
@@ -87,9 +88,8 @@ class PPOConfig:
 
     @property
     def num_updates(self) -> int:
-        return self.total_timesteps // self.steps_per_update
         """Updates this run trains."""
-
+        return self.total_timesteps // self.steps_per_update
 
     @property
     def schedule_updates(self) -> int:
@@ -100,6 +100,7 @@ class PPOConfig:
     @property
     def truncated(self) -> bool:
         return self.schedule_updates > self.num_updates
+
 
 @dataclasses.dataclass(frozen=True)
 class SAConfig:
@@ -176,10 +177,19 @@ class EvalConfig:
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
-    """How a run is driven: chunking, checkpoints."""
+    """How a run is driven: chunking, checkpoints, and how its numbers are computed.
+
+    ``precision``: float32 matmul/convolution precision, ``float32`` (default), ``tf32`` or ``bf16``
+    (``population.numerics``; a GPU's own default would be TF32; on a CPU all three compute float32). Part
+    of the fingerprint although the rest of ``run`` is not. ``deterministic``: XLA's deterministic GPU ops
+    (``--xla_gpu_deterministic_ops``), so the same config and seed give the same numbers on a GPU too
+    (slower scatters and reductions; nothing changes on a CPU).
+    """
 
     checkpoint_every: int = 50  # updates between atomic TrainState checkpoints (also the chunk size)
     num_checkpoints: int = 3  # kept snapshots spread over training (0, mid, final), as the paper
+    precision: str = "float32"
+    deterministic: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,6 +218,9 @@ class ClusterConfig:
     ``seeds_per_actor`` seeds are vmapped in one actor (a GPU wants several); ``workers`` (0: one actor
     per ``seeds_per_actor`` seeds) sets the number of actors instead, spreading seeds evenly. ``num_cpus``/``num_gpus`` are
     per actor (fractional on a laptop: Ray's default of 1 CPU would leave actors pending on 2 cores).
+    ``num_gpus``: "auto" (default) shares the GPUs Ray reports evenly among the actors, at most one each
+    (1 GPU, 2 actors: 0.5 each; 4 GPUs, 2 actors: 1 each), and 0 only when Ray reports none; a number
+    is taken as it is (above 1 only when asked for explicitly).
     ``gpu_memory_fraction``: 0 grows GPU memory on demand (several actors can share a GPU); otherwise
     each actor preallocates that fraction. ``max_restarts``: Ray restarts of a dead worker actor.
     ``local_cpus``: logical CPUs of a Ray started on this machine (0: Ray detects them).
@@ -217,7 +230,7 @@ class ClusterConfig:
     workers: int = 0
     seeds_per_actor: int = 1
     num_cpus: float = 0.5
-    num_gpus: float = 0.0
+    num_gpus: float | str = "auto"
     gpu_memory_fraction: float = 0.0
     max_restarts: int = 3
     local_cpus: int = 0
@@ -247,18 +260,24 @@ class Config:
         return out
 
     def fingerprint(self, exclude: Sequence[str] = ("eval", "run", "archive", "cluster")) -> str:
-        """A hash of everything that changes training numbers (checkpoints from another config are refused).
+        """A hash of everything that changes training numbers (checkpoints from another config are refused):
+        the sections not in ``exclude`` and ``run.precision`` (``_HASHED_ANYWAY``).
 
         Keys added after a release are left out at their default value (``_LATER_KEYS``), so runs made
         before the key existed keep their fingerprint and still resume.
         """
-        data = {k: v for k, v in self.to_dict().items() if k not in exclude}
+        full = self.to_dict()
+        data = {k: v for k, v in full.items() if k not in exclude}
+        added = {name for name, _ in _HASHED_ANYWAY if name not in data}
+        for name, key in _HASHED_ANYWAY:
+            data.setdefault(name, {})[key] = full[name][key]
         for *path, key in _LATER_KEYS:
             section = data
             for name in path:
                 section = section.get(name) or {}  # a section set to None (e.g. no partner_ppo) has no keys
             if key in section and section[key] == _LATER_KEYS[(*path, key)]:
                 del section[key]
+        data = {k: v for k, v in data.items() if v or k not in added}
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -267,7 +286,14 @@ _LATER_KEYS = {
     ("population", "fcp", "pool"): "shared",
     ("population", "fcp", "partner_ppo"): None,
     ("model", "kernels"): "auto",
+    ("ppo", "schedule_timesteps"): None,
+    ("population", "fcp", "partner_ppo", "schedule_timesteps"): None,
+    ("run", "precision"): "float32",
+    ("run", "deterministic"): True,
 }
+#: Keys of sections the fingerprint leaves out that change training numbers all the same: hashed anyway
+#: (left out at their defaults by _LATER_KEYS, so runs made before they existed keep their fingerprint).
+_HASHED_ANYWAY = (("run", "precision"),)
 
 
 def _plain(value):
@@ -276,7 +302,3 @@ def _plain(value):
     if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
     return value
-    ("ppo", "schedule_timesteps"): None,
-    ("population", "fcp", "partner_ppo", "schedule_timesteps"): None,
-    ("run", "precision"): "float32",
-    ("run", "deterministic"): True,

@@ -15,6 +15,7 @@ from population.config.schema import (
     KERNELS,
     MAX_SEED,
     METHODS,
+    PRECISIONS,
     ClusterConfig,
     Config,
     FCPConfig,
@@ -171,6 +172,8 @@ def validate(config: Config) -> list[str]:
     problems += _positive("eval.episodes", config.eval.episodes)
     problems += _positive("eval.gifs", config.eval.gifs, allow_zero=True)
     problems += _positive("run.checkpoint_every", config.run.checkpoint_every)
+    if config.run.precision not in PRECISIONS:
+        problems.append(f"run.precision: expected one of {', '.join(PRECISIONS)}, got {config.run.precision!r}")
     problems += _positive("archive.train_every", config.archive.train_every, allow_zero=True)
     problems += _cluster_problems(config.cluster, pop.num_seeds)
     if config.run.num_checkpoints < 2:
@@ -203,7 +206,11 @@ def _cluster_problems(cluster: ClusterConfig, num_seeds: int) -> list[str]:
     if cluster.workers > num_seeds:
         problems.append(f"cluster.workers: {cluster.workers} actors for {num_seeds} seeds (at most one per seed)")
     problems += _positive("cluster.num_cpus", cluster.num_cpus)
-    problems += _positive("cluster.num_gpus", cluster.num_gpus, allow_zero=True)
+    if isinstance(cluster.num_gpus, str):
+        if cluster.num_gpus != "auto":
+            problems.append(f"cluster.num_gpus: expected auto or a number >= 0, got {cluster.num_gpus!r}")
+    else:
+        problems += _positive("cluster.num_gpus", cluster.num_gpus, allow_zero=True)
     if not 0.0 <= cluster.gpu_memory_fraction < 1.0:
         problems.append(f"cluster.gpu_memory_fraction: must lie in [0, 1), got {cluster.gpu_memory_fraction}")
     problems += _positive("cluster.max_restarts", cluster.max_restarts, allow_zero=True)
