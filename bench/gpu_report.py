@@ -84,18 +84,24 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
             tar.extractall(tmp, filter="data")
         results = Path(tmp) / "results"
         studies = sorted({p.name.split("_report")[0] for p in results.glob("study_*_report")})
-        for study in studies:
+        for study in studies:  # every check before anything is written
             dest = dest_root / f"gpu_coord_ring_{study.removeprefix('study_')}"
             if dest.exists():
                 raise SystemExit(f"{dest} exists: move it away first (nothing was written)")
+            policies = results / f"{study}_policies"
+            if policies.is_dir():
+                for entry in json.loads((policies / "SHA256SUMS.json").read_text()):
+                    digest = hashlib.sha256((policies / entry["file"]).read_bytes()).hexdigest()
+                    if digest != entry["sha256"]:
+                        raise SystemExit(
+                            f"{policies.name}/{entry['file']}: sha256 {digest} is not {entry['sha256']} "
+                            "(nothing was written)"
+                        )
+        for study in studies:
+            dest = dest_root / f"gpu_coord_ring_{study.removeprefix('study_')}"
             shutil.copytree(results / f"{study}_report", dest)
             policies = results / f"{study}_policies"
             if policies.is_dir():
-                listing = json.loads((policies / "SHA256SUMS.json").read_text())
-                for entry in listing:
-                    digest = hashlib.sha256((policies / entry["file"]).read_bytes()).hexdigest()
-                    if digest != entry["sha256"]:
-                        raise SystemExit(f"{policies / entry['file']}: sha256 {digest} is not {entry['sha256']}")
                 shutil.copytree(policies, dest / "policies")
             for extra in results.glob(f"{study}_*_*"):
                 if extra.is_file():

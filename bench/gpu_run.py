@@ -133,12 +133,13 @@ def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -
     config = load_config(config_path, [*sets, f"population.num_seeds={seeds}"])
     trainer = ppo.make_trainer(config)
     states = ppo.init_population(trainer, list(range(seeds)))
-    advance = ppo.make_advance_population(trainer, updates)
+    advance = ppo.make_advance_chunks(trainer, updates)  # the program a run's shard trains with
+    count = jnp.int32(updates)
     started = time.perf_counter()
-    states, _ = jax.block_until_ready(advance(states, None, None))
+    states, _ = jax.block_until_ready(advance(states, None, None, count))
     compile_s = time.perf_counter() - started
     started = time.perf_counter()
-    states, metrics = jax.block_until_ready(advance(states, None, None))
+    states, metrics = jax.block_until_ready(advance(states, None, None, count))
     seconds = time.perf_counter() - started
     steps = seeds * updates * config.ppo.steps_per_update
     flops = flops_per_env_step(trainer, ppo.take_seed(states.params, 0)) * steps

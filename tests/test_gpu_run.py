@@ -1,0 +1,117 @@
+"""bench/gpu_run.py's plan and bench/gpu_report.py's tables, on made-up measurements (the whole script is
+rehearsed end to end by .ci/run's Python 3.12 leg: GPU_RUN_SMOKE=1 bash bench/gpu_run.sh)."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _bench_module(name: str):
+    sys.path.insert(0, str(ROOT / "bench"))
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is made
+    spec.loader.exec_module(module)
+    return module
+
+
+gpu_run = _bench_module("gpu_run")
+gpu_report = _bench_module("gpu_report")
+FULL_STEPS = 10 * 10_000_000  # 10 seeds x the paper's Coordination Ring schedule
+
+
+def test_a_fast_gpu_trains_the_whole_schedule_then_sa_in_what_is_left():
+    steps = gpu_run.plan({"cnn_sp_10": {"env_steps_per_s": 1_000_000}}, seconds_left=400, smoke=False)
+    assert [s.run for s in steps] == ["sp", "sa"] and steps[0].budget == 1.0
+    assert steps[0].train_s == pytest.approx(FULL_STEPS / 1_000_000)
+    assert 0.1 <= steps[1].budget <= 1.0
+
+
+def test_a_slow_gpu_truncates_the_schedule_and_never_compresses_it(tmp_path):
+    rate = 100_000
+    (step,) = gpu_run.plan({"cnn_sp_10": {"env_steps_per_s": rate}}, seconds_left=390, smoke=False)
+    assert step.run == "sp" and step.budget == pytest.approx((390 - 90) * rate / FULL_STEPS, abs=1e-3)
+    command = step.command(tmp_path, smoke=False)
+    assert command[command.index("--budget-mode") + 1] == "truncate"
+    assert command[command.index("--seeds") + 1] == "10" and "--backend" in command
+    assert "gpu_coord_ring_sp.yaml" in command[command.index("run") + 1]
+    # nothing measured: a tenth, and the deadline stops it if that is too much
+    assert gpu_run.plan({"cnn_sp_10": {"error": "boom"}}, 390, smoke=False)[0].budget == 0.1
+
+
+def made_up_bench() -> dict:
+    trainer = {
+        "config": "classic_coord_ring_sp.yaml",
+        "model": "cnn",
+        "kernels": "auto",
+        "seeds": 10,
+        "env_steps_per_s": 400_000.0,
+        "model_tflops": 5.0,
+        "compile_plus_first_s": 31.0,
+    }
+    return {
+        "environment": {
+            "devices": ["gpu: NVIDIA H100 80GB HBM3"],
+            "nvidia_smi": "NVIDIA H100 80GB HBM3, 580.159.04, 81559 MiB, 1980 MHz",
+            "python": "3.12.3",
+            "versions": {"jax": "0.11.2", "mcap": None},
+            "XLA_FLAGS": "--xla_gpu_deterministic_ops=true",
+        },
+        "results": {
+            "matmul_f32": {"size": 8192, "tflops": 50.0},
+            "matmul_bf16": {"size": 8192, "tflops": 500.0},
+            "cnn_sp_10": trainer,
+            "rnn_sp_10_xla": {"skipped": "the measuring time was spent"},
+            "env_ocv2": {"batch": 16384, "steps": 400, "env_steps_per_s": 9e7},
+            "env_jaxmarl": {"batch": 16384, "steps": 400, "env_steps_per_s": 3e7},
+        },
+    }
+
+
+def test_the_benchmark_block_states_shares_of_the_measured_peaks():
+    block = gpu_report.benchmark_block(made_up_bench())
+    assert block.startswith(gpu_report.START) and block.endswith(gpu_report.END)
+    assert "gpu: NVIDIA H100 80GB HBM3" in block and "jax 0.11.2" in block and "mcap" not in block
+    assert "| cnn_sp_10 (classic_coord_ring_sp.yaml) | 10 | auto | 400,000 | 5.000 | 10.00 % | 1.00 % | 31.0 |" in block
+    assert "| rnn_sp_10_xla | | | the measuring time was spent |" in block
+    assert "ratio: **3.00x** (target: at least 3x)" in block
+
+
+def test_returned_results_unpack_into_docs_results_with_checked_sums(tmp_path):
+    files, staging = tmp_path / "files", tmp_path / "results"
+    report, policies = staging / "study_sp_report", staging / "study_sp_policies"
+    for folder in (files, report, policies):
+        folder.mkdir(parents=True)
+    (report / "report.md").write_text("# Study\n")
+    (policies / "sp_seed0_update610.ocv2policy").write_bytes(b"policy bytes")
+    listing = [{"file": "sp_seed0_update610.ocv2policy", "seed": 0, "update": 610, "sha256": "0" * 64}]
+    (policies / "SHA256SUMS.json").write_text(json.dumps(listing))
+    (staging / "study_sp_sp_metrics.csv").write_text("update\n1\n")
+    (files / "bench.json").write_text(json.dumps(made_up_bench()))
+
+    def pack():
+        with tarfile.open(files / "results.tar.gz", "w:gz") as tar:
+            tar.add(staging, arcname="results")
+
+    pack()
+    with pytest.raises(SystemExit, match="sha256"):  # a policy that is not what was exported is refused
+        gpu_report.unpack_results(files, tmp_path / "docs")
+    assert not (tmp_path / "docs").exists()
+    listing[0]["sha256"] = hashlib.sha256(b"policy bytes").hexdigest()
+    (policies / "SHA256SUMS.json").write_text(json.dumps(listing))
+    pack()
+    (dest,) = gpu_report.unpack_results(files, tmp_path / "docs2")
+    assert dest.name == "gpu_coord_ring_sp"
+    assert (dest / "report.md").is_file() and (dest / "policies" / "sp_seed0_update610.ocv2policy").is_file()
+    assert (dest / "sp_metrics.csv").is_file() and (dest / "bench.json").is_file()
+    with pytest.raises(SystemExit, match="exists"):  # never over what is there
+        gpu_report.unpack_results(files, tmp_path / "docs2")
