@@ -100,3 +100,22 @@ def test_the_local_backend_records_its_device_precision_and_flags(tmp_path, caps
 def numerics_device() -> str:
     device = jax.devices()[0]
     return "cpu" if device.platform == "cpu" else f"{device.platform}: {device.device_kind}"
+
+
+def test_the_study_command_sets_the_flag_like_the_train_command(tmp_path, monkeypatch, capsys):
+    """``ocv2 study run`` trains in its own process with the local backend: it sets the flag the same way
+    (here JAX already runs, so it says so), and not when every run turns run.deterministic off."""
+    import yaml
+
+    import cluster.cli.study as study_cli
+
+    jnp.zeros(1).block_until_ready()
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
+    monkeypatch.setattr(study_cli, "run_study", lambda *a, **k: {"steps": {}, "report": {"report": "r.md"}})
+    study = tmp_path / "s.yaml"
+    study.write_text(yaml.safe_dump({"study": "s", "runs": [{"name": "a", "config": str(SMOKE)}]}))
+    assert main(["study", "run", str(study), "--backend", "local", "--out", str(tmp_path / "out")]) == 0
+    assert "run.deterministic: JAX was already running in this process" in capsys.readouterr().err
+    off = ["--set", "run.deterministic=false"]
+    assert main(["study", "run", str(study), "--backend", "local", "--out", str(tmp_path / "o2"), *off]) == 0
+    assert "run.deterministic" not in capsys.readouterr().err

@@ -12,6 +12,7 @@ stopped. ``status`` lists every step with its progress and an ETA from the throu
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 from pathlib import Path
 
@@ -29,8 +30,12 @@ from cluster.study.runner import kept_study, read_state, run_study, study_status
 from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, check_runs, load_study, run_config, with_overrides
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
+from population.numerics import enable_deterministic_ops
 
 BUDGET = bounded(float, 0, 100, "a fraction of the env steps in (0, 100], such as 0.25", low_open=True)
+
+
+log = logging.getLogger(__name__)
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -111,6 +116,16 @@ def _run(args) -> int:
         raise CLIError(str(error)) from None
     out = Path(args.out or os.path.join("studies", study.name))
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
+    # The local backend trains in this process: XLA's deterministic GPU ops (run.deterministic) must be in
+    # XLA_FLAGS before anything runs JAX here, as `ocv2 train` does; a run that turns them off does so alone.
+    try:
+        planned = with_overrides(study, args.overrides)
+        deterministic = any(run_config(planned, r, out, 1.0, None).run.deterministic for r in planned.runs)
+    except StudyError as error:
+        raise CLIError(str(error)) from None
+    if deterministic:
+        applied, message = enable_deterministic_ops()
+        log.log(logging.DEBUG if applied else logging.INFO, message)
     try:
         # One Ray for every run and comparison, started before the driver runs JAX (ray_backend.session)
         with ray_backend.session(args.backend, ClusterConfig(address=args.address)):
