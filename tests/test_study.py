@@ -20,6 +20,7 @@ import yaml
 from cluster.cli import main
 from cluster.runtime.rundir import RunDir
 from cluster.runtime.runstate import Schedule
+from cluster.study.pack import pack_study
 from cluster.study.runner import StateFile, kept_study, open_state, run_study, study_status
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config, with_overrides
 from population import checkpoints as ckpt
@@ -211,10 +212,37 @@ def test_a_study_killed_mid_run_resumes_to_the_same_numbers(finished, tmp_path):
     partial = (tmp_path / "partial" / "report.md").read_text()
     assert "; wall time so far: " in partial and "## Not finished" in partial and "- train sa: " in partial
 
-    assert main(["study", "run", str(study), "--backend", "local", "--out", str(out), "--quiet"]) == 0
-    assert {p: p.stat().st_mtime_ns for p in (out / "runs" / "sp").rglob("*") if p.is_file()} == sp_files
-    assert_same_runs(out, finished)
-    assert numbers(out) == numbers(finished)
+    # Carried to another machine as a GPU window's files are: packed in parts, unpacked elsewhere, resumed there.
+    record = pack_study(out, tmp_path / "packed", part_bytes=200_000)
+    assert len(record["parts"]) > 1 and all(p["bytes"] <= 200_000 for p in record["parts"])
+    moved = tmp_path / "elsewhere" / "study"
+    assert main(["study", "unpack", str(tmp_path / "packed"), "--out", str(moved)]) == 0
+    assert not list(moved.rglob("*.png")) and not (moved / ".lock").exists()
+    assert main(["study", "run", str(study), "--backend", "local", "--out", str(moved), "--quiet"]) == 0
+    # sp is not trained again: its files keep the times tar kept (whole seconds)
+    moved_sp = {p.relative_to(moved): int(p.stat().st_mtime) for p in (moved / "runs" / "sp").rglob("*") if p.is_file()}
+    kept = {p.relative_to(out): t // 10**9 for p, t in sp_files.items()}
+    assert moved_sp and all(kept[p] == t for p, t in moved_sp.items())
+    assert_same_runs(moved, finished)
+    assert numbers(moved) == numbers(finished)
+
+
+def test_a_packed_study_is_checked_before_anything_is_unpacked(finished, tmp_path, capsys):
+    packed = tmp_path / "packed"
+    assert main(["study", "pack", str(finished), "--out", str(packed)]) == 0
+    assert main(["study", "pack", str(finished), "--out", str(packed)]) == 2  # never into what is there
+    assert "exists and is not an empty folder" in capsys.readouterr().err
+    part = packed / "study.tar.gz.000"
+    good = part.read_bytes()
+    part.write_bytes(good[:-1] + bytes([good[-1] ^ 1]))
+    assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
+    assert "sha256 does not match pack.json" in capsys.readouterr().err and not (tmp_path / "u").exists()
+    part.write_bytes(good)
+    assert main(["study", "unpack", str(packed), "--out", str(finished)]) == 2  # nor over an existing study
+    assert "exists; unpack into a new directory" in capsys.readouterr().err
+    (packed / "pack.json").unlink()
+    assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
+    assert "no pack.json" in capsys.readouterr().err and not (tmp_path / "u").exists()
 
 
 def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):

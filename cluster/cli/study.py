@@ -25,6 +25,7 @@ from cluster.runtime.loggers import MissingExtraError
 from cluster.runtime.progress import duration
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
+from cluster.study.pack import pack_study, unpack_study
 from cluster.study.report import write_report
 from cluster.study.runner import kept_study, read_state, run_study, study_status
 from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, check_runs, load_study, run_config, with_overrides
@@ -46,7 +47,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "numbers) and comparisons; `run` trains, cross-plays and reports, and "
         "continues where it stopped after any interruption.",
     )
-    commands = parser.add_subparsers(dest="study_command", metavar="{run,status,report}")
+    commands = parser.add_subparsers(dest="study_command", metavar="{run,status,report,pack,unpack}")
     commands.required = True
     run = commands.add_parser("run", help="train every unfinished run, cross-play, write DIR/report.md")
     run.add_argument("study", help="study file (see configs/studies/)")
@@ -92,10 +93,18 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="write the report, summary, pictures and cross-play matrices into this folder "
         "instead (a compact record to keep: no checkpoints, no archives)",
     )
+    pack = commands.add_parser("pack", help="DIR's resumable state as parts of at most 16 MiB (cluster.study.pack)")
+    pack.add_argument("dir", help="study directory")
+    pack.add_argument("--out", required=True, help="new or empty folder for pack.json and the parts")
+    unpack = commands.add_parser("unpack", help="a packed study back into a directory that `run` continues")
+    unpack.add_argument("source", help="folder holding pack.json and its parts")
+    unpack.add_argument("--out", required=True, help="the study directory to create (must not exist)")
     return parser
 
 
 def run(args) -> int:
+    if args.study_command in ("pack", "unpack"):
+        return _pack(args)
     if args.study_command == "status":
         return _status(args.dir)
     if args.study_command == "report":
@@ -151,6 +160,20 @@ def _run(args) -> int:
         raise CLIError(
             f"{len(blocked)} step(s) could not run (above); fix them and run the same command again", EXIT_FAILURE
         )
+    return EXIT_OK
+
+
+def _pack(args) -> int:
+    try:
+        if args.study_command == "pack":
+            record = pack_study(Path(args.dir), Path(args.out))
+            print(f"packed {record['files']} files of study {record['study']!r} into {len(record['parts'])} part(s), "
+                  f"{record['bytes']:,} bytes: {args.out}")  # fmt: skip
+        else:
+            record = unpack_study(Path(args.source), Path(args.out))
+            print(f"unpacked study {record['study']!r} ({record['files']} files) into {args.out}")
+    except StudyError as error:
+        raise CLIError(str(error)) from None
     return EXIT_OK
 
 

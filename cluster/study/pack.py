@@ -1,0 +1,114 @@
+"""A study directory as a few bounded files, and back: how a study crosses from one short machine loan to the next.
+
+A lent GPU machine returns at most 8 files of 16 MiB and takes at most 64 MiB along (work tree included),
+and the machine that ran a study may be gone by the next session. ``pack_study`` writes what resuming
+needs -- study.json, each run's config.yaml, metrics.csv, manifests and results, and its kept checkpoints
+-- as one gzipped tar cut into parts of at most ``part_bytes``, plus ``pack.json`` naming the study, the
+parts and their sha256. Left out, because they are pictures or logs made again from the rest or not needed
+to go on: GIFs, plots, MCAP archives, ``*.png`` and the directory lock. ``unpack_study`` checks every part's
+sum before writing anything, then unpacks into a directory that must not exist yet (a half-unpacked study
+would look resumable); ``ocv2 study run`` with the same study file then continues it to the same numbers as
+an uninterrupted run (training does not depend on where it was interrupted).
+
+    ocv2 study pack studies/cr --out packed/      # packed/pack.json, packed/study.tar.gz.000, ...
+    ocv2 study unpack packed/ --out studies/cr
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import shutil
+import tarfile
+from pathlib import Path
+
+from cluster.study.spec import StudyError
+
+PACK_NAME = "pack.json"
+PART_BYTES = 16 << 20  # the largest file the device tool brings back
+_SKIPPED_DIRS = {"gifs", "plots", "archive"}
+_SKIPPED_SUFFIXES = {".png", ".gif", ".mcap", ".lock"}
+
+
+def _packed_files(out: Path) -> list[Path]:
+    files = []
+    for path in sorted(out.rglob("*")):
+        relative = path.relative_to(out)
+        if not path.is_file() or path.is_symlink():
+            continue
+        if _SKIPPED_DIRS & set(relative.parts[:-1]) or path.suffix in _SKIPPED_SUFFIXES or path.name == ".lock":
+            continue
+        files.append(path)
+    return files
+
+
+def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
+    """Write ``out``'s resumable state into ``dest`` (created; must be empty): parts and ``pack.json``."""
+    out, dest = Path(out), Path(dest)
+    if not (out / "study.json").is_file():
+        raise StudyError(f"{out}: not a study directory (no study.json)")
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        raise StudyError(f"{dest}: exists and is not an empty folder; choose another --out")
+    if part_bytes < 1:
+        raise StudyError(f"part size must be positive, got {part_bytes}")
+    buffer = io.BytesIO()
+    files = _packed_files(out)
+    with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
+        for path in files:
+            tar.add(path, arcname=str(path.relative_to(out)))
+    data = buffer.getvalue()
+    dest.mkdir(parents=True, exist_ok=True)
+    parts = []
+    for index, start in enumerate(range(0, max(len(data), 1), part_bytes)):
+        chunk = data[start : start + part_bytes]
+        name = f"study.tar.gz.{index:03d}"
+        (dest / name).write_bytes(chunk)
+        parts.append({"file": name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
+    study = json.loads((out / "study.json").read_text()).get("study")
+    record = {"study": study, "files": len(files), "bytes": len(data), "parts": parts}
+    (dest / PACK_NAME).write_text(json.dumps(record, indent=1))  # last: its presence means the pack is whole
+    return record
+
+
+def read_pack(source: Path) -> tuple[dict, bytes]:
+    """``pack.json`` of ``source`` and the packed bytes, every part checked against its sha256."""
+    source = Path(source)
+    try:
+        record = json.loads((source / PACK_NAME).read_text())
+        parts = record["parts"]
+    except FileNotFoundError:
+        raise StudyError(f"{source}: no {PACK_NAME} (not a packed study, or packing did not finish)") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as error:
+        raise StudyError(f"{source / PACK_NAME}: unreadable ({error})") from None
+    chunks = []
+    for part in parts:
+        path = source / str(part.get("file", ""))
+        if path.parent != source or not path.is_file():
+            raise StudyError(f"{source}: part {part.get('file')!r} named by {PACK_NAME} is missing")
+        chunk = path.read_bytes()
+        if hashlib.sha256(chunk).hexdigest() != part.get("sha256"):
+            raise StudyError(f"{path}: sha256 does not match {PACK_NAME} (damaged or from another pack)")
+        chunks.append(chunk)
+    return record, b"".join(chunks)
+
+
+def unpack_study(source: Path, out: Path) -> dict:
+    """Unpack the packed study in ``source`` into ``out`` (which must not exist). Returns pack.json's record."""
+    out = Path(out)
+    if out.exists():
+        raise StudyError(f"{out}: exists; unpack into a new directory (nothing was written)")
+    record, data = read_pack(source)
+    staging = out.with_name(f".{out.name}.unpacking")
+    shutil.rmtree(staging, ignore_errors=True)  # what an earlier unpack left when it was killed
+    try:
+        with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
+            tar.extractall(staging, filter="data")  # no absolute paths, links out or devices
+        if not (staging / "study.json").is_file():
+            raise StudyError(f"{source}: the pack holds no study.json")
+        staging.rename(out)  # whole or not at all
+    except (tarfile.TarError, OSError) as error:
+        raise StudyError(f"{source}: cannot unpack ({error}); nothing was written") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return record
