@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
+from cluster.archive.format import require_mcap
 from cluster.runtime import coordinator, ray_backend
 from cluster.runtime.local import LocalWorkers
 from cluster.runtime.loggers import MetricsLogger, MissingExtraError, check_loggers, make_loggers
@@ -55,6 +56,19 @@ def require_backend(backend: str) -> None:
             ) from None
 
 
+def archive_settings(config: Config, evaluate: bool = True) -> list[str]:
+    """The settings (``--set`` syntax) that would turn off each part of the trajectory archive this run writes
+    or reads; empty when the run needs no archive (and so no ``mcap``)."""
+    sa = config.population.method == "sa"
+    wanted = {
+        "archive.xp=false": evaluate and config.archive.xp,
+        "archive.sa_collection=false": sa and config.archive.sa_collection,
+        "archive.train_every=0": config.archive.train_every > 0,
+        "population.sa.archives=[]": sa and bool(config.population.sa.archives),
+    }
+    return [setting for setting, used in wanted.items() if used]
+
+
 def train_population(
     config: Config | str | os.PathLike,
     run_dir,
@@ -71,6 +85,8 @@ def train_population(
     ``config``: a ``Config`` or a YAML path. ``backend``: "ray" (one actor per shard of seeds; needs
     ``ocv2[ray]``) or "local" (one process). ``loggers``: any of "tensorboard", "wandb". Returns the
     summary ``ocv2 train`` prints from (run_dir, updates, restarts and, after evaluation, xp).
+    Without the ``mcap`` package, a run that writes or reads the trajectory archive (``archive_settings``) is
+    an ``ArchiveError`` naming ``pip install mcap`` before anything is written; with it turned off it trains.
     """
     if not isinstance(config, Config):
         config = load_config(config)
@@ -78,6 +94,9 @@ def train_population(
     check_fits(config, "local" if backend == "local" else "ray" if config.cluster.address is None else "cluster")
     require_backend(backend)
     check_loggers(loggers)  # before the run directory is touched
+    archive_off = archive_settings(config, evaluate)
+    if archive_off:  # mcap: a core dependency that an environment set up by hand may lack
+        require_mcap(archive_off)
     run_dir = Path(run_dir).resolve()
     # A resumed run retrains the updates after its last checkpoint; the rows an earlier driver already
     # logged up to here are not logged twice (W&B refuses steps that go back). One read, at the start.

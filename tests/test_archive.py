@@ -18,6 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
+pytest.importorskip("mcap", reason="the archive is MCAP: needs mcap (pip install mcap)")
+
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from PIL import Image

@@ -1,6 +1,8 @@
 """The trajectory archive: whole episodes (states, actions, rewards) in MCAP files.
 
-The only package of the project that imports ``mcap``. Format, guarantees and commands are
+The only package of the project that imports ``mcap``, and only when it is installed: without it (an
+environment set up by hand) the package still imports and every archive operation is a one-line
+``ArchiveError`` naming ``pip install mcap`` (``require_mcap``). Format, guarantees and commands are
 documented in ``docs/archive.md``; in short:
 
 * One file holds any number of episodes. Each episode is written as T + 1 ``step`` messages (state
@@ -22,12 +24,14 @@ Modules, each importing only those before it: ``format`` (constants, schemas, fi
 
 from cluster.archive.format import (
     FORMAT_VERSION,
+    MCAP_AVAILABLE,
     PARTIAL_SUFFIX,
     RESERVED_KEYS,
     ArchiveError,
     Episode,
     RecoveryReport,
     env_meta,
+    require_mcap,
 )
 from cluster.archive.reader import ArchiveReader
 from cluster.archive.record import record_episodes, record_pairs, states_as_buffer
@@ -44,8 +48,10 @@ __all__ = [
     "record_episodes",
     "record_pairs",
     "recover",
+    "require_mcap",
     "states_as_buffer",
     "FORMAT_VERSION",
+    "MCAP_AVAILABLE",
     "PARTIAL_SUFFIX",
     "RESERVED_KEYS",
 ]

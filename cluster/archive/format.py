@@ -14,7 +14,6 @@ from typing import NamedTuple
 
 import jax
 import numpy as np
-from mcap.writer import CompressionType
 
 from ocv2.layouts import LAYOUTS, Layout
 from ocv2.state import Agents, State
@@ -48,7 +47,18 @@ RESERVED_KEYS = (
     "log_time_end",
 )
 
-COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+COMPRESSION = ("zstd", "lz4", "none")  # chunk compressions (mcap's CompressionType, by lower-case name)
+
+#: Whether the ``mcap`` package can be imported. It is a core dependency (``pip install ocv2`` brings it), but an
+#: environment set up by hand (a GPU machine's ``pip install --no-deps``) may lack it. The archive's modules
+#: import without it, so everything else runs (training with the archive turned off included); using the
+#: archive then raises ``require_mcap``'s one-line ``ArchiveError``.
+try:
+    import mcap  # noqa: F401
+
+    MCAP_AVAILABLE = True
+except ImportError:
+    MCAP_AVAILABLE = False
 
 EPISODE_SCHEMA = {
     "title": "ocv2.Episode",
@@ -94,6 +104,15 @@ RAW_IMAGE_SCHEMA = {
 
 class ArchiveError(Exception):
     """A file that is not a (readable) ocv2 archive, or a request it cannot satisfy."""
+
+
+def require_mcap(turn_off: Sequence[str] = ()) -> None:
+    """An ``ArchiveError`` naming ``pip install mcap`` when mcap is missing (and the ``--set`` settings of
+    ``turn_off`` that would do without the archive)."""
+    if MCAP_AVAILABLE:
+        return
+    alternative = f", or turn it off: {' '.join(f'--set {setting}' for setting in turn_off)}" if turn_off else ""
+    raise ArchiveError(f"the trajectory archive needs the mcap package: pip install mcap{alternative}")
 
 
 class Episode(NamedTuple):

@@ -20,16 +20,13 @@ from typing import NamedTuple
 
 import jax
 import numpy as np
-from mcap.data_stream import ReadDataStream
-from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Header, Message, Schema
-from mcap.stream_reader import breakup_chunk
 
 from cluster.archive.format import (
     EPISODE_TOPIC,
     FRAMES_TOPIC,
     MAGIC,
     MAX_CHUNK_BYTES,
+    MCAP_AVAILABLE,
     PROFILE,
     STATE_NAMES,
     STATE_TREEDEF,
@@ -40,18 +37,25 @@ from cluster.archive.format import (
     Episode,
     field_sizes,
     layout_from_spec,
+    require_mcap,
 )
 from ocv2 import boundedjson
 from ocv2.config import build_config
 from ocv2.layouts import Layout
 from ocv2.reset import validate_buffer
 
+if MCAP_AVAILABLE:  # without it, reading raises require_mcap's error (format.py)
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Chunk, Header, Message, Schema
+    from mcap.stream_reader import breakup_chunk
+
 #: Longest episode (transitions) a commit record may name; beyond it the record is crafted.
 MAX_STEPS = 1 << 31
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, content length
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start time, end time, uncompressed size, crc, compression length
 _FOOTER_BYTES = _RECORD_HEAD.size + 20  # opcode, length, summary start, summary offset start, crc
-_KNOWN_OPCODES = {int(op) for op in Opcode}
+_KNOWN_OPCODES = {int(op) for op in Opcode} if MCAP_AVAILABLE else set()
 _RESYNC_BLOCK = 1 << 20  # bytes read at a time while looking for the next valid chunk
 
 
@@ -77,6 +81,7 @@ class Group(NamedTuple):
 
 
 def check_file(path: str) -> int:
+    require_mcap()  # every read starts here (scan, recover, ArchiveReader)
     if not os.path.exists(path):
         raise ArchiveError(f"no such file: {path!r}")
     if os.path.isdir(path):

@@ -9,9 +9,6 @@ import time
 
 import jax
 import numpy as np
-from mcap.data_stream import RecordBuilder
-from mcap.records import Channel, Schema
-from mcap.writer import IndexType, Writer
 
 from cluster.archive.format import (
     COMPRESSION,
@@ -21,6 +18,7 @@ from cluster.archive.format import (
     FRAMES_TOPIC,
     LIBRARY,
     MAX_CHUNK_BYTES,
+    MCAP_AVAILABLE,
     PARTIAL_SUFFIX,
     PROFILE,
     RAW_IMAGE_SCHEMA,
@@ -33,12 +31,18 @@ from cluster.archive.format import (
     ArchiveError,
     field_table,
     layout_spec,
+    require_mcap,
     to_json,
 )
 from ocv2 import boundedjson
 from ocv2.layouts import Layout, get_layout
 from ocv2.render import render_frames
 from ocv2.state import State
+
+if MCAP_AVAILABLE:  # without it, Output and ArchiveWriter raise require_mcap's error (format.py)
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import Channel, Schema
+    from mcap.writer import CompressionType, IndexType, Writer
 
 
 class Output:
@@ -60,6 +64,7 @@ class Output:
         message_index: bool = True,
         suffix: str = PARTIAL_SUFFIX,
     ):
+        require_mcap()
         if compression not in COMPRESSION:
             raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, got {compression!r}")
         self.path = os.fspath(path)
@@ -81,7 +86,10 @@ class Output:
         try:
             index_types = IndexType.ALL if message_index else IndexType.ALL & ~IndexType.MESSAGE
             self.mcap = Writer(
-                self._file, chunk_size=int(chunk_size), compression=COMPRESSION[compression], index_types=index_types
+                self._file,
+                chunk_size=int(chunk_size),
+                compression=CompressionType[compression.upper()],
+                index_types=index_types,
             )
             self.mcap.start(profile=PROFILE, library=LIBRARY)
             self._file.flush()  # the header is on disk: an empty file never looks like a broken archive
@@ -230,6 +238,7 @@ class ArchiveWriter:
         start_time_ns: int | None = None,
         step_ns: int = 100_000_000,
     ):
+        require_mcap()
         if not 0 < int(chunk_size) <= MAX_CHUNK_BYTES // 4:
             raise ValueError(f"chunk_size must be in 1..{MAX_CHUNK_BYTES // 4} bytes, got {chunk_size}")
         self.path = os.fspath(path)

@@ -18,6 +18,7 @@ import os
 import time
 from pathlib import Path
 
+from cluster.archive import ArchiveError
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import crossplay, ray_backend
 from cluster.runtime.evaluate import evaluate_run
@@ -138,7 +139,7 @@ def _in_run(args) -> int:
             evaluate_run(args.run_dir, episodes=args.episodes)
         finally:
             run.close()
-    except (RunDirError, CheckpointError) as error:
+    except (RunDirError, CheckpointError, ArchiveError) as error:  # ArchiveError: archive.xp without mcap
         raise CLIError(str(error)) from None
     print(f"wrote {os.path.join(args.run_dir, 'xp')}/matrix.csv, episodes.csv, summary.json, heatmap.png")
     return EXIT_OK
