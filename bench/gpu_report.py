@@ -4,12 +4,12 @@
     python bench/gpu_report.py FILES_DIR                 # the folder the device tool returned ($OUT's files)
     python bench/gpu_report.py FILES_DIR --results ''    # the benchmark block only
 
-From ``bench.json`` (bench/gpu_run.py's measurements) it writes the block between ``<!-- gpu_run:start -->``
+From ``gpu_run.json`` (bench/gpu_run.py's record: environment and measurements) it writes the block between ``<!-- gpu_run:start -->``
 and ``<!-- gpu_run:end -->``: the device and versions, every measured trainer rate with its FLOP rate as a share
 of the same GPU's matmul rate (float32 and bf16, measured in the same command), and the environment alone
 against JaxMARL's. From ``results.tar.gz`` it unpacks each study's report folder, exported policies (with
-their sha256 sums, checked here) and metrics into ``docs/results/gpu_<study>/``, beside environment.json,
-plan.json and trained.json.
+their sha256 sums, checked here) and metrics into ``docs/results/gpu_coord_ring_<run>/``, beside gpu_run.json.
+A ``state/`` folder that came back is the next window's starting point: move it to ``gpu_state/`` and commit it.
 """
 
 from __future__ import annotations
@@ -106,9 +106,8 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
             for extra in results.glob(f"{study}_*_*"):
                 if extra.is_file():
                     shutil.copy(extra, dest / extra.name.removeprefix(f"{study}_"))
-            for name in ("environment.json", "plan.json", "trained.json", "bench.json"):
-                if (files / name).exists():
-                    shutil.copy(files / name, dest / name)
+            if (files / "gpu_run.json").exists():
+                shutil.copy(files / "gpu_run.json", dest / "gpu_run.json")
             written.append(dest)
     return written
 
@@ -119,7 +118,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=str(ROOT / "docs" / "BENCHMARKS.md"), help="'' prints only")
     parser.add_argument("--results", default=str(ROOT / "docs" / "results"), help="'' skips the unpacking")
     args = parser.parse_args(argv)
-    publish(benchmark_block(json.loads((args.files / "bench.json").read_text())), args.out, START, END)
+    publish(benchmark_block(json.loads((args.files / "gpu_run.json").read_text())), args.out, START, END)
     if args.results and (args.files / "results.tar.gz").exists():
         for dest in unpack_results(args.files, Path(args.results)):
             print(f"wrote {dest}")

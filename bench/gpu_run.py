@@ -5,22 +5,26 @@ A lent GPU machine is ours for minutes (one command of at most 10 minutes, no ne
 script makes one such command count. ``bench/gpu_run.sh`` calls it after installing the carried wheels;
 it can also run by itself (``python bench/gpu_run.py --out DIR``).
 
-1. **environment**: device, driver (nvidia-smi), Python and package versions, XLA flags -> environment.json.
+1. **environment**: device, driver (nvidia-smi), Python and package versions, XLA flags.
 2. **measure** (``--measure-s``, about 2 minutes): the same GPU's float32 and bf16 matmul rates; trainer env
    steps/s of Coordination Ring SP (PPO-CNN) at 10, 4 and 1 seeds and of Grounded Coord. Simple SP
    (PPO-RNN) at 1 and 10 seeds in both kernel families (``model.kernels`` cpu/xla); the environment
    alone (ours, and JaxMARL's if it imports). Most important first; what the time leaves out is recorded as
-   skipped, never guessed -> bench.json.
+   skipped, never guessed.
 3. **plan**: the largest run that ends before the deadline at the measured 10-seed CNN rate: Table 1
    Coordination Ring SP (configs/studies/gpu_coord_ring_sp.yaml), 10 seeds, the paper's 10M
    schedule -- truncated (stopped early, ``--budget-mode truncate``), never compressed, when it does not
-   fit. When SP fits with time to spare, SA follows in the time left (gpu_coord_ring_sa.yaml) -> plan.json.
+   fit. When SP fits with time to spare, SA follows in the time left (gpu_coord_ring_sa.yaml).
 4. **train**: ``ocv2 study run --backend local`` in a child process; at the deadline it gets SIGINT, which
    stops training after the chunk in flight (saved), so what it has is packed and a later window resumes it.
 5. **pack**: each study's report folder (``ocv2 study report --out``), every seed's exported policy (its
-   latest checkpoint and every kept snapshot) with sha256 sums, metrics.csv -> results.tar.gz; the latest
-   checkpoints of every seed (what ``--resume`` needs) -> checkpoints.tar.gz when it fits in one returned
-   file (16 MiB), else left out and said so. ``bench/gpu_run.sh`` adds the log.
+   latest checkpoint, then kept snapshots while 12 MiB allow) with sha256 sums, metrics.csv and gpu_run.json
+   -> results.tar.gz; the resumable state of a study left unfinished at the deadline -> state/ (``ocv2 study
+   pack``: pack.json and parts of at most 16 MiB). Commit state/ as gpu_state/ and the next window's
+   ``bench/gpu_run.sh`` continues that study (``--continue-from``) instead of planning a new one.
+
+Everything it learns goes into gpu_run.json, rewritten after every phase: the environment (device, driver,
+versions, XLA flags), the measurements, the plan, what trained and what was packed.
 
 ``GPU_RUN_SMOKE=1`` (or ``--smoke``) shrinks every size (2 seeds, a few updates of a few envs, 4 episodes per
 pair): the same steps end to end in about 2 minutes on a CPU, which is how the script is rehearsed.
@@ -33,6 +37,7 @@ import dataclasses
 import json
 import os
 import platform
+import shutil
 import signal
 import statistics
 import subprocess
@@ -233,12 +238,15 @@ class Step:
     budget: float
     seeds: int
     train_s: float  # the planned training time at the measured rate
+    resume: bool = False  # an earlier window's study, unpacked: its directory keeps budget, seeds and --set
 
     def command(self, out: Path, smoke: bool) -> list[str]:
+        study = [sys.executable, "-m", "cluster.cli", "study", "run", str(STUDIES / f"gpu_coord_ring_{self.run}.yaml")]
+        if self.resume:
+            return [*study, "--backend", "local", "--out", str(out / f"study_{self.run}")]
         sets = [x for s in (SMOKE_SETS + ["eval.episodes=4"] if smoke else []) for x in ("--set", s)]
         return [
-            sys.executable, "-m", "cluster.cli", "study", "run", str(STUDIES / f"gpu_coord_ring_{self.run}.yaml"),
-            "--backend", "local", "--budget", f"{self.budget:.6g}", "--budget-mode", "truncate",
+            *study, "--backend", "local", "--budget", f"{self.budget:.6g}", "--budget-mode", "truncate",
             "--seeds", str(self.seeds), "--out", str(out / f"study_{self.run}"), *sets,
         ]  # fmt: skip
 
@@ -293,9 +301,6 @@ def train(step: Step, out: Path, deadline: float, smoke: bool) -> dict:
 # 5. export and pack
 # ---------------------------------------------------------------------------------------------------
 
-MAX_FILE = 16 << 20  # the largest file the device tool brings back
-
-
 POLICY_BYTES = 12 << 20  # exported policies per run, inside results.tar.gz's 16 MiB (about 0.4 MB per CNN policy)
 
 
@@ -326,16 +331,23 @@ def export_policies(run_dir: Path, dest: Path) -> list[dict]:
     return exported
 
 
-def pack(out: Path, steps_done: list[dict]) -> dict:
-    """results.tar.gz (reports, policies, metrics) and checkpoints.tar.gz (latest state, when it fits)."""
+def unfinished(study_dir: Path) -> bool:
+    """Whether the study in ``study_dir`` has a step left (its state must then travel to the next window)."""
+    from cluster.study.runner import study_status
+
+    return any(entry["status"] != "done" for entry in study_status(study_dir))
+
+
+def pack(out: Path, returned: Path) -> dict:
+    """results.tar.gz (reports, policies, metrics) into ``returned``; every unfinished study's resumable state
+    as ``returned/state/`` (``ocv2 study pack``: pack.json and parts of at most 16 MiB)."""
     import shutil
     import tarfile
 
-    from population import checkpoints as ckpt
+    from cluster.study.pack import pack_study
 
     staging, packed = out / "results", {}
     staging.mkdir(exist_ok=True)
-    checkpoint_files = []
     for study_dir in sorted(out.glob("study_*")):
         report = staging / f"{study_dir.name}_report"
         subprocess.run(
@@ -353,29 +365,40 @@ def pack(out: Path, steps_done: list[dict]) -> dict:
             for name in ("metrics.csv", "config.yaml"):
                 if (run_dir / name).exists():
                     shutil.copy(run_dir / name, staging / f"{study_dir.name}_{run_dir.name}_{name}")
-            config = load_config(run_dir / "config.yaml")
-            checkpoint_files += [ckpt.latest(run_dir, s) for s in range(config.population.num_seeds)]
-            checkpoint_files.append(run_dir / "config.yaml")
-    with tarfile.open(out / "results.tar.gz", "w:gz") as tar:
+        if unfinished(study_dir):
+            state = returned / "state"
+            if state.exists():
+                packed[study_dir.name] = "not packed: another unfinished study took state/ (one per window)"
+                continue
+            record = pack_study(study_dir, state)
+            packed[study_dir.name] = {"state": record["bytes"], "parts": len(record["parts"])}
+    for name in ("gpu_run.json",):
+        shutil.copy(out / name, staging / name)
+    with tarfile.open(returned / "results.tar.gz", "w:gz") as tar:
         tar.add(staging, arcname="results")
-    packed["results.tar.gz"] = (out / "results.tar.gz").stat().st_size
-    with tarfile.open(out / "checkpoints.tar.gz", "w:gz") as tar:
-        for path in filter(None, checkpoint_files):
-            tar.add(path, arcname=str(path.relative_to(out)))
-    size = (out / "checkpoints.tar.gz").stat().st_size
-    if size > MAX_FILE:
-        (out / "checkpoints.tar.gz").unlink()
-        packed["checkpoints.tar.gz"] = f"left out: {size:,} bytes exceed the {MAX_FILE:,} a returned file may hold"
-    else:
-        packed["checkpoints.tar.gz"] = size
+    packed["results.tar.gz"] = (returned / "results.tar.gz").stat().st_size
     return packed
+
+
+def continued_step(state: Path, out: Path) -> Step:
+    """The study a carried ``state`` (an earlier window's ``state/``) holds, unpacked into ``out``: go on with it."""
+    from cluster.study.pack import unpack_study
+
+    record = unpack_study(state, out / "study_unpacking")
+    run = str(record["study"]).removeprefix("gpu_coord_ring_")
+    target = out / f"study_{run}"
+    (out / "study_unpacking").rename(target)
+    kept = json.loads((target / "study.json").read_text())
+    return Step(run, float(kept["budget"]), int(kept["seeds"]), float("nan"), resume=True)
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True, help="folder for everything this run writes")
+    parser.add_argument("--returned", help="folder for the files that come back (default: --out)")
     parser.add_argument("--deadline-s", type=float, default=480.0, help="seconds from start to stop training")
     parser.add_argument("--measure-s", type=float, default=120.0, help="seconds for measuring")
+    parser.add_argument("--continue-from", type=Path, help="an earlier window's state/ folder: go on with it")
     parser.add_argument("--smoke", action="store_true", default=os.environ.get("GPU_RUN_SMOKE") == "1")
     parser.add_argument("--measure-one", help=argparse.SUPPRESS)  # one measurement, as JSON on stdout
     args = parser.parse_args(argv)
@@ -384,27 +407,39 @@ def main(argv=None) -> int:
         return 0
     start = time.time()
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    env = environment()
-    (out / "environment.json").write_text(json.dumps(env, indent=1))
-    log(f"devices {env['devices']}; {env['nvidia_smi']}; smoke={args.smoke}")
-    measured = measure(start + args.measure_s, args.smoke)
-    (out / "bench.json").write_text(json.dumps({"environment": env, "results": measured}, indent=1))
+    returned = Path(args.returned or out)
+    for folder in (out, returned):
+        folder.mkdir(parents=True, exist_ok=True)
+    record = {"environment": environment()}
+
+    def save() -> None:  # after every phase: a window cut short still returns what it reached
+        (out / "gpu_run.json").write_text(json.dumps(record, indent=1))
+        shutil.copy(out / "gpu_run.json", returned / "gpu_run.json")
+
+    save()
+    log(f"devices {record['environment']['devices']}; {record['environment']['nvidia_smi']}; smoke={args.smoke}")
+    record["results"] = measure(start + args.measure_s, args.smoke)
+    save()
     deadline = start + args.deadline_s
-    steps = plan(measured, deadline - time.time(), args.smoke)
-    (out / "plan.json").write_text(json.dumps([dataclasses.asdict(s) for s in steps], indent=1))
-    log(f"plan: {[dataclasses.asdict(s) for s in steps]}")
-    done = []
+    if args.continue_from:
+        steps = [continued_step(args.continue_from, out)]
+    else:
+        steps = plan(record["results"], deadline - time.time(), args.smoke)
+    record["plan"] = [dataclasses.asdict(s) for s in steps]
+    save()
+    log(f"plan: {record['plan']}")
+    record["trained"] = []
     for step in steps:
-        if time.time() > deadline - 30:
-            done.append({"step": dataclasses.asdict(step), "skipped": "no time left"})
+        if time.time() > deadline - (5 if args.smoke else 30):  # a compile and a chunk at least
+            record["trained"].append({"step": dataclasses.asdict(step), "skipped": "no time left"})
             continue
-        done.append(train(step, out, deadline, args.smoke))
-    packed = pack(out, done)
-    (out / "trained.json").write_text(json.dumps({"trained": done, "packed": packed}, indent=1))
-    log(f"trained: {json.dumps(done)}; packed: {packed}; wall {time.time() - start:.0f} s")
+        record["trained"].append(train(step, out, deadline, args.smoke))
+        save()
+    record["packed"] = pack(out, returned)
+    save()
+    log(f"trained: {json.dumps(record['trained'])}; packed: {record['packed']}; wall {time.time() - start:.0f} s")
     # A study's rc 1 (a step blocked) or 130 (stopped at the deadline) leaves a resumable directory.
-    return 0 if all(d.get("rc", 0) in (0, 1, 130) for d in done) else 1
+    return 0 if all(d.get("rc", 0) in (0, 1, 130) for d in record["trained"]) else 1
 
 
 if __name__ == "__main__":

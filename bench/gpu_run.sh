@@ -5,9 +5,11 @@
 #   device run, carry [".whl"], timeout_s 600:  bash bench/gpu_run.sh
 #   GPU_RUN_SMOKE=1 bash bench/gpu_run.sh          # the rehearsal: the same steps, tiny, on a CPU (~2 minutes)
 #
-# Everything comes back as at most 8 files in $OUT (the device tool's folder; ./out/gpu_run elsewhere):
-# gpu_run.log, environment.json, bench.json, plan.json, trained.json, results.tar.gz (study reports, exported
-# policies with sha256 sums, metrics) and checkpoints.tar.gz (the latest checkpoint of every seed, to resume).
+# What comes back, in $OUT (the device tool's folder; ./out/gpu_run elsewhere), at most 8 files: gpu_run.log,
+# gpu_run.json (environment, measurements, plan, what trained), results.tar.gz (study reports, exported policies
+# with sha256 sums, metrics) and, when a study is left unfinished at the deadline, state/ (its resumable state:
+# pack.json and parts of at most 16 MiB). bench/gpu_report.py files them into the repository; commit state/ as
+# gpu_state/ and the next window continues that study instead of planning a new one.
 # GPU_RUN_DEADLINE_S (default 480; 140 smoke) is when training is told to stop, counted from the start of
 # bench/gpu_run.py; the export and packing after it take about a minute, inside a 600 s command.
 set -uo pipefail
@@ -39,11 +41,14 @@ export JAX_COMPILATION_CACHE_DIR="$work/jax-cache"
 smoke=${GPU_RUN_SMOKE:-0}
 deadline=${GPU_RUN_DEADLINE_S:-$([ "$smoke" = 1 ] && echo 140 || echo 480)}
 measure=$([ "$smoke" = 1 ] && echo 20 || echo 120)
-"$python" bench/gpu_run.py --out "$work/run" --deadline-s "$deadline" --measure-s "$measure" 2>&1 | tee "$out/gpu_run.log"
+continue_from=()
+if [ -f gpu_state/pack.json ]; then
+    continue_from=(--continue-from gpu_state)  # an earlier window's unfinished study: go on with it
+    measure=$([ "$smoke" = 1 ] && echo 10 || echo 30)
+fi
+"$python" bench/gpu_run.py --out "$work/run" --returned "$out" --deadline-s "$deadline" --measure-s "$measure" \
+    "${continue_from[@]}" 2>&1 | tee "$out/gpu_run.log"
 rc=${PIPESTATUS[0]}
-for name in environment.json bench.json plan.json trained.json results.tar.gz checkpoints.tar.gz; do
-    if [ -f "$work/run/$name" ]; then cp "$work/run/$name" "$out/"; else echo "gpu_run: no $name" | tee -a "$out/gpu_run.log"; fi
-done
-ls -l "$out" | tee -a "$out/gpu_run.log"
+ls -lR "$out" | tee -a "$out/gpu_run.log"
 rm -rf "$work"
 exit "$rc"

@@ -96,7 +96,7 @@ def test_returned_results_unpack_into_docs_results_with_checked_sums(tmp_path):
     listing = [{"file": "sp_seed0_update610.ocv2policy", "seed": 0, "update": 610, "sha256": "0" * 64}]
     (policies / "SHA256SUMS.json").write_text(json.dumps(listing))
     (staging / "study_sp_sp_metrics.csv").write_text("update\n1\n")
-    (files / "bench.json").write_text(json.dumps(made_up_bench()))
+    (files / "gpu_run.json").write_text(json.dumps(made_up_bench()))
 
     def pack():
         with tarfile.open(files / "results.tar.gz", "w:gz") as tar:
@@ -112,6 +112,6 @@ def test_returned_results_unpack_into_docs_results_with_checked_sums(tmp_path):
     (dest,) = gpu_report.unpack_results(files, tmp_path / "docs2")
     assert dest.name == "gpu_coord_ring_sp"
     assert (dest / "report.md").is_file() and (dest / "policies" / "sp_seed0_update610.ocv2policy").is_file()
-    assert (dest / "sp_metrics.csv").is_file() and (dest / "bench.json").is_file()
+    assert (dest / "sp_metrics.csv").is_file() and (dest / "gpu_run.json").is_file()
     with pytest.raises(SystemExit, match="exists"):  # never over what is there
         gpu_report.unpack_results(files, tmp_path / "docs2")
