@@ -174,28 +174,38 @@ def env_rate(impl: str, batch: int, steps: int) -> dict:
 
 
 def measurements(smoke: bool) -> list[tuple[str, object]]:
-    """(name, thunk) in order of importance: the plan needs the first one."""
+    """(name, thunk) in order of importance, since the measuring time may run out (each trainer case is a
+    compile of tens of seconds on a GPU): the plan's case first, then one of each other kind, then the rest."""
     sets = SMOKE_SETS if smoke else []
-    cnn_updates, rnn_updates = (2, 2) if smoke else (10, 3)
-    cases = [("matmul_f32", lambda: matmul_rate(512 if smoke else 8192, jnp.float32, "float32"))]
-    for seeds in (2, 1) if smoke else (10, 4, 1):
-        cases.append((f"cnn_sp_{seeds}", lambda s=seeds: trainer_rate(CR_SP, s, cnn_updates, sets)))
-    cases.append(("matmul_bf16", lambda: matmul_rate(512 if smoke else 8192, jnp.bfloat16, "bfloat16")))
-    for seeds in (1,) if smoke else (1, 10):
-        for kernels in ("xla", "cpu"):
-            cases.append(
-                (
-                    f"rnn_sp_{seeds}_{kernels}",
-                    lambda s=seeds, k=kernels: trainer_rate(GCS_SP, s, rnn_updates, [*sets, f"model.kernels={k}"]),
-                )
-            )
-    # What XLA's deterministic GPU ops (run.deterministic, on in every measurement above: gpu_run.sh sets the
-    # flag as the run's own process does) cost: the plan's case again in a process without the flag.
-    plan_case = f"cnn_sp_{2 if smoke else 10}"
-    cases.append((f"{plan_case}_nondeterministic", lambda: without_determinism(plan_case, smoke)))
+    cnn_updates, rnn_updates = (2, 2) if smoke else (10, 3)  # 10: the GPU study's chunk, so its compile is reused
+    size = 512 if smoke else 8192
+    plan_seeds, many = (2, 2) if smoke else (10, 10)
+
+    def cnn(seeds: int):
+        return f"cnn_sp_{seeds}", lambda: trainer_rate(CR_SP, seeds, cnn_updates, sets)
+
+    def rnn(seeds: int, kernels: str):
+        sets_k = [*sets, f"model.kernels={kernels}"]
+        return f"rnn_sp_{seeds}_{kernels}", lambda: trainer_rate(GCS_SP, seeds, rnn_updates, sets_k)
+
     batch, steps = (64, 16) if smoke else (16384, 400)
-    cases += [(f"env_{impl}", lambda i=impl: env_rate(i, batch, steps)) for impl in ("ocv2", "jaxmarl")]
-    return cases
+    plan_case = f"cnn_sp_{plan_seeds}"
+    return [
+        ("matmul_f32", lambda: matmul_rate(size, jnp.float32, "float32")),
+        cnn(plan_seeds),
+        ("env_ocv2", lambda: env_rate("ocv2", batch, steps)),
+        ("env_jaxmarl", lambda: env_rate("jaxmarl", batch, steps)),
+        ("matmul_bf16", lambda: matmul_rate(size, jnp.bfloat16, "bfloat16")),
+        rnn(many, "xla"),
+        # What XLA's deterministic GPU ops (run.deterministic, on in every other measurement: gpu_run.sh sets the
+        # flag as the run's own process does) cost: the plan's case again in a process without the flag.
+        (f"{plan_case}_nondeterministic", lambda: without_determinism(plan_case, smoke)),
+        rnn(many, "cpu"),
+        cnn(1),
+        rnn(1, "xla"),
+        rnn(1, "cpu"),
+        *([] if smoke else [cnn(4)]),
+    ]
 
 
 def without_determinism(name: str, smoke: bool) -> dict:

@@ -19,6 +19,9 @@ mkdir -p "$out"
 python=${PYTHON:-python3}
 work=$(mktemp -d /tmp/ocv2-gpu-run.XXXXXX)
 export PYTHONUNBUFFERED=1
+# Memory on demand: the measuring process stays alive while the study trains in a child process, and JAX's
+# default (75 % of the GPU taken at start) in both would leave the child a quarter.
+export XLA_PYTHON_CLIENT_PREALLOCATE=false
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 # The carried wheels, without network or build isolation, into a folder of their own (the machine's own
 # packages stay as they are); only what the interpreter does not have already.
