@@ -1,11 +1,11 @@
 #!/usr/bin/env python
-"""Peak memory of a training process against seeds per process, for the config memory estimate.
+"""Peak memory of a training process against seeds per process, for population/memory.py's estimate.
 
 Trains each paper config with ``--backend local`` (one process, seeds vmapped: what one Ray actor with
 ``seeds_per_actor`` seeds runs) at the paper's ``num_envs``/``num_steps`` but a single PPO update, with
 a one-episode cross-play and no GIFs or archives, and reads the process's peak resident memory from
 the kernel (``os.wait4``'s rusage of that child alone). A straight line through the points gives the
-fixed cost of a process and the cost of each further seed; ``population.config.memory`` uses those
+fixed cost of a process and the cost of each further seed; ``population.memory`` uses those
 numbers (docs/cluster.md, "Memory").
 
     python bench/memory.py                        # both kinds, 2 / 4 / 8 seeds

@@ -31,7 +31,8 @@ from cluster.runtime import coordinator, ray_backend
 from cluster.runtime.local import LocalWorkers
 from cluster.runtime.loggers import MetricsLogger, MissingExtraError, check_loggers, make_loggers
 from cluster.runtime.rundir import MetricsRow, RunDir
-from population.config import Config, check_fits, load_config
+from population.config import Config, load_config
+from population.memory import check_fits
 
 BACKENDS = ("ray", "local")
 

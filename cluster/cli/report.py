@@ -36,7 +36,8 @@ from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.rundir import RunDir, RunDirError, read_matrix_csv, seed_curves
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
-from population.config import ConfigError, check_fits, estimate, is_ray_launcher_config, parse_config, read_yaml
+from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
+from population.memory import check_fits, estimate
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
 
 METHOD_ORDER = ("sp", "sa", "op", "fcp")

@@ -19,7 +19,8 @@ from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from population.checkpoints import CheckpointError
-from population.config import ConfigError, check_fits, load_config
+from population.config import ConfigError, load_config
+from population.memory import check_fits
 from population.numerics import enable_deterministic_ops
 
 log = logging.getLogger(__name__)

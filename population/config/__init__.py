@@ -4,19 +4,13 @@ One job per module: ``schema`` (the section dataclasses and ``Config``), ``yaml_
 ``--set`` overrides, writing a resolved config), ``fields`` (a section's mapping -> its dataclass, with
 types and numeric ranges), ``validate`` (values checked against each other), ``paper`` (the configs
 shipped as package data and the paper's self-play hyperparameters), ``parse`` (all of it -> ``Config``),
-``shards`` (splitting seeds and jobs over workers) and ``memory`` (the memory a run needs). Every error
-names the offending key (``ppo.num_minibatches``) and where it came from (the file, or ``--set``).
+and ``shards`` (splitting seeds and jobs over workers); the memory a run needs is ``population.memory``.
+Every error names the offending key (``ppo.num_minibatches``) and where it came from (the file, or ``--set``).
 
     config = load_config("configs/quickstart.yaml", overrides=["ppo.total_timesteps=1e5"])
 """
 
 from population.config.errors import ConfigError
-from population.config.memory import (
-    MemoryEstimate,
-    check_fits,
-    estimate,
-    machine_memory_mib,
-)
 from population.config.paper import (
     PACKAGED_CONFIGS,
     PAPER_CONFIGS,
@@ -80,10 +74,6 @@ __all__ = [
     "Config",
     "ConfigError",
     "EvalConfig",
-    "MemoryEstimate",
-    "check_fits",
-    "estimate",
-    "machine_memory_mib",
     "FCPConfig",
     "ModelConfig",
     "OPConfig",

@@ -17,8 +17,7 @@ import os
 
 from ocv2.config import build_config
 from ocv2.observations import grid_obs_shape
-from population.config.errors import ConfigError
-from population.config.schema import Config, ModelConfig, PPOConfig
+from population.config import Config, ConfigError, ModelConfig, PPOConfig
 from population.config.shards import shard_count
 
 MIB = 2**20
@@ -77,7 +76,7 @@ def params_mib(config: Config) -> float:
 
 @functools.lru_cache(maxsize=64)
 def _params_mib(model: ModelConfig, obs_shape: tuple[int, ...]) -> float:
-    import jax  # here: reading a config must not start JAX
+    import jax  # here: checking a config (ocv2 validate, ocv2 train before Ray starts) must not start JAX
 
     from population.networks import init_params, make_network
 

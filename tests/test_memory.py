@@ -1,0 +1,53 @@
+"""population.memory: the memory a run needs, refused before anything runs when this machine cannot hold it."""
+
+from __future__ import annotations
+
+import pytest
+
+from population.config import ConfigError, parse_config
+from population.memory import MEASURED, check_fits, estimate
+
+SMALL_PPO = {"num_envs": 4, "num_steps": 16, "num_minibatches": 2, "total_timesteps": 640}
+
+
+def test_memory_estimate_is_linear_in_seeds_and_rollout_size():
+    cnn = {
+        "env": {"layout": "cramped_room"},
+        "model": {"kind": "cnn"},
+        "ppo": {"num_envs": 64, "num_steps": 256, "num_minibatches": 16},
+    }
+    one, ten = (parse_config(cnn, [f"population.num_seeds={n}"]) for n in (1, 10))
+    measured = MEASURED["cnn"]  # measured at exactly these sizes
+    assert estimate(one).total_mib == pytest.approx(measured.base_mib + measured.per_seed_mib)
+    assert estimate(ten).total_mib == pytest.approx(measured.base_mib + 10 * measured.per_seed_mib)
+    half = parse_config(cnn, ["population.num_seeds=10", "ppo.num_envs=32"])
+    assert estimate(half).total_mib == pytest.approx(measured.base_mib + 5 * measured.per_seed_mib)
+    # Ray started here: a process per actor, the driver and Ray's own processes on top
+    assert estimate(ten, "ray").total_mib > estimate(ten).total_mib
+    # joining a cluster: only the driver stays here, with every seed's parameters
+    assert estimate(ten, "cluster").total_mib < estimate(ten).total_mib
+
+
+def test_an_fcp_partner_stage_counts_its_seeds():
+    fcp = parse_config(
+        {
+            "ppo": SMALL_PPO,
+            "population": {
+                "method": "fcp",
+                "num_seeds": 2,
+                "fcp": {"pool": "per_seed", "partner_seeds": 4, "partner_ppo": SMALL_PPO},
+            },
+        }
+    )
+    assert "8 seeds" in estimate(fcp).where  # 2 learners x 4 partner seeds train first
+
+
+def test_a_run_that_cannot_fit_is_refused_naming_both_sizes():
+    huge = parse_config({"ppo": SMALL_PPO}, ["population.num_seeds=1000000000"])
+    with pytest.raises(ConfigError) as info:
+        check_fits(huge, "cluster", available_mib=24 * 1024)
+    message = str(info.value)
+    assert message.startswith("population.num_seeds: the run needs about") and "TiB" in message
+    assert "it has 24.0 GiB" in message
+    small = parse_config({"ppo": SMALL_PPO})
+    assert check_fits(small, "ray", available_mib=24 * 1024).total_mib < 24 * 1024
