@@ -1,10 +1,8 @@
 """ocv2: OvercookedV2 in pure JAX, transition-for-transition equal to ``jaxmarl==0.2.0``.
 
-``ocv2.policy`` (load, export, Policy) is ``population.policy``, looked up only when first used: the
-environment package itself never imports the learning code (see docs/evaluation.md).
+The environment alone: nothing in this package imports the learning code (``population``) or the runtime
+(``cluster``); tests/test_layers.py checks it. Trained policies are ``population.policy``.
 """
-
-import importlib
 
 from ocv2.config import EnvConfig
 from ocv2.env import OvercookedV2, StepArrays, make
@@ -30,8 +28,8 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    # Lazy: `import ocv2` loads neither the learning code (population/) nor optax. It does load flax,
-    # whose struct dataclasses are the State pytrees (and what flax.serialization checkpoints know).
+    # `ocv2.policy` was an alias of population.policy until the environment stopped importing upward: say
+    # where it went instead of a bare AttributeError.
     if name == "policy":
-        return importlib.import_module("population.policy")
+        raise AttributeError("module 'ocv2' has no attribute 'policy': use `from population import policy`")
     raise AttributeError(f"module 'ocv2' has no attribute {name!r}")

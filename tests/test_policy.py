@@ -1,11 +1,9 @@
-"""population.policy (``ocv2.policy``) and ``ocv2 export``: loading every kind of source, the export/load
+"""population.policy and ``ocv2 export``: loading every kind of source, the export/load
 round trip, acting, and one-line errors for bad input."""
 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -139,12 +137,14 @@ def test_bad_sources_are_one_line_errors(run, tmp_path):
     assert not (tmp_path / "x.ocv2policy").exists()
 
 
-def test_ocv2_policy_is_population_policy_loaded_lazily():
-    code = (
-        "import sys, ocv2; assert 'population.policy' not in sys.modules and 'population' not in sys.modules; "
-        "from ocv2 import policy; import population.policy as p; assert policy is p and ocv2.policy is p"
-    )
-    subprocess.run([sys.executable, "-c", code], check=True)
+def test_the_environment_package_does_not_alias_the_policy_api():
+    """``ocv2.policy`` was an alias reaching up into population/; it is gone, and its error says where to look."""
+    import ocv2
+
+    with pytest.raises(AttributeError, match="from population import policy"):
+        ocv2.policy  # noqa: B018
+    with pytest.raises(ImportError):
+        from ocv2 import policy  # noqa: F401
 
 
 def _content(path):
