@@ -26,8 +26,9 @@ def modules() -> dict[str, Path]:
     return {module_name(path): path for layer in LAYERS for path in sorted((ROOT / layer).rglob("*.py"))}
 
 
-def imported(path: Path, name: str, known: set[str]) -> set[str]:
-    """The project modules that the file at ``path`` (module ``name``) imports anywhere in its body."""
+def imported(path: Path, name: str, known: set[str] | None) -> set[str]:
+    """The project modules that the file at ``path`` (module ``name``) imports anywhere in its body; with
+    ``known=None``, every module name it imports, third-party ones included."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -41,7 +42,7 @@ def imported(path: Path, name: str, known: set[str]) -> set[str]:
             else:
                 source = node.module
             for alias in node.names:
-                found.add(f"{source}.{alias.name}" if f"{source}.{alias.name}" in known else source)
+                found.add(f"{source}.{alias.name}" if f"{source}.{alias.name}" in (known or ()) else source)
         elif (
             isinstance(node, ast.Call)
             and isinstance(node.func, ast.Attribute)
@@ -51,6 +52,8 @@ def imported(path: Path, name: str, known: set[str]) -> set[str]:
             and isinstance(node.args[0].value, str)
         ):
             found.add(node.args[0].value)
+    if known is None:
+        return found
     return {module for module in found if module in known and module != name}
 
 
@@ -135,6 +138,19 @@ def test_imports_point_down():
     assert not upward, "imports from a lower layer to a higher one (ocv2 <- population <- cluster):\n" + "\n".join(
         upward
     )
+
+
+def test_the_jax_layers_import_neither_ray_nor_mcap_nor_the_reference():
+    """docs/design: ``ocv2/`` and ``population/`` run under jit unchanged, so Ray and MCAP stay in ``cluster/``;
+    jaxmarl is the tests' behavioural reference only."""
+    found = [
+        f"{name} imports {module}"
+        for name, path in sorted(modules().items())
+        if layer(name) < LAYERS.index("cluster")
+        for module in sorted(imported(path, name, None))
+        if module.split(".")[0] in ("ray", "mcap", "jaxmarl")
+    ]
+    assert not found, "\n".join(found)
 
 
 def test_the_checks_fail_on_a_cycle_and_an_upward_import():
