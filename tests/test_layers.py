@@ -4,17 +4,22 @@ Every ``.py`` file of the three packages is read with ``ast`` (nothing is import
 counts, wherever it stands: at the top, inside a function (the lazy imports that keep ``import ocv2`` or
 ``ocv2 validate`` light) or under ``if TYPE_CHECKING``, plus ``importlib.import_module("...")`` with a
 literal name. A lazy import hides a cycle from Python but not from a reader, so the test treats it like any
-other. ``from a.b import c`` is an arrow to the module ``a.b.c`` when that is a module, else to ``a.b``.
+other; so does a ``"package.module:function"`` string (how ``cluster.cli.main.COMMANDS`` names a command
+module it imports when that command runs). ``from a.b import c`` is an arrow to the module ``a.b.c`` when
+that is a module, else to ``a.b``.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Lowest first: a module may import from its own layer and the ones before it.
 LAYERS = ("ocv2", "population", "cluster")
+#: ``"cluster.cli.train:run_train"``: a function named by string, its module imported when it is called.
+NAMED = re.compile(r"(?:ocv2|population|cluster)(?:\.\w+)*:\w+")
 
 
 def module_name(path: Path) -> str:
@@ -52,6 +57,8 @@ def imported(path: Path, name: str, known: set[str] | None) -> set[str]:
             and isinstance(node.args[0].value, str)
         ):
             found.add(node.args[0].value)
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and NAMED.fullmatch(node.value):
+            found.add(node.value.partition(":")[0])
     if known is None:
         return found
     return {module for module in found if module in known and module != name}
@@ -119,6 +126,7 @@ def test_the_graph_sees_lazy_and_relative_imports():
     assert "population.config.schema" in graph["population.config"]  # top-level, from the package
     assert "cluster.api" in graph["cluster"]  # importlib.import_module("cluster.api") inside __getattr__
     assert "population.networks" in graph["population.memory"]  # inside a function
+    assert "cluster.cli.train" in graph["cluster.cli.main"]  # COMMANDS' "cluster.cli.train:add_train"
     assert len(graph) > 60
 
 
