@@ -527,9 +527,10 @@ def test_non_run_directory_is_refused(tmp_path, capsys):
         ("ppo.bogus=1", "ppo.bogus"),
         ("population.method=xx", "population.method"),
         ("ppo.total_timesteps=1e30", "ppo.total_timesteps"),  # int32
-        ("ppo.lr=1e308", "ppo.lr"),
+        ("ppo.lr=1e308", "ppo.lr"),  # inf in float32
+        ("run.num_checkpoints=1000000000", "run.num_checkpoints"),  # hung computing 1e9 snapshot updates
     ],
-)  # inf in float32
+)
 def test_config_errors_exit_2_naming_the_key(tmp_path, capsys, override, key):
     assert train(tmp_path / "run", override) == 2
     assert f"--set {override}: {key}" in capsys.readouterr().err  # the override, not the file, is named

@@ -178,7 +178,31 @@ def validate(config: Config) -> list[str]:
     problems += _cluster_problems(config.cluster, pop.num_seeds)
     if config.run.num_checkpoints < 2:
         problems.append(f"run.num_checkpoints: must be >= 2 (initial and final), got {config.run.num_checkpoints}")
+    problems += _snapshot_problems(config)
     return problems
+
+
+#: Snapshots any run may ask for, however few updates it has (a pilot of a study that keeps 11 snapshots
+#: trains a handful of updates and keeps every one of them).
+MIN_SNAPSHOT_BOUND = 100
+
+
+def _snapshot_problems(config: Config) -> list[str]:
+    """``run.num_checkpoints`` spreads snapshots over updates 0..N: beyond N + 1 they repeat updates, and a
+    count of 1e9 would hang the run while their update numbers are computed. Bounded by the most updates
+    of any stage the run trains (its own, an FCP partner stage's), or ``MIN_SNAPSHOT_BOUND``."""
+    ppo, partner = config.ppo, config.population.fcp.partner_ppo
+    stages = [ppo] + ([partner] if config.population.method == "fcp" and partner is not None else [])
+    if any(stage.steps_per_update <= 0 for stage in stages):
+        return []  # reported by the ppo checks
+    updates = max(stage.num_updates for stage in stages)
+    bound = max(updates + 1, MIN_SNAPSHOT_BOUND)
+    if config.run.num_checkpoints > bound:
+        return [
+            f"run.num_checkpoints: {config.run.num_checkpoints:,} snapshots of a run of {updates:,} updates; at most "
+            f"{bound:,} (the larger of one per update with update 0, {updates + 1:,}, and {MIN_SNAPSHOT_BOUND})"
+        ]
+    return []
 
 
 def _seed_problems(pop: PopulationConfig) -> list[str]:
