@@ -29,8 +29,6 @@ from PIL import Image
 from cluster.runtime.rundir import MetricsRow
 from population.config import Config
 
-LOGGERS = ("tensorboard", "wandb")
-
 
 class MissingExtraError(RuntimeError):
     """An optional dependency that the requested feature needs is not installed."""
@@ -82,8 +80,10 @@ def _image(path: Path | None) -> np.ndarray | None:
 
 
 class TensorBoardLogger:
+    package, extra = "tensorboardX", "tensorboard"  # what it imports, and the extra that installs it
+
     def __init__(self, run_dir: Path, config: Config):
-        tensorboardx = require("tensorboardX", "tensorboard", "--logger tensorboard")
+        tensorboardx = require(self.package, self.extra, "--logger tensorboard")
         self.writer = tensorboardx.SummaryWriter(logdir=str(Path(run_dir) / "tensorboard"))
         self.steps_per_update = config.ppo.steps_per_update
         self.last_step = 0
@@ -108,8 +108,10 @@ class TensorBoardLogger:
 
 
 class WandbLogger:
+    package, extra = "wandb", "wandb"
+
     def __init__(self, run_dir: Path, config: Config):
-        self.wandb = require("wandb", "wandb", "--logger wandb")
+        self.wandb = require(self.package, self.extra, "--logger wandb")
         run_dir = Path(run_dir)
         self.run = self.wandb.init(
             project=os.environ.get("WANDB_PROJECT", "ocv2"),
@@ -145,7 +147,10 @@ def _wandb_id(name: str) -> str:
     return cleaned[:64] or "ocv2-run"
 
 
+#: Every logger by its ``--logger`` name; a new one is a class like those above (``package``, ``extra``, the three
+#: ``MetricsLogger`` methods) and its entry here (docs/extending.md, "A logger").
 _CLASSES = {"tensorboard": TensorBoardLogger, "wandb": WandbLogger}
+LOGGERS = tuple(_CLASSES)
 
 
 def check_loggers(names: Iterable[str]) -> list[str]:
@@ -155,7 +160,7 @@ def check_loggers(names: Iterable[str]) -> list[str]:
         if name not in _CLASSES:
             raise ValueError(f"unknown logger {name!r}; choose from {', '.join(LOGGERS)}")
     for name in names:
-        require({"tensorboard": "tensorboardX", "wandb": "wandb"}[name], name, f"--logger {name}")
+        require(_CLASSES[name].package, _CLASSES[name].extra, f"--logger {name}")
     return names
 
 
