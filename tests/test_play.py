@@ -294,9 +294,13 @@ def _api(server, message, **headers) -> tuple[int, dict]:
     return status, json.loads(data)
 
 
-def _running_server(solo_game, archive, request_timeout: float):
-    """A started server (four connections at most) whose session nobody joined; stopped after the test."""
-    server = PlayServer("127.0.0.1", 0, request_timeout=request_timeout, max_connections=4)
+def _running_server(solo_game, archive, request_timeout: float, **options):
+    """A started server (four player slots) whose session nobody joined; stopped after the test.
+
+    ``request_timeout`` is the new connections' head deadline too, unless ``head_timeout`` is given.
+    """
+    options = {"head_timeout": request_timeout, "max_connections": 4, **options}
+    server = PlayServer("127.0.0.1", 0, request_timeout=request_timeout, **options)
     server.start(GameSession(solo_game, archive, seed=1, fps=5))
     yield server
     server.stop()
@@ -425,7 +429,7 @@ def _connect(server) -> socket.socket:
 
 
 def test_a_slow_client_is_cut_off(served):
-    """A request trickling in a byte at a time (slowloris) gets ``request_timeout`` in all, not per byte."""
+    """A request trickling in a byte at a time (slowloris) gets its deadline in all, not per byte."""
     client = _connect(served)
     request = f"POST /api?key={served.key} HTTP/1.1\r\nHost: 127.0.0.1:{served.port}\r\n".encode()
     cut = False
@@ -458,23 +462,139 @@ def patient(solo_game, archive):
     yield from _running_server(solo_game, archive, request_timeout=60)
 
 
+def _keyed_connection(server) -> http.client.HTTPConnection:
+    """A connection that loaded the page (showing the key) and stays open, as a tab's keep-alive one."""
+    connection = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+    connection.request("GET", f"/?key={server.key}")
+    response = connection.getresponse()
+    assert response.status == 200 and response.read()
+    return connection
+
+
 def test_a_flood_of_connections_is_capped(patient):
-    """Connections beyond ``max_connections`` get 503 at once and no thread; a freed slot serves again."""
+    """Connections that showed the key hold the ``max_connections`` slots; one more gets 503 (and no
+    slot), connections without the key take none, and a freed slot serves again."""
     served = patient
     threads = threading.active_count()
-    held = [_connect(served) for _ in range(4)]
+    held = [_keyed_connection(served) for _ in range(4)]
+    idle = [_connect(served) for _ in range(3)]
     try:
-        _wait_for(lambda: served.http.open_connections == 4)
-        extra = [_connect(served) for _ in range(6)]
-        for client in extra:
-            assert client.recv(1024).startswith(b"HTTP/1.1 503"), "a connection over the cap was not refused"
-            client.close()
-        assert served.http.open_connections == 4 and threading.active_count() <= threads + 4
+        _wait_for(lambda: (served.http.player_connections, served.http.pending_connections) == (4, 3))
+        for _ in range(3):
+            status, _, data = _request(served, "GET", "/")
+            assert status == 503 and "serving 4 connections" in json.loads(data)["error"]
+        assert served.http.player_connections == 4 and threading.active_count() <= threads + 4 + 3
     finally:
-        for client in held:
+        for client in held + idle:
             client.close()
-    _wait_for(lambda: served.http.open_connections == 0)
+    _wait_for(lambda: served.http.player_connections == served.http.pending_connections == 0)
     assert _api(served, {"type": "join"})[0] == 200
+
+
+def test_the_oldest_connection_without_the_key_makes_room(solo_game, archive):
+    """With ``max_pending`` connections open that never show the key, a new one closes the oldest:
+    a page load still gets in, and the threads stay bounded."""
+    for server in _running_server(solo_game, archive, request_timeout=60, max_pending=4):
+        idle = [_connect(server) for _ in range(4)]
+        try:
+            _wait_for(lambda: server.http.pending_connections == 4)
+            threads = threading.active_count()
+            idle.append(_connect(server))
+            assert idle[0].recv(1024) == b"", "the oldest connection without the key was not closed"
+            assert _request(server, "GET", "/")[0] == 200  # pushes out the next oldest, and is served
+            assert idle[1].recv(1024) == b""
+            # The page load left ``pending`` when it showed the key, and its slot when it closed.
+            _wait_for(lambda: (server.http.pending_connections, server.http.player_connections) == (3, 0))
+            assert threading.active_count() <= threads
+        finally:
+            for client in idle:
+                client.close()
+
+
+def _hold_unkeyed_connections(port: int, count: int, opened: threading.Event, stop: threading.Event, limit_s: float):
+    """Keep ``count`` connections to ``port`` open that never show the key, until ``stop`` or ``limit_s``.
+
+    Even ones trickle a request head (a header that never ends) a byte every 0.2 s, odd ones send
+    nothing; one the server closes or answers is reopened, as an attacker would. ``opened`` is set
+    once all are open.
+    """
+    head = f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nX-Slow: ".encode()
+    clients: list[socket.socket | None] = [None] * count
+    sent = [0] * count
+    deadline = time.monotonic() + limit_s
+    try:
+        while not stop.is_set() and time.monotonic() < deadline:
+            for i in range(count):
+                if clients[i] is None:
+                    try:
+                        clients[i] = socket.create_connection(("127.0.0.1", port), timeout=1)
+                    except OSError:
+                        continue
+                    sent[i] = 0
+            opened.set()
+            live = [c for c in clients if c is not None]
+            for client in select.select(live, [], [], 0.2)[0]:  # closed, or answered (a 503): reopen
+                clients[clients.index(client)] = None
+                client.close()
+            for i in range(0, count, 2):
+                if clients[i] is not None:
+                    byte = head[sent[i] : sent[i] + 1] or b"x"
+                    try:
+                        clients[i].sendall(byte)
+                        sent[i] += 1
+                    except OSError:
+                        clients[i].close()
+                        clients[i] = None
+    finally:
+        for client in clients:
+            if client is not None:
+                client.close()
+
+
+def test_connections_without_the_key_do_not_starve_the_players(solo_game, archive):
+    """40 slow or idle connections that never show the key (issue 41, item 8), each reopened when the
+    server closes it, for longer than their deadline: page loads and a joined player's polls, on its
+    open connection and on new ones, are all still served."""
+    server = PlayServer("127.0.0.1", 0)
+    server.start(GameSession(solo_game, archive, seed=1, fps=5))
+    opened, stop = threading.Event(), threading.Event()
+    flood = threading.Thread(target=_hold_unkeyed_connections, args=(server.port, 40, opened, stop, 15.0), daemon=True)
+    tab = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)  # the player's keep-alive connection
+    headers = {"Content-Type": "application/json"}
+
+    def kept_poll() -> int:
+        tab.request("POST", f"/api?key={server.key}", poll, headers)
+        response = tab.getresponse()
+        response.read()
+        return response.status
+
+    def status(request) -> int | str:
+        try:
+            return request()
+        except OSError as error:  # refused before the request was sent, or cut before the answer
+            return type(error).__name__
+
+    try:
+        poll = json.dumps({"type": "poll", "token": _api(server, JOIN)[1]["token"], "since": 0}).encode()
+        assert kept_poll() == 200
+        flood.start()
+        assert opened.wait(10)
+        time.sleep(0.5)  # the server has accepted them all
+        statuses = []
+        end = time.monotonic() + 3.0  # past the unkeyed connections' deadline: they are cut and reopened
+        while time.monotonic() < end:
+            statuses.append(("page", status(lambda: _request(server, "GET", "/")[0])))
+            statuses.append(("poll", status(lambda: _request(server, "POST", "/api", poll, headers)[0])))
+            statuses.append(("kept poll", status(kept_poll)))
+            time.sleep(0.1)
+    finally:
+        stop.set()
+        flood.join(20)
+        tab.close()
+        server.stop()
+    failed = [s for s in statuses if s[1] != 200]
+    assert not flood.is_alive() and len(statuses) >= 15
+    assert not failed, f"{len(failed)} of {len(statuses)} requests failed: {failed[:6]}"
 
 
 def _wait_for(condition, seconds: float = 10.0):

@@ -4,7 +4,7 @@
     POST /api?key=K   one JSON message (``docs/play.md``). The answer is JSON: ``{"ok": true, ...}``, or
                       ``{"ok": false, "error": "..."}`` with status 400 (malformed), 403 (refused: see
                       below, or an unknown player token), 409 (seat taken), 413 (too large),
-                      415 (not ``application/json``) or 503 (shutting down)
+                      415 (not ``application/json``) or 503 (shutting down, or the player slots full)
 
 Only the person given the printed URL drives the game, not any web page their browser has open:
 
@@ -16,10 +16,15 @@ Only the person given the printed URL drives the game, not any web page their br
   another page's requests are refused even though a "simple" POST needs no CORS preflight.
 * ``POST /api`` must say ``Content-Type: application/json``: a cross-site form or ``text/plain`` fetch
   cannot, without a preflight this server never grants.
-* A connection gets ``request_timeout`` seconds to deliver each request (request line, headers and
-  body, however slowly it trickles; an idle keep-alive connection counts as slow), and at most
-  ``max_connections`` connections are served at once (one thread each); more are answered 503 and
-  closed. A client that goes away mid-answer costs one log line, not a traceback.
+* A new connection is *pending* until a request on it shows the key: it has ``head_timeout`` seconds
+  (from being accepted) to deliver that request's line and headers, and it takes no player slot. At
+  most ``max_pending`` pending connections are open; a new one closes the oldest, so connections that
+  never show the key cannot lock out a browser, whose request follows its connection at once.
+* A connection whose request showed the key takes one of ``max_connections`` player slots for the
+  rest of its life (a full house answers 503 and closes). It gets ``request_timeout`` seconds to
+  deliver each request (however slowly it trickles; an idle keep-alive connection counts as slow).
+  Every connection has a thread, so threads are bounded by the two caps. A client that goes away
+  mid-answer costs one log line, not a traceback.
 
 Why no websockets: the standard library has none, and at a few ticks per second a long poll (the
 page asks for anything newer than the version it has; the server answers as soon as there is, or
@@ -40,6 +45,7 @@ import socket
 import sys
 import threading
 import time
+from collections import OrderedDict
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from urllib.parse import parse_qs, urlsplit
@@ -50,9 +56,11 @@ from cluster.play.session import GameSession
 log = logging.getLogger(__name__)
 
 PAGE = "play.html"
-REQUEST_TIMEOUT_S = 10.0  # to deliver one whole request; the page's requests take milliseconds
+REQUEST_TIMEOUT_S = 10.0  # a player's connection, to deliver one whole request; the page's take milliseconds
+HEAD_TIMEOUT_S = 2.0  # a new connection, to deliver its first request head: a browser sends it on connecting
 WRITE_TIMEOUT_S = 10.0  # to take one answer (a few KiB: normally the socket buffer takes it at once)
-MAX_CONNECTIONS = 32  # two players' tabs use about six each
+MAX_CONNECTIONS = 32  # player slots (connections that showed the key): two players' tabs use about six each
+MAX_PENDING = 64  # new connections that have not shown the key yet; one more closes the oldest
 _LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 _SECURITY_HEADERS = {
     "Cache-Control": "no-store",
@@ -114,20 +122,42 @@ class _DeadlineSocketIO(socket.SocketIO):
 class _Server(ThreadingHTTPServer):
     daemon_threads = True  # a tab's open keep-alive connection never blocks shutdown ...
     block_on_close = False  # ... nor does server_close wait for it (its thread ends at its timeout)
+    # A burst of connects (a flood, or a browser opening several) must not overflow the kernel's accept
+    # queue (socketserver's default is 5): a dropped connect costs the client a one-second retry.
+    request_queue_size = 128
 
-    def __init__(self, address, verbose: bool, key: str, request_timeout: float, max_connections: int):
+    def __init__(
+        self,
+        address,
+        verbose: bool,
+        key: str,
+        request_timeout: float,
+        max_connections: int,
+        head_timeout: float,
+        max_pending: int,
+    ):
         if ":" in address[0]:
             self.address_family = socket.AF_INET6
         self.session: GameSession | None = None  # set by PlayServer.start, before serving
         self.verbose, self.page, self.key = verbose, page_html(), key
-        self.request_timeout = float(request_timeout)
-        self.max_connections = int(max_connections)
-        self.open_connections = 0  # served now, each on its own thread
-        self._count = threading.Lock()
-        self._refusing = False  # a flood is logged once, not once per connection
+        self.request_timeout, self.head_timeout = float(request_timeout), float(head_timeout)
+        self.max_connections, self.max_pending = int(max_connections), int(max_pending)
+        self._lock = threading.Lock()
+        # Every open connection is in one of these (or, for the moment of a refusal or an eviction, none).
+        self._pending: OrderedDict[socket.socket, None] = OrderedDict()  # no key shown yet; oldest first
+        self._players: set[socket.socket] = set()  # showed the key: the ``max_connections`` slots
+        self._evicting = self._refusing = False  # a flood is logged once, not once per connection
         super().__init__(address, _Handler)
         self.hosts = host_names(address[0]) | host_names(self.server_address[0])  # as given, and as bound
         self.wildcard = _is_wildcard(address[0])
+
+    @property
+    def pending_connections(self) -> int:
+        return len(self._pending)
+
+    @property
+    def player_connections(self) -> int:
+        return len(self._players)
 
     def host_allowed(self, header: str | None) -> bool:
         """``Host`` names this server: an allowed name (any IP literal on a wildcard bind) and its port."""
@@ -143,40 +173,72 @@ class _Server(ThreadingHTTPServer):
         return name in self.hosts or (self.wildcard and _is_ip(name))
 
     def process_request(self, request, client_address):
-        with self._count:
-            full = self.open_connections >= self.max_connections
-            self.open_connections += not full
-        if full:
-            self._refuse(request)
-            return
-        self._refusing = False
+        """Serve a new connection as pending; with ``max_pending`` already pending, close the oldest.
+
+        Closing the oldest rather than refusing the newest: a browser's request arrives right after
+        its connection, so it shows the key long before ``max_pending`` newer connections push it out,
+        while connections that never show the key only ever push each other out.
+        """
+        with self._lock:
+            oldest = self._pending.popitem(last=False)[0] if len(self._pending) >= self.max_pending else None
+            if oldest is not None:
+                # Under the lock: a thread closes its socket only after leaving ``_pending`` (``_release``).
+                self._shut(oldest)
+            self._pending[request] = None
+        if oldest is None:
+            self._evicting = False
+        elif not self._evicting:
+            self._evicting = True
+            log.warning(
+                "ocv2 play: %d connections have not shown the key; closing the oldest for each new one",
+                self.max_pending,
+            )
         try:
             super().process_request(request, client_address)
         except BaseException:
-            self._closed()
+            self._release(request)
             raise
 
     def process_request_thread(self, request, client_address):
+        # ThreadingMixIn's, with the connection released before its socket is closed (see process_request).
         try:
-            super().process_request_thread(request, client_address)
+            self.finish_request(request, client_address)
+        except Exception:
+            self.handle_error(request, client_address)
         finally:
-            self._closed()
+            self._release(request)
+            self.shutdown_request(request)
 
-    def _closed(self) -> None:
-        with self._count:
-            self.open_connections -= 1
-
-    def _refuse(self, request) -> None:
-        """Answer 503 without a thread (best effort, never blocking the accept loop) and close."""
-        if not self._refusing:
+    def admit(self, request) -> str:
+        """A pending connection showed the key: ``"player"`` (it has a slot), ``"full"`` or ``"closed"``."""
+        with self._lock:
+            if request not in self._pending:
+                return "closed"  # pushed out by newer connections meanwhile: its socket is shut
+            del self._pending[request]
+            if len(self._players) >= self.max_connections:
+                full = True
+            else:
+                self._players.add(request)
+                full = False
+        if not full:
+            self._refusing = False
+        elif not self._refusing:
             self._refusing = True
-            log.warning("ocv2 play: %d connections are open; refusing more until one closes", self.max_connections)
+            log.warning("ocv2 play: %d connections with the key are open; refusing more", self.max_connections)
+        return "full" if full else "player"
+
+    def _release(self, request) -> None:
+        with self._lock:
+            self._pending.pop(request, None)
+            self._players.discard(request)
+
+    @staticmethod
+    def _shut(request) -> None:
+        """End a connection another thread serves: its blocked read returns end-of-file at once."""
         try:
-            request.setblocking(False)
-            request.send(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\nConnection: close\r\n\r\n")
+            request.shutdown(socket.SHUT_RDWR)
         except OSError:
             pass
-        self.shutdown_request(request)
 
     def handle_error(self, request, client_address):
         error = sys.exc_info()[1]
@@ -196,11 +258,37 @@ class _Handler(BaseHTTPRequestHandler):
         self.rfile.close()  # the plain reader is replaced by one that keeps the request deadline
         self._reader = _DeadlineSocketIO(self.connection)
         self.rfile = io.BufferedReader(self._reader)
+        # Pending until a request shows the key: its line and headers must come within the short deadline.
+        self.pending = True
+        self._reader.deadline = time.monotonic() + self.server.head_timeout
 
     def handle_one_request(self):
-        # The deadline covers the wait for the request line too: an idle keep-alive connection is closed.
-        self._reader.deadline = time.monotonic() + self.server.request_timeout
+        self._started = time.monotonic()
+        if not self.pending:
+            # The deadline covers the wait for the request line too: an idle keep-alive connection is closed.
+            self._reader.deadline = self._started + self.server.request_timeout
         super().handle_one_request()
+
+    def parse_request(self) -> bool:
+        """Read the headers; a pending connection showing the key becomes a player's (or is refused)."""
+        if not super().parse_request():
+            return False
+        if not self.pending:
+            return True
+        if not self._key_given():
+            # Answered (403, 404, the favicon's 204) and closed: a keyless connection never takes a slot.
+            self.close_connection = True
+            return True
+        admitted = self.server.admit(self.connection)
+        if admitted == "closed":
+            self.close_connection = True
+            return False
+        if admitted == "full":
+            self._reject(503, f"the server is serving {self.server.max_connections} connections; try again later")
+            return False
+        self.pending = False
+        self._reader.deadline = self._started + self.server.request_timeout  # the body: a player's deadline
+        return True
 
     def do_GET(self):
         if self._refused():
@@ -311,9 +399,13 @@ class PlayServer:
         *,
         request_timeout: float = REQUEST_TIMEOUT_S,
         max_connections: int = MAX_CONNECTIONS,
+        head_timeout: float = HEAD_TIMEOUT_S,
+        max_pending: int = MAX_PENDING,
     ):
         self.key = secrets.token_urlsafe(16)
-        self.http = _Server((host, port), verbose, self.key, request_timeout, max_connections)
+        self.http = _Server(
+            (host, port), verbose, self.key, request_timeout, max_connections, head_timeout, max_pending
+        )
         self.session: GameSession | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
