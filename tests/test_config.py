@@ -420,6 +420,49 @@ def test_yaml_alias_bomb_is_refused(tmp_path):
     assert "expands to more than" in _file_error(tmp_path, "\n".join(lines) + "\n")
 
 
+@pytest.mark.parametrize(
+    "text, what",
+    [
+        ("ppo: " + "[" * 5000 + "\n", "nested deeper than 64 levels"),
+        ("ppo: {lr: " + "1" * 4301 + "}\n", "an integer of 4301 digits (at most 100)"),
+        ("ppo: {num_envs: " + "9" * 400 + "}\n", "an integer of 400 digits"),
+        (
+            "env: {layout: cramped_room}\nppo: {lr: 0.1}\nenv: {layout: coord_ring}\n",
+            "duplicate key 'env' (first at line 1)",
+        ),
+        ("ppo:\n  lr: 0.1\n  num_envs: 4\n  lr: 0.2\n", "duplicate key 'lr' (first at line 2) at line 4"),
+    ],
+    ids=["5000-nested", "4301-digits", "400-digits", "env-twice", "key-twice"],
+)
+def test_hostile_or_ambiguous_yaml_is_a_one_line_error(tmp_path, text, what):
+    """Deep nesting (RecursionError inside PyYAML), huge integers (ValueError past 4,300 digits) and a key
+    given twice (PyYAML keeps the last silently) are refused with the file and line."""
+    message = _file_error(tmp_path, text)
+    assert "not valid YAML" in message and what in message, message
+
+
+@pytest.mark.parametrize(
+    "item, what",
+    [
+        ("ppo.lr=" + "[" * 5000, "nested deeper than 64 levels"),
+        ("ppo.lr=" + "1" * 5000, "an integer of 5000 digits"),
+        ("env.x={a: 1, a: 2}", "duplicate key 'a'"),
+        ("ppo." + ".".join(["a"] * 5000) + "=1", "nested deeper than 64 levels"),
+    ],
+    ids=["5000-nested", "5000-digits", "key-twice", "5000-key-parts"],
+)
+def test_hostile_set_values_are_one_line_errors_naming_the_override(tmp_path, item, what):
+    message = _file_error(tmp_path, "", [item], start=f"--set {item[:20]}")
+    assert what in message, message[:300]
+
+
+def test_merge_keys_may_still_override_an_anchor(tmp_path):
+    path = tmp_path / "c.yaml"
+    text = "ppo:\n  <<: {num_envs: 4, num_steps: 16, num_minibatches: 2, total_timesteps: 640}\n  num_envs: 8\n"
+    path.write_text(text)
+    assert load_config(path).ppo.num_envs == 8
+
+
 def test_plain_anchors_still_work(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("model: {kind: cnn, conv_features: &sizes [8, 8], conv_kernels: [3, 3], mixer_features: *sizes}\n")
@@ -448,12 +491,20 @@ def test_non_finite_floats_are_refused(item, key):
         ("ppo.ent_coef=-1e39", "ppo.ent_coef", "outside float32's range"),
         ("ppo.lr=1e-50", "ppo.lr", "rounds to 0 in float32"),
         ("cluster.gpu_memory_fraction=1e-46", "cluster.gpu_memory_fraction", "rounds to 0"),
-        ("ppo.clip_eps=" + "9" * 400, "ppo.clip_eps", "outside float32's range"),  # an int too large for float()
+        ("ppo.clip_eps=" + "9" * 100, "ppo.clip_eps", "outside float32's range"),  # the longest integer YAML admits
     ],
+    ids=["1e308", "-1e39", "1e-50", "1e-46", "100-digits"],
 )
 def test_floats_must_fit_float32(item, key, what):
     message = _error({"ppo": SMALL_PPO}, [item])
     assert message.startswith(f"--set {item}: {key}:") and what in message
+
+
+def test_integers_longer_than_any_config_value_are_refused_as_yaml():
+    """400 digits overflow float(); past 4,300 Python refuses to parse them at all."""
+    item = "ppo.clip_eps=" + "9" * 400
+    message = _error({"ppo": SMALL_PPO}, [item])
+    assert message.startswith(f"--set {item}: the value is not valid YAML: an integer of 400 digits (at most 100)")
 
 
 @pytest.mark.parametrize(

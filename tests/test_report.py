@@ -292,6 +292,23 @@ def test_validate_lists_every_problem_of_a_file(tmp_path, capsys):
     assert all(line.startswith(f"FAIL {bad}: ") for line in failed)
 
 
+def test_validate_refuses_hostile_or_ambiguous_yaml_in_one_line_each(tmp_path, capsys):
+    """5,000 nested lists (RecursionError), a 5,000-digit integer (ValueError) and a section given twice
+    (the second silently won and the file passed)."""
+    files = {
+        "nested.yaml": ("env: " + "[" * 5000 + "\n", "nested deeper than 64 levels"),
+        "digits.yaml": ("eval: {episodes: " + "7" * 5000 + "}\n", "an integer of 5000 digits (at most 100)"),
+        "twice.yaml": ("env: {layout: cramped_room}\nenv: {layout: coord_ring}\n", "duplicate key 'env'"),
+    }
+    for name, (text, _) in files.items():
+        (tmp_path / name).write_text(text)
+    assert main(["validate", *(str(tmp_path / name) for name in files)]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == len(files) + 1 and "3 of 3 config(s) invalid" in err[-1]
+    for line, (name, (_, message)) in zip(err, files.items(), strict=False):
+        assert line.startswith(f"FAIL {tmp_path / name}: not valid YAML: {message}"), line[:200]
+
+
 def test_validate_skips_ray_launcher_configs(capsys):
     launcher = str(ROOT / "configs" / "cluster" / "ray-cluster-aws.yaml")
     assert main(["validate", launcher, str(ROOT / "configs" / "smoke.yaml")]) == 0

@@ -286,6 +286,10 @@ def test_set_overrides_every_run_after_the_study_file_and_the_directory_keeps_it
         (["--set", "ppo.lrr=1"], "run 'sp': --set ppo.lrr=1: ppo.lrr: unknown key; did you mean ppo.lr?"),
         # compressed, SA's 2 iterations need 2 updates; 1e-4 of the smoke config's steps is one
         (["--budget", "0.0001", "--budget-mode", "compress"], "run 'sa' at --budget 0.0001: "),
+        (
+            ["--set", "run.num_checkpoints=1000000000"],
+            "run.num_checkpoints: 1,000,000,000 snapshots of a run of 4 updates; at most 100",
+        ),
     ],
 )
 def test_a_bad_set_or_budget_is_a_one_line_error_before_anything_is_written(tmp_path, capsys, options, message):
@@ -366,7 +370,16 @@ def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
         (lambda d: d["runs"][0].update(set=["ppo.lrr=1"]), "run 'sp': "),
         (lambda d: d["runs"][0]["paper"].update(sp="high"), "run 'sp'.paper.sp: expected a number or [mean, std]"),
         (lambda d: d.update(over_training=["spp"]), "over_training: no run is named 'spp'; did you mean 'sp'?"),
+        (lambda d: d.update(over_training=["sp", "sp"]), "over_training: names run 'sp' twice"),
+        (
+            lambda d: d["runs"][1].update(name="sa\n"),
+            "runs[1].name: expected a name (letters, digits, _ . -), got 'sa\\n'",
+        ),
+        (lambda d: d.update(study="tiny\n"), "study: expected a name"),
+        (lambda d: d["comparisons"][0].update(name="c\n"), "comparisons[0].name: expected a name"),
+        (lambda d: d["runs"][0]["paper"].update(sp=10**400), "not valid YAML: an integer of 401 digits (at most 100)"),
     ],
+    ids=lambda v: None if callable(v) else v[:40],
 )
 def test_bad_study_files_are_one_line_errors_naming_the_entry(tmp_path, capsys, change, message):
     data = json.loads(json.dumps(STUDY))
@@ -379,6 +392,35 @@ def test_bad_study_files_are_one_line_errors_naming_the_entry(tmp_path, capsys, 
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err
     assert not (tmp_path / "out").exists()  # nothing written
+
+
+@pytest.mark.parametrize(
+    "tail, message",
+    [
+        ("runs: []\n", "not valid YAML: duplicate key 'runs' (first at line "),
+        ("comparisons: " + "[" * 5000 + "\n", "not valid YAML: nested deeper than 64 levels"),
+        ("notes: [" + "1" * 5000 + "]\n", "not valid YAML: an integer of 5000 digits"),
+    ],
+    ids=["runs-twice", "5000-nested", "5000-digits"],
+)
+def test_hostile_study_files_are_one_line_errors(tmp_path, capsys, tail, message):
+    """A second ``runs:`` used to drop the first silently; deep nesting and huge integers ended in
+    RecursionError and ValueError tracebacks."""
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(STUDY, sort_keys=False) + tail)
+    assert main(["study", "run", str(path), "--backend", "local", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(path) in err and message in err, err[:300]
+    assert not (tmp_path / "out").exists()
+
+
+def test_hostile_set_in_a_study_is_a_one_line_error(tmp_path, capsys):
+    path = write_study(tmp_path / "tiny.yaml", STUDY)
+    for value, message in (("[" * 5000, "nested deeper than 64 levels"), ("9" * 5000, "an integer of 5000 digits")):
+        assert main(["study", "run", str(path), "--out", str(tmp_path / "out"), "--set", f"ppo.lr={value}"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--set ppo.lr=" in err and message in err, err[:300]
+    assert not (tmp_path / "out").exists()
 
 
 def test_status_lists_every_step(finished, capsys):

@@ -44,7 +44,8 @@ STUDY_KEYS = ("study", "description", "set", "runs", "over_training", "compariso
 RUN_KEYS = ("name", "config", "set", "partners_from", "paper")
 PAPER_KEYS = ("source", "sp", "xp", "gap", "note")
 COMPARISON_KEYS = ("name", "runs", "human_proxy")
-NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+#: A study, run or comparison name (a folder name): matched whole, so no trailing newline slips through ``$``.
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 
 class StudyError(ValueError):
@@ -130,7 +131,7 @@ def parse_study(raw: Any, path: Path) -> Study:
         raise StudyError(f"{where}: a study file is a mapping with keys {', '.join(STUDY_KEYS)}")
     _unknown(where, "", raw, STUDY_KEYS)
     name = raw.get("study")
-    if not isinstance(name, str) or not NAME.match(name):
+    if not isinstance(name, str) or not NAME.fullmatch(name):
         raise StudyError(f"{where}: study: expected a name (letters, digits, _ . -), got {name!r}")
     shared = _overrides(where, "set", raw.get("set"))
     runs_raw = raw.get("runs")
@@ -143,8 +144,10 @@ def parse_study(raw: Any, path: Path) -> Study:
     over = raw.get("over_training") or []
     if not isinstance(over, list) or not all(isinstance(n, str) for n in over):
         raise StudyError(f"{where}: over_training: expected a list of run names")
-    for name_ in over:
+    for index, name_ in enumerate(over):
         _known_run(where, "over_training", name_, names)
+        if name_ in over[:index]:
+            raise StudyError(f"{where}: over_training: names run {name_!r} twice")
     comparisons: list[Comparison] = []
     for index, entry in enumerate(raw.get("comparisons") or []):
         comparisons.append(_parse_comparison(where, index, entry, names, [c.name for c in comparisons]))
@@ -225,7 +228,7 @@ def _named_entry(where: str, section: str, noun: str, index: int, entry, keys, e
     if not isinstance(entry, Mapping):
         raise StudyError(f"{where}: {label}: expected a mapping with keys {', '.join(keys)}")
     name = entry.get("name")
-    if not isinstance(name, str) or not NAME.match(name):
+    if not isinstance(name, str) or not NAME.fullmatch(name):
         raise StudyError(f"{where}: {label}.name: expected a name (letters, digits, _ . -), got {name!r}")
     label = f"{noun} {name!r}"
     _unknown(where, f"{label}: ", entry, keys)
@@ -259,7 +262,12 @@ def _overrides(where: str, key: str, raw) -> tuple[str, ...]:
 
 
 def _finite_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:  # an integer beyond float's range (a study.json holds what JSON can)
+        return False
 
 
 # ---------------------------------------------------------------------------------------------------

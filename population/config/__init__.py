@@ -51,6 +51,7 @@ from population.config.yaml_io import (
     apply_overrides,
     check_plain_data,
     dump_config,
+    load_yaml_text,
     read_yaml,
     yaml_problem,
 )
@@ -86,6 +87,7 @@ __all__ = [
     "dump_config",
     "is_ray_launcher_config",
     "load_config",
+    "load_yaml_text",
     "paper_config_files",
     "paper_sp_ppo",
     "parse_config",

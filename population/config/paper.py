@@ -16,6 +16,7 @@ import yaml
 from population.config.errors import ConfigError
 from population.config.fields import parse_section
 from population.config.schema import PPOConfig
+from population.config.yaml_io import load_yaml_text
 
 #: Every config shipped with ocv2: quickstart.yaml, smoke.yaml, paper/ (the paper's experiments), cluster/.
 PACKAGED_CONFIGS: Traversable = resources.files("population.config") / "files"
@@ -44,7 +45,7 @@ def paper_sp_ppo(layout: str, model_kind: str) -> PPOConfig | None:
     found = {}
     for file in paper_config_files():
         try:
-            raw = yaml.safe_load(file.read_text(encoding="utf-8")) or {}
+            raw = load_yaml_text(file.read_text(encoding="utf-8")) or {}
         except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
             raise ConfigError(f"{file}: the packaged paper config cannot be read ({error}); reinstall ocv2") from None
         pop, env, model = raw.get("population") or {}, raw.get("env") or {}, raw.get("model") or {}

@@ -17,6 +17,72 @@ if TYPE_CHECKING:
 
 #: YAML nodes a config may expand to (aliases included): a config is a few hundred; this stops alias bombs.
 MAX_YAML_NODES = 100_000
+#: Deepest nesting of lists and mappings: configs and study files nest 4 levels at most. PyYAML builds
+#: nodes recursively, so a few KB of ``[[[[...`` would otherwise end in a RecursionError.
+MAX_YAML_DEPTH = 64
+#: Longest integer literal: every integer a config holds fits int64 (19 digits). Python refuses to parse
+#: more than 4,300 digits at all, and a few hundred overflow a float.
+MAX_YAML_INT_DIGITS = 100
+#: Largest YAML file read: configs and study files are a few KB.
+MAX_YAML_BYTES = 4 << 20
+
+
+class StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses what a config must not hold silently or cannot hold at all: a key
+    given twice in one mapping (PyYAML keeps the last one), nesting deeper than ``MAX_YAML_DEPTH`` and
+    integers longer than ``MAX_YAML_INT_DIGITS`` digits. Each is a ``yaml.YAMLError`` with its line."""
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent, index):
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise yaml.composer.ComposerError(
+                    None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", self.peek_event().start_mark
+                )
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base` then a key of base: an override
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark)
+                except TypeError:  # an unhashable key: PyYAML's own error names it
+                    continue
+                if first is not key_node.start_mark:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"duplicate key {key!r} (first at line {first.line + 1})", key_node.start_mark
+                    )
+        return super().construct_mapping(node, deep=deep)
+
+    def construct_yaml_int(self, node):
+        digits = sum(c.isalnum() for c in str(node.value))  # 0x / 0o prefixes count: a bound, not a count
+        if digits > MAX_YAML_INT_DIGITS:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"an integer of {digits} digits (at most {MAX_YAML_INT_DIGITS})", node.start_mark
+            )
+        return super().construct_yaml_int(node)
+
+
+StrictLoader.add_constructor("tag:yaml.org,2002:int", StrictLoader.construct_yaml_int)
+
+
+def load_yaml_text(text: str) -> Any:
+    """``yaml.safe_load(text)`` through ``StrictLoader``: every YAML text ocv2 reads goes through it."""
+    loader = StrictLoader(text)
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
 
 
 def read_yaml(path: str) -> Any:
@@ -25,7 +91,10 @@ def read_yaml(path: str) -> Any:
         raise ConfigError(f"{path}: is a directory, not a config file")
     try:
         with open(path, encoding="utf-8") as handle:
-            raw = yaml.safe_load(handle)
+            text = handle.read(MAX_YAML_BYTES + 1)
+        if len(text) > MAX_YAML_BYTES:
+            raise ConfigError(f"{path}: larger than {MAX_YAML_BYTES >> 20} MiB; not a config file")
+        raw = load_yaml_text(text)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
     except UnicodeDecodeError:
@@ -104,13 +173,15 @@ def apply_overrides(raw: Mapping, overrides: Sequence[str]) -> dict:
         parts = dotted.strip().split(".")
         if len(parts) < 2 or not all(parts):
             raise ConfigError(f"{where}: expected section.key=value")
+        if len(parts) > MAX_YAML_DEPTH:
+            raise ConfigError(f"{where}: a key nested deeper than {MAX_YAML_DEPTH} levels")
         node = data
         for part in parts[:-1]:
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"{where}: {part} is not a section")
         try:
-            value = yaml.safe_load(text) if text.strip() else None
+            value = load_yaml_text(text) if text.strip() else None
         except yaml.YAMLError as error:
             raise ConfigError(f"{where}: the value is not valid YAML: {yaml_problem(error)}") from None
         try:
