@@ -43,6 +43,7 @@ __all__ = [
     "render_frames",
     "rollout_states",
     "write_gif",
+    "check_frame_size",
     "INGREDIENT_COLORS",
     "AGENT_COLORS",
 ]
@@ -82,6 +83,14 @@ AGENT_COLORS = np.array(
 
 HIGHLIGHT = 0.3  # view-window cells are blended this far toward white
 DEFAULT_SUBDIVS = 3
+
+#: Pixels of one frame at most: a 4K screen (3840 x 2160), so every picture can be shown whole. Drawing
+#: works on float32 ``[H, W, tile, tile, 3]`` arrays and their blends: ``ocv2 play`` at this bound
+#: (cramped_room, tile size 643) peaked at 1 GB and took 1.3 s a tick on 2 busy CPU cores; at tile
+#: size 1500, 3.4 GB and 4-8 s, and 6000 was killed for memory (issue 41).
+MAX_FRAME_PIXELS = 3840 * 2160
+#: Bytes of the RGB frames one call holds together (a GIF's): beyond this, refuse rather than swap.
+MAX_FRAMES_BYTES = 2 << 30
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -317,6 +326,32 @@ def _render_tiles(state: State, static, agent_view_size, tile_size: int, subdivs
 def _render_jit(state, layout, agent_view_size, tile_size, subdivs):
     static = None if layout is None else jnp.asarray(layout.static_objects, dtype=jnp.int32)
     return _render_tiles(state, static, agent_view_size, tile_size, subdivs)
+
+
+def check_frame_size(layout: Layout, tile_size: int, frames: int = 1) -> None:
+    """Refuse, before anything is drawn, frames of ``layout`` too big for memory or for any screen.
+
+    ``ocv2 render`` (a GIF of ``frames`` frames) and ``ocv2 play`` (a frame per tick) check their
+    ``--tile-size`` here; the caller adds the flag names to the message.
+
+    Raises:
+        ValueError: one line with the size asked for and the bound: a frame over ``MAX_FRAME_PIXELS``
+            (naming the largest tile size for this layout), or frames over ``MAX_FRAMES_BYTES``.
+    """
+    cells = layout.height * layout.width
+    width, height = layout.width * tile_size, layout.height * tile_size
+    if width * height > MAX_FRAME_PIXELS:
+        largest = math.isqrt(MAX_FRAME_PIXELS // cells)
+        raise ValueError(
+            f"{layout.name} would be {width}x{height} pixels, over the {MAX_FRAME_PIXELS:,} of a 4K screen "
+            f"(3840x2160): the tile size for {layout.name} is at most {largest}"
+        )
+    needed = frames * width * height * 3
+    if needed > MAX_FRAMES_BYTES:
+        raise ValueError(
+            f"{frames} frames of {width}x{height} pixels need {needed / 2**30:.1f} GiB, over "
+            f"{MAX_FRAMES_BYTES / 2**30:.0f} GiB: use fewer frames or a smaller tile size"
+        )
 
 
 def _check_options(agent_view_size, tile_size, subdivs):

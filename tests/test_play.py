@@ -7,6 +7,7 @@ cramped_room with 6-step episodes and 8-pixel tiles, so each compiles in about a
 from __future__ import annotations
 
 import http.client
+import importlib
 import json
 import logging
 import select
@@ -724,7 +725,11 @@ def test_bad_partner_paths_are_clear_errors(rnn_run, tmp_path):
 
 
 def _cli_error(capsys, *args) -> tuple[int, str]:
-    code = main(["play", *args])
+    return _cli_error_of("play", capsys, *args)
+
+
+def _cli_error_of(command, capsys, *args) -> tuple[int, str]:
+    code = main([command, *args])
     err = capsys.readouterr().err
     assert "Traceback" not in err
     return code, err
@@ -758,3 +763,55 @@ def test_command_line_errors(rnn_run, tmp_path, capsys):
         code, err = _cli_error(capsys, "cramped_room", "--port", str(port), "--out", str(tmp_path / "y.mcap"))
     assert code == 1 and f"port {port} on 127.0.0.1 is in use" in err
     assert not list(tmp_path.glob("*.mcap*"))  # nothing was created
+
+
+def test_a_tile_size_too_big_is_refused_before_anything_is_drawn(tmp_path, capsys, monkeypatch):
+    """Issue 41, item 7: ``--tile-size 1500`` took 3.4 GB and 4-8 s a tick, 6000 was killed for memory.
+
+    ``ocv2 play`` and ``ocv2 render`` share one check (``ocv2.render.check_frame_size``): the same
+    one-line bound, before any frame is drawn (the drawing functions are replaced by ones that fail, so
+    a missing check fails here instead of allocating GBs).
+    """
+    main_cli = importlib.import_module("cluster.cli.main")  # ``cluster.cli.main`` is also the function
+    play_cli = importlib.import_module("cluster.cli.play")
+
+    def drawn(*_args, **_kwargs):
+        raise AssertionError("frames were drawn")
+
+    monkeypatch.setattr(play_cli, "make_game", drawn)
+    monkeypatch.setattr(main_cli, "rollout_states", drawn)
+    out = tmp_path / "x.mcap"
+    for tile in ("644", "1500", "6000"):  # cramped_room is 5x4 cells: 643 px a cell is a 4K screen's worth
+        code, err = _cli_error(capsys, "cramped_room", "--tile-size", tile, "--out", str(out), "--port", "0")
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"--tile-size {tile}: " in err and "4K screen (3840x2160)" in err and "at most 643" in err, err
+        code, err = _cli_error_of(
+            "render", capsys, "cramped_room", "--steps", "0", "--tile-size", tile, "--out", str(tmp_path / "x.gif")
+        )
+        assert code == 2 and len(err.strip().splitlines()) == 1 and "at most 643" in err, err
+    assert not list(tmp_path.iterdir())  # no archive, no GIF
+
+
+def test_the_shared_frame_size_check():
+    from ocv2.layouts import LAYOUTS
+    from ocv2.render import MAX_FRAME_PIXELS, MAX_FRAMES_BYTES, check_frame_size
+
+    for name in ("cramped_room", "long_room", "grounded_coord_ring"):
+        layout = LAYOUTS[name]
+        largest = int(str(_refusal(check_frame_size, layout, 10**4)).rsplit(" ", 1)[-1])
+        assert layout.width * layout.height * largest**2 <= MAX_FRAME_PIXELS  # only checked: nothing is drawn
+        assert layout.width * layout.height * (largest + 1) ** 2 > MAX_FRAME_PIXELS
+        check_frame_size(layout, largest)
+        assert "at most" in str(_refusal(check_frame_size, layout, largest + 1))
+    cramped = LAYOUTS["cramped_room"]
+    frames = MAX_FRAMES_BYTES // (20 * 48 * 48 * 3)  # the most 48-px frames of a 5x4 kitchen a GIF holds
+    check_frame_size(cramped, 48, frames)
+    assert "GiB, over 2 GiB" in str(_refusal(check_frame_size, cramped, 48, frames + 1))
+    with pytest.raises(ValueError, match="tile size for cramped_room is at most 643"):
+        make_game(ocv2.make("cramped_room"), scripted_partner("stay"), [0], tile_size=644)
+
+
+def _refusal(check, *args) -> ValueError:
+    with pytest.raises(ValueError) as refused:
+        check(*args)
+    return refused.value

@@ -48,7 +48,7 @@ from cluster.cli.args import fps, layout_or_error, non_negative_int, positive_in
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
 from cluster.runtime.interrupt import ChunkAbandoned, exit_now
 from ocv2.layouts import LAYOUTS, Layout
-from ocv2.render import render_frames, rollout_states, write_gif
+from ocv2.render import check_frame_size, render_frames, rollout_states, write_gif
 
 # ---------------------------------------------------------------------------------------------------
 # helpers
@@ -153,25 +153,14 @@ def _add_render(sub) -> argparse.ArgumentParser:
     return parser
 
 
-#: Frames of one GIF live in memory together: beyond this, ``ocv2 render`` refuses rather than swaps.
-MAX_GIF_BYTES = 2 << 30
-
-
-def gif_bytes(layout: Layout, steps: int, tile_size: int) -> int:
-    """Bytes of the RGB frames of a ``steps``-step episode (the reset state plus one per step)."""
-    return (steps + 1) * layout.height * layout.width * tile_size * tile_size * 3
-
-
 def _cmd_render(args) -> int:
     layout = layout_or_error(args.layout)
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
-    needed = gif_bytes(layout, args.steps, args.tile_size)
-    if needed > MAX_GIF_BYTES:
-        raise CLIError(
-            f"--steps {args.steps} with --tile-size {args.tile_size} needs {needed / 2**30:.1f} GiB of "
-            f"frames (at most {MAX_GIF_BYTES / 2**30:.0f} GiB); use fewer steps or a smaller tile size"
-        )
+    try:  # the frames of one GIF live in memory together: the reset state plus one per step
+        check_frame_size(layout, args.tile_size, frames=args.steps + 1)
+    except ValueError as error:
+        raise CLIError(f"--steps {args.steps} with --tile-size {args.tile_size}: {error}") from None
     folder = os.path.dirname(os.path.abspath(args.out))
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise CLIError(f"--out: {folder!r} exists and is not a folder")

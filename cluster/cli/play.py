@@ -30,6 +30,7 @@ from cluster.play.game import PartnerError, human_partner, load_policy_partner, 
 from cluster.play.server import PlayServer
 from cluster.play.session import PLAY_META_KEYS, SEAT_COLOURS, GameSession
 from ocv2.config import build_config
+from ocv2.render import check_frame_size
 
 DEFAULT_PORT = 8765
 DEFAULT_HOST = "127.0.0.1"
@@ -106,7 +107,7 @@ def add_play(sub) -> argparse.ArgumentParser:
         "--tile-size",
         type=int_at_least(8, "tile size (>= 8)"),
         default=48,
-        help="pixels per grid cell of the picture (default 48)",
+        help="pixels per grid cell of the picture (default 48; a frame is at most a 4K screen's pixels)",
     )
     parser.add_argument(
         "--out", metavar="FILE.mcap", help="archive to record to (default runs/play/<layout>_<time>.mcap)"
@@ -147,6 +148,7 @@ def run_play(args) -> int:
     partner = _partner(args.partner)
     env = _env(args, partner)
     human_seats = _human_seats(args, env, partner)
+    _check_tile_size(args.tile_size, env, human_seats)
     meta = _meta(args.meta)
     server = _bind(args.host, args.port, args.verbose)
     writer = failure = None
@@ -268,6 +270,14 @@ def _human_seats(args, env, partner) -> list[int]:
     if partner.kind in ("human", "policy") and seats < 2:
         raise CLIError(f"layout {env.layout.name!r} has one cook: there is no seat for a partner")
     return list(range(seats)) if partner.kind == "human" else [args.seat]
+
+
+def _check_tile_size(tile_size: int, env, human_seats) -> None:
+    # Before the server binds: a huge picture would take GBs and seconds per tick (or be killed) later.
+    try:
+        check_frame_size(env.layout, tile_size, frames=len(human_seats))
+    except ValueError as error:
+        raise CLIError(f"--tile-size {tile_size}: {error}") from None
 
 
 def _meta(pairs) -> dict:

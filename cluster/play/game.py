@@ -26,7 +26,7 @@ import numpy as np
 from ocv2 import items as it
 from ocv2.dynamics import transition
 from ocv2.items import Static
-from ocv2.render import INGREDIENT_COLORS, render
+from ocv2.render import INGREDIENT_COLORS, check_frame_size, render
 from ocv2.state import State
 from population import checkpoints as ckpt
 from population import policy as policies
@@ -257,8 +257,13 @@ def seat_views(env, seats: tuple[int, ...], tile_size: int, state: State) -> Vie
 
 
 def make_game(env, partner: Partner, human_seats, tile_size: int = 48) -> Game:
-    """Jit the reset, the step and the views for this env, partner and set of human seats."""
+    """Jit the reset, the step and the views for this env, partner and set of human seats.
+
+    Raises:
+        ValueError: a ``tile_size`` whose frames are too big (``ocv2.render.check_frame_size``).
+    """
     seats = tuple(sorted(int(s) for s in human_seats))
+    check_frame_size(env.layout, int(tile_size), frames=len(seats))
     step = functools.partial(game_step, env, partner.apply, seats)
     return Game(
         env,
