@@ -11,6 +11,10 @@ recorded joint action to count how many transitions ocv2 reproduces exactly (``r
 Only reading the pickles needs pandas (the ``[human]`` extra); everything else takes plain row dicts
 (``rows_from_frame`` / a JSON fixture), so tests run without the sdist.
 
+Every read is bounded: SOURCE must be a regular file (or a folder of them), a pickle is read in chunks and
+refused past ``MAX_PICKLE_BYTES``, an archive past ``MAX_ARCHIVE_MEMBERS`` entries or a member past
+``MAX_PICKLE_BYTES`` (``/dev/zero`` or a small archive of a huge zero file would otherwise fill memory).
+
 Unpickling runs whatever callables a pickle names, so a pickle from anywhere but the known sdist
 could run code. ``read_frame`` therefore never calls ``pickle.load``/``pd.read_pickle``: its
 ``TableUnpickler`` admits only the pandas/numpy constructors a data table needs (``PICKLE_CLASSES``)
@@ -27,6 +31,7 @@ import importlib
 import io
 import os
 import pickle
+import stat
 import tarfile
 import warnings
 from collections.abc import Callable, Iterable, Sequence
@@ -62,6 +67,16 @@ PICKLE_SHA256 = {
     "test": "59979552a053f1efe762de976f37dd83e269d70d19b67613c61e856c86705666",
 }
 CACHE_ENV = "OCV2_CACHE"
+
+#: Bounds on what a SOURCE can make ocv2 read. The 2019 data as PyPI serves it: the sdist is 2,344,591 bytes,
+#: 102 entries, its pickles 27,549,202 (test) and 27,723,418 (train) bytes decompressed. A pickle (alone or
+#: an archive member) above 9x the larger one, any archive member that large, or more entries than 100x
+#: the sdist's is not the human data: refused before it is read, or as soon as the read passes the cap.
+MAX_PICKLE_BYTES = 256 << 20
+MAX_ARCHIVE_MEMBERS = 10_000
+#: An archive's file (the sdist, or the same tar uncompressed, about 60 MB) is hashed in chunks up to this size.
+MAX_ARCHIVE_BYTES = 1 << 30
+_CHUNK = 1 << 20
 
 #: The 2019 game paid 5 points per soup; ocv2 (like overcooked-ai's MDP) pays DELIVERY_REWARD = 20.
 RECORDED_SOUP_REWARD = 5.0
@@ -180,20 +195,13 @@ def read_frame(source: str | os.PathLike, split: str, warn: Callable[[str], None
             if not found:
                 raise HumanDataError(f"{path}: no {name} below this folder")
             where = found[0]
-            data = found[0].read_bytes()
-            _check_digest(where, data, PICKLE_SHA256[split], f"overcooked-ai 1.1.0's {name}", warn)
+            data = _read_file(where, MAX_PICKLE_BYTES, PICKLE_SHA256[split], f"overcooked-ai 1.1.0's {name}", warn)
         elif path.name.endswith((".tar.gz", ".tgz", ".tar")):
-            _check_digest(path, path.read_bytes(), SDIST_SHA256, SDIST_NAME, warn)
-            with tarfile.open(path) as tar:
-                members = [m for m in tar.getmembers() if m.name.endswith("/" + name) and m.isfile()]
-                if not members:
-                    raise HumanDataError(f"{path}: the archive holds no {name}")
-                where = f"{path}:{members[0].name}"
-                data = tar.extractfile(members[0]).read()
+            _read_file(path, MAX_ARCHIVE_BYTES, SDIST_SHA256, SDIST_NAME, warn, keep=False)
+            where, data = _read_member(path, name)
         else:
-            data = path.read_bytes()
-            _check_digest(path, data, PICKLE_SHA256[split], f"overcooked-ai 1.1.0's {name}", warn)
-        frame = TableUnpickler(io.BytesIO(data)).load()
+            data = _read_file(path, MAX_PICKLE_BYTES, PICKLE_SHA256[split], f"overcooked-ai 1.1.0's {name}", warn)
+        frame = TableUnpickler(data).load()
     except HumanDataError:
         raise
     except Exception as error:  # pickle/tar/pandas errors: one line naming the file
@@ -203,13 +211,75 @@ def read_frame(source: str | os.PathLike, split: str, warn: Callable[[str], None
     return frame
 
 
-def _check_digest(where, data: bytes, expected: str, what: str, warn: Callable[[str], None]) -> None:
-    digest = hashlib.sha256(data).hexdigest()
+def _size(count: int) -> str:
+    return f"{count / 2**20:,.0f} MiB" if count >= 2**20 else f"{count:,} bytes"
+
+
+def _too_big(where, cap: int, what: str) -> HumanDataError:
+    return HumanDataError(
+        f"{where}: {what} is larger than {_size(cap)}, more than ocv2 reads from the human data (the 2019 pickles "
+        "are 27.5 and 27.7 MB, the sdist 2.3 MB; docs/human.md); not the overcooked-ai 1.1.0 trials"
+    )
+
+
+def _read_file(
+    path: Path, cap: int, expected: str, what: str, warn: Callable[[str], None], keep: bool = True
+) -> io.BytesIO | None:
+    """A regular file read in chunks (refused past ``cap`` bytes) and checked against its known sha256;
+    its bytes (``keep``) as a stream to unpickle from. A device (``/dev/zero``), pipe or socket is refused
+    before it is opened."""
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise HumanDataError(
+                f"{path}: not a regular file (a device, pipe or socket); give {SDIST_NAME}, a folder holding the "
+                "trials' pickles, or one pickle"
+            )
+        with open(path, "rb") as handle:
+            if os.fstat(handle.fileno()).st_size > cap:  # refused before a byte is read
+                raise _too_big(path, cap, "the file")
+            digest, data = _read_capped(handle, path, cap, "the file", keep)
+    except OSError as error:
+        raise HumanDataError(f"{path}: cannot read: {error.strerror or error}") from None
     if digest != expected:
         warn(
-            f"{where}: not {what} (sha256 {digest[:16]}..., expected {expected[:16]}...); reading it anyway, "
+            f"{path}: not {what} (sha256 {digest[:16]}..., expected {expected[:16]}...); reading it anyway, "
             "with an unpickler that only builds pandas/numpy tables"
         )
+    return data
+
+
+def _read_capped(handle, where, cap: int, what: str, keep: bool = True) -> tuple[str, io.BytesIO | None]:
+    """(sha256, the bytes or None) of ``handle`` read in chunks; a HumanDataError once more than ``cap``."""
+    digest, data, total = hashlib.sha256(), io.BytesIO() if keep else None, 0
+    while chunk := handle.read(_CHUNK):
+        total += len(chunk)
+        if total > cap:
+            raise _too_big(where, cap, what)
+        digest.update(chunk)
+        if data is not None:
+            data.write(chunk)
+    if data is not None:
+        data.seek(0)
+    return digest.hexdigest(), data
+
+
+def _read_member(path: Path, name: str) -> tuple[str, io.BytesIO]:
+    """(where, bytes) of the archive member ending in ``/name``, read entry by entry: every entry's size is
+    checked against ``MAX_PICKLE_BYTES`` from its header before its data is decompressed, and at most
+    ``MAX_ARCHIVE_MEMBERS`` entries are read."""
+    with tarfile.open(path) as tar:
+        for count, member in enumerate(tar, start=1):
+            if count > MAX_ARCHIVE_MEMBERS:
+                raise HumanDataError(
+                    f"{path}: holds more than {MAX_ARCHIVE_MEMBERS:,} entries (the sdist has 102) before {name}; "
+                    "not the overcooked-ai 1.1.0 sdist"
+                )
+            if member.size > MAX_PICKLE_BYTES:
+                raise _too_big(f"{path}:{member.name}", MAX_PICKLE_BYTES, f"an entry of {_size(member.size)}")
+            if member.isfile() and member.name.endswith("/" + name):
+                where = f"{path}:{member.name}"
+                return where, _read_capped(tar.extractfile(member), where, MAX_PICKLE_BYTES, "the entry")[1]
+    raise HumanDataError(f"{path}: the archive holds no {name}")
 
 
 def rows_from_frame(frame) -> list[dict]:

@@ -163,6 +163,60 @@ def test_a_pickle_that_is_not_a_data_frame_is_a_one_line_error(tmp_path, capsys,
     assert f"ocv2 human: error: {path}: holds a {type(value).__name__}" in err and "Traceback" not in err
 
 
+def test_a_device_or_pipe_as_source_is_refused_before_it_is_read(tmp_path, capsys):
+    """``/dev/zero`` was read whole (the machine's memory, then an OOM kill); a FIFO blocked forever."""
+    fifo_folder = tmp_path / "data"
+    fifo_folder.mkdir()
+    os.mkfifo(fifo_folder / human.PICKLE_NAMES["train"])
+    for source in ("/dev/zero", str(fifo_folder)):
+        assert main(["human", "import", source, "--splits", "train", "--out", str(tmp_path / "out")]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "not a regular file (a device, pipe or socket)" in err, err
+        assert main(["human", "proxy", "cramped_room", "--source", source, "--out", str(tmp_path / "p")]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "not a regular file" in err, err
+    assert not (tmp_path / "p").exists()
+
+
+def test_reads_are_capped_per_file_and_per_archive_entry(tmp_path, monkeypatch, capsys):
+    """A 2 MB .tar.gz of a 2 GB zero pickle reached 2.3 GB before failing. The caps are made small here
+    (a few kB of zeros stand for the gigabytes); the message names the cap."""
+    monkeypatch.setattr(human, "MAX_PICKLE_BYTES", 4096)
+    monkeypatch.setattr(human, "_CHUNK", 1000)  # several chunks below the cap
+    zeros = bytes(5000)
+    lone = tmp_path / human.PICKLE_NAMES["train"]
+    lone.write_bytes(zeros)
+    bomb = _sdist_with(tmp_path / "bomb", zeros)
+    other = tmp_path / "other" / human.SDIST_NAME  # a large entry that is not the pickle is refused as well
+    other.parent.mkdir()
+    with tarfile.open(other, "w:gz") as tar:
+        info = tarfile.TarInfo("overcooked_ai-1.1.0/padding.bin")
+        info.size = len(zeros)
+        tar.addfile(info, io.BytesIO(zeros))
+    for source, what in ((lone, "the file is larger than 4,096 bytes"), (bomb, "an entry of 5,000 bytes is larger "
+                         "than 4,096 bytes"), (other, "padding.bin: an entry of 5,000 bytes")):  # fmt: skip
+        with pytest.raises(human.HumanDataError, match="more than ocv2 reads from the human data") as error:
+            human.read_frame(source, "train", warn=lambda _: None)
+        assert what in str(error.value) and "\n" not in str(error.value), str(error.value)
+    # an entry's header is checked before its data is decompressed; the read itself stops at the cap as well
+    monkeypatch.setattr(human, "MAX_PICKLE_BYTES", 4999)
+    with pytest.raises(human.HumanDataError, match="an entry of 5,000 bytes"):
+        human.read_frame(bomb, "train", warn=lambda _: None)
+    with io.BytesIO(zeros) as stream, pytest.raises(human.HumanDataError, match="the entry is larger than 4,999"):
+        human._read_capped(stream, "x", human.MAX_PICKLE_BYTES, "the entry")
+    many = tmp_path / "many" / human.SDIST_NAME
+    many.parent.mkdir()
+    with tarfile.open(many, "w:gz") as tar:
+        for index in range(5):
+            tar.addfile(tarfile.TarInfo(f"overcooked_ai-1.1.0/f{index}"), io.BytesIO(b""))
+    monkeypatch.setattr(human, "MAX_ARCHIVE_MEMBERS", 3)
+    with pytest.raises(human.HumanDataError, match="holds more than 3 entries"):
+        human.read_frame(many, "train", warn=lambda _: None)
+    assert main(["human", "import", str(bomb), "--splits", "train", "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "Traceback" not in err and "larger than 4,999 bytes" in err
+
+
 def test_imported_archive_is_a_state_augmentation_source(trials, tmp_path):
     path = tmp_path / "human_train_cramped_room.mcap"
     write_trials(str(path), trials["train"])
