@@ -1,0 +1,1620 @@
+"""Recompute the numbers of docs/RESULTS.md from the files under docs/results/ and compare them with the page.
+
+    python docs/results/check_results.py [--doc docs/RESULTS.md] [--quiet]
+
+Design. A number on the page is checked when it stands inside a tagged span,
+
+    <!-- check:NAME -->SP 219.9, XP 209.4, gap 10.6 (95 % interval over 4 seeds: 1.4 to 29.0)<!-- /check -->
+
+and this script has a function registered as NAME (``@check("NAME")`` below) that recomputes, from the
+committed files, the numbers that the span writes, in the order it writes them. A span may be a few words
+inside a sentence or a table cell, or a whole table (tag lines around it): in a table's lines the header row,
+the separator row and the first cell of every row are labels and are not read. Every other number in the span
+is read: digits with optional sign, thousands commas and decimals ("-3.1", "4,997,120", "5.0M" reads 5.0,
+"29.8x" reads 29.8); a hyphen after a digit is a range ("0.68-0.72" reads 0.68 and 0.72); "95 %" (the interval
+level), recipe names such as 0+0+0 and digits inside identifiers (seed_0) are not numbers. A function returns
+one value per number read; ``None`` marks a label that the span must contain but that is not compared.
+
+A number matches at the precision it is written: written with d decimals, it must lie within half a unit of
+its last digit of the recomputed value (so 9.648 may be written 9.6 or 9.65 but not 9.7; a tie such as 9.5
+may be written 9 or 10). Durations written "X h Y min" are compared as hours and whole minutes of the rounded
+total. The script prints one line per number (``--quiet``: only the mismatches) and exits 1 on any mismatch,
+on a span whose count of numbers differs from its function's, on a tag without a function and on a function
+without a tag (so a check cannot silently drop out of the page). tests/test_results_doc.py runs it.
+
+What it reads: the two studies' summary.json, the cross-play matrices (xp_*.csv), the GCS runs' metrics.csv and
+per-episode cross-play returns, the interim cross-plays (xp12_update61/, xp_sp_sa_update152/ and 244/), the
+tables of ring_direction.md and button_use.md (written by the scripts beside them from the lost run
+directories), and the Coordination Ring layout in ocv2/layouts.py (parsed as text, so no JAX is imported).
+
+What it cannot check, and why (the page says so where they stand): the Coordination Ring training-return
+tables and every Coordination Ring speed (no metrics.csv of those runs was committed; their run directories
+were lost with the machine), the 1.5M pilot of the Coordination Ring SP run, the first GCS start's speed, the
+per-snapshot cross-play durations, the 8 more seeds' loss at update 70, and the session times of day; no file
+under docs/results/ records them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import csv
+import functools
+import itertools
+import json
+import math
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+DOC = HERE.parent / "RESULTS.md"
+LAYOUTS = HERE.parents[1] / "ocv2" / "layouts.py"
+CR = HERE / "table1_coord_ring"
+GCS = HERE / "reduced_gcs"
+
+# ------------------------------------------------------------------------------------------ reading the page
+
+SPAN = re.compile(r"<!--\s*check:([\w.-]+)\s*-->(.*?)<!--\s*/check\s*-->", re.S)
+TAG = re.compile(r"<!--\s*/?check[^>]*-->")
+NUMBER = re.compile(r"-?\d+(?:,\d{3})*(?:\.\d+)?")
+NOT_NUMBERS = [
+    re.compile(r"\d\+\d\+\d"),  # recipe names
+    re.compile(r"95 %"),  # the interval level
+    re.compile(r"\bseat \d\b"),  # seat 0, seat 1: labels
+    re.compile(r"\[[^\]]*\]\([^)]*\)"),  # markdown links
+]
+
+
+def read_numbers(text: str) -> list[str]:
+    """The numbers of one span as written (see the module docstring for what counts)."""
+    lines, table_started = [], False
+    for line in text.split("\n"):
+        stripped = line.strip()
+        if stripped.startswith("|"):
+            if not table_started:  # header row
+                table_started = True
+                continue
+            if re.fullmatch(r"[|\s:-]+", stripped):  # separator row
+                continue
+            line = stripped[1:].split("|", 1)[1] if stripped.count("|") > 1 else ""  # drop the label cell
+        else:
+            table_started = False
+        lines.append(line)
+    text = "\n".join(lines)
+    for pattern in NOT_NUMBERS:
+        text = pattern.sub(" ", text)
+    found = []
+    for match in NUMBER.finditer(text):
+        start, token = match.start(), match.group()
+        before = text[start - 1] if start > 0 else " "
+        after = text[match.end()] if match.end() < len(text) else " "
+        if token.startswith("-") and (before.isdigit() or before == "."):
+            token = token[1:]  # a range "a-b", not a sign
+        elif before.isalpha() or before in "_.":
+            continue  # inside an identifier such as seed_0 or sp10
+        if (after.isalpha() and after not in "Mx") or after == "_":
+            continue
+        found.append(token)
+    return found
+
+
+def decimals(token: str) -> int:
+    return len(token.split(".")[1]) if "." in token else 0
+
+
+def matches(token: str, value: float) -> bool:
+    written = float(token.replace(",", ""))
+    return abs(written - value) <= 0.5 * 10 ** -decimals(token) + 1e-6
+
+
+# ------------------------------------------------------------------------------------------ the data
+
+
+def _float(x):
+    return float(x) if x not in ("", None) else math.nan
+
+
+@functools.cache
+def summary(study: Path) -> dict:
+    return json.loads((study / "summary.json").read_text())
+
+
+def run(study: Path, name: str) -> dict:
+    return next(r for r in summary(study)["runs"] if r["name"] == name)
+
+
+@functools.cache
+def matrix(path: Path) -> np.ndarray:
+    """A cross-play matrix file (seat 0 = row) as an array."""
+    with path.open() as f:
+        rows = list(csv.reader(f))[1:]
+    return np.array([[float(x) for x in row[1:]] for row in rows])
+
+
+def both_seats(m: np.ndarray) -> np.ndarray:
+    return (m + m.T) / 2
+
+
+def sp_xp(m: np.ndarray, seeds=None) -> tuple[float, float, float]:
+    if seeds is not None:
+        m = m[np.ix_(seeds, seeds)]
+    same = np.eye(len(m), dtype=bool)
+    sp, xp = m[same].mean(), m[~same].mean()
+    return sp, xp, sp - xp
+
+
+def pairs(m: np.ndarray) -> list[float]:
+    """Mean of both seat orders of every unordered pair of different seeds."""
+    p = both_seats(m)
+    return [p[i, j] for i, j in itertools.combinations(range(len(m)), 2)]
+
+
+def interval(block: dict, key: str) -> list[float]:
+    return list(block[f"{key}_ci95_interval"])
+
+
+def block(study_block: dict) -> list[float]:
+    """SP, XP, gap with their intervals: [sp, lo, hi, xp, lo, hi, gap, lo, hi]."""
+    out = []
+    for key, mean in (("sp", "sp_mean"), ("xp", "xp_mean"), ("gap", "gap")):
+        out += [study_block[mean], *interval(study_block, key)]
+    return out
+
+
+def over_training(run_name: str) -> list[dict]:
+    return next(o for o in summary(CR)["over_training"] if o["run"] == run_name)["points"]
+
+
+def point(run_name: str, update: int) -> dict:
+    return next(p for p in over_training(run_name) if p["update"] == update)
+
+
+@functools.cache
+def metrics(name: str) -> list[dict]:
+    with (GCS / f"{name}_metrics.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def metric(name: str, update: int, column: str) -> list[float]:
+    """``column`` of every seed at ``update``, seeds in order."""
+    rows = sorted((r for r in metrics(name) if int(r["update"]) == update), key=lambda r: int(r["seed"]))
+    return [_float(r[column]) for r in rows]
+
+
+def chunks(name: str, after: int = 0) -> list[tuple[float, float, int]]:
+    """The training chunks of a run from its metrics.csv (every update of a chunk carries the chunk's wall
+    time and speed): [(wall_s, env steps per second, updates)] of the chunks whose updates are > ``after``."""
+    rows = [r for r in metrics(name) if r["seed"] == "0" and int(r["update"]) > after]
+    out = []
+    for key, group in itertools.groupby(rows, key=lambda r: (r["wall_s"], r["steps_per_s"])):
+        out.append((float(key[0]), float(key[1]), len(list(group))))
+    return out
+
+
+@functools.cache
+def episodes(name: str) -> list[dict]:
+    with (GCS / f"{name}_xp_episodes.csv").open() as f:
+        return [
+            {
+                "seat0": int(r["seat0"]),
+                "seat1": int(r["seat1"]),
+                "return": float(r["return"]),
+                "recipe": r["start_recipe"],
+            }
+            for r in csv.DictReader(f)
+        ]
+
+
+def returns(name: str, seat0: int, seat1: int, recipe: str | None = None) -> np.ndarray:
+    return np.array(
+        [
+            e["return"]
+            for e in episodes(name)
+            if (e["seat0"], e["seat1"]) == (seat0, seat1) and recipe in (None, e["recipe"])
+        ]
+    )
+
+
+def pair_se(name: str, a: int, b: int) -> float:
+    """Standard error over episodes of a cell written as the mean of both seat orders (the diagonal: one
+    order)."""
+    if a == b:
+        x = returns(name, a, a)
+        return x.std(ddof=1) / math.sqrt(len(x))
+    x, y = returns(name, a, b), returns(name, b, a)
+    return 0.5 * math.sqrt(x.var(ddof=1) / len(x) + y.var(ddof=1) / len(y))
+
+
+def md_tables(path: Path) -> list[list[list[str]]]:
+    """Every markdown table of a file: its body rows as lists of cell strings."""
+    tables, current = [], None
+    for line in path.read_text().split("\n"):
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if current is None:
+                current = []
+                tables.append(current)
+                continue  # header
+            if all(re.fullmatch(r":?-+:?", c) for c in cells):
+                continue
+            current.append(cells)
+        else:
+            current = None
+    return tables
+
+
+@functools.cache
+def ring() -> dict:
+    """ring_direction.md: {"sp": {update: [(cw seat 0, cw seat 1, return) per seed]}, "probe": ..., "sa": ...,
+    "sp_archive"/"sa_archive": {(seat0, seat1): (cw seat 0, cw seat 1, return)}}."""
+    sp, sp_archive, probe, sa, sa_archive = md_tables(CR / "ring_direction.md")
+
+    def snapshots(table):
+        return {int(row[0]): [tuple(float(x) for x in cell.split(",")) for cell in row[1:]] for row in table}
+
+    def archive(table):
+        return {(int(r[0]), int(r[1])): (float(r[2]), float(r[3]), float(r[4])) for r in table}
+
+    return {
+        "sp": snapshots(sp),
+        "sp_archive": archive(sp_archive),
+        "probe": snapshots(probe),
+        "sa": snapshots(sa),
+        "sa_archive": archive(sa_archive),
+    }
+
+
+@functools.cache
+def buttons() -> list[dict]:
+    """button_use.md: one dict per (seat 0, seat 1, starting recipe)."""
+    (table,) = md_tables(GCS / "button_use.md")
+    keys = ("presses", "top", "bottom", "correct", "wrong", "return")
+    return [
+        {"seat0": r[0], "seat1": r[1], "recipe": r[2], "episodes": int(r[3]), **dict(zip(keys, map(float, r[4:])))}
+        for r in table
+    ]
+
+
+def button_rows(seat0=None, seat1=None, recipe=None) -> list[dict]:
+    return [
+        r
+        for r in buttons()
+        if seat0 in (None, r["seat0"]) and seat1 in (None, r["seat1"]) and recipe in (None, r["recipe"])
+    ]
+
+
+def mean(rows, key) -> float:
+    return float(np.mean([r[key] for r in rows]))
+
+
+def hm(seconds: float) -> list[int]:
+    """A duration as [hours, minutes], rounded to the minute."""
+    minutes = round(seconds / 60)
+    return [minutes // 60, minutes % 60]
+
+
+def span(values) -> list[float]:
+    values = list(values)
+    return [min(values), max(values)]
+
+
+SP, FCP = "sp", "fcp"
+SEEDS = ["sp/0", "sp/1", "sp/2", "sp/3"]
+LEARNERS = ["fcp/0", "fcp/1", "fcp/2", "fcp/3"]
+SP_SP_SA_BC = CR / "xp_coord_ring_sp_sa_human.csv"
+GCS_8X8 = GCS / "xp_grounded_coord_simple_sp_fcp.csv"
+
+
+def cr_sp() -> np.ndarray:
+    return matrix(CR / "xp_sp.csv")
+
+
+def cr_sa() -> np.ndarray:
+    return matrix(CR / "xp_sa.csv")
+
+
+def gcs_sp() -> np.ndarray:
+    return matrix(GCS / "xp_sp.csv")
+
+
+def gcs_fcp() -> np.ndarray:
+    return matrix(GCS / "xp_fcp.csv")
+
+
+def study_block(study: Path, rows: str, cols: str) -> dict:
+    return next(b for b in summary(study)["comparisons"][0]["blocks"] if (b["rows"], b["cols"]) == (rows, cols))
+
+
+def study_pair(study: Path, a: str, b: str) -> dict:
+    return next(p for p in summary(study)["comparisons"][0]["pairs"] if (p["a"], p["b"]) == (a, b))
+
+
+def paper(study: Path, name: str) -> list[float]:
+    p = run(study, name)["paper"]
+    return [p["sp"]["mean"], p["xp"]["mean"], p["gap"]["mean"]]
+
+
+def millions(study: Path, name: str) -> float:
+    return run(study, name)["env_steps_per_seed"] / 1e6
+
+
+# ------------------------------------------------------------------------------------------ 4-seed bootstrap
+
+
+def resamples(m: np.ndarray) -> np.ndarray:
+    """Every ordered resample of the K seeds with replacement that has a cross-play cell (K^K - K of them),
+    as rows (sp, xp, gap): the distribution that population.xp.bootstrap_block samples 2,000 times."""
+    k = len(m)
+    out = []
+    for draw in itertools.product(range(k), repeat=k):
+        draw = np.array(draw)
+        same = draw[:, None] == draw[None, :]
+        if same.all():
+            continue
+        cells = m[draw[:, None], draw[None, :]]
+        sp, xp = cells[same].mean(), cells[~same].mean()
+        out.append((sp, xp, sp - xp))
+    return np.array(out)
+
+
+def gap_at_most_zero(m: np.ndarray) -> list[int]:
+    r = resamples(np.asarray(m, float))
+    return [int((r[:, 2] <= 1e-12).sum()), len(r)]
+
+
+# ------------------------------------------------------------------------------------------ the layout
+
+
+@functools.cache
+def coord_ring_moves() -> dict:
+    """Moves along Coordination Ring's one-cell-wide ring between the cells where an agent works each
+    station, clockwise and counter-clockwise as the layout is drawn (y down; clockwise = rising
+    atan2(y - cy, x - cx) about the centre counter, as ring_direction.py counts it)."""
+    tree = ast.parse(LAYOUTS.read_text())
+    text = None
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Dict):
+            for key, value in zip(node.keys, node.values):
+                if isinstance(key, ast.Constant) and key.value == "coord_ring":
+                    text = ast.literal_eval(value)[0]
+    grid = text.split("\n")
+    floor = [(x, y) for y, row in enumerate(grid) for x, c in enumerate(row) if c in " A"]
+    cx = np.mean([x for x, _ in floor])
+    cy = np.mean([y for _, y in floor])
+    ring_cells = sorted(floor, key=lambda p: math.atan2(p[1] - cy, p[0] - cx))
+    index = {cell: i for i, cell in enumerate(ring_cells)}
+
+    def work_cell(chars):
+        cells = {
+            (x + dx, y + dy)
+            for y, row in enumerate(grid)
+            for x, c in enumerate(row)
+            if c in chars
+            for dx, dy in ((0, 1), (1, 0), (0, -1), (-1, 0))
+            if (x + dx, y + dy) in index
+        }
+        (cell,) = cells  # every station of this layout is worked from one ring cell
+        return index[cell]
+
+    n = len(ring_cells)
+    station = {"plate": work_cell("B"), "pot": work_cell("P"), "serve": work_cell("X"), "onion": work_cell("O0")}
+
+    def moves(a, b):
+        clockwise = (station[b] - station[a]) % n
+        return clockwise, n - clockwise
+
+    legs = [("plate", "pot"), ("pot", "serve"), ("serve", "plate")]
+    cycle_cw = sum(moves(a, b)[0] for a, b in legs)
+    cycle_ccw = sum(moves(a, b)[1] for a, b in legs)
+    return {
+        "legs": [moves(a, b) for a, b in legs],
+        "onion_pot": moves("onion", "pot"),
+        "cycle": (cycle_cw, cycle_ccw),
+        "ring": n,
+    }
+
+
+# ------------------------------------------------------------------------------------------ the checks
+
+CHECKS: dict = {}
+
+
+def check(name: str):
+    def register(function):
+        CHECKS[name] = function
+        return function
+
+    return register
+
+
+L = None  # a label: present in the span, not compared
+
+
+# --- top of the page
+
+
+@check("top_cr_sp_size")
+def _():
+    return [run(CR, "sp")["seeds"], millions(CR, "sp")]
+
+
+@check("top_cr_sp")
+def _():
+    xp = run(CR, "sp")["xp"]
+    return [xp["sp_mean"], xp["xp_mean"], xp["gap"], xp["num_policies"], *interval(xp, "gap"), *paper(CR, "sp")]
+
+
+@check("top_cr_sp_worst")
+def _():
+    p = both_seats(cr_sp())
+    i, j = min(itertools.combinations(range(4), 2), key=lambda ij: p[ij])
+    return [i, j, p[i, j]]
+
+
+def _steps(name, update):
+    return point(name, update)["env_steps_per_seed"] / 1e6
+
+
+@check("top_cr_sp_growth")
+def _():
+    gap = {p["update"]: p["gap"] for p in over_training("sp")}
+    late = [g for u, g in gap.items() if u >= 183]
+    return [
+        gap[30],
+        _steps("sp", 30),
+        gap[122],
+        _steps("sp", 122),
+        gap[183],
+        _steps("sp", 183),
+        *span(late),
+        _steps("sp", 183),
+        _steps("sp", 305),
+    ]
+
+
+def _shares(table, update):
+    """Clockwise share of seat 0 per seed at ``update`` of a ring_direction.md snapshot table."""
+    return [cell[0] for cell in ring()[table][update]]
+
+
+CLOCKWISE, EVEN = 0.58, 0.45  # a share above 0.58: clockwise; 0.45-0.58: about even; below 0.45: counter-clockwise
+
+
+@check("top_probe")
+def _():
+    early = [s for s in _shares("probe", 30) if s < 0.5]
+    at61 = _shares("probe", 61)
+    ccw = min(range(8), key=lambda i: at61[i])
+    even = sorted(s for s in at61 if EVEN <= s < CLOCKWISE)
+    firm = [s for s in at61 if s >= 0.68]
+    (weak,) = [i for i, s in enumerate(at61) if CLOCKWISE <= s < 0.68]
+    ccw_count = sum(s < EVEN for s in at61)
+    return [
+        _steps("sp", 30),
+        len(early),
+        *span(early),
+        _steps("sp", 61),
+        ccw_count,
+        ccw,
+        at61[ccw],
+        ring()["probe"][61][ccw][2],
+        len(even),
+        *even,
+        len(firm),
+        *span(firm),
+        weak,
+        at61[weak],
+    ]
+
+
+@check("top_twelve")
+def _():
+    k = 12
+    sp, xp, _ = sp_xp(cr_sp())
+    cells, bad = k * (k - 1), 2 * (k - 1)
+    xp12 = xp * (cells - bad) / cells
+    return [k, bad, cells, 0, xp, len(cr_sp()), xp12, sp - xp12, paper(CR, "sp")[2]]
+
+
+@check("top_cr_sa")
+def _():
+    xp = run(CR, "sa")["xp"]
+    return [xp["sp_mean"], xp["xp_mean"], xp["gap"], xp["num_policies"], *interval(xp, "gap"), *paper(CR, "sa")]
+
+
+def _sa_ccw():
+    """SA seed 1 (the counter-clockwise seed): [self-play, sorted pairs with the other SA seeds], [pairs
+    with the 4 SP seeds] (means of both seat orders)."""
+    sa = both_seats(cr_sa())
+    big = both_seats(matrix(SP_SP_SA_BC))
+    return [sa[1, 1], *sorted(sa[1, j] for j in (0, 2, 3))], [big[5, j] for j in range(4)]
+
+
+@check("top_cr_sa_seed1")
+def _():
+    own, with_sp = _sa_ccw()
+    return [own[0], *own[1:3], 2, own[3], *span(with_sp)]
+
+
+@check("top_bc")
+def _():
+    return [
+        study_pair(CR, "sp", "human-proxy:coord_ring")["mean"],
+        study_pair(CR, "sa", "human-proxy:coord_ring")["mean"],
+    ]
+
+
+@check("top_gcs_sp_size")
+def _():
+    return [run(GCS, SP)["seeds"], millions(GCS, SP)]
+
+
+@check("top_gcs_sp")
+def _():
+    xp = run(GCS, SP)["xp"]
+    return [xp["sp_mean"], xp["xp_mean"], xp["gap"], xp["num_policies"], *interval(xp, "gap"), *paper(GCS, SP)]
+
+
+def _seed2_wrong():
+    """Return per 1+1+1 episode of SP seed 2 cooking for SP seeds 0 and 1 in seat 0 (button_use.md)."""
+    return [button_rows(s, "sp/2", "1+1+1")[0]["return"] for s in ("sp/0", "sp/1")]
+
+
+def _without_seed2():
+    return list(sp_xp(gcs_sp(), [0, 1, 3]))
+
+
+@check("top_gcs_sp_story")
+def _():
+    return [2, 0, 1, *_seed2_wrong(), 2, *_without_seed2(), 1, 3, both_seats(gcs_sp())[1, 3]]
+
+
+@check("top_gcs_sp_ratio")
+def _():
+    xp = run(GCS, SP)["xp"]
+    p = paper(GCS, SP)
+    return [p[0] / xp["sp_mean"], p[1] / xp["xp_mean"], p[2] / xp["gap"]]
+
+
+@check("top_gcs_fcp_size")
+def _():
+    return [run(GCS, FCP)["seeds"], millions(GCS, FCP)]
+
+
+@check("top_gcs_fcp")
+def _():
+    xp = run(GCS, FCP)["xp"]
+    return [xp["sp_mean"], xp["xp_mean"], xp["gap"], xp["num_policies"], *interval(xp, "gap"), *paper(GCS, FCP)]
+
+
+# --- intervals at 4 seeds
+
+
+@check("four_seed_resamples")
+def _():
+    k = len(cr_sp())
+    return [k, len(resamples(cr_sp())), k, k, k**k, k**k - len(resamples(cr_sp())), k]
+
+
+@check("four_seed_pairs")
+def _():
+    k = len(cr_sp())
+    draws = list(itertools.product(range(k), repeat=k))
+    alone = sum(1 for d in draws if set(d) == {0, 1})
+    total = len(resamples(cr_sp()))
+    return [alone, k * (k - 1) // 2, alone * k * (k - 1) // 2, total, alone, total, 2.5]
+
+
+@check("four_seed_exact")
+def _():
+    blocks = [(p["matrix"], p, p["update"]) for name in ("sp", "sa") for p in over_training(name) if p["update"] > 0]
+    blocks += [(gcs_sp(), run(GCS, SP)["xp"], None), (gcs_fcp(), run(GCS, FCP)["xp"], None)]
+    ends, differ = 0, []
+    for m, b, update in blocks:
+        r = resamples(np.asarray(m, float))
+        for column, key in enumerate(("sp", "xp", "gap")):
+            for exact, sampled in zip(np.percentile(r[:, column], [2.5, 97.5]), b[f"{key}_ci95_interval"]):
+                ends += 1
+                if round(exact, 1) != round(sampled, 1):
+                    differ.append((update, sampled, exact))
+    worst = max(abs(e - s) for _, s, e in differ)
+    return [ends, 4, ends - len(differ), 252, len(differ), worst, *(v for d in differ for v in d)]
+
+
+def _finals():
+    return [cr_sp(), cr_sa(), gcs_sp()]
+
+
+@check("four_seed_gap_zero")
+def _():
+    counts = [gap_at_most_zero(m) for m in _finals()]
+    count = counts[0][0] if len({tuple(c) for c in counts}) == 1 else math.nan
+    total = counts[0][1]
+    snapshots = [p for name in ("sp", "sa") for p in over_training(name) if p["update"] > 0]
+    low = [(gap_at_most_zero(p["matrix"])[0], p["gap_ci95_interval"][0] > 0) for p in snapshots]
+    excluded = [c for c, excludes in low if c <= 6 and excludes]
+    included = [c for c, excludes in low if c > 6 and not excludes]
+    agree = len(excluded) + len(included) == len(low)  # else the page's "excludes"/"includes" is wrong
+    updates = [p["update"] for p in snapshots]
+    return [
+        count,
+        total,
+        L,
+        L,
+        math.floor(0.025 * total),
+        2.5,
+        total,
+        0.025 * total,
+        len(low),
+        min(updates),
+        max(updates),
+        len(excluded) if agree else math.nan,
+        *span(excluded),
+        L,
+        len(included) if agree else math.nan,
+        *span(included),
+    ]
+
+
+def _gap_zero_pattern(m):
+    """(seed drawn three times, seed drawn once) of the resamples with a gap at or below 0, when they are one
+    such pattern (else NaN, NaN)."""
+    m = np.asarray(m, float)
+    found = set()
+    for draw in itertools.product(range(len(m)), repeat=len(m)):
+        draw = np.array(draw)
+        same = draw[:, None] == draw[None, :]
+        if same.all():
+            continue
+        cells = m[draw[:, None], draw[None, :]]
+        if cells[same].mean() - cells[~same].mean() <= 1e-12:
+            counts = np.bincount(draw, minlength=len(m))
+            found.add(
+                (int(counts.argmax()), int(np.flatnonzero((counts > 0) & (counts < counts.max()))[0]))
+                if counts.max() == 3
+                else None
+            )
+    return found.pop() if len(found) == 1 and None not in found else (math.nan, math.nan)
+
+
+# --- what is being run
+
+
+@check("run_cr_size")
+def _():
+    r = run(CR, "sp")
+    return [r["env_steps_per_seed"], r["update"]]
+
+
+@check("run_cr_wall")
+def _():
+    return hm(summary(CR)["wall_s"])
+
+
+@check("run_gcs_size")
+def _():
+    r = run(GCS, SP)
+    return [r["env_steps_per_seed"], r["update"]]
+
+
+def _training_s(name):
+    return sum(w for w, _, _ in chunks(name))
+
+
+RESUMED_AT = 10  # FCP's resume point (the run's manifest: resumed_from 10)
+
+
+@check("run_gcs_sp_time")
+def _():
+    return [*hm(run(GCS, SP)["wall_s"]), *hm(_training_s(SP)), *span(s for _, s, _ in chunks(SP))]
+
+
+@check("run_gcs_fcp_time")
+def _():
+    return [*hm(run(GCS, FCP)["wall_s"]), *hm(_training_s(FCP)), *span(s for _, s, _ in chunks(FCP, after=RESUMED_AT))]
+
+
+@check("run_gcs_comparison")
+def _():
+    return [summary(GCS)["comparisons"][0]["wall_s"] / 60]
+
+
+@check("run_gcs_wall")
+def _():
+    return hm(summary(GCS)["wall_s"])
+
+
+@check("run_gcs_chunk")
+def _():
+    return span(w / 60 for w, _, n in chunks(SP) if n == 5)
+
+
+@check("compute_gcs_speed")
+def _():
+    return span(s for _, s, _ in chunks(SP))
+
+
+@check("compute_cr_sp_wall")
+def _():
+    return hm(run(CR, "sp")["wall_s"])
+
+
+@check("compute_cr_sa_wall")
+def _():
+    return hm(run(CR, "sa")["wall_s"])
+
+
+@check("compute_cr_comparison")
+def _():
+    return [summary(CR)["comparisons"][0]["wall_s"] / 60]
+
+
+# --- claims table
+
+
+@check("claim_cr_sp")
+def _():
+    xp = run(CR, "sp")["xp"]
+    return [
+        xp["num_policies"],
+        millions(CR, "sp"),
+        xp["sp_mean"],
+        xp["sp_std"],
+        xp["xp_mean"],
+        xp["xp_std"],
+        xp["gap"],
+        xp["num_policies"],
+        *interval(xp, "gap"),
+        min(pairs(cr_sp())),
+    ]
+
+
+@check("claim_cr_sa")
+def _():
+    xp = run(CR, "sa")["xp"]
+    return [xp["num_policies"], millions(CR, "sa"), xp["num_policies"], *block(xp), run(CR, "sp")["xp"]["gap"]]
+
+
+@check("claim_cr_sa_verdict")
+def _():
+    own, with_sp = _sa_ccw()
+    return [*span(with_sp), *span(own[1:])]
+
+
+@check("claim_cr_sa_sp")
+def _():
+    return [run(CR, "sa")["xp"]["sp_mean"], run(CR, "sp")["xp"]["sp_mean"]]
+
+
+@check("claim_gcs_sp")
+def _():
+    xp = run(GCS, SP)["xp"]
+    return [xp["num_policies"], millions(GCS, SP), xp["num_policies"], *block(xp)]
+
+
+@check("claim_gcs_sp_verdict")
+def _():
+    p = both_seats(gcs_sp())
+    return [2, 0, 1, p[0, 2], p[1, 2], *_seed2_wrong(), 2, *_without_seed2(), 1, 3, p[1, 3], p[1, 1], p[3, 3]]
+
+
+@check("claim_gcs_sp_size")
+def _():
+    return [run(GCS, SP)["xp"]["sp_mean"], paper(GCS, SP)[0]]
+
+
+@check("claim_gcs_fcp")
+def _():
+    xp = run(GCS, FCP)["xp"]
+    pair = study_pair(GCS, SP, FCP)
+    final = run(GCS, SP)["update"]
+    return [
+        xp["num_policies"],
+        millions(GCS, FCP),
+        run(GCS, SP)["seeds"],
+        final // 2,
+        final,
+        xp["num_policies"],
+        *block(xp),
+        pair["mean"],
+        *pair["mean_ci95_interval"],
+    ]
+
+
+@check("claim_gcs_fcp_verdict")
+def _():
+    return [run(GCS, FCP)["xp"]["gap"], run(GCS, SP)["xp"]["gap"]]
+
+
+# --- Coordination Ring SP
+
+
+@check("cr_sp_matrix")
+def _():
+    return list(both_seats(cr_sp()).ravel())
+
+
+@check("cr_sp_final")
+def _():
+    xp = run(CR, "sp")["xp"]
+    return [xp["num_policies"], *block(xp)]
+
+
+@check("cr_sp_final_four")
+def _():
+    count, total = gap_at_most_zero(cr_sp())
+    return [count, total, *_gap_zero_pattern(cr_sp()), L]
+
+
+@check("cr_sp_final_note")
+def _():
+    m = cr_sp()
+    p = both_seats(m)
+    best = int(np.argmax(np.diag(m)))
+    others = sorted((p[best, j], j) for j in range(4) if j != best)
+    ordered = m[~np.eye(4, dtype=bool)]
+    pp = run(CR, "sp")["paper"]["xp"]
+    return [
+        best,
+        m[best, best],
+        others[0][0],
+        others[0][1],
+        others[1][0],
+        others[1][1],
+        pp["mean"],
+        pp["std"],
+        len(ordered),
+        ordered.min(),
+    ]
+
+
+def _over_training_rows(name, lowest=True, first=0):
+    out = []
+    for p in over_training(name):
+        if p["update"] < first:
+            continue
+        row = [
+            p["env_steps_per_seed"],
+            p["sp_mean"],
+            *interval(p, "sp"),
+            p["xp_mean"],
+            *interval(p, "xp"),
+            p["gap"],
+            *interval(p, "gap"),
+        ]
+        if lowest:
+            row.append(min(pairs(np.array(p["matrix"]))))
+        row.append(gap_at_most_zero(p["matrix"])[0])
+        out += row
+    return out
+
+
+@check("cr_sp_over_training")
+def _():
+    p = run(CR, "sp")["paper"]
+    full = run(CR, "sp")["env_steps_per_seed"] / summary(CR)["budget"] / 1e6
+    return [
+        *_over_training_rows("sp"),
+        full,
+        p["sp"]["mean"],
+        p["sp"]["std"],
+        p["xp"]["mean"],
+        p["xp"]["std"],
+        p["gap"]["mean"],
+    ]
+
+
+@check("cr_sp_over_training_says")
+def _():
+    gap = {p["update"]: p["gap"] for p in over_training("sp")}
+    sp = {p["update"]: p["sp_mean"] for p in over_training("sp")}
+    late = [g for u, g in gap.items() if u >= 183]
+    worst = 0.0
+    for p in over_training("sp")[1:]:
+        m = np.array(p["matrix"])
+        b = both_seats(m)
+        for i, j in itertools.combinations(range(4), 2):
+            worst = max(worst, 1 - b[i, j] / max(m[i, i], m[j, j]))
+    return [
+        gap[30],
+        gap[183],
+        _steps("sp", 183),
+        sp[30],
+        sp[183],
+        *span(late),
+        _steps("sp", 305),
+        sp[305],
+        _steps("sp", 305),
+        100 * worst,
+    ]
+
+
+@check("cr_geometry")
+def _():
+    g = coord_ring_moves()
+    return [v for leg in g["legs"] for v in leg] + [
+        g["onion_pot"][0] if g["onion_pot"][0] == g["onion_pot"][1] else math.nan,
+        *g["cycle"],
+    ]
+
+
+def _last_looks():
+    """Clockwise share of seat 0 at each seed's last look: SP and SA at update 305, the 8 more seeds at 61."""
+    return _shares("sp", 305) + _shares("sa", 305) + _shares("probe", 61)
+
+
+@check("cr_direction_count")
+def _():
+    shares = _last_looks()
+    clockwise = [s for s in shares if s >= CLOCKWISE]
+    even = sorted(s for s in shares if EVEN <= s < CLOCKWISE)
+    sa_ccw = [(i, s) for i, s in enumerate(_shares("sa", 305)) if s < EVEN]
+    probe_ccw = [(i, s) for i, s in enumerate(_shares("probe", 61)) if s < EVEN]
+    (sa_seed, sa_share), (probe_seed, probe_share) = (
+        sa_ccw + probe_ccw if len(sa_ccw + probe_ccw) == 2 else [(math.nan,) * 2] * 2
+    )
+    return [
+        len(clockwise),
+        len(shares),
+        *span(clockwise),
+        len(even),
+        *even,
+        len(sa_ccw) + len(probe_ccw),
+        sa_share,
+        sa_seed,
+        _steps("sa", 305),
+        probe_share,
+        probe_seed,
+        len(_shares("probe", 61)),
+        _steps("sp", 61),
+    ]
+
+
+@check("cr_paper_xp")
+def _():
+    sp, xp = paper(CR, "sp")[:2]
+    k = 10
+
+    def xp_with(minority, cross=0.0):
+        cells, bad = k * (k - 1), 2 * minority * (k - minority)
+        return (sp * (cells - bad) + cross * bad) / cells
+
+    nearest = sorted(range(1, k // 2 + 1), key=lambda n: abs(xp_with(n) - xp))[:2]
+    a, b = sorted(nearest)
+    cross = float(np.mean(_sa_ccw()[1]))
+    return [0, sp, xp, a, b, k, xp_with(a), xp_with(b), cross, k // 2, k // 2, xp_with(k // 2, cross)]
+
+
+@check("cr_direction_final")
+def _():
+    out = []
+    p = both_seats(cr_sp())
+    for seed in range(4):
+        cw = ring()["sp_archive"][(seed, seed)]
+        partner = min((j for j in range(4) if j != seed), key=lambda j: p[seed, j])
+        out += [cw[0], cw[1], p[seed, partner], partner]
+    return out
+
+
+@check("cr_direction_snapshots")
+def _():
+    return [s for update in (0, 30, 61, 122, 305) for s in _shares("sp", update)]
+
+
+@check("cr_direction_seat1")
+def _():
+    return [max(abs(c[0] - c[1]) for cells in ring()["sp"].values() for c in cells)]
+
+
+@check("probe_table")
+def _():
+    out = []
+    for update in (30, 50, 61):
+        cells = ring()["probe"][update]
+        out += [c[0] for c in cells] + [c[2] for c in cells]
+    return out
+
+
+@check("probe_says")
+def _():
+    at30, at61 = _shares("probe", 30), _shares("probe", 61)
+    early = [i for i, s in enumerate(at30) if s < 0.5]
+    even = [i for i in early if EVEN <= at61[i] < CLOCKWISE]
+    ccw = min(range(8), key=lambda i: at61[i])
+    firm = [s for s in at61 if s >= 0.68]
+    weak = [(i, s) for i, s in enumerate(at61) if CLOCKWISE <= s < 0.68]
+    return [
+        30,
+        len(early),
+        61,
+        len(even),
+        *even,
+        *(at61[i] for i in even),
+        ccw,
+        at30[ccw],
+        at61[ccw],
+        ring()["probe"][61][ccw][2],
+        len(firm),
+        *span(firm),
+        61,
+        len(_shares("sp", 61)),
+        *span(_shares("sp", 61)),
+        *(v for w in weak for v in w),
+    ]
+
+
+def _xp12():
+    return json.loads((CR / "xp12_update61" / "summary.json").read_text())
+
+
+@check("xp12_wall")
+def _():
+    return [_xp12()["wall_s"]]
+
+
+@check("xp12_pooled")
+def _():
+    pooled = _xp12()["pooled"]
+    return [pooled["num_rows"], *block(pooled), 4, point("sp", 61)["gap"]]
+
+
+@check("xp12_row")
+def _():
+    m = matrix(CR / "xp12_update61" / "matrix_mean.csv")
+    i = 4 + int(np.argmin(_shares("probe", 61)))  # the counter-clockwise seed of the 8 (after the study's 4)
+    avg = [(m[j].sum() - m[j, j]) / 11 for j in range(12)]
+    others = [a for j, a in enumerate(avg) if j != i]
+    return [
+        i - 4,
+        m[i, i],
+        *span(m[i, :4]),
+        4,
+        avg[i],
+        11,
+        *span(others),
+        np.mean(others) - avg[i],
+        _steps("sp", 61),
+        avg[i],
+        np.mean(others),
+    ]
+
+
+# --- Coordination Ring SA
+
+
+@check("cr_sa_wall")
+def _():
+    return hm(run(CR, "sa")["wall_s"])
+
+
+@check("cr_sa_matrix")
+def _():
+    return list(both_seats(cr_sa()).ravel())
+
+
+@check("cr_sa_table")
+def _():
+    out = block(run(CR, "sa")["xp"]) + block(run(CR, "sp")["xp"])
+    for name in ("sa", "sp"):
+        p = run(CR, name)["paper"]
+        out += [p["sp"]["mean"], p["sp"]["std"], p["xp"]["mean"], p["xp"]["std"], p["gap"]["mean"]]
+    return out
+
+
+@check("cr_sa_four")
+def _():
+    count, total = gap_at_most_zero(cr_sa())
+    return [L, count, total, *_gap_zero_pattern(cr_sa()), L]
+
+
+@check("cr_sa_says")
+def _():
+    sa_diag, sp_diag = np.diag(cr_sa()), np.diag(cr_sp())
+    p = both_seats(cr_sa())
+    sa, sp = run(CR, "sa"), run(CR, "sp")
+    return [
+        sa["xp"]["sp_mean"],
+        sp["xp"]["sp_mean"],
+        int((sa_diag > sp_diag.max()).sum()),
+        len(sa_diag),
+        sa["paper"]["sp"]["mean"],
+        sp["paper"]["sp"]["mean"],
+        sa["xp"]["gap"],
+        sp["xp"]["gap"],
+        1,
+        p[1, 1],
+        p[1, 3],
+        p[1, 2],
+        3,
+        2,
+        p[1, 0],
+        0,
+        1,
+        3,
+        *sp_xp(cr_sa(), [0, 2, 3]),
+        sp["xp"]["gap"],
+        2,
+        p[2, 0],
+        0,
+        max(_shares("sa", 305)),
+    ]
+
+
+@check("cr_sa_over_training")
+def _():
+    return _over_training_rows("sa", lowest=False, first=1)
+
+
+@check("cr_sa_over_training_says")
+def _():
+    interim = [json.loads((CR / f"xp_sp_sa_update{u}" / "summary.json").read_text()) for u in (152, 244)]
+    gaps = [
+        next(b for b in s["blocks"] if b["rows"].endswith("/sa") and b["cols"].endswith("/sa"))["gap"] for s in interim
+    ]
+    late = [p["xp_mean"] for p in over_training("sa") if p["update"] >= 92]
+    return [
+        _steps("sa", 61),
+        point("sp", 61)["gap"],
+        *span(late),
+        _steps("sa", 92),
+        152,
+        244,
+        interim[0]["episodes_per_pair"],
+        *gaps,
+        point("sa", 152)["gap"],
+        point("sa", 244)["gap"],
+    ]
+
+
+@check("cr_sa_exclude")
+def _():
+    points = [p for p in over_training("sa") if p["update"] > 0]
+    return [sum(p["gap_ci95_interval"][0] > 0 for p in points), len(points)]
+
+
+@check("cr_sa_direction_seat1")
+def _():
+    return [max(abs(c[0] - c[1]) for cells in ring()["sa"].values() for c in cells)]
+
+
+@check("cr_sa_direction")
+def _():
+    return [v for update in (30, 61, 122, 183, 244, 305) for cell in ring()["sa"][update] for v in (cell[0], cell[2])]
+
+
+@check("cr_sa_pairs")
+def _():
+    a = ring()["sa_archive"]
+    out = []
+    for partner in (0, 2, 3):
+        first, second = a[(1, partner)], a[(partner, 1)]  # seed 1 in seat 0, then in seat 1
+        out += [first[1], second[0], first[0], second[1], first[2], second[2]]
+    return out
+
+
+@check("cr_sa_pairs_says")
+def _():
+    a = ring()["sa_archive"]
+    study = both_seats(np.array(point("sa", 244)["matrix"]))
+    interim = json.loads((CR / "xp_sp_sa_update244" / "summary.json").read_text())
+    look = matrix(CR / "xp_sp_sa_update244" / "matrix_mean.csv")[4:, 4:]  # its SA x SA block
+    shares = _shares("sa", 244)
+    return [
+        *span([a[(1, 0)][2], a[(0, 1)][2]]),
+        *span([a[(1, 3)][2], a[(3, 1)][2]]),
+        244,
+        0,
+        3,
+        shares[0] if abs(shares[0] - shares[3]) < 0.005 else math.nan,
+        look[0, 1],
+        look[3, 1],
+        1,
+        interim["episodes_per_pair"],
+        study[0, 1],
+        study[3, 1],
+        point("sa", 244)["episodes_per_pair"],
+    ]
+
+
+@check("cr_9x9")
+def _():
+    return list(both_seats(matrix(SP_SP_SA_BC)).ravel())
+
+
+@check("cr_9x9_pairs")
+def _():
+    out = []
+    for a, b in (("sp", "sa"), ("sp", "human-proxy:coord_ring"), ("sa", "human-proxy:coord_ring")):
+        p = study_pair(CR, a, b)
+        out += [p["a_seat0"], p["a_seat0_std"], p["a_seat1"], p["a_seat1_std"], p["mean"], *p["mean_ci95_interval"]]
+    return out
+
+
+@check("cr_9x9_says")
+def _():
+    p = both_seats(matrix(SP_SP_SA_BC))
+    return [
+        *span(_sa_ccw()[1]),
+        np.mean([p[i, j] for i in range(4) for j in (4, 6, 7)]),
+        run(CR, "sp")["xp"]["xp_mean"],
+        study_pair(CR, "sp", "human-proxy:coord_ring")["mean"],
+        study_pair(CR, "sa", "human-proxy:coord_ring")["mean"],
+        p[8, 8],
+        *span(p[8, j] for j in range(8) if j != 5),
+        p[8, 5],
+        0,
+        1,
+        2,
+        p[1, 4],
+        1,
+        p[3, 4],
+        3,
+        *span(p[i, j] for i in range(4) for j in (6, 7)),
+    ]
+
+
+@check("cr_sa_verdict")
+def _():
+    sa, sp = run(CR, "sa")["xp"], run(CR, "sp")["xp"]
+    return [
+        sa["num_policies"],
+        sa["gap"],
+        sa["num_policies"],
+        *interval(sa, "gap"),
+        sp["gap"],
+        *interval(sp, "gap"),
+        paper(CR, "sa")[2],
+        paper(CR, "sp")[2],
+    ]
+
+
+@check("cr_sa_verdict_pairs")
+def _():
+    own, with_sp = _sa_ccw()
+    ccw = [s for s in _shares("sa", 305) if s < EVEN]
+    return [len(cr_sp()), len(ccw), len(cr_sa()), *span(own[1:]), *span(with_sp)]
+
+
+@check("cr_sa_verdict_one")
+def _():
+    own, with_sp = _sa_ccw()
+    working_sa = [s for s in own[1:] if s > 100]
+    working_sp = [s for s in with_sp if s > 100]
+    return [len(working_sa), 3, 0, both_seats(cr_sa())[0, 1], len(working_sp), len(with_sp), *span(with_sp)]
+
+
+# --- Grounded Coord. Simple SP
+
+
+@check("gcs_sp_training")
+def _():
+    out = []
+    for update in (10, 20, 30, 40, 45):
+        out.append(metric(SP, update, "env_steps")[0])
+        for column in ("sparse_return", "return_recipe_0+0+0", "return_recipe_1+1+1"):
+            out += metric(SP, update, column)
+    return out
+
+
+@check("gcs_sp_entropy")
+def _():
+    last = metric(SP, 45, "entropy")
+    return [0, metric(SP, 45, "sparse_return")[0], metric(SP, 10, "entropy")[0], last[0], *span(last[1:])]
+
+
+@check("gcs_sp_matrix")
+def _():
+    p = both_seats(gcs_sp())
+    return [v for i in range(4) for j in range(4) for v in (p[i, j], pair_se(SP, i, j))]
+
+
+@check("gcs_sp_table")
+def _():
+    p = run(GCS, SP)["paper"]
+    return [
+        *block(run(GCS, SP)["xp"]),
+        p["sp"]["mean"],
+        p["sp"]["std"],
+        p["xp"]["mean"],
+        p["xp"]["std"],
+        p["gap"]["mean"],
+        p["gap"]["std"],
+    ]
+
+
+@check("gcs_sp_four")
+def _():
+    p = both_seats(gcs_sp())
+    ij = list(itertools.combinations(range(4), 2))
+    low, high = min(ij, key=lambda x: p[x]), max(ij, key=lambda x: p[x])
+    count, total = gap_at_most_zero(gcs_sp())
+    return [*low, *high, L, count, total, *_gap_zero_pattern(gcs_sp()), L]
+
+
+@check("gcs_sp_by_recipe")
+def _():
+    def by(recipe, same):
+        return np.mean(
+            [e["return"] for e in episodes(SP) if (e["seat0"] == e["seat1"]) == same and e["recipe"] == recipe]
+        )
+
+    return [
+        by("0+0+0", True),
+        by("1+1+1", True),
+        by("0+0+0", False),
+        by("1+1+1", False),
+        2,
+        0,
+        1,
+        returns(SP, 0, 2, "1+1+1").mean(),
+        returns(SP, 1, 2, "1+1+1").mean(),
+        100 * (returns(SP, 0, 2) < 0).mean(),
+        0,
+        2,
+        L,
+    ]
+
+
+@check("gcs_sp_recipe_held")
+def _():
+    held = [e for e in episodes(SP) if e["recipe"] == "1+1+1"]
+    return [
+        max(r["correct"] for r in button_rows(recipe="1+1+1") if r["seat1"] in SEEDS),
+        sum(e["return"] > 0 for e in held),
+        len(held),
+    ]
+
+
+# --- Grounded Coord. Simple FCP
+
+
+@check("gcs_fcp_speed")
+def _():
+    return [
+        *span(s for _, s, _ in chunks(FCP, after=RESUMED_AT)),
+        *hm(run(GCS, FCP)["wall_s"]),
+        *hm(_training_s(FCP)),
+        RESUMED_AT,
+        len(matrix(GCS_8X8)),
+        len(matrix(GCS_8X8)),
+        summary(GCS)["comparisons"][0]["wall_s"] / 60,
+    ]
+
+
+@check("gcs_fcp_training")
+def _():
+    out = []
+    for update in (10, 20, 30, 40, 45):
+        for column in ("sparse_return", "return_recipe_0+0+0", "return_recipe_1+1+1"):
+            out += metric(FCP, update, column)
+    return out
+
+
+@check("gcs_fcp_matrix")
+def _():
+    return list(gcs_fcp().ravel())
+
+
+@check("gcs_fcp_between")
+def _():
+    fs, sf, pair = study_block(GCS, FCP, SP), study_block(GCS, SP, FCP), study_pair(GCS, SP, FCP)
+    m = matrix(GCS_8X8)
+    return [
+        fs["xp_mean"],
+        run(GCS, FCP)["seeds"],
+        *interval(fs, "xp"),
+        sf["xp_mean"],
+        *interval(sf, "xp"),
+        pair["mean"],
+        *pair["mean_ci95_interval"],
+        1,
+        3,
+        *span(m[4 + i, j] for i in range(4) for j in (1, 3)),
+        gcs_sp()[1, 1],
+        gcs_sp()[3, 3],
+    ]
+
+
+@check("gcs_fcp_table")
+def _():
+    p = run(GCS, FCP)["paper"]
+    return [
+        *block(run(GCS, FCP)["xp"]),
+        *block(run(GCS, SP)["xp"]),
+        p["sp"]["mean"],
+        p["sp"]["std"],
+        p["xp"]["mean"],
+        p["xp"]["std"],
+        p["gap"]["mean"],
+        p["gap"]["std"],
+    ]
+
+
+# --- what the agents signal
+
+
+@check("signal_presses")
+def _():
+    return [max(r["presses"] for r in buttons())]
+
+
+def _signal(rows):
+    return [mean(rows, "top"), mean(rows, "bottom")]
+
+
+@check("signal_table")
+def _():
+    out = []
+    for seat0 in SEEDS:
+        out += _signal(button_rows(seat0, None, "0+0+0")) + _signal(button_rows(seat0, None, "1+1+1"))
+    for recipe in ("0+0+0", "1+1+1"):
+        learners = [_signal(button_rows(s, None, recipe)) for s in LEARNERS]
+        out += [*span(t for t, _ in learners), *span(b for _, b in learners)]
+    return out
+
+
+def _held(seat0, recipe):
+    """Rows of ``seat0`` whose cook made no correct delivery: the starting recipe held all episode."""
+    return [r for r in button_rows(seat0, None, recipe) if r["correct"] == 0]
+
+
+def _range(values):
+    """One number where all are the same, else the lowest and the highest."""
+    values = list(values)
+    return [values[0]] if min(values) == max(values) else span(values)
+
+
+@check("signal_held_table")
+def _():
+    out = []
+    for seat0 in SEEDS:
+        for recipe in ("0+0+0", "1+1+1"):
+            rows = _held(seat0, recipe)
+            out += [len(rows), *_signal(rows)]
+    for recipe in ("0+0+0", "1+1+1"):
+        learners = [_held(s, recipe) for s in LEARNERS]
+        signals = [_signal(rows) for rows in learners]
+        out += [*_range(len(rows) for rows in learners), *span(t for t, _ in signals), *span(b for _, b in signals)]
+    return out
+
+
+@check("signal_held_says")
+def _():
+    learners = [_signal(button_rows(s, None, "0+0+0"))[1] for s in LEARNERS]
+    held = [_signal(_held(s, "0+0+0"))[1] for s in LEARNERS]
+    return [1, _signal(_held("sp/1", "0+0+0"))[0], *span(learners), *span(held)]
+
+
+def _cook(seat1, seat0s, recipe, key):
+    return float(np.mean([button_rows(s, seat1, recipe)[0][key] for s in seat0s]))
+
+
+@check("signal_cooks")
+def _():
+    out = []
+    for cook in ("sp/1", "sp/2", "sp/3", "fcp/0"):
+        for column, partners in enumerate((["sp/0"], [cook], LEARNERS, ["sp/1"])):
+            if column == 3 and cook == "sp/1":
+                continue  # "(own)"
+            out += [_cook(cook, partners, "0+0+0", "correct"), _cook(cook, partners, "1+1+1", "wrong")]
+            if cook == "sp/2" and column in (0, 3):
+                out.append(_cook(cook, partners, "1+1+1", "return"))
+    cook = "fcp/3"
+    out += [_cook(cook, ["sp/0"], "0+0+0", "wrong"), _cook(cook, ["sp/0"], "1+1+1", "correct")]
+    out += [_cook(cook, [cook], "0+0+0", key) for key in ("correct", "wrong")] + [
+        _cook(cook, [cook], "1+1+1", "correct")
+    ]
+    for partners in (LEARNERS, ["sp/1"]):
+        out += [_cook(cook, partners, "0+0+0", "wrong"), _cook(cook, partners, "1+1+1", "correct")]
+    return out
+
+
+@check("signal_cooks_says")
+def _():
+    counts = {r["episodes"] for s in ("sp/0", "sp/1") for r in button_rows(s, "sp/2", "1+1+1")}
+    return [*_seed2_wrong(), counts.pop() if len(counts) == 1 else math.nan]
+
+
+@check("signal_verdict_sign")
+def _():
+    sp = run(GCS, SP)["xp"]
+    return [sp["xp_mean"], sp["sp_mean"], sp["gap"], sp["num_policies"], *interval(sp, "gap"), *paper(GCS, SP)]
+
+
+@check("signal_verdict_seed2")
+def _():
+    p = both_seats(gcs_sp())
+    own = button_rows("sp/2", "sp/2", "1+1+1")[0]["return"]
+    return [2, 2, 0, 1, *_seed2_wrong(), 2, *_without_seed2(), 1, 3, p[1, 3], p[1, 1], p[3, 3], 2, own]
+
+
+@check("signal_verdict_fcp")
+def _():
+    fcp, sp = run(GCS, FCP)["xp"], run(GCS, SP)["xp"]
+    return [fcp["gap"], sp["gap"], fcp["xp_mean"], sp["xp_mean"], paper(GCS, FCP)[2], paper(GCS, SP)[2]]
+
+
+@check("signal_verdict_fcp_cook")
+def _():
+    return [study_block(GCS, SP, FCP)["xp_mean"]]
+
+
+@check("signal_budget")
+def _():
+    def rate(c):
+        return sum(s * w for w, s, _ in c) / sum(w for w, _, _ in c)  # env steps over seconds
+
+    sp_rate, fcp_rate = rate(chunks(SP)), rate(chunks(FCP, after=RESUMED_AT))
+    per_seed = run(GCS, SP)["env_steps_per_seed"] / summary(GCS)["budget"]
+    seeds = run(GCS, SP)["seeds"]
+    return [
+        sp_rate,
+        fcp_rate,
+        seeds,
+        per_seed / 1e6,
+        per_seed * seeds / sp_rate / 3600,
+        per_seed * seeds / fcp_rate / 3600,
+    ]
+
+
+# ------------------------------------------------------------------------------------------ running
+
+
+def compare(doc: str) -> tuple[list[tuple], list[str]]:
+    """[(name, index, written, recomputed, ok)], [errors]"""
+    rows, errors, seen = [], [], set()
+    for match in SPAN.finditer(doc):
+        name, text = match.group(1), match.group(2)
+        if "<!--" in TAG.sub("", text) and "check:" in text:
+            errors.append(f"{name}: a check span inside another")
+        line = doc.count("\n", 0, match.start()) + 1
+        if name in seen:
+            errors.append(f"{name} (line {line}): tagged twice")
+        seen.add(name)
+        if name not in CHECKS:
+            errors.append(f"{name} (line {line}): no check of that name in {Path(__file__).name}")
+            continue
+        written = read_numbers(TAG.sub("", text))
+        expected = [None if v is None else float(v) for v in CHECKS[name]()]
+        if len(written) != len(expected):
+            errors.append(
+                f"{name} (line {line}): the span writes {len(written)} numbers {written}, the check recomputes {len(expected)}"
+            )
+            continue
+        for k, (token, value) in enumerate(zip(written, expected)):
+            ok = value is None or matches(token, value)
+            rows.append((name, k, token, value, ok))
+    for name in CHECKS:
+        if name not in seen:
+            errors.append(f"{name}: no <!-- check:{name} --> span on the page")
+    return rows, errors
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--doc", type=Path, default=DOC, help="the page to check (default docs/RESULTS.md)")
+    parser.add_argument("--quiet", action="store_true", help="print only mismatches and errors")
+    args = parser.parse_args(argv)
+    rows, errors = compare(args.doc.read_text())
+    print("| check | # | written | recomputed | |\n|---|---:|---:|---:|---|")
+    for name, k, token, value, ok in rows:
+        if ok and args.quiet:
+            continue
+        shown = "label" if value is None else f"{value:.4f}".rstrip("0").rstrip(".")
+        print(f"| {name} | {k} | {token} | {shown} | {'ok' if ok else 'MISMATCH'} |")
+    bad = [r for r in rows if not r[4]]
+    for error in errors:
+        print(f"ERROR {error}")
+    checked = sum(1 for r in rows if r[3] is not None)
+    print(
+        f"{checked} numbers in {len({r[0] for r in rows})} spans compared with the files under docs/results/: "
+        f"{len(bad)} mismatches, {len(errors)} errors"
+    )
+    return 1 if bad or errors else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
