@@ -4,7 +4,9 @@ mid-run and resumed; both must report the same numbers, and a finished run is ne
 from __future__ import annotations
 
 import csv
+import errno
 import json
+import os
 import shutil
 import signal
 import subprocess
@@ -17,14 +19,16 @@ import numpy as np
 import pytest
 import yaml
 
+import ocv2.atomic
 from cluster.cli import main
+from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir
 from cluster.runtime.runstate import Schedule
 from cluster.study.pack import pack_study
 from cluster.study.runner import StateFile, kept_study, open_state, run_study, study_status
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config, with_overrides
 from population import checkpoints as ckpt
-from population import ppo
+from population import policy, ppo
 from population.config import ConfigError, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -477,3 +481,68 @@ def test_study_runs_keep_no_xp_archive_unless_asked(tmp_path):
     assert [run_config(study, run, tmp_path, 1.0, None).archive.xp for run in study.runs] == [False, True]
     asked = with_overrides(study, ["archive.xp=true"])  # ocv2 study run --set archive.xp=true
     assert [run_config(asked, run, tmp_path, 1.0, None).archive.xp for run in asked.runs] == [True, True]
+
+
+# ---------------------------------------------------------------------------------------------------
+# nothing lost: changed configs, reports and exports never write over results
+# ---------------------------------------------------------------------------------------------------
+
+
+def _copy(finished: Path, to: Path) -> Path:
+    shutil.copytree(finished, to)
+    return to
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_export_never_writes_over_a_file_unless_forced_nor_into_a_run(finished, tmp_path, capsys):
+    """ocv2 export RUN --out RUN/config.yaml replaced the run's config (the run was then unusable)."""
+    run = _copy(finished, tmp_path / "study") / "runs" / "sp"
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    for out, message in (
+        (run / "config.yaml", "exists; pass --force to replace it"),
+        (run / "new.ocv2policy", f"lies inside the run directory {run}"),
+        (run / "checkpoints" / "seed_0" / "p.ocv2policy", f"lies inside the run directory {run}"),
+    ):
+        assert main(["export", str(run), "--out", str(out)]) == 2
+        assert message in _one_line(capsys)
+    assert main(["export", str(run), "--out", str(run / "config.yaml"), "--force"]) == 2
+    assert f"lies inside the run directory {run}" in _one_line(capsys)
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    mine = tmp_path / "mine.ocv2policy"
+    mine.write_text("an older export")
+    assert main(["export", str(run), "--out", str(mine)]) == 2
+    assert "exists; pass --force" in _one_line(capsys) and mine.read_text() == "an older export"
+    assert main(["export", str(run), "--out", str(mine), "--force"]) == 0
+    assert policy.load(mine).name
+
+
+@pytest.mark.parametrize("errno_", [errno.ENOSPC, errno.EROFS])
+def test_a_full_disk_or_read_only_folder_is_one_line_in_every_command(finished, tmp_path, capsys, monkeypatch, errno_):
+    """study run, study report, export and xp --out ended in OSError tracebacks; ocv2 train alone had a
+    one-line handler. The failing write is simulated (every file goes through ocv2.atomic)."""
+    study = str(write_study(tmp_path / "tiny.yaml", STUDY))
+    text = os.strerror(errno_)
+
+    def fails(path):
+        raise OSError(errno_, text, str(path))
+
+    monkeypatch.setattr(ocv2.atomic, "_fsync_path", fails)
+    commands = [
+        ["study", "run", study, "--backend", "local", "--out", str(tmp_path / "s"), "--quiet"],
+        ["study", "report", str(finished), "--out", str(tmp_path / "r")],
+        ["export", str(finished / "runs" / "sp"), "--out", str(tmp_path / "p.ocv2policy")],
+    ]
+    for command in commands:
+        assert main(command) == 1, command
+        err = _one_line(capsys)
+        assert err.startswith(f"ocv2 {command[0]}: error: {text} (") and "run the" in err, err
+    assert not (tmp_path / "p.ocv2policy").exists()
+    monkeypatch.setattr(crossplay, "play_seat_fair", lambda *a, **k: fails(tmp_path / "x" / "matrix.csv"))
+    command = ["xp", "--rows", str(finished / "runs" / "sp"), "--backend", "local", "--out", str(tmp_path / "x")]
+    assert main(command) == 1
+    assert _one_line(capsys).startswith(f"ocv2 xp: error: {text} ({tmp_path / 'x' / 'matrix.csv'}); fix the cause")

@@ -435,7 +435,7 @@ def test_a_full_disk_is_a_one_line_error_and_the_run_resumes(sp_run, tmp_path, c
         fsync(path)
 
     monkeypatch.setattr(ocv2.atomic, "_fsync_path", disk_fills_at_the_metrics_write)
-    assert train(run, extra=["--resume", "--no-eval"]) == 2
+    assert train(run, extra=["--resume", "--no-eval"]) == 1  # a failure, not a usage error
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "No space left on device" in err and "--resume" in err
     assert (run / "metrics.csv").read_bytes() == metrics_before  # untouched, not half-written

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 
 from cluster.cli.errors import CLIError
 from ocv2.layouts import Layout, get_layout
@@ -20,6 +21,34 @@ def layout_or_error(name: str) -> Layout:
         return get_layout(name)
     except ValueError as error:  # its message names the layout, lists the choices and suggests close ones
         raise CLIError(str(error)) from None
+
+
+def check_new_folder(flag: str, out: str) -> None:
+    """Refuse, before any work, an output folder that is a file, lies under a file or already holds files:
+    a command that writes results into a new folder never writes over earlier ones."""
+    path = Path(out)
+    for parent in reversed([path, *path.parents]):
+        if parent.exists() and not parent.is_dir():
+            where = "is a file" if parent == path else f"lies under {parent}, which is a file"
+            raise CLIError(f"{flag} {out}: {where}; give a new directory")
+    if path.is_dir() and any(path.iterdir()):
+        raise CLIError(f"{flag} {out}: already holds files (earlier results?); give a new directory")
+
+
+def check_new_file(flag: str, out: str, force: bool = False) -> None:
+    """Refuse an output file that exists (unless ``force``), is a folder, or lies under a file."""
+    path = Path(out)
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise CLIError(f"{flag} {out}: lies under {parent}, which is a file; give a file in a folder")
+            break
+    if path.is_dir():
+        raise CLIError(f"{flag} {out}: is a directory; give a file name")
+    if path.exists() and not path.is_file():
+        raise CLIError(f"{flag} {out}: exists and is not a regular file; give a new file name")
+    if path.exists() and not force:
+        raise CLIError(f"{flag} {out}: exists; pass --force to replace it, or give a new file name")
 
 
 def int_at_least(minimum: int, what: str) -> Callable[[str], int]:

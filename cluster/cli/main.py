@@ -6,7 +6,7 @@
     ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume] [--logger tensorboard|wandb]
     ocv2 xp RUN_DIR [--episodes N]      cross-play of one run
     ocv2 xp --rows SRC ... [--cols SRC ...] [--checkpoint C] [--greedy] [--out DIR]   across runs (docs/evaluation.md)
-    ocv2 export SRC --out FILE [--seed I] [--checkpoint C]   one policy to one file
+    ocv2 export SRC --out FILE [--force] [--seed I] [--checkpoint C]   one policy to one file (never into a run)
     ocv2 study run STUDY.yaml [--budget F] [--seeds N] [--out DIR] | status DIR | report DIR   studies
     ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
     ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
@@ -22,7 +22,9 @@ Each subcommand is one function that declares its arguments and one that runs it
 code; ``COMMANDS`` lists them. The bigger ones live in ``cluster/cli/<group>.py`` and are named by
 string: a command's module is imported only when that command runs (``ocv2 layouts`` never imports the
 trainer, Ray or the play server). Errors the user can fix raise ``CLIError`` and become a one-line
-message on stderr and exit code 2 (usage) or 1 (failure), never a traceback.
+message on stderr and exit code 2 (usage) or 1 (failure), never a traceback; so does an ``OSError`` that
+reaches ``main`` (a full disk, a read-only folder) in any command, with the command's advice
+(``args.os_error_advice``) or the general one.
 
 Results (tables, "wrote FILE", the run directory) go to stdout; progress, warnings and errors are log
 records of the packages' module loggers, which ``configure_logging`` sends to stderr.
@@ -45,7 +47,13 @@ from rich.table import Table
 
 import ocv2
 from cluster.cli.args import fps, layout_or_error, non_negative_int, positive_int, seed
-from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, CLIError  # noqa: F401 (re-exported)
+from cluster.cli.errors import (  # noqa: F401 (EXIT_* re-exported)
+    EXIT_FAILURE,
+    EXIT_OK,
+    EXIT_USAGE,
+    CLIError,
+    os_error_message,
+)
 from cluster.runtime.interrupt import ChunkAbandoned, exit_now
 from ocv2.layouts import LAYOUTS, Layout
 from ocv2.render import check_frame_size, render_frames, rollout_states, write_gif
@@ -394,6 +402,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return _reader_gone()
+    except OSError as error:  # a full disk, a read-only or vanished folder, in any command: one line
+        print(f"ocv2 {args.command}: error: {os_error_message(error, getattr(args, 'os_error_advice', None))}",
+              file=sys.stderr)  # fmt: skip
+        return EXIT_FAILURE
 
 
 def _reader_gone() -> int:

@@ -98,6 +98,11 @@ def run_train(args) -> int:
         check_loggers(args.loggers)
     except MissingExtraError as error:
         raise CLIError(str(error)) from None
+    # A full disk or a read-only folder while training: one line from cluster.cli.main (every write is atomic).
+    args.os_error_advice = (
+        f"{out} keeps its last complete checkpoint and metrics; fix the cause (e.g. free disk space) and "
+        f"continue with `ocv2 train {args.config} --out {out} --resume`"
+    )
     if config.run.deterministic:  # XLA reads XLA_FLAGS once, when JAX starts: before anything runs JAX here
         applied, message = enable_deterministic_ops()
         log.log(logging.DEBUG if applied else logging.INFO, message)
@@ -114,18 +119,8 @@ def run_train(args) -> int:
             )
     except (RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
-    except OSError as error:  # a full disk, a read-only or vanished directory: every write is atomic
-        raise CLIError(_os_error_message(error, out)) from None
     print(f"run directory: {summary['run_dir']}")
     return EXIT_OK
-
-
-def _os_error_message(error: OSError, out: str) -> str:
-    where = f" writing {error.filename}" if error.filename else ""
-    return (
-        f"{error.strerror or error}{where}. {out} keeps its last complete checkpoint and metrics; fix the "
-        f"cause (e.g. free disk space) and continue with `ocv2 train CONFIG --out {out} --resume`"
-    )
 
 
 def _default_run_dir(config) -> str:

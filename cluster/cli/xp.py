@@ -4,7 +4,7 @@
     ocv2 xp --rows SRC [SRC ...] [--cols SRC ...] [--checkpoint final|mid|init|latest|N] [--greedy]
             [--seats both|0] [--pool] [--episodes N] [--seed S] [--out DIR] [--backend ray|local]
             [--address A] [--workers N]
-    ocv2 export SRC --out FILE [--seed I] [--checkpoint final|mid|init|latest|N]
+    ocv2 export SRC --out FILE [--force] [--seed I] [--checkpoint final|mid|init|latest|N]
 
 A source SRC is a run directory (all its seeds), a seed directory RUN_DIR/checkpoints/seed_<i>, a
 checkpoint file, a file written by ``ocv2 export``, or ``human-proxy:LAYOUT``.
@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from cluster.archive import ArchiveError
+from cluster.cli.args import check_new_file, check_new_folder
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import crossplay, ray_backend
 from cluster.runtime.evaluate import evaluate_run
@@ -145,17 +146,6 @@ def _in_run(args) -> int:
     return EXIT_OK
 
 
-def _check_out(out: str) -> None:
-    """Refuse, before any work, an --out that is a file, lies under a file or already holds files."""
-    path = Path(out)
-    for parent in reversed([path, *path.parents]):
-        if parent.exists() and not parent.is_dir():
-            where = "is a file" if parent == path else f"lies under {parent}, which is a file"
-            raise CLIError(f"--out {out}: {where}; give a new directory")
-    if path.is_dir() and any(path.iterdir()):
-        raise CLIError(f"--out {out}: already holds files (earlier results?); give a new directory")
-
-
 def _cross_run(args) -> int:
     # Ray workers and the driver share the machine's accelerator: never let the driver take most of it.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
@@ -166,7 +156,7 @@ def _cross_run(args) -> int:
         raise CLIError("--address and --workers need --backend ray")
     checkpoint = _checkpoint(args.checkpoint or "final")
     out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
-    _check_out(out)
+    check_new_folder("--out", out)
     try:
         # Ray first: loading the policies starts JAX, and Ray must fork before that (ray_backend.session)
         with ray_backend.session(backend, ClusterConfig(address=args.address)):
@@ -254,6 +244,16 @@ def _checkpoint(text: str):
     raise CLIError(f"--checkpoint: expected one of {', '.join(CHECKPOINT_CHOICES)} or an update number, got {text!r}")
 
 
+def enclosing_run(path: str) -> Path | None:
+    """The run directory (config.yaml beside manifest.json or checkpoints/) that holds ``path``, if any."""
+    for folder in Path(path).resolve().parents:
+        if (folder / "config.yaml").is_file() and (
+            (folder / "manifest.json").is_file() or (folder / "checkpoints").is_dir()
+        ):
+            return folder
+    return None
+
+
 def add_export(sub) -> argparse.ArgumentParser:
     parser = sub.add_parser(
         "export",
@@ -262,7 +262,10 @@ def add_export(sub) -> argparse.ArgumentParser:
         "ocv2.policy.load and 'ocv2 play' read without the run directory.",
     )
     parser.add_argument("source", help="run directory, RUN_DIR/checkpoints/seed_<i>, or a checkpoint file")
-    parser.add_argument("--out", required=True, help="the file to write (e.g. cook.ocv2policy)")
+    parser.add_argument(
+        "--out", required=True, help="the file to write (e.g. cook.ocv2policy), never inside a run directory"
+    )
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
     parser.add_argument("--seed", type=int, help="which seed of a run directory (default 0)")
     parser.add_argument(
         "--checkpoint",
@@ -274,8 +277,10 @@ def add_export(sub) -> argparse.ArgumentParser:
 
 def run_export(args) -> int:
     checkpoint = _checkpoint(args.checkpoint)
-    if os.path.isdir(args.out):
-        raise CLIError(f"--out {args.out}: is a directory; give a file name")
+    check_new_file("--out", args.out, force=args.force)
+    run = enclosing_run(args.out)
+    if run is not None:  # its config.yaml, checkpoints or results would be replaced by a policy file
+        raise CLIError(f"--out {args.out}: lies inside the run directory {run}; write the policy outside it")
     try:
         path = export_checkpoint(args.source, args.out, seed=args.seed, checkpoint=checkpoint)
     except PolicyError as error:
