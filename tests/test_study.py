@@ -107,6 +107,8 @@ def test_the_report_puts_the_paper_numbers_beside_ours(finished):
     assert "Table 9, a made-up row" in report
     assert "123 ± 4" in report and "| 56" in report and "67 ± 8" in report
     assert "; wall time: " in report and "Not finished" not in report  # not "so far": every step is done
+    assert "| 2 x 512 |" in report and "| 2 x 1,024 |" in report  # small step counts exactly, not "0.00M"
+    assert "| 256 | " in report  # the over-training snapshot at update 2
     summary = json.loads((finished / "summary.json").read_text())
     assert summary["budget_mode"] == "truncate" and "budget: **1 x** the configs' env steps (the paper's" in report
     sp = summary["runs"][0]
@@ -493,10 +495,178 @@ def _copy(finished: Path, to: Path) -> Path:
     return to
 
 
+def _changed_study(tmp_path: Path, run: int, *extra: str) -> Path:
+    data = json.loads(json.dumps(STUDY))
+    data["runs"][run]["set"] = [*data["runs"][run]["set"], *extra]
+    return write_study(tmp_path / "changed.yaml", data)
+
+
 def _one_line(capsys) -> str:
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
     return err
+
+
+def test_a_trained_run_whose_config_changed_is_refused_and_study_json_kept(finished, tmp_path, capsys):
+    """The finished run kept lr 0.001 while the report showed the new overrides and fingerprint beside its
+    numbers; study.json's spec was already replaced."""
+    out = _copy(finished, tmp_path / "study")
+    before = (out / "study.json").read_bytes()
+    for extra, difference in (
+        ("ppo.lr=0.01", "ppo.lr: 0.001 in the run, 0.01 now"),
+        ("eval.episodes=3", "eval.episodes: 2 in the run, 3 now"),
+    ):
+        path = _changed_study(tmp_path, 0, extra)
+        assert main(["study", "run", str(path), "--backend", "local", "--out", str(out), "--quiet"]) == 2
+        err = _one_line(capsys)
+        assert "run 'sp': " in err and difference in err and "--retrain sp" in err, err
+        assert (out / "study.json").read_bytes() == before  # the stored spec is not rewritten
+    assert main(["study", "run", str(path), "--out", str(out), "--retrain", "nope"]) == 2
+    assert "--retrain nope: the study has no run named 'nope'" in _one_line(capsys)
+    assert numbers(out) == numbers(finished)
+
+
+def test_retrain_trains_a_changed_run_again_and_keeps_the_old_one(finished, tmp_path, capsys):
+    out = _copy(finished, tmp_path / "study")
+    path = _changed_study(tmp_path, 1, "ppo.lr=0.002")  # sa: the run after sp, compared with it
+    code = main(["study", "run", str(path), "--backend", "local", "--out", str(out), "--quiet", "--retrain", "sa"])
+    assert code == 0, capsys.readouterr().err
+    (replaced,) = (out / "replaced").iterdir()
+    assert load_config(replaced / "runs" / "sa" / "config.yaml").ppo.lr == 1e-3  # nothing lost
+    assert (replaced / "comparisons" / "sp_vs_sa" / "summary.json").is_file()
+    assert load_config(out / "runs" / "sa" / "config.yaml").ppo.lr == 2e-3
+    summary = json.loads((out / "summary.json").read_text())
+    theirs = json.loads((finished / "summary.json").read_text())
+    assert summary["runs"][0] == {**theirs["runs"][0], "wall_s": summary["runs"][0]["wall_s"]}  # sp untouched
+    assert summary["runs"][1]["fingerprint"] != theirs["runs"][1]["fingerprint"]  # sa trained again ...
+    assert read_csv(out / "runs" / "sa" / "metrics.csv") != read_csv(finished / "runs" / "sa" / "metrics.csv")
+    compared = [json.loads((d / "comparisons" / "sp_vs_sa" / "summary.json").read_text()) for d in (out, replaced)]
+    assert compared[0]["study_inputs"]["runs"]["sa"] != compared[1]["study_inputs"]["runs"]["sa"]  # ... and compared
+    assert {e["status"] for e in study_status(out)} == {"done"}
+
+
+def test_a_study_too_big_for_this_machine_is_refused_before_anything_is_written(tmp_path, capsys):
+    """--seeds 100000 ended in a ConfigError traceback after study.json was written, and the directory
+    then refused every other --seeds."""
+    path = write_study(tmp_path / "tiny.yaml", STUDY)
+    out = tmp_path / "out"
+    assert main(["study", "run", str(path), "--backend", "local", "--out", str(out), "--seeds", "100000"]) == 2
+    err = _one_line(capsys)
+    assert "run 'sp': population.num_seeds: the run needs about" in err and "but it has" in err, err
+    assert not out.exists()
+
+
+def test_report_out_never_writes_over_what_is_there(finished, tmp_path, capsys):
+    """--out into a non-empty folder replaced its report.md; --out DIR/runs/a/xp replaced the run's own
+    xp/summary.json, after which every report showed n/a and study run never recomputed it."""
+    out = _copy(finished, tmp_path / "study")
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "report.md").write_text("mine")
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    for dest, message in (
+        (full, "already holds files"),
+        (out / "runs" / "sp" / "xp", "already holds files"),
+        (out / "new", "lies inside the study directory"),
+        (out / "runs" / "sp" / "new", "lies inside the study directory"),
+    ):
+        assert main(["study", "report", str(out), "--out", str(dest)]) == 2
+        assert message in _one_line(capsys)
+    assert (full / "report.md").read_text() == "mine"
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_a_damaged_result_is_reported_and_its_step_redone(finished, tmp_path, capsys):
+    """An unparsable or foreign result counted as done: every report crashed on it (JSONDecodeError) and
+    study run never redid the step."""
+    out = _copy(finished, tmp_path / "study")
+    (out / "comparisons" / "sp_vs_sa" / "summary.json").write_text("{not json")
+    (out / "runs" / "sp" / "xp" / "summary.json").write_text(json.dumps({"study": "tiny", "runs": []}))
+    snapshot = sorted((out / "over_training" / "sp").glob("update_*.json"))[1]
+    snapshot.write_text("[" * 100_000)
+    assert main(["study", "report", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    assert "n/a (" in report and "xp/summary.json is not a result of this step (no sp_mean" in report
+    assert "comparisons/sp_vs_sa/summary.json is unreadable (" in report
+    assert f"over_training sp: {snapshot} is unreadable (JSON nested deeper than" in report
+    said = []
+    run_study(load_study(write_study(tmp_path / "tiny.yaml", STUDY)), out, backend="local", say=said.append)
+    again = [line for line in said if "doing the step again" in line]
+    assert [line.split(": ")[1] for line in again] == ["train sp", "over_training sp", "compare sp_vs_sa"], said
+    assert numbers(out) == numbers(finished)
+    assert "Not finished" not in (out / "report.md").read_text()
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda s: s.pop("spec"), "spec: expected the study file's data (an object), got 'nothing'"),
+        (lambda s: s.update(steps=[]), "steps: expected an object of steps, got []"),
+        (lambda s: s.update(budget="x"), "budget: expected a number in (0, 100], got 'x'"),
+        (lambda s: s.update(budget=10**400), "budget: expected a number in (0, 100], got 1000000"),
+        (lambda s: s.update(budget_mode="squeeze"), "budget_mode: expected truncate or compress, got 'squeeze'"),
+        (lambda s: s.update(seeds=True), "seeds: expected null or a positive integer, got True"),
+        (lambda s: s.update(set="a=b"), "set: expected a list of section.key=value overrides"),
+        (lambda s: s["steps"].update(x="done"), "steps['x']: expected an object, got 'done'"),
+        (lambda s: s["steps"]["train sp"].update(status="finished"), "steps['train sp'].status: expected left"),
+        (lambda s: s["steps"]["train sp"].update(wall_s="1"), "steps['train sp'].wall_s: expected a number"),
+        (lambda s: s.update(study="tiny\n"), "study: expected the study's name"),
+        ("[" * 40 + "]" * 40, "unreadable (JSON nested deeper than 32 levels)"),
+        ("{" + '"a": 1, ' * 3 + "", "unreadable (Expecting property name"),
+    ],
+    ids=lambda v: None if callable(v) else v[:30],
+)
+def test_a_damaged_study_json_is_one_line_naming_the_field(finished, tmp_path, capsys, change, message):
+    """study.json without spec was a KeyError, steps: [] an AttributeError, budget: "x" a TypeError."""
+    out = tmp_path / "study"
+    out.mkdir()
+    state = json.loads((finished / "study.json").read_text())
+    if callable(change):
+        change(state)
+    text = json.dumps(state) if callable(change) else change
+    (out / "study.json").write_text(text)
+    study = str(write_study(tmp_path / "tiny.yaml", STUDY))
+    for command in (
+        ["status", str(out)],
+        ["report", str(out)],
+        ["run", study, "--out", str(out), "--backend", "local"],
+    ):
+        assert main(["study", *command]) == 2
+        err = _one_line(capsys)
+        assert f"{out / 'study.json'}: {message}" in err, err
+    assert (out / "study.json").read_text() == text  # nothing rewritten
+
+
+def test_a_kept_spec_that_no_longer_parses_names_study_json(finished, tmp_path, capsys):
+    out = _copy(finished, tmp_path / "study")
+    state = json.loads((out / "study.json").read_text())
+    state["spec"]["runs"][0]["paper"]["sp"] = 10**400  # JSON holds it; a float cannot (an OverflowError)
+    (out / "study.json").write_text(json.dumps(state))
+    for command in ("status", "report"):
+        assert main(["study", command, str(out)]) == 2
+        err = _one_line(capsys)
+        assert f"{out / 'study.json'}: spec: " in err and "run 'sp'.paper.sp: expected a number" in err, err[:300]
+
+
+def test_paths_that_are_files_are_one_line_errors(finished, tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    study = str(write_study(tmp_path / "tiny.yaml", STUDY))
+    for command, message in (
+        (["run", study, "--out", str(afile), "--backend", "local"], f"{afile}: is a file, not a study directory"),
+        (["run", study, "--out", str(afile / "sub"), "--backend", "local"], f"{afile} is a file, not a directory"),
+        (["run", study, "--out", os.devnull, "--backend", "local"], f"{os.devnull}: is not a directory"),
+        (["status", str(afile)], f"{afile}: is a file, not a study directory"),
+        (["status", str(afile / "sub")], f"{afile} is a file, not a directory"),
+        (["report", str(afile)], f"{afile}: is a file, not a study directory"),
+        (["report", str(finished), "--out", str(afile)], f"--out {afile}: is a file; give a new directory"),
+        (["report", str(finished), "--out", str(afile / "r")], f"lies under {afile}, which is a file"),
+    ):
+        assert main(["study", *command]) == 2, command
+        assert message in _one_line(capsys), command
+    assert afile.read_text() == "mine"
+    assert main(["export", str(finished / "runs" / "sp"), "--out", str(afile / "p.policy")]) == 2
+    assert f"--out {afile / 'p.policy'}: lies under {afile}, which is a file" in _one_line(capsys)
 
 
 def test_export_never_writes_over_a_file_unless_forced_nor_into_a_run(finished, tmp_path, capsys):

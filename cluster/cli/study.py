@@ -1,6 +1,6 @@
 """``ocv2 study``: many population runs and their comparisons as one resumable command.
 
-    ocv2 study run STUDY.yaml [--budget F [--budget-mode truncate|compress]] [--seeds N] [--set K=V ...] [--backend ray|local] [--address A] [--out DIR]
+    ocv2 study run STUDY.yaml [--budget F [--budget-mode truncate|compress]] [--seeds N] [--set K=V ...] [--backend ray|local] [--address A] [--out DIR] [--retrain RUN ...]
     ocv2 study status DIR
     ocv2 study report DIR [--out FOLDER]
 
@@ -18,7 +18,7 @@ from pathlib import Path
 
 from cluster.api import require_backend
 from cluster.archive import ArchiveError
-from cluster.cli.args import bounded, positive_int
+from cluster.cli.args import bounded, check_new_folder, positive_int
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime import ray_backend
 from cluster.runtime.loggers import MissingExtraError
@@ -27,8 +27,8 @@ from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
 from cluster.study.report import write_report
-from cluster.study.runner import kept_study, read_state, run_study, study_status
-from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, check_runs, load_study, run_config, with_overrides
+from cluster.study.runner import kept_study, plan_study, read_state, run_study, study_status
+from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, load_study, run_config
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
 from population.numerics import enable_deterministic_ops
@@ -83,6 +83,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
     )
     run.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT")
     run.add_argument("--out", help="study directory (default studies/<study name>)")
+    run.add_argument(
+        "--retrain",
+        action="append",
+        default=[],
+        metavar="RUN",
+        help="train RUN again although it was trained with another config than the study now asks for "
+        "(repeatable); the trained run and its cross-play move to DIR/replaced/. Without it such a run is refused",
+    )
     run.add_argument("--quiet", action="store_true", help="no progress output")
     status = commands.add_parser("status", help="what is done, running and left, with an ETA")
     status.add_argument("dir", help="study directory")
@@ -90,8 +98,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     report.add_argument("dir", help="study directory")
     report.add_argument(
         "--out",
-        help="write the report, summary, pictures and cross-play matrices into this folder "
-        "instead (a compact record to keep: no checkpoints, no archives)",
+        help="write the report, summary, pictures and cross-play matrices into this new or empty folder "
+        "outside DIR instead (a compact record to keep: no checkpoints, no archives)",
     )
     pack = commands.add_parser("pack", help="DIR's resumable state as parts of at most 16 MiB (cluster.study.pack)")
     pack.add_argument("dir", help="study directory")
@@ -119,37 +127,39 @@ def _run(args) -> int:
     try:
         require_backend(args.backend)
         study = load_study(args.study)
-        if args.overrides:  # a bad --set fails here, before Ray starts (run_study applies it)
-            check_runs(with_overrides(study, args.overrides))
     except (StudyError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     out = Path(args.out or os.path.join("studies", study.name))
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
+    options = dict(
+        budget=args.budget,
+        seeds=args.seeds,
+        backend=args.backend,
+        address=args.address,
+        show_progress=not args.quiet,
+        overrides=args.overrides,
+        mode=args.budget_mode,
+        retrain=args.retrain,
+    )
+    # Every check before Ray starts and before the directory is written: a bad --set, a budget too small for
+    # a config, a run this machine cannot hold, a trained run whose config changed (docs/studies.md).
+    try:
+        plan = plan_study(study, out, **options)
+    except (StudyError, RunDirError) as error:
+        raise CLIError(str(error)) from None
+    args.os_error_advice = (  # a full disk or a read-only folder: one line from cluster.cli.main
+        f"{out} keeps every finished step and checkpoint; fix the cause (e.g. free disk space) and run the "
+        "same command again to continue"
+    )
     # The local backend trains in this process: XLA's deterministic GPU ops (run.deterministic) must be in
     # XLA_FLAGS before anything runs JAX here, as `ocv2 train` does; a run that turns them off does so alone.
-    try:
-        planned = with_overrides(study, args.overrides)
-        deterministic = any(run_config(planned, r, out, 1.0, None).run.deterministic for r in planned.runs)
-    except StudyError as error:
-        raise CLIError(str(error)) from None
-    if deterministic:
+    if any(config.run.deterministic for config in plan.configs.values()):
         applied, message = enable_deterministic_ops()
         log.log(logging.DEBUG if applied else logging.INFO, message)
     try:
         # One Ray for every run and comparison, started before the driver runs JAX (ray_backend.session)
         with ray_backend.session(args.backend, ClusterConfig(address=args.address)):
-            state = run_study(
-                study,
-                out,
-                budget=args.budget,
-                mode=args.budget_mode,
-                seeds=args.seeds,
-                backend=args.backend,
-                address=args.address,
-                show_progress=not args.quiet,
-                say=say,
-                overrides=args.overrides,
-            )
+            state = run_study(study, out, say=say, **options)
     except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     blocked = {name: step for name, step in state["steps"].items() if step.get("status") != "done"}
@@ -211,6 +221,11 @@ def _report(directory: str, dest: str | None) -> int:
         state = read_state(out)
         if not state:
             raise StudyError(f"{out}: not a study directory (no study.json)")
+        if dest is not None:
+            check_new_folder("--out", dest)
+            inside = Path(dest).resolve()
+            if inside == out or out in inside.parents:  # it would write over the study's own results
+                raise CLIError(f"--out {dest}: lies inside the study directory {out}; give a folder outside it")
         study = kept_study(state, out)
         configs = {
             r.name: run_config(study, r, out, state["budget"], state["seeds"], budget_mode(state)) for r in study.runs

@@ -13,15 +13,15 @@ paper's mean lies inside our interval: a plain check, not a test of the paper's 
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
 from cluster.runtime.progress import duration
-from cluster.runtime.rundir import RunDir, read_matrix_csv, write_json
+from cluster.runtime.rundir import RunDir, RunDirError, read_matrix_csv, write_json
 from cluster.study.spec import PaperValue, Study, budget_mode, comparison_dir, run_dir
+from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
 
@@ -61,6 +61,23 @@ def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path
     write_json(dest / "summary.json", _strict(summary))
     atomic_write(dest / "report.md", markdown(study, summary, state))
     return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}
+
+
+def read_result(path: Path, required: tuple[str, ...] = ()) -> tuple[dict, str | None]:
+    """A step's result file as (data, None), or ({}, why it cannot be used): missing, unreadable, not a JSON
+    object or without the ``required`` keys (a file another command wrote over it)."""
+    try:
+        data = boundedjson.loads(Path(path).read_text())
+    except FileNotFoundError:
+        return {}, f"{path} is missing"
+    except (OSError, ValueError) as error:  # ValueError: not JSON (UnicodeDecodeError, JSONDecodeError, too deep)
+        return {}, f"{path} is unreadable ({error})"
+    if not isinstance(data, dict):
+        return {}, f"{path} holds a JSON {type(data).__name__}, not a result"
+    missing = [key for key in required if key not in data]
+    if missing:
+        return {}, f"{path} is not a result of this step (no {', '.join(missing)})"
+    return data, None
 
 
 def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
@@ -104,13 +121,21 @@ def _run_entry(study: Study, spec, out: Path, config, state: dict) -> dict:
     if not (path / "config.yaml").is_file():
         return entry
     run = RunDir(path)
-    manifest = run.read_manifest()
+    try:
+        manifest = run.read_manifest()
+    except RunDirError as error:
+        entry["status"] = "damaged"
+        entry["problem"] = str(error)
+        return entry
     entry["status"] = manifest.get("status", "created")
     entry["update"] = manifest.get("update")
     entry["commits"] = _commits(path)
     summary_path = path / "xp" / "summary.json"
     if summary_path.is_file():
-        xp = json.loads(summary_path.read_text())
+        xp, problem = read_result(summary_path, ("sp_mean", "xp_mean"))
+        if problem is not None:  # reported, and `ocv2 study run` evaluates the run again
+            entry["problem"] = problem
+            return entry
         entry["xp"] = {
             key: xp.get(key)
             for key in (
@@ -136,13 +161,14 @@ def _paper(value: PaperValue | None) -> dict | None:
 def _commits(path: Path) -> list[str]:
     """The commits of every driver that trained the run (``environment.json``), marked when dirty."""
     try:
-        drivers = json.loads((path / "environment.json").read_text()).get("drivers", [])
+        drivers = boundedjson.loads((path / "environment.json").read_text()).get("drivers", [])
     except (OSError, ValueError, AttributeError):
         return []
     commits = []
-    for driver in drivers:
-        git = driver.get("git") or {}
-        label = (git.get("commit") or "unknown")[:10] + ("+dirty" if git.get("dirty") else "")
+    for driver in drivers if isinstance(drivers, list) else []:
+        git = (driver.get("git") if isinstance(driver, dict) else None) or {}
+        commit = git.get("commit") if isinstance(git, dict) else None
+        label = (commit if isinstance(commit, str) else "unknown")[:10] + ("+dirty" if git.get("dirty") else "")
         if label not in commits:
             commits.append(label)
     return commits
@@ -158,17 +184,57 @@ def _comparison_entry(name: str, out: Path, state: dict) -> dict:
     }
     path = comparison_dir(out, name) / "summary.json"
     if path.is_file():
-        data = json.loads(path.read_text())
-        entry.update(
-            pairs=data.get("pairs", []), blocks=data.get("blocks", []), episodes_per_pair=data.get("episodes_per_pair")
-        )
+        data, problem = read_result(path, ("pairs",))
+        pairs = data.get("pairs")
+        if problem is None and not (isinstance(pairs, list) and all(_is_pair(p) for p in pairs)):
+            problem = f"{path} holds no pairs of policies"
+        if problem is not None:
+            entry.update(status="damaged", reason=problem)
+            return entry
+        entry.update(pairs=pairs, blocks=data.get("blocks", []), episodes_per_pair=data.get("episodes_per_pair"))
     return entry
+
+
+_PAIR_KEYS = ("a", "b", "a_method", "b_method", "a_seat0", "a_seat0_std", "a_seat1", "a_seat1_std", "mean")
+
+
+def _is_pair(pair) -> bool:
+    return isinstance(pair, dict) and all(key in pair for key in (*_PAIR_KEYS, "mean_ci95_interval"))
+
+
+_POINT_KEYS = ("update", "env_steps_per_seed", "sp_mean", "xp_mean", "gap")
+
+
+def _is_point(point: dict) -> bool:
+    """An over-training result the report and the plot can use: whole update and step numbers, means
+    (null when undefined) and intervals of two numbers (or null)."""
+    whole = all(isinstance(point[k], int) and not isinstance(point[k], bool) for k in _POINT_KEYS[:2])
+    means = all(point[k] is None or _is_number(point[k]) for k in _POINT_KEYS[2:])
+    intervals = all(
+        point.get(f"{k}_ci95_interval") is None
+        or (isinstance(point[f"{k}_ci95_interval"], list) and len(point[f"{k}_ci95_interval"]) == 2)
+        for k in ("sp", "xp", "gap")
+    )
+    return whole and means and intervals
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _over_training_entry(name: str, out: Path) -> dict:
     folder = out / "over_training" / name
-    points = [json.loads(p.read_text()) for p in sorted(folder.glob("update_*.json"))]
+    points, damaged = [], []
+    for path in sorted(folder.glob("update_*.json")):
+        data, problem = read_result(path, _POINT_KEYS)
+        if problem is None and not _is_point(data):
+            problem = f"{path} holds values that are not numbers"
+        if problem is None:
+            points.append(data)
+        else:
+            damaged.append(problem)  # left out; `ocv2 study run` plays that snapshot again
     return {
+        "damaged": damaged,
         "run": name,
         "points": [
             {
@@ -268,12 +334,19 @@ def _heatmaps(out: Path, runs: list[dict], comparisons: list[dict], dest: Path) 
         for r in runs
         if r["xp"] is not None
     ]
-    sources += [(comparison_dir(out, c["name"]) / "matrix.csv", c["name"], "cross-play", c) for c in comparisons]
+    sources += [
+        (comparison_dir(out, c["name"]) / "matrix.csv", c["name"], "cross-play", c)
+        for c in comparisons
+        if c.get("pairs")
+    ]
     pictures = []
     for path, name, what, entry in sources:
         if not path.is_file():
             continue
-        table = read_matrix_csv(path)
+        try:
+            table = read_matrix_csv(path)
+        except (OSError, ValueError):  # a damaged matrix: no picture (its step's summary says what is there)
+            continue
         picture = xp_heatmap(
             table.values,
             dest / f"heatmap_{name}.png",
@@ -362,11 +435,11 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
             run["name"],
             METHOD_NAMES.get(run["method"], run["method"]),
             run["layout"],
-            f"{run['seeds']} x {run['env_steps_per_seed'] / 1e6:.2f}M",
+            f"{run['seeds']} x {steps_text(run['env_steps_per_seed'])}",
         ]
         for key, mean_key in (("sp", "sp_mean"), ("xp", "xp_mean"), ("gap", "gap")):
             if xp is None:
-                cells.append(f"n/a ({run['status']})")
+                cells.append(f"n/a ({run.get('problem') or run['status']})")
             else:
                 cells.append(_with_ci(xp.get(mean_key), xp.get(f"{key}_ci95_interval")))
             cells.append(_paper_cell(paper.get(key), None if xp is None else xp.get(f"{key}_ci95_interval")))
@@ -402,6 +475,7 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
                     f"{_with_ci(pair['mean'], pair['mean_ci95_interval'])} |"
                 )
     for entry in summary["over_training"]:
+        left += [f"- over_training {entry['run']}: {problem}" for problem in entry.get("damaged", [])]
         if not entry["points"]:
             continue
         lines += [
@@ -413,15 +487,23 @@ def markdown(study: Study, summary: dict, state: dict) -> str:
         ]
         for p in entry["points"]:
             lines.append(
-                f"| {p['env_steps_per_seed'] / 1e6:.2f}M | {_with_ci(p['sp_mean'], p['sp_ci95_interval'])} | "
+                f"| {steps_text(p['env_steps_per_seed'])} | {_with_ci(p['sp_mean'], p['sp_ci95_interval'])} | "
                 f"{_with_ci(p['xp_mean'], p['xp_ci95_interval'])} | "
                 f"{_with_ci(p['gap'], p['gap_ci95_interval'])} |"
             )
     if summary["pictures"]:
         lines += ["", "## Pictures", ""] + [f"![{name}]({name})" for name in summary["pictures"]]
+    left += [f"- train {run['name']}: {run['problem']}" for run in summary["runs"] if run.get("problem")]
+    left += [f"- compare {c['name']}: {c['reason']}" for c in summary["comparisons"] if c["status"] == "damaged"]
     if left:
         lines += ["", "## Not finished", ""] + left
     return "\n".join(lines) + "\n"
+
+
+def steps_text(steps: int) -> str:
+    """Env steps for a table: millions from 1M on ("30.00M"), below that exact ("65,536"; a pilot's 512
+    steps are not "0.00M")."""
+    return f"{steps / 1e6:.2f}M" if steps >= 1_000_000 else f"{steps:,}"
 
 
 def _label(label: str, method) -> str:

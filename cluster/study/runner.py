@@ -10,9 +10,11 @@ The study directory::
               comparisons/<name>/        cross-run cross-play, both seat orders (summary.json, matrix.csv, heatmap.png)
               report.md  summary.json  *.png
 
-Every step writes its result last and atomically, so a step whose result exists is done: re-running
+Every step writes its result last and atomically, so a step whose result is there, parses and was made
+from the step's current inputs (the fingerprints of the runs it plays, its episodes) is done: re-running
 the same command after a kill skips finished runs, resumes the unfinished one from its checkpoints and
-redoes only the step that was cut short (a cross-play step restarts from its beginning). Training
+redoes only the step that was cut short (a cross-play step restarts from its beginning), or whose result
+was damaged or deleted. Training
 numbers do not depend on where a run was interrupted, and cross-play episode keys depend only on the
 population seed, so an interrupted study reports the same numbers as an uninterrupted one.
 """
@@ -20,11 +22,12 @@ population seed, so an interrupted study reports the same numbers as an uninterr
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +36,10 @@ from cluster.api import train_population
 from cluster.runtime import crossplay
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import RunDir, RunDirError, write_json
-from cluster.study.report import write_report
+from cluster.study.report import read_result, write_report
 from cluster.study.spec import (
+    BUDGET_MODES,
+    NAME,
     Comparison,
     Study,
     StudyError,
@@ -45,7 +50,10 @@ from cluster.study.spec import (
     run_dir,
     with_overrides,
 )
+from ocv2 import boundedjson
 from population import checkpoints as ckpt
+from population.config import Config, ConfigError
+from population.memory import check_fits
 from population.xp import block_summary
 
 log = logging.getLogger(__name__)
@@ -71,17 +79,97 @@ class StudyOptions:
 # ---------------------------------------------------------------------------------------------------
 
 
+def check_folder(out: Path, what: str = "a study directory") -> None:
+    """Refuse a study directory that is a file (``--out /dev/null``) or lies under one."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise StudyError(f"{out}: is {'a file' if out.is_file() else 'not a directory'}, not {what}")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise StudyError(f"{out}: cannot be {what}: {parent} is a file, not a directory")
+            break
+
+
 def read_state(out: Path) -> dict:
+    """``out``'s study.json, checked field by field (``check_state``); {} when there is none."""
+    check_folder(out)
     path = Path(out) / STATE_NAME
     try:
-        data = json.loads(path.read_text())
+        text = path.read_text()
     except FileNotFoundError:
         return {}
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise StudyError(f"{path}: unreadable ({error}); restore it or delete it (runs are kept and resumed)") from None
+    except UnicodeDecodeError as error:
+        raise StudyError(f"{path}: unreadable ({error}); {_RESTORE}") from None
+    except OSError as error:
+        raise StudyError(f"{path}: cannot read: {error.strerror or error}") from None
+    try:
+        data = boundedjson.loads(text)
+    except ValueError as error:  # not JSON, nested too deep, or an integer past Python's digit limit
+        raise StudyError(f"{path}: unreadable ({error}); {_RESTORE}") from None
+    return check_state(data, path)
+
+
+_RESTORE = "restore it from a backup or a pack of this study (ocv2 study pack)"
+#: The steps' states a study.json may record.
+STEP_STATES = ("left", "running", "done", "blocked")
+
+
+def check_state(data, path: Path) -> dict:
+    """``data`` (a parsed study.json) if every field has the type ``run_study`` and the report read, else a
+    StudyError naming the file and the field: a damaged file is one line, not a KeyError deep in a step."""
+
+    def bad(field: str, expected: str, value) -> StudyError:
+        shown = repr(value)
+        shown = shown if len(shown) <= 60 else shown[:57] + "..."
+        return StudyError(f"{path}: {field}: expected {expected}, got {shown}; {_RESTORE}")
+
     if not isinstance(data, dict):
-        raise StudyError(f"{path}: holds a JSON {type(data).__name__}, not an object")
+        raise StudyError(f"{path}: holds a JSON {type(data).__name__}, not an object; {_RESTORE}")
+    study = data.get("study")
+    if not isinstance(study, str) or not NAME.fullmatch(study):
+        raise bad("study", "the study's name", study)
+    if not isinstance(data.get("spec"), dict):
+        raise bad("spec", "the study file's data (an object)", data.get("spec", "nothing"))
+    budget = data.get("budget")
+    if not _number(budget) or not 0 < budget <= 100:
+        raise bad("budget", "a number in (0, 100]", budget)
+    if "budget_mode" in data and data["budget_mode"] not in BUDGET_MODES:
+        raise bad("budget_mode", " or ".join(BUDGET_MODES), data["budget_mode"])
+    seeds = data.get("seeds")
+    if seeds is not None and (not isinstance(seeds, int) or isinstance(seeds, bool) or seeds < 1):
+        raise bad("seeds", "null or a positive integer", seeds)
+    overrides = data.get("set", [])
+    if not isinstance(overrides, list) or not all(isinstance(o, str) and "=" in o for o in overrides):
+        raise bad("set", "a list of section.key=value overrides", overrides)
+    for key in ("source", "backend"):
+        if key in data and not isinstance(data[key], str):
+            raise bad(key, "text", data[key])
+    if "report" in data and not isinstance(data["report"], dict):
+        raise bad("report", "an object", data["report"])
+    steps = data.get("steps", {})
+    if not isinstance(steps, dict):
+        raise bad("steps", "an object of steps", steps)
+    for name, step in steps.items():
+        if not isinstance(step, dict):
+            raise bad(f"steps[{name!r}]", "an object", step)
+        if step.get("status", "left") not in STEP_STATES:
+            raise bad(f"steps[{name!r}].status", " / ".join(STEP_STATES), step.get("status"))
+        for key in ("wall_s", "started", "ticked", "finished"):
+            if key in step and not _number(step[key]):
+                raise bad(f"steps[{name!r}].{key}", "a number", step[key])
+        if "reason" in step and not isinstance(step["reason"], str):
+            raise bad(f"steps[{name!r}].reason", "text", step["reason"])
     return data
+
+
+def _number(value) -> bool:
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:  # an integer of hundreds of digits
+        return False
 
 
 def open_state(
@@ -137,7 +225,10 @@ def open_state(
 
 def kept_study(state: dict, out: Path) -> Study:
     """The study a study directory runs: the file's data it keeps, with the ``--set`` overrides it was started with."""
-    study = parse_study(state["spec"], Path(state.get("source", out / "study.yaml")))
+    try:
+        study = parse_study(state["spec"], Path(state.get("source", Path(out) / "study.yaml")))
+    except StudyError as error:
+        raise StudyError(f"{Path(out) / STATE_NAME}: spec: {error}") from None
     return with_overrides(study, state.get("set", []))
 
 
@@ -180,6 +271,130 @@ class StepTimer:
 # ---------------------------------------------------------------------------------------------------
 
 
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """What ``run_study`` will do, checked before anything is written: the study with the directory's
+    ``--set`` overrides, its state (created or read, not saved yet), the options and every run's config."""
+
+    study: Study
+    out: Path
+    state: dict
+    options: StudyOptions
+    configs: dict
+    retrain: tuple[str, ...] = ()
+
+
+def plan_study(
+    study: Study,
+    out,
+    budget: float | None = None,
+    seeds: int | None = None,
+    backend: str = "ray",
+    address: str | None = None,
+    show_progress: bool = True,
+    overrides: Sequence[str] = (),
+    mode: str | None = None,
+    retrain: Sequence[str] = (),
+) -> Plan:
+    """Every check ``run_study`` makes before it writes: the directory (not a file, the same options it was
+    started with), every run's config at the budget and seed count, that each fits this machine's memory,
+    and that every run already trained in it was trained with the config the study now asks for (a run
+    in ``retrain`` may differ: ``run_study`` trains it again). Writes nothing."""
+    out = Path(out).resolve()
+    state = open_state(study, out, budget, seeds, backend, overrides, mode)
+    study = with_overrides(study, state["set"])
+    options = StudyOptions(state["budget"], state["seeds"], backend, address, show_progress, budget_mode(state))
+    # Every config at this budget and seed count first: one they refuse fails before the directory is written.
+    configs = {
+        run.name: run_config(study, run, out, options.budget, options.seeds, options.budget_mode) for run in study.runs
+    }
+    place = "local" if backend == "local" else "ray" if address is None else "cluster"
+    for name, config in configs.items():
+        try:
+            check_fits(config, place)
+        except ConfigError as error:
+            raise StudyError(f"{study.path}: run {name!r}: {error}") from None
+    retrain = tuple(dict.fromkeys(retrain))
+    _check_retrain(study, out, retrain)
+    for run in study.runs:
+        differences = trained_differences(run_dir(out, run.name), configs[run.name])
+        if differences and run.name not in retrain:
+            more = f" and {len(differences) - 2} more" if len(differences) > 2 else ""
+            raise StudyError(
+                f"{study.path}: run {run.name!r}: {run_dir(out, run.name)} was trained with another config "
+                f"({'; '.join(differences[:2])}{more}); undo the change, or pass --retrain {run.name} to train it "
+                "again (the trained run and its cross-play move to replaced/)"
+            )
+    return Plan(study, out, state, options, configs, retrain)
+
+
+def _check_retrain(study: Study, out: Path, retrain: tuple[str, ...]) -> None:
+    names = [r.name for r in study.runs]
+    for name in retrain:
+        if name not in names:
+            raise StudyError(f"--retrain {name}: the study has no run named {name!r} (its runs: {', '.join(names)})")
+        for run in study.runs:  # an FCP run whose partner run is retrained would keep the old partners
+            if (
+                run.partners_from == name
+                and run.name not in retrain
+                and (run_dir(out, run.name) / "config.yaml").is_file()
+            ):
+                raise StudyError(
+                    f"--retrain {name}: run {run.name!r} took its partners from it; pass --retrain {run.name} too"
+                )
+
+
+#: Config keys compared between a trained run and what the study asks for it: the training settings the
+#: fingerprint covers and eval.episodes, which the reported cross-play used. Where the partners of an FCP
+#: run lie is left out (the study directory may have moved), as are cluster, archive and the checkpoint
+#: cadence, which may change between drivers.
+COMPARED_RUN_KEYS = ("run.precision", "run.deterministic", "eval.episodes")
+_NOT_COMPARED = ("population.fcp.partners",)
+
+
+def trained_differences(path: Path, planned: Config) -> list[str]:
+    """How the config the run in ``path`` was created with differs from ``planned`` ("ppo.lr: 0.0004 in the
+    run, 0.01 now"); empty when nothing was trained there yet or nothing that matters differs."""
+    if not (Path(path) / "config.yaml").is_file():
+        return []
+    try:
+        trained = RunDir(path).load_config()
+    except RunDirError as error:
+        raise StudyError(str(error)) from None
+    before, now = _compared(trained), _compared(planned)
+    return [
+        f"{key}: {_shown(before.get(key))} in the run, {_shown(now.get(key))} now"
+        for key in sorted(set(before) | set(now))
+        if before.get(key) != now.get(key)
+    ]
+
+
+def _compared(config: Config) -> dict:
+    data = config.to_dict()
+    flat: dict = {}
+
+    def walk(prefix: str, value) -> None:
+        if isinstance(value, Mapping):
+            for key, item in value.items():
+                walk(f"{prefix}.{key}" if prefix else str(key), item)
+        else:
+            flat[prefix] = value
+
+    for section in ("env", "model", "ppo", "population"):
+        walk(section, data[section])
+    for dotted in COMPARED_RUN_KEYS:
+        section, key = dotted.split(".")
+        flat[dotted] = data[section][key]
+    for dotted in _NOT_COMPARED:
+        flat.pop(dotted, None)
+    return flat
+
+
+def _shown(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
 def run_study(
     study: Study,
     out,
@@ -191,20 +406,14 @@ def run_study(
     say: Callable[[str], None] = log.info,
     overrides: Sequence[str] = (),
     mode: str | None = None,
+    retrain: Sequence[str] = (),
 ) -> dict:
     """Train every unfinished run, run the cross-play steps, write the report. ``overrides``: config
-    overrides for every run after the study file's own (``--set``). Returns the state (``steps``: name ->
-    status "done" or "blocked" with a reason)."""
-    out = Path(out).resolve()
-    state = StateFile(out, open_state(study, out, budget, seeds, backend, overrides, mode))
-    study = with_overrides(study, state.state["set"])
-    options = StudyOptions(
-        state.state["budget"], state.state["seeds"], backend, address, show_progress, budget_mode(state.state)
-    )
-    # Every config at this budget and seed count first: one they refuse fails before the directory is written.
-    configs = {
-        run.name: run_config(study, run, out, options.budget, options.seeds, options.budget_mode) for run in study.runs
-    }
+    overrides for every run after the study file's own (``--set``); ``retrain``: runs trained with another
+    config that are trained again (``plan_study``). Returns the state (``steps``: name -> status "done" or
+    "blocked" with a reason)."""
+    arguments = (study, out, budget, seeds, backend, address, show_progress, overrides, mode, retrain)
+    out = plan_study(*arguments).out  # refused here, nothing is written
     out.mkdir(parents=True, exist_ok=True)
     lock = RunDir(out)
     try:
@@ -212,11 +421,19 @@ def run_study(
     except RunDirError as error:
         raise StudyError(str(error).replace("before resuming", "before running the study again")) from None
     try:
+        plan = plan_study(*arguments)  # again under the lock: what another driver did before it is seen
+        study, configs, options = plan.study, plan.configs, plan.options
+        state = StateFile(out, plan.state)
+        for name in plan.retrain:
+            _set_aside(study, out, name, state, say)
         state.save()
         steps = _steps(study)
         for number, (name, action) in enumerate(steps, start=1):
-            if state.step(name).get("status") == "done" and _still_done(name, out):
-                continue
+            if state.step(name).get("status") == "done":
+                problem = result_problem(name, study, out, configs)
+                if problem is None:
+                    continue
+                say(f"study {study.name}: {name}: {problem}; doing the step again")
             say(f"study {study.name}: [{number}/{len(steps)}] {name}")
             timer = state.timer(name)
             state.step(name).pop("reason", None)  # a step blocked before may run now
@@ -236,6 +453,22 @@ def run_study(
         lock.close()
 
 
+def _set_aside(study: Study, out: Path, name: str, state: StateFile, say: Callable[[str], None]) -> None:
+    """Move run ``name``, its over-training cross-play and the comparisons that play it to
+    ``out/replaced/<time>/`` (nothing is deleted) and mark their steps left."""
+    target = out / "replaced" / time.strftime("%Y%m%d-%H%M%S")
+    moves = [(run_dir(out, name), f"train {name}"), (out / "over_training" / name, f"over_training {name}")]
+    moves += [(comparison_dir(out, c.name), f"compare {c.name}") for c in study.comparisons if name in c.runs]
+    for source, step in moves:
+        state.state["steps"].pop(step, None)
+        if source.exists():
+            destination = target / source.relative_to(out)
+            destination.parent.mkdir(parents=True, exist_ok=True)
+            source.rename(destination)
+            say(f"study {study.name}: --retrain {name}: moved {source} to {destination}")
+    state.save()
+
+
 class StudyBlocked(Exception):
     """A step that cannot run yet for a reason the user must fix (e.g. a missing human proxy)."""
 
@@ -250,25 +483,81 @@ def _steps(study: Study) -> list[tuple[str, Callable]]:
     return steps
 
 
-def _still_done(step: str, out: Path) -> bool:
-    """A step marked done whose result is still there (a deleted result is redone)."""
+def result_problem(step: str, study: Study, out: Path, configs: dict) -> str | None:
+    """Why step ``step``, marked done, must run again: its result is missing, does not parse, or was made
+    from other inputs than the step has now; None when it is done."""
     kind, name = step.split(" ", 1)
     if kind == "train":
-        return run_finished(run_dir(out, name))
+        return run_problem(run_dir(out, name))
     if kind == "compare":
-        return (comparison_dir(out, name) / "summary.json").is_file()
-    return (out / "over_training" / name / "done.json").is_file()
+        comparison = next((c for c in study.comparisons if c.name == name), None)
+        path = comparison_dir(out, name) / "summary.json"
+        data, problem = read_result(path, ("pairs",))
+        if problem is None and comparison is not None:
+            kept = data.get("study_inputs")
+            if kept is not None and kept != comparison_inputs(comparison, configs):
+                problem = f"{path} was made from other runs or episodes than the comparison has now"
+        return problem
+    folder = out / "over_training" / name
+    data, problem = read_result(folder / "done.json", ("snapshots",))
+    if problem is not None:
+        return problem
+    if data.get("study_inputs") is not None:
+        try:
+            trained = RunDir(run_dir(out, name)).load_config()
+        except RunDirError as error:
+            return str(error)
+        if data["study_inputs"] != over_training_inputs(trained):
+            return f"{folder / 'done.json'} was made from another training of run {name!r}"
+    snapshots = data["snapshots"] if isinstance(data["snapshots"], list) else [None]
+    for update in snapshots:  # each snapshot's result, which the report reads
+        if not isinstance(update, int) or isinstance(update, bool):
+            return f"{folder / 'done.json'} lists a snapshot that is not an update number: {update!r}"
+        problem = read_result(folder / f"update_{update:07d}.json", ("sp_mean", "matrix"))[1]
+        if problem is not None:
+            return problem
+    return None
+
+
+def comparison_inputs(comparison: Comparison, configs: dict) -> dict:
+    """What a comparison's result depends on: how its runs were trained (``inputs_fingerprint``), the
+    episodes and key stream, the human proxy."""
+    first = configs[comparison.runs[0]]
+    return {
+        "runs": {r: inputs_fingerprint(configs[r]) for r in comparison.runs},
+        "episodes": first.eval.episodes,
+        "seed": first.population.seed,
+        "human_proxy": comparison.human_proxy,
+    }
+
+
+def over_training_inputs(config: Config) -> dict:
+    return {"run": inputs_fingerprint(config), "episodes": config.eval.episodes}
+
+
+def inputs_fingerprint(config: Config) -> str:
+    """A hash of what ``trained_differences`` compares: the training settings and eval.episodes, but not
+    where an FCP run's partners lie (a study directory carried to another machine keeps its results)."""
+    text = json.dumps(_compared(config), sort_keys=True, default=list)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def run_problem(path: Path) -> str | None:
+    """Why the run in ``path`` is not trained and evaluated (None: it is, and is never trained again)."""
+    if not (path / "config.yaml").is_file():
+        return f"{path} holds no run"
+    try:
+        status = RunDir(path).read_manifest().get("status")
+    except RunDirError as error:
+        return str(error)
+    if status != "finished":
+        return f"{path} has not finished training"
+    return read_result(path / "xp" / "summary.json", ("sp_mean", "xp_mean", "num_policies"))[1]
 
 
 def run_finished(path: Path) -> bool:
     """Trained and evaluated: never trained again."""
-    if not (path / "config.yaml").is_file():
-        return False
-    try:
-        status = RunDir(path).read_manifest().get("status")
-    except RunDirError:
-        return False
-    return status == "finished" and (path / "xp" / "summary.json").is_file()
+    return run_problem(path) is None
 
 
 def _train_step(name: str):
@@ -301,7 +590,14 @@ def _over_training_step(name: str):
         created = RunDir.existing(path).load_config()  # its snapshots are protected for good
         snapshots = ckpt.snapshot_updates(created.ppo.num_updates, created.run.num_checkpoints)
         folder = out / "over_training" / name
-        todo = [u for u in snapshots if not (folder / f"update_{u:07d}.json").is_file()]
+        inputs = over_training_inputs(created)
+        todo = []
+        for update in snapshots:  # a snapshot's result counts when it parses and was made from this training
+            data, problem = read_result(folder / f"update_{update:07d}.json", ("sp_mean", "matrix"))
+            if problem is None and data.get("study_inputs") not in (None, inputs):
+                problem = "made from another training"
+            if problem is not None:
+                todo.append(update)
         if todo:
             groups = {u: _source(str(path), str(u)) for u in todo}
             jobs = created.population.num_seeds * len(todo)
@@ -323,11 +619,12 @@ def _over_training_step(name: str):
                         env_steps_per_seed=update * created.ppo.steps_per_update,
                         episodes_per_pair=created.eval.episodes,
                         matrix=result.matrix.round(4).tolist(),
+                        study_inputs=inputs,
                     )
                     write_json(folder / f"update_{update:07d}.json", summary)
                     timer.tick()
         done = snapshots
-        write_json(folder / "done.json", {"snapshots": done})
+        write_json(folder / "done.json", {"snapshots": done, "study_inputs": inputs})
         return {"snapshots": len(done)}
 
     return action
@@ -348,6 +645,7 @@ def _compare_step(comparison: Comparison):
         except crossplay.CrossPlayError as error:
             raise StudyError(f"comparison {comparison.name!r}: {error}") from None
         result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer)
+        result.summary["study_inputs"] = comparison_inputs(comparison, configs)
         folder = comparison_dir(out, comparison.name)
         crossplay.write_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
         return {}
