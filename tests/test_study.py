@@ -655,7 +655,10 @@ def test_paths_that_are_files_are_one_line_errors(finished, tmp_path, capsys):
     for command, message in (
         (["run", study, "--out", str(afile), "--backend", "local"], f"{afile}: is a file, not a study directory"),
         (["run", study, "--out", str(afile / "sub"), "--backend", "local"], f"{afile} is a file, not a directory"),
-        (["run", study, "--out", os.devnull, "--backend", "local"], f"{os.devnull}: is not a directory"),
+        (
+            ["run", study, "--out", os.devnull, "--backend", "local"],
+            f"{os.devnull}: is a special file (a device, pipe or socket), not a study directory",
+        ),
         (["status", str(afile)], f"{afile}: is a file, not a study directory"),
         (["status", str(afile / "sub")], f"{afile} is a file, not a directory"),
         (["report", str(afile)], f"{afile}: is a file, not a study directory"),

@@ -83,7 +83,8 @@ def check_folder(out: Path, what: str = "a study directory") -> None:
     """Refuse a study directory that is a file (``--out /dev/null``) or lies under one."""
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise StudyError(f"{out}: is {'a file' if out.is_file() else 'not a directory'}, not {what}")
+        kind = "a file" if out.is_file() else "a special file (a device, pipe or socket)"
+        raise StudyError(f"{out}: is {kind}, not {what}")
     for parent in out.parents:
         if parent.exists():
             if not parent.is_dir():
