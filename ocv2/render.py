@@ -87,7 +87,7 @@ DEFAULT_SUBDIVS = 3
 #: Pixels of one frame at most: a 4K screen (3840 x 2160), so every picture can be shown whole. Drawing
 #: works on float32 ``[H, W, tile, tile, 3]`` arrays and their blends: ``ocv2 play`` at this bound
 #: (cramped_room, tile size 643) peaked at 1 GB and took 1.3 s a tick on 2 busy CPU cores; at tile
-#: size 1500, 3.4 GB and 4-8 s, and 6000 was killed for memory (issue 41).
+#: size 1500, 3.4 GB and 4-8 s, and 6000 was killed for memory.
 MAX_FRAME_PIXELS = 3840 * 2160
 #: Bytes of the RGB frames one call holds together (a GIF's): beyond this, refuse rather than swap.
 MAX_FRAMES_BYTES = 2 << 30

@@ -553,7 +553,7 @@ def _hold_unkeyed_connections(port: int, count: int, opened: threading.Event, st
 
 
 def test_connections_without_the_key_do_not_starve_the_players(solo_game, archive):
-    """40 slow or idle connections that never show the key (issue 41, item 8), each reopened when the
+    """40 slow or idle connections that never show the key, each reopened when the
     server closes it, for longer than their deadline: page loads and a joined player's polls, on its
     open connection and on new ones, are all still served."""
     server = PlayServer("127.0.0.1", 0)
@@ -766,7 +766,7 @@ def test_command_line_errors(rnn_run, tmp_path, capsys):
 
 
 def test_a_tile_size_too_big_is_refused_before_anything_is_drawn(tmp_path, capsys, monkeypatch):
-    """Issue 41, item 7: ``--tile-size 1500`` took 3.4 GB and 4-8 s a tick, 6000 was killed for memory.
+    """Unbounded, ``--tile-size 1500`` took 3.4 GB and 4-8 s a tick, 6000 was killed for memory.
 
     ``ocv2 play`` and ``ocv2 render`` share one check (``ocv2.render.check_frame_size``): the same
     one-line bound, before any frame is drawn (the drawing functions are replaced by ones that fail, so

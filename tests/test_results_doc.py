@@ -1,4 +1,4 @@
-"""docs/RESULTS.md matches the files under docs/results/ (issue 40): docs/results/check_results.py recomputes
+"""docs/RESULTS.md matches the files under docs/results/: docs/results/check_results.py recomputes
 every tagged number of the page and fails on any that differs at the precision written. No training, no JAX."""
 
 import importlib.util
