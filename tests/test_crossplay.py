@@ -428,3 +428,36 @@ def test_gap_std_is_the_spread_of_each_policy_s_own_gap():
     assert summary["gap_std"] == pytest.approx(np.std(own, ddof=1))
     low, high = summary["gap_ci95_interval"]
     assert low <= summary["gap"] <= high
+
+
+def test_seat_pairs_of_a_study_comparison_put_each_order_where_it_belongs():
+    """Three sources in one square matrix, as a study's comparison plays them: every cell is 10 x the
+    seat-0 policy + the seat-1 policy, so A in seat 0 and A in seat 1 differ and a swapped order is seen."""
+    a, b, c = _group("A", ["a0", "a1"], "sp"), _group("B", ["b0", "b1"], "sa"), _group("C", ["c0"], "fcp")
+    value = {"a0": 1, "a1": 2, "b0": 3, "b1": 4, "c0": 5}
+    names = [i for g in (a, b, c) for i in g.ids]
+    returns = np.asarray([[[10 * value[r] + value[s]] * 2 for s in names] for r in names], np.float32)
+    played = crossplay.Matrix(returns, np.zeros(returns.shape, np.int32), (a, b, c), (a, b, c))
+    pairs = crossplay.seat_pairs(crossplay.summarize_seat_fair(crossplay.SeatFairMatrix(played, played)))
+    assert [(p["a"], p["b"], p["a_method"], p["b_method"]) for p in pairs] == [
+        ("A", "B", "sp", "sa"),
+        ("A", "C", "sp", "fcp"),
+        ("B", "C", "sa", "fcp"),
+    ]
+    ab, ac, bc = pairs
+    # A in seat 0 with B: 10 x {1, 2} + {3, 4}; A in seat 1: 10 x {3, 4} + {1, 2}
+    assert ab["a_seat0"] == pytest.approx(18.5) and ab["a_seat1"] == pytest.approx(36.5)
+    assert ab["a_seat0_std"] == pytest.approx(np.std([13, 14, 23, 24], ddof=1))
+    assert ab["a_seat1_std"] == pytest.approx(np.std([31, 32, 41, 42], ddof=1))
+    assert ab["mean"] == pytest.approx(27.5)
+    low, high = ab["mean_ci95_interval"]
+    assert 22 <= low <= 27.5 <= high <= 33
+    assert (
+        ac["a_seat0"] == pytest.approx(20)
+        and ac["a_seat1"] == pytest.approx(51.5)
+        and ac["mean"] == pytest.approx(35.75)
+    )
+    assert bc["a_seat0"] == pytest.approx(40) and bc["a_seat1"] == pytest.approx(53.5)
+    assert ac["a_seat1_std"] == pytest.approx(np.std([51, 52], ddof=1))
+    with pytest.raises(KeyError):  # one order only: no pairs
+        crossplay.seat_pairs(crossplay.summarize_seat_fair(crossplay.SeatFairMatrix(played)))

@@ -7,6 +7,7 @@ import csv
 import errno
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -100,6 +101,42 @@ def assert_same_runs(out: Path, reference: Path) -> None:
             assert {k: v for k, v in row.items() if k not in TIMING_COLUMNS} == {
                 k: v for k, v in other.items() if k not in TIMING_COLUMNS
             }
+
+
+#: The tiny study's report.md and summary.json as the code wrote them before the study runner was
+#: rewritten in plain steps (``normalized_report``): a refactor must not change a byte of either.
+GOLDEN = Path(__file__).parent / "data" / "study_golden"
+_UNSTABLE_KEYS = ("written", "wall_s", "commits")  # the time, wall times and the commits of whoever ran it
+
+
+def normalized_report(out: Path, study_folder: Path, root: Path = ROOT) -> dict[str, str]:
+    """report.md and summary.json of study directory ``out`` without what two runs of the same study
+    never share: when it was written, wall times, the commits that trained it, and where the study file
+    (``study_folder``) and this repository (``root``) lie."""
+
+    def drop(value):
+        if isinstance(value, dict):
+            return {k: drop(v) for k, v in value.items() if k not in _UNSTABLE_KEYS}
+        return [drop(v) for v in value] if isinstance(value, list) else value
+
+    summary = json.dumps(drop(json.loads((out / "summary.json").read_text())), indent=2) + "\n"
+    report = (out / "report.md").read_text()
+    for pattern, replacement in (
+        (r"wall time: [^;\n]+", "wall time: -"),
+        (r"wall [0-9hms]+,", "wall -,"),
+        (r"written \S+", "written -"),
+        (r"commits [^\n]*", "commits -"),
+    ):
+        report = re.sub(pattern, replacement, report)
+    texts = {"report.md": report, "summary.json": summary}
+    for place, name in ((str(study_folder), "<study>"), (str(root), "<repo>")):
+        texts = {k: v.replace(place, name) for k, v in texts.items()}
+    return texts
+
+
+def test_the_report_is_byte_for_byte_what_the_code_wrote_before_its_refactor(finished):
+    for name, text in normalized_report(finished, finished.parent).items():
+        assert text == (GOLDEN / name).read_text(), name
 
 
 def test_the_report_puts_the_paper_numbers_beside_ours(finished):

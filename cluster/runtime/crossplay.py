@@ -471,6 +471,40 @@ def summarize_seat_fair(result: SeatFairMatrix) -> dict:
     return summary
 
 
+def seat_pairs(summary: dict) -> list[dict]:
+    """Each pair of sources of a square cross-play, read from its ``summarize_seat_fair`` summary.
+
+    Takes the summary of a ``SeatFairMatrix`` whose columns are its rows, with both orders played
+    (``orders`` holds ``rows_seat0`` and ``cols_seat0``). Returns, for each pair of sources (A, B) with A
+    before B: ``a_seat0`` (A in seat 0, B in seat 1: block (A, B) of ``rows_seat0``), ``a_seat1`` (A in
+    seat 1: block (A, B) of ``cols_seat0``), the std across the cells of each, and ``mean`` with
+    ``mean_ci95_interval``: the XP of block (A, B) averaged over both orders, with its seed-bootstrap
+    interval. Raises ``KeyError``, ``IndexError`` or ``TypeError`` on a summary of another shape."""
+    first, second, mean = summary["orders"]["rows_seat0"], summary["orders"]["cols_seat0"], summary["blocks"]
+    count = math.isqrt(len(mean))
+    if count * count != len(mean) or len(first) != len(mean) or len(second) != len(mean):
+        raise IndexError("not a square cross-play with both seat orders")
+    pairs = []
+    for a in range(count):
+        for b in range(a + 1, count):
+            k = a * count + b
+            pairs.append(
+                {
+                    "a": mean[k]["rows"],
+                    "b": mean[k]["cols"],
+                    "a_method": mean[k]["row_method"],
+                    "b_method": mean[k]["col_method"],
+                    "a_seat0": first[k]["xp_mean"],
+                    "a_seat0_std": first[k]["xp_std"],
+                    "a_seat1": second[k]["xp_mean"],
+                    "a_seat1_std": second[k]["xp_std"],
+                    "mean": mean[k]["xp_mean"],
+                    "mean_ci95_interval": mean[k]["xp_ci95_interval"],
+                }
+            )
+    return pairs
+
+
 _BLOCK_FIELDS = [
     "rows",
     "cols",

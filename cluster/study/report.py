@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cluster.runtime.crossplay import seat_pairs
 from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, RunDirError, read_matrix_csv, write_json
 from cluster.study.spec import PaperValue, Study, budget_mode, comparison_dir, run_dir
@@ -184,15 +185,27 @@ def _comparison_entry(name: str, out: Path, state: dict) -> dict:
     }
     path = comparison_dir(out, name) / "summary.json"
     if path.is_file():
-        data, problem = read_result(path, ("pairs",))
-        pairs = data.get("pairs")
+        data, problem = read_result(path)
+        pairs, blocks = _pairs_and_blocks(data) if problem is None else (None, None)
         if problem is None and not (isinstance(pairs, list) and all(_is_pair(p) for p in pairs)):
             problem = f"{path} holds no pairs of policies"
         if problem is not None:
             entry.update(status="damaged", reason=problem)
             return entry
-        entry.update(pairs=pairs, blocks=data.get("blocks", []), episodes_per_pair=data.get("episodes_per_pair"))
+        entry.update(pairs=pairs, blocks=blocks, episodes_per_pair=data.get("episodes_per_pair"))
     return entry
+
+
+def _pairs_and_blocks(data: dict) -> tuple[list | None, list]:
+    """A comparison's pairs (``crossplay.seat_pairs``) and its blocks with the rows in seat 0, from its
+    summary.json: ``summarize_seat_fair``'s, or the ``pairs`` and ``blocks`` a study made before that kept.
+    (None, []) when the file holds neither."""
+    if "orders" in data:
+        try:
+            return seat_pairs(data), data["orders"]["rows_seat0"]
+        except (KeyError, IndexError, TypeError):
+            return None, []
+    return data.get("pairs"), data.get("blocks", [])
 
 
 _PAIR_KEYS = ("a", "b", "a_method", "b_method", "a_seat0", "a_seat0_std", "a_seat1", "a_seat1_std", "mean")

@@ -30,8 +30,6 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
-import numpy as np
-
 from cluster.api import train_population
 from cluster.runtime import crossplay
 from cluster.runtime.progress import Bar
@@ -493,7 +491,9 @@ def result_problem(step: str, study: Study, out: Path, configs: dict) -> str | N
     if kind == "compare":
         comparison = next((c for c in study.comparisons if c.name == name), None)
         path = comparison_dir(out, name) / "summary.json"
-        data, problem = read_result(path, ("pairs",))
+        data, problem = read_result(path)
+        if problem is None and "orders" not in data and "pairs" not in data:  # "pairs": a study made before "orders"
+            problem = f"{path} is not a result of this step (no orders)"
         if problem is None and comparison is not None:
             kept = data.get("study_inputs")
             if kept is not None and kept != comparison_inputs(comparison, configs):
@@ -648,7 +648,7 @@ def _compare_step(comparison: Comparison):
         result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer)
         result.summary["study_inputs"] = comparison_inputs(comparison, configs)
         folder = comparison_dir(out, comparison.name)
-        crossplay.write_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
+        crossplay.write_seat_fair_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
         return {}
 
     return action
@@ -679,55 +679,25 @@ def _play(options: StudyOptions, rows, cols, seed: int, episodes: int, label: st
 
 @dataclasses.dataclass(frozen=True)
 class ComparisonResult:
-    matrix: crossplay.Matrix  # every group against every group (rows = seat 0)
-    summary: dict
+    matrix: crossplay.SeatFairMatrix  # every group against every group; the one matrix holds both seat orders
+    summary: dict  # crossplay.summarize_seat_fair's
 
 
 def compare(
     groups, options: StudyOptions, seed: int, episodes: int, label: str, timer: StepTimer | None = None
 ) -> ComparisonResult:
-    """Every group against every other group in both seats; a group against itself is its own in-run
-    cross-play (same episode keys); ``label`` names its progress lines. Returns the full matrix and, per
-    pair of groups, each seat order's XP, their mean and seed-bootstrap 95 % intervals."""
-    result = _play(options, groups, groups, seed, episodes, label)
+    """Every group against every group in both seats; a group against itself is its own in-run cross-play
+    (same episode keys); ``label`` names the progress lines.
+
+    Returns the matrix (rows in seat 0, so cell (i, j) and (j, i) are the two orders of a pair) and
+    ``crossplay.summarize_seat_fair``'s summary of it: ``blocks`` (the mean of both orders) and ``orders``
+    (each order's blocks), from which ``crossplay.seat_pairs`` reads each pair of groups. Raises
+    ``RayBackendError`` when Ray cannot be reached."""
+    played = _play(options, groups, groups, seed, episodes, label)
     if timer is not None:
         timer.tick()
-    summary = crossplay.summarize_matrix(result)
-    summary["pairs"] = seat_orders(result)
-    return ComparisonResult(result, summary)
-
-
-def seat_orders(result: crossplay.Matrix) -> list[dict]:
-    """For each pair of groups (A, B): A in seat 0 with B in seat 1, the reverse, and the mean of both
-    orders with its seed-bootstrap interval (A's and B's seeds resampled, as ``block_summary`` does)."""
-    offsets = np.cumsum([0] + [len(g.names) for g in result.row_groups])
-    matrix = result.matrix.astype(np.float64)
-    pairs = []
-    for a, group_a in enumerate(result.row_groups):
-        for b in range(a + 1, len(result.row_groups)):
-            group_b = result.row_groups[b]
-            ab = matrix[offsets[a] : offsets[a + 1], offsets[b] : offsets[b + 1]]
-            ba = matrix[offsets[b] : offsets[b + 1], offsets[a] : offsets[a + 1]]
-            both = block_summary((ab + ba.T) / 2, list(group_a.ids), list(group_b.ids))
-            pairs.append(
-                {
-                    "a": group_a.label,
-                    "b": group_b.label,
-                    "a_method": group_a.method,
-                    "b_method": group_b.method,
-                    "a_seat0": float(ab.mean()),
-                    "a_seat0_std": _std(ab),
-                    "a_seat1": float(ba.mean()),
-                    "a_seat1_std": _std(ba),
-                    "mean": both["xp_mean"],
-                    "mean_ci95_interval": both["xp_ci95_interval"],
-                }
-            )
-    return pairs
-
-
-def _std(cells: np.ndarray) -> float:
-    return float(cells.std(ddof=1)) if cells.size > 1 else 0.0
+    result = crossplay.SeatFairMatrix(played, played)
+    return ComparisonResult(result, crossplay.summarize_seat_fair(result))
 
 
 # ---------------------------------------------------------------------------------------------------
