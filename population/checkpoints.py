@@ -121,6 +121,14 @@ def list_updates(run_dir, seed: int) -> list[int]:
     return sorted(int(m.group(1)) for m in found if m)
 
 
+def update_of(path) -> int | None:
+    """The update of checkpoint file ``path`` (``.../checkpoints/seed_<i>/update_<n>.msgpack``), else None."""
+    path = Path(path)
+    match = _NAME.match(path.name)
+    in_seed_dir = path.parent.name.startswith("seed_") and path.parent.parent.name == "checkpoints"
+    return int(match.group(1)) if match and in_seed_dir else None
+
+
 def latest(run_dir, seed: int) -> Path | None:
     updates = list_updates(run_dir, seed)
     return checkpoint_path(run_dir, seed, updates[-1]) if updates else None

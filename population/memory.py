@@ -90,7 +90,7 @@ def stages(config: Config) -> list[tuple[int, PPOConfig]]:
     stage first, then the learners."""
     pop = config.population
     runs = [(pop.num_seeds, config.ppo)]
-    if pop.method == "fcp" and pop.fcp.partners is None and pop.fcp.partner_ppo is not None:
+    if pop.trains_partners and pop.fcp.partner_ppo is not None:
         runs.insert(0, (pop.fcp.stage_seeds(pop.num_seeds), pop.fcp.partner_ppo))
     return runs
 

@@ -756,3 +756,16 @@ def test_a_full_disk_or_read_only_folder_is_one_line_in_every_command(finished, 
     command = ["xp", "--rows", str(finished / "runs" / "sp"), "--backend", "local", "--out", str(tmp_path / "x")]
     assert main(command) == 1
     assert _one_line(capsys).startswith(f"ocv2 xp: error: {text} ({tmp_path / 'x' / 'matrix.csv'}); fix the cause")
+
+
+def test_a_pack_of_the_latest_checkpoints_only_still_resumes(finished, tmp_path):
+    """``latest_only`` leaves the kept snapshots behind (a 10-seed CNN checkpoint is about 13.5 MB): what is
+    left is each seed's newest checkpoint, which is what resuming needs."""
+    whole = pack_study(finished, tmp_path / "whole")
+    latest = pack_study(finished, tmp_path / "latest", latest_only=True)
+    assert latest["bytes"] < whole["bytes"] and latest["latest_only"]
+    moved = tmp_path / "moved"
+    assert main(["study", "unpack", str(tmp_path / "latest"), "--out", str(moved)]) == 0
+    for seed in range(2):
+        assert ckpt.list_updates(moved / "runs" / "sp", seed) == [4]
+        assert ckpt.list_updates(moved / "runs" / "sa", seed) == [8]

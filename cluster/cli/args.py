@@ -1,4 +1,4 @@
-"""Argument types the ``ocv2`` subcommands share: argparse ``type=`` callables and the layout lookup.
+"""Arguments the ``ocv2`` subcommands share: argparse ``type=`` callables, ``--set``, the layout lookup.
 
 A bad value is an ``argparse.ArgumentTypeError`` (a usage line naming the flag and the value, exit
 code 2); an unknown layout is a ``CLIError`` whose message lists the choices and suggests close ones.
@@ -103,3 +103,11 @@ def fps(text: str) -> float:
     if not 0 < value <= 100:
         raise argparse.ArgumentTypeError(f"fps must be > 0 and <= 100, got {text}")
     return value
+
+
+def add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """Declare ``--set SECTION.KEY=VALUE`` (repeatable) on ``parser``: a config override that
+    ``population.config.load_config`` applies, collected in ``args.overrides`` (a list, empty by
+    default); ``help`` says what it overrides in this command."""
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE", help=help)
+

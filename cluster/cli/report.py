@@ -32,8 +32,9 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from cluster.cli.args import add_set_option
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-from cluster.runtime.rundir import RunDir, RunDirError, read_matrix_csv, seed_curves
+from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
@@ -84,13 +85,9 @@ def add_validate(sub) -> argparse.ArgumentParser:
         "config is invalid (every file is checked).",
     )
     parser.add_argument("configs", nargs="+", metavar="CONFIG", help="YAML config(s), e.g. configs/paper/*.yaml")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="override a config value in every file (repeatable)",
+    add_set_option(
+        parser,
+        "override a config value in every file (repeatable)",
     )
     return parser
 
@@ -164,13 +161,6 @@ def run_validate(args) -> int:
 # ---------------------------------------------------------------------------------------------------
 
 
-def _nan(value) -> float:
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
-
-
 def load_run(path) -> dict:
     """Everything ``report`` needs from one run directory; ``CLIError`` if it is not one."""
     if not Path(path).exists():
@@ -240,8 +230,12 @@ def report_rows(runs: list[dict]) -> list[dict]:
         baseline = next((r for r in members if r["config"].population.method == "sp" and r["summary"]), None)
         for run in members:
             config, summary = run["config"], run["summary"]
-            updates = [int(_nan(r.get("update"))) for r in run["metrics"] if not math.isnan(_nan(r.get("update")))]
-            steps = [_nan(r.get("env_steps")) for r in run["metrics"]]
+            updates = [
+                int(float_or_nan(r.get("update")))
+                for r in run["metrics"]
+                if not math.isnan(float_or_nan(r.get("update")))
+            ]
+            steps = [float_or_nan(r.get("env_steps")) for r in run["metrics"]]
             steps = [s for s in steps if not math.isnan(s)]
             row = {
                 "layout": config.env_kwargs["layout"],
@@ -260,7 +254,7 @@ def report_rows(runs: list[dict]) -> list[dict]:
                 "note": "",
             }
             for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "sp_ci95", "xp_ci95"):
-                row[key] = _nan(summary.get(key)) if summary else math.nan
+                row[key] = float_or_nan(summary.get(key)) if summary else math.nan
             row["num_policies"] = int(summary.get("num_policies", 0)) if summary else 0
             row["episodes_per_pair"] = int(summary.get("episodes_per_pair", 0)) if summary else 0
             if not summary:
@@ -268,9 +262,9 @@ def report_rows(runs: list[dict]) -> list[dict]:
             elif baseline is not None and run is not baseline:
                 base = baseline["summary"]
                 row["baseline_run"] = baseline["path"]
-                row["delta_sp"] = row["sp_mean"] - _nan(base.get("sp_mean"))
-                row["delta_xp"] = row["xp_mean"] - _nan(base.get("xp_mean"))
-                row["delta_gap"] = row["gap"] - _nan(base.get("gap"))
+                row["delta_sp"] = row["sp_mean"] - float_or_nan(base.get("sp_mean"))
+                row["delta_xp"] = row["xp_mean"] - float_or_nan(base.get("xp_mean"))
+                row["delta_gap"] = row["gap"] - float_or_nan(base.get("gap"))
             rows.append(row)
     return rows
 
@@ -396,7 +390,7 @@ def write_heatmaps(runs: list[dict], out: Path) -> dict[str, str]:
         summary = run["summary"] or {}
         title = f"{config.population.method.upper()} {config.env_kwargs['layout']}"
         if summary:
-            title += f": SP {fmt(_nan(summary.get('sp_mean')))}, XP {fmt(_nan(summary.get('xp_mean')))}"
+            title += f": SP {fmt(float_or_nan(summary.get('sp_mean')))}, XP {fmt(float_or_nan(summary.get('xp_mean')))}"
         path = xp_heatmap(np.asarray(run["matrix"], np.float64), out / f"{name}.png", title=title)
         if path is not None:  # None: matplotlib missing (xp_heatmap said so)
             paths[run["path"]] = path

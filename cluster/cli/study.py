@@ -18,7 +18,7 @@ from pathlib import Path
 
 from cluster.api import require_backend
 from cluster.archive import ArchiveError
-from cluster.cli.args import bounded, check_new_folder, positive_int
+from cluster.cli.args import add_set_option, bounded, check_new_folder, positive_int
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime import ray_backend
 from cluster.runtime.loggers import MissingExtraError
@@ -66,13 +66,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "schedule squeezed into the shorter run (how studies ran before truncation; kept by such directories)",
     )
     run.add_argument("--seeds", type=positive_int, default=None, help="seeds per run (default: each config's own)")
-    run.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="override a config value in every run, after the study file's own (repeatable; kept by the "
+    add_set_option(
+        run,
+        "override a config value in every run, after the study file's own (repeatable; kept by the "
         "study directory), e.g. --set eval.episodes=8 for a quick pilot of the whole study",
     )
     run.add_argument(

@@ -13,6 +13,7 @@ import os
 
 from cluster.api import require_backend, train_population
 from cluster.archive import ArchiveError
+from cluster.cli.args import add_set_option
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import ray_backend
 from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers
@@ -34,13 +35,9 @@ def add_train(sub) -> argparse.ArgumentParser:
         "evaluate cross-play and write plots and GIFs into the run directory.",
     )
     parser.add_argument("config", help="YAML config (see configs/)")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="override a config value (repeatable), e.g. --set ppo.total_timesteps=1e6",
+    add_set_option(
+        parser,
+        "override a config value (repeatable), e.g. --set ppo.total_timesteps=1e6",
     )
     parser.add_argument("--out", help="run directory (default runs/<layout>_<method>_<time>)")
     parser.add_argument(

@@ -75,17 +75,19 @@ class MetricsRow(NamedTuple):
             int(float(row["seed"])),
             int(float(row["update"])),
             int(float(row["env_steps"])),
-            {key: _float_or_nan(value) for key, value in row.items() if key not in _INDEX_FIELDS},
+            {key: float_or_nan(value) for key, value in row.items() if key not in _INDEX_FIELDS},
         )
 
 
 _INDEX_FIELDS = ("seed", "update", "env_steps")
 
 
-def _float_or_nan(value) -> float:
+def float_or_nan(value) -> float:
+    """``value`` as a float; NaN for what holds no number: "" (nothing measured, e.g. no episode finished
+    yet), None or a missing column."""
     try:
         return float(value)
-    except (TypeError, ValueError):  # "" (nothing measured) or None
+    except (TypeError, ValueError):
         return math.nan
 
 
@@ -422,20 +424,13 @@ def seed_curves(rows: list[dict], fields=("sparse_return",)) -> SeedCurves:
     env_steps = np.full((len(seeds), len(updates)), np.nan)
     for r in rows:
         at = seed_index[int(float(r["seed"]))], update_index[int(float(r["update"]))]
-        env_steps[at] = _float(r.get("env_steps"))
+        env_steps[at] = float_or_nan(r.get("env_steps"))
         for field in fields:
-            values[field][at] = _float(r.get(field))
+            values[field][at] = float_or_nan(r.get(field))
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an update no seed reported env_steps for: NaN
         steps = np.nanmax(env_steps, axis=0) if rows else np.zeros(0)
     return SeedCurves(seeds, updates, steps, values)
-
-
-def _float(text) -> float:
-    try:
-        return float(text)
-    except (TypeError, ValueError):  # "" (no episode finished yet) or a missing column
-        return math.nan
 
 
 def metric_rows(seeds, metrics, steps_per_s: float, wall_s: float, recipe_labels: list[str]) -> list[dict]:

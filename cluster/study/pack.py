@@ -24,6 +24,7 @@ import tarfile
 from pathlib import Path
 
 from cluster.study.spec import StudyError
+from population import checkpoints as ckpt
 
 PACK_NAME = "pack.json"
 PART_BYTES = 16 << 20  # the largest file the device tool brings back
@@ -31,7 +32,7 @@ _SKIPPED_DIRS = {"gifs", "plots", "archive"}
 _SKIPPED_SUFFIXES = {".png", ".gif", ".mcap", ".lock"}
 
 
-def _packed_files(out: Path) -> list[Path]:
+def _packed_files(out: Path, latest_only: bool = False) -> list[Path]:
     files = []
     for path in sorted(out.rglob("*")):
         relative = path.relative_to(out)
@@ -39,12 +40,25 @@ def _packed_files(out: Path) -> list[Path]:
             continue
         if _SKIPPED_DIRS & set(relative.parts[:-1]) or path.suffix in _SKIPPED_SUFFIXES or path.name == ".lock":
             continue
+        if latest_only and ckpt.update_of(path) is not None and path != _newest_beside(path):
+            continue
         files.append(path)
     return files
 
 
-def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
-    """Write ``out``'s resumable state into ``dest`` (created; must be empty): parts and ``pack.json``."""
+def _newest_beside(path: Path) -> Path:
+    """The checkpoint of the highest update in ``path``'s seed folder."""
+    return max((p for p in path.parent.iterdir() if ckpt.update_of(p) is not None), key=ckpt.update_of)
+
+
+def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only: bool = False) -> dict:
+    """Write ``out``'s resumable state into ``dest`` (created; must be empty): parts and ``pack.json``.
+
+    ``latest_only``: of each seed's checkpoints only the newest, which is all that resuming training needs (a
+    10-seed PPO-CNN checkpoint is about 13.5 MB); the kept snapshots before it are left behind, so what needs
+    them later (over-training cross-play, FCP partners, ``ocv2 export --checkpoint mid``) will not find them --
+    export their policies first (``ocv2 export RUN --checkpoint N``) if they matter.
+    """
     out, dest = Path(out), Path(dest)
     if not (out / "study.json").is_file():
         raise StudyError(f"{out}: not a study directory (no study.json)")
@@ -53,7 +67,7 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
     if part_bytes < 1:
         raise StudyError(f"part size must be positive, got {part_bytes}")
     buffer = io.BytesIO()
-    files = _packed_files(out)
+    files = _packed_files(out, latest_only)
     with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
         for path in files:
             tar.add(path, arcname=str(path.relative_to(out)))
@@ -66,7 +80,7 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
         (dest / name).write_bytes(chunk)
         parts.append({"file": name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
     study = json.loads((out / "study.json").read_text()).get("study")
-    record = {"study": study, "files": len(files), "bytes": len(data), "parts": parts}
+    record = {"study": study, "files": len(files), "bytes": len(data), "latest_only": latest_only, "parts": parts}
     (dest / PACK_NAME).write_text(json.dumps(record, indent=1))  # last: its presence means the pack is whole
     return record
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from cluster.runtime.crossplay import seat_pairs
 from cluster.runtime.progress import duration
-from cluster.runtime.rundir import RunDir, RunDirError, read_matrix_csv, write_json
+from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves, write_json
 from cluster.study.spec import PaperValue, Study, budget_mode, comparison_dir, run_dir
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
@@ -328,16 +328,14 @@ def _finish(plt, fig, ax, target: Path, xlabel: str, ylabel: str, title: str) ->
 
 
 def _curve(rows: list[dict]):
-    """(env steps per seed, mean, std) across seeds per update, where every seed had a finished episode."""
-    by_update: dict = {}
-    for row in rows:
-        value = _float(row.get("sparse_return"))
-        if not math.isnan(value):
-            by_update.setdefault(int(float(row["update"])), (_float(row.get("env_steps")), []))[1].append(value)
-    updates = sorted(by_update)
-    steps = np.asarray([by_update[u][0] for u in updates], np.float64)
-    values = [np.asarray(by_update[u][1]) for u in updates]
-    return steps, np.asarray([v.mean() for v in values]), np.asarray([v.std() for v in values])
+    """(env steps per seed, mean, std) across the seeds that had a finished episode, per update where at
+    least one had (``rundir.seed_curves``' sparse return)."""
+    curves = seed_curves(rows)
+    values = curves.values["sparse_return"]
+    kept = ~np.isnan(values).all(axis=0) if values.size else np.zeros(0, bool)
+    columns = [values[:, u][~np.isnan(values[:, u])] for u in np.flatnonzero(kept)]
+    steps = np.asarray(curves.env_steps, np.float64)[kept] if kept.size else np.zeros(0)
+    return steps, np.asarray([v.mean() for v in columns]), np.asarray([v.std() for v in columns])
 
 
 def _heatmaps(out: Path, runs: list[dict], comparisons: list[dict], dest: Path) -> list[str]:
@@ -387,9 +385,9 @@ def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
         steps = np.asarray([p["env_steps_per_seed"] for p in points], np.float64)
         fig, ax = plt.subplots(figsize=(6.5, 4))
         for key, label in (("sp", "SP (diagonal)"), ("xp", "XP (off-diagonal)"), ("gap", "gap SP - XP")):
-            mean = np.asarray([_float(p[f"{key}_mean" if key != "gap" else "gap"]) for p in points])
-            low = np.asarray([_float((p[f"{key}_ci95_interval"] or [None])[0]) for p in points])
-            high = np.asarray([_float((p[f"{key}_ci95_interval"] or [None, None])[1]) for p in points])
+            mean = np.asarray([float_or_nan(p[f"{key}_mean" if key != "gap" else "gap"]) for p in points])
+            low = np.asarray([float_or_nan((p[f"{key}_ci95_interval"] or [None])[0]) for p in points])
+            high = np.asarray([float_or_nan((p[f"{key}_ci95_interval"] or [None, None])[1]) for p in points])
             (line,) = ax.plot(steps, mean, marker="o", label=label)
             ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.2)
         pictures.append(
@@ -525,16 +523,16 @@ def _label(label: str, method) -> str:
 
 
 def _with_ci(mean, interval) -> str:
-    mean = _float(mean)
+    mean = float_or_nan(mean)
     if math.isnan(mean):
         return "n/a"
-    if not interval or any(v is None or math.isnan(_float(v)) for v in interval):
+    if not interval or any(v is None or math.isnan(float_or_nan(v)) for v in interval):
         return f"{mean:.1f}"
-    return f"{mean:.1f} [{_float(interval[0]):.1f}, {_float(interval[1]):.1f}]"
+    return f"{mean:.1f} [{float_or_nan(interval[0]):.1f}, {float_or_nan(interval[1]):.1f}]"
 
 
 def _pm(mean, std) -> str:
-    return f"{_float(mean):.1f} ± {_float(std):.1f}"
+    return f"{float_or_nan(mean):.1f} ± {float_or_nan(std):.1f}"
 
 
 def _paper_cell(value: dict | None, interval) -> str:
@@ -542,16 +540,9 @@ def _paper_cell(value: dict | None, interval) -> str:
         return "–"
     text = f"{value['mean']:g}" + (f" ± {value['std']:g}" if value.get("std") is not None else "")
     if interval and all(v is not None for v in interval):
-        inside = _float(interval[0]) <= value["mean"] <= _float(interval[1])
+        inside = float_or_nan(interval[0]) <= value["mean"] <= float_or_nan(interval[1])
         text += " (in CI)" if inside else " (outside CI)"
     return text
-
-
-def _float(value) -> float:
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
 
 
 def _now() -> str:

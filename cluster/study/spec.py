@@ -358,7 +358,7 @@ def budget_overrides(config: Config, budget: float, mode: str = "truncate") -> l
 
     out = scaled("ppo", config.ppo)
     fcp = config.population.fcp
-    if config.population.method == "fcp" and fcp.partners is None and fcp.partner_ppo is not None:
+    if config.population.trains_partners and fcp.partner_ppo is not None:
         out += scaled("population.fcp.partner_ppo", fcp.partner_ppo)
     return out
 

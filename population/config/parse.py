@@ -199,8 +199,7 @@ def _partner_ppo(raw, env, model: ModelConfig, population: PopulationConfig) -> 
     key = "population.fcp.partner_ppo"
     if raw is not None and not isinstance(raw, Mapping):
         raise ConfigError(f"{key}: expected a mapping of ppo keys, got {type(raw).__name__}")
-    trains_partners = population.method == "fcp" and population.fcp.partners is None
-    if not trains_partners:
+    if not population.trains_partners:
         # Not used (another method, or partners from a finished SP run): only checked, never looked up.
         return None if raw is None else parse_section(key, PPOConfig, raw)
     layout = dict(env)["layout"]

@@ -166,6 +166,12 @@ class PopulationConfig:
     op: OPConfig = OPConfig()
     fcp: FCPConfig = FCPConfig()
 
+    @property
+    def trains_partners(self) -> bool:
+        """Whether the run trains its own FCP partners first (a partner stage of SP seeds): an FCP
+        population given no ``fcp.partners`` (a finished SP run to take them from)."""
+        return self.method == "fcp" and self.fcp.partners is None
+
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:

@@ -209,7 +209,7 @@ def _seed_problems(pop: PopulationConfig) -> list[str]:
     """Every seed a run derives must fit a 32-bit PRNG seed (larger ones would wrap onto small ones)."""
     if pop.seed < 0:
         return [f"population.seed: must be >= 0, got {pop.seed}"]
-    largest = MAX_SEED - (FCP_STAGE_SEED_OFFSET if pop.method == "fcp" and pop.fcp.partners is None else 0)
+    largest = MAX_SEED - (FCP_STAGE_SEED_OFFSET if pop.trains_partners else 0)
     if pop.seed > largest:
         why = " (the FCP partner stage trains with seed + 7919)" if largest < MAX_SEED else ""
         return [f"population.seed: must be <= {largest}{why}, got {pop.seed}"]
