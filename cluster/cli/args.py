@@ -110,4 +110,3 @@ def add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
     ``population.config.load_config`` applies, collected in ``args.overrides`` (a list, empty by
     default); ``help`` says what it overrides in this command."""
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE", help=help)
-
