@@ -28,7 +28,7 @@ from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
 from cluster.study.report import write_report
 from cluster.study.runner import kept_study, plan_study, read_state, run_study, study_status
-from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, load_study, run_config
+from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, default_out, load_study, run_config
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
 from population.numerics import enable_deterministic_ops
@@ -125,7 +125,7 @@ def _run(args) -> int:
         study = load_study(args.study)
     except (StudyError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
-    out = Path(args.out or os.path.join("studies", study.name))
+    out = Path(args.out) if args.out else default_out(study)
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
     options = dict(
         budget=args.budget,

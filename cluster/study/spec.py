@@ -57,9 +57,6 @@ class PaperValue:
     mean: float
     std: float | None = None
 
-    def text(self) -> str:
-        return f"{self.mean:g}" if self.std is None else f"{self.mean:g} ± {self.std:g}"
-
 
 @dataclasses.dataclass(frozen=True)
 class PaperNumbers:
@@ -117,11 +114,16 @@ def load_study(path) -> Study:
     return check_runs(parse_study(raw, path))
 
 
+def default_out(study: Study) -> Path:
+    """The study directory ``ocv2 study run`` uses without ``--out``: ``studies/<study name>``."""
+    return Path("studies") / study.name
+
+
 def check_runs(study: Study) -> Study:
     """``study``, once each run's config has loaded with its overrides (at budget 1, the seed count as
-    written); the first that does not is a ``StudyError`` naming the run."""
+    written, in its default study directory); the first that does not is a ``StudyError`` naming the run."""
     for run in study.runs:
-        run_config(study, run, Path("/nonexistent-study-dir"), budget=1.0, seeds=None)
+        run_config(study, run, default_out(study), budget=1.0, seeds=None)
     return study
 
 
