@@ -95,12 +95,71 @@ class RunDirError(ValueError):
     """A run directory that cannot be used as asked (exists, belongs to another config, ...)."""
 
 
+class DirLock:
+    """The exclusive lock of one directory (a run directory, a study directory) held by the one ocv2
+    process writing it: ``flock`` on ``DIR/.lock``, which holds the holder's pid. Advisory, and released
+    by the kernel when the holder exits or dies (no stale lock after a kill); NFS and some other network
+    file systems may not honour it."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._fd: int | None = None
+
+    def acquire(self, wait: bool = False, advice: str = "wait for it to finish") -> None:
+        """Take the lock (nothing when this object holds it already). Raises ``RunDirError`` naming the
+        directory and the pid that holds it, then ``advice``; with ``wait``, says who holds it and blocks
+        until it is free instead. Raises ``OSError`` when ``DIR/.lock`` cannot be opened."""
+        if self._fd is not None:
+            return
+        fd = os.open(self.path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                os.close(fd)
+                raise
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
+            if not wait:
+                os.close(fd)
+                raise RunDirError(f"{self.path}: in use by another ocv2 process (pid {holder}); {advice}") from None
+            _warn(f"{self.path}: in use by another ocv2 process (pid {holder}); waiting for it to finish")
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            except BaseException:
+                os.close(fd)
+                raise
+        os.ftruncate(fd, 0)
+        os.lseek(fd, 0, os.SEEK_SET)  # reading the holder's pid moved the offset
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._fd = fd
+
+    def release(self) -> None:
+        """Let the lock go (nothing when this object does not hold it)."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def held_elsewhere(self) -> bool:
+        """Whether another process holds the lock now (or the lock file cannot be opened)."""
+        if self._fd is not None:
+            return False
+        try:
+            self.acquire()
+        except (RunDirError, OSError):
+            return True
+        self.release()
+        return False
+
+    def __del__(self):
+        self.release()
+
+
 class RunDir:
     """Paths and files of one run directory. ``RunDir(path)`` checks nothing; use ``open``/``existing``."""
 
     def __init__(self, path):
         self.path = Path(path)
-        self._lock_fd: int | None = None
+        self._lock: DirLock | None = None
         self._metrics: tuple[list[str], list[list]] | None = None  # (columns, rows) of metrics.csv
 
     # opening ----------------------------------------------------------------------------------------
@@ -189,41 +248,16 @@ class RunDir:
 
     # the lock -----------------------------------------------------------------------------------------
     def lock(self, wait: bool = False, advice: str = "wait for it to finish or stop it before resuming") -> None:
-        """Take the run's exclusive lock, or fail naming the process that holds it (``advice`` follows);
-        with ``wait``, say who holds it and block until it is free.
-
-        ``flock`` on ``RUN_DIR/.lock``: advisory, released by the kernel when the holder exits or dies
-        (no stale lock after a kill). NFS and some other network file systems may not honour it.
-        """
-        if self._lock_fd is not None:
-            return
-        fd = os.open(self.path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as error:
-            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                os.close(fd)
-                raise
-            holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
-            if not wait:
-                os.close(fd)
-                raise RunDirError(f"{self.path}: in use by another ocv2 process (pid {holder}); {advice}") from None
-            _warn(f"{self.path}: in use by another ocv2 process (pid {holder}); waiting for it to finish")
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX)
-            except BaseException:
-                os.close(fd)
-                raise
-        os.ftruncate(fd, 0)
-        os.lseek(fd, 0, os.SEEK_SET)  # reading the holder's pid moved the offset
-        os.write(fd, f"{os.getpid()}\n".encode())
-        self._lock_fd = fd
+        """Take the run's exclusive lock (``DirLock``), or fail naming the process that holds it
+        (``advice`` follows); with ``wait``, say who holds it and block until it is free."""
+        if self._lock is None:
+            self._lock = DirLock(self.path)
+        self._lock.acquire(wait=wait, advice=advice)
 
     def close(self) -> None:
         """Release the lock (also released when the process exits)."""
-        if self._lock_fd is not None:
-            os.close(self._lock_fd)
-            self._lock_fd = None
+        if self._lock is not None:
+            self._lock.release()
 
     def __del__(self):
         self.close()

@@ -33,7 +33,7 @@ from pathlib import Path
 from cluster.api import train_population
 from cluster.runtime import crossplay
 from cluster.runtime.progress import Bar
-from cluster.runtime.rundir import RunDir, RunDirError, write_json
+from cluster.runtime.rundir import DirLock, RunDir, RunDirError, write_json
 from cluster.study.report import read_result, write_report
 from cluster.study.spec import (
     BUDGET_MODES,
@@ -414,11 +414,11 @@ def run_study(
     arguments = (study, out, budget, seeds, backend, address, show_progress, overrides, mode, retrain)
     out = plan_study(*arguments).out  # refused here, nothing is written
     out.mkdir(parents=True, exist_ok=True)
-    lock = RunDir(out)
+    lock = DirLock(out)
     try:
-        lock.lock()
+        lock.acquire(advice="wait for it to finish or stop it before running the study again")
     except RunDirError as error:
-        raise StudyError(str(error).replace("before resuming", "before running the study again")) from None
+        raise StudyError(str(error)) from None
     try:
         plan = plan_study(*arguments)  # again under the lock: what another driver did before it is seen
         study, configs, options = plan.study, plan.configs, plan.options
@@ -449,7 +449,7 @@ def run_study(
         state.save()
         return state.state
     finally:
-        lock.close()
+        lock.release()
 
 
 def _set_aside(study: Study, out: Path, name: str, state: StateFile, say: Callable[[str], None]) -> None:
@@ -738,22 +738,12 @@ def study_status(out) -> list[dict]:
             if status != "done" and entry.pop("finished", False):
                 entry["status"] = "done"
         if status == "running":
-            if not _locked(out):
+            if not DirLock(out).held_elsewhere():
                 entry["status"] = "interrupted"
             elif "ticked" in step:  # wall time is saved per chunk; add the running chunk's so far
                 entry["wall_s"] += max(0.0, time.time() - step["ticked"])
         entries.append(entry)
     return entries
-
-
-def _locked(out: Path) -> bool:
-    probe = RunDir(out)
-    try:
-        probe.lock()
-    except (RunDirError, OSError):
-        return True
-    probe.close()
-    return False
 
 
 def _rates(study: Study, out: Path, state: dict) -> dict:
