@@ -7,7 +7,7 @@ code 2); an unknown layout is a ``CLIError`` whose message lists the choices and
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from cluster.cli.errors import CLIError
@@ -110,3 +110,11 @@ def add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
     ``population.config.load_config`` applies, collected in ``args.overrides`` (a list, empty by
     default); ``help`` says what it overrides in this command."""
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE", help=help)
+
+
+def checkpoint_choice(text: str, choices: Sequence[str]) -> str:
+    """``text`` if it names a checkpoint (one of ``choices``, e.g. ``population.policy.CHECKPOINT_CHOICES``,
+    or an update number), else a ``CLIError`` that lists them."""
+    if text in choices or text.isdigit():
+        return text
+    raise CLIError(f"--checkpoint: expected one of {', '.join(choices)} or an update number, got {text!r}")

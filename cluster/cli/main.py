@@ -19,9 +19,10 @@ Global options, before the command: ``-v`` shows debug records, ``-q`` only warn
 progress; ``ocv2 -q train ...`` is ``ocv2 train --quiet ...``).
 
 Each subcommand is one function that declares its arguments and one that runs it and returns an exit
-code; ``COMMANDS`` lists them. The bigger ones live in ``cluster/cli/<group>.py`` and are named by
-string: a command's module is imported only when that command runs (``ocv2 layouts`` never imports the
-trainer, Ray or the play server). Errors the user can fix raise ``CLIError`` and become a one-line
+code; ``COMMANDS`` lists them. The bigger ones live in the module named after them
+(``cluster/cli/<command>.py``; ``ocv2 study``'s subcommands in ``study.py``) and are named by string: a
+command's module is imported only when that command runs (``ocv2 layouts`` never imports the trainer,
+Ray or the play server). Errors the user can fix raise ``CLIError`` and become a one-line
 message on stderr and exit code 2 (usage) or 1 (failure), never a traceback; so does an ``OSError`` that
 reaches ``main`` (a full disk, a read-only folder) in any command, with the command's advice
 (``args.os_error_advice``) or the general one.
@@ -276,8 +277,8 @@ COMMANDS: list[Command] = [
     Command(
         "export",
         "write one policy (params + network + env settings) to a file",
-        "cluster.cli.xp:add_export",
-        "cluster.cli.xp:run_export",
+        "cluster.cli.export:add_export",
+        "cluster.cli.export:run_export",
     ),
     Command(
         "study",
@@ -288,8 +289,8 @@ COMMANDS: list[Command] = [
     Command(
         "validate",
         "check YAML configs without running anything",
-        "cluster.cli.report:add_validate",
-        "cluster.cli.report:run_validate",
+        "cluster.cli.validate:add_validate",
+        "cluster.cli.validate:run_validate",
     ),
     Command(
         "report",

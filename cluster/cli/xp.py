@@ -1,13 +1,12 @@
-"""``ocv2 xp`` (cross-play: of one run, or across runs and policy files) and ``ocv2 export``.
+"""``ocv2 xp``: cross-play of one run, or across runs and policy files.
 
     ocv2 xp RUN_DIR [--episodes N] [--wait]
     ocv2 xp --rows SRC [SRC ...] [--cols SRC ...] [--checkpoint final|mid|init|latest|N] [--greedy]
             [--seats both|0] [--pool] [--episodes N] [--seed S] [--out DIR] [--backend ray|local]
             [--address A] [--workers N]
-    ocv2 export SRC --out FILE [--force] [--seed I] [--checkpoint final|mid|init|latest|N]
 
 A source SRC is a run directory (all its seeds), a seed directory RUN_DIR/checkpoints/seed_<i>, a
-checkpoint file, a file written by ``ocv2 export``, or ``human-proxy:LAYOUT``.
+checkpoint file, a file written by ``ocv2 export`` (``cluster/cli/export.py``), or ``human-proxy:LAYOUT``.
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ import time
 from pathlib import Path
 
 from cluster.archive import ArchiveError
-from cluster.cli.args import check_new_file, check_new_folder
+from cluster.cli.args import check_new_folder, checkpoint_choice
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import crossplay, ray_backend
 from cluster.runtime.evaluate import evaluate_run
@@ -28,7 +27,7 @@ from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDir, RunDirError
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
-from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
+from population.policy import CHECKPOINT_CHOICES
 
 
 def add_xp(sub) -> argparse.ArgumentParser:
@@ -154,7 +153,7 @@ def _cross_run(args) -> int:
     backend = args.backend or "ray"
     if backend == "local" and (args.address or args.workers):
         raise CLIError("--address and --workers need --backend ray")
-    checkpoint = _checkpoint(args.checkpoint or "final")
+    checkpoint = checkpoint_choice(args.checkpoint or "final", CHECKPOINT_CHOICES)
     out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     check_new_folder("--out", out)
     try:
@@ -236,54 +235,3 @@ def _print_blocks(summary: dict) -> None:
             f"SP {block['sp_mean']:.1f} [{sp[0]:.1f}, {sp[1]:.1f}], XP {block['xp_mean']:.1f} "
             f"[{xp[0]:.1f}, {xp[1]:.1f}], gap {block['gap']:.1f} [{gap[0]:.1f}, {gap[1]:.1f}]"
         )
-
-
-def _checkpoint(text: str):
-    if text in CHECKPOINT_CHOICES or text.isdigit():
-        return text
-    raise CLIError(f"--checkpoint: expected one of {', '.join(CHECKPOINT_CHOICES)} or an update number, got {text!r}")
-
-
-def enclosing_run(path: str) -> Path | None:
-    """The run directory (config.yaml beside manifest.json or checkpoints/) that holds ``path``, if any."""
-    for folder in Path(path).resolve().parents:
-        if (folder / "config.yaml").is_file() and (
-            (folder / "manifest.json").is_file() or (folder / "checkpoints").is_dir()
-        ):
-            return folder
-    return None
-
-
-def add_export(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser(
-        "export",
-        help="write one policy (params + network + env settings) to a file",
-        description="Export one trained policy to a single file that 'ocv2 xp', "
-        "ocv2.policy.load and 'ocv2 play' read without the run directory.",
-    )
-    parser.add_argument("source", help="run directory, RUN_DIR/checkpoints/seed_<i>, or a checkpoint file")
-    parser.add_argument(
-        "--out", required=True, help="the file to write (e.g. cook.ocv2policy), never inside a run directory"
-    )
-    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
-    parser.add_argument("--seed", type=int, help="which seed of a run directory (default 0)")
-    parser.add_argument(
-        "--checkpoint",
-        default="final",
-        help="final (default), mid, init, latest or an update number (run or seed directory)",
-    )
-    return parser
-
-
-def run_export(args) -> int:
-    checkpoint = _checkpoint(args.checkpoint)
-    check_new_file("--out", args.out, force=args.force)
-    run = enclosing_run(args.out)
-    if run is not None:  # its config.yaml, checkpoints or results would be replaced by a policy file
-        raise CLIError(f"--out {args.out}: lies inside the run directory {run}; write the policy outside it")
-    try:
-        path = export_checkpoint(args.source, args.out, seed=args.seed, checkpoint=checkpoint)
-    except PolicyError as error:
-        raise CLIError(str(error)) from None
-    print(f"wrote {path}")
-    return EXIT_OK

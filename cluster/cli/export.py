@@ -1,0 +1,67 @@
+"""``ocv2 export``: one trained policy to one file, read without its run directory.
+
+    ocv2 export SRC --out FILE [--force] [--seed I] [--checkpoint final|mid|init|latest|N]
+
+SRC is a run directory (``--seed`` picks the seed, 0 by default), a seed directory
+RUN_DIR/checkpoints/seed_<i> or a checkpoint file. The file holds the params, the network and the
+environment settings: ``ocv2 xp``, ``population.policy.load`` and ``ocv2 play`` read it. It is never
+written inside a run directory, nor over a file without ``--force``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from cluster.cli.args import check_new_file, checkpoint_choice
+from cluster.cli.errors import EXIT_OK, CLIError
+from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
+
+
+def enclosing_run(path: str) -> Path | None:
+    """The run directory (config.yaml beside manifest.json or checkpoints/) that holds ``path``, if any."""
+    for folder in Path(path).resolve().parents:
+        if (folder / "config.yaml").is_file() and (
+            (folder / "manifest.json").is_file() or (folder / "checkpoints").is_dir()
+        ):
+            return folder
+    return None
+
+
+def add_export(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 export`` on ``sub`` (argparse subparsers); returns its parser."""
+    parser = sub.add_parser(
+        "export",
+        help="write one policy (params + network + env settings) to a file",
+        description="Export one trained policy to a single file that 'ocv2 xp', "
+        "ocv2.policy.load and 'ocv2 play' read without the run directory.",
+    )
+    parser.add_argument("source", help="run directory, RUN_DIR/checkpoints/seed_<i>, or a checkpoint file")
+    parser.add_argument(
+        "--out", required=True, help="the file to write (e.g. cook.ocv2policy), never inside a run directory"
+    )
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
+    parser.add_argument("--seed", type=int, help="which seed of a run directory (default 0)")
+    parser.add_argument(
+        "--checkpoint",
+        default="final",
+        help="final (default), mid, init, latest or an update number (run or seed directory)",
+    )
+    return parser
+
+
+def run_export(args) -> int:
+    """Write the policy ``args.source`` names to ``args.out``; returns ``EXIT_OK``. Raises ``CLIError`` for
+    a bad ``--checkpoint``, an ``--out`` that exists (without ``--force``), is a folder or lies inside a run
+    directory, and a source that holds no such policy."""
+    checkpoint = checkpoint_choice(args.checkpoint, CHECKPOINT_CHOICES)
+    check_new_file("--out", args.out, force=args.force)
+    run = enclosing_run(args.out)
+    if run is not None:  # its config.yaml, checkpoints or results would be replaced by a policy file
+        raise CLIError(f"--out {args.out}: lies inside the run directory {run}; write the policy outside it")
+    try:
+        path = export_checkpoint(args.source, args.out, seed=args.seed, checkpoint=checkpoint)
+    except PolicyError as error:
+        raise CLIError(str(error)) from None
+    print(f"wrote {path}")
+    return EXIT_OK

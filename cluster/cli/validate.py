@@ -1,0 +1,103 @@
+"""``ocv2 validate``: check configs before a run, running nothing.
+
+    ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
+
+Parses every config as ``ocv2 train`` would (same overrides): one OK line per file with what it would
+train and the memory it needs here, or the file and key at fault; every file is checked, and any bad
+one makes the exit code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from cluster.cli.args import add_set_option
+from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
+from population.memory import check_fits, estimate
+
+
+def add_validate(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 validate`` on ``sub`` (argparse subparsers); returns its parser."""
+    parser = sub.add_parser(
+        "validate",
+        help="check YAML configs without running anything",
+        description="Parse and validate each config exactly as 'ocv2 train' would (with the "
+        "same --set overrides) and print what it would train. Exit 1 if any "
+        "config is invalid (every file is checked).",
+    )
+    parser.add_argument("configs", nargs="+", metavar="CONFIG", help="YAML config(s), e.g. configs/paper/*.yaml")
+    add_set_option(
+        parser,
+        "override a config value in every file (repeatable)",
+    )
+    return parser
+
+
+def describe_config(config) -> str:
+    """One line: method, layout, seeds, updates and env steps per seed (plus SA / FCP specifics)."""
+    ppo, pop = config.ppo, config.population
+    steps = ppo.num_updates * ppo.steps_per_update
+    view = config.env_kwargs.get("agent_view_size")
+    text = (
+        f"{pop.method} on {config.env_kwargs['layout']} ({'full view' if view is None else f'view {view}'}, "
+        f"{config.model.kind}), {pop.num_seeds} seeds x {ppo.num_updates} updates x {ppo.steps_per_update:,} "
+        f"= {steps:,} env steps per seed"
+    )
+    if pop.method == "sa":
+        text += f"; {pop.sa.iterations} SA iterations"
+    if pop.method == "fcp":
+        fcp = pop.fcp
+        pool = (
+            f"{fcp.partner_seeds} partner seeds x {list(fcp.checkpoints)} {'per learner' if fcp.per_seed else 'shared'}"
+        )
+        text += (
+            f"; pool {pool} from {fcp.partners}"
+            if fcp.partners
+            else f"; first an SP partner stage of {fcp.stage_seeds(pop.num_seeds)} seeds x "
+            f"{fcp.partner_ppo.num_updates} updates, pool {pool}"
+        )
+    return text
+
+
+def check_config_file(path: str, overrides) -> tuple[str, object]:
+    """("ok", Config), ("skip", reason) for a Ray launcher YAML, or ("fail", [every problem])."""
+    try:
+        raw = read_yaml(path)
+        if is_ray_launcher_config(raw):
+            return "skip", "a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config"
+        config = parse_config(raw if raw is not None else {}, overrides)
+        # What a run needs on this machine at the least (training on a cluster, this machine the
+        # driver) must fit; what it needs when it trains here is shown.
+        check_fits(config, "cluster")
+    except ConfigError as error:
+        problems = (
+            error.problems if all(p.startswith(f"{path}:") for p in error.problems) else error.prefixed(path).problems
+        )
+        return "fail", problems
+    partners = config.population.fcp.partners
+    if config.population.method == "fcp" and partners and not (Path(partners) / "config.yaml").is_file():
+        return "fail", [f"{path}: population.fcp.partners: {partners} is not an ocv2 run directory (no config.yaml)"]
+    return "ok", config
+
+
+def run_validate(args) -> int:
+    """Check every config of ``args.configs`` with ``args.overrides``, printing one line per file (OK with
+    what it trains, SKIP for a Ray launcher config, FAIL with each problem). Returns ``EXIT_OK``; raises
+    ``CLIError`` (exit 1) naming the invalid files when any is."""
+    bad = []
+    for path in args.configs:
+        status, result = check_config_file(path, args.overrides)
+        if status == "skip":
+            print(f"SKIP {path}: {result}")
+        elif status == "fail":
+            for problem in result:
+                print(f"FAIL {problem}", file=sys.stderr)
+            bad.append(path)
+        else:
+            print(f"OK   {path}: {describe_config(result)}; memory here {estimate(result, 'local').describe()}")
+    if bad:
+        raise CLIError(f"{len(bad)} of {len(args.configs)} config(s) invalid: {', '.join(bad)}", EXIT_FAILURE)
+    return EXIT_OK
