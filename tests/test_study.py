@@ -296,6 +296,8 @@ def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
         run_study(load_study(study), finished, overrides=["eval.episodes=3"], backend="local", say=lambda _: None)
     with pytest.raises(StudyError, match="was started with --budget-mode truncate"):
         run_study(load_study(study), finished, mode="compress", backend="local", say=lambda _: None)
+    with pytest.raises(StudyError, match="was started with --seeds None"):  # each config's own
+        run_study(load_study(study), finished, seeds=3, backend="local", say=lambda _: None)
     # a directory from before --budget-mode compressed its budget, and keeps doing so
     old = tmp_path / "old"
     shutil.copytree(finished, old)
@@ -476,6 +478,59 @@ def test_status_lists_every_step(finished, capsys):
         ["compare", "sp_vs_sa", "done"],
     ]
     assert out[-1].startswith("4 done; training left: 0m00s")
+
+
+def test_status_gives_an_interrupted_run_an_eta_from_the_measured_throughput(finished, tmp_path):
+    out = tmp_path / "study"
+    shutil.copytree(finished, out)
+    manifest = json.loads((out / "runs" / "sp" / "manifest.json").read_text())
+    manifest.update(status="interrupted", update=1)  # 3 of its 4 updates (2 seeds x 128 steps each) left
+    (out / "runs" / "sp" / "manifest.json").write_text(json.dumps(manifest))
+    walls = {name: step["wall_s"] for name, step in json.loads((out / "study.json").read_text())["steps"].items()}
+    entry = {e["step"]: e for e in study_status(out)}["train sp"]
+    # measured: sp's 4 x 256 and sa's 8 x 256 env steps in their training steps' wall time (one model kind)
+    rate = (4 * 256 + 8 * 256) / (walls["train sp"] + walls["train sa"])
+    assert entry["progress"] == "update 1/4 (interrupted)"
+    assert entry["eta_s"] > 0 and entry["eta_s"] == pytest.approx(3 * 256 / rate)
+
+
+def test_a_step_blocked_by_a_missing_human_proxy_exits_1_with_the_command_that_fixes_it(
+    finished, tmp_path, capsys, monkeypatch
+):
+    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "empty-cache"))  # no human proxy trained here
+    out = tmp_path / "study"
+    shutil.copytree(finished, out)
+    data = {
+        **STUDY,
+        "comparisons": [*STUDY["comparisons"], {"name": "sp_vs_human", "runs": ["sp"], "human_proxy": True}],
+    }
+    path = write_study(tmp_path / "tiny.yaml", data)
+    assert main(["study", "run", str(path), "--out", str(out), "--backend", "local", "--quiet"]) == 1
+    printed = capsys.readouterr()
+    assert "not done: compare sp_vs_human:" in printed.out
+    assert "train it with: ocv2 human proxy cramped_room --source overcooked_ai-1.1.0.tar.gz" in printed.out
+    assert "1 step(s) could not run" in printed.err
+    state = json.loads((out / "study.json").read_text())
+    assert state["steps"]["compare sp_vs_human"]["status"] == "blocked"
+    assert state["steps"]["compare sp_vs_sa"]["status"] == "done"  # the other steps were not redone
+
+
+def test_address_needs_the_ray_backend(tmp_path, capsys):
+    path = write_study(tmp_path / "tiny.yaml", STUDY)
+    command = [
+        "study",
+        "run",
+        str(path),
+        "--backend",
+        "local",
+        "--address",
+        "10.0.0.1:6379",
+        "--out",
+        str(tmp_path / "s"),
+    ]
+    assert main(command) == 2
+    assert "--address needs --backend ray" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
 
 
 def test_status_of_a_running_step_counts_the_time_since_its_last_save(finished, tmp_path):
