@@ -421,15 +421,16 @@ def run_study(
         raise StudyError(str(error)) from None
     try:
         plan = plan_study(*arguments)  # again under the lock: what another driver did before it is seen
-        study, configs, options = plan.study, plan.configs, plan.options
+        study, configs = plan.study, plan.configs
         state = StateFile(out, plan.state)
         for name in plan.retrain:
             _set_aside(study, out, name, state, say)
         state.save()
-        steps = _steps(study)
-        for number, (name, action) in enumerate(steps, start=1):
+        steps = study_steps(study)
+        for number, step in enumerate(steps, start=1):
+            name = step.name
             if state.step(name).get("status") == "done":
-                problem = result_problem(name, study, out, configs)
+                problem = result_problem(step, study, out, configs)
                 if problem is None:
                     continue
                 say(f"study {study.name}: {name}: {problem}; doing the step again")
@@ -438,7 +439,7 @@ def run_study(
             state.step(name).pop("reason", None)  # a step blocked before may run now
             state.mark(name, status="running", started=timer.last, ticked=timer.last)
             try:
-                result = action(study, out, configs, options, timer)
+                result = _RUN_STEP[step.kind](plan, step.target, timer)
             except StudyBlocked as blocked:
                 timer.tick(status="blocked", reason=str(blocked))
                 say(f"study {study.name}: {name} blocked: {blocked}")
@@ -456,10 +457,10 @@ def _set_aside(study: Study, out: Path, name: str, state: StateFile, say: Callab
     """Move run ``name``, its over-training cross-play and the comparisons that play it to
     ``out/replaced/<time>/`` (nothing is deleted) and mark their steps left."""
     target = out / "replaced" / time.strftime("%Y%m%d-%H%M%S")
-    moves = [(run_dir(out, name), f"train {name}"), (out / "over_training" / name, f"over_training {name}")]
-    moves += [(comparison_dir(out, c.name), f"compare {c.name}") for c in study.comparisons if name in c.runs]
+    moves = [(run_dir(out, name), Step("train", name)), (out / "over_training" / name, Step("over_training", name))]
+    moves += [(comparison_dir(out, c.name), Step("compare", c.name)) for c in study.comparisons if name in c.runs]
     for source, step in moves:
-        state.state["steps"].pop(step, None)
+        state.state["steps"].pop(step.name, None)
         if source.exists():
             destination = target / source.relative_to(out)
             destination.parent.mkdir(parents=True, exist_ok=True)
@@ -472,20 +473,42 @@ class StudyBlocked(Exception):
     """A step that cannot run yet for a reason the user must fix (e.g. a missing human proxy)."""
 
 
-def _steps(study: Study) -> list[tuple[str, Callable]]:
+#: The kinds of study steps, in the order a run's steps come: train it, cross-play its snapshots; then
+#: the comparisons.
+STEP_KINDS = ("train", "over_training", "compare")
+
+
+@dataclasses.dataclass(frozen=True)
+class Step:
+    """One step of a study: its ``kind`` (one of ``STEP_KINDS``) and ``target``, the name of the run it
+    trains or cross-plays or of the comparison it plays."""
+
+    kind: str
+    target: str
+
+    @property
+    def name(self) -> str:
+        """The step's key in study.json and its name in messages and ``ocv2 study status``: "train sp"."""
+        return f"{self.kind} {self.target}"
+
+
+def study_steps(study: Study) -> list[Step]:
+    """The steps of ``study`` in the order ``run_study`` takes them: per run its training, then the
+    cross-play of its snapshots (when the study asks for it) as soon as it has finished; then every
+    comparison."""
     steps = []
-    for run in study.runs:  # a run's snapshots are cross-played as soon as it has finished
-        steps.append((f"train {run.name}", _train_step(run.name)))
+    for run in study.runs:
+        steps.append(Step("train", run.name))
         if run.name in study.over_training:
-            steps.append((f"over_training {run.name}", _over_training_step(run.name)))
-    steps += [(f"compare {c.name}", _compare_step(c)) for c in study.comparisons]
+            steps.append(Step("over_training", run.name))
+    steps += [Step("compare", c.name) for c in study.comparisons]
     return steps
 
 
-def result_problem(step: str, study: Study, out: Path, configs: dict) -> str | None:
-    """Why step ``step``, marked done, must run again: its result is missing, does not parse, or was made
+def result_problem(step: Step, study: Study, out: Path, configs: dict) -> str | None:
+    """Why ``step``, marked done, must run again: its result is missing, does not parse, or was made
     from other inputs than the step has now; None when it is done."""
-    kind, name = step.split(" ", 1)
+    kind, name = step.kind, step.target
     if kind == "train":
         return run_problem(run_dir(out, name))
     if kind == "compare":
@@ -561,97 +584,107 @@ def run_finished(path: Path) -> bool:
     return run_problem(path) is None
 
 
-def _train_step(name: str):
-    def action(study: Study, out: Path, configs: dict, options: StudyOptions, timer: StepTimer) -> dict:
-        path, config = run_dir(out, name), configs[name]
-        if run_finished(path):
-            return {}
-        if options.address:
-            config = dataclasses.replace(config, cluster=dataclasses.replace(config.cluster, address=options.address))
-        resume = (path / "config.yaml").is_file()
-        train_population(
-            config,
-            path,
-            backend=options.backend,
-            resume=resume,
-            show_progress=options.show_progress,
-            evaluate=True,
-            on_chunk=lambda event: timer.tick(update=event.update),
-        )
-        return {"update": config.ppo.num_updates}
-
-    return action
-
-
-def _over_training_step(name: str):
-    def action(study: Study, out: Path, configs: dict, options: StudyOptions, timer: StepTimer) -> dict:
-        path = run_dir(out, name)
-        if not run_finished(path):
-            raise StudyBlocked(f"run {name} has not finished")
-        created = RunDir.existing(path).load_config()  # its snapshots are protected for good
-        snapshots = ckpt.snapshot_updates(created.ppo.num_updates, created.run.num_checkpoints)
-        folder = out / "over_training" / name
-        inputs = over_training_inputs(created)
-        todo = []
-        for update in snapshots:  # a snapshot's result counts when it parses and was made from this training
-            data, problem = read_result(folder / f"update_{update:07d}.json", ("sp_mean", "matrix"))
-            if problem is None and data.get("study_inputs") not in (None, inputs):
-                problem = "made from another training"
-            if problem is not None:
-                todo.append(update)
-        if todo:
-            groups = {u: _source(str(path), str(u)) for u in todo}
-            jobs = created.population.num_seeds * len(todo)
-            with crossplay.players(options.backend, jobs, options.address) as workers:
-                for update in todo:
-                    group = groups[update]
-                    result = crossplay.play_matrix(
-                        [group], [group], workers, crossplay.xp_key(created.population.seed), created.eval.episodes
-                    )
-                    ids = list(group.ids)
-                    summary = block_summary(result.matrix, ids, ids)
-                    if options.show_progress:  # minutes per snapshot: say where it is and what it found
-                        log.info(
-                            f"  over_training {name}: snapshot {snapshots.index(update) + 1}/{len(snapshots)} (update {update}): "
-                            f"SP {summary['sp_mean']:.1f}, XP {summary['xp_mean']:.1f}, gap {summary['gap']:.1f}"
-                        )
-                    summary.update(
-                        update=update,
-                        env_steps_per_seed=update * created.ppo.steps_per_update,
-                        episodes_per_pair=created.eval.episodes,
-                        matrix=result.matrix.round(4).tolist(),
-                        study_inputs=inputs,
-                    )
-                    write_json(folder / f"update_{update:07d}.json", summary)
-                    timer.tick()
-        done = snapshots
-        write_json(folder / "done.json", {"snapshots": done, "study_inputs": inputs})
-        return {"snapshots": len(done)}
-
-    return action
-
-
-def _compare_step(comparison: Comparison):
-    def action(study: Study, out: Path, configs: dict, options: StudyOptions, timer: StepTimer) -> dict:
-        missing = [r for r in comparison.runs if not run_finished(run_dir(out, r))]
-        if missing:
-            raise StudyBlocked(f"runs {', '.join(missing)} have not finished")
-        first = configs[comparison.runs[0]]
-        # Labelled by run name: the report and summary do not depend on where the study directory lies.
-        groups = [dataclasses.replace(_source(str(run_dir(out, r))), label=r) for r in comparison.runs]
-        if comparison.human_proxy:
-            groups.append(_source(crossplay.HUMAN_PROXY + first.env_kwargs["layout"]))
-        try:
-            crossplay.check_same_env(groups)
-        except crossplay.CrossPlayError as error:
-            raise StudyError(f"comparison {comparison.name!r}: {error}") from None
-        result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer)
-        result.summary["study_inputs"] = comparison_inputs(comparison, configs)
-        folder = comparison_dir(out, comparison.name)
-        crossplay.write_seat_fair_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
+def _train(plan: Plan, name: str, timer: StepTimer) -> dict:
+    """Train (or resume) run ``name`` with its evaluation, unless it has finished; returns what
+    study.json records of the step."""
+    out, options = plan.out, plan.options
+    path, config = run_dir(out, name), plan.configs[name]
+    if run_finished(path):
         return {}
+    if options.address:
+        config = dataclasses.replace(config, cluster=dataclasses.replace(config.cluster, address=options.address))
+    resume = (path / "config.yaml").is_file()
+    train_population(
+        config,
+        path,
+        backend=options.backend,
+        resume=resume,
+        show_progress=options.show_progress,
+        evaluate=True,
+        on_chunk=lambda event: timer.tick(update=event.update),
+    )
+    return {"update": config.ppo.num_updates}
 
-    return action
+
+def _over_training(plan: Plan, name: str, timer: StepTimer) -> dict:
+    """In-run cross-play of every kept snapshot of run ``name`` whose result is not there yet (or was
+    made from another training); raises ``StudyBlocked`` while the run has not finished."""
+    out, options = plan.out, plan.options
+    path = run_dir(out, name)
+    if not run_finished(path):
+        raise StudyBlocked(f"run {name} has not finished")
+    created = RunDir.existing(path).load_config()  # its snapshots are protected for good
+    snapshots = ckpt.snapshot_updates(created.ppo.num_updates, created.run.num_checkpoints)
+    folder = out / "over_training" / name
+    inputs = over_training_inputs(created)
+    todo = []
+    for update in snapshots:  # a snapshot's result counts when it parses and was made from this training
+        data, problem = read_result(folder / f"update_{update:07d}.json", ("sp_mean", "matrix"))
+        if problem is None and data.get("study_inputs") not in (None, inputs):
+            problem = "made from another training"
+        if problem is not None:
+            todo.append(update)
+    if todo:
+        groups = {u: _source(str(path), str(u)) for u in todo}
+        jobs = created.population.num_seeds * len(todo)
+        with crossplay.players(options.backend, jobs, options.address) as workers:
+            for update in todo:
+                group = groups[update]
+                result = crossplay.play_matrix(
+                    [group], [group], workers, crossplay.xp_key(created.population.seed), created.eval.episodes
+                )
+                ids = list(group.ids)
+                summary = block_summary(result.matrix, ids, ids)
+                if options.show_progress:  # minutes per snapshot: say where it is and what it found
+                    log.info(
+                        f"  over_training {name}: snapshot {snapshots.index(update) + 1}/{len(snapshots)} (update {update}): "
+                        f"SP {summary['sp_mean']:.1f}, XP {summary['xp_mean']:.1f}, gap {summary['gap']:.1f}"
+                    )
+                summary.update(
+                    update=update,
+                    env_steps_per_seed=update * created.ppo.steps_per_update,
+                    episodes_per_pair=created.eval.episodes,
+                    matrix=result.matrix.round(4).tolist(),
+                    study_inputs=inputs,
+                )
+                write_json(folder / f"update_{update:07d}.json", summary)
+                timer.tick()
+    done = snapshots
+    write_json(folder / "done.json", {"snapshots": done, "study_inputs": inputs})
+    return {"snapshots": len(done)}
+
+
+def _compare(plan: Plan, name: str, timer: StepTimer) -> dict:
+    """Comparison ``name``: its runs (and the human proxy, when it asks for one) against each other in
+    both seats; raises ``StudyBlocked`` while a run has not finished or the human proxy is missing."""
+    out, options, configs = plan.out, plan.options, plan.configs
+    comparison = next(c for c in plan.study.comparisons if c.name == name)
+    missing = [r for r in comparison.runs if not run_finished(run_dir(out, r))]
+    if missing:
+        raise StudyBlocked(f"runs {', '.join(missing)} have not finished")
+    first = configs[comparison.runs[0]]
+    # Labelled by run name: the report and summary do not depend on where the study directory lies.
+    groups = [dataclasses.replace(_source(str(run_dir(out, r))), label=r) for r in comparison.runs]
+    if comparison.human_proxy:
+        groups.append(_source(crossplay.HUMAN_PROXY + first.env_kwargs["layout"]))
+    try:
+        crossplay.check_same_env(groups)
+    except crossplay.CrossPlayError as error:
+        raise StudyError(f"comparison {comparison.name!r}: {error}") from None
+    result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer)
+    result.summary["study_inputs"] = comparison_inputs(comparison, configs)
+    folder = comparison_dir(out, comparison.name)
+    crossplay.write_seat_fair_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
+    return {}
+
+
+#: What runs each kind of step: a function of the plan, the step's target and its timer that returns
+#: what study.json records of the step.
+_RUN_STEP: dict[str, Callable[[Plan, str, StepTimer], dict]] = {
+    "train": _train,
+    "over_training": _over_training,
+    "compare": _compare,
+}
 
 
 def _source(text: str, checkpoint: str = "final") -> crossplay.PolicyGroup:
@@ -723,7 +756,8 @@ def study_status(out) -> list[dict]:
         except StudyError:
             pass
     entries = []
-    for name, _ in _steps(study):
+    for one in study_steps(study):
+        name = one.name
         step = state.get("steps", {}).get(name, {})
         status = step.get("status", "left")
         entry = {
@@ -733,8 +767,8 @@ def study_status(out) -> list[dict]:
             "detail": step.get("reason", ""),
             "eta_s": None,
         }
-        if name.startswith("train "):
-            entry.update(_train_progress(out / "runs" / name[6:], configs.get(name[6:]), rates))
+        if one.kind == "train":
+            entry.update(_train_progress(run_dir(out, one.target), configs.get(one.target), rates))
             if status != "done" and entry.pop("finished", False):
                 entry["status"] = "done"
         if status == "running":
@@ -750,7 +784,7 @@ def _rates(study: Study, out: Path, state: dict) -> dict:
     """Measured env steps per second of population training, per model kind, from this study's runs."""
     totals: dict = {}
     for run in study.runs:
-        step = state.get("steps", {}).get(f"train {run.name}", {})
+        step = state.get("steps", {}).get(Step("train", run.name).name, {})
         path = run_dir(out, run.name)
         if not (path / "config.yaml").is_file() or not step.get("wall_s"):
             continue
