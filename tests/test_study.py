@@ -26,7 +26,7 @@ from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir
 from cluster.runtime.runstate import Schedule
 from cluster.study.pack import pack_study
-from cluster.study.runner import StateFile, kept_study, open_state, run_study, study_status
+from cluster.study.runner import StateFile, StudyOptions, kept_study, open_state, run_study, study_status
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config, with_overrides
 from population import checkpoints as ckpt
 from population import policy, ppo
@@ -35,6 +35,7 @@ from population.config import ConfigError, load_config
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
 TIMING_COLUMNS = {"steps_per_s", "wall_s"}
+LOCAL = StudyOptions(backend="local")
 
 STUDY = {
     "study": "tiny",
@@ -64,7 +65,7 @@ def finished(tmp_path_factory):
     """An uninterrupted study (never modified by the tests)."""
     base = tmp_path_factory.mktemp("study")
     study = load_study(write_study(base / "tiny.yaml", STUDY))
-    state = run_study(study, base / "out", backend="local", show_progress=False, say=lambda _: None)
+    state = run_study(study, base / "out", StudyOptions(backend="local", show_progress=False), say=lambda _: None)
     assert all(step["status"] == "done" for step in state["steps"].values())
     return base / "out"
 
@@ -209,7 +210,7 @@ def test_cross_play_steps_show_progress_and_a_deleted_result_is_redone_the_same(
     (out / "over_training" / "sp" / "done.json").unlink()
     (out / "comparisons" / "sp_vs_sa" / "summary.json").unlink()
     with caplog.at_level("INFO", logger="cluster"):
-        run_study(load_study(write_study(tmp_path / "tiny.yaml", STUDY)), out, backend="local", say=lambda _: None)
+        run_study(load_study(write_study(tmp_path / "tiny.yaml", STUDY)), out, LOCAL, say=lambda _: None)
     lines = [record.getMessage() for record in caplog.records]
     last = int(snapshots[-1].stem.split("_")[1])
     said = f"over_training sp: snapshot {len(snapshots)}/{len(snapshots)} (update {last}): SP "
@@ -291,13 +292,20 @@ def test_a_packed_study_is_checked_before_anything_is_unpacked(finished, tmp_pat
 def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
     study = write_study(tmp_path / "tiny.yaml", STUDY)
     with pytest.raises(StudyError, match="--budget 1.0"):
-        run_study(load_study(study), finished, budget=0.5, backend="local", say=lambda _: None)
+        run_study(load_study(study), finished, StudyOptions(budget=0.5, backend="local"), say=lambda _: None)
     with pytest.raises(StudyError, match="was started with no --set"):
-        run_study(load_study(study), finished, overrides=["eval.episodes=3"], backend="local", say=lambda _: None)
+        run_study(
+            load_study(study),
+            finished,
+            StudyOptions(backend="local", overrides=("eval.episodes=3",)),
+            say=lambda _: None,
+        )
     with pytest.raises(StudyError, match="was started with --budget-mode truncate"):
-        run_study(load_study(study), finished, mode="compress", backend="local", say=lambda _: None)
+        run_study(
+            load_study(study), finished, StudyOptions(backend="local", budget_mode="compress"), say=lambda _: None
+        )
     with pytest.raises(StudyError, match="was started with --seeds None"):  # each config's own
-        run_study(load_study(study), finished, seeds=3, backend="local", say=lambda _: None)
+        run_study(load_study(study), finished, StudyOptions(seeds=3, backend="local"), say=lambda _: None)
     # a directory from before --budget-mode compressed its budget, and keeps doing so
     old = tmp_path / "old"
     shutil.copytree(finished, old)
@@ -682,7 +690,7 @@ def test_a_damaged_result_is_reported_and_its_step_redone(finished, tmp_path, ca
     assert "comparisons/sp_vs_sa/summary.json is unreadable (" in report
     assert f"over_training sp: {snapshot} is unreadable (JSON nested deeper than" in report
     said = []
-    run_study(load_study(write_study(tmp_path / "tiny.yaml", STUDY)), out, backend="local", say=said.append)
+    run_study(load_study(write_study(tmp_path / "tiny.yaml", STUDY)), out, LOCAL, say=said.append)
     again = [line for line in said if "doing the step again" in line]
     assert [line.split(": ")[1] for line in again] == ["train sp", "over_training sp", "compare sp_vs_sa"], said
     assert numbers(out) == numbers(finished)

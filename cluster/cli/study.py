@@ -27,7 +27,7 @@ from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
 from cluster.study.report import write_report
-from cluster.study.runner import kept_study, plan_study, read_state, run_study, study_status
+from cluster.study.runner import StudyOptions, kept_study, plan_study, read_state, run_study, study_status
 from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, default_out, load_study, run_config
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
@@ -127,20 +127,20 @@ def _run(args) -> int:
         raise CLIError(str(error)) from None
     out = Path(args.out) if args.out else default_out(study)
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
-    options = dict(
+    options = StudyOptions(
         budget=args.budget,
         seeds=args.seeds,
         backend=args.backend,
         address=args.address,
         show_progress=not args.quiet,
-        overrides=args.overrides,
-        mode=args.budget_mode,
-        retrain=args.retrain,
+        budget_mode=args.budget_mode,
+        overrides=tuple(args.overrides),
+        retrain=tuple(args.retrain),
     )
     # Every check before Ray starts and before the directory is written: a bad --set, a budget too small for
     # a config, a run this machine cannot hold, a trained run whose config changed (docs/studies.md).
     try:
-        plan = plan_study(study, out, **options)
+        plan = plan_study(study, out, options)
     except (StudyError, RunDirError) as error:
         raise CLIError(str(error)) from None
     args.os_error_advice = (  # a full disk or a read-only folder: one line from cluster.cli.main
@@ -155,7 +155,7 @@ def _run(args) -> int:
     try:
         # One Ray for every run and comparison, started before the driver runs JAX (ray_backend.session)
         with ray_backend.session(args.backend, ClusterConfig(address=args.address)):
-            state = run_study(study, out, say=say, **options)
+            state = run_study(study, out, options, say=say)
     except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
     blocked = {name: step for name, step in state["steps"].items() if step.get("status") != "done"}

@@ -61,15 +61,24 @@ STATE_NAME = "study.json"
 
 @dataclasses.dataclass(frozen=True)
 class StudyOptions:
-    """How a study runs. ``budget``: fraction of every run's env steps; ``seeds``: seeds per run (None:
-    each config's own); ``backend``/``address``: as ``ocv2 train``."""
+    """How a study runs: ``ocv2 study run``'s options, given to ``plan_study`` and ``run_study`` once.
 
-    budget: float = 1.0
+    ``budget``: the fraction of every run's env steps, applied as ``budget_mode`` says
+    (``cluster.study.spec.budget_overrides``); ``seeds``: seeds per run; ``overrides``: ``--set`` config
+    overrides for every run, after the study file's own. Left None (or empty), each is what the study
+    directory was started with; a new directory takes 1, "truncate", each config's own seeds and none.
+    ``backend``/``address``: as ``ocv2 train``; ``show_progress``: the training bars and progress lines;
+    ``retrain``: runs trained with another config that are trained again. ``Plan.options`` holds them
+    resolved against the directory (``budget`` and ``budget_mode`` set)."""
+
+    budget: float | None = None
     seeds: int | None = None
     backend: str = "ray"
     address: str | None = None
     show_progress: bool = True
-    budget_mode: str = "truncate"  # how the budget applies (cluster.study.spec.budget_overrides)
+    budget_mode: str | None = None
+    overrides: tuple[str, ...] = ()
+    retrain: tuple[str, ...] = ()
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -283,26 +292,27 @@ class Plan:
     retrain: tuple[str, ...] = ()
 
 
-def plan_study(
-    study: Study,
-    out,
-    budget: float | None = None,
-    seeds: int | None = None,
-    backend: str = "ray",
-    address: str | None = None,
-    show_progress: bool = True,
-    overrides: Sequence[str] = (),
-    mode: str | None = None,
-    retrain: Sequence[str] = (),
-) -> Plan:
+def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Plan:
     """Every check ``run_study`` makes before it writes: the directory (not a file, the same options it was
     started with), every run's config at the budget and seed count, that each fits this machine's memory,
     and that every run already trained in it was trained with the config the study now asks for (a run
-    in ``retrain`` may differ: ``run_study`` trains it again). Writes nothing."""
+    in ``options.retrain`` may differ: ``run_study`` trains it again). Writes nothing.
+
+    Returns the ``Plan``; raises ``StudyError`` naming what is refused (``RunDirError`` for a run
+    directory that cannot be read)."""
     out = Path(out).resolve()
-    state = open_state(study, out, budget, seeds, backend, overrides, mode)
+    backend, address = options.backend, options.address
+    state = open_state(study, out, options.budget, options.seeds, backend, options.overrides, options.budget_mode)
     study = with_overrides(study, state["set"])
-    options = StudyOptions(state["budget"], state["seeds"], backend, address, show_progress, budget_mode(state))
+    retrain = tuple(dict.fromkeys(options.retrain))
+    options = dataclasses.replace(
+        options,
+        budget=state["budget"],
+        seeds=state["seeds"],
+        budget_mode=budget_mode(state),
+        overrides=tuple(state["set"]),
+        retrain=retrain,
+    )
     # Every config at this budget and seed count first: one they refuse fails before the directory is written.
     configs = {
         run.name: run_config(study, run, out, options.budget, options.seeds, options.budget_mode) for run in study.runs
@@ -313,7 +323,6 @@ def plan_study(
             check_fits(config, place)
         except ConfigError as error:
             raise StudyError(f"{study.path}: run {name!r}: {error}") from None
-    retrain = tuple(dict.fromkeys(retrain))
     _check_retrain(study, out, retrain)
     for run in study.runs:
         differences = trained_differences(run_dir(out, run.name), configs[run.name])
@@ -394,24 +403,15 @@ def _shown(value) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def run_study(
-    study: Study,
-    out,
-    budget: float | None = None,
-    seeds: int | None = None,
-    backend: str = "ray",
-    address: str | None = None,
-    show_progress: bool = True,
-    say: Callable[[str], None] = log.info,
-    overrides: Sequence[str] = (),
-    mode: str | None = None,
-    retrain: Sequence[str] = (),
-) -> dict:
-    """Train every unfinished run, run the cross-play steps, write the report. ``overrides``: config
-    overrides for every run after the study file's own (``--set``); ``retrain``: runs trained with another
-    config that are trained again (``plan_study``). Returns the state (``steps``: name -> status "done" or
-    "blocked" with a reason)."""
-    arguments = (study, out, budget, seeds, backend, address, show_progress, overrides, mode, retrain)
+def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Callable[[str], None] = log.info) -> dict:
+    """Train every unfinished run, run the cross-play steps, write the report; ``say`` gets one line per
+    step. ``options``: as ``plan_study``, whose checks come first.
+
+    Returns the state (``steps``: name -> status "done" or "blocked" with a reason, ``report``: the
+    paths written). Raises ``StudyError`` for what ``plan_study`` refuses and for a directory another
+    process is running; errors of training and cross-play (``RunDirError``, ``CheckpointError``,
+    ``RayBackendError``, ...) pass through."""
+    arguments = (study, out, options)
     out = plan_study(*arguments).out  # refused here, nothing is written
     out.mkdir(parents=True, exist_ok=True)
     lock = DirLock(out)
