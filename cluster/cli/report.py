@@ -312,6 +312,7 @@ def write_heatmaps(runs: list[dict], out: Path) -> dict[str, str]:
 
 
 def add_report(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 report`` on ``sub`` (argparse subparsers); returns its parser."""
     parser = sub.add_parser(
         "report",
         help="paper-style SP/XP tables, curves and heatmaps of run directories",
@@ -325,6 +326,8 @@ def add_report(sub) -> argparse.ArgumentParser:
 
 
 def run_report(args) -> int:
+    """Tabulate ``args.run_dirs`` into ``args.out`` (report.md, report.csv, curves, heatmaps) and print
+    the table. Returns ``EXIT_OK``; raises ``CLIError`` for an unreadable run or an ``--out`` that is a file."""
     runs = [load_run(path) for path in args.run_dirs]
     out = Path(args.out)
     if out.exists() and not out.is_dir():

@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 study`` and its subcommands (run, status, report, pack, unpack) on ``sub``
+    (argparse subparsers); returns its parser."""
     parser = sub.add_parser(
         "study",
         help="run many population jobs and their comparisons as one resumable study",
@@ -107,6 +109,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
+    """Run the ``ocv2 study`` subcommand ``args.study_command`` names. Returns ``EXIT_OK``; raises
+    ``CLIError`` with one line for what the user can fix (exit 2), or naming the steps that could not run
+    (exit 1)."""
     if args.study_command in ("pack", "unpack"):
         return _pack(args)
     if args.study_command == "status":

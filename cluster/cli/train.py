@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 
 
 def add_train(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 train`` on ``sub`` (argparse subparsers); returns its parser."""
     parser = sub.add_parser(
         "train",
         help="train a population from a YAML config",
@@ -67,6 +68,8 @@ def add_train(sub) -> argparse.ArgumentParser:
 
 
 def run_train(args) -> int:
+    """Train (or resume) the population ``args.config`` describes into its run directory. Returns
+    ``EXIT_OK``; raises ``CLIError`` for a bad config, run directory, backend or logger."""
     # The driver runs JAX too (SA buffer merge, GIFs): on a GPU machine it must not take 75 % of the
     # memory the seed actors need. Set before JAX initialises; an explicit user setting wins.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")

@@ -31,6 +31,7 @@ from population.policy import CHECKPOINT_CHOICES
 
 
 def add_xp(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 xp`` on ``sub`` (argparse subparsers); returns its parser."""
     parser = sub.add_parser(
         "xp",
         help="cross-play matrix of a trained population, or across runs and policy files",
@@ -95,6 +96,8 @@ def add_xp(sub) -> argparse.ArgumentParser:
 
 
 def run_xp(args) -> int:
+    """Cross-play one run (``RUN_DIR``) or rows against columns of sources (``--rows``/``--cols``).
+    Returns ``EXIT_OK``; raises ``CLIError`` for a bad option, source or run directory."""
     if args.episodes is not None and args.episodes < 1:
         raise CLIError(f"--episodes must be >= 1, got {args.episodes}")
     if args.rows is None:

@@ -410,6 +410,9 @@ def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
 
 
 def markdown(study: Study, summary: dict, state: dict) -> str:
+    """report.md's text: the header, our numbers beside the paper's per run, each comparison's seat
+    orders, the over-training tables and the pictures, from ``summary`` (``write_report``'s) and the
+    study directory's ``state``."""
     left = [
         f"- {name}: {step.get('status')}" + (f" ({step['reason']})" if step.get("reason") else "")
         for name, step in state.get("steps", {}).items()

@@ -247,16 +247,20 @@ class StateFile:
         self.path, self.state = Path(out) / STATE_NAME, state
 
     def save(self) -> None:
+        """Write the state to study.json (atomically)."""
         write_json(self.path, self.state)
 
     def step(self, name: str) -> dict:
+        """Step ``name``'s entry, created "left" with no wall time when it has none."""
         return self.state["steps"].setdefault(name, {"status": "left", "wall_s": 0.0})
 
     def mark(self, name: str, **changes) -> None:
+        """Update step ``name``'s entry with ``changes`` and save."""
         self.step(name).update(changes)
         self.save()
 
     def timer(self, name: str) -> StepTimer:
+        """A ``StepTimer`` of step ``name``, counting from now."""
         return StepTimer(self, name)
 
 
@@ -267,6 +271,7 @@ class StepTimer:
         self.state, self.name, self.last = state, name, time.time()
 
     def tick(self, **changes) -> None:
+        """Add the wall time since the last tick to the step, record ``changes`` and save."""
         now = time.time()
         step = self.state.step(self.name)
         step["wall_s"] = round(step.get("wall_s", 0.0) + now - self.last, 1)
@@ -556,6 +561,8 @@ def comparison_inputs(comparison: Comparison, configs: dict) -> dict:
 
 
 def over_training_inputs(config: Config) -> dict:
+    """What an over-training result depends on: how the run was trained (``inputs_fingerprint``) and
+    the episodes per pair."""
     return {"run": inputs_fingerprint(config), "episodes": config.eval.episodes}
 
 
@@ -712,6 +719,8 @@ def _play(options: StudyOptions, rows, cols, seed: int, episodes: int, label: st
 
 @dataclasses.dataclass(frozen=True)
 class ComparisonResult:
+    """What ``compare`` returns: the played matrix and its seat-fair summary."""
+
     matrix: crossplay.SeatFairMatrix  # every group against every group; the one matrix holds both seat orders
     summary: dict  # crossplay.summarize_seat_fair's
 

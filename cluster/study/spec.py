@@ -96,6 +96,7 @@ class Study:
     raw: Mapping  # the file's data, kept in the study directory
 
     def run(self, name: str) -> RunSpec:
+        """The run named ``name`` (``StopIteration`` when there is none; the parser checks names)."""
         return next(r for r in self.runs if r.name == name)
 
 
@@ -128,6 +129,8 @@ def check_runs(study: Study) -> Study:
 
 
 def parse_study(raw: Any, path: Path) -> Study:
+    """The ``Study`` a study file's data ``raw`` (read from ``path``) describes, its configs not loaded
+    (``check_runs`` loads them). Raises ``StudyError`` naming the entry at fault."""
     where = str(path)
     if not isinstance(raw, Mapping):
         raise StudyError(f"{where}: a study file is a mapping with keys {', '.join(STUDY_KEYS)}")
@@ -278,10 +281,12 @@ def _finite_number(value) -> bool:
 
 
 def run_dir(out: Path, name: str) -> Path:
+    """Where run ``name`` of study directory ``out`` lies: ``out/runs/<name>``."""
     return Path(out) / "runs" / name
 
 
 def comparison_dir(out: Path, name: str) -> Path:
+    """Where comparison ``name`` of study directory ``out`` writes: ``out/comparisons/<name>``."""
     return Path(out) / "comparisons" / name
 
 
