@@ -284,12 +284,10 @@ def _curves(study: Study, out: Path, configs: dict, dest: Path) -> list[str]:
     pictures = []
     for layout, members in by_layout.items():
         target = dest / f"curves_{layout}.png"
-        try:
-            plt = pyplot()
-        except PlotsUnavailable as error:
-            skipped(target, error)
+        figure = _figure(target)
+        if figure is None:
             return []
-        fig, ax = plt.subplots(figsize=(6.5, 4))
+        plt, fig, ax = figure
         for spec, path in members:
             steps, mean, std = _curve(RunDir(path).read_metrics())
             if steps.size == 0:
@@ -313,6 +311,18 @@ def _curves(study: Study, out: Path, configs: dict, dest: Path) -> list[str]:
             )
         )
     return pictures
+
+
+def _figure(target: Path):
+    """(pyplot, figure, axes) of a 6.5 x 4 inch line plot for ``target``; None when matplotlib is
+    missing (``skipped`` says so, naming ``target``)."""
+    try:
+        plt = pyplot()
+    except PlotsUnavailable as error:
+        skipped(target, error)
+        return None
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    return plt, fig, ax
 
 
 def _finish(plt, fig, ax, target: Path, xlabel: str, ylabel: str, title: str) -> str:
@@ -377,13 +387,11 @@ def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
         if not points:
             continue
         target = dest / f"over_training_{entry['run']}.png"
-        try:
-            plt = pyplot()
-        except PlotsUnavailable as error:
-            skipped(target, error)
+        figure = _figure(target)
+        if figure is None:
             return []
+        plt, fig, ax = figure
         steps = np.asarray([p["env_steps_per_seed"] for p in points], np.float64)
-        fig, ax = plt.subplots(figsize=(6.5, 4))
         for key, label in (("sp", "SP (diagonal)"), ("xp", "XP (off-diagonal)"), ("gap", "gap SP - XP")):
             mean = np.asarray([float_or_nan(p[f"{key}_mean" if key != "gap" else "gap"]) for p in points])
             low = np.asarray([float_or_nan((p[f"{key}_ci95_interval"] or [None])[0]) for p in points])
