@@ -1,0 +1,61 @@
+"""Published policies are usable as they are: a committed cross-play cell is played again from the committed
+policy files (docs/results/table1_coord_ring_sp10/policies/, the 10-seed Coordination Ring SP population's
+0.49M snapshot) and gives the committed numbers.
+
+Made by ``ocv2 xp --rows P0 P1 --episodes 8 --seed 0 --backend local`` (the matrix in seat order, 8 episodes per
+ordered pair, a fixed episode key). Tolerance: 5 points per cell, two deliveries (20 each) in 8 episodes, because
+a different XLA build may round a logit differently and flip a sampled action; on the pinned versions the
+cells repeat exactly."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from cluster.cli import main
+
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "table1_coord_ring_sp10"
+POLICIES = RESULTS / "policies"
+
+
+def read_matrix(path: Path) -> np.ndarray:
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    return np.array([[float(v) for v in row[1:]] for row in rows[1:]])
+
+
+def test_every_published_policy_matches_its_sha256():
+    listing = json.loads((POLICIES / "SHA256SUMS.json").read_text())
+    assert len(listing) == 10 and {entry["seed"] for entry in listing} == set(range(10))
+    for entry in listing:
+        assert hashlib.sha256((POLICIES / entry["file"]).read_bytes()).hexdigest() == entry["sha256"]
+
+
+def test_a_committed_cross_play_cell_is_played_again_from_the_committed_policies(tmp_path):
+    files = [str(POLICIES / f"sp_seed{seed}_update30.ocv2policy") for seed in (0, 1)]
+    out = tmp_path / "xp"
+    assert (
+        main(
+            [
+                "xp",
+                "--rows",
+                *files,
+                "--episodes",
+                "8",
+                "--seed",
+                "0",
+                "--backend",
+                "local",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    again, committed = read_matrix(out / "matrix.csv"), read_matrix(RESULTS / "xp_check_update30.csv")
+    np.testing.assert_allclose(again, committed, atol=5.0)
