@@ -204,7 +204,7 @@ def measurements(smoke: bool) -> list[tuple[str, object]]:
         cnn(1),
         rnn(1, "xla"),
         rnn(1, "cpu"),
-        *([] if smoke else [cnn(4)]),
+        *([] if smoke else [cnn(4), rnn(20, "xla")]),  # how the rate grows with seeds in one program
     ]
 
 
