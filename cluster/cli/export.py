@@ -34,7 +34,7 @@ def add_export(sub) -> argparse.ArgumentParser:
         "export",
         help="write one policy (params + network + env settings) to a file",
         description="Export one trained policy to a single file that 'ocv2 xp', "
-        "ocv2.policy.load and 'ocv2 play' read without the run directory.",
+        "population.policy.load and 'ocv2 play' read without the run directory.",
     )
     parser.add_argument("source", help="run directory, RUN_DIR/checkpoints/seed_<i>, or a checkpoint file")
     parser.add_argument(
