@@ -18,6 +18,8 @@ from ocv2.render import render_frames, write_gif
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 archive`` and its actions (info, replay, recover) on ``sub`` (argparse
+    subparsers); returns its parser."""
     parser = sub.add_parser(
         "archive",
         help="inspect, replay or recover an MCAP trajectory archive",
@@ -76,6 +78,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
+    """Run the ``ocv2 archive`` action ``args.archive_command`` names. Returns ``EXIT_OK``; raises
+    ``CLIError`` for an unreadable or damaged archive, a bad option or an output it cannot write."""
     return {"info": _info, "replay": _replay, "recover": _recover}[args.archive_command](args)
 
 

@@ -55,6 +55,7 @@ def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
     """An argparse type: an integer >= ``minimum``, with a message naming ``what`` was expected."""
 
     def parse(text: str) -> int:
+        """``text`` as an integer; raises ``argparse.ArgumentTypeError`` if it is not one or is too small."""
         try:
             value = int(text)
         except ValueError:
@@ -74,6 +75,7 @@ def bounded(parse: Callable[[str], float], low, high, what: str, low_open: bool 
     """An argparse type: ``parse(text)`` within ``[low, high]`` (``(low, high]`` if ``low_open``)."""
 
     def check(text: str):
+        """``parse(text)``; raises ``argparse.ArgumentTypeError`` if it fails, is out of range or is NaN."""
         try:
             value = parse(text)
         except ValueError:

@@ -31,6 +31,8 @@ DEFAULT_OUT = os.path.join("runs", "human")
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 human`` and its subcommands (import, proxy) on ``sub`` (argparse subparsers);
+    returns its parser."""
     parser = sub.add_parser(
         "human",
         help="2019 human-human trials: import as archives, train a BC human proxy",
@@ -129,12 +131,15 @@ def _load(source: str, split: str, layouts, max_trials) -> list[human.Trial]:
 
 
 def run(args) -> int:
+    """Run the ``ocv2 human`` subcommand ``args.human_command`` names (``run_import`` or ``run_proxy``)
+    and return its exit code."""
     if args.human_command == "import":
         return run_import(args)
     return run_proxy(args)
 
 
 def archive_name(split: str, layout: str) -> str:
+    """The file name ``import`` gives the archive of one split's games on one layout."""
     return f"human_{split}_{layout}.mcap"
 
 
@@ -163,6 +168,10 @@ def write_trials(path: str, trials: list[human.Trial], overwrite: bool = False) 
 
 
 def run_import(args) -> int:
+    """Convert the trials of ``args.splits`` into one archive per split and layout in ``args.out`` and
+    write ``reproduction.json`` there, checking every trial before writing anything. Returns ``EXIT_OK``;
+    raises ``CLIError`` for unreadable data, an archive that exists without ``--overwrite`` or a failed
+    write."""
     os.makedirs(args.out, exist_ok=True)
     # Convert and check everything first: a bad row stops the import before any archive is written.
     loaded = {split: _load(args.source, split, args.layouts, args.max_trials) for split in args.splits}
@@ -200,6 +209,9 @@ def run_import(args) -> int:
 
 
 def run_proxy(args) -> int:
+    """Behaviour-clone a human proxy on ``args.layout`` from the train split, score it on the test split
+    and save it to ``args.out`` (default: the proxy cache). Returns ``EXIT_OK``; raises ``CLIError`` for a
+    layout without human data, a bad setting, unreadable data or a failed write."""
     try:
         layout = ocv2.layouts.get_layout(args.layout).name
     except ValueError as error:

@@ -205,10 +205,12 @@ class _StderrHandler(logging.StreamHandler):
 
     @property
     def stream(self):
+        """The current ``sys.stderr``."""
         return sys.stderr
 
     @stream.setter
     def stream(self, _value):
+        """Ignore the stream ``logging`` sets: records always go to the current ``sys.stderr``."""
         pass
 
 
@@ -216,6 +218,7 @@ class _Formatter(logging.Formatter):
     """Progress as it is; a warning or an error says so in front; debug records name their module."""
 
     def format(self, record: logging.LogRecord) -> str:
+        """``record``'s message, prefixed by ``error:``, ``warning:`` or ``debug MODULE:`` by its level."""
         message = super().format(record)
         if record.levelno >= logging.ERROR:
             return f"error: {message}"
@@ -255,6 +258,9 @@ def configure_logging(verbosity: int = 0) -> None:
 
 
 class Command(NamedTuple):
+    """One ``ocv2`` subcommand: its name, its help line, and the functions (or "module:function" names,
+    imported only when the command runs) that declare its parser and run it."""
+
     name: str
     help: str  # the one-liner of ``ocv2 --help`` (the command's own parser repeats it; a test checks)
     add: Callable | str  # declares the subparser; "module:function" names one imported when needed
@@ -334,6 +340,7 @@ def resolve(target: Callable | str) -> Callable:
 
 
 def version() -> str:
+    """The installed ocv2 package's version, or a note saying it is not installed."""
     try:
         return importlib.metadata.version("ocv2")
     except importlib.metadata.PackageNotFoundError:  # run from a checkout that was never pip-installed

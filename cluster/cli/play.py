@@ -45,6 +45,7 @@ def _key_value(text: str) -> tuple[str, str]:
 
 
 def add_play(sub) -> argparse.ArgumentParser:
+    """Declare ``ocv2 play`` on ``sub`` (argparse subparsers); returns its parser."""
     parser = sub.add_parser(
         "play",
         help="play in the browser with a trained agent or another person (recorded to MCAP)",
@@ -145,6 +146,10 @@ def add_play(sub) -> argparse.ArgumentParser:
 
 
 def run_play(args) -> int:
+    """Serve the game ``args`` describes in the browser until its episodes are played, Ctrl-C or SIGTERM,
+    recording every episode (the one in progress too) to an MCAP archive. Returns ``EXIT_OK``; raises
+    ``CLIError`` for a bad partner, layout, seat or option, an address it cannot listen on, an archive it
+    cannot create, or a game that failed."""
     partner = _partner(args.partner)
     env = _env(args, partner)
     human_seats = _human_seats(args, env, partner)
@@ -356,6 +361,7 @@ def _interrupt_on_sigterm():
         return None
 
     def interrupt(_signum, _frame):
+        """Raise ``KeyboardInterrupt``, as Ctrl-C does."""
         raise KeyboardInterrupt
 
     return signal.signal(signal.SIGTERM, interrupt)

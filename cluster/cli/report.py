@@ -184,12 +184,14 @@ def report_rows(runs: list[dict]) -> list[dict]:
 
 
 def fmt(value, signed: bool = False) -> str:
+    """``value`` with one decimal (a leading sign if ``signed``), or ``n/a`` for None or NaN."""
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "n/a"
     return f"{value:+.1f}" if signed else f"{value:.1f}"
 
 
 def fmt_pm(mean, std) -> str:
+    """``mean ± std`` with one decimal each, or ``n/a`` if ``mean`` is NaN."""
     if math.isnan(mean):
         return "n/a"
     return f"{mean:.1f} ± {fmt(std)}"
@@ -228,7 +230,10 @@ def table_cells(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
 
 
 def markdown_table(header: list[str], cells: list[list[str]]) -> str:
+    """``header`` and the rows of ``cells`` as a Markdown table, with any ``|`` in a cell escaped."""
+
     def esc(text: str) -> str:
+        """``text`` with every ``|`` escaped for a Markdown table cell."""
         return text.replace("|", "\\|")
 
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
@@ -252,6 +257,9 @@ def curve(metrics: list[dict], field: str = "sparse_return"):
 
 
 def write_curves(runs: list[dict], out: Path) -> list[str]:
+    """Draw ``out/curves_<layout>.png`` for each layout of ``runs``: every run's sparse return (mean ±
+    std across seeds) against env steps. Returns the paths written; a layout with no finished episode, or
+    every layout when matplotlib is missing (a warning says so), gets none."""
     by_layout: dict[str, list[dict]] = {}
     for run in runs:
         by_layout.setdefault(run["config"].env_kwargs["layout"], []).append(run)
@@ -286,6 +294,9 @@ def write_curves(runs: list[dict], out: Path) -> list[str]:
 
 
 def write_heatmaps(runs: list[dict], out: Path) -> dict[str, str]:
+    """Draw ``out/heatmap_<run>.png`` (numbered when two runs share a name) for every run of ``runs`` with a
+    cross-play matrix. Returns the run's path -> the picture's path, for those drawn (none without
+    matplotlib)."""
     paths, used = {}, set()
     for run in runs:
         if not run["matrix"]:
