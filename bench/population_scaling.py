@@ -68,7 +68,7 @@ class Timeline:
         finally:
             self.collections.append((start, time.perf_counter()))
 
-    def on_chunk(self, update, _workers):
+    def on_chunk(self, update, _workers, _rows=()):  # the coordinator also passes the merged rows
         self.chunks.append((update, time.perf_counter()))
 
 
