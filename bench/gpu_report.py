@@ -42,7 +42,7 @@ def benchmark_block(bench: dict) -> str:
         "",
         f"- device: {', '.join(env['devices'])}; nvidia-smi: {env.get('nvidia_smi') or '-'}",
         f"- Python {env['python']}; "
-        + ", ".join(f"{k} {v}" for k, v in env["versions"].items() if v)
+        + ", ".join(f"{k} {v}" for k, v in env["versions"].items() if v and k != "python")
         + f"; XLA_FLAGS=`{env.get('XLA_FLAGS') or '(unset)'}`",
         "- matmul (jitted, random operands, median of 10): "
         + ", ".join(f"{k[7:]} {results[k]['size']}^3 {v:,.1f} TFLOP/s" for k, v in peaks.items() if v),

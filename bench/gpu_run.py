@@ -43,7 +43,6 @@ import statistics
 import subprocess
 import sys
 import time
-from importlib import metadata
 from pathlib import Path
 
 import jax
@@ -53,6 +52,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from cluster.runtime.environment import package_versions  # noqa: E402
 from population import ppo  # noqa: E402
 from population.config import load_config  # noqa: E402
 
@@ -61,7 +61,7 @@ CR_SP = ROOT / "configs" / "paper" / "classic_coord_ring_sp.yaml"
 GCS_SP = ROOT / "configs" / "paper" / "v2_grounded_coord_simple_sp.yaml"
 # What the smoke rehearsal shrinks every config to: the same programs, tiny.
 SMOKE_SETS = ["ppo.num_envs=4", "ppo.num_steps=8", "ppo.num_minibatches=2", "ppo.update_epochs=1"]
-PACKAGES = ("jax", "jaxlib", "jax-cuda13-plugin", "jax-cuda12-plugin", "flax", "optax", "numpy", "mcap", "ray")
+EXTRA_PACKAGES = ("jax-cuda13-plugin", "jax-cuda12-plugin", "mcap")  # beside the run record's own list
 
 
 def log(message: str) -> None:
@@ -86,12 +86,6 @@ def environment() -> dict:
         ).stdout.strip()
     except (OSError, subprocess.TimeoutExpired):
         pass
-    versions = {}
-    for name in PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
     return {
         "backend": jax.default_backend(),
         "devices": [f"{d.platform}: {d.device_kind}" for d in devices],
@@ -99,7 +93,7 @@ def environment() -> dict:
         "python": platform.python_version(),
         "machine": platform.machine(),
         "cpus": os.cpu_count(),
-        "versions": versions,
+        "versions": package_versions(EXTRA_PACKAGES),
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "JAX_DEFAULT_MATMUL_PRECISION": os.environ.get("JAX_DEFAULT_MATMUL_PRECISION"),
     }

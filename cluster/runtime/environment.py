@@ -24,10 +24,10 @@ PACKAGES = ("ocv2", "jax", "jaxlib", "flax", "optax", "numpy", "ray")
 _CHECKOUT = Path(__file__).resolve().parents[2]  # the source tree ocv2 is imported from
 
 
-def package_versions() -> dict[str, str | None]:
-    """Installed versions of the packages that decide a run's numbers (None: not installed)."""
+def package_versions(extra: tuple[str, ...] = ()) -> dict[str, str | None]:
+    """Installed versions of the packages that decide a run's numbers, and of ``extra`` (None: not installed)."""
     versions = {"python": platform.python_version()}
-    for name in PACKAGES:
+    for name in (*PACKAGES, *extra):
         try:
             versions[name] = importlib.metadata.version(name)
         except importlib.metadata.PackageNotFoundError:
