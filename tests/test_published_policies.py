@@ -12,9 +12,11 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cluster.cli import main
 
@@ -59,3 +61,18 @@ def test_a_committed_cross_play_cell_is_played_again_from_the_committed_policies
     )
     again, committed = read_matrix(out / "matrix.csv"), read_matrix(RESULTS / "xp_check_update30.csv")
     np.testing.assert_allclose(again, committed, atol=5.0)
+
+
+def test_no_published_result_is_hidden_by_gitignore():
+    """A result file that git ignores is missing from every clone (the policies above once were)."""
+    root = RESULTS.parents[2]
+    if not (root / ".git").exists():
+        pytest.skip("not a git checkout")
+    listed = subprocess.run(
+        ["git", "ls-files", "--others", "--ignored", "--exclude-standard", "docs/results", "study_state"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    assert listed == []
