@@ -18,6 +18,7 @@ A checkpoint trained with either family loads and runs in the other.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 
@@ -42,6 +43,7 @@ CONV_PATH = "auto"  # or force "banded" / "im2col" everywhere (bench/train_throu
 
 _ACTIVATIONS = {"relu": nn.relu, "tanh": nn.tanh}
 KERNEL_FAMILIES = ("cpu", "xla")
+GRU_BACKWARDS = ("hand", "autodiff")
 
 
 def kernel_family(kernels: str) -> str:
@@ -52,6 +54,17 @@ def kernel_family(kernels: str) -> str:
     if kernels not in KERNEL_FAMILIES:
         raise ValueError(f"model.kernels: expected auto, cpu or xla, got {kernels!r}")
     return kernels
+
+
+def gru_backward_is_hand(gru_backward: str, family: str) -> bool:
+    """Whether the GRU takes the hand-written backward pass (``gru_sequence``) rather than autodiff of its
+    scan: ``model.gru_backward`` "hand" / "autodiff", or "auto": the hand-written one in the "cpu" family
+    (measured faster on XLA:CPU), autodiff in the "xla" family."""
+    if gru_backward == "auto":
+        return family == "cpu"
+    if gru_backward not in GRU_BACKWARDS:
+        raise ValueError(f"model.gru_backward: expected auto, hand or autodiff, got {gru_backward!r}")
+    return gru_backward == "hand"
 
 
 def _dense(features: int, scale: float) -> nn.Dense:
@@ -287,11 +300,12 @@ class ResetGRU(nn.Module):
     all T steps are one [T*B, in] x [in, 3H] matmul before the time loop, each step does one
     [B, H] x [H, 3H] matmul for the three hidden projections instead of three small ones, and the
     loop's backward pass is hand-written (``gru_sequence``; ``custom_backward=False``: autodiff of
-    the same scan, ``gru_scan``).
+    the same scan, ``gru_scan``). ``unroll`` steps run per loop iteration (``model.gru_unroll``).
     """
 
     features: int
     custom_backward: bool = True
+    unroll: int = 1
 
     @nn.compact
     def __call__(self, hidden, inputs, reset):  # [B, H], [T, B, in], bool[T, B] -> ([B, H], [T, B, H])
@@ -301,7 +315,7 @@ class ResetGRU(nn.Module):
         flat = inputs.reshape(-1, inputs.shape[-1])  # 2-D: see pointwise_mixer on XLA:CPU and N-D dots
         projected = (flat @ input_kernel + input_bias).reshape(inputs.shape[:-1] + (-1,))  # [T, B, 3H]
         gru = gru_sequence if self.custom_backward else gru_scan
-        return gru(projected, reset, hidden, hidden_kernel, hidden_bias)
+        return gru(projected, reset, hidden, hidden_kernel, hidden_bias, self.unroll)
 
 
 def gru_step(hidden_kernel, hidden_bias, h, projected, start):
@@ -316,10 +330,11 @@ def gru_step(hidden_kernel, hidden_bias, h, projected, start):
     return h, r, z, n, hidden_n, (1.0 - z) * n + z * h
 
 
-@jax.custom_vjp
-def gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(5,))
+def gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias, unroll=1):
     """The GRU over T steps: projected [T, B, 3H] input projections, reset bool[T, B], hidden [B, H]
-    -> (last hidden [B, H], every hidden [T, B, H]).
+    -> (last hidden [B, H], every hidden [T, B, H]); ``unroll`` steps per loop iteration, forward and
+    backward (a GPU pays a fixed latency per iteration of a small loop body; the CPU hardly does).
 
     A hand-written backward pass (``jax.custom_vjp``): autodiff of the scan accumulated the hidden
     kernel's gradient with a small [H, B] x [B, 3H] matmul and a [H, 3H] add at every one of the T
@@ -327,29 +342,29 @@ def gru_sequence(projected, reset, hidden, hidden_kernel, hidden_bias):
     each step's gate gradients; the kernel's gradient is then one [H, T*B] x [T*B, 3H] matmul.
     Same function; gradients equal autodiff's to float rounding (tests/test_networks.py).
     """
-    return _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias)[0]  # unused gate outputs: dropped by jit
+    return _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias, unroll)[0]  # unused gates: dropped by jit
 
 
-def gru_scan(projected, reset, hidden, hidden_kernel, hidden_bias):
+def gru_scan(projected, reset, hidden, hidden_kernel, hidden_bias, unroll=1):
     """``gru_sequence`` differentiated by autodiff of the step scan (what backends other than XLA:CPU run)."""
 
     def step(h, xs):
         h = gru_step(hidden_kernel, hidden_bias, h, *xs)[-1]
         return h, h
 
-    return jax.lax.scan(step, hidden, (projected, reset))
+    return jax.lax.scan(step, hidden, (projected, reset), unroll=unroll)
 
 
-def _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias):
+def _gru_forward(projected, reset, hidden, hidden_kernel, hidden_bias, unroll):
     def step(h, xs):
         h_prev, r, z, n, hidden_n, h = gru_step(hidden_kernel, hidden_bias, h, *xs)
         return h, (h, (h_prev, r, z, n, hidden_n))
 
-    last, (every, gates) = jax.lax.scan(step, hidden, (projected, reset))
+    last, (every, gates) = jax.lax.scan(step, hidden, (projected, reset), unroll=unroll)
     return (last, every), (reset, hidden_kernel, gates)
 
 
-def _gru_backward(residuals, cotangents):
+def _gru_backward(unroll, residuals, cotangents):
     reset, hidden_kernel, gates = residuals
     d_last, d_every = cotangents
     size = d_last.shape[-1]
@@ -366,7 +381,7 @@ def _gru_backward(residuals, cotangents):
         d_prev = jnp.where(start[:, None], jnp.zeros_like(d_prev), d_prev)
         return d_prev, (jnp.concatenate([d_pre_r, d_pre_z, d_pre_n], axis=-1), d_hh)
 
-    d_hidden, (d_projected, d_hh) = jax.lax.scan(step, d_last, (d_every, reset, gates), reverse=True)
+    d_hidden, (d_projected, d_hh) = jax.lax.scan(step, d_last, (d_every, reset, gates), reverse=True, unroll=unroll)
     h_prev = gates[0]
     d_kernel = h_prev.reshape(-1, size).T @ d_hh.reshape(-1, 3 * size)
     d_bias = d_hh[..., 2 * size :].sum(axis=(0, 1))
@@ -388,6 +403,8 @@ class ActorCritic(nn.Module):
     gru_dim: int
     activation: str = "relu"
     kernels: str = "auto"  # "auto", "cpu" or "xla": see kernel_family
+    gru_backward: str = "auto"  # "auto" (the family's), "hand" or "autodiff": see gru_backward_is_hand
+    gru_unroll: int = 1  # GRU time steps per loop iteration
 
     @nn.compact
     def __call__(self, hidden: jax.Array, obs: jax.Array, reset: jax.Array):
@@ -399,9 +416,9 @@ class ActorCritic(nn.Module):
             self.mixer_features, self.conv_features, self.conv_kernels, self.fc_dim, self.activation, family
         )(flat).reshape(steps, batch, -1)
         if self.recurrent:
-            hidden, embedding = ResetGRU(self.gru_dim, family == "cpu", name="ScanResetGRUCell_0")(
-                hidden, embedding, reset
-            )
+            hand = gru_backward_is_hand(self.gru_backward, family)
+            gru = ResetGRU(self.gru_dim, hand, self.gru_unroll, name="ScanResetGRUCell_0")
+            hidden, embedding = gru(hidden, embedding, reset)
         embedding = embedding.reshape(steps * batch, -1)  # 2-D heads: see pointwise_mixer
         actor = act(_dense(self.fc_dim, math.sqrt(2))(embedding))
         logits = _dense(self.num_actions, 0.01)(actor).reshape(steps, batch, -1)
@@ -415,8 +432,8 @@ class ActorCritic(nn.Module):
 
 def same_function(model: ModelConfig) -> ModelConfig:
     """``model`` with the kernel choice reset: two configs equal after this describe the same network
-    (parameters and function), whichever kernels compute it."""
-    return dataclasses.replace(model, kernels="auto")
+    (parameters and function), however its kernels compute it (family, GRU backward pass, unrolling)."""
+    return dataclasses.replace(model, kernels="auto", gru_backward="auto", gru_unroll=1)
 
 
 def make_network(model: ModelConfig, num_actions: int = 6, activation: str = "relu") -> ActorCritic:
@@ -431,6 +448,8 @@ def make_network(model: ModelConfig, num_actions: int = 6, activation: str = "re
         gru_dim=model.gru_dim,
         activation=activation,
         kernels=model.kernels,
+        gru_backward=model.gru_backward,
+        gru_unroll=model.gru_unroll,
     )
 
 

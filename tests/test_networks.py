@@ -402,36 +402,67 @@ def test_model_kernels_is_validated_and_left_out_of_the_fingerprint_at_its_defau
     assert "kernels" not in hashed[-1]["model"] and "gru_dim" in hashed[-1]["model"]
     assert parse_config({"model": {"kernels": "auto"}}).fingerprint() == default
     assert parse_config({"model": {"kernels": "xla"}}).fingerprint() != default
+    assert "gru_backward" not in hashed[-1]["model"] and "gru_unroll" not in hashed[-1]["model"]
+    assert parse_config({"model": {"gru_backward": "auto", "gru_unroll": 1}}).fingerprint() == default
+
+
+# Ways to compute the same network: the two kernel families, each GRU backward pass in either, unrolled GRU loops
+# (3 does not divide the 4 steps: the remainder runs outside the unrolled loop).
+COMPUTATIONS = {
+    "cpu": {"kernels": "cpu"},
+    "xla": {"kernels": "xla"},
+    "xla, hand-written GRU backward, unroll 4": {"kernels": "xla", "gru_backward": "hand", "gru_unroll": 4},
+    "cpu, autodiff GRU, unroll 3": {"kernels": "cpu", "gru_backward": "autodiff", "gru_unroll": 3},
+}
 
 
 @pytest.mark.parametrize("raw, batch", [(SMALL_RNN, 3), (SMALL_RNN, 16), (SMALL_CNN, 3), (SMALL_CNN, 16)])
 def test_every_kernel_family_gives_the_same_parameters_outputs_and_gradients(raw, batch):
     """A checkpoint trained with one family runs in the other: same parameter tree and initial values,
     same outputs and gradients to float rounding (batch 3 x 4 steps: SameConv's im2col form; 16 x 4:
-    the banded form)."""
+    the banded form), whichever GRU backward pass and unrolling (``model.gru_backward``, ``gru_unroll``)."""
     obs_shape, steps = (4, 5, 6), 4
     obs = jax.random.randint(jax.random.PRNGKey(8), (steps, batch) + obs_shape, 0, 4).astype(jnp.uint8)
     reset = jax.random.uniform(jax.random.PRNGKey(9), (steps, batch)) < 0.3
     hidden = jax.random.normal(jax.random.PRNGKey(10), (batch, 8 if raw["kind"] == "rnn" else 0))
     results = {}
-    for family in ("cpu", "xla"):
-        network = make_network(_model({**raw, "kernels": family}))
+    for name, computation in COMPUTATIONS.items():
+        network = make_network(_model({**raw, **computation}))
         params = _init(network, jax.random.PRNGKey(11), obs_shape)
 
         def loss(p):
             h, logits, value = network.apply(p, hidden, obs, reset)
             return (logits**2).sum() + (value**2).sum() + (h**2).sum(), (h, logits, value)
 
-        results[family] = params, jax.jit(jax.grad(loss, has_aux=True))(params)
-    (cpu_params, (cpu_grads, cpu_out)), (xla_params, (xla_grads, xla_out)) = results["cpu"], results["xla"]
-    assert _shapes(cpu_params) == _shapes(xla_params)
-    for ours, theirs in zip(jax.tree.leaves(cpu_params), jax.tree.leaves(xla_params), strict=True):
-        np.testing.assert_array_equal(ours, theirs)
-    for ours, theirs in zip(jax.tree.leaves(cpu_out), jax.tree.leaves(xla_out), strict=True):
-        _assert_same_to_rounding(ours, theirs)
+        results[name] = params, jax.jit(jax.grad(loss, has_aux=True))(params)
+    cpu_params, (cpu_grads, cpu_out) = results["cpu"]
     assert float(jnp.abs(cpu_grads["params"]["ConvEncoder_0"]["SameConv_0"]["kernel"]).max()) > 0
-    for ours, theirs in zip(jax.tree.leaves(cpu_grads), jax.tree.leaves(xla_grads), strict=True):
-        _assert_same_to_rounding(ours, theirs)
+    for name, (params, (grads, out)) in results.items():
+        assert _shapes(cpu_params) == _shapes(params), name
+        for ours, theirs in zip(jax.tree.leaves(cpu_params), jax.tree.leaves(params), strict=True):
+            np.testing.assert_array_equal(ours, theirs)
+        for ours, theirs in zip(jax.tree.leaves(cpu_out), jax.tree.leaves(out), strict=True):
+            _assert_same_to_rounding(ours, theirs)
+        for ours, theirs in zip(jax.tree.leaves(cpu_grads), jax.tree.leaves(grads), strict=True):
+            _assert_same_to_rounding(ours, theirs)
+
+
+def test_the_gru_backward_pass_and_unrolling_follow_the_config():
+    obs, reset = jnp.zeros((4, 3, 4, 5, 6)), jnp.zeros((4, 3), bool)
+    network = make_network(_model(SMALL_RNN))
+    params = jax.eval_shape(lambda k: init_params(network, k, (4, 5, 6)), jax.random.PRNGKey(0))
+    hidden = network.initial_hidden(3)
+
+    def ops(**computation):
+        return _ops(make_network(_model({**SMALL_RNN, **computation})), params, obs, reset, hidden)
+
+    assert "custom_vjp" in ops(kernels="xla", gru_backward="hand")
+    assert "custom_vjp" not in ops(kernels="cpu", gru_backward="autodiff")
+    assert "unroll=4" in ops(gru_unroll=4) and "unroll=4" not in ops()
+    with pytest.raises(ConfigError, match="model.gru_backward: expected one of auto, hand, autodiff"):
+        parse_config({"model": {"gru_backward": "cudnn"}})
+    with pytest.raises(ConfigError, match="model.gru_unroll: expected 1 to 64"):
+        parse_config({"model": {"gru_unroll": 0}})
 
 
 def _assert_same_to_rounding(ours, theirs):
@@ -461,3 +492,5 @@ def test_configs_that_differ_only_in_kernels_describe_the_same_network():
     cpu, auto = _model({**SMALL_RNN, "kernels": "cpu"}), _model(SMALL_RNN)
     assert cpu != auto and same_function(cpu) == same_function(auto)
     assert same_function(cpu) != same_function(_model({**SMALL_RNN, "gru_dim": 4}))
+    unrolled = _model({**SMALL_RNN, "gru_backward": "autodiff", "gru_unroll": 8})
+    assert same_function(unrolled) == same_function(auto)

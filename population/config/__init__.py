@@ -27,7 +27,9 @@ from population.config.schema import (
     ACTIVATIONS,
     FCP_POOLS,
     FCP_STAGE_SEED_OFFSET,
+    GRU_BACKWARDS,
     KERNELS,
+    MAX_GRU_UNROLL,
     MAX_SEED,
     METHODS,
     MODEL_DEFAULTS,
@@ -58,7 +60,9 @@ from population.config.yaml_io import (
 
 __all__ = [
     "ACTIVATIONS",
+    "GRU_BACKWARDS",
     "KERNELS",
+    "MAX_GRU_UNROLL",
     "FCP_POOLS",
     "FCP_STAGE_SEED_OFFSET",
     "MAX_SEED",

@@ -21,6 +21,8 @@ FCP_STAGE_SEED_OFFSET = 7919
 METHODS = ("sp", "sa", "op", "fcp")
 ACTIVATIONS = ("relu", "tanh")
 KERNELS = ("auto", "cpu", "xla")  # model.kernels
+GRU_BACKWARDS = ("auto", "hand", "autodiff")  # model.gru_backward
+MAX_GRU_UNROLL = 64  # model.gru_unroll: beyond this the compile grows and nothing is measured to gain
 PRECISIONS = ("float32", "tf32", "bf16")  # run.precision (population.numerics)
 SECTIONS = ("env", "model", "ppo", "population", "eval", "run", "archive", "cluster")
 
@@ -41,6 +43,11 @@ class ModelConfig:
     # matmul forms and hand-written GRU backward tuned for XLA:CPU, "xla" XLA's own convolution op and
     # autodiff (cuDNN on GPU), "auto" the first on a CPU backend, the second elsewhere
     kernels: str = "auto"
+    # the GRU's backward pass: "hand" (hand-written, one kernel-gradient matmul after the loop), "autodiff"
+    # (of the step scan), "auto" the kernel family's (hand on "cpu", autodiff on "xla"); and how many time
+    # steps run per loop iteration (a GPU pays a launch latency per iteration). Same function every way.
+    gru_backward: str = "auto"
+    gru_unroll: int = 1
 
     @property
     def recurrent(self) -> bool:
@@ -292,6 +299,8 @@ _LATER_KEYS = {
     ("population", "fcp", "pool"): "shared",
     ("population", "fcp", "partner_ppo"): None,
     ("model", "kernels"): "auto",
+    ("model", "gru_backward"): "auto",
+    ("model", "gru_unroll"): 1,
     ("ppo", "schedule_timesteps"): None,
     ("population", "fcp", "partner_ppo", "schedule_timesteps"): None,
     ("run", "precision"): "float32",

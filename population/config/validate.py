@@ -12,7 +12,9 @@ from population.config.schema import (
     ACTIVATIONS,
     FCP_POOLS,
     FCP_STAGE_SEED_OFFSET,
+    GRU_BACKWARDS,
     KERNELS,
+    MAX_GRU_UNROLL,
     MAX_SEED,
     METHODS,
     PRECISIONS,
@@ -120,6 +122,12 @@ def validate(config: Config) -> list[str]:
         problems.append("model.conv_kernels: needs one kernel size per entry of model.conv_features")
     if model.kernels not in KERNELS:
         problems.append(f"model.kernels: expected one of {', '.join(KERNELS)}, got {model.kernels!r}")
+    if model.gru_backward not in GRU_BACKWARDS:
+        problems.append(f"model.gru_backward: expected one of {', '.join(GRU_BACKWARDS)}, got {model.gru_backward!r}")
+    if not 1 <= model.gru_unroll <= MAX_GRU_UNROLL:
+        problems.append(
+            f"model.gru_unroll: expected 1 to {MAX_GRU_UNROLL} time steps per iteration, got {model.gru_unroll}"
+        )
     for key in ("fc_dim", "gru_dim"):
         problems += _positive(f"model.{key}", getattr(model, key))
     for key, values in (
