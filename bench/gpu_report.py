@@ -8,8 +8,10 @@ From ``gpu_run.json`` (bench/gpu_run.py's record: environment and measurements) 
 and ``<!-- gpu_run:end -->``: the device and versions, every measured trainer rate with its FLOP rate as a share
 of the same GPU's matmul rate (float32 and bf16, measured in the same command), and the environment alone
 against JaxMARL's. From ``results.tar.gz`` it unpacks each study's report folder, exported policies (with
-their sha256 sums, checked here) and metrics into ``docs/results/gpu_coord_ring_<run>/``, beside gpu_run.json.
-A ``state/`` folder that came back is the next window's starting point: move it to ``gpu_state/`` and commit it.
+their sha256 sums, checked here), metrics and the study's status into ``docs/results/<study>/``, beside
+gpu_run.json (replacing an earlier window's unfinished part of the same study). A ``state/`` folder that came back
+is the next window's starting point: move it to ``gpu_state/`` and commit it; this script says whether it fits
+what travels to the GPU machine (64 MiB with the work tree and .whl/).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import argparse
 import hashlib
 import json
 import shutil
+import subprocess
 import sys
 import tarfile
 import tempfile
@@ -31,6 +34,13 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _rate(value) -> str:
     return "-" if value is None else f"{value:,.0f}"
+
+
+def _computed(result: dict) -> str:
+    """How the network was computed: the kernel family, and for the RNN the GRU's backward pass and unrolling."""
+    if result.get("model") != "rnn" or "gru_backward" not in result:
+        return result["kernels"]
+    return f"{result['kernels']}, GRU {result['gru_backward']}, unroll {result['gru_unroll']}"
 
 
 def benchmark_block(bench: dict) -> str:
@@ -58,7 +68,7 @@ def benchmark_block(bench: dict) -> str:
             continue
         shares = [f"{100 * r['model_tflops'] / p:.2f} %" if p else "-" for p in peaks.values()]
         lines.append(
-            f"| {name} ({r['config']}) | {r['seeds']} | {r['kernels']} | {_rate(r['env_steps_per_s'])} | "
+            f"| {name} ({r['config']}) | {r['seeds']} | {_computed(r)} | {_rate(r['env_steps_per_s'])} | "
             f"{r['model_tflops']:.3f} | {shares[0]} | {shares[1]} | {r['compile_plus_first_s']} |"
         )
     ours, theirs = results.get("env_ocv2", {}), results.get("env_jaxmarl", {})
@@ -76,8 +86,16 @@ def benchmark_block(bench: dict) -> str:
     return "\n".join(lines)
 
 
+def unfinished(dest: Path) -> bool:
+    """Whether ``dest`` holds a study filed before it had finished (its study_status.json has a step not done):
+    a later window's results of the same study supersede it."""
+    status = dest / "study_status.json"
+    return status.is_file() and any(entry["status"] != "done" for entry in json.loads(status.read_text()))
+
+
 def unpack_results(files: Path, dest_root: Path) -> list[Path]:
-    """Each study of results.tar.gz into dest_root/gpu_<study>/, policies checked against their sums."""
+    """Each study of results.tar.gz into dest_root/<study>/, policies checked against their sums. A folder there
+    already is replaced only when it holds the same study unfinished (an earlier window's part of it)."""
     written = []
     with tempfile.TemporaryDirectory() as tmp:
         with tarfile.open(files / "results.tar.gz") as tar:
@@ -85,9 +103,9 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
         results = Path(tmp) / "results"
         studies = sorted({p.name.split("_report")[0] for p in results.glob("study_*_report")})
         for study in studies:  # every check before anything is written
-            dest = dest_root / f"gpu_coord_ring_{study.removeprefix('study_')}"
-            if dest.exists():
-                raise SystemExit(f"{dest} exists: move it away first (nothing was written)")
+            dest = dest_root / study.removeprefix("study_")
+            if dest.exists() and not unfinished(dest):
+                raise SystemExit(f"{dest} exists and holds a finished study: move it away first (nothing was written)")
             policies = results / f"{study}_policies"
             if policies.is_dir():
                 for entry in json.loads((policies / "SHA256SUMS.json").read_text()):
@@ -98,7 +116,10 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
                             "(nothing was written)"
                         )
         for study in studies:
-            dest = dest_root / f"gpu_coord_ring_{study.removeprefix('study_')}"
+            dest = dest_root / study.removeprefix("study_")
+            if dest.exists():
+                print(f"{dest}: an earlier window's unfinished part of this study, replaced by this window's")
+                shutil.rmtree(dest)
             shutil.copytree(results / f"{study}_report", dest)
             policies = results / f"{study}_policies"
             if policies.is_dir():
@@ -106,10 +127,36 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
             for extra in results.glob(f"{study}_*_*"):
                 if extra.is_file():
                     shutil.copy(extra, dest / extra.name.removeprefix(f"{study}_"))
+            if (results / f"{study}_status.json").is_file():
+                shutil.copy(results / f"{study}_status.json", dest / "study_status.json")
             if (files / "gpu_run.json").exists():
                 shutil.copy(files / "gpu_run.json", dest / "gpu_run.json")
             written.append(dest)
     return written
+
+
+TRAVEL_BYTES = 64 << 20  # what the device tool copies to the GPU machine: the work tree and the carried paths
+
+
+def travel_check(state: Path, root: Path = ROOT) -> str:
+    """Whether the next window's input fits what travels: the tracked work tree (gpu_state/ replaced by ``state``)
+    and the carried .whl/."""
+    tracked = subprocess.run(["git", "ls-files", "-z"], cwd=root, capture_output=True, check=True).stdout.split(b"\0")
+    tree = sum(
+        (root / name.decode()).stat().st_size
+        for name in tracked
+        if name and not name.startswith(b"gpu_state/") and (root / name.decode()).is_file()
+    )
+    wheels = sum(p.stat().st_size for p in (root / ".whl").glob("*")) if (root / ".whl").is_dir() else 0
+    carried = sum(p.stat().st_size for p in state.rglob("*") if p.is_file())
+    total = tree + wheels + carried
+    line = (
+        f"next window carries {total / 2**20:.1f} MiB of {TRAVEL_BYTES / 2**20:.0f} MiB: work tree "
+        f"{tree / 2**20:.1f}, .whl {wheels / 2**20:.1f}, state {carried / 2**20:.1f}"
+    )
+    if total > TRAVEL_BYTES:
+        line += " -- TOO MUCH: remove finished study_state/ folders or large results from the tree first"
+    return line
 
 
 def main(argv=None) -> int:
@@ -122,6 +169,8 @@ def main(argv=None) -> int:
     if args.results and (args.files / "results.tar.gz").exists():
         for dest in unpack_results(args.files, Path(args.results)):
             print(f"wrote {dest}")
+    if (args.files / "state").is_dir():
+        print(travel_check(args.files / "state"))
     return 0
 
 

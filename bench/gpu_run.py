@@ -7,14 +7,18 @@ it can also run by itself (``python bench/gpu_run.py --out DIR``).
 
 1. **environment**: device, driver (nvidia-smi), Python and package versions, XLA flags.
 2. **measure** (``--measure-s``, about 2 minutes): the same GPU's float32 and bf16 matmul rates; trainer env
-   steps/s of Coordination Ring SP (PPO-CNN) at 10, 4 and 1 seeds and of Grounded Coord. Simple SP
-   (PPO-RNN) at 1 and 10 seeds in both kernel families (``model.kernels`` cpu/xla); the environment
-   alone (ours, and JaxMARL's if it imports). Most important first; what the time leaves out is recorded as
-   skipped, never guessed.
-3. **plan**: the largest run that ends before the deadline at the measured 10-seed CNN rate: Table 1
-   Coordination Ring SP (configs/studies/gpu_coord_ring_sp.yaml), 10 seeds, the paper's 10M
-   schedule -- truncated (stopped early, ``--budget-mode truncate``), never compressed, when it does not
-   fit. When SP fits with time to spare, SA follows in the time left (gpu_coord_ring_sa.yaml).
+   steps/s of Coordination Ring SP (PPO-CNN) at 10, 4 and 1 seeds and of Grounded Coord. Simple SP (PPO-RNN) at
+   1, 10 and 20 seeds in both kernel families (``model.kernels`` cpu/xla) and in the ways to run the GRU's time
+   loop (``model.gru_backward`` hand/autodiff, ``model.gru_unroll``); the environment alone (ours, and JaxMARL's
+   if it imports). Most important first (the 10-seed RNN variants first when Table 2 is next); what the time
+   leaves out is recorded as skipped, never guessed.
+3. **plan** (``--plan auto``): until docs/results/gpu_coord_ring_sp/ holds that study finished, the largest run
+   that ends before the deadline at the measured 10-seed CNN rate: Table 1 Coordination Ring SP
+   (configs/studies/gpu_coord_ring_sp.yaml), 10 seeds, the paper's 10M schedule -- truncated (stopped early,
+   ``--budget-mode truncate``), never compressed, when it does not fit; SA in the time left when SP fits with
+   time to spare (gpu_coord_ring_sa.yaml). Then Table 2 Grounded Coord. Simple SP
+   (gpu_grounded_coord_simple_sp.yaml), 10 seeds, the paper's whole 30M schedule with the fastest measured RNN
+   variant, trained window after window.
 4. **train**: ``ocv2 study run --backend local`` in a child process; at the deadline it gets SIGINT, which
    stops training after the chunk in flight (saved), so what it has is packed and a later window resumes it.
 5. **pack**: each study's report folder (``ocv2 study report --out``), every seed's exported policy (its
@@ -146,6 +150,8 @@ def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -
         "config": config_path.name,
         "model": config.model.kind,
         "kernels": config.model.kernels,
+        "gru_backward": config.model.gru_backward,
+        "gru_unroll": config.model.gru_unroll,
         "seeds": seeds,
         "updates": updates,
         "steps_per_update": config.ppo.steps_per_update,
@@ -167,9 +173,10 @@ def env_rate(impl: str, batch: int, steps: int) -> dict:
     return {k: result[k] for k in ("impl", "layout", "batch", "steps", "env_steps_per_s", "compile_plus_first_run_s")}
 
 
-def measurements(smoke: bool) -> list[tuple[str, object]]:
+def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object]]:
     """(name, thunk) in order of importance, since the measuring time may run out (each trainer case is a
-    compile of tens of seconds on a GPU): the plan's case first, then one of each other kind, then the rest."""
+    compile of tens of seconds on a GPU): the plan's case first, then one of each other kind, then the rest.
+    ``rnn_first``: the 10-seed RNN variants first (the Table 2 plan trains with the fastest of them)."""
     sets = SMOKE_SETS if smoke else []
     cnn_updates, rnn_updates = (2, 2) if smoke else (10, 3)  # 10: the GPU study's chunk, so its compile is reused
     size = 512 if smoke else 8192
@@ -178,28 +185,56 @@ def measurements(smoke: bool) -> list[tuple[str, object]]:
     def cnn(seeds: int):
         return f"cnn_sp_{seeds}", lambda: trainer_rate(CR_SP, seeds, cnn_updates, sets)
 
-    def rnn(seeds: int, kernels: str):
-        sets_k = [*sets, f"model.kernels={kernels}"]
-        return f"rnn_sp_{seeds}_{kernels}", lambda: trainer_rate(GCS_SP, seeds, rnn_updates, sets_k)
+    def rnn(seeds: int, kernels: str, backward: str = "auto", unroll: int = 1):
+        variant = kernels + ("" if backward == "auto" else f"_{backward}") + ("" if unroll == 1 else f"_unroll{unroll}")
+        sets_k = [*sets, *rnn_sets(kernels, backward, unroll)]
+        return f"rnn_sp_{seeds}_{variant}", lambda: trainer_rate(GCS_SP, seeds, rnn_updates, sets_k)
 
     batch, steps = (64, 16) if smoke else (16384, 400)
     plan_case = f"cnn_sp_{plan_seeds}"
-    return [
+    ordered = [
         ("matmul_f32", lambda: matmul_rate(size, jnp.float32, "float32")),
         cnn(plan_seeds),
         ("env_ocv2", lambda: env_rate("ocv2", batch, steps)),
         ("env_jaxmarl", lambda: env_rate("jaxmarl", batch, steps)),
         ("matmul_bf16", lambda: matmul_rate(size, jnp.bfloat16, "bfloat16")),
         rnn(many, "xla"),
+        # An RNN update is 2 x 256 sequential GRU steps per minibatch: latency-bound on a GPU. Unrolling the
+        # time loop and the hand-written backward pass (a shorter step) are the candidates; the Table 2 plan
+        # trains with whichever 10-seed variant measured fastest (best_rnn_sets).
+        rnn(many, "xla", "hand", 8),
         # What XLA's deterministic GPU ops (run.deterministic, on in every other measurement: gpu_run.sh sets the
         # flag as the run's own process does) cost: the plan's case again in a process without the flag.
         (f"{plan_case}_nondeterministic", lambda: without_determinism(plan_case, smoke)),
         rnn(many, "cpu"),
+        rnn(many, "xla", "autodiff", 8),
+        rnn(many, "xla", "hand"),
+        rnn(many, "xla", "hand", 32),
         cnn(1),
         rnn(1, "xla"),
         rnn(1, "cpu"),
-        *([] if smoke else [cnn(4), rnn(20, "xla")]),  # how the rate grows with seeds in one program
+        *([] if smoke else [cnn(4), rnn(20, "xla"), rnn(20, "xla", "hand", 8)]),  # growth with seeds in one program
     ]
+    if rnn_first:  # a stable sort: the RNN cases of the plan's seed count, in their order, then the rest in theirs
+        ordered.sort(key=lambda case: not case[0].startswith(f"rnn_sp_{many}_"))
+    return ordered
+
+
+def rnn_sets(kernels: str, backward: str = "auto", unroll: int = 1) -> list[str]:
+    """The ``--set`` overrides of one way to compute the RNN (the same function every way: docs/training.md)."""
+    return [f"model.kernels={kernels}", f"model.gru_backward={backward}", f"model.gru_unroll={unroll}"]
+
+
+def best_rnn_sets(measured: dict, seeds: int) -> list[str]:
+    """The overrides of the fastest ``seeds``-seed RNN variant measured (the "xla" family's defaults when none was)."""
+    rates = {
+        name: result for name, result in measured.items()
+        if name.startswith(f"rnn_sp_{seeds}_") and result.get("env_steps_per_s")
+    }  # fmt: skip
+    if not rates:
+        return rnn_sets("xla")
+    best = max(rates.values(), key=lambda result: result["env_steps_per_s"])
+    return rnn_sets(best["kernels"], best["gru_backward"], best["gru_unroll"])
 
 
 def without_determinism(name: str, smoke: bool) -> dict:
@@ -212,10 +247,10 @@ def without_determinism(name: str, smoke: bool) -> dict:
     return {**json.loads(done.stdout.strip().splitlines()[-1]), "XLA_FLAGS": flags}
 
 
-def measure(deadline: float, smoke: bool) -> dict:
+def measure(deadline: float, smoke: bool, rnn_first: bool = False) -> dict:
     """Every measurement that starts before ``deadline`` (each is one compile and a few seconds)."""
     results = {}
-    for name, thunk in measurements(smoke):
+    for name, thunk in measurements(smoke, rnn_first):
         if time.time() > deadline:
             results[name] = {"skipped": "the measuring time was spent"}
             continue
@@ -234,28 +269,52 @@ def measure(deadline: float, smoke: bool) -> dict:
 # ---------------------------------------------------------------------------------------------------
 
 
+TABLE1 = "gpu_coord_ring_sp"  # Table 1 Coordination Ring SP: the first thing a GPU window trains
+TABLE1_SA = "gpu_coord_ring_sa"
+TABLE2 = "gpu_grounded_coord_simple_sp"  # Table 2 Grounded Coord. Simple SP: once TABLE1 has finished
+PUBLISHED = ROOT / "docs" / "results"  # where bench/gpu_report.py files each study (docs/results/<study>/)
+
+
 @dataclasses.dataclass(frozen=True)
 class Step:
-    """One study to run: ``run`` of the GPU study at ``budget`` (truncated) with ``seeds``."""
+    """One study to run: configs/studies/``study``.yaml at ``budget`` (truncated) with ``seeds``."""
 
-    run: str
+    study: str
     budget: float
     seeds: int
     train_s: float  # the planned training time at the measured rate
     resume: bool = False  # an earlier window's study, unpacked: its directory keeps budget, seeds and --set
+    sets: tuple[str, ...] = ()  # --set overrides beyond the smoke sizes (e.g. the fastest RNN variant)
 
     def command(self, out: Path, smoke: bool) -> list[str]:
-        study = [sys.executable, "-m", "cluster.cli", "study", "run", str(STUDIES / f"gpu_coord_ring_{self.run}.yaml")]
+        study = [sys.executable, "-m", "cluster.cli", "study", "run", str(STUDIES / f"{self.study}.yaml")]
         if self.resume:
-            return [*study, "--backend", "local", "--out", str(out / f"study_{self.run}")]
-        sets = [x for s in (SMOKE_SETS + ["eval.episodes=4"] if smoke else []) for x in ("--set", s)]
+            return [*study, "--backend", "local", "--out", str(out / f"study_{self.study}")]
+        overrides = [*(SMOKE_SETS + ["eval.episodes=4"] if smoke else []), *self.sets]
         return [
             *study, "--backend", "local", "--budget", f"{self.budget:.6g}", "--budget-mode", "truncate",
-            "--seeds", str(self.seeds), "--out", str(out / f"study_{self.run}"), *sets,
+            "--seeds", str(self.seeds), "--out", str(out / f"study_{self.study}"),
+            *(x for s in overrides for x in ("--set", s)),
         ]  # fmt: skip
 
 
-def plan(measured: dict, seconds_left: float, smoke: bool) -> list[Step]:
+def finished_here(study: str, published: Path = PUBLISHED) -> bool:
+    """Whether ``study`` is published under ``published`` as finished (every step done, by the study_status.json
+    bench/gpu_report.py files beside its report)."""
+    status = published / study / "study_status.json"
+    if not status.is_file():
+        return False
+    return all(entry["status"] == "done" for entry in json.loads(status.read_text()))
+
+
+def plan(measured: dict, seconds_left: float, smoke: bool, table1_done: bool = False) -> list[Step]:
+    """Table 1 until it has finished (``plan_table1``), then Table 2 (``plan_table2``)."""
+    if table1_done:
+        return plan_table2(measured, smoke)
+    return plan_table1(measured, seconds_left, smoke)
+
+
+def plan_table1(measured: dict, seconds_left: float, smoke: bool) -> list[Step]:
     """SP at the largest truncation that ends in time (at least 1 %), then SA in what SP leaves, if it is
     worth it. Reserve: a compile, the cross-play (500 episodes per ordered pair, both orders), the export."""
     seeds = 2 if smoke else 10
@@ -263,20 +322,31 @@ def plan(measured: dict, seconds_left: float, smoke: bool) -> list[Step]:
     config = load_config(CR_SP, SMOKE_SETS if smoke else [])
     full_steps = seeds * config.ppo.total_timesteps
     if smoke:  # 20 tiny updates: two chunks, a snapshot between them, then the cross-play
-        return [Step("sp", 20 * config.ppo.steps_per_update / config.ppo.total_timesteps, seeds, float("nan"))]
+        return [Step(TABLE1, 20 * config.ppo.steps_per_update / config.ppo.total_timesteps, seeds, float("nan"))]
     if not rate:
         log("no 10-seed CNN rate measured: training SP at 10 % and letting the deadline stop it")
-        return [Step("sp", 0.1, seeds, float("nan"))]
+        return [Step(TABLE1, 0.1, seeds, float("nan"))]
     reserve = 90.0  # compile (~30 s) + 10x10 cross-play in both orders + export, from the CPU's proportions
     budget = max(0.01, min(1.0, (seconds_left - reserve) * rate / full_steps))
-    steps = [Step("sp", round(budget, 3), seeds, budget * full_steps / rate)]
+    steps = [Step(TABLE1, round(budget, 3), seeds, budget * full_steps / rate)]
     left = seconds_left - reserve - steps[0].train_s
     if budget == 1.0 and left > reserve + 60:
         # SA trains as fast as SP between its iterations, plus 10 collections of 100 pairs x 10 rollouts.
         sa_budget = min(1.0, (left - reserve) * rate / full_steps / 1.3)
         if sa_budget >= 0.1:
-            steps.append(Step("sa", round(sa_budget, 3), seeds, sa_budget * full_steps / rate * 1.3))
+            steps.append(Step(TABLE1_SA, round(sa_budget, 3), seeds, sa_budget * full_steps / rate * 1.3))
     return steps
+
+
+def plan_table2(measured: dict, smoke: bool) -> list[Step]:
+    """Grounded Coord. Simple SP, 10 seeds, the paper's whole 30M schedule (no window holds it: each trains until
+    its deadline and packs the state that the next one continues), computed the fastest measured way."""
+    seeds = 2 if smoke else 10
+    config = load_config(GCS_SP, SMOKE_SETS if smoke else [])
+    budget = 12 * config.ppo.steps_per_update / config.ppo.total_timesteps if smoke else 1.0
+    rate = measured.get(f"rnn_sp_{seeds}_xla", {}).get("env_steps_per_s")
+    train_s = budget * seeds * config.ppo.total_timesteps / rate if rate else float("nan")
+    return [Step(TABLE2, budget, seeds, train_s, sets=tuple(best_rnn_sets(measured, seeds)))]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -305,6 +375,7 @@ def train(step: Step, out: Path, deadline: float, smoke: bool) -> dict:
 # 5. export and pack
 # ---------------------------------------------------------------------------------------------------
 
+RETURNED_FILES = 8  # what the device tool brings back from $OUT
 POLICY_BYTES = 12 << 20  # exported policies per run, inside results.tar.gz's 16 MiB (about 0.4 MB per CNN policy)
 
 
@@ -335,13 +406,6 @@ def export_policies(run_dir: Path, dest: Path) -> list[dict]:
     return exported
 
 
-def unfinished(study_dir: Path) -> bool:
-    """Whether the study in ``study_dir`` has a step left (its state must then travel to the next window)."""
-    from cluster.study.runner import study_status
-
-    return any(entry["status"] != "done" for entry in study_status(study_dir))
-
-
 def pack(out: Path, returned: Path) -> dict:
     """results.tar.gz (reports, policies, metrics) into ``returned``; every unfinished study's resumable state
     as ``returned/state/`` (``ocv2 study pack``: pack.json and parts of at most 16 MiB)."""
@@ -349,6 +413,7 @@ def pack(out: Path, returned: Path) -> dict:
     import tarfile
 
     from cluster.study.pack import pack_study
+    from cluster.study.runner import study_status
 
     staging, packed = out / "results", {}
     staging.mkdir(exist_ok=True)
@@ -369,13 +434,21 @@ def pack(out: Path, returned: Path) -> dict:
             for name in ("metrics.csv", "config.yaml"):
                 if (run_dir / name).exists():
                     shutil.copy(run_dir / name, staging / f"{study_dir.name}_{run_dir.name}_{name}")
-        if unfinished(study_dir):
+        status = study_status(study_dir)
+        (staging / f"{study_dir.name}_status.json").write_text(json.dumps(status, indent=1))
+        if any(entry["status"] != "done" for entry in status):
             state = returned / "state"
             if state.exists():
                 packed[study_dir.name] = "not packed: another unfinished study took state/ (one per window)"
                 continue
-            record = pack_study(study_dir, state)
+            # Only each seed's newest checkpoint: the kept snapshots before it travel as exported policies above,
+            # and all of them would not fit (6 snapshots of 10 CNN seeds are about 80 MB; 10 RNN seeds 42 MB each).
+            record = pack_study(study_dir, state, latest_only=True)
             packed[study_dir.name] = {"state": record["bytes"], "parts": len(record["parts"])}
+            if len(record["parts"]) + 4 > RETURNED_FILES:  # + pack.json, gpu_run.log, gpu_run.json, results.tar.gz
+                packed[study_dir.name]["error"] = (
+                    f"{len(record['parts'])} parts: more than {RETURNED_FILES} files return"
+                )
     for name in ("gpu_run.json",):
         shutil.copy(out / name, staging / name)
     with tarfile.open(returned / "results.tar.gz", "w:gz") as tar:
@@ -389,11 +462,11 @@ def continued_step(state: Path, out: Path) -> Step:
     from cluster.study.pack import unpack_study
 
     record = unpack_study(state, out / "study_unpacking")
-    run = str(record["study"]).removeprefix("gpu_coord_ring_")
-    target = out / f"study_{run}"
+    study = str(record["study"])
+    target = out / f"study_{study}"
     (out / "study_unpacking").rename(target)
     kept = json.loads((target / "study.json").read_text())
-    return Step(run, float(kept["budget"]), int(kept["seeds"]), float("nan"), resume=True)
+    return Step(study, float(kept["budget"]), int(kept["seeds"]), float("nan"), resume=True)
 
 
 def main(argv=None) -> int:
@@ -403,6 +476,12 @@ def main(argv=None) -> int:
     parser.add_argument("--deadline-s", type=float, default=480.0, help="seconds from start to stop training")
     parser.add_argument("--measure-s", type=float, default=120.0, help="seconds for measuring")
     parser.add_argument("--continue-from", type=Path, help="an earlier window's state/ folder: go on with it")
+    parser.add_argument(
+        "--plan",
+        choices=("auto", "table1", "table2"),
+        default="auto",
+        help="what to train without --continue-from: auto = Table 1 until docs/results holds it finished, then Table 2",
+    )
     parser.add_argument("--smoke", action="store_true", default=os.environ.get("GPU_RUN_SMOKE") == "1")
     parser.add_argument("--measure-one", help=argparse.SUPPRESS)  # one measurement, as JSON on stdout
     args = parser.parse_args(argv)
@@ -422,13 +501,18 @@ def main(argv=None) -> int:
 
     save()
     log(f"devices {record['environment']['devices']}; {record['environment']['nvidia_smi']}; smoke={args.smoke}")
-    record["results"] = measure(start + args.measure_s, args.smoke)
+    table1_done = args.plan == "table2" or (args.plan == "auto" and finished_here(TABLE1))
+    if args.continue_from:  # the RNN variants matter to a continued Table 2 run (measured for the record)
+        rnn_first = json.loads((args.continue_from / "pack.json").read_text()).get("study") == TABLE2
+    else:
+        rnn_first = table1_done
+    record["results"] = measure(start + args.measure_s, args.smoke, rnn_first)
     save()
     deadline = start + args.deadline_s
     if args.continue_from:
         steps = [continued_step(args.continue_from, out)]
     else:
-        steps = plan(record["results"], deadline - time.time(), args.smoke)
+        steps = plan(record["results"], deadline - time.time(), args.smoke, table1_done)
     record["plan"] = [dataclasses.asdict(s) for s in steps]
     save()
     log(f"plan: {record['plan']}")

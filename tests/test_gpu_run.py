@@ -31,7 +31,7 @@ FULL_STEPS = 10 * 10_000_000  # 10 seeds x the paper's Coordination Ring schedul
 
 def test_a_fast_gpu_trains_the_whole_schedule_then_sa_in_what_is_left():
     steps = gpu_run.plan({"cnn_sp_10": {"env_steps_per_s": 1_000_000}}, seconds_left=400, smoke=False)
-    assert [s.run for s in steps] == ["sp", "sa"] and steps[0].budget == 1.0
+    assert [s.study for s in steps] == ["gpu_coord_ring_sp", "gpu_coord_ring_sa"] and steps[0].budget == 1.0
     assert steps[0].train_s == pytest.approx(FULL_STEPS / 1_000_000)
     assert 0.1 <= steps[1].budget <= 1.0
 
@@ -39,7 +39,7 @@ def test_a_fast_gpu_trains_the_whole_schedule_then_sa_in_what_is_left():
 def test_a_slow_gpu_truncates_the_schedule_and_never_compresses_it(tmp_path):
     rate = 100_000
     (step,) = gpu_run.plan({"cnn_sp_10": {"env_steps_per_s": rate}}, seconds_left=390, smoke=False)
-    assert step.run == "sp" and step.budget == pytest.approx((390 - 90) * rate / FULL_STEPS, abs=1e-3)
+    assert step.study == "gpu_coord_ring_sp" and step.budget == pytest.approx((390 - 90) * rate / FULL_STEPS, abs=1e-3)
     command = step.command(tmp_path, smoke=False)
     assert command[command.index("--budget-mode") + 1] == "truncate"
     assert command[command.index("--seeds") + 1] == "10" and "--backend" in command
@@ -88,14 +88,16 @@ def test_the_benchmark_block_states_shares_of_the_measured_peaks():
 
 def test_returned_results_unpack_into_docs_results_with_checked_sums(tmp_path):
     files, staging = tmp_path / "files", tmp_path / "results"
-    report, policies = staging / "study_sp_report", staging / "study_sp_policies"
+    report, policies = staging / "study_gpu_coord_ring_sp_report", staging / "study_gpu_coord_ring_sp_policies"
     for folder in (files, report, policies):
         folder.mkdir(parents=True)
     (report / "report.md").write_text("# Study\n")
     (policies / "sp_seed0_update610.ocv2policy").write_bytes(b"policy bytes")
     listing = [{"file": "sp_seed0_update610.ocv2policy", "seed": 0, "update": 610, "sha256": "0" * 64}]
     (policies / "SHA256SUMS.json").write_text(json.dumps(listing))
-    (staging / "study_sp_sp_metrics.csv").write_text("update\n1\n")
+    (staging / "study_gpu_coord_ring_sp_sp_metrics.csv").write_text("update\n1\n")
+    unfinished = [{"step": "train sp", "status": "partial"}, {"step": "xp sp", "status": "left"}]
+    (staging / "study_gpu_coord_ring_sp_status.json").write_text(json.dumps(unfinished))
     (files / "gpu_run.json").write_text(json.dumps(made_up_bench()))
 
     def pack():
@@ -113,5 +115,50 @@ def test_returned_results_unpack_into_docs_results_with_checked_sums(tmp_path):
     assert dest.name == "gpu_coord_ring_sp"
     assert (dest / "report.md").is_file() and (dest / "policies" / "sp_seed0_update610.ocv2policy").is_file()
     assert (dest / "sp_metrics.csv").is_file() and (dest / "gpu_run.json").is_file()
-    with pytest.raises(SystemExit, match="exists"):  # never over what is there
+    assert json.loads((dest / "study_status.json").read_text()) == unfinished
+    # a later window's results of the same study replace an unfinished one; a finished one is never overwritten
+    finished = [{"step": "train sp", "status": "done"}, {"step": "xp sp", "status": "done"}]
+    (staging / "study_gpu_coord_ring_sp_status.json").write_text(json.dumps(finished))
+    pack()
+    assert gpu_report.unpack_results(files, tmp_path / "docs2") == [dest]
+    assert gpu_run.finished_here("gpu_coord_ring_sp", tmp_path / "docs2")
+    assert not gpu_run.finished_here("gpu_grounded_coord_simple_sp", tmp_path / "docs2")
+    with pytest.raises(SystemExit, match="exists and holds a finished study"):
         gpu_report.unpack_results(files, tmp_path / "docs2")
+
+
+def test_once_table1_has_finished_table2_trains_its_whole_schedule_the_fastest_measured_way(tmp_path):
+    measured = {
+        "cnn_sp_10": {"env_steps_per_s": 500_000},
+        "rnn_sp_10_xla": {"env_steps_per_s": 50_000, "kernels": "xla", "gru_backward": "auto", "gru_unroll": 1},
+        "rnn_sp_10_xla_hand_unroll8": {
+            "env_steps_per_s": 80_000, "kernels": "xla", "gru_backward": "hand", "gru_unroll": 8,
+        },
+        "rnn_sp_10_cpu": {"error": "boom"},
+        "rnn_sp_1_xla_hand_unroll32": {"env_steps_per_s": 90_000, "kernels": "xla", "gru_backward": "hand", "gru_unroll": 32},
+    }  # fmt: skip
+    (step,) = gpu_run.plan(measured, seconds_left=400, smoke=False, table1_done=True)
+    assert step.study == "gpu_grounded_coord_simple_sp" and step.budget == 1.0 and step.seeds == 10
+    assert step.sets == ("model.kernels=xla", "model.gru_backward=hand", "model.gru_unroll=8")
+    assert step.train_s == pytest.approx(10 * 30_000_000 / 50_000, rel=0.01)
+    command = step.command(tmp_path, smoke=False)
+    assert "gpu_grounded_coord_simple_sp.yaml" in command[command.index("run") + 1]
+    assert command[command.index("--set") + 1] == "model.kernels=xla"
+    assert gpu_run.best_rnn_sets({}, 10) == ["model.kernels=xla", "model.gru_backward=auto", "model.gru_unroll=1"]
+    # Table 1 first, until it has finished
+    assert gpu_run.plan(measured, 400, smoke=False)[0].study == "gpu_coord_ring_sp"
+
+
+def test_the_rnn_variants_are_measured_first_when_table2_is_next():
+    first = [name for name, _ in gpu_run.measurements(smoke=False, rnn_first=True)][:6]
+    assert all(name.startswith("rnn_sp_10_") for name in first) and first[0] == "rnn_sp_10_xla"
+    assert [name for name, _ in gpu_run.measurements(smoke=False)][:2] == ["matmul_f32", "cnn_sp_10"]
+
+
+def test_the_next_windows_input_is_checked_against_what_travels(tmp_path):
+    state = tmp_path / "state"
+    state.mkdir()
+    (state / "part").write_bytes(b"x" * 1000)
+    assert "TOO MUCH" not in gpu_report.travel_check(state)
+    (state / "big").write_bytes(b"\0" * (gpu_report.TRAVEL_BYTES + 1))
+    assert "TOO MUCH" in gpu_report.travel_check(state)

@@ -331,7 +331,8 @@ def _finish(plt, fig, ax, target: Path, xlabel: str, ylabel: str, title: str) ->
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", fontsize=8)
+    if ax.get_legend_handles_labels()[0]:  # no labelled line (no episode finished yet): no empty legend
+        ax.legend(loc="upper left", fontsize=8)
     path = save_figure(fig, target)
     plt.close(fig)
     return path
