@@ -460,13 +460,14 @@ def pack(out: Path, returned: Path) -> dict:
 def continued_step(state: Path, out: Path) -> Step:
     """The study a carried ``state`` (an earlier window's ``state/``) holds, unpacked into ``out``: go on with it."""
     from cluster.study.pack import unpack_study
+    from cluster.study.runner import read_state
 
     record = unpack_study(state, out / "study_unpacking")
     study = str(record["study"])
     target = out / f"study_{study}"
     (out / "study_unpacking").rename(target)
-    kept = json.loads((target / "study.json").read_text())
-    return Step(study, float(kept["budget"]), int(kept["seeds"]), float("nan"), resume=True)
+    kept = read_state(target)
+    return Step(study, kept.budget, kept.seeds, float("nan"), resume=True)
 
 
 def main(argv=None) -> int:

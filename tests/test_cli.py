@@ -380,7 +380,9 @@ def test_train_and_study_start_ray_once_before_any_work(monkeypatch, tmp_path, c
     events = []
     _record_ray_first(monkeypatch, events)
     monkeypatch.setattr(train_cli, "train_population", lambda *a, **k: events.append("work") or {"run_dir": "r"})
-    done = {"steps": {}, "report": {"report": "r"}}
+    from cluster.study.state import StudyState
+
+    done = StudyState(study="s", spec={}, report={"report": "r"})
     monkeypatch.setattr(study_cli, "run_study", lambda *a, **k: events.append("work") or done)
     root = Path(__file__).resolve().parents[1] / "configs"
     argv = {

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from cluster.cli import main
+from cluster.study.state import StudyState
 from population import numerics
 from population.config import PRECISIONS
 
@@ -111,7 +112,8 @@ def test_the_study_command_sets_the_flag_like_the_train_command(tmp_path, monkey
 
     jnp.zeros(1).block_until_ready()
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
-    monkeypatch.setattr(study_cli, "run_study", lambda *a, **k: {"steps": {}, "report": {"report": "r.md"}})
+    done = StudyState(study="s", spec={}, report={"report": "r.md"})
+    monkeypatch.setattr(study_cli, "run_study", lambda *a, **k: done)
     study = tmp_path / "s.yaml"
     study.write_text(yaml.safe_dump({"study": "s", "runs": [{"name": "a", "config": str(SMOKE)}]}))
     assert main(["study", "run", str(study), "--backend", "local", "--out", str(tmp_path / "out")]) == 0

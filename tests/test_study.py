@@ -26,8 +26,9 @@ from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir
 from cluster.runtime.runstate import Schedule
 from cluster.study.pack import pack_study
-from cluster.study.runner import StateFile, StudyOptions, kept_study, open_state, run_study, study_status
+from cluster.study.runner import StateFile, StudyOptions, kept_study, open_state, read_state, run_study, study_status
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config, with_overrides
+from cluster.study.state import StepRecord, StudyState
 from population import checkpoints as ckpt
 from population import policy, ppo
 from population.config import ConfigError, load_config
@@ -66,7 +67,7 @@ def finished(tmp_path_factory):
     base = tmp_path_factory.mktemp("study")
     study = load_study(write_study(base / "tiny.yaml", STUDY))
     state = run_study(study, base / "out", StudyOptions(backend="local", show_progress=False), say=lambda _: None)
-    assert all(step["status"] == "done" for step in state["steps"].values())
+    assert all(step.done for step in state.steps.values())
     return base / "out"
 
 
@@ -314,17 +315,17 @@ def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
     (old / "study.json").write_text(json.dumps(state))
     with pytest.raises(StudyError, match="was started with --budget-mode compress"):
         open_state(load_study(study), old, None, None, "local", mode="truncate")
-    assert open_state(load_study(study), old, None, None, "local")["budget"] == 1.0
+    assert open_state(load_study(study), old, None, None, "local").budget == 1.0
 
 
 def test_set_overrides_every_run_after_the_study_file_and_the_directory_keeps_it(tmp_path, capsys):
     study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
     out = tmp_path / "out"
     StateFile(out, open_state(study, out, None, None, "local", ["eval.episodes=3"])).save()
-    kept = kept_study(json.loads((out / "study.json").read_text()), out)
+    kept = kept_study(read_state(out), out)
     for run in kept.runs:  # the study file sets eval.episodes=2 for every run; --set comes after it
         assert run_config(kept, run, out, 1.0, None).eval.episodes == 3
-    assert open_state(study, out, None, None, "local", [])["set"] == ["eval.episodes=3"]  # left out: kept
+    assert open_state(study, out, None, None, "local", []).overrides == ("eval.episodes=3",)  # left out: kept
     with pytest.raises(StudyError, match="was started with --set eval.episodes=3; pass the same"):
         open_state(study, out, None, None, "local", ["eval.episodes=4"])
     assert main(["study", "report", str(out)]) == 0
@@ -832,3 +833,22 @@ def test_a_pack_of_the_latest_checkpoints_only_still_resumes(finished, tmp_path)
     for seed in range(2):
         assert ckpt.list_updates(moved / "runs" / "sp", seed) == [4]
         assert ckpt.list_updates(moved / "runs" / "sa", seed) == [8]
+
+
+def test_study_json_reads_into_typed_state_and_writes_back_the_same_shape(finished, tmp_path):
+    """The runner works with ``StudyState``; the file keeps the shape it always had, so directories and packs made
+    before the typed state resume unchanged (a field this version does not know is kept, not dropped)."""
+    data = json.loads((finished / "study.json").read_text())
+    state = StudyState.from_json(data, finished / "study.json")
+    assert state.study == "tiny" and state.budget_mode == "truncate" and state.overrides == ()
+    assert all(isinstance(step, StepRecord) and step.done for step in state.steps.values())
+    assert state.steps["train sp"].results == {"update": data["steps"]["train sp"]["update"]}
+    assert state.to_json() == data
+    older = {**data, "future_field": [1, 2]}
+    del older["budget_mode"], older["set"]  # a directory from before --budget-mode and --set
+    state = StudyState.from_json(older, tmp_path / "study.json")
+    assert state.budget_mode == "compress" and state.overrides == () and state.extra == {"future_field": [1, 2]}
+    assert state.to_json()["future_field"] == [1, 2]
+    step = StepRecord()
+    step.update(status="done", wall_s=3.0, reason=None, update=7)
+    assert step.to_json() == {"status": "done", "wall_s": 3.0, "update": 7}

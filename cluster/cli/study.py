@@ -28,7 +28,7 @@ from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
 from cluster.study.report import write_report
 from cluster.study.runner import StudyOptions, kept_study, plan_study, read_state, run_study, study_status
-from cluster.study.spec import BUDGET_MODES, StudyError, budget_mode, default_out, load_study, run_config
+from cluster.study.spec import BUDGET_MODES, StudyError, default_out, load_study, run_config
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
 from population.numerics import enable_deterministic_ops
@@ -163,11 +163,11 @@ def _run(args) -> int:
             state = run_study(study, out, options, say=say)
     except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
         raise CLIError(str(error)) from None
-    blocked = {name: step for name, step in state["steps"].items() if step.get("status") != "done"}
-    print(f"report: {state['report']['report']}")
+    blocked = {name: step for name, step in state.steps.items() if not step.done}
+    print(f"report: {state.report['report']}")
     if blocked:
         for name, step in blocked.items():
-            print(f"not done: {name}: {step.get('reason') or step.get('status')}")
+            print(f"not done: {name}: {step.reason or step.status}")
         raise CLIError(
             f"{len(blocked)} step(s) could not run (above); fix them and run the same command again", EXIT_FAILURE
         )
@@ -220,7 +220,7 @@ def _report(directory: str, dest: str | None) -> int:
     out = Path(directory).resolve()
     try:
         state = read_state(out)
-        if not state:
+        if state is None:
             raise StudyError(f"{out}: not a study directory (no study.json)")
         if dest is not None:
             check_new_folder("--out", dest)
@@ -228,9 +228,7 @@ def _report(directory: str, dest: str | None) -> int:
             if inside == out or out in inside.parents:  # it would write over the study's own results
                 raise CLIError(f"--out {dest}: lies inside the study directory {out}; give a folder outside it")
         study = kept_study(state, out)
-        configs = {
-            r.name: run_config(study, r, out, state["budget"], state["seeds"], budget_mode(state)) for r in study.runs
-        }
+        configs = {r.name: run_config(study, r, out, state.budget, state.seeds, state.budget_mode) for r in study.runs}
         paths = write_report(study, out, state, configs, None if dest is None else Path(dest))
     except (StudyError, RunDirError) as error:
         raise CLIError(str(error)) from None

@@ -21,7 +21,8 @@ import numpy as np
 from cluster.runtime.crossplay import seat_pairs
 from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves, write_json
-from cluster.study.spec import PaperValue, Study, budget_mode, comparison_dir, run_dir
+from cluster.study.spec import PaperValue, Study, comparison_dir, run_dir
+from cluster.study.state import StepRecord, StudyState
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
@@ -29,7 +30,7 @@ from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_
 METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
 
 
-def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path | None = None) -> dict:
+def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest: Path | None = None) -> dict:
     """The report of study directory ``out``, written into ``dest`` (default ``out``). Into another
     folder it comes with copies of the cross-play matrices (``xp_<run>.csv``, ``xp_<comparison>.csv``),
     which makes a compact, self-contained record without checkpoints or archives."""
@@ -43,17 +44,17 @@ def write_report(study: Study, out: Path, state: dict, configs: dict, dest: Path
     summary = {
         "study": study.name,
         "source": str(study.path),
-        "budget": state["budget"],
-        "budget_mode": budget_mode(state),
-        "seeds": state["seeds"],
-        "set": state.get("set", []),
-        "backend": state.get("backend"),
+        "budget": state.budget,
+        "budget_mode": state.budget_mode,
+        "seeds": state.seeds,
+        "set": list(state.overrides),
+        "backend": state.backend,
         "written": _now(),
         "runs": runs,
         "comparisons": comparisons,
         "over_training": over,
         "ci_method": "95% percentile bootstrap over training seeds",
-        "wall_s": round(sum(s.get("wall_s", 0.0) for s in state.get("steps", {}).values()), 1),
+        "wall_s": round(sum(step.wall_s for step in state.steps.values()), 1),
     }
     pictures = (
         _curves(study, out, configs, dest) + _heatmaps(out, runs, comparisons, dest) + _over_training_plots(dest, over)
@@ -94,9 +95,9 @@ def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
 # ---------------------------------------------------------------------------------------------------
 
 
-def _run_entry(study: Study, spec, out: Path, config, state: dict) -> dict:
+def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict:
     path = run_dir(out, spec.name)
-    step = state.get("steps", {}).get(f"train {spec.name}", {})
+    step = state.steps.get(f"train {spec.name}", StepRecord())
     entry = {
         "name": spec.name,
         "config": str(spec.config),
@@ -108,7 +109,7 @@ def _run_entry(study: Study, spec, out: Path, config, state: dict) -> dict:
         "env_steps_per_seed": config.ppo.num_updates * config.ppo.steps_per_update,
         "fingerprint": config.fingerprint(),
         "status": "not started",
-        "wall_s": step.get("wall_s"),
+        "wall_s": step.wall_s if f"train {spec.name}" in state.steps else None,
         "commits": [],
         "xp": None,
         "paper": None
@@ -175,13 +176,13 @@ def _commits(path: Path) -> list[str]:
     return commits
 
 
-def _comparison_entry(name: str, out: Path, state: dict) -> dict:
-    step = state.get("steps", {}).get(f"compare {name}", {})
+def _comparison_entry(name: str, out: Path, state: StudyState) -> dict:
+    step = state.steps.get(f"compare {name}")
     entry = {
         "name": name,
-        "status": step.get("status", "left"),
-        "reason": step.get("reason", ""),
-        "wall_s": step.get("wall_s"),
+        "status": "left" if step is None else step.status,
+        "reason": "" if step is None else step.reason or "",
+        "wall_s": None if step is None else step.wall_s,
     }
     path = comparison_dir(out, name) / "summary.json"
     if path.is_file():
@@ -418,14 +419,14 @@ def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
 # ---------------------------------------------------------------------------------------------------
 
 
-def markdown(study: Study, summary: dict, state: dict) -> str:
+def markdown(study: Study, summary: dict, state: StudyState) -> str:
     """report.md's text: the header, our numbers beside the paper's per run, each comparison's seat
     orders, the over-training tables and the pictures, from ``summary`` (``write_report``'s) and the
     study directory's ``state``."""
     left = [
-        f"- {name}: {step.get('status')}" + (f" ({step['reason']})" if step.get("reason") else "")
-        for name, step in state.get("steps", {}).items()
-        if step.get("status") != "done"
+        f"- {name}: {step.status}" + (f" ({step.reason})" if step.reason else "")
+        for name, step in state.steps.items()
+        if not step.done
     ]
     lines = [f"# Study `{study.name}`", ""]
     if study.description:

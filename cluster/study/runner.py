@@ -25,7 +25,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -36,18 +35,16 @@ from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import DirLock, RunDir, RunDirError, write_json
 from cluster.study.report import read_result, write_report
 from cluster.study.spec import (
-    BUDGET_MODES,
-    NAME,
     Comparison,
     Study,
     StudyError,
-    budget_mode,
     comparison_dir,
     parse_study,
     run_config,
     run_dir,
     with_overrides,
 )
+from cluster.study.state import StepRecord, StudyState
 from ocv2 import boundedjson
 from population import checkpoints as ckpt
 from population.config import Config, ConfigError
@@ -99,14 +96,14 @@ def check_folder(out: Path, what: str = "a study directory") -> None:
             break
 
 
-def read_state(out: Path) -> dict:
-    """``out``'s study.json, checked field by field (``check_state``); {} when there is none."""
+def read_state(out: Path) -> StudyState | None:
+    """``out``'s study.json, checked field by field (``StudyState.from_json``); None when there is none."""
     check_folder(out)
     path = Path(out) / STATE_NAME
     try:
         text = path.read_text()
     except FileNotFoundError:
-        return {}
+        return None
     except UnicodeDecodeError as error:
         raise StudyError(f"{path}: unreadable ({error}); {_RESTORE}") from None
     except OSError as error:
@@ -115,69 +112,10 @@ def read_state(out: Path) -> dict:
         data = boundedjson.loads(text)
     except ValueError as error:  # not JSON, nested too deep, or an integer past Python's digit limit
         raise StudyError(f"{path}: unreadable ({error}); {_RESTORE}") from None
-    return check_state(data, path)
+    return StudyState.from_json(data, path)
 
 
 _RESTORE = "restore it from a backup or a pack of this study (ocv2 study pack)"
-#: The steps' states a study.json may record.
-STEP_STATES = ("left", "running", "done", "blocked")
-
-
-def check_state(data, path: Path) -> dict:
-    """``data`` (a parsed study.json) if every field has the type ``run_study`` and the report read, else a
-    StudyError naming the file and the field: a damaged file is one line, not a KeyError deep in a step."""
-
-    def bad(field: str, expected: str, value) -> StudyError:
-        shown = repr(value)
-        shown = shown if len(shown) <= 60 else shown[:57] + "..."
-        return StudyError(f"{path}: {field}: expected {expected}, got {shown}; {_RESTORE}")
-
-    if not isinstance(data, dict):
-        raise StudyError(f"{path}: holds a JSON {type(data).__name__}, not an object; {_RESTORE}")
-    study = data.get("study")
-    if not isinstance(study, str) or not NAME.fullmatch(study):
-        raise bad("study", "the study's name", study)
-    if not isinstance(data.get("spec"), dict):
-        raise bad("spec", "the study file's data (an object)", data.get("spec", "nothing"))
-    budget = data.get("budget")
-    if not _number(budget) or not 0 < budget <= 100:
-        raise bad("budget", "a number in (0, 100]", budget)
-    if "budget_mode" in data and data["budget_mode"] not in BUDGET_MODES:
-        raise bad("budget_mode", " or ".join(BUDGET_MODES), data["budget_mode"])
-    seeds = data.get("seeds")
-    if seeds is not None and (not isinstance(seeds, int) or isinstance(seeds, bool) or seeds < 1):
-        raise bad("seeds", "null or a positive integer", seeds)
-    overrides = data.get("set", [])
-    if not isinstance(overrides, list) or not all(isinstance(o, str) and "=" in o for o in overrides):
-        raise bad("set", "a list of section.key=value overrides", overrides)
-    for key in ("source", "backend"):
-        if key in data and not isinstance(data[key], str):
-            raise bad(key, "text", data[key])
-    if "report" in data and not isinstance(data["report"], dict):
-        raise bad("report", "an object", data["report"])
-    steps = data.get("steps", {})
-    if not isinstance(steps, dict):
-        raise bad("steps", "an object of steps", steps)
-    for name, step in steps.items():
-        if not isinstance(step, dict):
-            raise bad(f"steps[{name!r}]", "an object", step)
-        if step.get("status", "left") not in STEP_STATES:
-            raise bad(f"steps[{name!r}].status", " / ".join(STEP_STATES), step.get("status"))
-        for key in ("wall_s", "started", "ticked", "finished"):
-            if key in step and not _number(step[key]):
-                raise bad(f"steps[{name!r}].{key}", "a number", step[key])
-        if "reason" in step and not isinstance(step["reason"], str):
-            raise bad(f"steps[{name!r}].reason", "text", step["reason"])
-    return data
-
-
-def _number(value) -> bool:
-    if not isinstance(value, (int, float)) or isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except OverflowError:  # an integer of hundreds of digits
-        return False
 
 
 def open_state(
@@ -188,19 +126,19 @@ def open_state(
     backend: str,
     overrides: Sequence[str] = (),
     mode: str | None = None,
-) -> dict:
+) -> StudyState:
     """The study directory's state, created or checked: a directory keeps the budget, its mode, the seed
     count and ``--set`` overrides it was started with (options left out on a later run take those values)."""
     state = read_state(out)
-    overrides = list(overrides) or None
-    if state:
-        if state.get("study") != study.name:
-            raise StudyError(f"{out}: holds study {state.get('study')!r}, not {study.name!r}; choose another --out")
+    given_overrides = tuple(overrides) or None
+    if state is not None:
+        if state.study != study.name:
+            raise StudyError(f"{out}: holds study {state.study!r}, not {study.name!r}; choose another --out")
         kept_options = (
-            ("--budget", budget, state.get("budget")),
-            ("--budget-mode", mode, budget_mode(state)),
-            ("--seeds", seeds, state.get("seeds")),
-            ("--set", overrides, state.get("set", [])),
+            ("--budget", budget, state.budget),
+            ("--budget-mode", mode, state.budget_mode),
+            ("--seeds", seeds, state.seeds),
+            ("--set", given_overrides, state.overrides),
         )
         for flag, given, kept in kept_options:
             if given is not None and given != kept:
@@ -216,47 +154,45 @@ def open_state(
             raise StudyError(f"{out}: is a file, not a study directory")
         if out.is_dir() and any(p.name not in ("runs", ".lock") for p in out.iterdir()):
             raise StudyError(f"{out}: exists and is not a study directory (no {STATE_NAME}); choose another --out")
-        state = {
-            "study": study.name,
-            "budget": 1.0 if budget is None else budget,
-            "budget_mode": "truncate" if mode is None else mode,
-            "seeds": seeds,
-            "set": overrides or [],
-            "steps": {},
-            "created": time.time(),
-        }
-    state.update(source=str(study.path), spec=study.raw, backend=backend)
-    state.setdefault("steps", {})
-    state.setdefault("set", [])  # a study directory from before --set
+        state = StudyState(
+            study=study.name,
+            spec=study.raw,
+            budget=1.0 if budget is None else budget,
+            budget_mode="truncate" if mode is None else mode,
+            seeds=seeds,
+            overrides=given_overrides or (),
+            created=time.time(),
+        )
+    state.source, state.spec, state.backend = str(study.path), study.raw, backend
     return state
 
 
-def kept_study(state: dict, out: Path) -> Study:
+def kept_study(state: StudyState, out: Path) -> Study:
     """The study a study directory runs: the file's data it keeps, with the ``--set`` overrides it was started with."""
     try:
-        study = parse_study(state["spec"], Path(state.get("source", Path(out) / "study.yaml")))
+        study = parse_study(state.spec, Path(state.source or Path(out) / "study.yaml"))
     except StudyError as error:
         raise StudyError(f"{Path(out) / STATE_NAME}: spec: {error}") from None
-    return with_overrides(study, state.get("set", []))
+    return with_overrides(study, list(state.overrides))
 
 
 class StateFile:
     """``study.json``, rewritten atomically whenever a step starts, advances or ends."""
 
-    def __init__(self, out: Path, state: dict):
+    def __init__(self, out: Path, state: StudyState):
         self.path, self.state = Path(out) / STATE_NAME, state
 
     def save(self) -> None:
         """Write the state to study.json (atomically)."""
-        write_json(self.path, self.state)
+        write_json(self.path, self.state.to_json())
 
-    def step(self, name: str) -> dict:
-        """Step ``name``'s entry, created "left" with no wall time when it has none."""
-        return self.state["steps"].setdefault(name, {"status": "left", "wall_s": 0.0})
+    def step(self, name: str) -> StepRecord:
+        """Step ``name``'s record, created "left" with no wall time when it has none."""
+        return self.state.step(name)
 
     def mark(self, name: str, **changes) -> None:
-        """Update step ``name``'s entry with ``changes`` and save."""
-        self.step(name).update(changes)
+        """Update step ``name``'s record with ``changes`` and save."""
+        self.step(name).update(**changes)
         self.save()
 
     def timer(self, name: str) -> StepTimer:
@@ -274,8 +210,8 @@ class StepTimer:
         """Add the wall time since the last tick to the step, record ``changes`` and save."""
         now = time.time()
         step = self.state.step(self.name)
-        step["wall_s"] = round(step.get("wall_s", 0.0) + now - self.last, 1)
-        self.last = step["ticked"] = now  # lets ``study_status`` add the time since, while the step runs
+        step.wall_s = round(step.wall_s + now - self.last, 1)
+        self.last = step.ticked = now  # lets ``study_status`` add the time since, while the step runs
         self.state.mark(self.name, **changes)
 
 
@@ -291,7 +227,7 @@ class Plan:
 
     study: Study
     out: Path
-    state: dict
+    state: StudyState
     options: StudyOptions
     configs: dict
     retrain: tuple[str, ...] = ()
@@ -308,14 +244,14 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     out = Path(out).resolve()
     backend, address = options.backend, options.address
     state = open_state(study, out, options.budget, options.seeds, backend, options.overrides, options.budget_mode)
-    study = with_overrides(study, state["set"])
+    study = with_overrides(study, list(state.overrides))
     retrain = tuple(dict.fromkeys(options.retrain))
     options = dataclasses.replace(
         options,
-        budget=state["budget"],
-        seeds=state["seeds"],
-        budget_mode=budget_mode(state),
-        overrides=tuple(state["set"]),
+        budget=state.budget,
+        seeds=state.seeds,
+        budget_mode=state.budget_mode,
+        overrides=state.overrides,
         retrain=retrain,
     )
     # Every config at this budget and seed count first: one they refuse fails before the directory is written.
@@ -434,14 +370,14 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         steps = study_steps(study)
         for number, step in enumerate(steps, start=1):
             name = step.name
-            if state.step(name).get("status") == "done":
+            if state.step(name).done:
                 problem = result_problem(step, study, out, configs)
                 if problem is None:
                     continue
                 say(f"study {study.name}: {name}: {problem}; doing the step again")
             say(f"study {study.name}: [{number}/{len(steps)}] {name}")
             timer = state.timer(name)
-            state.step(name).pop("reason", None)  # a step blocked before may run now
+            state.step(name).reason = None  # a step blocked before may run now
             state.mark(name, status="running", started=timer.last, ticked=timer.last)
             try:
                 result = _RUN_STEP[step.kind](plan, step.target, timer)
@@ -450,8 +386,7 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
                 say(f"study {study.name}: {name} blocked: {blocked}")
                 continue
             timer.tick(status="done", finished=time.time(), **(result or {}))
-        paths = write_report(study, out, state.state, configs)
-        state.state["report"] = paths
+        state.state.report = write_report(study, out, state.state, configs)
         state.save()
         return state.state
     finally:
@@ -465,7 +400,7 @@ def _set_aside(study: Study, out: Path, name: str, state: StateFile, say: Callab
     moves = [(run_dir(out, name), Step("train", name)), (out / "over_training" / name, Step("over_training", name))]
     moves += [(comparison_dir(out, c.name), Step("compare", c.name)) for c in study.comparisons if name in c.runs]
     for source, step in moves:
-        state.state["steps"].pop(step.name, None)
+        state.state.steps.pop(step.name, None)
         if source.exists():
             destination = target / source.relative_to(out)
             destination.parent.mkdir(parents=True, exist_ok=True)
@@ -752,30 +687,22 @@ def study_status(out) -> list[dict]:
     for training steps (from the throughput this study measured, per model kind; None when unknown)."""
     out = Path(out).resolve()
     state = read_state(out)
-    if not state:
+    if state is None:
         raise StudyError(f"{out}: not a study directory (no {STATE_NAME})")
     study = kept_study(state, out)
     rates = _rates(study, out, state)
     configs = {}
     for run in study.runs:  # what a run not started yet will train (the budget and seeds the study keeps)
         try:
-            configs[run.name] = run_config(
-                study, run, out, state.get("budget", 1.0), state.get("seeds"), budget_mode(state)
-            )
+            configs[run.name] = run_config(study, run, out, state.budget, state.seeds, state.budget_mode)
         except StudyError:
             pass
     entries = []
     for one in study_steps(study):
         name = one.name
-        step = state.get("steps", {}).get(name, {})
-        status = step.get("status", "left")
-        entry = {
-            "step": name,
-            "status": status,
-            "wall_s": step.get("wall_s", 0.0),
-            "detail": step.get("reason", ""),
-            "eta_s": None,
-        }
+        step = state.steps.get(name, StepRecord())
+        status = step.status
+        entry = {"step": name, "status": status, "wall_s": step.wall_s, "detail": step.reason or "", "eta_s": None}
         if one.kind == "train":
             entry.update(_train_progress(run_dir(out, one.target), configs.get(one.target), rates))
             if status != "done" and entry.pop("finished", False):
@@ -783,19 +710,19 @@ def study_status(out) -> list[dict]:
         if status == "running":
             if not DirLock(out).held_elsewhere():
                 entry["status"] = "interrupted"
-            elif "ticked" in step:  # wall time is saved per chunk; add the running chunk's so far
-                entry["wall_s"] += max(0.0, time.time() - step["ticked"])
+            elif step.ticked is not None:  # wall time is saved per chunk; add the running chunk's so far
+                entry["wall_s"] += max(0.0, time.time() - step.ticked)
         entries.append(entry)
     return entries
 
 
-def _rates(study: Study, out: Path, state: dict) -> dict:
+def _rates(study: Study, out: Path, state: StudyState) -> dict:
     """Measured env steps per second of population training, per model kind, from this study's runs."""
     totals: dict = {}
     for run in study.runs:
-        step = state.get("steps", {}).get(Step("train", run.name).name, {})
+        step = state.steps.get(Step("train", run.name).name, StepRecord())
         path = run_dir(out, run.name)
-        if not (path / "config.yaml").is_file() or not step.get("wall_s"):
+        if not (path / "config.yaml").is_file() or not step.wall_s:
             continue
         config = RunDir(path).load_config()
         rows = RunDir(path).read_metrics()
@@ -804,7 +731,7 @@ def _rates(study: Study, out: Path, state: dict) -> dict:
         kind = config.model.kind
         seen = totals.setdefault(kind, [0.0, 0.0])
         seen[0] += steps
-        seen[1] += step["wall_s"]
+        seen[1] += step.wall_s
     return {kind: steps / wall for kind, (steps, wall) in totals.items() if wall > 0 and steps > 0}
 
 

@@ -302,12 +302,6 @@ def with_overrides(study: Study, overrides: Sequence[str]) -> Study:
 BUDGET_MODES = ("truncate", "compress")
 
 
-def budget_mode(state: dict) -> str:
-    """How a study directory (its study.json ``state``) applies its budget: directories from before
-    ``--budget-mode`` existed compressed."""
-    return state.get("budget_mode", "compress")
-
-
 #: Overrides every study run starts from; the study file's ``set``, the run's ``set`` and ``ocv2 study run --set``
 #: come after them and win. The report reads each run's cross-play scores (``xp/summary.json``, ``xp/matrix.csv``:
 #: returns and start recipes, 400 KB for a paper matrix), never its XP archive, which keeps every transition of every
