@@ -60,7 +60,7 @@ def require_backend(backend: str) -> None:
 def archive_settings(config: Config, evaluate: bool = True) -> list[str]:
     """The settings (``--set`` syntax) that would turn off each part of the trajectory archive this run writes
     or reads; empty when the run needs no archive (and so no ``mcap``)."""
-    sa = config.population.method == "sa"
+    sa = config.population.traits.resets_from_buffer  # SA's collections and archives
     wanted = {
         "archive.xp=false": evaluate and config.archive.xp,
         "archive.sa_collection=false": sa and config.archive.sa_collection,

@@ -128,7 +128,8 @@ class Trainer:
 
     @property
     def fcp(self) -> bool:
-        return self.config.population.method == "fcp"
+        """One learner seat per env, the other played by partners from a pool (FCP)."""
+        return self.config.population.traits.one_learner_seat
 
     @property
     def num_sequences(self) -> int:
@@ -142,7 +143,7 @@ class Trainer:
 def train_env(config: Config) -> ocv2.OvercookedV2:
     """The environment learners train in (OP adds per-agent permutations)."""
     kwargs = config.env_kwargs
-    if config.population.method == "op":
+    if config.population.traits.permuted_train_env:
         kwargs["op_ingredient_permutations"] = list(config.population.op.ingredients)
     return ocv2.make(**kwargs)
 

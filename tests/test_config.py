@@ -586,3 +586,24 @@ def test_seed_shards_and_job_blocks_are_one_split():
     assert shards(config) == [[0, 1, 2], [3, 4, 5], [6, 7], [8, 9]] == spread(range(10), 4)
     assert shards(parse_config({"population": {"num_seeds": 5}, "cluster": {"workers": 2}})) == [[0, 1, 2], [3, 4]]
     assert spread([1, 2], 3) == [[1], [2], []]
+
+
+def test_every_method_is_one_table_entry_whose_traits_the_code_reads():
+    """What the runtime asks of a method (one learner seat, a partner pool, a permuted env, a state buffer) is a
+    trait of its METHOD_TABLE entry; the names, their order and the long names come from the same table."""
+    from cluster.cli.report import METHOD_NAMES as CLI_NAMES
+    from cluster.study.report import METHOD_NAMES as STUDY_NAMES
+    from population import ppo
+    from population.config import METHOD_TABLE, METHODS, parse_config
+
+    assert METHODS == ("sp", "sa", "op", "fcp") == tuple(m.name for m in METHOD_TABLE)
+    assert CLI_NAMES == STUDY_NAMES == {m.name: m.long_name for m in METHOD_TABLE}
+    layout = {"layout": "grounded_coord_simple"}  # two ingredients: OP's default permutation applies
+    traits = {m: parse_config({"env": layout, "population": {"method": m}}).population.traits for m in METHODS}
+    assert [t.name for t in traits.values() if t.one_learner_seat] == ["fcp"]
+    assert [t.name for t in traits.values() if t.partner_pool] == ["fcp"]
+    assert [t.name for t in traits.values() if t.permuted_train_env] == ["op"]
+    assert [t.name for t in traits.values() if t.resets_from_buffer] == ["sa"]
+    op = parse_config({"env": layout, "population": {"method": "op"}})  # the trait at work (more: test_methods.py)
+    assert ppo.train_env(op).config.op_enabled and not ppo.eval_env(op).config.op_enabled
+    assert ppo.make_trainer(parse_config({"env": layout, "population": {"method": "fcp"}})).fcp

@@ -33,10 +33,10 @@ from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
+from population.config import METHOD_TABLE, METHODS
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
 
-METHOD_ORDER = ("sp", "sa", "op", "fcp")
-METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
+METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
 NO_XP_NOTE = "no cross-play yet: run ocv2 xp {run}"
 CSV_FIELDS = (
     "layout",
@@ -135,7 +135,7 @@ def report_rows(runs: list[dict]) -> list[dict]:
         groups.setdefault(run["config"].env, []).append(run)
     rows = []
     for members in groups.values():
-        members = sorted(members, key=lambda r: METHOD_ORDER.index(r["config"].population.method))
+        members = sorted(members, key=lambda r: METHODS.index(r["config"].population.method))
         baseline = next((r for r in members if r["config"].population.method == "sp" and r["summary"]), None)
         for run in members:
             config, summary = run["config"], run["summary"]

@@ -89,7 +89,7 @@ def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, ext
 
 def archived_states(config: Config):
     """``population.sa.archives`` as one numpy state batch (None without archives). Raises ArchiveError."""
-    if config.population.method != "sa" or not config.population.sa.archives:
+    if not config.population.traits.resets_from_buffer or not config.population.sa.archives:
         return None
     states = states_as_buffer(
         list(config.population.sa.archives), config.population.sa.keep_every, layout=ppo.eval_env(config).layout
@@ -272,9 +272,10 @@ def train(
 
 def _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra) -> dict:
     past_events = run.read_manifest().get("restart_events", []) if resuming else []
-    method = config.population.method
     schedule = Schedule.of(config, run.path)
-    pool, pool_labels = fcp_pool(config, run, factory, show_progress) if method == "fcp" else (None, [])
+    pool, pool_labels = (None, [])
+    if config.population.traits.partner_pool:
+        pool, pool_labels = fcp_pool(config, run, factory, show_progress)
     workers = factory(config, run.path, pool)
     workers.events[:0] = past_events  # restarts of earlier drivers of this run stay on record
     try:
@@ -300,7 +301,7 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
             run.append_metrics(caught_up_rows)
         run.update_manifest(
             status="training",
-            method=method,
+            method=config.population.method,
             num_updates=schedule.num_updates,
             update=update,
             snapshots=list(schedule.snapshots),

@@ -43,7 +43,7 @@ class Schedule:
         """
         updates = config.ppo.num_updates
         starts = ()
-        if config.population.method == "sa":
+        if config.population.traits.resets_from_buffer:
             # Laid over the schedule: a truncated run keeps the longer run's iteration starts it reaches.
             iterations, horizon = config.population.sa.iterations, config.ppo.schedule_updates
             starts = {round(i * horizon / iterations) for i in range(iterations)}

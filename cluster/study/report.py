@@ -25,9 +25,10 @@ from cluster.study.spec import PaperValue, Study, comparison_dir, run_dir
 from cluster.study.state import StepRecord, StudyState
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
+from population.config import METHOD_TABLE
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
 
-METHOD_NAMES = {"sp": "Self-Play", "sa": "State-Augmented", "op": "Other-Play", "fcp": "Fictitious Co-Play"}
+METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
 
 
 def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest: Path | None = None) -> dict:

@@ -18,7 +18,30 @@ MAX_SEED = 2**32 - 1
 #: The SP stage of an FCP run without partners trains with ``population.seed + FCP_STAGE_SEED_OFFSET``.
 FCP_STAGE_SEED_OFFSET = 7919
 
-METHODS = ("sp", "sa", "op", "fcp")
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """What the code needs to know about a training method, as traits rather than its name: the runtime asks
+    "does one seat learn?", not "is it FCP?", so a method that is SP in another env (as OP is) is one entry of
+    ``METHOD_TABLE``."""
+
+    name: str  # population.method
+    long_name: str  # in reports and tables
+    one_learner_seat: bool = False  # one seat per env learns; the other is played by a partner from a pool (FCP)
+    partner_pool: bool = False  # needs a pool of partner policies before its workers start (FCP)
+    permuted_train_env: bool = False  # trains in an env with per-agent ingredient permutations (OP)
+    resets_from_buffer: bool = False  # restarts episodes from a shared state buffer at iteration starts (SA)
+
+
+#: Every method, in the order reports list them.
+METHOD_TABLE = (
+    Method("sp", "Self-Play"),
+    Method("sa", "State-Augmented", resets_from_buffer=True),
+    Method("op", "Other-Play", permuted_train_env=True),
+    Method("fcp", "Fictitious Co-Play", one_learner_seat=True, partner_pool=True),
+)
+METHODS = tuple(method.name for method in METHOD_TABLE)
+_METHODS_BY_NAME = {method.name: method for method in METHOD_TABLE}
 ACTIVATIONS = ("relu", "tanh")
 KERNELS = ("auto", "cpu", "xla")  # model.kernels
 GRU_BACKWARDS = ("auto", "hand", "autodiff")  # model.gru_backward
@@ -172,6 +195,11 @@ class PopulationConfig:
     sa: SAConfig = SAConfig()
     op: OPConfig = OPConfig()
     fcp: FCPConfig = FCPConfig()
+
+    @property
+    def traits(self) -> Method:
+        """The ``Method`` named by ``method`` (validated at parse time)."""
+        return _METHODS_BY_NAME[self.method]
 
     @property
     def trains_partners(self) -> bool:

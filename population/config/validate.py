@@ -140,9 +140,10 @@ def validate(config: Config) -> list[str]:
     problems += _validate_ppo("ppo", ppo)
     sizes_ok = ppo.num_envs > 0 and ppo.num_steps > 0 and ppo.num_minibatches > 0
     env = build_config(**config.env_kwargs)
-    learner_actors = ppo.num_envs if pop.method == "fcp" else ppo.num_envs * env.num_agents
+    one_seat = pop.method in METHODS and pop.traits.one_learner_seat  # (an unknown name is reported below)
+    learner_actors = ppo.num_envs if one_seat else ppo.num_envs * env.num_agents
     if sizes_ok and learner_actors % ppo.num_minibatches:
-        seats = "1 learner seat" if pop.method == "fcp" else f"{env.num_agents} agents"
+        seats = "1 learner seat" if one_seat else f"{env.num_agents} agents"
         problems.append(
             f"ppo.num_minibatches: {ppo.num_minibatches} does not divide the {learner_actors} "
             f"learner sequences per update (num_envs x {seats})"
