@@ -11,14 +11,18 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import importlib.util
 import json
 import subprocess
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
 from cluster.cli import main
+from population.policy import load, policy_env
+from population.record import play_recorded
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "table1_coord_ring_sp10"
 POLICIES = RESULTS / "policies"
@@ -77,3 +81,18 @@ def test_no_published_result_is_hidden_by_gitignore():
         check=True,
     ).stdout.split()
     assert listed == []
+
+
+def test_the_role_counts_account_for_every_delivery_in_the_returns():
+    """roles.py's per-seat counts read the recorded states the way the environment scores them: on the classic
+    Coordination Ring every delivery is worth 20, so the deliveries it finds are the returns / 20."""
+    spec = importlib.util.spec_from_file_location("sp10_roles", RESULTS / "roles.py")
+    roles = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(roles)
+    policy = load(POLICIES / "sp_seed3_update30.ocv2policy")
+    env = policy_env(policy.env)
+    played = play_recorded(policy.apply, policy.hidden_size, env, (policy.params,) * 2, jax.random.PRNGKey(7), 4)
+    counts = roles.role_counts(played.states)
+    assert counts.shape == (len(roles.ROLES), 2)
+    assert counts[3].sum() * 20 == float(played.returns.sum()) > 0
+    assert counts[0].sum() >= 3 * counts[2].sum() >= 3 * counts[3].sum()  # 3 onions a soup, a soup a delivery

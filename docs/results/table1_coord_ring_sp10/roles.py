@@ -1,0 +1,105 @@
+"""Who does what, per seat, in each Coordination Ring seed's self-play: the role split beside the ring direction.
+
+    python docs/results/table1_coord_ring_sp10/roles.py --update 61 [--episodes 32]
+
+Reads the published policies (``policies/sp_seed<i>_update<U>.ocv2policy``, checked against SHA256SUMS.json) and
+plays each seed with itself for N episodes (sampled actions, a fixed key), keeping every state. Per seat, from the
+held item before and after each transition and the cell the cook faces:
+
+- onions put into a pot (a raw ingredient leaves the hand while facing a pot),
+- dishes picked up (an empty hand takes a plate, from the pile or a counter),
+- soups plated (a plate becomes a cooked dish while facing a pot),
+- deliveries (a cooked dish leaves the hand while facing the serving window);
+
+each as a share of the pair's total, and the clockwise share of the seat's ring moves (as ring_direction.py in
+table1_coord_ring/ measures it). Two seeds whose agents split the work the same way per seat, and walk the same
+way, have the same convention; a seed on another one is where low cross-play pairs are to be expected.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ocv2.items import COOKED, DIRECTION_VECTORS, EMPTY, PLATE, Static
+from population.policy import load, policy_env
+from population.record import play_recorded
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "table1_coord_ring"))
+from ring_direction import clockwise_moves  # noqa: E402
+
+ROLES = ("onions to pot", "dishes taken", "soups plated", "deliveries")
+
+
+def raw(item: np.ndarray) -> np.ndarray:
+    return ((item >> 2) != 0) & ((item & PLATE) == 0)
+
+
+def role_counts(states) -> np.ndarray:
+    """[len(ROLES), seat] counts over every episode and step of a recorded play (states [E, T+1, ...])."""
+    agents = states.agents
+    held, later = np.asarray(agents.inventory[:, :-1]), np.asarray(agents.inventory[:, 1:])  # [E, T, seat]
+    x, y, facing = (np.asarray(a[:, :-1]) for a in (agents.x, agents.y, agents.dir))
+    static = np.asarray(states.grid[:, 0, :, :, 0])  # the static layer never changes in an episode: [E, H, W]
+    fx, fy = x + DIRECTION_VECTORS[facing, 0], y + DIRECTION_VECTORS[facing, 1]
+    episode = np.arange(static.shape[0])[:, None, None]
+    faced = static[episode, np.clip(fy, 0, static.shape[1] - 1), np.clip(fx, 0, static.shape[2] - 1)]
+    dish = (later & COOKED) != 0
+    counts = [
+        raw(held) & (later == EMPTY) & (faced == Static.POT),
+        (held == EMPTY) & (later == PLATE),
+        (held == PLATE) & dish & (faced == Static.POT),
+        ((held & COOKED) != 0) & (later == EMPTY) & (faced == Static.GOAL),
+    ]
+    return np.stack([c.sum(axis=(0, 1)) for c in counts])
+
+
+def check_sums(files: list[Path]) -> None:
+    listing = {e["file"]: e["sha256"] for e in json.loads((HERE / "policies" / "SHA256SUMS.json").read_text())}
+    for path in files:
+        if hashlib.sha256(path.read_bytes()).hexdigest() != listing.get(path.name):
+            sys.exit(f"{path}: not the published file (its sha256 is not the one in SHA256SUMS.json)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--update", type=int, required=True, help="the snapshot (policies/sp_seed<i>_update<U>)")
+    parser.add_argument("--episodes", type=int, default=32)
+    parser.add_argument("--seeds", type=int, default=10)
+    args = parser.parse_args()
+    files = [HERE / "policies" / f"sp_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
+    check_sums(files)
+    header = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
+    print(f"| seed | clockwise share (seat 0, seat 1) | {header} | return |")
+    print("|---:|---|" + "---:|" * len(ROLES) + "---:|")
+    play = None
+    for seed, path in enumerate(files):
+        policy = load(path)
+        if play is None:  # one compiled self-play rollout for every seed (same network, same env)
+            env = policy_env(policy.env)
+            play = jax.jit(
+                lambda params, key: play_recorded(
+                    policy.apply, policy.hidden_size, env, (params, params), key, args.episodes
+                )
+            )
+        played = play(policy.params, jax.random.PRNGKey(7))
+        clockwise, moves = clockwise_moves(played.states.agents.x, played.states.agents.y, time_axis=1)
+        share = clockwise / np.maximum(moves, 1)
+        counts = role_counts(played.states)
+        cells = [f"{c[0] / max(c.sum(), 1):.2f} of {int(c.sum())}" for c in counts]
+        print(
+            f"| {seed} | {share[0]:.2f}, {share[1]:.2f} | " + " | ".join(cells)
+            + f" | {float(np.mean(played.returns)):.1f} |",
+            flush=True,
+        )  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
