@@ -9,7 +9,9 @@ and ``<!-- gpu_run:end -->``: the device and versions, every measured trainer ra
 of the same GPU's matmul rate (float32 and bf16, measured in the same command), and the environment alone
 against JaxMARL's. From ``results.tar.gz`` it unpacks each study's report folder, exported policies (with
 their sha256 sums, checked here), metrics and the study's status into ``docs/results/<study>/``, beside
-gpu_run.json (replacing an earlier window's unfinished part of the same study). A ``state/`` folder that came back
+gpu_run.json (replacing an earlier window's unfinished part of the same study). Every window's record is
+appended to docs/results/gpu_windows.json, and the block lists below this window's measurements those of earlier
+windows it did not make again (a continued window measures for 30 s only). A ``state/`` folder that came back
 is the next window's starting point: move it to ``gpu_state/`` and commit it; this script says whether it fits
 what travels to the GPU machine (64 MiB with the work tree and .whl/).
 """
@@ -30,6 +32,7 @@ from sections import publish  # bench/ is sys.path[0] when a script runs
 
 START, END = "<!-- gpu_run:start -->", "<!-- gpu_run:end -->"
 ROOT = Path(__file__).resolve().parent.parent
+HISTORY = ROOT / "docs" / "results" / "gpu_windows.json"  # every window's gpu_run.json, oldest first
 
 
 def _rate(value) -> str:
@@ -43,9 +46,29 @@ def _computed(result: dict) -> str:
     return f"{result['kernels']}, GRU {result['gru_backward']}, unroll {result['gru_unroll']}"
 
 
-def benchmark_block(bench: dict) -> str:
+def _measured(result: dict) -> bool:
+    return "env_steps_per_s" in result or "tflops" in result
+
+
+def _trainer_row(name: str, r: dict, peaks: dict, window: str | None = None) -> str:
+    shares = [f"{100 * r['model_tflops'] / p:.2f} %" if p else "-" for p in peaks.values()]
+    return (
+        f"| {name} ({r['config']}) | {r['seeds']} | {_computed(r)} | {_rate(r['env_steps_per_s'])} | "
+        f"{r['model_tflops']:.3f} | {shares[0]} | {shares[1]} | {r['compile_plus_first_s']} |"
+        + ("" if window is None else f" {window} |")
+    )
+
+
+def _peaks(results: dict) -> dict:
+    return {k: results.get(k, {}).get("tflops") for k in ("matmul_f32", "matmul_bf16")}
+
+
+def benchmark_block(bench: dict, earlier: list[dict] = ()) -> str:
+    """The GPU block of this window's record ``bench``; ``earlier``: the records of earlier windows (oldest
+    first), whose trainer measurements this window did not make again (a continued window measures for 30 s only)
+    are listed below its own, each with its window's date and device and shares of that window's matmul peaks."""
     env, results = bench["environment"], bench["results"]
-    peaks = {k: results.get(k, {}).get("tflops") for k in ("matmul_f32", "matmul_bf16")}
+    peaks = _peaks(results)
     lines = [
         START,
         "## On a GPU (bench/gpu_run.sh)",
@@ -66,11 +89,23 @@ def benchmark_block(bench: dict) -> str:
         if "env_steps_per_s" not in r:
             lines.append(f"| {name} | | | {r.get('skipped') or r.get('error')} | | | | |")
             continue
-        shares = [f"{100 * r['model_tflops'] / p:.2f} %" if p else "-" for p in peaks.values()]
-        lines.append(
-            f"| {name} ({r['config']}) | {r['seeds']} | {_computed(r)} | {_rate(r['env_steps_per_s'])} | "
-            f"{r['model_tflops']:.3f} | {shares[0]} | {shares[1]} | {r['compile_plus_first_s']} |"
-        )
+        lines.append(_trainer_row(name, r, peaks))
+    older = {}  # name -> (row): the newest earlier success of each measurement this window did not make
+    for window in earlier:
+        label = f"{window['environment'].get('date', 'undated')}, {', '.join(window['environment']['devices'])}"
+        for name, r in window["results"].items():
+            if "env_steps_per_s" in r and not _measured(results.get(name, {})):
+                older[name] = _trainer_row(name, r, _peaks(window["results"]), label)
+    if older:
+        lines += [
+            "",
+            "Measured in earlier windows and not again in this one:",
+            "",
+            "| measurement | seeds | kernels | env steps/s | model TFLOP/s | % of f32 matmul | % of bf16 matmul "
+            "| compile+first (s) | window |",
+            "|---|---:|---|---:|---:|---:|---:|---:|---|",
+            *older.values(),
+        ]
     ours, theirs = results.get("env_ocv2", {}), results.get("env_jaxmarl", {})
     lines += ["", "Environment alone (Coordination Ring, random actions, one jitted scan):", ""]
     for r, name in ((ours, "ocv2"), (theirs, "JaxMARL overcooked_v2")):
@@ -164,8 +199,16 @@ def main(argv=None) -> int:
     parser.add_argument("files", type=Path, help="the folder holding what bench/gpu_run.sh left in $OUT")
     parser.add_argument("--out", default=str(ROOT / "docs" / "BENCHMARKS.md"), help="'' prints only")
     parser.add_argument("--results", default=str(ROOT / "docs" / "results"), help="'' skips the unpacking")
+    parser.add_argument("--history", default=str(HISTORY), help="every window's record, appended ('' skips)")
     args = parser.parse_args(argv)
-    publish(benchmark_block(json.loads((args.files / "gpu_run.json").read_text())), args.out, START, END)
+    bench = json.loads((args.files / "gpu_run.json").read_text())
+    history = json.loads(Path(args.history).read_text()) if args.history and Path(args.history).is_file() else []
+    earlier = [window for window in history if window["environment"] != bench["environment"]]
+    publish(benchmark_block(bench, earlier), args.out, START, END)
+    if args.history and len(earlier) == len(history):  # this window is not on record yet
+        temporary = Path(args.history).with_suffix(".json.tmp")
+        temporary.write_text(json.dumps([*history, bench], indent=1) + "\n")
+        temporary.replace(args.history)  # whole or not at all
     if args.results and (args.files / "results.tar.gz").exists():
         for dest in unpack_results(args.files, Path(args.results)):
             print(f"wrote {dest}")

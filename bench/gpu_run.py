@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import json
 import os
 import platform
@@ -91,6 +92,7 @@ def environment() -> dict:
     except (OSError, subprocess.TimeoutExpired):
         pass
     return {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "backend": jax.default_backend(),
         "devices": [f"{d.platform}: {d.device_kind}" for d in devices],
         "nvidia_smi": smi,

@@ -162,3 +162,31 @@ def test_the_next_windows_input_is_checked_against_what_travels(tmp_path):
     assert "TOO MUCH" not in gpu_report.travel_check(state)
     (state / "big").write_bytes(b"\0" * (gpu_report.TRAVEL_BYTES + 1))
     assert "TOO MUCH" in gpu_report.travel_check(state)
+
+
+def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp_path):
+    first = made_up_bench()
+    first["environment"]["date"] = "2026-12-01T10:00:00+00:00"
+    first["results"]["rnn_sp_10_xla"] = {
+        **first["results"]["cnn_sp_10"], "config": "v2_grounded_coord_simple_sp.yaml", "model": "rnn",
+        "kernels": "xla", "gru_backward": "hand", "gru_unroll": 8, "env_steps_per_s": 123_000.0,
+    }  # fmt: skip
+    second = made_up_bench()  # a continued window: the RNN case was not measured again
+    second["environment"]["date"] = "2026-12-02T10:00:00+00:00"
+    block = gpu_report.benchmark_block(second, [first])
+    assert "Measured in earlier windows and not again in this one" in block
+    assert "| rnn_sp_10_xla (v2_grounded_coord_simple_sp.yaml) | 10 | xla, GRU hand, unroll 8 | 123,000 |" in block
+    assert "2026-12-01T10:00:00+00:00, gpu: NVIDIA H100 80GB HBM3 |" in block
+    assert block.count("cnn_sp_10 (") == 1  # measured again: only this window's row
+    # through main: the history file gets each window once, however often the report is written
+    for name, bench in (("one", first), ("two", second)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "gpu_run.json").write_text(json.dumps(bench))
+    history = tmp_path / "gpu_windows.json"
+    for name in ("one", "two", "two"):
+        args = [str(tmp_path / name), "--out", str(tmp_path / "BENCH.md"), "--results", "", "--history", str(history)]
+        assert gpu_report.main(args) == 0
+    assert [w["environment"]["date"] for w in json.loads(history.read_text())] == [
+        first["environment"]["date"], second["environment"]["date"],
+    ]  # fmt: skip
+    assert "123,000" in (tmp_path / "BENCH.md").read_text()
