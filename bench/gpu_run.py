@@ -227,15 +227,20 @@ def rnn_sets(kernels: str, backward: str = "auto", unroll: int = 1) -> list[str]
     return [f"model.kernels={kernels}", f"model.gru_backward={backward}", f"model.gru_unroll={unroll}"]
 
 
+def fastest_rnn(measured: dict, seeds: int) -> dict | None:
+    """The fastest ``seeds``-seed RNN variant measured (its measurement), or None."""
+    rates = [
+        result for name, result in measured.items()
+        if name.startswith(f"rnn_sp_{seeds}_") and result.get("env_steps_per_s")
+    ]  # fmt: skip
+    return max(rates, key=lambda result: result["env_steps_per_s"], default=None)
+
+
 def best_rnn_sets(measured: dict, seeds: int) -> list[str]:
     """The overrides of the fastest ``seeds``-seed RNN variant measured (the "xla" family's defaults when none was)."""
-    rates = {
-        name: result for name, result in measured.items()
-        if name.startswith(f"rnn_sp_{seeds}_") and result.get("env_steps_per_s")
-    }  # fmt: skip
-    if not rates:
+    best = fastest_rnn(measured, seeds)
+    if best is None:
         return rnn_sets("xla")
-    best = max(rates.values(), key=lambda result: result["env_steps_per_s"])
     return rnn_sets(best["kernels"], best["gru_backward"], best["gru_unroll"])
 
 
@@ -346,7 +351,7 @@ def plan_table2(measured: dict, smoke: bool) -> list[Step]:
     seeds = 2 if smoke else 10
     config = load_config(GCS_SP, SMOKE_SETS if smoke else [])
     budget = 12 * config.ppo.steps_per_update / config.ppo.total_timesteps if smoke else 1.0
-    rate = measured.get(f"rnn_sp_{seeds}_xla", {}).get("env_steps_per_s")
+    rate = (fastest_rnn(measured, seeds) or {}).get("env_steps_per_s")
     train_s = budget * seeds * config.ppo.total_timesteps / rate if rate else float("nan")
     return [Step(TABLE2, budget, seeds, train_s, sets=tuple(best_rnn_sets(measured, seeds)))]
 
