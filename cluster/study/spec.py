@@ -54,6 +54,8 @@ class StudyError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class PaperValue:
+    """A number of the paper's tables: its mean and, where the paper gives one, its standard deviation."""
+
     mean: float
     std: float | None = None
 
@@ -71,6 +73,9 @@ class PaperNumbers:
 
 @dataclasses.dataclass(frozen=True)
 class RunSpec:
+    """One run of a study: its name, its config file, the overrides applied to it, the earlier run of the study
+    whose SP seeds it takes as FCP partners (``partners_from``) and the paper's numbers to set beside it."""
+
     name: str
     config: Path  # absolute
     overrides: tuple[str, ...] = ()  # the study file's, the run's, then ``ocv2 study run --set``
@@ -80,6 +85,9 @@ class RunSpec:
 
 @dataclasses.dataclass(frozen=True)
 class Comparison:
+    """A cross-play step between runs of a study (every pair of their seeds, both seat orders), optionally with
+    the human proxy as one more row."""
+
     name: str
     runs: tuple[str, ...]
     human_proxy: bool = False
@@ -87,6 +95,9 @@ class Comparison:
 
 @dataclasses.dataclass(frozen=True)
 class Study:
+    """A parsed study file: its runs, comparisons and over-training cross-plays, and the file's data (``raw``),
+    which the study directory keeps so that a later run of the directory needs no file."""
+
     name: str
     path: Path
     description: str

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
 from pathlib import Path
 
 from cluster.study.spec import BUDGET_MODES, NAME, StudyError
@@ -48,15 +47,18 @@ class StepRecord:
 
     @property
     def done(self) -> bool:
+        """Whether the step has finished (its result still has to match its inputs: ``result_problem``)."""
         return self.status == "done"
 
     def to_json(self) -> dict:
+        """The step's entry in study.json: status and wall time always, the rest when set."""
         data = {"status": self.status, "wall_s": self.wall_s}
         data.update({k: getattr(self, k) for k in (*_STEP_NUMBERS, "reason") if getattr(self, k) is not None})
         return {**data, **self.results}
 
     @classmethod
     def from_json(cls, data, field: str, path: Path) -> StepRecord:
+        """Step entry ``data`` (``field``: its name in study.json, for errors), checked; StudyError names the field."""
         if not isinstance(data, dict):
             raise _bad(path, field, "an object", data)
         status = data.get("status", "left")
@@ -103,6 +105,7 @@ class StudyState:
         return self.steps.setdefault(name, StepRecord())
 
     def to_json(self) -> dict:
+        """study.json's content, in the shape the file has always had (unknown fields written back as read)."""
         data = {
             "study": self.study,
             "budget": self.budget,
@@ -179,8 +182,3 @@ def _bad(path: Path, field: str, expected: str, value) -> StudyError:
     shown = repr(value)
     shown = shown if len(shown) <= 60 else shown[:57] + "..."
     return StudyError(f"{path}: {field}: expected {expected}, got {shown}; {_RESTORE}")
-
-
-def steps_of(state: StudyState | None) -> Mapping[str, StepRecord]:
-    """The step records of ``state`` (none for a directory without study.json)."""
-    return {} if state is None else state.steps
