@@ -1,6 +1,6 @@
 """``ocv2 play``: play OvercookedV2 in the browser with a trained agent or another person (``docs/play.md``).
 
-    ocv2 play [LAYOUT] [--partner RUN_DIR/checkpoints/seed_i | CHECKPOINT | human | stay | random]
+    ocv2 play [LAYOUT] [--partner RUN_DIR/checkpoints/seed_i | CHECKPOINT | FILE.ocv2policy | human | stay | random]
               [--seat 0|1] [--host H] [--port P] [--fps F] [--agent-view-size V] [--max-steps N]
               [--env KEY=VALUE ...] [--out FILE.mcap] [--seed S] [--episodes N] [--meta KEY=VALUE ...]
 
@@ -60,8 +60,9 @@ def add_play(sub) -> argparse.ArgumentParser:
         "--partner",
         default="stay",
         metavar="WHO",
-        help="RUN_DIR/checkpoints/seed_<i> (its latest checkpoint) or a checkpoint file in it; "
-        "'human' (a second browser tab plays the other seat); 'stay' or 'random' "
+        help="RUN_DIR/checkpoints/seed_<i> (its latest checkpoint), a checkpoint file in it or an exported "
+        "policy file (FILE.ocv2policy, e.g. under docs/results/*/policies/); 'human' (a second browser tab plays "
+        "the other seat); 'stay' or 'random' "
         "(scripted; default stay)",
     )
     parser.add_argument(
