@@ -54,6 +54,7 @@ DOC = HERE.parent / "RESULTS.md"
 LAYOUTS = HERE.parents[1] / "ocv2" / "layouts.py"
 CR = HERE / "table1_coord_ring"
 GCS = HERE / "reduced_gcs"
+SP10 = HERE / "table1_coord_ring_sp10"
 
 # ------------------------------------------------------------------------------------------ reading the page
 
@@ -1586,6 +1587,86 @@ def compare(doc: str) -> tuple[list[tuple], list[str]]:
         if name not in seen:
             errors.append(f"{name}: no <!-- check:{name} --> span on the page")
     return rows, errors
+
+
+# --- the 10-seed Coordination Ring SP population (table1_coord_ring_sp10/: interim snapshots)
+
+
+def sp10_env_steps(update: int) -> float:
+    """Env steps per seed of snapshot ``update``, in millions, from the published policies' SHA256SUMS.json."""
+    sums = json.loads((SP10 / "policies" / "SHA256SUMS.json").read_text())
+    return next(entry["env_steps"] for entry in sums if entry["update"] == update) / 1e6
+
+
+@functools.cache
+def sp10_roles() -> dict:
+    """roles.md: {update: [(cw seat 0, cw seat 1, [seat-0 share, count] per job, return) per seed]}."""
+    tables = md_tables(SP10 / "roles.md")
+    updates = [int(m) for m in re.findall(r"^## update (\d+)$", (SP10 / "roles.md").read_text(), re.M)]
+    parsed = {}
+    for update, table in zip(updates, tables, strict=True):
+        rows = []
+        for row in table:
+            cw = tuple(float(x) for x in row[1].split(","))
+            jobs = [tuple(float(x) for x in cell.split(" of ")) for cell in row[2:-1]]
+            rows.append((*cw, jobs, float(row[-1])))
+        parsed[update] = rows
+    return parsed
+
+
+def sp10_xp(update: int) -> list:
+    """Snapshot ``update``: its env steps, SP, XP, gap (both seat orders), the lowest pair and its score."""
+    m = matrix(SP10 / f"xp_update{update}.csv")
+    sp, xp, gap = sp_xp(m)
+    p = both_seats(m)
+    i, j = min(itertools.combinations(range(len(m)), 2), key=lambda ij: p[ij])
+    return [update, sp10_env_steps(update), sp, xp, gap, i, j, p[i, j]]
+
+
+def sp10_direction_and_xp(update: int) -> list:
+    """Clockwise shares (seat 0) from least to most clockwise seed, and Pearson's r over the 45 pairs between
+    a pair's score (both seat orders) and the difference of its seeds' clockwise shares."""
+    cw = [row[0] for row in sp10_roles()[update]]
+    p = both_seats(matrix(SP10 / f"xp_update{update}.csv"))
+    ij = list(itertools.combinations(range(len(cw)), 2))
+    r = np.corrcoef([abs(cw[i] - cw[j]) for i, j in ij], [p[i, j] for i, j in ij])[0, 1]
+    low, high = int(np.argmin(cw)), int(np.argmax(cw))
+    return [low, cw[low], high, cw[high], len(ij), r]
+
+
+def sp10_delivery_shares(update: int) -> list:
+    """Seat 0's share of the deliveries per seed: the range over the seeds, then the seed furthest from 0.5."""
+    shares = [row[2][3][0] for row in sp10_roles()[update]]
+    far = max(range(len(shares)), key=lambda k: abs(shares[k] - 0.5))
+    rest = [x for k, x in enumerate(shares) if k != far]
+    return [min(rest), max(rest), far, shares[far]]
+
+
+@check("sp10_xp92")
+def _():
+    return sp10_xp(92)
+
+
+@check("sp10_xp122")
+def _():
+    return sp10_xp(122)
+
+
+@check("sp10_direction")
+def _():
+    return [*sp10_direction_and_xp(122), sp10_direction_and_xp(92)[-1], 92]
+
+
+@check("sp10_clockwise_pair")
+def _():
+    cw = [row[0] for row in sp10_roles()[122]]
+    p = both_seats(matrix(SP10 / "xp_update122.csv"))
+    return [0, 3, cw[0], cw[3], p[0, 3], 122]
+
+
+@check("sp10_roles")
+def _():
+    return sp10_delivery_shares(122)
 
 
 def main(argv=None) -> int:
