@@ -9,7 +9,6 @@ cells repeat exactly."""
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import importlib.util
 import json
@@ -21,17 +20,12 @@ import numpy as np
 import pytest
 
 from cluster.cli import main
+from cluster.runtime.rundir import read_matrix_csv
 from population.policy import load, policy_env
 from population.record import play_recorded
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "table1_coord_ring_sp10"
 POLICIES = RESULTS / "policies"
-
-
-def read_matrix(path: Path) -> np.ndarray:
-    with open(path, newline="") as handle:
-        rows = list(csv.reader(handle))
-    return np.array([[float(v) for v in row[1:]] for row in rows[1:]])
 
 
 def test_every_published_policy_matches_its_sha256():
@@ -64,7 +58,8 @@ def test_a_committed_cross_play_cell_is_played_again_from_the_committed_policies
         )
         == 0
     )
-    again, committed = read_matrix(out / "matrix.csv"), read_matrix(RESULTS / "xp_check_update30.csv")
+    again = read_matrix_csv(out / "matrix.csv").values
+    committed = read_matrix_csv(RESULTS / "xp_check_update30.csv").values
     np.testing.assert_allclose(again, committed, atol=5.0)
 
 

@@ -69,12 +69,11 @@ class StepRecord:
                 raise _bad(path, f"{field}.{key}", "a number", data[key])
         if "reason" in data and not isinstance(data["reason"], str):
             raise _bad(path, f"{field}.reason", "text", data["reason"])
-        known = ("status", "wall_s", *_STEP_NUMBERS, "reason")
         return cls(
             status=status,
             wall_s=float(data.get("wall_s", 0.0)),
             **{key: data.get(key) for key in (*_STEP_NUMBERS, "reason")},
-            results={k: v for k, v in data.items() if k not in known},  # kept as they were: nothing is lost
+            results={k: v for k, v in data.items() if k not in _FIELDS},  # kept as they were: nothing is lost
         )
 
 

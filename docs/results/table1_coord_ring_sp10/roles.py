@@ -27,7 +27,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ocv2.items import COOKED, DIRECTION_VECTORS, EMPTY, PLATE, Static
+from ocv2.items import COOKED, DIRECTION_VECTORS, EMPTY, PLATE, Static, is_raw_ingredient
 from population.policy import load, policy_env
 from population.record import play_recorded
 
@@ -36,10 +36,6 @@ sys.path.insert(0, str(HERE.parent / "table1_coord_ring"))
 from ring_direction import clockwise_moves  # noqa: E402
 
 ROLES = ("onions to pot", "dishes taken", "soups plated", "deliveries")
-
-
-def raw(item: np.ndarray) -> np.ndarray:
-    return ((item >> 2) != 0) & ((item & PLATE) == 0)
 
 
 def role_counts(states) -> np.ndarray:
@@ -53,7 +49,7 @@ def role_counts(states) -> np.ndarray:
     faced = static[episode, np.clip(fy, 0, static.shape[1] - 1), np.clip(fx, 0, static.shape[2] - 1)]
     dish = (later & COOKED) != 0
     counts = [
-        raw(held) & (later == EMPTY) & (faced == Static.POT),
+        np.asarray(is_raw_ingredient(held)) & (later == EMPTY) & (faced == Static.POT),
         (held == EMPTY) & (later == PLATE),
         (held == PLATE) & dish & (faced == Static.POT),
         ((held & COOKED) != 0) & (later == EMPTY) & (faced == Static.GOAL),
