@@ -19,7 +19,6 @@ what travels to the GPU machine (64 MiB with the work tree and .whl/).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import subprocess
@@ -29,6 +28,9 @@ import tempfile
 from pathlib import Path
 
 from sections import publish  # bench/ is sys.path[0] when a script runs
+
+from population import published
+from population.policy import PolicyError
 
 START, END = "<!-- gpu_run:start -->", "<!-- gpu_run:end -->"
 ROOT = Path(__file__).resolve().parent.parent
@@ -143,13 +145,10 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
                 raise SystemExit(f"{dest} exists and holds a finished study: move it away first (nothing was written)")
             policies = results / f"{study}_policies"
             if policies.is_dir():
-                for entry in json.loads((policies / "SHA256SUMS.json").read_text()):
-                    digest = hashlib.sha256((policies / entry["file"]).read_bytes()).hexdigest()
-                    if digest != entry["sha256"]:
-                        raise SystemExit(
-                            f"{policies.name}/{entry['file']}: sha256 {digest} is not {entry['sha256']} "
-                            "(nothing was written)"
-                        )
+                try:
+                    published.verify(policies, [entry.file for entry in published.read_listing(policies)])
+                except PolicyError as error:
+                    raise SystemExit(f"{error} (nothing was written)") from None
         for study in studies:
             dest = dest_root / study.removeprefix("study_")
             if dest.exists():

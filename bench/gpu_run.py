@@ -385,13 +385,11 @@ RETURNED_FILES = 8  # what the device tool brings back from $OUT
 POLICY_BYTES = 12 << 20  # exported policies per run, inside results.tar.gz's 16 MiB (about 0.4 MB per CNN policy)
 
 
-def export_policies(run_dir: Path, dest: Path) -> list[dict]:
+def export_policies(run_dir: Path, dest: Path) -> list:
     """Every seed's latest checkpoint, then kept snapshots from the newest back while ``POLICY_BYTES`` allows,
-    as ``ocv2 export`` files with their sha256 sums."""
-    import hashlib
-
+    as ``ocv2 export`` files listed in ``dest``/SHA256SUMS.json (``population.published``)."""
     from population import checkpoints as ckpt
-    from population.policy import export_checkpoint
+    from population.published import publish_checkpoint, read_listing, write_listing
 
     config = load_config(run_dir / "config.yaml")
     seeds = range(config.population.num_seeds)
@@ -401,14 +399,15 @@ def export_policies(run_dir: Path, dest: Path) -> list[dict]:
     order += [(s, updates[s][-1 - k]) for k in range(1, depth) for s in seeds if k < len(updates[s])]
     exported, total = [], 0
     for seed, update in order:
-        path = dest / f"{run_dir.name}_seed{seed}_update{update}.ocv2policy"
-        export_checkpoint(run_dir, path, seed=seed, checkpoint=update)
-        if total + path.stat().st_size > POLICY_BYTES and exported:
-            path.unlink()
+        entry = publish_checkpoint(run_dir, dest, seed, update)
+        size = (dest / entry.file).stat().st_size
+        if total + size > POLICY_BYTES and exported:
+            (dest / entry.file).unlink()
             break
-        total += path.stat().st_size
-        digest = hashlib.sha256(path.read_bytes()).hexdigest()
-        exported.append({"file": path.name, "seed": seed, "update": update, "sha256": digest})
+        total += size
+        exported.append(entry)
+    # The study's other runs share dest: their entries stay in the listing.
+    write_listing(dest, [*read_listing(dest), *exported])
     return exported
 
 
@@ -435,8 +434,7 @@ def pack(out: Path, returned: Path) -> dict:
                 continue
             policies = staging / f"{study_dir.name}_policies"
             policies.mkdir(exist_ok=True)
-            listing = export_policies(run_dir, policies)
-            (policies / "SHA256SUMS.json").write_text(json.dumps(listing, indent=1))
+            export_policies(run_dir, policies)
             for name in ("metrics.csv", "config.yaml"):
                 if (run_dir / name).exists():
                     shutil.copy(run_dir / name, staging / f"{study_dir.name}_{run_dir.name}_{name}")

@@ -30,7 +30,7 @@ from cluster.study.runner import StateFile, StudyOptions, kept_study, open_state
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config, with_overrides
 from cluster.study.state import StepRecord, StudyState
 from population import checkpoints as ckpt
-from population import policy, ppo
+from population import policy, ppo, published
 from population.config import ConfigError, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -852,3 +852,50 @@ def test_study_json_reads_into_typed_state_and_writes_back_the_same_shape(finish
     step = StepRecord()
     step.update(status="done", wall_s=3.0, reason=None, update=7)
     assert step.to_json() == {"status": "done", "wall_s": 3.0, "update": 7}
+
+
+def test_publish_exports_the_kept_snapshots_with_their_sha256_and_never_rewrites_one(finished, tmp_path, capsys):
+    """``ocv2 study publish``: every run's kept snapshots (not update 0) as policy files listed in SHA256SUMS.json;
+    each loads to the parameters of its checkpoint; a second call adds nothing, and a listed file that changed stops
+    it before anything is written."""
+    out = tmp_path / "policies"
+    assert main(["study", "publish", str(finished), "--out", str(out)]) == 0
+    entries = published.read_listing(out)
+    config = load_config(finished / "runs" / "sp" / "config.yaml")
+    kept = [u for u in ckpt.snapshot_updates(config.ppo.num_updates, config.run.num_checkpoints) if u > 0]
+    assert sorted((e.seed, e.update) for e in entries if e.file.startswith("sp_")) == [
+        (seed, u) for seed in range(2) for u in kept
+    ]
+    assert {e.file for e in entries} == {p.name for p in out.glob("*.ocv2policy")}
+    published.verify(out, [e.file for e in entries])
+    entry = next(e for e in entries if e.file.startswith("sp_seed1_"))
+    assert entry.env_steps == entry.update * config.ppo.steps_per_update
+    mine = policy.load(out / entry.file).params
+    theirs = policy.load(finished / "runs" / "sp", seed=1, checkpoint=entry.update).params
+    for x, y in zip(jax.tree.leaves(mine), jax.tree.leaves(theirs), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    listing = (out / published.SUMS).read_bytes()
+    assert main(["study", "publish", str(finished), "--out", str(out)]) == 0
+    assert "0 policies exported" in capsys.readouterr().out and (out / published.SUMS).read_bytes() == listing
+    target = out / entry.file
+    target.write_bytes(target.read_bytes()[:-1])
+    assert main(["study", "publish", str(finished), "--out", str(out), "--which", "all"]) == 2
+    assert f"{target}: not the published file" in capsys.readouterr().err
+    assert (out / published.SUMS).read_bytes() == listing
+    assert main(["study", "publish", str(tmp_path), "--out", str(tmp_path / "p")]) == 2
+    assert "no study.json here" in capsys.readouterr().err
+
+
+def test_publish_final_takes_each_seeds_last_checkpoint_only(finished, tmp_path):
+    added = published.publish_run(finished / "runs" / "sa", tmp_path, which="final")
+    assert [(e.seed, e.update) for e in added] == [(0, 8), (1, 8)]
+    with pytest.raises(ValueError, match="expected one of snapshots, final, all"):
+        published.updates_to_publish(finished / "runs" / "sa", 0, which="best")
+    (tmp_path / published.SUMS).write_text('{"not": "a list"}')
+    with pytest.raises(policy.PolicyError, match="a list of entries expected"):
+        published.read_listing(tmp_path)
+
+
+def test_study_pack_latest_only_from_the_command_line(finished, tmp_path):
+    assert main(["study", "pack", str(finished), "--out", str(tmp_path / "p"), "--latest-only"]) == 0
+    assert json.loads((tmp_path / "p" / "pack.json").read_text())["latest_only"] is True

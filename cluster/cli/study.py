@@ -3,6 +3,7 @@
     ocv2 study run STUDY.yaml [--budget F [--budget-mode truncate|compress]] [--seeds N] [--set K=V ...] [--backend ray|local] [--address A] [--out DIR] [--retrain RUN ...]
     ocv2 study status DIR
     ocv2 study report DIR [--out FOLDER]
+    ocv2 study publish DIR --out FOLDER [--which snapshots|final|all]
 
 ``run`` trains every run of the study that has not finished (resuming an interrupted one), runs the
 cross-play steps and writes DIR/report.md; the same command after any interruption continues where it
@@ -32,6 +33,8 @@ from cluster.study.spec import BUDGET_MODES, StudyError, default_out, load_study
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
 from population.numerics import enable_deterministic_ops
+from population.policy import PolicyError
+from population.published import WHICH, publish_run
 
 BUDGET = bounded(float, 0, 100, "a fraction of the env steps in (0, 100], such as 0.25", low_open=True)
 
@@ -40,7 +43,7 @@ log = logging.getLogger(__name__)
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    """Declare ``ocv2 study`` and its subcommands (run, status, report, pack, unpack) on ``sub``
+    """Declare ``ocv2 study`` and its subcommands (run, status, report, publish, pack, unpack) on ``sub``
     (argparse subparsers); returns its parser."""
     parser = sub.add_parser(
         "study",
@@ -49,7 +52,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "numbers) and comparisons; `run` trains, cross-plays and reports, and "
         "continues where it stopped after any interruption.",
     )
-    commands = parser.add_subparsers(dest="study_command", metavar="{run,status,report,pack,unpack}")
+    commands = parser.add_subparsers(dest="study_command", metavar="{run,status,report,publish,pack,unpack}")
     commands.required = True
     run = commands.add_parser("run", help="train every unfinished run, cross-play, write DIR/report.md")
     run.add_argument("study", help="study file (see configs/studies/)")
@@ -99,9 +102,26 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="write the report, summary, pictures and cross-play matrices into this new or empty folder "
         "outside DIR instead (a compact record to keep: no checkpoints, no archives)",
     )
+    publish = commands.add_parser(
+        "publish", help="export the runs' policies into a folder with SHA256SUMS.json (population.published)"
+    )
+    publish.add_argument("dir", help="study directory")
+    publish.add_argument("--out", required=True, help="the policies folder, e.g. docs/results/<study>/policies")
+    publish.add_argument(
+        "--which",
+        choices=WHICH,
+        default="snapshots",
+        help="the kept snapshots (default), each seed's final checkpoint only, or every checkpoint on disk",
+    )
     pack = commands.add_parser("pack", help="DIR's resumable state as parts of at most 16 MiB (cluster.study.pack)")
     pack.add_argument("dir", help="study directory")
     pack.add_argument("--out", required=True, help="new or empty folder for pack.json and the parts")
+    pack.add_argument(
+        "--latest-only",
+        action="store_true",
+        help="each seed's newest checkpoint only (what resuming needs; publish the snapshots before with "
+        "`ocv2 study publish`)",
+    )
     unpack = commands.add_parser("unpack", help="a packed study back into a directory that `run` continues")
     unpack.add_argument("source", help="folder holding pack.json and its parts")
     unpack.add_argument("--out", required=True, help="the study directory to create (must not exist)")
@@ -118,6 +138,8 @@ def run(args) -> int:
         return _status(args.dir)
     if args.study_command == "report":
         return _report(args.dir, args.out)
+    if args.study_command == "publish":
+        return _publish(args)
     return _run(args)
 
 
@@ -177,13 +199,30 @@ def _run(args) -> int:
 def _pack(args) -> int:
     try:
         if args.study_command == "pack":
-            record = pack_study(Path(args.dir), Path(args.out))
+            record = pack_study(Path(args.dir), Path(args.out), latest_only=args.latest_only)
             print(f"packed {record['files']} files of study {record['study']!r} into {len(record['parts'])} part(s), "
                   f"{record['bytes']:,} bytes: {args.out}")  # fmt: skip
         else:
             record = unpack_study(Path(args.source), Path(args.out))
             print(f"unpacked study {record['study']!r} ({record['files']} files) into {args.out}")
     except StudyError as error:
+        raise CLIError(str(error)) from None
+    return EXIT_OK
+
+
+def _publish(args) -> int:
+    study, out = Path(args.dir), Path(args.out)
+    try:
+        state = read_state(study)
+        if state is None:
+            raise StudyError(f"{study}: no study.json here (not a study directory: see `ocv2 study run --out`)")
+        runs = sorted(p.parent for p in (study / "runs").glob("*/config.yaml"))
+        if not runs:
+            raise StudyError(f"{study}: no trained run under runs/ (run `ocv2 study run` first)")
+        for run_dir in runs:
+            added = publish_run(run_dir, out, args.which)
+            print(f"{state.study}/{run_dir.name}: {len(added)} policies exported into {out}")
+    except (StudyError, RunDirError, CheckpointError, PolicyError) as error:
         raise CLIError(str(error)) from None
     return EXIT_OK
 

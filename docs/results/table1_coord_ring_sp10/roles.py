@@ -19,8 +19,6 @@ way, have the same convention; a seed on another one is where low cross-play pai
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
 import sys
 from pathlib import Path
 
@@ -28,7 +26,8 @@ import jax
 import numpy as np
 
 from ocv2.items import COOKED, DIRECTION_VECTORS, EMPTY, PLATE, Static, is_raw_ingredient
-from population.policy import load, policy_env
+from population.policy import PolicyError, load, policy_env
+from population.published import verify
 from population.record import play_recorded
 
 HERE = Path(__file__).resolve().parent
@@ -57,13 +56,6 @@ def role_counts(states) -> np.ndarray:
     return np.stack([c.sum(axis=(0, 1)) for c in counts])
 
 
-def check_sums(files: list[Path]) -> None:
-    listing = {e["file"]: e["sha256"] for e in json.loads((HERE / "policies" / "SHA256SUMS.json").read_text())}
-    for path in files:
-        if hashlib.sha256(path.read_bytes()).hexdigest() != listing.get(path.name):
-            sys.exit(f"{path}: not the published file (its sha256 is not the one in SHA256SUMS.json)")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--update", type=int, required=True, help="the snapshot (policies/sp_seed<i>_update<U>)")
@@ -71,7 +63,10 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=10)
     args = parser.parse_args()
     files = [HERE / "policies" / f"sp_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
-    check_sums(files)
+    try:
+        verify(HERE / "policies", files)
+    except PolicyError as error:
+        sys.exit(str(error))
     header = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
     print(f"| seed | clockwise share (seat 0, seat 1) | {header} | return |")
     print("|---:|---|" + "---:|" * len(ROLES) + "---:|")

@@ -1,0 +1,149 @@
+"""A folder of published policies: exported snapshot files and the SHA256SUMS.json that lists them.
+
+    entries = publish_run("runs/sp", "docs/results/my_study/policies", updates="snapshots")
+    verify("docs/results/my_study/policies", ["sp_seed0_update183.ocv2policy"])   # PolicyError if changed
+
+A study's results carry its populations as ``ocv2 export`` files named ``<run>_seed<i>_update<U>.ocv2policy``,
+so a reader can play and cross-play them without the run directory. SHA256SUMS.json lists every file with its
+seed, update, env steps per seed and the sha256 of its bytes: scripts that read the files check them against it
+first, so a number is only ever recomputed from the files it was computed from. Publishing adds files and never
+rewrites one already listed (a published file is a record).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Iterable
+from pathlib import Path
+
+from ocv2.atomic import atomic_write
+from population import checkpoints as ckpt
+from population.config import load_config
+from population.policy import SUFFIX, PolicyError, export_checkpoint
+
+SUMS = "SHA256SUMS.json"
+#: Which checkpoints ``publish_run`` exports: the kept snapshots (run.num_checkpoints), only each seed's last
+#: checkpoint, or every checkpoint on disk.
+WHICH = ("snapshots", "final", "all")
+
+
+@dataclasses.dataclass(frozen=True)
+class PublishedPolicy:
+    """One line of SHA256SUMS.json."""
+
+    file: str
+    seed: int
+    update: int
+    env_steps: int | None
+    sha256: str
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, entry: dict, where: str = SUMS) -> PublishedPolicy:
+        try:
+            return cls(
+                file=str(entry["file"]),
+                seed=int(entry["seed"]),
+                update=int(entry["update"]),
+                env_steps=None if entry.get("env_steps") is None else int(entry["env_steps"]),
+                sha256=str(entry["sha256"]),
+            )
+        except (KeyError, TypeError, ValueError) as error:
+            raise PolicyError(f"{where}: entry {entry!r} is not a published policy ({error})") from None
+
+
+def policy_name(run: str, seed: int, update: int) -> str:
+    """The published file name of ``run``'s seed ``seed`` at update ``update``."""
+    return f"{run}_seed{seed}_update{update}{SUFFIX}"
+
+
+def sha256_of(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def read_listing(folder) -> list[PublishedPolicy]:
+    """The entries of ``folder``/SHA256SUMS.json (none if the folder has no listing yet)."""
+    listed = Path(folder) / SUMS
+    if not listed.is_file():
+        return []
+    try:
+        raw = json.loads(listed.read_text())
+    except json.JSONDecodeError as error:
+        raise PolicyError(f"{listed}: not JSON ({error})") from None
+    if not isinstance(raw, list):
+        raise PolicyError(f"{listed}: a list of entries expected, found {type(raw).__name__}")
+    return [PublishedPolicy.from_json(entry, str(listed)) for entry in raw]
+
+
+def write_listing(folder, entries: Iterable[PublishedPolicy]) -> Path:
+    """Write SHA256SUMS.json (sorted by update, seed, file), atomically: a stop leaves the old listing whole."""
+    ordered = sorted(entries, key=lambda e: (e.update, e.seed, e.file))
+    text = json.dumps([e.to_json() for e in ordered], indent=1) + "\n"
+    path = Path(folder) / SUMS
+    atomic_write(path, text.encode())
+    return path
+
+
+def publish_checkpoint(run_dir, folder, seed: int, update: int) -> PublishedPolicy:
+    """Export ``run_dir``'s seed ``seed`` at update ``update`` into ``folder`` and return its listing entry
+    (not yet written into SHA256SUMS.json: ``write_listing`` does that once for many files)."""
+    run_dir, folder = Path(run_dir), Path(folder)
+    config = load_config(run_dir / "config.yaml")
+    path = folder / policy_name(run_dir.name, seed, update)
+    export_checkpoint(run_dir, path, seed=seed, checkpoint=update)
+    return PublishedPolicy(path.name, seed, update, update * config.ppo.steps_per_update, sha256_of(path))
+
+
+def updates_to_publish(run_dir, seed: int, which: str = "snapshots") -> list[int]:
+    """The checkpoints of ``seed`` on disk that ``which`` (see ``WHICH``) selects, ascending; never update 0
+    (a seed's initial parameters, drawn again from its seed)."""
+    if which not in WHICH:
+        raise ValueError(f"which={which!r}: expected one of {', '.join(WHICH)}")
+    run_dir = Path(run_dir)
+    on_disk = [u for u in ckpt.list_updates(run_dir, seed) if u > 0]
+    if which == "all" or not on_disk:
+        return on_disk
+    if which == "final":
+        return on_disk[-1:]
+    config = load_config(run_dir / "config.yaml")
+    kept = set(ckpt.snapshot_updates(config.ppo.num_updates, config.run.num_checkpoints))
+    return [u for u in on_disk if u in kept]
+
+
+def publish_run(run_dir, folder, which: str = "snapshots") -> list[PublishedPolicy]:
+    """Export every seed's checkpoints that ``which`` selects into ``folder`` and list them in its
+    SHA256SUMS.json. Files already listed are left as they are (and checked: a listed file that changed or
+    went missing stops it before anything is written). Returns the entries added."""
+    run_dir, folder = Path(run_dir), Path(folder)
+    config = load_config(run_dir / "config.yaml")
+    listing = read_listing(folder)
+    verify(folder, [e.file for e in listing])
+    known = {e.file for e in listing}
+    folder.mkdir(parents=True, exist_ok=True)
+    added = []
+    for seed in range(config.population.num_seeds):
+        for update in updates_to_publish(run_dir, seed, which):
+            if policy_name(run_dir.name, seed, update) not in known:
+                added.append(publish_checkpoint(run_dir, folder, seed, update))
+    if added:
+        write_listing(folder, [*listing, *added])
+    return added
+
+
+def verify(folder, files: Iterable[str | Path]) -> None:
+    """Raise ``PolicyError`` naming the first of ``files`` (names or paths in ``folder``) that is not listed in
+    its SHA256SUMS.json, is missing, or whose bytes are not the listed ones."""
+    folder = Path(folder)
+    listed = {e.file: e.sha256 for e in read_listing(folder)}
+    for name in files:
+        path = folder / Path(name).name
+        if path.name not in listed:
+            raise PolicyError(f"{path}: not listed in {folder / SUMS}")
+        if not path.is_file():
+            raise PolicyError(f"{path}: listed in {SUMS} but missing")
+        if sha256_of(path) != listed[path.name]:
+            raise PolicyError(f"{path}: not the published file (its sha256 is not the one in {SUMS})")
