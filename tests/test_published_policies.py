@@ -91,3 +91,9 @@ def test_the_role_counts_account_for_every_delivery_in_the_returns():
     assert counts.shape == (len(roles.ROLES), 2)
     assert counts[3].sum() * 20 == float(played.returns.sum()) > 0
     assert counts[0].sum() >= 3 * counts[2].sum() >= 3 * counts[3].sum()  # 3 onions a soup, a soup a delivery
+    # Which pot: roles.md finds seed 1 (update 183) putting onions into the first pot only and seed 0 into the other.
+    for seed, first_only in ((1, True), (0, False)):
+        policy = load(POLICIES / f"sp_seed{seed}_update183.ocv2policy")
+        played = play_recorded(policy.apply, policy.hidden_size, env, (policy.params,) * 2, jax.random.PRNGKey(7), 4)
+        share = roles.first_pot_share(played.states)
+        assert ((share >= 0.95) if first_only else (share <= 0.05)).all(), (seed, share)

@@ -1600,7 +1600,8 @@ def sp10_env_steps(update: int) -> float:
 
 @functools.cache
 def sp10_roles() -> dict:
-    """roles.md: {update: [(cw seat 0, cw seat 1, [seat-0 share, count] per job, return) per seed]}."""
+    """roles.md: {update: [(cw seat 0, cw seat 1, [seat-0 share, count] per job, first-pot share per seat, return)
+    per seed]}."""
     tables = md_tables(SP10 / "roles.md")
     updates = [int(m) for m in re.findall(r"^## update (\d+)$", (SP10 / "roles.md").read_text(), re.M)]
     parsed = {}
@@ -1608,8 +1609,9 @@ def sp10_roles() -> dict:
         rows = []
         for row in table:
             cw = tuple(float(x) for x in row[1].split(","))
-            jobs = [tuple(float(x) for x in cell.split(" of ")) for cell in row[2:-1]]
-            rows.append((*cw, jobs, float(row[-1])))
+            jobs = [tuple(float(x) for x in cell.split(" of ")) for cell in row[2:6]]
+            pot = tuple(float(x) for x in row[6].split(","))
+            rows.append((*cw, jobs, pot, float(row[-1])))
         parsed[update] = rows
     return parsed
 
@@ -1667,6 +1669,133 @@ def _():
 @check("sp10_roles")
 def _():
     return sp10_delivery_shares(122)
+
+
+# --- the 10-seed population finished: 3.0M env steps per seed, the study's 10 x 10 cross-play (500 episodes per pair)
+
+
+def sp10_final() -> np.ndarray:
+    return matrix(SP10 / "xp_sp.csv")
+
+
+def sp10_low_pairs() -> list[tuple[int, int, float]]:
+    """Pairs (both seat orders) scoring below half the mean of their two seeds' self-play, lowest first."""
+    m = sp10_final()
+    p = both_seats(m)
+    low = [(i, j, p[i, j]) for i, j in itertools.combinations(range(len(m)), 2) if p[i, j] < (m[i, i] + m[j, j]) / 4]
+    return sorted(low, key=lambda pair: pair[2])
+
+
+def sp10_pair_r(measure) -> float:
+    """Pearson's r over the 45 pairs between a pair's final score and |difference| of ``measure`` (per seed)."""
+    p = both_seats(sp10_final())
+    ij = list(itertools.combinations(range(len(p)), 2))
+    return np.corrcoef([abs(measure[i] - measure[j]) for i, j in ij], [p[i, j] for i, j in ij])[0, 1]
+
+
+def sp10_measures(update: int = 183) -> dict:
+    """Per seed at ``update`` (seat 0): clockwise share, delivery share, share of onions into the first pot."""
+    rows = sp10_roles()[update]
+    return {"cw": [r[0] for r in rows], "deliveries": [r[2][3][0] for r in rows], "pot": [r[3][0] for r in rows]}
+
+
+@check("sp10_final")
+def _():
+    xp = run(SP10, "sp")["xp"]
+    return [
+        xp["num_policies"],
+        run(SP10, "sp")["env_steps_per_seed"] / 1e6,
+        xp["episodes_per_pair"],
+        xp["sp_mean"],
+        xp["xp_mean"],
+        xp["gap"],
+        xp["num_policies"],
+        *interval(xp, "gap"),
+        *paper(SP10, "sp"),
+    ]
+
+
+@check("sp10_growth")
+def _():
+    return [sp10_xp(92)[4], 92, sp10_xp(122)[4], 122, run(SP10, "sp")["xp"]["gap"], 183]
+
+
+@check("sp10_claim")
+def _():
+    xp = run(SP10, "sp")["xp"]
+    return [
+        xp["num_policies"],
+        millions(SP10, "sp"),
+        xp["sp_mean"],
+        xp["sp_std"],
+        xp["xp_mean"],
+        xp["xp_std"],
+        xp["gap"],
+        xp["num_policies"],
+        *interval(xp, "gap"),
+        len(sp10_low_pairs()),
+        45,
+    ]
+
+
+@check("sp10_cw183")
+def _():
+    cw = sp10_measures()["cw"]
+    rest = [x for k, x in enumerate(cw) if k not in (1, 6)]
+    return [1, 6, cw[1], cw[6], min(rest), max(rest)]
+
+
+@check("sp10_interval_vs_pairs")
+def _():
+    xp = run(SP10, "sp")["xp"]
+    every = pairs(sp10_final())
+    return [10, *interval(xp, "xp"), min(every), max(every)]
+
+
+@check("sp10_low_pairs")
+def _():
+    low = sp10_low_pairs()
+    return [len(low), 45, *[x for pair in low for x in pair]]
+
+
+@check("sp10_pots")
+def _():
+    pot = sp10_measures()["pot"]
+    first = [k for k, x in enumerate(pot) if x >= 0.95]
+    second = [k for k, x in enumerate(pot) if x <= 0.05]
+    p = both_seats(sp10_final())
+    mixed = [x for x in pot if 0.05 < x < 0.95]
+    return [*first, *second, min(mixed), max(mixed), 1, 6, p[1, 6], 0, 3, p[0, 3], 0, 6, p[0, 6]]
+
+
+@check("sp10_pots_early")
+def _():
+    pot = sp10_measures(92)["pot"]
+    single = [k for k, x in enumerate(pot) if x >= 0.95 or x <= 0.05]
+    return [*single, sp10_env_steps(92), 0, pot[0], 92]
+
+
+@check("sp10_pair_r")
+def _():
+    m = sp10_measures()
+    return [sp10_pair_r(m["pot"]), sp10_pair_r(m["cw"]), sp10_pair_r(m["deliveries"])]
+
+
+@check("sp10_seed3")
+def _():
+    p = both_seats(sp10_final())
+    others = [j for j in range(10) if j != 3]
+    means = [np.mean([p[k, j] for j in range(10) if j != k]) for k in range(10)]
+    nxt = sorted(range(10), key=lambda k: means[k])[1]
+    return [
+        3,
+        means[3],
+        sp10_final()[3, 3],
+        min(p[3, j] for j in others),
+        max(p[3, j] for j in others),
+        nxt,
+        means[nxt],
+    ]
 
 
 def main(argv=None) -> int:

@@ -11,8 +11,9 @@ held item before and after each transition and the cell the cook faces:
 - soups plated (a plate becomes a cooked dish while facing a pot),
 - deliveries (a cooked dish leaves the hand while facing the serving window);
 
-each as a share of the pair's total, and the clockwise share of the seat's ring moves (as ring_direction.py in
-table1_coord_ring/ measures it). Two seeds whose agents split the work the same way per seat, and walk the same
+each as a share of the pair's total, the clockwise share of the seat's ring moves (as ring_direction.py in
+table1_coord_ring/ measures it), and which pot the onions go into: Coordination Ring has two, and the share of each
+seat's onions that go into the first in reading order (row 0, column 3; the other is row 1, column 4). Two seeds whose agents split the work the same way per seat, and walk the same
 way, have the same convention; a seed on another one is where low cross-play pairs are to be expected.
 """
 
@@ -56,6 +57,22 @@ def role_counts(states) -> np.ndarray:
     return np.stack([c.sum(axis=(0, 1)) for c in counts])
 
 
+def first_pot_share(states) -> np.ndarray:
+    """Per seat, the share of the onions it puts into a pot that go into the layout's first pot in reading order
+    (NaN: none). The layout is the same in every episode (states.grid [E, T+1, H, W, C])."""
+    agents = states.agents
+    held, later = np.asarray(agents.inventory[:, :-1]), np.asarray(agents.inventory[:, 1:])
+    x, y, facing = (np.asarray(a[:, :-1]) for a in (agents.x, agents.y, agents.dir))
+    static = np.asarray(states.grid[0, 0, :, :, 0])
+    pot_y, pot_x = np.argwhere(static == Static.POT)[0]  # argwhere is row-major: the first pot in reading order
+    fx, fy = x + DIRECTION_VECTORS[facing, 0], y + DIRECTION_VECTORS[facing, 1]
+    faced = static[np.clip(fy, 0, static.shape[0] - 1), np.clip(fx, 0, static.shape[1] - 1)]
+    put = np.asarray(is_raw_ingredient(held)) & (later == EMPTY) & (faced == Static.POT)  # not onto a counter
+    at_first = put & (fx == pot_x) & (fy == pot_y)
+    with np.errstate(invalid="ignore"):
+        return at_first.sum(axis=(0, 1)) / put.sum(axis=(0, 1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--update", type=int, required=True, help="the snapshot (policies/sp_seed<i>_update<U>)")
@@ -68,8 +85,10 @@ def main() -> None:
     except PolicyError as error:
         sys.exit(str(error))
     header = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
-    print(f"| seed | clockwise share (seat 0, seat 1) | {header} | return |")
-    print("|---:|---|" + "---:|" * len(ROLES) + "---:|")
+    print(
+        f"| seed | clockwise share (seat 0, seat 1) | {header} | onions into the first pot (seat 0, seat 1) | return |"
+    )
+    print("|---:|---|" + "---:|" * len(ROLES) + "---|---:|")
     play = None
     for seed, path in enumerate(files):
         policy = load(path)
@@ -85,9 +104,10 @@ def main() -> None:
         share = clockwise / np.maximum(moves, 1)
         counts = role_counts(played.states)
         cells = [f"{c[0] / max(c.sum(), 1):.2f} of {int(c.sum())}" for c in counts]
+        pot = first_pot_share(played.states)
         print(
             f"| {seed} | {share[0]:.2f}, {share[1]:.2f} | " + " | ".join(cells)
-            + f" | {float(np.mean(played.returns)):.1f} |",
+            + f" | {pot[0]:.2f}, {pot[1]:.2f} | {float(np.mean(played.returns)):.1f} |",
             flush=True,
         )  # fmt: skip
 
