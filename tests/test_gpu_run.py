@@ -6,6 +6,8 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import json
+import shutil
+import subprocess
 import sys
 import tarfile
 from pathlib import Path
@@ -162,6 +164,42 @@ def test_the_next_windows_input_is_checked_against_what_travels(tmp_path):
     assert "TOO MUCH" not in gpu_report.travel_check(state)
     (state / "big").write_bytes(b"\0" * (gpu_report.TRAVEL_BYTES + 1))
     assert "TOO MUCH" in gpu_report.travel_check(state)
+
+
+def _repo_with_a_policy(root: Path) -> Path:
+    """A git repository holding one committed published policy (1 MiB) and bench/gpu_slim.sh."""
+    policy = root / "docs" / "results" / "study" / "policies" / "sp_seed0_update9.ocv2policy"
+    policy.parent.mkdir(parents=True)
+    policy.write_bytes(b"p" * (1 << 20))
+    (root / "bench").mkdir()
+    shutil.copy(ROOT / "bench" / "gpu_slim.sh", root / "bench" / "gpu_slim.sh")
+    for command in (["init", "-q"], ["add", "."], ["-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "x"]):
+        subprocess.run(["git", *command], cwd=root, check=True)
+    return policy
+
+
+def test_a_window_that_fits_without_the_published_policies_is_told_to_slim(tmp_path):
+    root = tmp_path / "repo"
+    _repo_with_a_policy(root)
+    state = tmp_path / "state"
+    state.mkdir()
+    (state / "part").write_bytes(b"\0" * (gpu_report.TRAVEL_BYTES - (1 << 19)))
+    line = gpu_report.travel_check(state, root)
+    assert "TOO MUCH" not in line and "bash bench/gpu_slim.sh" in line and "published policies 1.0" in line
+
+
+def test_gpu_slim_takes_committed_policies_out_of_the_work_tree_and_git_brings_them_back(tmp_path):
+    root = tmp_path / "repo"
+    policy = _repo_with_a_policy(root)
+    stray = policy.with_name("sp_seed1_update9.ocv2policy")
+    stray.write_bytes(b"not committed")
+    done = subprocess.run(["bash", "bench/gpu_slim.sh"], cwd=root, capture_output=True, text=True)
+    assert done.returncode == 1 and "commit them first" in done.stderr and policy.is_file()  # nothing removed
+    stray.unlink()
+    done = subprocess.run(["bash", "bench/gpu_slim.sh"], cwd=root, capture_output=True, text=True, check=True)
+    assert not policy.exists() and "1 published policies (1 MiB)" in done.stdout
+    subprocess.run(["git", "checkout", "--", "docs/results"], cwd=root, check=True)
+    assert policy.read_bytes() == b"p" * (1 << 20)
 
 
 def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp_path):
