@@ -1745,6 +1745,17 @@ def _():
     return [1, 6, cw[1], cw[6], min(rest), max(rest)]
 
 
+@check("run_sp10")
+def _():
+    sp = run(SP10, "sp")
+    return [sp["env_steps_per_seed"], sp["update"]]
+
+
+@check("run_sp10_wall")
+def _():
+    return hm(summary(SP10)["wall_s"])
+
+
 @check("sp10_interval_vs_pairs")
 def _():
     xp = run(SP10, "sp")["xp"]
