@@ -30,10 +30,15 @@ HERE = Path(__file__).resolve().parent
 
 def stop(study: Path) -> None:
     def running() -> list[str]:
-        found = subprocess.run(["pgrep", "-f", f"--out {study}"], capture_output=True, text=True).stdout.split()
-        return [pid for pid in found if int(pid) != os.getpid()]
+        # "--" first: pgrep would read a pattern that starts with "--out" as an option, fail, and find nothing.
+        found = subprocess.run(["pgrep", "-f", "--", f"--out {study}"], capture_output=True, text=True)
+        if found.returncode > 1:
+            raise SystemExit(f"pgrep failed ({found.stderr.strip()}); nothing was stopped or packed")
+        return [pid for pid in found.stdout.split() if int(pid) != os.getpid()]
 
     pids = running()
+    if not pids:
+        print(f"no `ocv2 study run ... --out {study}` is running (started with another spelling of the path?)")
     for pid in pids:
         os.kill(int(pid), signal.SIGINT)
     for _ in range(600):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import importlib.util
 import json
 import os
 import re
@@ -899,3 +900,20 @@ def test_publish_final_takes_each_seeds_last_checkpoint_only(finished, tmp_path)
 def test_study_pack_latest_only_from_the_command_line(finished, tmp_path):
     assert main(["study", "pack", str(finished), "--out", str(tmp_path / "p"), "--latest-only"]) == 0
     assert json.loads((tmp_path / "p" / "pack.json").read_text())["latest_only"] is True
+
+
+def test_stop_and_pack_finds_and_interrupts_the_study_run_by_its_out_folder(tmp_path):
+    """study_state/stop_and_pack.py's stop(): a pattern starting with "--out" once went to pgrep as an option, so
+    nothing was found, nothing stopped, and a study still training was packed."""
+    spec = importlib.util.spec_from_file_location("stop_and_pack", ROOT / "study_state" / "stop_and_pack.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path / "study"
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import time; time.sleep(60)", "--out", str(out)], stderr=subprocess.DEVNULL
+    )
+    try:
+        module.stop(out)
+        assert child.wait(timeout=10) != 0  # ended by SIGINT (KeyboardInterrupt), well before its 60 s
+    finally:
+        child.kill()
