@@ -689,10 +689,15 @@ def _gap_zero_pattern(m):
 # --- what is being run
 
 
+def run_size(study: Path, name: str) -> list:
+    """A run's env steps per seed and its number of updates."""
+    r = run(study, name)
+    return [r["env_steps_per_seed"], r["update"]]
+
+
 @check("run_cr_size")
 def _():
-    r = run(CR, "sp")
-    return [r["env_steps_per_seed"], r["update"]]
+    return run_size(CR, "sp")
 
 
 @check("run_cr_wall")
@@ -702,8 +707,7 @@ def _():
 
 @check("run_gcs_size")
 def _():
-    r = run(GCS, SP)
-    return [r["env_steps_per_seed"], r["update"]]
+    return run_size(GCS, SP)
 
 
 def _training_s(name):
@@ -761,12 +765,13 @@ def _():
 # --- claims table
 
 
-@check("claim_cr_sp")
-def _():
-    xp = run(CR, "sp")["xp"]
+def claim_row(study: Path, name: str) -> list:
+    """The claims table's "ours" cell of a run: seeds x env steps, SP and XP with their std, the gap and its
+    interval over the seeds."""
+    xp = run(study, name)["xp"]
     return [
         xp["num_policies"],
-        millions(CR, "sp"),
+        millions(study, name),
         xp["sp_mean"],
         xp["sp_std"],
         xp["xp_mean"],
@@ -774,8 +779,12 @@ def _():
         xp["gap"],
         xp["num_policies"],
         *interval(xp, "gap"),
-        min(pairs(cr_sp())),
     ]
+
+
+@check("claim_cr_sp")
+def _():
+    return [*claim_row(CR, "sp"), min(pairs(cr_sp()))]
 
 
 @check("claim_cr_sa")
@@ -1722,20 +1731,7 @@ def _():
 
 @check("sp10_claim")
 def _():
-    xp = run(SP10, "sp")["xp"]
-    return [
-        xp["num_policies"],
-        millions(SP10, "sp"),
-        xp["sp_mean"],
-        xp["sp_std"],
-        xp["xp_mean"],
-        xp["xp_std"],
-        xp["gap"],
-        xp["num_policies"],
-        *interval(xp, "gap"),
-        len(sp10_low_pairs()),
-        45,
-    ]
+    return [*claim_row(SP10, "sp"), len(sp10_low_pairs()), 45]
 
 
 @check("sp10_cw183")
@@ -1747,8 +1743,7 @@ def _():
 
 @check("run_sp10")
 def _():
-    sp = run(SP10, "sp")
-    return [sp["env_steps_per_seed"], sp["update"]]
+    return run_size(SP10, "sp")
 
 
 @check("run_sp10_wall")
