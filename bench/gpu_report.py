@@ -180,7 +180,10 @@ def travel_check(state: Path, root: Path = ROOT) -> str:
     files = [root / n.decode() for n in tracked if n and not n.startswith(b"gpu_state/")]
     sizes = {path: path.stat().st_size for path in files if path.is_file()}
     tree = sum(sizes.values())
-    policies = sum(size for path, size in sizes.items() if path.suffix == ".ocv2policy" and "results" in path.parts)
+    results = root / "docs" / "results"  # the files bench/gpu_slim.sh takes out: docs/results/**/*.ocv2policy
+    policies = sum(
+        size for path, size in sizes.items() if path.suffix == ".ocv2policy" and path.is_relative_to(results)
+    )
     wheels = sum(p.stat().st_size for p in (root / ".whl").glob("*")) if (root / ".whl").is_dir() else 0
     carried = sum(p.stat().st_size for p in state.rglob("*") if p.is_file())
     total = tree + wheels + carried

@@ -1,6 +1,6 @@
 """A folder of published policies: exported snapshot files and the SHA256SUMS.json that lists them.
 
-    entries = publish_run("runs/sp", "docs/results/my_study/policies", updates="snapshots")
+    entries = publish_run("runs/sp", "docs/results/my_study/policies", which="snapshots")
     verify("docs/results/my_study/policies", ["sp_seed0_update183.ocv2policy"])   # PolicyError if changed
 
 A study's results carry its populations as ``ocv2 export`` files named ``<run>_seed<i>_update<U>.ocv2policy``,

@@ -22,8 +22,7 @@ import time
 from pathlib import Path
 
 from cluster.study.pack import pack_study
-from cluster.study.runner import read_state
-from population.published import publish_run
+from cluster.study.publish import publish_study, trained_runs
 
 HERE = Path(__file__).resolve().parent
 
@@ -58,12 +57,11 @@ def main() -> None:
     )
     args = parser.parse_args()
     study = args.study.resolve()
-    name = read_state(study).study
+    name, _ = trained_runs(study)  # a StudyError before anything is stopped if STUDY_DIR is not a study
     stop(study)
     dest = args.policies or HERE.parent / "docs" / "results" / name / "policies"
-    for run in sorted((study / "runs").iterdir()):
-        if (run / "config.yaml").is_file():
-            print(f"{run.name}: {len(publish_run(run, dest))} policies exported into {dest}")
+    for run_name, added in publish_study(study, dest)[1].items():
+        print(f"{run_name}: {len(added)} policies exported into {dest}")
     target, fresh = args.into / name, args.into / f"{name}.new"
     shutil.rmtree(fresh, ignore_errors=True)
     record = pack_study(study, fresh, latest_only=True)

@@ -27,6 +27,7 @@ from cluster.runtime.progress import duration
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
+from cluster.study.publish import publish_study
 from cluster.study.report import write_report
 from cluster.study.runner import StudyOptions, kept_study, plan_study, read_state, run_study, study_status
 from cluster.study.spec import BUDGET_MODES, StudyError, default_out, load_study, run_config
@@ -34,7 +35,7 @@ from population.checkpoints import CheckpointError
 from population.config import ClusterConfig
 from population.numerics import enable_deterministic_ops
 from population.policy import PolicyError
-from population.published import WHICH, publish_run
+from population.published import WHICH
 
 BUDGET = bounded(float, 0, 100, "a fraction of the env steps in (0, 100], such as 0.25", low_open=True)
 
@@ -211,19 +212,12 @@ def _pack(args) -> int:
 
 
 def _publish(args) -> int:
-    study, out = Path(args.dir), Path(args.out)
     try:
-        state = read_state(study)
-        if state is None:
-            raise StudyError(f"{study}: no study.json here (not a study directory: see `ocv2 study run --out`)")
-        runs = sorted(p.parent for p in (study / "runs").glob("*/config.yaml"))
-        if not runs:
-            raise StudyError(f"{study}: no trained run under runs/ (run `ocv2 study run` first)")
-        for run_dir in runs:
-            added = publish_run(run_dir, out, args.which)
-            print(f"{state.study}/{run_dir.name}: {len(added)} policies exported into {out}")
+        name, added = publish_study(args.dir, args.out, args.which)
     except (StudyError, RunDirError, CheckpointError, PolicyError) as error:
         raise CLIError(str(error)) from None
+    for run_name, entries in added.items():
+        print(f"{name}/{run_name}: {len(entries)} policies exported into {args.out}")
     return EXIT_OK
 
 
