@@ -23,6 +23,7 @@ from pathlib import Path
 
 from cluster.study.pack import pack_study
 from cluster.study.publish import publish_study, trained_runs
+from cluster.study.spec import StudyError
 
 HERE = Path(__file__).resolve().parent
 
@@ -57,7 +58,10 @@ def main() -> None:
     )
     args = parser.parse_args()
     study = args.study.resolve()
-    name, _ = trained_runs(study)  # a StudyError before anything is stopped if STUDY_DIR is not a study
+    try:
+        name, _ = trained_runs(study)  # before anything is stopped
+    except StudyError as error:
+        raise SystemExit(str(error)) from None
     stop(study)
     dest = args.policies or HERE.parent / "docs" / "results" / name / "policies"
     for run_name, added in publish_study(study, dest)[1].items():
