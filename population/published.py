@@ -137,7 +137,9 @@ def publish_run(run_dir, folder, which: str = "snapshots") -> list[PublishedPoli
 def verify(folder, files: Iterable[str | Path]) -> None:
     """Raise ``PolicyError`` naming the first of ``files`` (names or paths in ``folder``) that is not listed in
     its SHA256SUMS.json, is missing, or whose bytes are not the listed ones."""
-    folder = Path(folder)
+    folder, files = Path(folder), list(files)
+    if files and not (folder / SUMS).is_file():  # say so, rather than "not listed" for a file of a wrong folder
+        raise PolicyError(f"{folder}: no {SUMS} (not a published policies folder)")
     listed = {e.file: e.sha256 for e in read_listing(folder)}
     for name in files:
         path = folder / Path(name).name

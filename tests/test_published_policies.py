@@ -13,6 +13,7 @@ import hashlib
 import importlib.util
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -97,3 +98,16 @@ def test_the_role_counts_account_for_every_delivery_in_the_returns():
         played = play_recorded(policy.apply, policy.hidden_size, env, (policy.params,) * 2, jax.random.PRNGKey(7), 4)
         share = roles.first_pot_share(played.states)
         assert ((share >= 0.95) if first_only else (share <= 0.05)).all(), (seed, share)
+
+
+def test_roles_reads_another_methods_published_folder_and_names_a_wrong_one(tmp_path):
+    """roles.py serves any published Coordination Ring population (--method, --policies); a folder that is not a
+    published one, or a method whose files are not listed there, stops it with the reason before anything plays."""
+    script = str(RESULTS / "roles.py")
+    run = [sys.executable, script, "--update", "183"]
+    wrong_folder = subprocess.run([*run, "--policies", str(tmp_path)], capture_output=True, text=True)
+    assert wrong_folder.returncode != 0
+    assert f"{tmp_path}: no SHA256SUMS.json (not a published policies folder)" in wrong_folder.stderr
+    wrong_method = subprocess.run([*run, "--method", "sa", "--policies", str(POLICIES)], capture_output=True, text=True)
+    assert wrong_method.returncode != 0
+    assert "sa_seed0_update183.ocv2policy: not listed in" in wrong_method.stderr

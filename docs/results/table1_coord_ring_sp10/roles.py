@@ -1,8 +1,10 @@
 """Who does what, per seat, in each Coordination Ring seed's self-play: the role split beside the ring direction.
 
     python docs/results/table1_coord_ring_sp10/roles.py --update 61 [--episodes 32]
+    python docs/results/table1_coord_ring_sp10/roles.py --update 183 --method sa --policies DIR   # another population
 
-Reads the published policies (``policies/sp_seed<i>_update<U>.ocv2policy``, checked against SHA256SUMS.json) and
+Reads the published policies (``<policies>/<method>_seed<i>_update<U>.ocv2policy``, by default this folder's
+``policies/sp_seed...``, checked against the folder's SHA256SUMS.json) and
 plays each seed with itself for N episodes (sampled actions, a fixed key), keeping every state. Per seat, from the
 held item before and after each transition and the cell the cook faces:
 
@@ -91,13 +93,15 @@ def first_pot_share(states) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--update", type=int, required=True, help="the snapshot (policies/sp_seed<i>_update<U>)")
+    parser.add_argument("--update", type=int, required=True, help="the snapshot (<method>_seed<i>_update<U>)")
     parser.add_argument("--episodes", type=int, default=32)
     parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--method", default="sp", help="the file names' method prefix (sp, sa, ...)")
+    parser.add_argument("--policies", type=Path, default=HERE / "policies", help="a published policies folder")
     args = parser.parse_args()
-    files = [HERE / "policies" / f"sp_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
+    files = [args.policies / f"{args.method}_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
     try:
-        verify(HERE / "policies", files)
+        verify(args.policies, files)
     except PolicyError as error:
         sys.exit(str(error))
     header = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
