@@ -117,18 +117,29 @@ def updates_to_publish(run_dir, seed: int, which: str = "snapshots") -> list[int
 def publish_run(run_dir, folder, which: str = "snapshots") -> list[PublishedPolicy]:
     """Export every seed's checkpoints that ``which`` selects into ``folder`` and list them in its
     SHA256SUMS.json. Files already listed are left as they are (and checked: a listed file that changed or
-    went missing stops it before anything is written). Returns the entries added."""
+    went missing stops it before anything is written). A failure part-way (a damaged checkpoint) removes the
+    files this call wrote, so no unlisted file is left beside the listed ones. Returns the entries added."""
     run_dir, folder = Path(run_dir), Path(folder)
     config = load_config(run_dir / "config.yaml")
+    if folder.exists() and not folder.is_dir():
+        raise PolicyError(f"{folder}: a file, not a policies folder")
     listing = read_listing(folder)
     verify(folder, [e.file for e in listing])
     known = {e.file for e in listing}
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise PolicyError(f"{folder}: cannot create the policies folder ({error.strerror or error})") from None
     added = []
-    for seed in range(config.population.num_seeds):
-        for update in updates_to_publish(run_dir, seed, which):
-            if policy_name(run_dir.name, seed, update) not in known:
-                added.append(publish_checkpoint(run_dir, folder, seed, update))
+    try:
+        for seed in range(config.population.num_seeds):
+            for update in updates_to_publish(run_dir, seed, which):
+                if policy_name(run_dir.name, seed, update) not in known:
+                    added.append(publish_checkpoint(run_dir, folder, seed, update))
+    except BaseException:  # an interrupt too: what is not listed must not stay
+        for entry in added:
+            (folder / entry.file).unlink(missing_ok=True)
+        raise
     if added:
         write_listing(folder, [*listing, *added])
     return added

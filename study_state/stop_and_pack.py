@@ -3,12 +3,16 @@ pack its resumable state here.
 
     python study_state/stop_and_pack.py STUDY_DIR [--policies docs/results/<study>/policies]
 
-1. SIGINT to the ``ocv2 study run`` of STUDY_DIR (found by its --out): it finishes the chunk in flight, saves and
-   exits (SIGKILL after 10 minutes; a kill loses at most that chunk).
+0. What could make the steps below fail is checked first, while the study still trains (study.json, the runs'
+   configs, the policies folder's listing, the pack's folder); any problem stops the script before step 1.
+1. SIGINT to the ``ocv2 study run`` of STUDY_DIR (the process whose command line's --out is STUDY_DIR, read from
+   /proc): it finishes the chunk in flight, saves and exits (SIGKILL after 10 minutes; a kill loses at most that
+   chunk).
 2. Every kept snapshot of every run's seeds not published yet is exported into ``--policies`` (default
    docs/results/<study name>/policies), with its sha256 and env steps in SHA256SUMS.json, as ``ocv2 study publish``
    does (``population.published``); files already listed there are left as they are.
-3. ``ocv2 study pack --latest-only`` into study_state/<study name>/ (written beside it first, then swapped in).
+3. ``ocv2 study pack --latest-only`` into study_state/<study name>/ (written beside it first, then swapped in; a
+   damaged checkpoint stops it and the earlier pack stays).
 """
 
 from __future__ import annotations
@@ -23,30 +27,69 @@ from pathlib import Path
 
 from cluster.study.pack import pack_study
 from cluster.study.publish import publish_study, trained_runs
+from cluster.study.runner import check_folder
 from cluster.study.spec import StudyError
+from population.checkpoints import CheckpointError
+from population.config import ConfigError, load_config
+from population.policy import PolicyError
+from population.published import read_listing, verify
 
 HERE = Path(__file__).resolve().parent
 
 
-def stop(study: Path) -> None:
-    def running() -> list[str]:
-        # "--" first: pgrep would read a pattern that starts with "--out" as an option, fail, and find nothing.
-        found = subprocess.run(["pgrep", "-f", "--", f"--out {study}"], capture_output=True, text=True)
-        if found.returncode > 1:
-            raise SystemExit(f"pgrep failed ({found.stderr.strip()}); nothing was stopped or packed")
-        return [pid for pid in found.stdout.split() if int(pid) != os.getpid()]
+def out_folder(pid: int) -> Path | None:
+    """The resolved ``--out`` of process ``pid``'s command line (relative to its working directory), if any.
+    Read from /proc, argument by argument: a pattern match would also take ``--out <study>_pilot``."""
+    try:
+        argv = [a.decode(errors="replace") for a in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")]
+        cwd = Path(os.readlink(f"/proc/{pid}/cwd"))
+    except OSError:  # it ended meanwhile, or is another user's
+        return None
+    for index, arg in enumerate(argv):
+        if arg == "--out" and index + 1 < len(argv):
+            return (cwd / argv[index + 1]).resolve()
+        if arg.startswith("--out="):
+            return (cwd / arg.removeprefix("--out=")).resolve()
+    return None
 
-    pids = running()
+
+def running(study: Path) -> list[int]:
+    """The processes whose command line has ``--out`` = ``study`` (resolved)."""
+    # "--" first: pgrep would read a pattern that starts with "--out" as an option, fail, and find nothing.
+    found = subprocess.run(["pgrep", "-f", "--", "--out"], capture_output=True, text=True)
+    if found.returncode > 1:
+        raise SystemExit(f"pgrep failed ({found.stderr.strip()}); nothing was stopped or packed")
+    pids = [int(pid) for pid in found.stdout.split() if int(pid) != os.getpid()]
+    return [pid for pid in pids if out_folder(pid) == study.resolve()]
+
+
+def stop(study: Path) -> None:
+    pids = running(study)
     if not pids:
-        print(f"no `ocv2 study run ... --out {study}` is running (started with another spelling of the path?)")
+        print(f"no `ocv2 study run ... --out {study}` is running")
     for pid in pids:
-        os.kill(int(pid), signal.SIGINT)
+        os.kill(pid, signal.SIGINT)
     for _ in range(600):
-        if not running():
+        if not running(study):
             return
         time.sleep(1)
-    for pid in running():
-        os.kill(int(pid), signal.SIGKILL)
+    for pid in running(study):
+        os.kill(pid, signal.SIGKILL)
+
+
+def check_before_stopping(study: Path, policies: Path | None, into: Path) -> tuple[str, Path]:
+    """Everything that would make the publish or the pack fail, checked while the study still trains: the
+    study.json, each run's config, the policies folder and its listing, the pack's folder. Returns the study's
+    name and its policies folder (``policies``, or docs/results/<name>/policies)."""
+    name, runs = trained_runs(study)
+    policies = policies or HERE.parent / "docs" / "results" / name / "policies"
+    for run_dir in runs:
+        load_config(run_dir / "config.yaml")
+    if policies.exists() and not policies.is_dir():
+        raise StudyError(f"{policies}: a file, not a policies folder (--policies)")
+    verify(policies, [entry.file for entry in read_listing(policies)])
+    check_folder(into / name, "the pack's folder (--into)")
+    return name, policies
 
 
 def main() -> None:
@@ -58,19 +101,27 @@ def main() -> None:
     )
     args = parser.parse_args()
     study = args.study.resolve()
+    failures = (StudyError, ConfigError, PolicyError, CheckpointError, OSError)
     try:
-        name, _ = trained_runs(study)  # before anything is stopped
-    except StudyError as error:
-        raise SystemExit(str(error)) from None
+        name, dest = check_before_stopping(study, args.policies, args.into)
+    except failures as error:
+        raise SystemExit(f"{error}\nnothing was stopped, published or packed") from None
     stop(study)
-    dest = args.policies or HERE.parent / "docs" / "results" / name / "policies"
-    for run_name, added in publish_study(study, dest)[1].items():
-        print(f"{run_name}: {len(added)} policies exported into {dest}")
-    target, fresh = args.into / name, args.into / f"{name}.new"
-    shutil.rmtree(fresh, ignore_errors=True)
-    record = pack_study(study, fresh, latest_only=True)
-    shutil.rmtree(target, ignore_errors=True)
-    fresh.rename(target)
+    try:
+        for run_name, added in publish_study(study, dest)[1].items():
+            print(f"{run_name}: {len(added)} policies exported into {dest}")
+        target, fresh, old = (args.into / f"{name}{suffix}" for suffix in ("", ".new", ".old"))
+        shutil.rmtree(fresh, ignore_errors=True)
+        record = pack_study(study, fresh, latest_only=True)
+        shutil.rmtree(old, ignore_errors=True)
+        if target.exists():
+            target.rename(old)  # kept until the new pack is in place
+        fresh.rename(target)
+        shutil.rmtree(old)
+    except failures as error:
+        raise SystemExit(
+            f"{error}\nthe study was stopped; {args.into / name} is as it was (fix the cause and run this again)"
+        ) from None
     print(f"packed {record['bytes']:,} bytes in {len(record['parts'])} part(s) into {target}")
 
 

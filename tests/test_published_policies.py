@@ -111,3 +111,5 @@ def test_roles_reads_another_methods_published_folder_and_names_a_wrong_one(tmp_
     wrong_method = subprocess.run([*run, "--method", "sa", "--policies", str(POLICIES)], capture_output=True, text=True)
     assert wrong_method.returncode != 0
     assert "sa_seed0_update183.ocv2policy: not listed in" in wrong_method.stderr
+    no_episodes = subprocess.run([*run, "--episodes", "0"], capture_output=True, text=True)
+    assert no_episodes.returncode == 2 and "--episodes" in no_episodes.stderr and "Traceback" not in no_episodes.stderr

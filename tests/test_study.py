@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import hashlib
 import importlib.util
 import json
 import os
@@ -902,18 +903,118 @@ def test_study_pack_latest_only_from_the_command_line(finished, tmp_path):
     assert json.loads((tmp_path / "p" / "pack.json").read_text())["latest_only"] is True
 
 
-def test_stop_and_pack_finds_and_interrupts_the_study_run_by_its_out_folder(tmp_path):
-    """study_state/stop_and_pack.py's stop(): a pattern starting with "--out" once went to pgrep as an option, so
-    nothing was found, nothing stopped, and a study still training was packed."""
+def _stop_and_pack():
     spec = importlib.util.spec_from_file_location("stop_and_pack", ROOT / "study_state" / "stop_and_pack.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    return module
+
+
+def _sleeper(out, cwd=None) -> subprocess.Popen:
+    """A stand-in for `ocv2 study run ... --out OUT` (interrupted, it exits non-zero)."""
+    argv = [sys.executable, "-c", "import time; time.sleep(60)", "--out", str(out)]
+    return subprocess.Popen(argv, cwd=cwd, stderr=subprocess.DEVNULL)
+
+
+def test_stop_and_pack_interrupts_the_study_run_of_its_out_folder_and_no_other(tmp_path):
+    """study_state/stop_and_pack.py's stop(): a pattern starting with "--out" once went to pgrep as an option, so
+    nothing was found, nothing stopped, and a study still training was packed; then a pattern match also took
+    `--out <study>_pilot`. The --out argument is now compared as a path (a relative one from the process's own
+    working directory)."""
+    module = _stop_and_pack()
     out = tmp_path / "study"
-    child = subprocess.Popen(
-        [sys.executable, "-c", "import time; time.sleep(60)", "--out", str(out)], stderr=subprocess.DEVNULL
-    )
+    out.mkdir()
+    sibling, relative = _sleeper(tmp_path / "study_pilot"), _sleeper("study", cwd=tmp_path)
     try:
         module.stop(out)
-        assert child.wait(timeout=10) != 0  # ended by SIGINT (KeyboardInterrupt), well before its 60 s
+        assert relative.wait(timeout=10) != 0  # ended by SIGINT (KeyboardInterrupt), well before its 60 s
+        assert sibling.poll() is None
     finally:
-        child.kill()
+        sibling.kill()
+        relative.kill()
+
+
+def test_stop_and_pack_checks_everything_before_it_stops_the_study(finished, tmp_path):
+    """A broken run config, or a policies folder that is a file, ends the script before the study is stopped:
+    the training goes on and nothing is published or packed."""
+    study = _copy(finished, tmp_path / "study")
+    script = [sys.executable, str(ROOT / "study_state" / "stop_and_pack.py"), str(study), "--into", str(tmp_path)]
+    (tmp_path / "a_file").write_text("x")
+    config = next((study / "runs").glob("*/config.yaml"))
+    good = config.read_text()
+    for problem, extra, expected in [
+        ("config", [], f"{config}: not valid YAML"),
+        ("policies", ["--policies", str(tmp_path / "a_file")], "a file, not a policies folder"),
+    ]:
+        config.write_text("ppo: [" if problem == "config" else good)
+        training = _sleeper(study)
+        try:
+            done = subprocess.run([*script, *extra], capture_output=True, text=True, timeout=120)
+            assert done.returncode != 0 and expected in done.stderr, done.stderr
+            assert "nothing was stopped, published or packed" in done.stderr and "Traceback" not in done.stderr
+            assert training.poll() is None
+        finally:
+            training.kill()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "study"]
+
+
+def test_pack_checks_the_study_and_every_checkpoint_before_writing(finished, tmp_path, capsys):
+    """A damaged study.json or checkpoint stops `study pack` with the file named and no pack folder made (a pack
+    replaces the last good one between sessions); a pack inside the study would be packed into the next one."""
+    study = _copy(finished, tmp_path / "study")
+    dest = tmp_path / "packed"
+    checkpoint = sorted((study / "runs").glob("*/checkpoints/seed_0/update_*.msgpack"))[-1]
+    good = checkpoint.read_bytes()
+    checkpoint.write_bytes(good[: len(good) // 2])
+    assert main(["study", "pack", str(study), "--out", str(dest), "--latest-only"]) == 2
+    assert f"{checkpoint}: not a readable ocv2 checkpoint" in _one_line(capsys) and not dest.exists()
+    checkpoint.write_bytes(good)
+    (study / "study.json").write_text('{"study": ')
+    assert main(["study", "pack", str(study), "--out", str(dest)]) == 2
+    assert "study.json: unreadable" in _one_line(capsys) and not dest.exists()
+    shutil.copy(finished / "study.json", study / "study.json")
+    assert main(["study", "pack", str(study), "--out", str(study / "packed")]) == 2
+    assert "inside the study directory" in _one_line(capsys) and not (study / "packed").exists()
+    assert main(["study", "pack", str(study), "--out", str(dest)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["packed", "study"]  # no staging folder left
+
+
+def test_unpack_names_a_malformed_pack_json_or_a_cut_stream(finished, tmp_path, capsys):
+    packed = tmp_path / "packed"
+    assert main(["study", "pack", str(finished), "--out", str(packed)]) == 0
+    record = json.loads((packed / "pack.json").read_text())
+    for parts in (["study.tar.gz.000"], None, [{"file": "../elsewhere", "sha256": "0"}]):
+        (packed / "pack.json").write_text(json.dumps({**record, "parts": parts}))
+        assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
+        assert "pack.json" in _one_line(capsys) and not (tmp_path / "u").exists()
+    cut = (packed / "study.tar.gz.000").read_bytes()[:-200]  # listed with its own sum: only gzip sees the cut
+    (packed / "study.tar.gz.000").write_bytes(cut)
+    parts = [{"file": "study.tar.gz.000", "bytes": len(cut), "sha256": hashlib.sha256(cut).hexdigest()}]
+    (packed / "pack.json").write_text(json.dumps({**record, "parts": parts}))
+    assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
+    assert "cannot unpack" in _one_line(capsys) and not (tmp_path / "u").exists()
+    assert main(["study", "unpack", str(packed / "pack.json"), "--out", str(tmp_path / "u")]) == 2
+    assert "a file, not a pack folder" in _one_line(capsys)
+
+
+def test_publish_stopped_by_a_damaged_checkpoint_leaves_no_unlisted_file(finished, tmp_path, capsys):
+    study = _copy(finished, tmp_path / "study")
+    out = tmp_path / "policies"
+    last_seed = sorted((study / "runs").glob("*/checkpoints/seed_*"))[-1]
+    checkpoint = sorted(last_seed.glob("update_*.msgpack"))[-1]
+    checkpoint.write_bytes(checkpoint.read_bytes()[:100])
+    assert main(["study", "publish", str(study), "--out", str(out), "--which", "final"]) == 2
+    assert f"{checkpoint}" in _one_line(capsys)
+    # runs publish in name order: "sa" whole and listed; of "sp" nothing, though seeds before the damaged one
+    # were exported before it was reached
+    on_disk = sorted(p.name for p in out.glob("*.ocv2policy"))
+    assert on_disk == sorted(e.file for e in published.read_listing(out)) and on_disk
+    assert not [name for name in on_disk if name.startswith(checkpoint.parents[2].name + "_")]
+    config = next((study / "runs").glob("*/config.yaml"))
+    config.write_text("ppo: [")
+    assert main(["study", "publish", str(study), "--out", str(out)]) == 2
+    assert "not valid YAML" in _one_line(capsys)
+    (tmp_path / "a_file").write_text("x")
+    shutil.copy(next((finished / "runs").glob("*/config.yaml")), config)
+    assert main(["study", "publish", str(study), "--out", str(tmp_path / "a_file")]) == 2
+    assert "a file, not a policies folder" in _one_line(capsys)

@@ -32,7 +32,7 @@ from cluster.study.report import write_report
 from cluster.study.runner import StudyOptions, kept_study, plan_study, read_state, run_study, study_status
 from cluster.study.spec import BUDGET_MODES, StudyError, default_out, load_study, run_config
 from population.checkpoints import CheckpointError
-from population.config import ClusterConfig
+from population.config import ClusterConfig, ConfigError
 from population.numerics import enable_deterministic_ops
 from population.policy import PolicyError
 from population.published import WHICH
@@ -214,7 +214,7 @@ def _pack(args) -> int:
 def _publish(args) -> int:
     try:
         name, added = publish_study(args.dir, args.out, args.which)
-    except (StudyError, RunDirError, CheckpointError, PolicyError) as error:
+    except (StudyError, RunDirError, CheckpointError, PolicyError, ConfigError) as error:
         raise CLIError(str(error)) from None
     for run_name, entries in added.items():
         print(f"{name}/{run_name}: {len(entries)} policies exported into {args.out}")

@@ -21,8 +21,10 @@ import io
 import json
 import shutil
 import tarfile
+import zlib
 from pathlib import Path
 
+from cluster.study.runner import check_folder, read_state
 from cluster.study.spec import StudyError
 from population import checkpoints as ckpt
 
@@ -58,36 +60,64 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     10-seed PPO-CNN checkpoint is about 13.5 MB); the kept snapshots before it are left behind, so what needs
     them later (over-training cross-play, FCP partners, ``ocv2 export --checkpoint mid``) will not find them --
     export their policies first (``ocv2 export RUN --checkpoint N``) if they matter.
+
+    Everything is checked before anything is written -- study.json field by field, every packed checkpoint's
+    checksum (a pack is what a later session resumes from, so a damaged one must not replace a good one) -- and
+    the parts are written beside ``dest`` and moved in whole: a failure leaves ``dest`` as it was.
     """
     out, dest = Path(out), Path(dest)
-    if not (out / "study.json").is_file():
+    state = read_state(out)
+    if state is None:
         raise StudyError(f"{out}: not a study directory (no study.json)")
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+    if dest.resolve().is_relative_to(out.resolve()):
+        raise StudyError(
+            f"{dest}: inside the study directory {out} (a later pack would hold this one); choose another --out"
+        )
+    check_folder(dest, "a pack folder")
+    if dest.exists() and any(dest.iterdir()):
         raise StudyError(f"{dest}: exists and is not an empty folder; choose another --out")
     if part_bytes < 1:
         raise StudyError(f"part size must be positive, got {part_bytes}")
-    buffer = io.BytesIO()
     files = _packed_files(out, latest_only)
+    for path in files:
+        if ckpt.update_of(path) is not None:
+            try:
+                ckpt.read(path)
+            except ckpt.CheckpointError as error:
+                raise StudyError(f"{error}; nothing was packed") from None
+    buffer = io.BytesIO()
     with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
         for path in files:
             tar.add(path, arcname=str(path.relative_to(out)))
     data = buffer.getvalue()
-    dest.mkdir(parents=True, exist_ok=True)
-    parts = []
-    for index, start in enumerate(range(0, max(len(data), 1), part_bytes)):
-        chunk = data[start : start + part_bytes]
-        name = f"study.tar.gz.{index:03d}"
-        (dest / name).write_bytes(chunk)
-        parts.append({"file": name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
-    study = json.loads((out / "study.json").read_text()).get("study")
-    record = {"study": study, "files": len(files), "bytes": len(data), "latest_only": latest_only, "parts": parts}
-    (dest / PACK_NAME).write_text(json.dumps(record, indent=1))  # last: its presence means the pack is whole
+    staging = dest.with_name(f".{dest.name}.packing")
+    try:
+        shutil.rmtree(staging, ignore_errors=True)  # what an earlier pack left when it was killed
+        staging.mkdir(parents=True)
+        parts = []
+        for index, start in enumerate(range(0, max(len(data), 1), part_bytes)):
+            chunk = data[start : start + part_bytes]
+            name = f"study.tar.gz.{index:03d}"
+            (staging / name).write_bytes(chunk)
+            parts.append({"file": name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
+        record = {"study": state.study, "files": len(files), "bytes": len(data), "latest_only": latest_only}
+        record["parts"] = parts
+        (staging / PACK_NAME).write_text(json.dumps(record, indent=1))
+        if dest.exists():
+            dest.rmdir()  # empty, checked above
+        staging.rename(dest)  # whole or not at all
+    except OSError as error:
+        raise StudyError(f"{dest}: cannot write the pack ({error.strerror or error}); nothing was packed") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return record
 
 
 def read_pack(source: Path) -> tuple[dict, bytes]:
     """``pack.json`` of ``source`` and the packed bytes, every part checked against its sha256."""
     source = Path(source)
+    if source.exists() and not source.is_dir():
+        raise StudyError(f"{source}: a file, not a pack folder (the folder holding {PACK_NAME} and its parts)")
     try:
         record = json.loads((source / PACK_NAME).read_text())
         parts = record["parts"]
@@ -95,10 +125,14 @@ def read_pack(source: Path) -> tuple[dict, bytes]:
         raise StudyError(f"{source}: no {PACK_NAME} (not a packed study, or packing did not finish)") from None
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as error:
         raise StudyError(f"{source / PACK_NAME}: unreadable ({error})") from None
+    if not isinstance(parts, list) or not all(isinstance(part, dict) for part in parts):
+        raise StudyError(f"{source / PACK_NAME}: 'parts' must be a list of {{file, bytes, sha256}} entries")
     chunks = []
     for part in parts:
         path = source / str(part.get("file", ""))
-        if path.parent != source or not path.is_file():
+        if path.parent != source:
+            raise StudyError(f"{source / PACK_NAME}: part {part.get('file')!r} lies outside the pack folder")
+        if not path.is_file():
             raise StudyError(f"{source}: part {part.get('file')!r} named by {PACK_NAME} is missing")
         chunk = path.read_bytes()
         if hashlib.sha256(chunk).hexdigest() != part.get("sha256"):
@@ -121,7 +155,7 @@ def unpack_study(source: Path, out: Path) -> dict:
         if not (staging / "study.json").is_file():
             raise StudyError(f"{source}: the pack holds no study.json")
         staging.rename(out)  # whole or not at all
-    except (tarfile.TarError, OSError) as error:
+    except (tarfile.TarError, OSError, EOFError, zlib.error) as error:  # EOFError, zlib: a cut or bad gzip stream
         raise StudyError(f"{source}: cannot unpack ({error}); nothing was written") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from cluster.cli.args import positive_int
 from ocv2.items import COOKED, DIRECTION_VECTORS, EMPTY, PLATE, Static, is_raw_ingredient
 from population.policy import PolicyError, load, policy_env
 from population.published import verify
@@ -94,24 +95,27 @@ def first_pot_share(states) -> np.ndarray:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--update", type=int, required=True, help="the snapshot (<method>_seed<i>_update<U>)")
-    parser.add_argument("--episodes", type=int, default=32)
-    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--episodes", type=positive_int, default=32)
+    parser.add_argument("--seeds", type=positive_int, default=10)
     parser.add_argument("--method", default="sp", help="the file names' method prefix (sp, sa, ...)")
     parser.add_argument("--policies", type=Path, default=HERE / "policies", help="a published policies folder")
     args = parser.parse_args()
     files = [args.policies / f"{args.method}_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
     try:
         verify(args.policies, files)
+        policies = [load(path) for path in files]
     except PolicyError as error:
         sys.exit(str(error))
+    for path, policy in zip(files, policies, strict=True):
+        if policy.env.get("layout") != "coord_ring":  # direction and pots are read off Coordination Ring's cells
+            sys.exit(f"{path}: plays layout {policy.env.get('layout')!r}; this script reads coord_ring only")
     header = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
     print(
         f"| seed | clockwise share (seat 0, seat 1) | {header} | onions into the first pot (seat 0, seat 1) | return |"
     )
     print("|---:|---|" + "---:|" * len(ROLES) + "---|---:|")
     play = None
-    for seed, path in enumerate(files):
-        policy = load(path)
+    for seed, policy in enumerate(policies):
         if play is None:  # one compiled self-play rollout for every seed (same network, same env)
             env = policy_env(policy.env)
             play = jax.jit(
