@@ -187,7 +187,9 @@ def _load_file(path: Path) -> Policy:
     except OSError as error:
         raise PolicyError(f"{path}: cannot read ({error.strerror or error})") from None
     except Exception as error:  # msgpack raises several types on truncated or foreign data
-        raise PolicyError(f"{path}: not an ocv2 policy or checkpoint file ({type(error).__name__})") from None
+        raise PolicyError(
+            f"{path}: not an ocv2 policy or checkpoint file, or a damaged or cut one (msgpack: {error})"
+        ) from None
     if is_sealed(payload) and payload.get("format") == ckpt.FORMAT_NAME:
         return _load_checkpoint_file(path)
     if is_sealed(payload):

@@ -124,6 +124,10 @@ def test_bad_sources_are_one_line_errors(run, tmp_path):
     good = pol.load(run)
     future = tmp_path / "future.ocv2policy"
     pol.export(future, params=good.params, model=good.model, env=good.env)
+    cut = tmp_path / "cut.ocv2policy"
+    cut.write_bytes(future.read_bytes()[:1000])  # a copy that stopped part-way
+    with pytest.raises(pol.PolicyError, match="a damaged or cut one .msgpack: .*incomplete"):
+        pol.load(cut)
     future.write_bytes(sealed.seal(pol.FORMAT_NAME, 99, _content(future)))
     with pytest.raises(pol.PolicyError, match="version 99"):
         pol.load(future)
