@@ -700,6 +700,16 @@ def test_a_damaged_result_is_reported_and_its_step_redone(finished, tmp_path, ca
     assert "Not finished" not in (out / "report.md").read_text()
 
 
+def test_a_run_directory_gone_missing_is_reported_as_such_not_as_not_started(finished, tmp_path):
+    out = _copy(finished, tmp_path / "study")
+    shutil.rmtree(out / "runs" / "sa")
+    assert main(["study", "report", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    sa = next(run for run in summary["runs"] if run["name"] == "sa")
+    assert sa["status"] == "damaged" and "missing, though study.json records the step as done" in sa["problem"]
+    assert "train sa: " in (out / "report.md").read_text()
+
+
 @pytest.mark.parametrize(
     "change, message",
     [

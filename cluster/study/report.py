@@ -122,6 +122,9 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
         },
     }
     if not (path / "config.yaml").is_file():
+        if step.status in ("running", "done"):  # study.json says it trained: its directory went missing
+            entry["status"] = "damaged"
+            entry["problem"] = f"{path}: missing, though study.json records the step as {step.status}"
         return entry
     run = RunDir(path)
     try:
