@@ -5,9 +5,9 @@ pack its resumable state here.
 
 0. What could make the steps below fail is checked first, while the study still trains (study.json, the runs'
    configs, the policies folder's listing, the pack's folder); any problem stops the script before step 1.
-1. SIGINT to the ``ocv2 study run`` of STUDY_DIR (the process whose command line's --out is STUDY_DIR, read from
-   /proc): it finishes the chunk in flight, saves and exits (SIGKILL after 10 minutes; a kill loses at most that
-   chunk).
+1. SIGTERM to the ``ocv2 study run`` of STUDY_DIR (the process whose command line's --out is STUDY_DIR, read from
+   /proc): like Ctrl-C, it finishes the chunk in flight, saves and exits (SIGKILL after 10 minutes; a kill loses
+   at most that chunk). Not SIGINT: a run started in the background (``nohup ... &``) ignores it.
 2. Every kept snapshot of every run's seeds not published yet is exported into ``--policies`` (default
    docs/results/<study name>/policies), with its sha256 and env steps in SHA256SUMS.json, as ``ocv2 study publish``
    does (``population.published``); files already listed there are left as they are.
@@ -68,7 +68,7 @@ def stop(study: Path) -> None:
     if not pids:
         print(f"no `ocv2 study run ... --out {study}` is running")
     for pid in pids:
-        os.kill(pid, signal.SIGINT)
+        os.kill(pid, signal.SIGTERM)
     for _ in range(600):
         if not running(study):
             return

@@ -15,6 +15,8 @@ import textwrap
 import threading
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = textwrap.dedent(
@@ -23,6 +25,7 @@ CHILD = textwrap.dedent(
     # As in a terminal. A child of a background job (nohup, `&` in a script, some CI runners) starts with
     # SIGINT ignored, and then ChunkWait rightly leaves Ctrl-C alone.
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # as the command line makes it
     import jax, jax.numpy as jnp
     from cluster.runtime import interrupt
     from cluster.runtime.interrupt import ChunkAbandoned, ChunkWait, exit_now
@@ -52,7 +55,15 @@ CHILD = textwrap.dedent(
 )
 
 
-def test_two_real_ctrl_cs_end_a_process_whose_computation_never_ends():
+@pytest.mark.parametrize(
+    "signum, name, again",
+    [
+        (signal.SIGINT, "Ctrl-C", "press Ctrl-C again"),
+        (signal.SIGTERM, "SIGTERM", "send SIGTERM or press Ctrl-C again"),
+    ],
+)
+def test_two_real_ctrl_cs_end_a_process_whose_computation_never_ends(signum, name, again):
+    """Twice Ctrl-C, or twice SIGTERM (how a job in the background, which ignores SIGINT, is stopped)."""
     child = subprocess.Popen(
         [sys.executable, "-c", CHILD], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
@@ -60,17 +71,17 @@ def test_two_real_ctrl_cs_end_a_process_whose_computation_never_ends():
     watchdog.start()
     try:
         assert child.stdout.readline().strip() == "waiting"
-        child.send_signal(signal.SIGINT)
-        first = child.stderr.readline()  # the first Ctrl-C is answered while the loop still runs
-        assert first.startswith("Ctrl-C: letting updates 1-2 finish") and "press Ctrl-C again" in first
-        child.send_signal(signal.SIGINT)
+        child.send_signal(signum)
+        first = child.stderr.readline()  # the first one is answered while the loop still runs
+        assert first.startswith(f"{name}: letting updates 1-2 finish") and again in first
+        child.send_signal(signum)
         out, err = child.communicate(timeout=60)
     finally:
         watchdog.cancel()
         child.kill()
     assert child.returncode == 130
     assert out.strip() == "abandoned"
-    assert "second Ctrl-C: stopping now without updates 1-2; resuming continues from update 0" in err
+    assert f"second {name}: stopping now without updates 1-2; resuming continues from update 0" in err
 
 
 def test_ctrl_c_is_taken_over_only_where_python_s_own_handler_is_in_place(monkeypatch):

@@ -937,7 +937,7 @@ def test_stop_and_pack_interrupts_the_study_run_of_its_out_folder_and_no_other(t
     sibling, relative = _sleeper(tmp_path / "study_pilot"), _sleeper("study", cwd=tmp_path)
     try:
         module.stop(out)
-        assert relative.wait(timeout=10) != 0  # ended by SIGINT (KeyboardInterrupt), well before its 60 s
+        assert relative.wait(timeout=10) != 0  # ended by SIGTERM, well before its 60 s
         assert sibling.poll() is None
     finally:
         sibling.kill()

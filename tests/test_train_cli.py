@@ -373,16 +373,17 @@ def terminal_sigint():
     signal.signal(signal.SIGINT, previous)
 
 
-def _ctrl_c_while_polling(monkeypatch, presses: int) -> None:
-    """A real SIGINT at each of the first ``presses`` polls of the first training chunk."""
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the terminal_sigint fixture
+def _ctrl_c_while_polling(monkeypatch, presses: int, signum: int = signal.SIGINT) -> None:
+    """A real ``signum`` (SIGINT by default) at each of the first ``presses`` polls of the first training chunk."""
+    if signum == signal.SIGINT:
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the terminal_sigint fixture
     ready = interrupt._ready
     left = [presses]
 
     def pressed(tree):
         if left[0]:
             left[0] -= 1
-            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(signum)
         return ready(tree)
 
     monkeypatch.setattr(interrupt, "_ready", pressed)
@@ -401,6 +402,48 @@ def test_ctrl_c_lets_the_running_chunk_finish_and_save_then_stops(
     assert manifest(run)["update"] == 2 and len(read_csv(run / "metrics.csv")) == NUM_SEEDS * 2
     assert train(run, SP_EVAL, extra=["--resume", "--no-eval"]) == 0
     _assert_same_run(run, sp_run)
+
+
+def test_sigterm_stops_like_ctrl_c_even_where_sigint_is_ignored(sp_run, tmp_path, capsys, monkeypatch):
+    """A run started in the background ignores SIGINT; SIGTERM (what study_state/stop_and_pack.py and service
+    managers send) lets the chunk in flight finish and be saved, then stops. Outside the command, SIGTERM keeps
+    its own meaning."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+        run = tmp_path / "sigterm"
+        _ctrl_c_while_polling(monkeypatch, presses=1, signum=signal.SIGTERM)
+        assert train(run, SP_EVAL) == 130
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    err = capsys.readouterr().err
+    assert "SIGTERM: letting updates 1-2 finish" in err and "send SIGTERM or press Ctrl-C again" in err
+    assert all(ckpt.list_updates(run, seed) == [0, 2] for seed in range(NUM_SEEDS))  # the chunk was saved
+    assert train(run, SP_EVAL, extra=["--resume", "--no-eval"]) == 0
+    _assert_same_run(run, sp_run)
+
+
+def test_an_interrupt_outside_a_chunk_wait_ends_the_process_without_waiting_for_xla(monkeypatch, capsys):
+    """Ctrl-C while a program compiles or cross-play runs: returning normally let the interpreter shut down under
+    XLA's running threads, which sometimes aborted ("pure virtual method called", exit 134). A stop after a
+    saved chunk has nothing running and returns as usual."""
+    exits = []
+    monkeypatch.setattr(cli_main, "exit_now", exits.append)
+    monkeypatch.setattr(cli_main, "jax_started", lambda: True)
+    original = cli_main.resolve
+    for raised, expected in [(KeyboardInterrupt, [130]), (interrupt.StoppedAfterChunk, [])]:
+        exits.clear()
+
+        def command(_args, raised=raised):
+            raise raised
+
+        def resolve(target, command=command):  # `ocv2 layouts` runs `command`; the parser is built as usual
+            return command if target is cli_main._cmd_layouts else original(target)
+
+        monkeypatch.setattr(cli_main, "resolve", resolve)
+        assert main(["layouts"]) == 130
+        assert exits == expected and "ocv2 layouts: interrupted" in capsys.readouterr().err
 
 
 def test_a_second_ctrl_c_stops_at_once_and_the_run_resumes_from_its_last_checkpoint(

@@ -34,11 +34,14 @@ records of the packages' module loggers, which ``configure_logging`` sends to st
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import importlib.metadata
 import logging
 import os
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -55,7 +58,7 @@ from cluster.cli.errors import (  # noqa: F401 (EXIT_* re-exported)
     CLIError,
     os_error_message,
 )
-from cluster.runtime.interrupt import ChunkAbandoned, exit_now
+from cluster.runtime.interrupt import ChunkAbandoned, StoppedAfterChunk, exit_now, jax_started
 from ocv2.layouts import LAYOUTS, Layout
 from ocv2.render import check_frame_size, render_frames, rollout_states, write_gif
 
@@ -381,6 +384,21 @@ def build_parser(argv: Sequence[str] = (), full: bool = False) -> argparse.Argum
     return parser
 
 
+@contextlib.contextmanager
+def _sigterm_as_ctrl_c():
+    """SIGTERM stops a command as Ctrl-C does (a training run saves its chunk in flight first), where it would
+    otherwise end the process at once: a job started in the background ignores SIGINT, so SIGTERM is how a
+    script (study_state/stop_and_pack.py) or a service manager stops it gracefully. Restored afterwards."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``ocv2`` command line; returns the exit code (0 ok, 1 failure, 2 usage error)."""
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -397,7 +415,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     quiet = args.log_quiet or getattr(args, "quiet", False) is True
     configure_logging(1 if args.log_verbose else -1 if quiet else 0)
     try:
-        code = int(resolve(args.func)(args))
+        with _sigterm_as_ctrl_c():
+            code = int(resolve(args.func)(args))
         sys.stdout.flush()  # inside the try: a reader gone before the last buffered write is caught here
         return code
     except CLIError as error:
@@ -405,7 +424,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return error.code
     except KeyboardInterrupt as interrupt:
         print(f"ocv2 {args.command}: interrupted", file=sys.stderr)
-        if isinstance(interrupt, ChunkAbandoned):  # a jitted chunk still runs; a normal exit would wait for it
+        # A jitted chunk abandoned by a second Ctrl-C still runs, and one that lands outside a chunk's wait
+        # (a compile, cross-play) may: a normal exit would wait for it, or abort under running XLA threads.
+        # Everything of the command's own (files, Ray) was closed on the way here.
+        if isinstance(interrupt, ChunkAbandoned) or (not isinstance(interrupt, StoppedAfterChunk) and jax_started()):
             exit_now(130)
         return 130
     except BrokenPipeError:

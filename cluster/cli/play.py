@@ -185,10 +185,17 @@ def run_play(args) -> int:
             print("\nocv2 play: stopping")
         failure = session.failure
     finally:
-        server.stop()  # records the episode in progress, cut short
-        recorded = _finish(writer)
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        # A second Ctrl-C or SIGTERM while the archive is being finished would leave a .partial file (and could
+        # abort the interpreter mid-cleanup): hold both back until it is whole.
+        held = _hold_interrupts()
+        try:
+            server.stop()  # records the episode in progress, cut short
+            recorded = _finish(writer)
+        finally:
+            for signum, handler in held.items():
+                signal.signal(signum, handler)
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
     if failure:
         raise CLIError(failure + (f"; {recorded} episode(s) were recorded to {path}" if recorded else ""), EXIT_FAILURE)
     if recorded:
@@ -366,6 +373,13 @@ def _interrupt_on_sigterm():
         raise KeyboardInterrupt
 
     return signal.signal(signal.SIGTERM, interrupt)
+
+
+def _hold_interrupts() -> dict:
+    """Ignore SIGINT and SIGTERM (main thread only); returns the handlers to put back."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {signum: signal.signal(signum, signal.SIG_IGN) for signum in (signal.SIGINT, signal.SIGTERM)}
 
 
 def _loopback(host: str) -> bool:

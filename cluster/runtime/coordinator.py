@@ -29,6 +29,7 @@ import numpy as np
 from cluster.archive import ArchiveWriter, record_episodes, states_as_buffer
 from cluster.runtime.environment import process_record
 from cluster.runtime.evaluate import post_training
+from cluster.runtime.interrupt import StoppedAfterChunk
 from cluster.runtime.jobs import Workers, WorkersFactory, gather_params, on_every_shard, spread_jobs
 from cluster.runtime.progress import PopulationProgress
 from cluster.runtime.rundir import RunDir, RunDirError
@@ -359,7 +360,7 @@ def _train_loop(
                 on_chunk(update, workers, [*unreported, *rows])
                 unreported = []
             if any(r.stop_requested for r in results):
-                raise KeyboardInterrupt  # the first Ctrl-C (cluster.runtime.interrupt), now that the chunk is on disk
+                raise StoppedAfterChunk  # the first Ctrl-C (cluster.runtime.interrupt), now that the chunk is on disk
     run.update_manifest(status="trained", update=update)
 
 

@@ -1,4 +1,5 @@
-"""Ctrl-C while a jitted training chunk runs in this process (the local backend).
+"""Ctrl-C (or SIGTERM, under the command line) while a jitted training chunk runs in this process (the local
+backend).
 
 Python runs a signal handler only between bytecodes of the main thread, so a main thread blocked in
 XLA (``np.asarray`` of a chunk's results) hears Ctrl-C only when the chunk ends: up to tens of minutes.
@@ -11,6 +12,12 @@ handler runs at once:
   normal interpreter exit would wait for it, so the command line ends the process with ``os._exit``
   (``exit_now``) after its own cleanup; the run keeps its last saved checkpoint, and ``--resume``
   continues from there.
+
+SIGTERM is answered the same way where it raises ``KeyboardInterrupt`` (the command line makes it so: a job
+started in the background ignores SIGINT, so SIGTERM is how a script or a service manager stops a run
+gracefully). An interrupt that lands outside such a wait -- while a program compiles, during cross-play --
+may leave XLA work running; the command line then ends the process with ``exit_now`` too, because an
+interpreter shutting down under running XLA threads can abort ("pure virtual method called").
 """
 
 from __future__ import annotations
@@ -35,6 +42,24 @@ class ChunkAbandoned(KeyboardInterrupt):
     """A second Ctrl-C: a jitted computation still runs, so the process must exit without waiting."""
 
 
+class StoppedAfterChunk(KeyboardInterrupt):
+    """The first Ctrl-C, raised once the chunk it let finish is on disk: no XLA work is left running."""
+
+
+def jax_started() -> bool:
+    """Whether this process has started a JAX backend (so XLA threads may be running)."""
+    try:
+        from jax._src import xla_bridge  # no public API says this; if it moves, assume started
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return True
+
+
+def _signal_name(signum: int) -> str:
+    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+
+
 def _ready(tree) -> bool:
     return all(leaf.is_ready() for leaf in jax.tree.leaves(tree) if isinstance(leaf, jax.Array))
 
@@ -50,45 +75,52 @@ class ChunkWait:
     def __init__(self, what: str, resume_hint: str):
         self.what, self.resume_hint = what, resume_hint
         self.stop_requested = False  # a first Ctrl-C arrived: save this chunk, then stop
+        self._first = signal.SIGINT  # the signal that asked for the stop
 
     def until_ready(self, tree):
         """Return ``tree`` once every array in it is computed, answering Ctrl-C meanwhile (see module doc).
 
-        Ctrl-C is taken over only where Python's own handler (``KeyboardInterrupt``) is in place: a job
-        started in the background ignores SIGINT, and a host process (a Ray worker) may have its own.
+        SIGINT and SIGTERM are taken over only where Python's own handler (``KeyboardInterrupt``) is in place:
+        a job started in the background ignores SIGINT, SIGTERM ends a process unless the command line made it
+        a Ctrl-C, and a host process (a Ray worker) may have its own.
         """
         started = time.monotonic()
-        take_over = (  # only the main thread can set a handler
-            threading.current_thread() is threading.main_thread()
-            and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-        )
+        main_thread = threading.current_thread() is threading.main_thread()  # only it can set a handler
+        taken = [
+            signum
+            for signum in (signal.SIGINT, signal.SIGTERM)
+            if main_thread and signal.getsignal(signum) is signal.default_int_handler
+        ]
         # A handler, not ``except KeyboardInterrupt``: a second press that lands while the first one's
         # message is written must still stop at once, not escape as a plain KeyboardInterrupt whose
         # exit then waits for the chunk.
-        previous = signal.signal(signal.SIGINT, self._pressed) if take_over else None
+        previous = {signum: signal.signal(signum, self._pressed) for signum in taken}
         try:
             warned = False
             while not _ready(tree):
                 if self.stop_requested and not warned:
                     warned = True
+                    name = _signal_name(self._first)
                     log.warning(
-                        "Ctrl-C: letting %s finish (running for %s) so it is saved, then stopping; "
-                        "press Ctrl-C again to stop now and lose it (%s)",
+                        "%s: letting %s finish (running for %s) so it is saved, then stopping; "
+                        "%s again to stop now and lose it (%s)",
+                        name,
                         self.what,
                         duration(time.monotonic() - started),
+                        "press Ctrl-C" if name == "Ctrl-C" else f"send {name} or press Ctrl-C",
                         self.resume_hint,
                     )
                 time.sleep(POLL_S)
         finally:
-            if take_over:
-                signal.signal(signal.SIGINT, previous)
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
         return tree
 
     def _pressed(self, signum, frame) -> None:
         if self.stop_requested:
-            log.warning("second Ctrl-C: stopping now without %s; %s", self.what, self.resume_hint)
+            log.warning("second %s: stopping now without %s; %s", _signal_name(signum), self.what, self.resume_hint)
             raise ChunkAbandoned
-        self.stop_requested = True
+        self.stop_requested, self._first = True, signum
 
 
 def exit_now(code: int) -> None:  # pragma: no cover - ends the process; tested in a subprocess
