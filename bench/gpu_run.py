@@ -19,7 +19,7 @@ it can also run by itself (``python bench/gpu_run.py --out DIR``).
    time to spare (gpu_coord_ring_sa.yaml). Then Table 2 Grounded Coord. Simple SP
    (gpu_grounded_coord_simple_sp.yaml), 10 seeds, the paper's whole 30M schedule with the fastest measured RNN
    variant, trained window after window.
-4. **train**: ``ocv2 study run --backend local`` in a child process; at the deadline it gets SIGINT, which
+4. **train**: ``ocv2 study run --backend local`` in a child process; at the deadline it gets SIGTERM, which
    stops training after the chunk in flight (saved), so what it has is packed and a later window resumes it.
 5. **pack**: each study's report folder (``ocv2 study report --out``), every seed's exported policy (its
    latest checkpoint, then kept snapshots while 12 MiB allow) with sha256 sums, metrics.csv and gpu_run.json
@@ -360,19 +360,32 @@ def plan_table2(measured: dict, smoke: bool) -> list[Step]:
 # ---------------------------------------------------------------------------------------------------
 
 
+STOP_GRACE_S = 45.0  # a chunk in flight at the deadline gets this long to finish and be saved; with the kill
+# below and about a minute of export and packing, a 480 s deadline still ends inside the 600 s command
+KILL_GRACE_S = 10.0  # then a second SIGTERM (exit at once), and this long before SIGKILL
+
+
 def train(step: Step, out: Path, deadline: float, smoke: bool) -> dict:
-    """Run one planned study; SIGINT at ``deadline`` (it stops after the chunk in flight, saved)."""
+    """Run one planned study until ``deadline``: then SIGTERM (it stops after the chunk in flight, saved; not SIGINT,
+    which a process started without job control ignores), a second SIGTERM ``STOP_GRACE_S`` later (it stops at
+    once, keeping its last checkpoint), SIGKILL ``KILL_GRACE_S`` after that: the packing after it must fit."""
     command = step.command(out, smoke)
     log("running " + " ".join(command))
     started = time.time()
     child = subprocess.Popen(command, cwd=ROOT, start_new_session=True)
     interrupted = False
+    stops = [
+        (deadline, signal.SIGTERM, "deadline: asking the study to stop after its chunk in flight"),
+        (deadline + STOP_GRACE_S, signal.SIGTERM, "its chunk runs on past the grace: stopping it now"),
+        (deadline + STOP_GRACE_S + KILL_GRACE_S, signal.SIGKILL, "still running: killed"),
+    ]
     while child.poll() is None:
-        if time.time() > deadline and not interrupted:
-            log("deadline: asking the study to stop after its chunk in flight")
-            child.send_signal(signal.SIGINT)
+        if stops and time.time() > stops[0][0]:
+            _, signum, message = stops.pop(0)
+            log(message)
+            child.send_signal(signum)
             interrupted = True
-        time.sleep(1.0)
+        time.sleep(0.2)
     return {"step": dataclasses.asdict(step), "rc": child.returncode, "wall_s": round(time.time() - started, 1),
             "stopped_at_deadline": interrupted}  # fmt: skip
 
@@ -411,41 +424,24 @@ def export_policies(run_dir: Path, dest: Path) -> list:
     return exported
 
 
-def pack(out: Path, returned: Path) -> dict:
-    """results.tar.gz (reports, policies, metrics) into ``returned``; every unfinished study's resumable state
-    as ``returned/state/`` (``ocv2 study pack``: pack.json and parts of at most 16 MiB)."""
+def _pack_study_dir(study_dir: Path, staging: Path, returned: Path) -> dict:
+    """One study directory: first, if unfinished, its resumable state into ``returned/state/`` (what the next
+    window needs most), then its report, policies, metrics and status into ``staging``; returns its entry for
+    ``pack``'s record."""
     import shutil
-    import tarfile
 
     from cluster.study.pack import pack_study
     from cluster.study.runner import study_status
 
-    staging, packed = out / "results", {}
-    staging.mkdir(exist_ok=True)
-    for study_dir in sorted(out.glob("study_*")):
-        report = staging / f"{study_dir.name}_report"
-        subprocess.run(
-            [sys.executable, "-m", "cluster.cli", "study", "report", str(study_dir), "--out", str(report)],
-            cwd=ROOT,
-            check=False,
-        )
-        for run_dir in sorted((study_dir / "runs").iterdir()):
-            if not (run_dir / "config.yaml").exists():
-                continue
-            policies = staging / f"{study_dir.name}_policies"
-            policies.mkdir(exist_ok=True)
-            export_policies(run_dir, policies)
-            for name in ("metrics.csv", "config.yaml"):
-                if (run_dir / name).exists():
-                    shutil.copy(run_dir / name, staging / f"{study_dir.name}_{run_dir.name}_{name}")
-        status = study_status(study_dir)
-        (staging / f"{study_dir.name}_status.json").write_text(json.dumps(status, indent=1))
-        if any(entry["status"] != "done" for entry in status):
-            state = returned / "state"
-            if state.exists():
-                packed[study_dir.name] = "not packed: another unfinished study took state/ (one per window)"
-                continue
-            # Only each seed's newest checkpoint: the kept snapshots before it travel as exported policies above,
+    packed = {}
+    status = study_status(study_dir)
+    (staging / f"{study_dir.name}_status.json").write_text(json.dumps(status, indent=1))
+    if any(entry["status"] != "done" for entry in status):
+        state = returned / "state"
+        if state.exists():
+            packed[study_dir.name] = "not packed: another unfinished study took state/ (one per window)"
+        else:
+            # Only each seed's newest checkpoint: the kept snapshots before it travel as exported policies below,
             # and all of them would not fit (6 snapshots of 10 CNN seeds are about 80 MB; 10 RNN seeds 42 MB each).
             record = pack_study(study_dir, state, latest_only=True)
             packed[study_dir.name] = {"state": record["bytes"], "parts": len(record["parts"])}
@@ -453,6 +449,38 @@ def pack(out: Path, returned: Path) -> dict:
                 packed[study_dir.name]["error"] = (
                     f"{len(record['parts'])} parts: more than {RETURNED_FILES} files return"
                 )
+    report = staging / f"{study_dir.name}_report"
+    subprocess.run(
+        [sys.executable, "-m", "cluster.cli", "study", "report", str(study_dir), "--out", str(report)],
+        cwd=ROOT,
+        check=False,
+    )
+    for run_dir in sorted((study_dir / "runs").iterdir()):
+        if not (run_dir / "config.yaml").exists():
+            continue
+        policies = staging / f"{study_dir.name}_policies"
+        policies.mkdir(exist_ok=True)
+        export_policies(run_dir, policies)
+        for name in ("metrics.csv", "config.yaml"):
+            if (run_dir / name).exists():
+                shutil.copy(run_dir / name, staging / f"{study_dir.name}_{run_dir.name}_{name}")
+    return packed
+
+
+def pack(out: Path, returned: Path) -> dict:
+    """results.tar.gz (reports, policies, metrics) into ``returned``; every unfinished study's resumable state
+    as ``returned/state/`` (``ocv2 study pack``: pack.json and parts of at most 16 MiB)."""
+    import shutil
+    import tarfile
+
+    staging, packed = out / "results", {}
+    staging.mkdir(exist_ok=True)
+    for study_dir in sorted(out.glob("study_*")):
+        try:
+            packed.update(_pack_study_dir(study_dir, staging, returned))
+        except Exception as error:  # one study's problem must not cost the window its results.tar.gz
+            log(f"packing {study_dir.name} failed: {type(error).__name__}: {error}")
+            packed[study_dir.name] = {"error": f"{type(error).__name__}: {error}"}
     for name in ("gpu_run.json",):
         shutil.copy(out / name, staging / name)
     with tarfile.open(returned / "results.tar.gz", "w:gz") as tar:

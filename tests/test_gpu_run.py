@@ -228,3 +228,53 @@ def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp
         first["environment"]["date"], second["environment"]["date"],
     ]  # fmt: skip
     assert "123,000" in (tmp_path / "BENCH.md").read_text()
+
+
+class _FakeStep:
+    """A planned step whose command is a stand-in study run (``dataclasses.asdict`` needs a dataclass: patched)."""
+
+    def __init__(self, code: str):
+        self.code = code
+
+    def command(self, out, smoke):
+        return [sys.executable, "-c", self.code]
+
+
+@pytest.mark.parametrize(
+    "code, signals",
+    [
+        # started without job control, it ignores SIGINT (what the deadline once sent); SIGTERM stops it
+        ("import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); time.sleep(60)", ["SIGTERM"]),
+        # a study whose chunk runs on past the grace: a second SIGTERM, then SIGKILL
+        (
+            "import signal, time; [signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)]; "
+            "time.sleep(60)",
+            ["SIGTERM", "SIGTERM", "SIGKILL"],
+        ),
+    ],
+)
+def test_the_deadline_stops_the_study_even_where_sigint_is_ignored(monkeypatch, tmp_path, code, signals):
+    import time
+
+    sent = []
+    monkeypatch.setattr(gpu_run, "STOP_GRACE_S", 1.0)
+    monkeypatch.setattr(gpu_run, "KILL_GRACE_S", 1.0)
+    monkeypatch.setattr(gpu_run.dataclasses, "asdict", lambda step: {"code": step.code})
+    monkeypatch.setattr(gpu_run, "log", lambda message: sent.append(message))
+    started = time.time()
+    record = gpu_run.train(_FakeStep(code), tmp_path, deadline=time.time() + 1.0, smoke=True)
+    assert record["stopped_at_deadline"] and record["rc"] == -getattr(gpu_run.signal, signals[-1])
+    assert time.time() - started < 20  # not the child's 60 s
+    assert len([m for m in sent if not m.startswith("running")]) == len(signals)
+
+
+def test_one_study_that_cannot_be_packed_does_not_cost_the_window_its_results(tmp_path, monkeypatch):
+    out, returned = tmp_path / "run", tmp_path / "returned"
+    (out / "study_broken").mkdir(parents=True)  # no study.json: its status cannot be read
+    (out / "gpu_run.json").write_text("{}")
+    returned.mkdir()
+    monkeypatch.setattr(gpu_run, "log", lambda message: None)
+    packed = gpu_run.pack(out, returned)
+    assert "StudyError" in packed["study_broken"]["error"]
+    with tarfile.open(returned / "results.tar.gz") as tar:
+        assert "results/gpu_run.json" in tar.getnames()
