@@ -500,6 +500,25 @@ def test_resume_refills_a_dropped_last_metrics_row_from_the_checkpoint(sp_run, t
     assert (run / "metrics.csv").read_text() == text  # the row came back from the update-4 checkpoint's meta
 
 
+def test_resume_refuses_a_metrics_file_cut_before_the_last_chunk(sp_run, tmp_path, capsys):
+    """Only the last chunk's rows (updates 3-4) come back from the checkpoints: a file cut further back, or
+    emptied, once trained on and lost updates 1-2 for good without a word."""
+    run = tmp_path / "cut"
+    shutil.copytree(sp_run, run)
+    text = (run / "metrics.csv").read_text()
+    for damaged in (text[: len(text) // 3], ""):
+        (run / "metrics.csv").write_text(damaged)
+        before = {p: p.read_bytes() for p in (run / "checkpoints").rglob("*") if p.is_file()}
+        assert train(run, extra=["--resume", "--no-eval"]) == 2
+        err = capsys.readouterr().err
+        assert f"{run / 'metrics.csv'}: lacks the rows of" in err and "between updates 1 and 2" in err, err
+        assert "Restore it from a copy" in err
+        assert {p: p.read_bytes() for p in (run / "checkpoints").rglob("*") if p.is_file()} == before
+    (run / "metrics.csv").write_text(text)  # restored: it resumes
+    assert train(run, extra=["--resume", "--no-eval"]) == 0
+    assert (run / "metrics.csv").read_text() == text
+
+
 def test_a_corrupt_latest_checkpoint_falls_back_to_the_previous_one(sp_run, tmp_path, capsys):
     run = tmp_path / "corrupt"
     shutil.copytree(sp_run, run)

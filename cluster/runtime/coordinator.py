@@ -299,6 +299,8 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
                 for row in merge_rows(caught_up, since, update)
                 if (int(row["seed"]), int(row["update"])) not in kept
             ]
+        check_metrics_cover(run, kept | {(int(r["seed"]), int(r["update"])) for r in caught_up_rows}, update, config)
+        if caught_up_rows:
             run.append_metrics(caught_up_rows)
         run.update_manifest(
             status="training",
@@ -362,6 +364,27 @@ def _train_loop(
             if any(r.stop_requested for r in results):
                 raise StoppedAfterChunk  # the first Ctrl-C (cluster.runtime.interrupt), now that the chunk is on disk
     run.update_manifest(status="trained", update=update)
+
+
+def check_metrics_cover(run: RunDir, rows: set[tuple[int, int]], update: int, config: Config) -> None:
+    """Refuse to train on when metrics.csv lacks rows that no checkpoint can give back (only the last chunk's
+    rows travel in a checkpoint's meta): a cut or emptied file would otherwise lose those updates' history for
+    good, without a word."""
+    missing = {}
+    for seed in range(config.population.num_seeds):
+        have = {u for s, u in rows if s == seed}
+        gone = [u for u in range(1, update + 1) if u not in have]
+        if gone:
+            missing[seed] = gone
+    if missing:
+        first = min(min(g) for g in missing.values())
+        last = max(max(g) for g in missing.values())
+        raise RunDirError(
+            f"{run.metrics_path}: lacks the rows of {sum(map(len, missing.values()))} (seed, update) pairs between "
+            f"updates {first} and {last} (seeds {sorted(missing)}), and only the last chunk's rows can be rebuilt "
+            "from the checkpoints: the file was cut or emptied. Restore it from a copy (`ocv2 study pack` keeps "
+            "one) and resume again; nothing was trained"
+        )
 
 
 def describe_workers(workers: Workers) -> list[dict]:
