@@ -212,7 +212,11 @@ def test_killed_writer_is_recovered(tmp_path, recorded, capsys):
     assert "already exists" in capsys.readouterr().err
 
 
-def test_exception_inside_with_still_finishes(tmp_path, recorded):
+def test_an_exception_inside_with_keeps_the_episodes_unfinished_and_an_old_file_whole(tmp_path, recorded):
+    """Leaving the block by an exception (Ctrl-C during a cross-play's re-evaluation) once finished the file: a
+    re-evaluation interrupted after one episode replaced a whole archive by a "finished" one holding part of
+    what was meant, beside a matrix.csv that described the old one. Now the episodes stay in the .partial
+    (recoverable) and the old file is not touched."""
     path = tmp_path / "a.mcap"
     states, actions, _, _, dones = _episode(recorded, 0)
     rng = np.random.default_rng(0)  # arbitrary floats survive exactly
@@ -221,13 +225,25 @@ def test_exception_inside_with_still_finishes(tmp_path, recorded):
         with ArchiveWriter(path) as writer:
             writer.write_episode(META, states, actions, rewards, shaped, dones, layout="cramped_room")
             raise RuntimeError("boom")
+    assert not path.exists()
+    report = recover(str(path) + ".partial", str(path))
     reader = ArchiveReader(path)
-    assert reader.finished and len(reader) == 1 and not os.path.exists(str(path) + ".partial")
+    assert reader.finished and len(reader) == 1 and report is not None
     got = reader.episode(0)
     assert np.array_equal(got.rewards, rewards) and np.array_equal(got.shaped_rewards, shaped)
     assert got.meta["return"] == pytest.approx(float(rewards.sum(dtype=np.float64)))
     with pytest.raises(ArchiveError, match="already exists"):
         ArchiveWriter(path).open()
+    whole = path.read_bytes()
+    with pytest.raises(KeyboardInterrupt):
+        with ArchiveWriter(path, overwrite=True) as writer:  # a re-evaluation, interrupted after one episode
+            writer.write_episode(META, states, actions, rewards, shaped, dones, layout="cramped_room")
+            raise KeyboardInterrupt
+    assert path.read_bytes() == whole
+    with ArchiveWriter(path, overwrite=True) as writer:  # the next one finishes, and replaces it
+        writer.write_episode(META, states, actions, rewards, shaped, dones, layout="cramped_room")
+        writer.write_episode(META, states, actions, rewards, shaped, dones, layout="cramped_room")
+    assert len(ArchiveReader(path)) == 2 and not os.path.exists(str(path) + ".partial")
 
 
 def test_write_episode_rejects_bad_input(tmp_path, recorded):

@@ -77,8 +77,8 @@ class Output:
                     else ""
                 )
                 raise ArchiveError(f"{existing!r} already exists{hint}; pass overwrite=True to replace it")
-        if overwrite and os.path.exists(self.path):
-            os.unlink(self.path)
+        # With overwrite, an existing PATH stays until ``finish`` replaces it in one rename: a writer that never
+        # finishes (an interrupt, a write error) leaves the old file whole.
         self._fsync = fsync
         folder = os.path.dirname(os.path.abspath(self.path))
         os.makedirs(folder, exist_ok=True)
@@ -200,8 +200,9 @@ class ArchiveWriter:
 
     While open the data goes to ``PATH.partial``; every ``write_episode`` ends with a chunk flush, so
     a killed process loses at most the episode being written (``recover`` rescues the rest). Leaving
-    the ``with`` block -- normally or by an exception -- finishes the file (summary, indexes, footer)
-    and renames it to ``PATH``. The writer opens and closes its own file.
+    the ``with`` block normally finishes the file (summary, indexes, footer) and renames it to ``PATH``;
+    leaving it by an exception (Ctrl-C, an error) does not: the episodes written so far stay in the
+    ``.partial`` and an existing ``PATH`` stays as it was. The writer opens and closes its own file.
 
     A write error (a full disk: ENOSPC, EIO, a failed fsync) while an episode is written fails the
     writer: ``write_episode`` re-raises the ``OSError``, the ``.partial`` is cut back to the last
@@ -218,7 +219,8 @@ class ArchiveWriter:
         compression: 'zstd' (default), 'lz4' or 'none'.
         fsync: also fsync at every episode end (survives power loss, not only a killed process;
             ``ocv2 play`` sets it: each human episode is worth a disk flush).
-        overwrite: replace an existing ``PATH`` / ``PATH.partial`` instead of raising.
+        overwrite: replace an existing ``PATH`` / ``PATH.partial`` instead of raising (``PATH`` only when the
+            new file is finished, in one rename).
         message_index: write MCAP message indexes (default). Without them files are ~40 % smaller and
             this module reads them the same, but indexed readers such as Foxglove's rely on them.
         start_time_ns: log time of the first message (default: now). Messages are ``step_ns`` apart.
@@ -303,7 +305,14 @@ class ArchiveWriter:
         return self.open()
 
     def __exit__(self, exc_type, exc, tb):
-        self.close()
+        if exc_type is None:
+            self.close()
+        elif self._out is not None and not self._done:
+            # Interrupted or failed inside the block: not finished. The episodes written so far stay in the
+            # .partial (``ocv2 archive recover`` makes a file of them), and an existing PATH is not replaced by
+            # what would look like a finished archive holding only part of them.
+            self._done = True
+            self._out.abandon()
         return False
 
     # -- episodes
