@@ -247,6 +247,32 @@ def test_report_on_a_damaged_matrix_names_file_row_and_column(runs, tmp_path, ca
     assert "Traceback" not in err and not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize(
+    "summary, message",
+    [
+        ("[1, 2]", "holds a JSON list, not a cross-play summary"),
+        (
+            '{"sp_mean": "abc", "xp_mean": 1.0, "gap": 1.0}',
+            "sp_mean must be a number (or null where it has none), found 'abc'",
+        ),
+        ('{"sp_mean": 1.0, "gap": 1.0}', "xp_mean must be a number (or null where it has none), found 'missing'"),
+    ],
+)
+def test_report_names_a_damaged_summary_instead_of_crashing_or_showing_n_a(runs, tmp_path, capsys, summary, message):
+    path = runs["cr_sp"] / "xp" / "summary.json"
+    path.write_text(summary)
+    assert main(["report", str(runs["cr_sp"]), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: {message}" in err and "Traceback" not in err and not (tmp_path / "r").exists()
+
+
+def test_report_names_a_matrix_of_the_wrong_size(runs, tmp_path, capsys):
+    matrix = runs["cr_sp"] / "xp" / "matrix.csv"
+    matrix.write_text("seat0\\seat1,seed_0\nseed_0,259.0\n")
+    assert main(["report", str(runs["cr_sp"]), "--out", str(tmp_path / "r")]) == 2
+    assert f"{matrix}: a 1 x 1 matrix, but the run has 2 seeds (2 x 2)" in capsys.readouterr().err
+
+
 def test_report_out_must_be_a_folder(runs, tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("x")

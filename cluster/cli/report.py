@@ -82,10 +82,7 @@ def load_run(path) -> dict:
     summary = None
     summary_path = run.path / "xp" / "summary.json"
     if summary_path.is_file():
-        try:
-            summary = boundedjson.loads(summary_path.read_text())
-        except (OSError, ValueError) as error:
-            raise CLIError(f"{summary_path}: unreadable cross-play summary: {error}") from None
+        summary = _checked_summary(summary_path)
     try:
         metrics = run.read_metrics()
     except (OSError, csv.Error) as error:
@@ -97,6 +94,10 @@ def load_run(path) -> dict:
             matrix = read_matrix_csv(matrix_path).values.tolist()
         except (OSError, ValueError) as error:
             raise CLIError(f"unreadable cross-play matrix: {error}") from None
+        seeds = config.population.num_seeds
+        if len(matrix) != seeds or any(len(row) != seeds for row in matrix):
+            shape = f"{len(matrix)} x {len(matrix[0]) if matrix else 0}"
+            raise CLIError(f"{matrix_path}: a {shape} matrix, but the run has {seeds} seeds ({seeds} x {seeds})")
     return {
         "path": str(path),
         "name": run.path.resolve().name,
@@ -106,6 +107,25 @@ def load_run(path) -> dict:
         "matrix": matrix,
         "status": run.read_manifest().get("status", ""),
     }
+
+
+SUMMARY_NUMBERS = ("sp_mean", "xp_mean", "gap")  # what the table and the plots' titles read
+
+
+def _checked_summary(path: Path) -> dict:
+    """A run's xp/summary.json, or ``CLIError`` naming the file and the key that is not what ocv2 writes (a
+    value that is not a number once showed as n/a without a word, a list crashed the report)."""
+    try:
+        summary = boundedjson.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise CLIError(f"{path}: unreadable cross-play summary: {error}") from None
+    if not isinstance(summary, dict):
+        raise CLIError(f"{path}: holds a JSON {type(summary).__name__}, not a cross-play summary (an object)")
+    for key in SUMMARY_NUMBERS:
+        value = summary.get(key, "missing")
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int | float)):
+            raise CLIError(f"{path}: {key} must be a number (or null where it has none), found {value!r}")
+    return summary
 
 
 def env_label(config) -> str:
