@@ -285,3 +285,10 @@ def test_cli_import_writes_archives_and_report(rows, tmp_path, capsys):
     assert "exists; pass --overwrite" in capsys.readouterr().err
     assert main(["human", "import", str(tmp_path / "missing"), "--out", str(out)]) == 1
     assert "no such file or folder" in capsys.readouterr().err
+    assert main(["human", "import", str(tmp_path / "missing"), "--out", str(tmp_path / "new")]) == 1
+    assert not (tmp_path / "new").exists()  # a bad source makes no --out folder
+    # The proxy's --out is checked before the training, not after it: an existing file needs --force.
+    taken = tmp_path / "taken.ocv2policy"
+    taken.write_text("another policy")
+    assert main(["human", "proxy", "cramped_room", "--source", str(source), "--out", str(taken)]) == 2
+    assert "exists; pass --force to replace it" in capsys.readouterr().err and taken.read_text() == "another policy"

@@ -1,7 +1,7 @@
 """``ocv2 human``: the 2019 human-human Overcooked games as ocv2 archives, and a behaviour-cloned proxy.
 
     ocv2 human import SOURCE [--out DIR] [--splits train,test] [--layouts L ...] [--max-trials N] [--overwrite]
-    ocv2 human proxy LAYOUT --source SOURCE [--out FILE] [--steps N] [--batch-size B] [--lr LR] [--seed S]
+    ocv2 human proxy LAYOUT --source SOURCE [--out FILE [--force]] [--steps N] [--batch-size B] [--lr LR] [--seed S]
 
 SOURCE is the ``overcooked_ai-1.1.0.tar.gz`` source distribution (``pip download --no-deps
 --no-binary :all: overcooked-ai==1.1.0``), a folder holding its ``clean_*_trials.pickle`` or one
@@ -16,12 +16,13 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
 
 import ocv2
 from cluster.archive import ArchiveError, ArchiveWriter, env_meta
-from cluster.cli.args import positive_int, seed
+from cluster.cli.args import check_new_file, positive_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.rundir import strict_json
 from ocv2.atomic import atomic_write
@@ -79,6 +80,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         default=None,
         help="proxy file (default: the cache, population.human.proxy_path(LAYOUT))",
     )
+    proxy.add_argument("--force", action="store_true", help="replace an existing --out file")
     defaults = bc.BCConfig()
     proxy.add_argument("--steps", metavar="N", type=positive_int, default=defaults.steps, help="optimizer steps")
     proxy.add_argument("--batch-size", metavar="B", type=positive_int, default=defaults.batch_size)
@@ -172,9 +174,14 @@ def run_import(args) -> int:
     write ``reproduction.json`` there, checking every trial before writing anything. Returns ``EXIT_OK``;
     raises ``CLIError`` for unreadable data, an archive that exists without ``--overwrite`` or a failed
     write."""
-    os.makedirs(args.out, exist_ok=True)
-    # Convert and check everything first: a bad row stops the import before any archive is written.
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise CLIError(f"--out {args.out}: is a file; give a folder")
+    # Convert and check everything first: a bad row stops the import before any archive (or --out) is made.
     loaded = {split: _load(args.source, split, args.layouts, args.max_trials) for split in args.splits}
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as error:
+        raise CLIError(f"--out {args.out}: cannot create the folder ({error.strerror or error})") from None
     targets = []
     for split, trials in loaded.items():
         for layout in dict.fromkeys(t.layout for t in trials):
@@ -229,6 +236,10 @@ def run_proxy(args) -> int:
         )
     except ValueError as error:
         raise CLIError(str(error)) from None
+    out = args.out or human.proxy_path(layout)
+    # Before the training, not after it: an existing file (another policy?) is replaced only with --force; the
+    # cache, the default, is replaced as a cache is.
+    check_new_file("--out", os.fspath(out), force=args.force or args.out is None)
     train = _load(args.source, "train", [layout], args.max_trials)
     test = _load(args.source, "test", [layout], args.max_trials)
     result = bc.train(
@@ -239,7 +250,6 @@ def run_proxy(args) -> int:
             f"step {e['step']:>6}  loss {e['loss']:.4f}  held-out accuracy {e['test_accuracy']:.3f}", flush=True
         ),
     )
-    out = args.out or human.proxy_path(layout)
     try:
         path = bc.save_proxy(
             out,
