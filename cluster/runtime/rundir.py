@@ -212,9 +212,12 @@ class RunDir:
         if self.config_path.exists():
             existing = self.load_config()
             if existing.fingerprint() != config.fingerprint():
+                changed = trained_keys_changed(existing, config)
+                shown = "; ".join(changed[:5]) + (f"; and {len(changed) - 5} more" if len(changed) > 5 else "")
                 raise RunDirError(
                     f"{self.path}: holds a run of a different config (fingerprint "
-                    f"{existing.fingerprint()} vs {config.fingerprint()}); choose another --out"
+                    f"{existing.fingerprint()} vs {config.fingerprint()}{': ' + shown if shown else ''}); "
+                    "choose another --out"
                 )
             if not resume:
                 raise RunDirError(
@@ -412,6 +415,32 @@ class RunDir:
                 continue
             rows.append(row)
         return rows, torn
+
+
+def trained_keys_changed(run: Config, now: Config) -> list[str]:
+    """The keys behind a fingerprint mismatch ("ppo.lr: 0.0004 in the run, 0.01 now"): every key of the
+    fingerprinted sections (all but eval, run, archive and cluster; run.precision too) whose value differs."""
+
+    def flat(config: Config) -> dict:
+        out = {}
+
+        def walk(prefix: str, value) -> None:
+            if isinstance(value, dict):
+                for key, item in value.items():
+                    walk(f"{prefix}.{key}" if prefix else str(key), item)
+            else:
+                out[prefix] = value
+
+        walk("", config.to_dict())
+        unhashed = ("eval.", "run.", "archive.", "cluster.")
+        return {k: v for k, v in out.items() if not k.startswith(unhashed) or k == "run.precision"}
+
+    before, after = flat(run), flat(now)
+    return [
+        f"{key}: {before.get(key)!r} in the run, {after.get(key)!r} now"
+        for key in sorted(set(before) | set(after))
+        if before.get(key) != after.get(key)
+    ]
 
 
 def _warn(message: str) -> None:
