@@ -753,7 +753,12 @@ def test_command_line_errors(rnn_run, tmp_path, capsys):
         (("cramped_room", "--env", "bogus=1"), 2, "unknown environment parameter"),
         (("cramped_room", "--meta", "seed=3"), 2, "set by ocv2 play itself"),
         (("cramped_room", "--out", str(tmp_path / "x.txt"), "--port", "0"), 2, "must name a .mcap file"),
+        (("cramped_room", "--out", str(tmp_path / "taken.mcap"), "--port", "0"), 2, "a recording is never replaced"),
+        (("cramped_room", "--out", str(tmp_path / "left.mcap"), "--port", "0"), 2, "`ocv2 archive recover` it"),
+        (("cramped_room", "--out", str(tmp_path / "taken.mcap" / "x.mcap"), "--port", "0"), 2, "which is a file"),
     ]
+    (tmp_path / "taken.mcap").write_text("an earlier recording")
+    (tmp_path / "left.mcap.partial").write_text("an unfinished one")
     for args, code, words in cases:
         got, err = _cli_error(capsys, *args, *(out if "--out" not in args else ()))
         assert (got, words) == (code, words) and words in err, (args, err)
@@ -765,7 +770,8 @@ def test_command_line_errors(rnn_run, tmp_path, capsys):
         port = busy.getsockname()[1]
         code, err = _cli_error(capsys, "cramped_room", "--port", str(port), "--out", str(tmp_path / "y.mcap"))
     assert code == 1 and f"port {port} on 127.0.0.1 is in use" in err
-    assert not list(tmp_path.glob("*.mcap*"))  # nothing was created
+    assert sorted(p.name for p in tmp_path.glob("*.mcap*")) == ["left.mcap.partial", "taken.mcap"]  # none created
+    assert (tmp_path / "taken.mcap").read_text() == "an earlier recording"
 
 
 def test_a_tile_size_too_big_is_refused_before_anything_is_drawn(tmp_path, capsys, monkeypatch):

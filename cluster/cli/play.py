@@ -19,6 +19,7 @@ import secrets
 import signal
 import threading
 import time
+from pathlib import Path
 
 import yaml
 
@@ -321,6 +322,14 @@ def _writer(out: str | None, layout: str, fps: float):
     path = out or os.path.join("runs", "play", f"{layout}_{time.strftime('%Y%m%d-%H%M%S')}.mcap")
     if not path.endswith(".mcap"):
         raise CLIError(f"--out must name a .mcap file, got {path!r}")
+    for parent in Path(path).parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise CLIError(f"--out {path}: lies under {parent}, which is a file; give a file in a folder")
+            break
+    for existing, why in ((path, ""), (path + ".partial", " (an unfinished recording: `ocv2 archive recover` it)")):
+        if os.path.exists(existing):
+            raise CLIError(f"--out {existing}: exists{why}; give a new file name (a recording is never replaced)")
     try:
         # Message times a tick apart: Foxglove and other MCAP players replay the episode at the speed it was played.
         return ArchiveWriter(path, step_ns=round(1e9 / fps), fsync=True).open(), path
