@@ -422,18 +422,8 @@ def trained_keys_changed(run: Config, now: Config) -> list[str]:
     fingerprinted sections (all but eval, run, archive and cluster; run.precision too) whose value differs."""
 
     def flat(config: Config) -> dict:
-        out = {}
-
-        def walk(prefix: str, value) -> None:
-            if isinstance(value, dict):
-                for key, item in value.items():
-                    walk(f"{prefix}.{key}" if prefix else str(key), item)
-            else:
-                out[prefix] = value
-
-        walk("", config.to_dict())
         unhashed = ("eval.", "run.", "archive.", "cluster.")
-        return {k: v for k, v in out.items() if not k.startswith(unhashed) or k == "run.precision"}
+        return {k: v for k, v in config.flat().items() if not k.startswith(unhashed) or k == "run.precision"}
 
     before, after = flat(run), flat(now)
     return [

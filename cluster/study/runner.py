@@ -26,7 +26,7 @@ import hashlib
 import json
 import logging
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from cluster.api import train_population
@@ -319,21 +319,9 @@ def trained_differences(path: Path, planned: Config) -> list[str]:
 
 
 def _compared(config: Config) -> dict:
-    data = config.to_dict()
-    flat: dict = {}
-
-    def walk(prefix: str, value) -> None:
-        if isinstance(value, Mapping):
-            for key, item in value.items():
-                walk(f"{prefix}.{key}" if prefix else str(key), item)
-        else:
-            flat[prefix] = value
-
-    for section in ("env", "model", "ppo", "population"):
-        walk(section, data[section])
-    for dotted in COMPARED_RUN_KEYS:
-        section, key = dotted.split(".")
-        flat[dotted] = data[section][key]
+    every = config.flat()
+    flat = {key: value for key, value in every.items() if key.split(".")[0] in ("env", "model", "ppo", "population")}
+    flat.update({dotted: every[dotted] for dotted in COMPARED_RUN_KEYS})
     for dotted in _NOT_COMPARED:
         flat.pop(dotted, None)
     return flat

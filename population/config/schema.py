@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 #: JAX's default PRNG keys are built from 32-bit seeds: a larger seed would silently wrap around.
@@ -298,6 +298,21 @@ class Config:
         out = {"env": self.env_kwargs}
         for name in SECTIONS[1:]:
             out[name] = _plain(dataclasses.asdict(getattr(self, name)))
+        return out
+
+    def flat(self) -> dict:
+        """``to_dict`` with dotted keys ("ppo.lr", "population.fcp.partners"): what a comparison of two configs
+        reads key by key."""
+        out: dict = {}
+
+        def walk(prefix: str, value) -> None:
+            if isinstance(value, Mapping):
+                for key, item in value.items():
+                    walk(f"{prefix}.{key}" if prefix else str(key), item)
+            else:
+                out[prefix] = value
+
+        walk("", self.to_dict())
         return out
 
     def fingerprint(self, exclude: Sequence[str] = ("eval", "run", "archive", "cluster")) -> str:
