@@ -21,10 +21,10 @@ it can also run by itself (``python bench/gpu_run.py --out DIR``).
    variant, trained window after window.
 4. **train**: ``ocv2 study run --backend local`` in a child process; at the deadline it gets SIGTERM, which
    stops training after the chunk in flight (saved), so what it has is packed and a later window resumes it.
-5. **pack**: each study's report folder (``ocv2 study report --out``), every seed's exported policy (its
-   latest checkpoint, then kept snapshots while 12 MiB allow) with sha256 sums, metrics.csv and gpu_run.json
-   -> results.tar.gz; the resumable state of a study left unfinished at the deadline -> state/ (``ocv2 study
-   pack``: pack.json and parts of at most 16 MiB). Commit state/ as gpu_state/ and the next window's
+5. **pack**: first the resumable state of a study left unfinished at the deadline -> state/ (``ocv2 study
+   pack``: pack.json and parts of at most 16 MiB), then each study's report folder (``ocv2 study report --out``),
+   every seed's exported policy (its latest checkpoint, then kept snapshots while 12 MiB allow) with sha256
+   sums, metrics.csv and gpu_run.json -> results.tar.gz. Commit state/ as gpu_state/ and the next window's
    ``bench/gpu_run.sh`` continues that study (``--continue-from``) instead of planning a new one.
 
 Everything it learns goes into gpu_run.json, rewritten after every phase: the environment (device, driver,
@@ -360,7 +360,7 @@ def plan_table2(measured: dict, smoke: bool) -> list[Step]:
 # ---------------------------------------------------------------------------------------------------
 
 
-STOP_GRACE_S = 45.0  # a chunk in flight at the deadline gets this long to finish and be saved; with the kill
+STOP_GRACE_S = 40.0  # a chunk in flight at the deadline gets this long to finish and be saved; with the kill
 # below and about a minute of export and packing, a 480 s deadline still ends inside the 600 s command
 KILL_GRACE_S = 10.0  # then a second SIGTERM (exit at once), and this long before SIGKILL
 
@@ -443,12 +443,14 @@ def _pack_study_dir(study_dir: Path, staging: Path, returned: Path) -> dict:
         else:
             # Only each seed's newest checkpoint: the kept snapshots before it travel as exported policies below,
             # and all of them would not fit (6 snapshots of 10 CNN seeds are about 80 MB; 10 RNN seeds 42 MB each).
-            record = pack_study(study_dir, state, latest_only=True)
-            packed[study_dir.name] = {"state": record["bytes"], "parts": len(record["parts"])}
-            if len(record["parts"]) + 4 > RETURNED_FILES:  # + pack.json, gpu_run.log, gpu_run.json, results.tar.gz
-                packed[study_dir.name]["error"] = (
-                    f"{len(record['parts'])} parts: more than {RETURNED_FILES} files return"
-                )
+            try:
+                record = pack_study(study_dir, state, latest_only=True)
+                packed[study_dir.name] = {"state": record["bytes"], "parts": len(record["parts"])}
+                if len(record["parts"]) + 4 > RETURNED_FILES:  # + pack.json, gpu_run.log, gpu_run.json, results
+                    packed[study_dir.name]["error"] = f"{len(record['parts'])} parts: more than {RETURNED_FILES} return"
+            except Exception as error:  # its report and policies below still come back
+                log(f"packing the state of {study_dir.name} failed: {type(error).__name__}: {error}")
+                packed[study_dir.name] = {"error": f"{type(error).__name__}: {error}"}
     report = staging / f"{study_dir.name}_report"
     subprocess.run(
         [sys.executable, "-m", "cluster.cli", "study", "report", str(study_dir), "--out", str(report)],

@@ -8,16 +8,17 @@ pack its resumable state here.
 1. SIGTERM to the ``ocv2 study run`` of STUDY_DIR (the process whose command line's --out is STUDY_DIR, read from
    /proc): like Ctrl-C, it finishes the chunk in flight, saves and exits (SIGKILL after 10 minutes; a kill loses
    at most that chunk). Not SIGINT: a run started in the background (``nohup ... &``) ignores it.
-2. Every kept snapshot of every run's seeds not published yet is exported into ``--policies`` (default
+2. ``ocv2 study pack --latest-only`` into study_state/<study name>/ (written beside it first, then swapped in; a
+   damaged checkpoint stops it and the earlier pack stays). First, because the next session continues from it.
+3. Every kept snapshot of every run's seeds not published yet is exported into ``--policies`` (default
    docs/results/<study name>/policies), with its sha256 and env steps in SHA256SUMS.json, as ``ocv2 study publish``
    does (``population.published``); files already listed there are left as they are.
-3. ``ocv2 study pack --latest-only`` into study_state/<study name>/ (written beside it first, then swapped in; a
-   damaged checkpoint stops it and the earlier pack stays).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
 import signal
@@ -58,7 +59,7 @@ def running(study: Path) -> list[int]:
     # "--" first: pgrep would read a pattern that starts with "--out" as an option, fail, and find nothing.
     found = subprocess.run(["pgrep", "-f", "--", "--out"], capture_output=True, text=True)
     if found.returncode > 1:
-        raise SystemExit(f"pgrep failed ({found.stderr.strip()}); nothing was stopped or packed")
+        raise SystemExit(f"pgrep failed ({found.stderr.strip()}); nothing was packed")
     pids = [int(pid) for pid in found.stdout.split() if int(pid) != os.getpid()]
     return [pid for pid in pids if out_folder(pid) == study.resolve()]
 
@@ -68,13 +69,15 @@ def stop(study: Path) -> None:
     if not pids:
         print(f"no `ocv2 study run ... --out {study}` is running")
     for pid in pids:
-        os.kill(pid, signal.SIGTERM)
+        with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
+            os.kill(pid, signal.SIGTERM)
     for _ in range(600):
         if not running(study):
             return
         time.sleep(1)
     for pid in running(study):
-        os.kill(pid, signal.SIGKILL)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
 
 
 def check_before_stopping(study: Path, policies: Path | None, into: Path) -> tuple[str, Path]:
@@ -107,22 +110,30 @@ def main() -> None:
     except failures as error:
         raise SystemExit(f"{error}\nnothing was stopped, published or packed") from None
     stop(study)
+    # The pack first: it is what the next session continues from, and needs only each seed's newest
+    # checkpoint; a damaged older snapshot must not cost it (it stops only the publishing below).
+    target, fresh, old = (args.into / f"{name}{suffix}" for suffix in ("", ".new", ".old"))
     try:
-        for run_name, added in publish_study(study, dest)[1].items():
-            print(f"{run_name}: {len(added)} policies exported into {dest}")
-        target, fresh, old = (args.into / f"{name}{suffix}" for suffix in ("", ".new", ".old"))
         shutil.rmtree(fresh, ignore_errors=True)
         record = pack_study(study, fresh, latest_only=True)
         shutil.rmtree(old, ignore_errors=True)
         if target.exists():
             target.rename(old)  # kept until the new pack is in place
         fresh.rename(target)
-        shutil.rmtree(old)
+        shutil.rmtree(old, ignore_errors=True)
     except failures as error:
         raise SystemExit(
-            f"{error}\nthe study was stopped; {args.into / name} is as it was (fix the cause and run this again)"
+            f"{error}\nthe study was stopped; nothing was published, and {target} is as it was (or, if a rename "
+            f"failed, in {old}): fix the cause and run this again"
         ) from None
     print(f"packed {record['bytes']:,} bytes in {len(record['parts'])} part(s) into {target}")
+    try:
+        for run_name, added in publish_study(study, dest)[1].items():
+            print(f"{run_name}: {len(added)} policies exported into {dest}")
+    except failures as error:
+        raise SystemExit(
+            f"{error}\nthe study was stopped and packed, but its snapshots were not all published"
+        ) from None
 
 
 if __name__ == "__main__":

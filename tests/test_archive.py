@@ -244,6 +244,10 @@ def test_an_exception_inside_with_keeps_the_episodes_unfinished_and_an_old_file_
         writer.write_episode(META, states, actions, rewards, shaped, dones, layout="cramped_room")
         writer.write_episode(META, states, actions, rewards, shaped, dones, layout="cramped_room")
     assert len(ArchiveReader(path)) == 2 and not os.path.exists(str(path) + ".partial")
+    with pytest.raises(KeyboardInterrupt):
+        with ArchiveWriter(tmp_path / "b.mcap"):  # interrupted before its first episode (a compile)
+            raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap"]  # no header-only .partial left
 
 
 def test_write_episode_rejects_bad_input(tmp_path, recorded):

@@ -3,6 +3,7 @@ rehearsed end to end by .ci/run's Python 3.12 leg: GPU_RUN_SMOKE=1 bash bench/gp
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib.util
 import json
@@ -230,11 +231,11 @@ def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp
     assert "123,000" in (tmp_path / "BENCH.md").read_text()
 
 
+@dataclasses.dataclass(frozen=True)
 class _FakeStep:
-    """A planned step whose command is a stand-in study run (``dataclasses.asdict`` needs a dataclass: patched)."""
+    """A planned step whose command is a stand-in study run."""
 
-    def __init__(self, code: str):
-        self.code = code
+    code: str
 
     def command(self, out, smoke):
         return [sys.executable, "-c", self.code]
@@ -259,10 +260,10 @@ def test_the_deadline_stops_the_study_even_where_sigint_is_ignored(monkeypatch, 
     sent = []
     monkeypatch.setattr(gpu_run, "STOP_GRACE_S", 1.0)
     monkeypatch.setattr(gpu_run, "KILL_GRACE_S", 1.0)
-    monkeypatch.setattr(gpu_run.dataclasses, "asdict", lambda step: {"code": step.code})
     monkeypatch.setattr(gpu_run, "log", lambda message: sent.append(message))
     started = time.time()
-    record = gpu_run.train(_FakeStep(code), tmp_path, deadline=time.time() + 1.0, smoke=True)
+    # 3 s: time enough for the child to set its handlers on a busy machine before the first signal
+    record = gpu_run.train(_FakeStep(code), tmp_path, deadline=time.time() + 3.0, smoke=True)
     assert record["stopped_at_deadline"] and record["rc"] == -getattr(gpu_run.signal, signals[-1])
     assert time.time() - started < 20  # not the child's 60 s
     assert len([m for m in sent if not m.startswith("running")]) == len(signals)

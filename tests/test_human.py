@@ -283,6 +283,9 @@ def test_cli_import_writes_archives_and_report(rows, tmp_path, capsys):
     assert len(ArchiveReader(out / "human_train_cramped_room.mcap")) == 1
     assert main(["human", "import", str(source), "--out", str(out)]) == 2  # no silent overwrite
     assert "exists; pass --overwrite" in capsys.readouterr().err
+    (out / "human_test_cramped_room.mcap").rename(out / "human_test_cramped_room.mcap.partial")  # interrupted
+    assert main(["human", "import", str(source), "--out", str(out), "--splits", "test"]) == 2
+    assert ".partial exists (an unfinished import); pass --overwrite" in capsys.readouterr().err
     assert main(["human", "import", str(tmp_path / "missing"), "--out", str(out)]) == 1
     assert "no such file or folder" in capsys.readouterr().err
     assert main(["human", "import", str(tmp_path / "missing"), "--out", str(tmp_path / "new")]) == 1

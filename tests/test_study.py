@@ -921,8 +921,9 @@ def _stop_and_pack():
 
 
 def _sleeper(out, cwd=None) -> subprocess.Popen:
-    """A stand-in for `ocv2 study run ... --out OUT` (interrupted, it exits non-zero)."""
-    argv = [sys.executable, "-c", "import time; time.sleep(60)", "--out", str(out)]
+    """A stand-in for `ocv2 study run ... --out OUT` started in the background: SIGINT ignored, SIGTERM ends it."""
+    code = "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); time.sleep(60)"
+    argv = [sys.executable, "-c", code, "--out", str(out)]
     return subprocess.Popen(argv, cwd=cwd, stderr=subprocess.DEVNULL)
 
 
@@ -942,6 +943,24 @@ def test_stop_and_pack_interrupts_the_study_run_of_its_out_folder_and_no_other(t
     finally:
         sibling.kill()
         relative.kill()
+
+
+def test_stop_and_pack_packs_then_publishes_and_packs_again_over_its_last_pack(finished, tmp_path):
+    """The whole script, twice: the first pack of a study (no earlier one to set aside once made it fail after
+    packing), then a second that replaces it; the policies are published once."""
+    study = _copy(finished, tmp_path / "study")
+    script = [sys.executable, str(ROOT / "study_state" / "stop_and_pack.py"), str(study)]
+    script += ["--into", str(tmp_path / "state"), "--policies", str(tmp_path / "policies")]
+    (tmp_path / "state").mkdir()
+    for attempt in range(2):
+        done = subprocess.run(script, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert "packed " in done.stdout and "no `ocv2 study run" in done.stdout
+        assert sorted(p.name for p in (tmp_path / "state").iterdir()) == ["tiny"]  # no .new or .old left
+        assert json.loads((tmp_path / "state" / "tiny" / "pack.json").read_text())["latest_only"] is True
+        exported = sum(int(line.split(": ")[1].split()[0]) for line in done.stdout.splitlines() if "policies" in line)
+        assert (exported > 0) == (attempt == 0)
+    published.verify(tmp_path / "policies", [e.file for e in published.read_listing(tmp_path / "policies")])
 
 
 def test_stop_and_pack_checks_everything_before_it_stops_the_study(finished, tmp_path):

@@ -408,13 +408,15 @@ def test_sigterm_stops_like_ctrl_c_even_where_sigint_is_ignored(sp_run, tmp_path
     """A run started in the background ignores SIGINT; SIGTERM (what study_state/stop_and_pack.py and service
     managers send) lets the chunk in flight finish and be saved, then stops. Outside the command, SIGTERM keeps
     its own meaning."""
+    exits = []
+    monkeypatch.setattr(cli_main, "exit_now", exits.append)  # a regression must fail here, not end the worker
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
         run = tmp_path / "sigterm"
         _ctrl_c_while_polling(monkeypatch, presses=1, signum=signal.SIGTERM)
         assert train(run, SP_EVAL) == 130
-        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL and exits == []  # stopped after the chunk
     finally:
         signal.signal(signal.SIGINT, previous)
     err = capsys.readouterr().err

@@ -12,8 +12,8 @@ documented in ``docs/archive.md``; in short:
 * ``step`` payloads are raw little-endian arrays concatenated in a fixed order; the field table
   (name, dtype, shape) and the layout are in the channel's metadata. Chunks are zstd-compressed.
 * ``ArchiveWriter`` writes ``PATH.partial``, flushes a chunk at every episode end, and on close
-  (always, even on an exception) finishes the file and renames it to ``PATH``. A writer that is
-  killed, or that hits a write error, leaves ``PATH.partial``; ``recover`` (``ocv2 archive recover``)
+  finishes the file and renames it to ``PATH``. A writer that is killed, hits a write error or is left by
+  an exception leaves ``PATH.partial`` (when it holds an episode); ``recover`` (``ocv2 archive recover``)
   rewrites every complete episode of it into a clean file.
 * Reading never needs the file's summary: ``ArchiveReader`` scans records in file order, skips a
   corrupt chunk with a warning, and so reads finished, unfinished and damaged files alike.

@@ -190,7 +190,8 @@ def _unlink_quietly(path: str) -> None:
 
 
 class ArchiveWriter:
-    """Write whole episodes to an MCAP archive; a context manager that always finishes the file.
+    """Write whole episodes to an MCAP archive; a context manager that finishes the file when its block ends
+    normally.
 
     ::
 
@@ -202,7 +203,8 @@ class ArchiveWriter:
     a killed process loses at most the episode being written (``recover`` rescues the rest). Leaving
     the ``with`` block normally finishes the file (summary, indexes, footer) and renames it to ``PATH``;
     leaving it by an exception (Ctrl-C, an error) does not: the episodes written so far stay in the
-    ``.partial`` and an existing ``PATH`` stays as it was. The writer opens and closes its own file.
+    ``.partial`` (removed when it holds none) and an existing ``PATH`` stays as it was. The writer opens and
+    closes its own file.
 
     A write error (a full disk: ENOSPC, EIO, a failed fsync) while an episode is written fails the
     writer: ``write_episode`` re-raises the ``OSError``, the ``.partial`` is cut back to the last
@@ -313,6 +315,8 @@ class ArchiveWriter:
             # what would look like a finished archive holding only part of them.
             self._done = True
             self._out.abandon()
+            if self.episodes_written == 0:  # a header alone (Ctrl-C during a compile): nothing to recover
+                _unlink_quietly(self._out.partial)
         return False
 
     # -- episodes

@@ -188,6 +188,8 @@ def run_import(args) -> int:
             path = os.path.join(args.out, archive_name(split, layout))
             if os.path.exists(path) and not args.overwrite:
                 raise CLIError(f"{path} exists; pass --overwrite to replace it")
+            if os.path.exists(path + ".partial") and not args.overwrite:
+                raise CLIError(f"{path}.partial exists (an unfinished import); pass --overwrite to import again")
             targets.append((path, [t for t in trials if t.layout == layout]))
     report = {"source": os.fspath(args.source), "splits": {}}
     for split, trials in loaded.items():

@@ -187,7 +187,7 @@ def run_play(args) -> int:
         failure = session.failure
     finally:
         # A second Ctrl-C or SIGTERM while the archive is being finished would leave a .partial file (and could
-        # abort the interpreter mid-cleanup): hold both back until it is whole.
+        # abort the interpreter mid-cleanup): both are ignored until it is whole (SIGKILL still ends it).
         held = _hold_interrupts()
         try:
             server.stop()  # records the episode in progress, cut short

@@ -65,7 +65,7 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     checksum (a pack is what a later session resumes from, so a damaged one must not replace a good one) -- and
     the parts are written beside ``dest`` and moved in whole: a failure leaves ``dest`` as it was.
     """
-    out, dest = Path(out), Path(dest)
+    out, dest = Path(out), Path(dest).resolve()  # resolved: "." has no name to stage beside
     state = read_state(out)
     if state is None:
         raise StudyError(f"{out}: not a study directory (no study.json)")
