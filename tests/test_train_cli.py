@@ -411,14 +411,16 @@ def test_sigterm_stops_like_ctrl_c_even_where_sigint_is_ignored(sp_run, tmp_path
     exits = []
     monkeypatch.setattr(cli_main, "exit_now", exits.append)  # a regression must fail here, not end the worker
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # As in a fresh process: an earlier Ray test in this worker leaves ray.init's own SIGTERM handler behind.
+    previous_term = signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
         run = tmp_path / "sigterm"
         _ctrl_c_while_polling(monkeypatch, presses=1, signum=signal.SIGTERM)
         assert train(run, SP_EVAL) == 130
         assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL and exits == []  # stopped after the chunk
     finally:
         signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGTERM, previous_term)
     err = capsys.readouterr().err
     assert "SIGTERM: letting updates 1-2 finish" in err and "send SIGTERM or press Ctrl-C again" in err
     assert all(ckpt.list_updates(run, seed) == [0, 2] for seed in range(NUM_SEEDS))  # the chunk was saved
