@@ -83,6 +83,9 @@ def test_usage_errors_return_2(tmp_path, capsys):
     assert main(["render", "cramped_room", "--out", str(tmp_path / "x.gif"), "--fps", "0"]) == 2
     assert main(["render", "cramped_room", "--out", str(tmp_path / "x.txt")]) == 2
     assert main(["render", "cramped_room", "--out", str(tmp_path / "x.gif"), "--seed", str(2**32)]) == 2  # would wrap
+    assert main(["archive", "info", str(tmp_path / "x.mcap"), "--limit", "-5"]) == 2  # -1 is "all"; -5 means nothing
+    assert main(["human", "proxy", "cramped_room", "--source", str(tmp_path), "--lr", "-1"]) == 2  # the flag named
+    assert "argument --lr: expected a learning rate in (0, 1], got -1" in capsys.readouterr().err
     assert main(["--help"]) == 0
     capsys.readouterr()
     assert os.listdir(tmp_path) == []

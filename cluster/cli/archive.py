@@ -13,6 +13,7 @@ import os
 import sys
 
 from cluster.archive import PARTIAL_SUFFIX, ArchiveError, ArchiveReader, recover
+from cluster.cli.args import int_at_least
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from ocv2.render import render_frames, write_gif
 
@@ -36,7 +37,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
     )
     info.add_argument("file", help="archive (.mcap, or a .mcap.partial being written or left by a killed writer)")
     info.add_argument(
-        "--limit", type=int, default=50, metavar="N", help="list at most N episodes (default 50; 0 lists none, -1 all)"
+        "--limit",
+        type=int_at_least(-1, "-1 (all) or larger"),
+        default=50,
+        metavar="N",
+        help="list at most N episodes (default 50; 0 lists none, -1 all)",
     )
     info.add_argument("--json", action="store_true", help="print the summary and episode metadata as JSON")
 

@@ -22,7 +22,7 @@ import numpy as np
 
 import ocv2
 from cluster.archive import ArchiveError, ArchiveWriter, env_meta
-from cluster.cli.args import check_new_file, positive_int, seed
+from cluster.cli.args import bounded, check_new_file, positive_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.rundir import strict_json
 from ocv2.atomic import atomic_write
@@ -91,7 +91,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
         default=defaults.eval_every,
         help="held-out accuracy every K steps",
     )
-    proxy.add_argument("--lr", metavar="LR", type=float, default=defaults.learning_rate)
+    proxy.add_argument(
+        "--lr",
+        metavar="LR",
+        type=bounded(float, 0, 1, "a learning rate in (0, 1]", low_open=True),
+        default=defaults.learning_rate,
+    )
     proxy.add_argument("--seed", metavar="S", type=seed, default=defaults.seed)
     proxy.add_argument(
         "--episodes",
