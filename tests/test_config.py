@@ -607,3 +607,15 @@ def test_every_method_is_one_table_entry_whose_traits_the_code_reads():
     op = parse_config({"env": layout, "population": {"method": "op"}})  # the trait at work (more: test_methods.py)
     assert ppo.train_env(op).config.op_enabled and not ppo.eval_env(op).config.op_enabled
     assert ppo.make_trainer(parse_config({"env": layout, "population": {"method": "fcp"}})).fcp
+
+
+def test_a_key_that_did_not_parse_is_not_blamed_again_through_its_default():
+    """num_envs: four once added "total_timesteps: 640 is less than one update (num_envs x num_steps = 65536)",
+    computed from num_envs' default; a check that names another key still reports."""
+    with pytest.raises(ConfigError) as info:
+        parse_config({"ppo": {"num_envs": "four", "total_timesteps": 640}})
+    assert info.value.problems == ["ppo.num_envs: expected an integer, got 'four'"]
+    with pytest.raises(ConfigError) as info:
+        parse_config({"ppo": {"num_envs": 4, "num_steps": 16, "total_timesteps": 32, "lr": "x"}})
+    keys = [p.split(":")[0] for p in info.value.problems]
+    assert keys[0] == "ppo.lr" and "ppo.total_timesteps" in keys  # it names num_envs and num_steps, not lr

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -101,12 +102,27 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
         cluster=parsed(_parse_cluster, raw.get("cluster"), default=ClusterConfig()),
     )
     # Values are checked with every key that did not parse at its default; a key already reported is
-    # not reported again.
+    # not reported again, nor is a check across keys that names one of them (its numbers came from the
+    # default: "num_envs: four" would add "total_timesteps ... (num_envs x num_steps = 65536)").
     reported = {problem.split(":", 1)[0] for problem in problems}
-    problems += [p for p in validate(config) if p.split(":", 1)[0] not in reported]
+    problems += [p for p in validate(config) if not _about_reported(p, reported)]
     if problems:
         raise ConfigError(blame_overrides(problems, overrides))
     return config
+
+
+def _about_reported(problem: str, reported: set[str]) -> bool:
+    """Whether ``problem`` is about a key in ``reported``: the same key, or one of its section's checks that
+    names the key's last part ("num_envs" for ppo.num_envs) as a word."""
+    key = problem.split(":", 1)[0]
+    if key in reported:
+        return True
+    section = key.split(".", 1)[0]
+    return any(
+        name.split(".", 1)[0] == section and re.search(rf"\b{re.escape(name.rsplit('.', 1)[-1])}\b", problem)
+        for name in reported
+        if "." in name
+    )
 
 
 def blame_overrides(problems: Sequence[str], overrides: Sequence[str]) -> list[str]:
