@@ -278,6 +278,10 @@ def test_report_out_must_be_a_folder(runs, tmp_path, capsys):
     blocker.write_text("x")
     assert main(["report", str(runs["cr_sp"]), "--out", str(blocker)]) != 0
     assert "--out" in capsys.readouterr().err
+    assert main(["report", str(runs["cr_sp"]), "--out", str(runs["cr_sa"])]) == 2  # into another run: no
+    assert "is a run directory; give a folder of its own" in capsys.readouterr().err
+    assert main(["report", str(runs["cr_sp"]), str(runs["cr_sp"]) + "/", "--out", str(tmp_path / "r")]) == 2
+    assert "given twice" in capsys.readouterr().err and not (tmp_path / "r").exists()
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -359,10 +359,17 @@ def add_report(sub) -> argparse.ArgumentParser:
 def run_report(args) -> int:
     """Tabulate ``args.run_dirs`` into ``args.out`` (report.md, report.csv, curves, heatmaps) and print
     the table. Returns ``EXIT_OK``; raises ``CLIError`` for an unreadable run or an ``--out`` that is a file."""
+    seen: dict[Path, str] = {}
+    for path in args.run_dirs:
+        if Path(path).resolve() in seen:
+            raise CLIError(f"{path}: given twice (also as {seen[Path(path).resolve()]}); each run is one row")
+        seen[Path(path).resolve()] = path
     runs = [load_run(path) for path in args.run_dirs]
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out: {out} exists and is not a folder")
+    if (out / "config.yaml").is_file() or out.resolve() in seen:
+        raise CLIError(f"--out {out}: is a run directory; give a folder of its own for the report")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
