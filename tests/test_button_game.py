@@ -232,6 +232,11 @@ def test_cli_out_is_a_file(tmp_path, capsys):
     blocker.write_text("x")
     assert main(["button-game", "--out", str(blocker)]) == 2
     assert "not a folder" in capsys.readouterr().err
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("{}")
+    assert main(["button-game", "--out", str(run)]) == 2  # not among a training run's files
+    assert "is a run directory" in capsys.readouterr().err and sorted(p.name for p in run.iterdir()) == ["config.yaml"]
 
 
 def test_cli_defaults_match_configs():

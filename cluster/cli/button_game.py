@@ -101,6 +101,8 @@ def run(args) -> int:
     game, iql = _configs(args)
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise CLIError(f"--out: {args.out!r} exists and is not a folder")
+    if os.path.isfile(os.path.join(args.out, "config.yaml")):
+        raise CLIError(f"--out {args.out}: is a run directory; give a folder of its own")
     try:
         os.makedirs(args.out, exist_ok=True)
     except OSError as error:
