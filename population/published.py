@@ -121,10 +121,7 @@ def publish_run(run_dir, folder, which: str = "snapshots") -> list[PublishedPoli
     files this call wrote, so no unlisted file is left beside the listed ones. Returns the entries added."""
     run_dir, folder = Path(run_dir), Path(folder)
     config = load_config(run_dir / "config.yaml")
-    if folder.exists() and not folder.is_dir():
-        raise PolicyError(f"{folder}: a file, not a policies folder")
-    listing = read_listing(folder)
-    verify(folder, [e.file for e in listing])
+    listing = checked_listing(folder)
     known = {e.file for e in listing}
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -143,6 +140,17 @@ def publish_run(run_dir, folder, which: str = "snapshots") -> list[PublishedPoli
     if added:
         write_listing(folder, [*listing, *added])
     return added
+
+
+def checked_listing(folder) -> list[PublishedPolicy]:
+    """``folder``'s listing, every listed file checked (``verify``): what must hold before more are published
+    into it. ``PolicyError`` for a folder that is a file, a bad listing or a changed file."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise PolicyError(f"{folder}: a file, not a policies folder")
+    listing = read_listing(folder)
+    verify(folder, [e.file for e in listing])
+    return listing
 
 
 def verify(folder, files: Iterable[str | Path]) -> None:

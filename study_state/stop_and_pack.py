@@ -33,7 +33,7 @@ from cluster.study.spec import StudyError
 from population.checkpoints import CheckpointError
 from population.config import ConfigError, load_config
 from population.policy import PolicyError
-from population.published import read_listing, verify
+from population.published import checked_listing
 
 HERE = Path(__file__).resolve().parent
 
@@ -88,9 +88,7 @@ def check_before_stopping(study: Path, policies: Path | None, into: Path) -> tup
     policies = policies or HERE.parent / "docs" / "results" / name / "policies"
     for run_dir in runs:
         load_config(run_dir / "config.yaml")
-    if policies.exists() and not policies.is_dir():
-        raise StudyError(f"{policies}: a file, not a policies folder (--policies)")
-    verify(policies, [entry.file for entry in read_listing(policies)])
+    checked_listing(policies)
     check_folder(into / name, "the pack's folder (--into)")
     return name, policies
 

@@ -69,7 +69,7 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     state = read_state(out)
     if state is None:
         raise StudyError(f"{out}: not a study directory (no study.json)")
-    if dest.resolve().is_relative_to(out.resolve()):
+    if dest.is_relative_to(out.resolve()):
         raise StudyError(
             f"{dest}: inside the study directory {out} (a later pack would hold this one); choose another --out"
         )
