@@ -35,14 +35,19 @@ def check_new_folder(flag: str, out: str) -> None:
         raise CLIError(f"{flag} {out}: already holds files (earlier results?); give a new directory")
 
 
-def check_new_file(flag: str, out: str, force: bool = False) -> None:
-    """Refuse an output file that exists (unless ``force``), is a folder, or lies under a file."""
-    path = Path(out)
-    for parent in path.parents:
+def check_not_under_a_file(flag: str, out: str) -> None:
+    """Refuse an output file whose nearest existing parent is a file."""
+    for parent in Path(out).parents:
         if parent.exists():
             if not parent.is_dir():
                 raise CLIError(f"{flag} {out}: lies under {parent}, which is a file; give a file in a folder")
             break
+
+
+def check_new_file(flag: str, out: str, force: bool = False) -> None:
+    """Refuse an output file that exists (unless ``force``), is a folder, or lies under a file."""
+    path = Path(out)
+    check_not_under_a_file(flag, out)
     if path.is_dir():
         raise CLIError(f"{flag} {out}: is a directory; give a file name")
     if path.exists() and not path.is_file():

@@ -19,13 +19,20 @@ import secrets
 import signal
 import threading
 import time
-from pathlib import Path
 
 import yaml
 
 import ocv2
 from cluster.archive import RESERVED_KEYS, ArchiveError, ArchiveWriter
-from cluster.cli.args import bounded, fps, int_at_least, layout_or_error, non_negative_int, positive_int
+from cluster.cli.args import (
+    bounded,
+    check_not_under_a_file,
+    fps,
+    int_at_least,
+    layout_or_error,
+    non_negative_int,
+    positive_int,
+)
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.play.game import PartnerError, human_partner, load_policy_partner, make_game, scripted_partner, warm_up
 from cluster.play.server import PlayServer
@@ -322,11 +329,7 @@ def _writer(out: str | None, layout: str, fps: float):
     path = out or os.path.join("runs", "play", f"{layout}_{time.strftime('%Y%m%d-%H%M%S')}.mcap")
     if not path.endswith(".mcap"):
         raise CLIError(f"--out must name a .mcap file, got {path!r}")
-    for parent in Path(path).parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise CLIError(f"--out {path}: lies under {parent}, which is a file; give a file in a folder")
-            break
+    check_not_under_a_file("--out", path)
     for existing, why in ((path, ""), (path + ".partial", " (an unfinished recording: `ocv2 archive recover` it)")):
         if os.path.exists(existing):
             raise CLIError(f"--out {existing}: exists{why}; give a new file name (a recording is never replaced)")
