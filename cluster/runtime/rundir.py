@@ -419,13 +419,8 @@ class RunDir:
 
 def trained_keys_changed(run: Config, now: Config) -> list[str]:
     """The keys behind a fingerprint mismatch ("ppo.lr: 0.0004 in the run, 0.01 now"): every key of the
-    fingerprinted sections (all but eval, run, archive and cluster; run.precision too) whose value differs."""
-
-    def flat(config: Config) -> dict:
-        unhashed = ("eval.", "run.", "archive.", "cluster.")
-        return {k: v for k, v in config.flat().items() if not k.startswith(unhashed) or k == "run.precision"}
-
-    before, after = flat(run), flat(now)
+    fingerprinted sections (``Config.fingerprinted``) whose value differs."""
+    before, after = run.fingerprinted(), now.fingerprinted()
     return [
         f"{key}: {before.get(key)!r} in the run, {after.get(key)!r} now"
         for key in sorted(set(before) | set(after))

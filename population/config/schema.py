@@ -13,6 +13,9 @@ import json
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+#: Sections that do not change training numbers: left out of ``Config.fingerprint`` by default.
+_UNHASHED = ("eval", "run", "archive", "cluster")
+
 #: JAX's default PRNG keys are built from 32-bit seeds: a larger seed would silently wrap around.
 MAX_SEED = 2**32 - 1
 #: The SP stage of an FCP run without partners trains with ``population.seed + FCP_STAGE_SEED_OFFSET``.
@@ -315,7 +318,12 @@ class Config:
         walk("", self.to_dict())
         return out
 
-    def fingerprint(self, exclude: Sequence[str] = ("eval", "run", "archive", "cluster")) -> str:
+    def fingerprinted(self) -> dict:
+        """The ``flat`` keys that ``fingerprint`` hashes by default (so a mismatch can name them)."""
+        hashed_anyway = {f"{name}.{key}" for name, key in _HASHED_ANYWAY}
+        return {k: v for k, v in self.flat().items() if k.split(".", 1)[0] not in _UNHASHED or k in hashed_anyway}
+
+    def fingerprint(self, exclude: Sequence[str] = _UNHASHED) -> str:
         """A hash of everything that changes training numbers (checkpoints from another config are refused):
         the sections not in ``exclude`` and ``run.precision`` (``_HASHED_ANYWAY``).
 
