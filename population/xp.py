@@ -8,9 +8,10 @@ XP = mean of the off-diagonal cells, each +- the std across cells, the gap SP - 
 intervals and a per-recipe breakdown. Every pair uses the same episode keys (common random numbers),
 so differences between cells come from the policies, not from luck of the draw.
 
-Confidence intervals come from a bootstrap over seeds (``bootstrap_square``, ``bootstrap_block``):
-the training seeds are the independent samples, while the cells of one matrix share policies and are
-not independent, so resampling cells (or a normal interval over cells) claims too much certainty.
+Confidence intervals come from a bootstrap over seeds (``bootstrap_block``; ``bootstrap_difference`` for
+one population's numbers minus another's): the training seeds are the independent samples, while the
+cells of one matrix share policies and are not independent, so resampling cells (or a normal interval
+over cells) claims too much certainty.
 """
 
 from __future__ import annotations
@@ -147,16 +148,17 @@ def _resample_chunks(cells: int, resamples: int):
     return [min(per, resamples - start) for start in range(0, resamples, per)]
 
 
-def bootstrap_block(
+def bootstrap_samples(
     matrix: np.ndarray, row_ids=None, col_ids=None, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED
-) -> dict:
-    """95 % percentile intervals of the SP and XP means of a [R, C] matrix by bootstrap over seeds.
+) -> tuple[np.ndarray, np.ndarray]:
+    """The SP and XP means of ``resamples`` bootstrap resamples of the seeds of a [R, C] matrix (NaN where a
+    resample has no cell of that kind), as two [resamples] arrays.
 
     ``row_ids``/``col_ids`` name the policy of each row/column (default: rows and columns are the same
     K policies, as in one population's matrix). A cell is self-play when its two policies are the same
     policy, cross-play otherwise. When rows and columns are the same policies, one resample of the
     seeds serves both sides (a seed drawn twice does not cross-play with itself); otherwise rows and
-    columns are resampled independently. Returns {"sp": (low, high), "xp": (low, high), "gap": (low, high)}.
+    columns are resampled independently.
     """
     matrix = np.asarray(matrix, np.float64)
     rows, cols = matrix.shape
@@ -176,8 +178,37 @@ def bootstrap_block(
             count = mask.sum(axis=(1, 2))
             total = np.where(mask, cells, 0.0).sum(axis=(1, 2))
             out.append(np.where(count > 0, total / np.maximum(count, 1), np.nan))
-    sp, xp = np.concatenate(sp), np.concatenate(xp)
+    return np.concatenate(sp), np.concatenate(xp)
+
+
+def bootstrap_block(
+    matrix: np.ndarray, row_ids=None, col_ids=None, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED
+) -> dict:
+    """95 % percentile intervals of the SP and XP means of a [R, C] matrix by bootstrap over seeds
+    (``bootstrap_samples`` says how a resample is drawn). Returns {"sp": (low, high), "xp": (low, high),
+    "gap": (low, high)}."""
+    sp, xp = bootstrap_samples(matrix, row_ids, col_ids, resamples, seed)
     return {"sp": _interval(sp), "xp": _interval(xp), "gap": _interval(sp - xp)}
+
+
+def bootstrap_difference(
+    base: np.ndarray, other: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED
+) -> dict:
+    """95 % intervals of ``other``'s SP, XP and gap minus ``base``'s, for two populations' own square
+    matrices (say SP's and SA's, each of its own independently seeded policies).
+
+    The two populations share no seed, so each is resampled on its own (``base`` with ``seed``, ``other``
+    with ``seed + 1``) and the k-th resamples are subtracted: the interval of Table 1's "Gap (delta)" that
+    the two per-population intervals cannot give (their overlap says little about the difference).
+    Returns {"sp": (low, high), "xp": (low, high), "gap": (low, high)}.
+    """
+    base_sp, base_xp = bootstrap_samples(base, resamples=resamples, seed=seed)
+    other_sp, other_xp = bootstrap_samples(other, resamples=resamples, seed=seed + 1)
+    return {
+        "sp": _interval(other_sp - base_sp),
+        "xp": _interval(other_xp - base_xp),
+        "gap": _interval((other_sp - other_xp) - (base_sp - base_xp)),
+    }
 
 
 def block_summary(matrix: np.ndarray, row_ids, col_ids) -> dict:

@@ -26,7 +26,7 @@ from population.config import ClusterConfig, load_config
 from population.evaluation import gather_params, play_row, stack_params
 from population.networks import init_params
 from population.record import play_recorded_pairs, play_recorded_row
-from population.xp import Side, bootstrap_block, cross_play
+from population.xp import Side, bootstrap_block, bootstrap_difference, cross_play
 
 
 @pytest.fixture(scope="module")
@@ -318,6 +318,32 @@ def test_bootstrap_resamples_seeds_not_cells():
     low, high = bootstrap_block(rect, ["a", "b"], ["c", "d"])["xp"]
     assert (low, high) == (0.0, 30.0)  # a resample can draw row a twice and column c twice
     assert bootstrap_block(rect, ["a", "b"], ["c", "d"]) == bootstrap_block(rect, ["a", "b"], ["c", "d"])
+
+
+def test_bootstrap_difference_of_two_seed_populations_is_exact():
+    # With 2 seeds a resample has a cross-play cell only when it draws both seeds, and then its gap is the
+    # population's own: every difference that exists is the difference of the two gaps.
+    base = np.array([[10.0, 4.0], [2.0, 12.0]])  # gap 11 - 3 = 8
+    other = np.array([[20.0, 15.0], [13.0, 20.0]])  # gap 20 - 14 = 6
+    ci = bootstrap_difference(base, other)
+    assert ci["gap"] == pytest.approx((-2.0, -2.0)) and ci["xp"] == pytest.approx((11.0, 11.0))
+
+
+def test_bootstrap_difference_resamples_each_population_on_its_own():
+    rng = np.random.default_rng(3)
+    base = rng.normal(100.0, 30.0, size=(6, 6))
+    shifted = base.copy()
+    shifted[np.eye(6, dtype=bool)] += 50.0  # the same seeds, SP 50 higher: gap 50 higher
+    ci = bootstrap_difference(base, shifted)
+    # Each population is resampled on its own, so the difference carries both populations' spread: wider
+    # than one population's gap interval (a paired resample of the same seeds would give exactly 50).
+    low, high = ci["gap"]
+    assert low < 50.0 < high and high - low > 10.0
+    own = bootstrap_block(base)["gap"]
+    assert high - low > own[1] - own[0]
+    assert bootstrap_difference(base, shifted) == ci  # fixed seeds: the same matrices, the same interval
+    same = bootstrap_difference(base, base)["gap"]
+    assert same[0] < 0.0 < same[1]
 
 
 def _random_leaf(rng, path, leaf, num: int):

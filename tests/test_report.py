@@ -158,8 +158,12 @@ def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
     assert (num(cr_sa, "delta_sp"), num(cr_sa, "delta_xp"), num(cr_sa, "delta_gap")) == (0.0, -2.0, 2.0)
     assert (num(ring_sa, "delta_sp"), num(ring_sa, "delta_xp"), num(ring_sa, "delta_gap")) == (55.0, 102.0, -47.0)
     assert Path(ring_sa["baseline_run"]).name == "ring_sp"
+    # every seed of these 2-seed matrices scores the same, so every resample of either population gives its
+    # gap exactly and the interval of the difference is the point
+    assert (num(ring_sa, "delta_gap_ci95_low"), num(ring_sa, "delta_gap_ci95_high")) == (-47.0, -47.0)
     for name in ("cr_sp", "ring_sp", "cr_view", "fc_sa"):  # baselines, other envs, no cross-play: no delta
         assert rows[name]["delta_gap"] == "" and rows[name]["baseline_run"] == ""
+        assert rows[name]["delta_gap_ci95_low"] == rows[name]["delta_gap_ci95_high"] == ""
     assert rows["cr_view"]["env"].startswith("view 2") and cr_sp["env"] == "full view"
     assert (cr_sp["num_seeds"], cr_sp["env_steps_per_seed"], cr_sp["updates_done"], cr_sp["num_updates"]) == (
         "2",
@@ -181,7 +185,7 @@ def test_report_tables_match_hand_computed_values(runs, tmp_path, capsys):
     )
     assert (
         "| coord_ring | full view | State-Augmented | 2 | 300 | 269.0 ± 44.0 | 198.0 ± 50.0 | 71.0 | +55.0 | "
-        "+102.0 | -47.0 |" in lines[str(runs["ring_sa"])]
+        "+102.0 | -47.0 [-47.0, -47.0] |" in lines[str(runs["ring_sa"])]
     )
     header = md.splitlines()[4]
     assert header.startswith("| Layout | Env | Method | Seeds | Env steps/seed | SP | XP | Gap | Δ SP | Δ XP | Δ Gap |")

@@ -9,7 +9,8 @@ and writes, into ``--out`` (default ``reports/``):
 * ``report.md`` / ``report.csv``: one row per run in the paper's Table 1 / Table 2 format -- layout,
   method, SP mean +- std, XP mean +- std, gap. Runs of the same environment (identical ``env`` section)
   are compared with that environment's self-play run: delta SP, delta XP and delta gap (the last is the
-  number in brackets in the paper's Table 1, "Gap (delta)").
+  number in brackets in the paper's Table 1, "Gap (delta)"), the last with a 95 % interval by bootstrap over
+  each population's seeds (``population.xp.bootstrap_difference``).
 * ``curves_<layout>.png``: sparse return (mean +- std across seeds) against env steps, one line per run.
 * ``heatmap_<run>.png``: the cross-play matrix of every evaluated run, redrawn from ``xp/matrix.csv``.
 
@@ -35,6 +36,7 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.config import METHOD_TABLE, METHODS
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
+from population.xp import bootstrap_difference
 
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
 NO_XP_NOTE = "no cross-play yet: run ocv2 xp {run}"
@@ -61,6 +63,8 @@ CSV_FIELDS = (
     "delta_sp",
     "delta_xp",
     "delta_gap",
+    "delta_gap_ci95_low",
+    "delta_gap_ci95_high",
     "note",
 )
 
@@ -180,6 +184,8 @@ def report_rows(runs: list[dict]) -> list[dict]:
                 "delta_sp": math.nan,
                 "delta_xp": math.nan,
                 "delta_gap": math.nan,
+                "delta_gap_ci95_low": math.nan,
+                "delta_gap_ci95_high": math.nan,
                 "note": "",
             }
             for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "sp_ci95", "xp_ci95"):
@@ -194,6 +200,9 @@ def report_rows(runs: list[dict]) -> list[dict]:
                 row["delta_sp"] = row["sp_mean"] - float_or_nan(base.get("sp_mean"))
                 row["delta_xp"] = row["xp_mean"] - float_or_nan(base.get("xp_mean"))
                 row["delta_gap"] = row["gap"] - float_or_nan(base.get("gap"))
+                if baseline["matrix"] and run["matrix"]:
+                    low, high = bootstrap_difference(np.asarray(baseline["matrix"]), np.asarray(run["matrix"]))["gap"]
+                    row["delta_gap_ci95_low"], row["delta_gap_ci95_high"] = low, high
             rows.append(row)
     return rows
 
@@ -221,6 +230,15 @@ def _steps(value: int) -> str:
     return f"{value / 1e6:.2f}M" if value >= 1e6 else f"{value:,}"
 
 
+def delta_gap_cell(row: dict) -> str:
+    """Δ Gap with its 95 % interval over both populations' seeds where both matrices gave one."""
+    cell = fmt(row["delta_gap"], True)
+    low, high = row["delta_gap_ci95_low"], row["delta_gap_ci95_high"]
+    if math.isnan(low) or math.isnan(high):
+        return cell
+    return f"{cell} [{fmt(low, True)}, {fmt(high, True)}]"
+
+
 def table_cells(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
     """Header and string cells shared by the rich and the Markdown tables."""
     deltas = any(not math.isnan(r["delta_gap"]) or not math.isnan(r["delta_xp"]) for r in rows)
@@ -243,7 +261,7 @@ def table_cells(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
         else:
             line += [fmt_pm(r["sp_mean"], r["sp_std"]), fmt_pm(r["xp_mean"], r["xp_std"]), fmt(r["gap"])]
         if deltas:
-            line += [fmt(r["delta_sp"], True), fmt(r["delta_xp"], True), fmt(r["delta_gap"], True)]
+            line += [fmt(r["delta_sp"], True), fmt(r["delta_xp"], True), delta_gap_cell(r)]
         line.append(r["run_dir"] + (f" -- {r['note']}" if r["note"] else ""))
         cells.append(line)
     return header, cells
@@ -390,7 +408,8 @@ def run_report(args) -> int:
         "",
         "SP: mean ± std over the self-play cells (diagonal) of the cross-play matrix; XP: mean ± std over the "
         "off-diagonal ordered pairs; Gap = SP - XP (the paper's Tables 1 and 2). Δ: this run minus the self-play "
-        "run of the same environment (Δ Gap is the paper's Table 1 bracket).",
+        "run of the same environment (Δ Gap is the paper's Table 1 bracket; in brackets after it, its 95 % "
+        "interval by bootstrap over each population's seeds, the two populations resampled independently).",
         "",
         markdown_table(header, cells),
         "",
