@@ -25,7 +25,7 @@ import yaml
 import ocv2.atomic
 from cluster.cli import main
 from cluster.runtime import crossplay
-from cluster.runtime.rundir import RunDir
+from cluster.runtime.rundir import RunDir, read_matrix_csv
 from cluster.runtime.runstate import Schedule
 from cluster.study.pack import pack_study
 from cluster.study.runner import StateFile, StudyOptions, kept_study, open_state, read_state, run_study, study_status
@@ -34,6 +34,7 @@ from cluster.study.state import StepRecord, StudyState
 from population import checkpoints as ckpt
 from population import policy, ppo, published
 from population.config import ConfigError, load_config
+from population.xp import bootstrap_difference
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -168,6 +169,19 @@ def test_the_report_puts_the_paper_numbers_beside_ours(finished):
     ):
         assert (finished / picture).is_file()
     json.loads((finished / "summary.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
+
+
+def test_a_method_is_compared_with_the_self_play_run_of_its_environment(finished):
+    summary = json.loads((finished / "summary.json").read_text())
+    (entry,) = summary["against_sp"]  # sa against sp; sp is the baseline, not compared with itself
+    runs = {r["name"]: r["xp"] for r in summary["runs"]}
+    assert (entry["run"], entry["sp_run"]) == ("sa", "sp")
+    assert entry["delta_gap"] == pytest.approx(runs["sa"]["gap"] - runs["sp"]["gap"])
+    assert entry["delta_sp"] == pytest.approx(runs["sa"]["sp_mean"] - runs["sp"]["sp_mean"])
+    matrices = [read_matrix_csv(finished / "runs" / name / "xp" / "matrix.csv").values for name in ("sp", "sa")]
+    assert entry["delta_gap_ci95_interval"] == pytest.approx(list(bootstrap_difference(*matrices)["gap"]))
+    assert entry["paper_delta_gap"] is None  # only sp carries the paper's numbers
+    assert "## Against self-play" in (finished / "report.md").read_text()
 
 
 def test_a_compact_copy_of_the_report(finished, tmp_path, capsys):

@@ -4,7 +4,9 @@
 ``curves_<layout>.png`` (training curves of every run, mean ± std across seeds),
 ``heatmap_<run>.png`` (a run's seeds' final cross-play, as the paper's Figure 4),
 ``heatmap_<comparison>.png`` (the full cross-play matrix of a comparison) and
-``over_training_<run>.png`` (SP, XP and the gap at every kept snapshot).
+``over_training_<run>.png`` (SP, XP and the gap at every kept snapshot). A run of another method on the
+same environment as a self-play run of the study is compared with it: Δ SP, Δ XP and Δ gap (Table 1's
+bracket), the last with its own interval (both populations' seeds resampled, each on its own).
 
 Every interval is a 95 % percentile bootstrap over training seeds. "paper in CI" says whether the
 paper's mean lies inside our interval: a plain check, not a test of the paper's claim.
@@ -27,6 +29,7 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.config import METHOD_TABLE
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
+from population.xp import bootstrap_difference
 
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
 
@@ -54,6 +57,7 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
         "runs": runs,
         "comparisons": comparisons,
         "over_training": over,
+        "against_sp": _against_sp(study, out, configs, runs),
         "ci_method": "95% percentile bootstrap over training seeds",
         "wall_s": round(sum(step.wall_s for step in state.steps.values()), 1),
     }
@@ -160,6 +164,44 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
             )
         }
     return entry
+
+
+def _against_sp(study: Study, out: Path, configs: dict, runs: list[dict]) -> list[dict]:
+    """Each evaluated run of another method minus the evaluated self-play run of the same environment
+    (identical env section): Δ SP, Δ XP, Δ gap with the gap's 95 % interval from both runs' matrices, and
+    the paper's Δ gap where both runs carry the paper's gap."""
+    entries = {entry["name"]: entry for entry in runs}
+    evaluated = [r for r in study.runs if entries[r.name]["xp"] is not None and not entries[r.name].get("problem")]
+    baselines = [r for r in evaluated if configs[r.name].population.method == "sp"]
+    out_entries = []
+    for spec in evaluated:
+        base = next((b for b in baselines if configs[b.name].env == configs[spec.name].env), None)
+        if base is None or base is spec:
+            continue
+        ours, theirs = entries[spec.name]["xp"], entries[base.name]["xp"]
+        delta = {
+            key: float_or_nan(ours.get(key)) - float_or_nan(theirs.get(key)) for key in ("sp_mean", "xp_mean", "gap")
+        }
+        try:
+            matrices = [read_matrix_csv(run_dir(out, r.name) / "xp" / "matrix.csv").values for r in (base, spec)]
+            interval = list(bootstrap_difference(*matrices)["gap"])
+            problem = None
+        except (OSError, ValueError) as error:  # a matrix gone or cut since its summary: the means stand, said so
+            interval, problem = [math.nan, math.nan], f"no interval: {error}"
+        paper = [(entries[r.name]["paper"] or {}).get("gap") for r in (base, spec)]
+        out_entries.append(
+            {
+                "run": spec.name,
+                "sp_run": base.name,
+                "delta_sp": delta["sp_mean"],
+                "delta_xp": delta["xp_mean"],
+                "delta_gap": delta["gap"],
+                "delta_gap_ci95_interval": interval,
+                "paper_delta_gap": None if None in paper else paper[1]["mean"] - paper[0]["mean"],
+                **({"problem": problem} if problem else {}),
+            }
+        )
+    return out_entries
 
 
 def _paper(value: PaperValue | None) -> dict | None:
@@ -504,6 +546,25 @@ def markdown(study: Study, summary: dict, state: StudyState) -> str:
                     f"{_pm(pair['a_seat1'], pair['a_seat1_std'])} | "
                     f"{_with_ci(pair['mean'], pair['mean_ci95_interval'])} |"
                 )
+    if summary.get("against_sp"):
+        lines += [
+            "",
+            "## Against self-play (this run minus the self-play run of the same environment)",
+            "",
+            "Δ gap is the paper's Table 1 bracket; its interval resamples both runs' seeds, each on its own.",
+            "",
+            "| run | self-play run | Δ SP | Δ XP | Δ gap ours [95% CI] | Δ gap paper |",
+            "|---|---|---|---|---|---|",
+        ]
+        for entry in summary["against_sp"]:
+            paper = entry["paper_delta_gap"]
+            lines.append(
+                f"| {entry['run']} | {entry['sp_run']} | {float_or_nan(entry['delta_sp']):+.1f} | "
+                f"{float_or_nan(entry['delta_xp']):+.1f} | "
+                f"{_with_ci(entry['delta_gap'], entry['delta_gap_ci95_interval'], signed=True)}"
+                f"{' (' + entry['problem'] + ')' if entry.get('problem') else ''} | "
+                f"{'–' if paper is None else f'{paper:+g}'} |"
+            )
     for entry in summary["over_training"]:
         left += [f"- over_training {entry['run']}: {problem}" for problem in entry.get("damaged", [])]
         if not entry["points"]:
@@ -541,13 +602,14 @@ def _label(label: str, method) -> str:
     return f"{name} ({method})" if method else name
 
 
-def _with_ci(mean, interval) -> str:
+def _with_ci(mean, interval, signed: bool = False) -> str:
     mean = float_or_nan(mean)
     if math.isnan(mean):
         return "n/a"
+    form = "+.1f" if signed else ".1f"
     if not interval or any(v is None or math.isnan(float_or_nan(v)) for v in interval):
-        return f"{mean:.1f}"
-    return f"{mean:.1f} [{float_or_nan(interval[0]):.1f}, {float_or_nan(interval[1]):.1f}]"
+        return f"{mean:{form}}"
+    return f"{mean:{form}} [{float_or_nan(interval[0]):{form}}, {float_or_nan(interval[1]):{form}}]"
 
 
 def _pm(mean, std) -> str:
