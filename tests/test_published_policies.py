@@ -1,6 +1,7 @@
 """Published policies are usable as they are: a committed cross-play cell is played again from the committed
 policy files (docs/results/table1_coord_ring_sp10/policies/, the 10-seed Coordination Ring SP population's
-0.49M snapshot) and gives the committed numbers.
+0.49M snapshot) and gives the committed numbers; every published policies folder under docs/results/ matches its
+SHA256SUMS.json.
 
 Made by ``ocv2 xp --rows P0 P1 --episodes 8 --seed 0 --backend local`` (the matrix in seat order, 8 episodes per
 ordered pair, a fixed episode key). Tolerance: 5 points per cell, two deliveries (20 each) in 8 episodes, because
@@ -29,12 +30,26 @@ RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "table1_coo
 POLICIES = RESULTS / "policies"
 
 
-def test_every_published_policy_matches_its_sha256():
+PUBLISHED = sorted(RESULTS.parent.glob("*/policies/SHA256SUMS.json"))
+
+
+def test_the_xp_check_snapshot_is_published_for_every_seed():
     listing = json.loads((POLICIES / "SHA256SUMS.json").read_text())
-    assert {entry["seed"] for entry in listing if entry["update"] == 30} == set(range(10))  # the xp check's snapshot
-    assert sorted(entry["file"] for entry in listing) == sorted(p.name for p in POLICIES.glob("*.ocv2policy"))
+    assert {entry["seed"] for entry in listing if entry["update"] == 30} == set(range(10))
+
+
+@pytest.mark.parametrize("sums", PUBLISHED, ids=lambda path: path.parent.parent.name)
+def test_every_published_policy_matches_its_sha256(sums):
+    listing = json.loads(sums.read_text())
+    folder = sums.parent
+    assert sorted(entry["file"] for entry in listing) == sorted(p.name for p in folder.glob("*.ocv2policy"))
     for entry in listing:
-        assert hashlib.sha256((POLICIES / entry["file"]).read_bytes()).hexdigest() == entry["sha256"]
+        assert hashlib.sha256((folder / entry["file"]).read_bytes()).hexdigest() == entry["sha256"]
+
+
+def test_every_finished_study_under_results_published_its_policies():
+    """The SP and SA halves of the 10-seed Coordination Ring test, at least: a reader can replay both."""
+    assert {path.parent.parent.name for path in PUBLISHED} >= {"table1_coord_ring_sp10", "table1_coord_ring_sa10"}
 
 
 def test_a_committed_cross_play_cell_is_played_again_from_the_committed_policies(tmp_path):
