@@ -192,7 +192,11 @@ def bootstrap_block(
 
 
 def bootstrap_difference(
-    base: np.ndarray, other: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED
+    base: np.ndarray,
+    other: np.ndarray,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+    names: tuple[str, str] = ("base", "other"),
 ) -> dict:
     """95 % intervals of ``other``'s SP, XP and gap minus ``base``'s, for two populations' own square
     matrices (say SP's and SA's, each of its own independently seeded policies).
@@ -200,8 +204,18 @@ def bootstrap_difference(
     The two populations share no seed, so each is resampled on its own (``base`` with ``seed``, ``other``
     with ``seed + 1``) and the k-th resamples are subtracted: the interval of Table 1's "Gap (delta)" that
     the two per-population intervals cannot give (their overlap says little about the difference).
-    Returns {"sp": (low, high), "xp": (low, high), "gap": (low, high)}.
+    Returns {"sp": (low, high), "xp": (low, high), "gap": (low, high)}. ``ValueError`` for a matrix that is
+    not square (rows lost from a file) or holds a cell that is not a number: either would give an interval
+    of other resamples than it says, without a word (``names`` name the two in the message).
     """
+    for name, matrix in zip(names, (base, other), strict=True):
+        matrix = np.asarray(matrix, np.float64)
+        if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or matrix.shape[0] < 2:
+            raise ValueError(
+                f"{name}: a {' x '.join(map(str, matrix.shape))} matrix, not one population's K x K (K >= 2)"
+            )
+        if not np.isfinite(matrix).all():
+            raise ValueError(f"{name}: {int((~np.isfinite(matrix)).sum())} cell(s) are not numbers")
     base_sp, base_xp = bootstrap_samples(base, resamples=resamples, seed=seed)
     other_sp, other_xp = bootstrap_samples(other, resamples=resamples, seed=seed + 1)
     return {

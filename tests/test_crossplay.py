@@ -346,6 +346,16 @@ def test_bootstrap_difference_resamples_each_population_on_its_own():
     assert same[0] < 0.0 < same[1]
 
 
+def test_bootstrap_difference_refuses_a_cut_or_holed_matrix():
+    square = np.ones((4, 4))
+    with pytest.raises(ValueError, match="other: a 3 x 4 matrix"):
+        bootstrap_difference(square, square[:3])  # a file that lost a row
+    holed = square.copy()
+    holed[1, 2] = np.nan
+    with pytest.raises(ValueError, match="base: 1 cell"):
+        bootstrap_difference(holed, square)
+
+
 def _random_leaf(rng, path, leaf, num: int):
     """``num`` draws of one parameter at an initialiser's scale: weights ~ N(0, 1 / fan-in), LayerNorm
     scales near 1, biases near 0."""

@@ -221,6 +221,23 @@ def test_report_without_deltas_has_no_delta_columns(runs, tmp_path, capsys):
     assert "Δ SP |" not in md and "| 259.0 ± 1.0 | 257.0 ± 2.0 | 2.0 |" in md
 
 
+def test_a_delta_gap_without_its_interval_says_why(runs, tmp_path, capsys):
+    """A cell that is not a number in one matrix, or a run whose matrix.csv is gone: the Δ gap stands, and a
+    note says why it has no interval (an interval of fewer resamples than it claims is not shown)."""
+    matrix = runs["ring_sa"] / "xp" / "matrix.csv"
+    matrix.write_text(matrix.read_text().replace("198.0", "", 1))
+    out = tmp_path / "holed"
+    assert main(["report", str(runs["ring_sp"]), str(runs["ring_sa"]), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    (row,) = [r for r in read_csv(out / "report.csv") if r["method"] == "sa"]
+    assert row["delta_gap"] == "-47.0" and row["delta_gap_ci95_low"] == ""
+    note = f"no Δ gap interval against {runs['ring_sp']}: other: 1 cell(s) are not numbers"
+    assert note in (out / "report.md").read_text() and note in printed
+    matrix.unlink()
+    assert main(["report", str(runs["ring_sp"]), str(runs["ring_sa"]), "--out", str(out)]) == 0
+    assert f"no Δ gap interval: no xp/matrix.csv in {runs['ring_sa']}" in (out / "report.md").read_text()
+
+
 def test_report_on_a_non_run_directory_fails_naming_it(tmp_path, capsys):
     empty = tmp_path / "not_a_run"
     empty.mkdir()

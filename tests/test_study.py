@@ -184,6 +184,23 @@ def test_a_method_is_compared_with_the_self_play_run_of_its_environment(finished
     assert "## Against self-play" in (finished / "report.md").read_text()
 
 
+def test_a_comparison_with_self_play_that_cannot_be_made_says_why(finished, tmp_path):
+    out = _copy(finished, tmp_path / "study")
+    matrix = out / "runs" / "sa" / "xp" / "matrix.csv"
+    header, first, *rest = matrix.read_text().splitlines()
+    matrix.write_text("\n".join([header, first.rsplit(",", 1)[0] + ",", *rest]) + "\n")  # a cell left empty
+    assert main(["study", "report", str(out)]) == 0
+    (entry,) = json.loads((out / "summary.json").read_text())["against_sp"]
+    assert entry["problem"] == "no interval: sa's: 1 cell(s) are not numbers"
+    assert entry["delta_gap_ci95_interval"] == [None, None] and entry["delta_gap"] is not None
+    assert "(no interval: sa's: 1 cell(s) are not numbers)" in (out / "report.md").read_text()
+    (out / "runs" / "sp" / "xp" / "summary.json").write_text(json.dumps({"study": "tiny"}))  # SP's result foreign
+    assert main(["study", "report", str(out)]) == 0
+    (entry,) = json.loads((out / "summary.json").read_text())["against_sp"]
+    assert entry == {"run": "sa", "sp_run": "sp", "problem": "self-play run sp has no usable cross-play"}
+    assert "| sa | sp | n/a (self-play run sp has no usable cross-play) |" in (out / "report.md").read_text()
+
+
 def test_a_compact_copy_of_the_report(finished, tmp_path, capsys):
     dest = tmp_path / "results"
     assert main(["study", "report", str(finished), "--out", str(dest)]) == 0

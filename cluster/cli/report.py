@@ -186,6 +186,7 @@ def report_rows(runs: list[dict]) -> list[dict]:
                 "delta_gap": math.nan,
                 "delta_gap_ci95_low": math.nan,
                 "delta_gap_ci95_high": math.nan,
+                "delta_note": "",
                 "note": "",
             }
             for key in ("sp_mean", "sp_std", "xp_mean", "xp_std", "gap", "sp_ci95", "xp_ci95"):
@@ -200,11 +201,23 @@ def report_rows(runs: list[dict]) -> list[dict]:
                 row["delta_sp"] = row["sp_mean"] - float_or_nan(base.get("sp_mean"))
                 row["delta_xp"] = row["xp_mean"] - float_or_nan(base.get("xp_mean"))
                 row["delta_gap"] = row["gap"] - float_or_nan(base.get("gap"))
-                if baseline["matrix"] and run["matrix"]:
-                    low, high = bootstrap_difference(np.asarray(baseline["matrix"]), np.asarray(run["matrix"]))["gap"]
-                    row["delta_gap_ci95_low"], row["delta_gap_ci95_high"] = low, high
+                row["delta_note"] = delta_gap_interval(baseline, run, row)
             rows.append(row)
     return rows
+
+
+def delta_gap_interval(baseline: dict, run: dict, row: dict) -> str:
+    """Put Δ gap's 95 % interval (both populations' seeds resampled) into ``row``; returns why there is none
+    ("" when there is one), so that a Δ gap without its interval is never shown without a word."""
+    missing = [r["path"] for r in (baseline, run) if not r["matrix"]]
+    if missing:
+        return f"no Δ gap interval: no xp/matrix.csv in {', '.join(missing)}"
+    try:
+        low, high = bootstrap_difference(np.asarray(baseline["matrix"]), np.asarray(run["matrix"]))["gap"]
+    except ValueError as error:  # a cell that is not a number (load_run has checked the shape)
+        return f"no Δ gap interval against {baseline['path']}: {error}"
+    row["delta_gap_ci95_low"], row["delta_gap_ci95_high"] = low, high
+    return ""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -414,9 +427,10 @@ def run_report(args) -> int:
         markdown_table(header, cells),
         "",
     ]
-    notes = [r for r in rows if r["note"]]
+    notes = [(r["run_dir"], r["note"]) for r in rows if r["note"]]
+    notes += [(r["run_dir"], r["delta_note"]) for r in rows if r["delta_note"]]
     if notes:
-        md += ["## Notes", ""] + [f"- {r['run_dir']}: {r['note']}" for r in notes] + [""]
+        md += ["## Notes", ""] + [f"- {run}: {note}" for run, note in notes] + [""]
     if curves:
         md += ["## Training curves", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in curves] + [""]
     if heatmaps:
@@ -431,7 +445,7 @@ def run_report(args) -> int:
         table.add_row(*line)
     stream = sys.stdout
     Console(file=stream, width=None if stream.isatty() else 240, highlight=False, soft_wrap=False).print(table)
-    for row in notes:
-        print(f"{row['run_dir']}: {row['note']}")
+    for run, note in notes:
+        print(f"{run}: {note}")
     print(f"wrote {out / 'report.md'}, {out / 'report.csv'}, {len(curves)} curve plot(s), {len(heatmaps)} heatmap(s)")
     return EXIT_OK

@@ -167,16 +167,31 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
 
 
 def _against_sp(study: Study, out: Path, configs: dict, runs: list[dict]) -> list[dict]:
-    """Each evaluated run of another method minus the evaluated self-play run of the same environment
-    (identical env section): Δ SP, Δ XP, Δ gap with the gap's 95 % interval from both runs' matrices, and
-    the paper's Δ gap where both runs carry the paper's gap."""
+    """Each other evaluated run minus the first self-play run of the same environment (identical env
+    section): Δ SP, Δ XP, Δ gap with the gap's 95 % interval from both runs' matrices, and the paper's Δ gap
+    where both runs carry the paper's gap. A run whose self-play run has no usable cross-play yet gets an
+    entry that says so, rather than no entry."""
     entries = {entry["name"]: entry for entry in runs}
-    evaluated = [r for r in study.runs if entries[r.name]["xp"] is not None and not entries[r.name].get("problem")]
-    baselines = [r for r in evaluated if configs[r.name].population.method == "sp"]
+
+    def usable(spec) -> bool:
+        return entries[spec.name]["xp"] is not None and not entries[spec.name].get("problem")
+
     out_entries = []
-    for spec in evaluated:
-        base = next((b for b in baselines if configs[b.name].env == configs[spec.name].env), None)
+    for spec in filter(usable, study.runs):
+        env = configs[spec.name].env
+        base = next(
+            (r for r in study.runs if configs[r.name].population.method == "sp" and configs[r.name].env == env), None
+        )
         if base is None or base is spec:
+            continue
+        if not usable(base):
+            out_entries.append(
+                {
+                    "run": spec.name,
+                    "sp_run": base.name,
+                    "problem": f"self-play run {base.name} has no usable cross-play",
+                }
+            )
             continue
         ours, theirs = entries[spec.name]["xp"], entries[base.name]["xp"]
         delta = {
@@ -184,9 +199,9 @@ def _against_sp(study: Study, out: Path, configs: dict, runs: list[dict]) -> lis
         }
         try:
             matrices = [read_matrix_csv(run_dir(out, r.name) / "xp" / "matrix.csv").values for r in (base, spec)]
-            interval = list(bootstrap_difference(*matrices)["gap"])
+            interval = list(bootstrap_difference(*matrices, names=(f"{base.name}'s", f"{spec.name}'s"))["gap"])
             problem = None
-        except (OSError, ValueError) as error:  # a matrix gone or cut since its summary: the means stand, said so
+        except (OSError, ValueError) as error:  # a matrix gone, cut or holed since its summary: said so
             interval, problem = [math.nan, math.nan], f"no interval: {error}"
         paper = [(entries[r.name]["paper"] or {}).get("gap") for r in (base, spec)]
         out_entries.append(
@@ -557,10 +572,13 @@ def markdown(study: Study, summary: dict, state: StudyState) -> str:
             "|---|---|---|---|---|---|",
         ]
         for entry in summary["against_sp"]:
+            if "delta_gap" not in entry:
+                lines.append(f"| {entry['run']} | {entry['sp_run']} | n/a ({entry['problem']}) | | | |")
+                continue
             paper = entry["paper_delta_gap"]
             lines.append(
-                f"| {entry['run']} | {entry['sp_run']} | {float_or_nan(entry['delta_sp']):+.1f} | "
-                f"{float_or_nan(entry['delta_xp']):+.1f} | "
+                f"| {entry['run']} | {entry['sp_run']} | {_with_ci(entry['delta_sp'], None, signed=True)} | "
+                f"{_with_ci(entry['delta_xp'], None, signed=True)} | "
                 f"{_with_ci(entry['delta_gap'], entry['delta_gap_ci95_interval'], signed=True)}"
                 f"{' (' + entry['problem'] + ')' if entry.get('problem') else ''} | "
                 f"{'–' if paper is None else f'{paper:+g}'} |"
