@@ -25,7 +25,9 @@ without a tag (so a check cannot silently drop out of the page). tests/test_resu
 What it reads: the two studies' summary.json, the cross-play matrices (xp_*.csv), the GCS runs' metrics.csv and
 per-episode cross-play returns, the interim cross-plays (xp12_update61/, xp_sp_sa_update152/ and 244/), the
 tables of ring_direction.md and button_use.md (written by the scripts beside them from the lost run
-directories), and the Coordination Ring layout in ocv2/layouts.py (parsed as text, so no JAX is imported).
+directories), the Coordination Ring layout in ocv2/layouts.py (parsed as text), and the 10-seed SP and SA studies'
+folders (summary.json, xp_*.csv, roles.md, the policies' SHA256SUMS.json). JAX is imported for one check only:
+sa10_delta takes Δ gap's interval from population.xp.bootstrap_difference, the function the reports use.
 
 What it cannot check, and why (the page says so where they stand): the Coordination Ring training-return
 tables and every Coordination Ring speed (no metrics.csv of those runs was committed; their run directories
@@ -50,11 +52,13 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parents[1]))  # the repository, for population.xp (sa10_delta) outside an install
 DOC = HERE.parent / "RESULTS.md"
 LAYOUTS = HERE.parents[1] / "ocv2" / "layouts.py"
 CR = HERE / "table1_coord_ring"
 GCS = HERE / "reduced_gcs"
 SP10 = HERE / "table1_coord_ring_sp10"
+SA10 = HERE / "table1_coord_ring_sa10"
 
 # ------------------------------------------------------------------------------------------ reading the page
 
@@ -1601,18 +1605,18 @@ def compare(doc: str) -> tuple[list[tuple], list[str]]:
 # --- the 10-seed Coordination Ring SP population (table1_coord_ring_sp10/: interim snapshots)
 
 
-def sp10_env_steps(update: int) -> float:
+def snapshot_env_steps(update: int, study: Path = SP10) -> float:
     """Env steps per seed of snapshot ``update``, in millions, from the published policies' SHA256SUMS.json."""
-    sums = json.loads((SP10 / "policies" / "SHA256SUMS.json").read_text())
+    sums = json.loads((study / "policies" / "SHA256SUMS.json").read_text())
     return next(entry["env_steps"] for entry in sums if entry["update"] == update) / 1e6
 
 
 @functools.cache
-def sp10_roles() -> dict:
+def roles_tables(study: Path = SP10) -> dict:
     """roles.md: {update: [(cw seat 0, cw seat 1, [seat-0 share, count] per job, first-pot share per seat, return)
     per seed]}."""
-    tables = md_tables(SP10 / "roles.md")
-    updates = [int(m) for m in re.findall(r"^## update (\d+)$", (SP10 / "roles.md").read_text(), re.M)]
+    tables = md_tables(study / "roles.md")
+    updates = [int(m) for m in re.findall(r"^## update (\d+)$", (study / "roles.md").read_text(), re.M)]
     parsed = {}
     for update, table in zip(updates, tables, strict=True):
         rows = []
@@ -1631,13 +1635,13 @@ def sp10_xp(update: int) -> list:
     sp, xp, gap = sp_xp(m)
     p = both_seats(m)
     i, j = min(itertools.combinations(range(len(m)), 2), key=lambda ij: p[ij])
-    return [update, sp10_env_steps(update), sp, xp, gap, i, j, p[i, j]]
+    return [update, snapshot_env_steps(update), sp, xp, gap, i, j, p[i, j]]
 
 
 def sp10_direction_and_xp(update: int) -> list:
     """Clockwise shares (seat 0) from least to most clockwise seed, and Pearson's r over the 45 pairs between
     a pair's score (both seat orders) and the difference of its seeds' clockwise shares."""
-    cw = [row[0] for row in sp10_roles()[update]]
+    cw = [row[0] for row in roles_tables()[update]]
     p = both_seats(matrix(SP10 / f"xp_update{update}.csv"))
     ij = list(itertools.combinations(range(len(cw)), 2))
     r = np.corrcoef([abs(cw[i] - cw[j]) for i, j in ij], [p[i, j] for i, j in ij])[0, 1]
@@ -1647,7 +1651,7 @@ def sp10_direction_and_xp(update: int) -> list:
 
 def sp10_delivery_shares(update: int) -> list:
     """Seat 0's share of the deliveries per seed: the range over the seeds, then the seed furthest from 0.5."""
-    shares = [row[2][3][0] for row in sp10_roles()[update]]
+    shares = [row[2][3][0] for row in roles_tables()[update]]
     far = max(range(len(shares)), key=lambda k: abs(shares[k] - 0.5))
     rest = [x for k, x in enumerate(shares) if k != far]
     return [min(rest), max(rest), far, shares[far]]
@@ -1670,7 +1674,7 @@ def _():
 
 @check("sp10_clockwise_pair")
 def _():
-    cw = [row[0] for row in sp10_roles()[122]]
+    cw = [row[0] for row in roles_tables()[122]]
     p = both_seats(matrix(SP10 / "xp_update122.csv"))
     return [0, 3, cw[0], cw[3], p[0, 3], 122]
 
@@ -1683,28 +1687,28 @@ def _():
 # --- the 10-seed population finished: 3.0M env steps per seed, the study's 10 x 10 cross-play (500 episodes per pair)
 
 
-def sp10_final() -> np.ndarray:
-    return matrix(SP10 / "xp_sp.csv")
+def final_matrix(study: Path = SP10, method: str = "sp") -> np.ndarray:
+    return matrix(study / f"xp_{method}.csv")
 
 
-def sp10_low_pairs() -> list[tuple[int, int, float]]:
+def low_pairs(study: Path = SP10, method: str = "sp") -> list[tuple[int, int, float]]:
     """Pairs (both seat orders) scoring below half the mean of their two seeds' self-play, lowest first."""
-    m = sp10_final()
+    m = final_matrix(study, method)
     p = both_seats(m)
     low = [(i, j, p[i, j]) for i, j in itertools.combinations(range(len(m)), 2) if p[i, j] < (m[i, i] + m[j, j]) / 4]
     return sorted(low, key=lambda pair: pair[2])
 
 
-def sp10_pair_r(measure) -> float:
+def pair_r(measure, study: Path = SP10, method: str = "sp") -> float:
     """Pearson's r over the 45 pairs between a pair's final score and |difference| of ``measure`` (per seed)."""
-    p = both_seats(sp10_final())
+    p = both_seats(final_matrix(study, method))
     ij = list(itertools.combinations(range(len(p)), 2))
     return np.corrcoef([abs(measure[i] - measure[j]) for i, j in ij], [p[i, j] for i, j in ij])[0, 1]
 
 
-def sp10_measures(update: int = 183) -> dict:
+def seed_measures(update: int = 183, study: Path = SP10) -> dict:
     """Per seed at ``update`` (seat 0): clockwise share, delivery share, share of onions into the first pot."""
-    rows = sp10_roles()[update]
+    rows = roles_tables(study)[update]
     return {"cw": [r[0] for r in rows], "deliveries": [r[2][3][0] for r in rows], "pot": [r[3][0] for r in rows]}
 
 
@@ -1731,12 +1735,12 @@ def _():
 
 @check("sp10_claim")
 def _():
-    return [*claim_row(SP10, "sp"), len(sp10_low_pairs()), 45]
+    return [*claim_row(SP10, "sp"), len(low_pairs()), 45]
 
 
 @check("sp10_cw183")
 def _():
-    cw = sp10_measures()["cw"]
+    cw = seed_measures()["cw"]
     rest = [x for k, x in enumerate(cw) if k not in (1, 6)]
     return [1, 6, cw[1], cw[6], min(rest), max(rest)]
 
@@ -1754,53 +1758,226 @@ def _():
 @check("sp10_interval_vs_pairs")
 def _():
     xp = run(SP10, "sp")["xp"]
-    every = pairs(sp10_final())
+    every = pairs(final_matrix())
     return [10, *interval(xp, "xp"), min(every), max(every)]
 
 
 @check("sp10_low_pairs")
 def _():
-    low = sp10_low_pairs()
+    low = low_pairs()
     return [len(low), 45, *[x for pair in low for x in pair]]
 
 
 @check("sp10_pots")
 def _():
-    pot = sp10_measures()["pot"]
+    pot = seed_measures()["pot"]
     first = [k for k, x in enumerate(pot) if x >= 0.95]
     second = [k for k, x in enumerate(pot) if x <= 0.05]
-    p = both_seats(sp10_final())
+    p = both_seats(final_matrix())
     mixed = [x for x in pot if 0.05 < x < 0.95]
     return [*first, *second, min(mixed), max(mixed), 1, 6, p[1, 6], 0, 3, p[0, 3], 0, 6, p[0, 6]]
 
 
 @check("sp10_pots_early")
 def _():
-    pot = sp10_measures(92)["pot"]
+    pot = seed_measures(92)["pot"]
     single = [k for k, x in enumerate(pot) if x >= 0.95 or x <= 0.05]
-    return [*single, sp10_env_steps(92), 0, pot[0], 92]
+    return [*single, snapshot_env_steps(92), 0, pot[0], 92]
 
 
 @check("sp10_pair_r")
 def _():
-    m = sp10_measures()
-    return [sp10_pair_r(m["pot"]), sp10_pair_r(m["cw"]), sp10_pair_r(m["deliveries"])]
+    m = seed_measures()
+    return [pair_r(m["pot"]), pair_r(m["cw"]), pair_r(m["deliveries"])]
 
 
 @check("sp10_seed3")
 def _():
-    p = both_seats(sp10_final())
+    p = both_seats(final_matrix())
     others = [j for j in range(10) if j != 3]
     means = [np.mean([p[k, j] for j in range(10) if j != k]) for k in range(10)]
     nxt = sorted(range(10), key=lambda k: means[k])[1]
     return [
         3,
         means[3],
-        sp10_final()[3, 3],
+        final_matrix()[3, 3],
         min(p[3, j] for j in others),
         max(p[3, j] for j in others),
         nxt,
         means[nxt],
+    ]
+
+
+# --- the 10-seed SA population (table1_coord_ring_sa10/), beside the 10 SP seeds at the same budget
+
+
+def sa10_final() -> np.ndarray:
+    return final_matrix(SA10, "sa")
+
+
+@functools.cache
+def sa10_delta() -> dict:
+    """SA's SP, XP and gap minus SP's, with 95 % intervals, both populations' seeds resampled each on its own:
+    the function ``ocv2 report`` and the study report use (imported here, so JAX loads only for this check)."""
+    from population.xp import bootstrap_difference
+
+    return bootstrap_difference(final_matrix(), sa10_final())
+
+
+@check("sa10_final")
+def _():
+    xp = run(SA10, "sa")["xp"]
+    return [
+        xp["num_policies"],
+        run(SA10, "sa")["env_steps_per_seed"] / 1e6,
+        xp["episodes_per_pair"],
+        xp["sp_mean"],
+        xp["xp_mean"],
+        xp["gap"],
+        xp["num_policies"],
+        *interval(xp, "gap"),
+        *paper(SA10, "sa"),
+    ]
+
+
+def _sa10_delta_numbers() -> list:
+    sa, sp = run(SA10, "sa")["xp"]["gap"], run(SP10, "sp")["xp"]["gap"]
+    return [sa - sp, *sa10_delta()["gap"], paper(SA10, "sa")[2] - paper(SP10, "sp")[2]]
+
+
+@check("sa10_delta")
+def _():
+    return [run(SA10, "sa")["xp"]["gap"], run(SP10, "sp")["xp"]["gap"], *_sa10_delta_numbers()]
+
+
+@check("sa10_pairs")
+def _():
+    p = both_seats(sa10_final())
+    i, j = min(itertools.combinations(range(10), 2), key=lambda ij: p[ij])
+    return [
+        len(sa10_low_pairs()),
+        45,
+        min(pairs(sa10_final())),
+        max(pairs(sa10_final())),
+        i,
+        j,
+        min(pairs(final_matrix())),
+    ]
+
+
+def sa10_low_pairs() -> list[tuple[int, int, float]]:
+    return low_pairs(SA10, "sa")
+
+
+@check("sa10_claim")
+def _():
+    return [*claim_row(SA10, "sa"), *_sa10_delta_numbers()[:3], len(sa10_low_pairs()), 45]
+
+
+@check("run_sa10")
+def _():
+    return run_size(SA10, "sa")
+
+
+@check("run_sa10_wall")
+def _():
+    return hm(summary(SA10)["wall_s"])
+
+
+@check("sa10_table")
+def _():
+    sp, sa = run(SP10, "sp")["xp"], run(SA10, "sa")["xp"]
+    cw = [seed_measures(183, study)["cw"] for study in (SP10, SA10)]
+    return [
+        sp["sp_mean"],
+        *interval(sp, "sp"),
+        sa["sp_mean"],
+        *interval(sa, "sp"),
+        sp["xp_mean"],
+        *interval(sp, "xp"),
+        sa["xp_mean"],
+        *interval(sa, "xp"),
+        sp["gap"],
+        *interval(sp, "gap"),
+        sa["gap"],
+        *interval(sa, "gap"),
+        min(pairs(final_matrix())),
+        min(pairs(sa10_final())),
+        len(low_pairs()),
+        45,
+        len(sa10_low_pairs()),
+        45,
+        min(cw[0]),
+        max(cw[0]),
+        min(cw[1]),
+        max(cw[1]),
+    ]
+
+
+def _sa10_pot_groups() -> tuple[list[int], list[int]]:
+    """SA seeds (seat 0, update 183) with at most 0.1 of their onions into the first pot, and the rest."""
+    pot = seed_measures(183, SA10)["pot"]
+    return [k for k, x in enumerate(pot) if x <= 0.1], [k for k, x in enumerate(pot) if x > 0.1]
+
+
+@check("sa10_pots")
+def _():
+    pot = seed_measures(183, SA10)["pot"]
+    second, mixed = _sa10_pot_groups()
+    one_pot_sp = [k for k, x in enumerate(seed_measures()["pot"]) if x >= 0.95]
+    return [
+        *second,
+        min(pot[k] for k in second),
+        max(pot[k] for k in second),
+        min(pot[k] for k in mixed),
+        max(pot[k] for k in mixed),
+        len(one_pot_sp),
+    ]
+
+
+@check("sa10_pot_pairs")
+def _():
+    m = seed_measures(183, SA10)
+    p = both_seats(sa10_final())
+    second, mixed = _sa10_pot_groups()
+    same = np.mean([p[i, j] for i, j in itertools.combinations(second, 2)])
+    across = np.mean([p[i, j] for i in second for j in mixed])
+    return [pair_r(m["pot"], SA10, "sa"), pair_r(m["cw"], SA10, "sa"), same, across]
+
+
+def sp_sa_mean() -> np.ndarray:
+    """SP x SA (xp_sp_sa/matrix_mean.csv): row = SP seed, column = SA seed, mean of both seat orders."""
+    return matrix(SA10 / "xp_sp_sa" / "matrix_mean.csv")
+
+
+@check("sa10_sp_sa")
+def _():
+    m = sp_sa_mean()
+    with_sa = m.mean(axis=1)
+    p = both_seats(final_matrix())
+    with_sp = [np.mean([p[k, j] for j in range(10) if j != k]) for k in range(10)]
+    odd = [1, 3, 6]
+    rest = [k for k in range(10) if k not in odd]
+    half = (np.diag(final_matrix())[:, None] + np.diag(sa10_final())[None, :]) / 4
+    low = m < half
+    return [
+        m.size,
+        m.mean(),
+        len(rest),
+        min(with_sa[k] for k in rest),
+        max(with_sa[k] for k in rest),
+        min(with_sp[k] for k in rest),
+        max(with_sp[k] for k in rest),
+        *odd,
+        *[with_sa[k] for k in odd],
+        *[with_sp[k] for k in odd],
+        int(low.sum()),
+        m.size,
+        int(low[1].sum()),
+        1,
+        int(low[6].sum()),
+        6,
+        m.min(),
     ]
 
 
