@@ -1695,7 +1695,9 @@ def low_pairs(study: Path = SP10, method: str = "sp") -> list[tuple[int, int, fl
     """Pairs (both seat orders) scoring below half the mean of their two seeds' self-play, lowest first."""
     m = final_matrix(study, method)
     p = both_seats(m)
-    low = [(i, j, p[i, j]) for i, j in itertools.combinations(range(len(m)), 2) if p[i, j] < (m[i, i] + m[j, j]) / 4]
+    low = [
+        (i, j, p[i, j]) for i, j in itertools.combinations(range(len(m)), 2) if below_half(p[i, j], m[i, i], m[j, j])
+    ]
     return sorted(low, key=lambda pair: pair[2])
 
 
@@ -1712,20 +1714,37 @@ def seed_measures(update: int = 183, study: Path = SP10) -> dict:
     return {"cw": [r[0] for r in rows], "deliveries": [r[2][3][0] for r in rows], "pot": [r[3][0] for r in rows]}
 
 
-@check("sp10_final")
-def _():
-    xp = run(SP10, "sp")["xp"]
+def final_numbers(study: Path, method: str) -> list:
+    """A 10-seed study's headline: seeds x env steps, episodes per pair, SP, XP, gap with its interval over the
+    seeds, and the paper's SP / XP / gap."""
+    xp = run(study, method)["xp"]
     return [
         xp["num_policies"],
-        run(SP10, "sp")["env_steps_per_seed"] / 1e6,
+        millions(study, method),
         xp["episodes_per_pair"],
         xp["sp_mean"],
         xp["xp_mean"],
         xp["gap"],
         xp["num_policies"],
         *interval(xp, "gap"),
-        *paper(SP10, "sp"),
+        *paper(study, method),
     ]
+
+
+def below_half(score, self_play_a, self_play_b):
+    """A pair "fails": it scores under half the mean of its two seeds' self-play (numbers, or arrays that
+    broadcast: a whole matrix of pairs at once)."""
+    return score < (self_play_a + self_play_b) / 4
+
+
+def partner_means(p: np.ndarray) -> list[float]:
+    """Per seed, its mean over every other seed of a both-seat-orders matrix ``p``."""
+    return [np.mean([p[k, j] for j in range(len(p)) if j != k]) for k in range(len(p))]
+
+
+@check("sp10_final")
+def _():
+    return final_numbers(SP10, "sp")
 
 
 @check("sp10_growth")
@@ -1795,7 +1814,7 @@ def _():
 def _():
     p = both_seats(final_matrix())
     others = [j for j in range(10) if j != 3]
-    means = [np.mean([p[k, j] for j in range(10) if j != k]) for k in range(10)]
+    means = partner_means(p)
     nxt = sorted(range(10), key=lambda k: means[k])[1]
     return [
         3,
@@ -1826,18 +1845,7 @@ def sa10_delta() -> dict:
 
 @check("sa10_final")
 def _():
-    xp = run(SA10, "sa")["xp"]
-    return [
-        xp["num_policies"],
-        run(SA10, "sa")["env_steps_per_seed"] / 1e6,
-        xp["episodes_per_pair"],
-        xp["sp_mean"],
-        xp["xp_mean"],
-        xp["gap"],
-        xp["num_policies"],
-        *interval(xp, "gap"),
-        *paper(SA10, "sa"),
-    ]
+    return final_numbers(SA10, "sa")
 
 
 def _sa10_delta_numbers() -> list:
@@ -1954,12 +1962,10 @@ def sp_sa_mean() -> np.ndarray:
 def _():
     m = sp_sa_mean()
     with_sa = m.mean(axis=1)
-    p = both_seats(final_matrix())
-    with_sp = [np.mean([p[k, j] for j in range(10) if j != k]) for k in range(10)]
+    with_sp = partner_means(both_seats(final_matrix()))
     odd = [1, 3, 6]
     rest = [k for k in range(10) if k not in odd]
-    half = (np.diag(final_matrix())[:, None] + np.diag(sa10_final())[None, :]) / 4
-    low = m < half
+    low = below_half(m, np.diag(final_matrix())[:, None], np.diag(sa10_final())[None, :])
     return [
         m.size,
         m.mean(),
