@@ -6,7 +6,7 @@
 Reads the published policies (``<policies>/<method>_seed<i>_update<U>.ocv2policy``, by default this folder's
 ``policies/sp_seed...``, checked against the folder's SHA256SUMS.json) and
 plays each seed with itself for N episodes (sampled actions, a fixed key), keeping every state. Per seat, from the
-held item before and after each transition and the cell the cook faces:
+held item before and after each transition and the cell the cook faces (read by ``population.behaviour``):
 
 - onions put into a pot (a raw ingredient leaves the hand while facing a pot),
 - dishes picked up (an empty hand takes a plate, from the pile or a counter),
@@ -24,13 +24,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import NamedTuple
 
 import jax
 import numpy as np
 
 from cluster.cli.args import positive_int
-from ocv2.items import COOKED, DIRECTION_VECTORS, EMPTY, PLATE, Static, is_raw_ingredient
+from population.behaviour import ROLES, pot_use, role_counts
 from population.policy import PolicyError, load, policy_env
 from population.published import verify
 from population.record import play_recorded
@@ -39,57 +38,11 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "table1_coord_ring"))
 from ring_direction import clockwise_moves  # noqa: E402
 
-ROLES = ("onions to pot", "dishes taken", "soups plated", "deliveries")
-
-
-class Transitions(NamedTuple):
-    """Per transition of a recorded play ([E, T, seat]): the item held before and after, the cell faced."""
-
-    held: np.ndarray
-    later: np.ndarray
-    faced_x: np.ndarray
-    faced_y: np.ndarray
-    faced: np.ndarray  # the static tile there (Static.*)
-
-    @property
-    def onion_into_pot(self) -> np.ndarray:
-        """A raw ingredient leaves the hand while facing a pot (not onto a counter)."""
-        return np.asarray(is_raw_ingredient(self.held)) & (self.later == EMPTY) & (self.faced == Static.POT)
-
-
-def transitions(states) -> Transitions:
-    """Read a recorded play (states [E, T+1, ...]) transition by transition."""
-    agents = states.agents
-    held, later = np.asarray(agents.inventory[:, :-1]), np.asarray(agents.inventory[:, 1:])
-    x, y, facing = (np.asarray(a[:, :-1]) for a in (agents.x, agents.y, agents.dir))
-    static = np.asarray(states.grid[:, 0, :, :, 0])  # the static layer never changes in an episode: [E, H, W]
-    fx, fy = x + DIRECTION_VECTORS[facing, 0], y + DIRECTION_VECTORS[facing, 1]
-    episode = np.arange(static.shape[0])[:, None, None]
-    faced = static[episode, np.clip(fy, 0, static.shape[1] - 1), np.clip(fx, 0, static.shape[2] - 1)]
-    return Transitions(held, later, fx, fy, faced)
-
-
-def role_counts(states) -> np.ndarray:
-    """[len(ROLES), seat] counts over every episode and step of a recorded play (states [E, T+1, ...])."""
-    t = transitions(states)
-    counts = [
-        t.onion_into_pot,
-        (t.held == EMPTY) & (t.later == PLATE),
-        (t.held == PLATE) & ((t.later & COOKED) != 0) & (t.faced == Static.POT),
-        ((t.held & COOKED) != 0) & (t.later == EMPTY) & (t.faced == Static.GOAL),
-    ]
-    return np.stack([c.sum(axis=(0, 1)) for c in counts])
-
 
 def first_pot_share(states) -> np.ndarray:
     """Per seat, the share of the onions it puts into a pot that go into the layout's first pot in reading order
-    (NaN: none). The layout is the same in every episode (states.grid [E, T+1, H, W, C])."""
-    t = transitions(states)
-    static = np.asarray(states.grid[0, 0, :, :, 0])
-    pot_y, pot_x = np.argwhere(static == Static.POT)[0]  # argwhere is row-major: the first pot in reading order
-    at_first = t.onion_into_pot & (t.faced_x == pot_x) & (t.faced_y == pot_y)
-    with np.errstate(invalid="ignore"):
-        return at_first.sum(axis=(0, 1)) / t.onion_into_pot.sum(axis=(0, 1))
+    (NaN: none)."""
+    return pot_use(states).shares()[0]
 
 
 def main() -> None:

@@ -1,0 +1,64 @@
+"""population.behaviour reads who did what off recorded states: checked against a scripted Forced Coord. play."""
+
+import jax
+import numpy as np
+import pytest
+
+import ocv2
+from ocv2.items import COOKED, PLATE, Action, ingredient_unit
+from population import behaviour
+
+S, I, L, R, U, D = Action.STAY, Action.INTERACT, Action.LEFT, Action.RIGHT, Action.UP, Action.DOWN
+# Forced Coord.: seat 0 starts at (3, 1) beside the pots and the window, seat 1 at (1, 2) beside the onions and
+# plates; the wall between them (x = 2) is where they hand things over. Seat 1 puts an onion on (2, 2), seat 0
+# takes it and fills the first pot (3, 0); seat 1 puts a plate on (2, 3), seat 0 takes it.
+HANDOVER = [
+    (S, L), (S, I), (S, R), (S, I),  # seat 1: face the onions, take one, face the wall, put it down
+    (D, S), (L, S), (I, S), (U, S), (U, S), (I, S),  # seat 0: to (3, 2), take it, back up, into the top pot
+    (S, D), (S, L), (S, I), (S, R), (S, I),  # seat 1: to (1, 3), take a plate, put it on (2, 3)
+    (D, S), (D, S), (L, S), (I, S),  # seat 0: to (3, 3), take the plate
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def handover_states():
+    env = ocv2.make("forced_coord")
+    _, state = env.reset(jax.random.PRNGKey(0))
+    step = jax.jit(lambda key, s, a: env.step_env(key, s, {"agent_0": a[0], "agent_1": a[1]})[1])
+    states = [state]
+    for t, joint in enumerate(HANDOVER):
+        states.append(step(jax.random.PRNGKey(t), states[-1], np.array(joint, np.int32)))
+    both = jax.tree.map(lambda *x: np.stack(x)[None], *states)  # [E=1, T+1, ...], as play_recorded returns
+    assert np.asarray(both.agents.inventory[0, -1]).tolist() == [PLATE, 0]  # the script did what it says
+    return jax.tree.map(lambda x: np.concatenate([x, x]), both)  # two identical episodes: counts double
+
+
+def test_role_counts_per_seat(handover_states):
+    counts = behaviour.role_counts(handover_states)
+    assert counts.shape == (len(behaviour.ROLES), 2)
+    assert counts.tolist() == [[2, 0], [2, 2], [0, 0], [0, 0]]  # onions in: seat 0; plates taken: both
+
+
+def test_pot_use_names_each_pot_in_reading_order(handover_states):
+    use = behaviour.pot_use(handover_states)
+    assert use.cells.tolist() == [[3, 0], [4, 1]]
+    assert use.counts.tolist() == [[2, 0], [0, 0]]
+    shares = use.shares()
+    assert shares[:, 0].tolist() == [1.0, 0.0] and np.isnan(shares[:, 1]).all()  # seat 1 filled no pot
+
+
+def test_counter_use_finds_the_handover_cells_items_and_seats(handover_states):
+    use = behaviour.counter_use(handover_states)
+    assert use.cells.tolist() == [[2, 2], [2, 3]]  # only the counters used, in reading order
+    ingredient, plate, dish = range(len(behaviour.ITEM_KINDS))
+    put, taken = np.zeros((2, 3, 2), int), np.zeros((2, 3, 2), int)
+    put[0, ingredient, 1] = taken[0, ingredient, 0] = 2
+    put[1, plate, 1] = taken[1, plate, 0] = 2
+    assert use.put.tolist() == put.tolist() and use.taken.tolist() == taken.tolist()
+
+
+def test_item_kind_tells_ingredients_plates_and_dishes_apart():
+    onion = int(ingredient_unit(0))
+    soup = PLATE | COOKED | 3 * onion
+    kinds = behaviour.item_kind(np.array([0, onion, 2 * onion, PLATE, soup, PLATE | onion]))
+    assert kinds.tolist() == [-1, 0, 0, 1, 2, 2]
