@@ -62,3 +62,37 @@ def test_item_kind_tells_ingredients_plates_and_dishes_apart():
     soup = PLATE | COOKED | 3 * onion
     kinds = behaviour.item_kind(np.array([0, onion, 2 * onion, PLATE, soup, PLATE | onion]))
     assert kinds.tolist() == [-1, 0, 0, 1, 2, 2]
+
+
+def _forced_coord_roles():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "docs/results/table1_forced_coord_sp10/roles.py"
+    spec = importlib.util.spec_from_file_location("fc_roles", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module, path
+
+
+def test_forced_coord_roles_row_reads_the_handover(handover_states):
+    """The Forced Coord. study's roles.py: onions crossed on (2, 2), plates on (2, 3), no soup yet, top pot only."""
+    roles, _ = _forced_coord_roles()
+    row = roles.seed_row(4, handover_states, np.array([0.0, 0.0]))
+    assert row == "| 4 | 0.00/1.00/0.00 (of 2; 0) | 0.00/0.00/1.00 (of 2; 0) | no soup | 1.00 | 0.0 |"
+    assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2  # its columns
+
+
+def test_forced_coord_roles_refuses_another_layouts_policies():
+    import subprocess
+    import sys
+
+    _, script = _forced_coord_roles()
+    coord_ring = script.parents[1] / "table1_coord_ring_sp10" / "policies"
+    run = subprocess.run(
+        [sys.executable, str(script), "--update", "183", "--seeds", "1", "--policies", str(coord_ring)],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode != 0 and "Traceback" not in run.stderr
+    assert "plays layout 'coord_ring'; this script reads forced_coord only" in run.stderr
