@@ -9,9 +9,9 @@ intervals and a per-recipe breakdown. Every pair uses the same episode keys (com
 so differences between cells come from the policies, not from luck of the draw.
 
 Confidence intervals come from a bootstrap over seeds (``bootstrap_block``; ``bootstrap_difference`` for
-one population's numbers minus another's): the training seeds are the independent samples, while the
-cells of one matrix share policies and are not independent, so resampling cells (or a normal interval
-over cells) claims too much certainty.
+one population's numbers minus another's, and ``summary_difference`` for the reports' Δ rows built on it):
+the training seeds are the independent samples, while the cells of one matrix share policies and are not
+independent, so resampling cells (or a normal interval over cells) claims too much certainty.
 """
 
 from __future__ import annotations
@@ -223,6 +223,41 @@ def bootstrap_difference(
         "xp": _interval(other_xp - base_xp),
         "gap": _interval((other_sp - other_xp) - (base_sp - base_xp)),
     }
+
+
+class Difference(NamedTuple):
+    """One population's summary numbers minus a baseline population's (say SA's minus SP's)."""
+
+    sp: float
+    xp: float
+    gap: float
+    gap_interval: tuple[float, float]  # 95 %, both populations' seeds resampled; NaNs where there is none
+    problem: str  # why there is no interval; "" when there is one
+
+
+def _number(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):  # None or "" (nothing measured): no number
+        return math.nan
+
+
+def summary_difference(
+    base: dict, other: dict, base_matrix, other_matrix, names: tuple[str, str] = ("base", "other")
+) -> Difference:
+    """``other``'s SP, XP and gap minus ``base``'s, from two ``summarize`` results (``sp_mean``, ``xp_mean``,
+    ``gap``), and the gap's interval from the two matrices by ``bootstrap_difference``. A matrix that is
+    None, not square or not all numbers gives NaNs and the reason in ``problem`` (``names`` name the two in
+    it), never an interval over other resamples than it says."""
+    sp, xp, gap = (_number(other.get(key)) - _number(base.get(key)) for key in ("sp_mean", "xp_mean", "gap"))
+    missing = [name for name, matrix in zip(names, (base_matrix, other_matrix), strict=True) if matrix is None]
+    if missing:
+        return Difference(sp, xp, gap, (math.nan, math.nan), "no " + " and no ".join(missing))
+    try:
+        interval = bootstrap_difference(np.asarray(base_matrix), np.asarray(other_matrix), names=names)["gap"]
+    except ValueError as error:
+        return Difference(sp, xp, gap, (math.nan, math.nan), str(error))
+    return Difference(sp, xp, gap, interval, "")
 
 
 def block_summary(matrix: np.ndarray, row_ids, col_ids) -> dict:

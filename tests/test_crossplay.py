@@ -26,7 +26,7 @@ from population.config import ClusterConfig, load_config
 from population.evaluation import gather_params, play_row, stack_params
 from population.networks import init_params
 from population.record import play_recorded_pairs, play_recorded_row
-from population.xp import Side, bootstrap_block, bootstrap_difference, cross_play
+from population.xp import Side, bootstrap_block, bootstrap_difference, cross_play, summary_difference
 
 
 @pytest.fixture(scope="module")
@@ -354,6 +354,23 @@ def test_bootstrap_difference_refuses_a_cut_or_holed_matrix():
     holed[1, 2] = np.nan
     with pytest.raises(ValueError, match="base: 1 cell"):
         bootstrap_difference(holed, square)
+
+
+def test_summary_difference_subtracts_the_summaries_and_says_why_an_interval_is_missing():
+    base = np.array([[10.0, 4.0], [2.0, 12.0]])
+    other = np.array([[20.0, 15.0], [13.0, 20.0]])
+    sums = [{"sp_mean": 11.0, "xp_mean": 3.0, "gap": 8.0}, {"sp_mean": 20.0, "xp_mean": 14.0, "gap": 6.0}]
+    delta = summary_difference(*sums, base, other, names=("sp", "sa"))
+    assert (delta.sp, delta.xp, delta.gap, delta.problem) == (9.0, 11.0, -2.0, "")
+    assert delta.gap_interval == pytest.approx((-2.0, -2.0))  # bootstrap_difference's interval
+    gone = summary_difference(*sums, base, None, names=("sp", "sa"))
+    assert gone.gap == -2.0 and np.isnan(gone.gap_interval).all() and gone.problem == "no sa"
+    holed = other.copy()
+    holed[0, 1] = np.nan
+    cut = summary_difference(*sums, base, holed, names=("sp", "sa"))
+    assert np.isnan(cut.gap_interval).all() and cut.problem == "sa: 1 cell(s) are not numbers"
+    unmeasured = summary_difference({"sp_mean": "", "xp_mean": None}, sums[1], base, other)
+    assert np.isnan([unmeasured.sp, unmeasured.xp, unmeasured.gap]).all()
 
 
 def _random_leaf(rng, path, leaf, num: int):

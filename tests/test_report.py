@@ -231,11 +231,11 @@ def test_a_delta_gap_without_its_interval_says_why(runs, tmp_path, capsys):
     printed = capsys.readouterr().out
     (row,) = [r for r in read_csv(out / "report.csv") if r["method"] == "sa"]
     assert row["delta_gap"] == "-47.0" and row["delta_gap_ci95_low"] == ""
-    note = f"no Δ gap interval against {runs['ring_sp']}: other: 1 cell(s) are not numbers"
+    note = f"no Δ gap interval: {runs['ring_sa']}/xp/matrix.csv: 1 cell(s) are not numbers"
     assert note in (out / "report.md").read_text() and note in printed
     matrix.unlink()
     assert main(["report", str(runs["ring_sp"]), str(runs["ring_sa"]), "--out", str(out)]) == 0
-    assert f"no Δ gap interval: no xp/matrix.csv in {runs['ring_sa']}" in (out / "report.md").read_text()
+    assert f"no Δ gap interval: no {runs['ring_sa']}/xp/matrix.csv" in (out / "report.md").read_text()
 
 
 def test_report_on_a_non_run_directory_fails_naming_it(tmp_path, capsys):

@@ -36,7 +36,7 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.config import METHOD_TABLE, METHODS
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
-from population.xp import bootstrap_difference
+from population.xp import summary_difference
 
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
 NO_XP_NOTE = "no cross-play yet: run ocv2 xp {run}"
@@ -196,28 +196,19 @@ def report_rows(runs: list[dict]) -> list[dict]:
             if not summary:
                 row["note"] = NO_XP_NOTE.format(run=run["path"])
             elif baseline is not None and run is not baseline:
-                base = baseline["summary"]
                 row["baseline_run"] = baseline["path"]
-                row["delta_sp"] = row["sp_mean"] - float_or_nan(base.get("sp_mean"))
-                row["delta_xp"] = row["xp_mean"] - float_or_nan(base.get("xp_mean"))
-                row["delta_gap"] = row["gap"] - float_or_nan(base.get("gap"))
-                row["delta_note"] = delta_gap_interval(baseline, run, row)
+                delta = summary_difference(
+                    baseline["summary"],
+                    summary,
+                    baseline["matrix"] or None,
+                    run["matrix"] or None,
+                    names=(f"{baseline['path']}/xp/matrix.csv", f"{run['path']}/xp/matrix.csv"),
+                )
+                row["delta_sp"], row["delta_xp"], row["delta_gap"] = delta.sp, delta.xp, delta.gap
+                row["delta_gap_ci95_low"], row["delta_gap_ci95_high"] = delta.gap_interval
+                row["delta_note"] = f"no Δ gap interval: {delta.problem}" if delta.problem else ""
             rows.append(row)
     return rows
-
-
-def delta_gap_interval(baseline: dict, run: dict, row: dict) -> str:
-    """Put Δ gap's 95 % interval (both populations' seeds resampled) into ``row``; returns why there is none
-    ("" when there is one), so that a Δ gap without its interval is never shown without a word."""
-    missing = [r["path"] for r in (baseline, run) if not r["matrix"]]
-    if missing:
-        return f"no Δ gap interval: no xp/matrix.csv in {', '.join(missing)}"
-    try:
-        low, high = bootstrap_difference(np.asarray(baseline["matrix"]), np.asarray(run["matrix"]))["gap"]
-    except ValueError as error:  # a cell that is not a number (load_run has checked the shape)
-        return f"no Δ gap interval against {baseline['path']}: {error}"
-    row["delta_gap_ci95_low"], row["delta_gap_ci95_high"] = low, high
-    return ""
 
 
 # ---------------------------------------------------------------------------------------------------

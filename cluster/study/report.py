@@ -29,7 +29,7 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.config import METHOD_TABLE
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
-from population.xp import bootstrap_difference
+from population.xp import summary_difference
 
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
 
@@ -193,27 +193,26 @@ def _against_sp(study: Study, out: Path, configs: dict, runs: list[dict]) -> lis
                 }
             )
             continue
-        ours, theirs = entries[spec.name]["xp"], entries[base.name]["xp"]
-        delta = {
-            key: float_or_nan(ours.get(key)) - float_or_nan(theirs.get(key)) for key in ("sp_mean", "xp_mean", "gap")
-        }
+        names = (f"{base.name}'s", f"{spec.name}'s")
         try:
             matrices = [read_matrix_csv(run_dir(out, r.name) / "xp" / "matrix.csv").values for r in (base, spec)]
-            interval = list(bootstrap_difference(*matrices, names=(f"{base.name}'s", f"{spec.name}'s"))["gap"])
-            problem = None
-        except (OSError, ValueError) as error:  # a matrix gone, cut or holed since its summary: said so
-            interval, problem = [math.nan, math.nan], f"no interval: {error}"
+        except (OSError, ValueError) as error:  # a matrix gone or cut since its summary: said so
+            matrices, read_problem = [None, None], str(error)
+        else:
+            read_problem = ""
+        delta = summary_difference(entries[base.name]["xp"], entries[spec.name]["xp"], *matrices, names=names)
+        problem = read_problem or delta.problem
         paper = [(entries[r.name]["paper"] or {}).get("gap") for r in (base, spec)]
         out_entries.append(
             {
                 "run": spec.name,
                 "sp_run": base.name,
-                "delta_sp": delta["sp_mean"],
-                "delta_xp": delta["xp_mean"],
-                "delta_gap": delta["gap"],
-                "delta_gap_ci95_interval": interval,
+                "delta_sp": delta.sp,
+                "delta_xp": delta.xp,
+                "delta_gap": delta.gap,
+                "delta_gap_ci95_interval": list(delta.gap_interval),
                 "paper_delta_gap": None if None in paper else paper[1]["mean"] - paper[0]["mean"],
-                **({"problem": problem} if problem else {}),
+                **({"problem": f"no interval: {problem}"} if problem else {}),
             }
         )
     return out_entries
