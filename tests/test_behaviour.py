@@ -76,10 +76,11 @@ def _forced_coord_roles():
 
 
 def test_forced_coord_roles_row_reads_the_handover(handover_states):
-    """The Forced Coord. study's roles.py: onions crossed on (2, 2), plates on (2, 3), no soup yet, top pot only."""
+    """The Forced Coord. study's roles.py: onions crossed on (2, 2), plates on (2, 3), each taken up again, no soup
+    yet, the top pot only."""
     roles, _ = _forced_coord_roles()
     row = roles.seed_row(4, handover_states, np.array([0.0, 0.0]))
-    assert row == "| 4 | 0.00/1.00/0.00 (of 2; 0) | 0.00/0.00/1.00 (of 2; 0) | no soup | 1.00 | 0.0 |"
+    assert row == "| 4 | 0.00/1.00/0.00 (of 2; 0) | 1.00 | 0.00/0.00/1.00 (of 2; 0) | 1.00 | no soup | 1.00 | 0.0 |"
     assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2  # its columns
 
 
@@ -96,3 +97,15 @@ def test_forced_coord_roles_refuses_another_layouts_policies():
     )
     assert run.returncode != 0 and "Traceback" not in run.stderr
     assert "plays layout 'coord_ring'; this script reads forced_coord only" in run.stderr
+
+
+def test_forced_coord_roles_names_a_bad_pair_before_playing():
+    import subprocess
+    import sys
+
+    _, script = _forced_coord_roles()
+    for pairs, said in ((["3"], "'3': expected two seeds as i,j"), (["3,10"], "--pairs 3,10: seeds are 0 to 9")):
+        run = subprocess.run(
+            [sys.executable, str(script), "--update", "183", "--pairs", *pairs], capture_output=True, text=True
+        )
+        assert run.returncode == 2 and said in run.stderr and "Traceback" not in run.stderr, run.stderr

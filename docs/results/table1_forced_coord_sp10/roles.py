@@ -2,6 +2,7 @@
 
     python docs/results/table1_forced_coord_sp10/roles.py --update 183 [--episodes 32]
     python docs/results/table1_forced_coord_sp10/roles.py --update 183 --method sa --policies DIR   # another population
+    python docs/results/table1_forced_coord_sp10/roles.py --update 183 --pairs 3,7 7,3   # cross-play pairs too
 
 Forced Coord. splits the kitchen with a wall: seat 1 starts on the left, beside the onions and the plates, and seat 0
 on the right, beside both pots and the serving window. Neither can cook alone, so every onion and every plate crosses
@@ -11,10 +12,13 @@ is where cross-play fails.
 
 Reads the published policies (``<policies>/<method>_seed<i>_update<U>.ocv2policy``, by default this folder's
 ``policies/``, checked against the folder's SHA256SUMS.json) and plays each seed with itself for N episodes (sampled
-actions, a fixed key), keeping every state; ``population.behaviour`` reads the events. Per seed, one table row:
+actions, a fixed key), keeping every state; ``population.behaviour`` reads the events. Per seed, one table row;
+with ``--pairs``, one more per ordered pair ``i,j`` (seat 0, the right cook, from seed i; seat 1 from seed j):
 
 - onions and plates put down on each middle counter (by either seat, as a share of that item's put-downs; the
   count beside it), and how many were put down anywhere else;
+- the share of those put down on the middle counters that were taken up again (a pair whose right cook does not
+  collect what the left one hands over leaves it lying there);
 - plates handed over per soup delivered (1.0: one plate crosses for each soup; more: plates wait on the counter);
 - the share of the right seat's onions that go into the top pot (3, 0) rather than the right one (4, 1);
 - the mean return.
@@ -25,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -41,39 +46,66 @@ HANDED = ("ingredient", "plate")
 RIGHT_SEAT = 0  # starts beside the pots: seat order is the layout's reading order
 
 
-def handover_shares(states) -> dict[str, tuple[np.ndarray, int, int]]:
-    """Per handed item kind: (share put down on each MIDDLE counter [3], total put down there, put down elsewhere)."""
+class Handover(NamedTuple):
+    """One item kind's trips across the middle counters (both seats together)."""
+
+    shares: np.ndarray  # float[3]: each MIDDLE counter's share of the put-downs there
+    put: int  # put down on the middle counters
+    taken: int  # taken up from them
+    elsewhere: int  # put down on any other counter
+
+
+def handovers(states) -> dict[str, Handover]:
+    """Per handed item kind (HANDED), its trips across the middle counters in a recorded play."""
     use = counter_use(states)
     cells = [tuple(c) for c in use.cells.tolist()]
+
+    def middle(counts: np.ndarray) -> np.ndarray:
+        return np.array([counts[cells.index(c)] if c in cells else 0 for c in MIDDLE])
+
     out = {}
     for kind in HANDED:
-        put = use.put[:, ITEM_KINDS.index(kind), :].sum(axis=1)  # both seats
-        middle = np.array([put[cells.index(c)] if c in cells else 0 for c in MIDDLE])
-        elsewhere = int(put.sum() - middle.sum())
-        out[kind] = (middle / max(int(middle.sum()), 1), int(middle.sum()), elsewhere)
+        put = use.put[:, ITEM_KINDS.index(kind), :].sum(axis=1)
+        taken = use.taken[:, ITEM_KINDS.index(kind), :].sum(axis=1)
+        on_middle = middle(put)
+        total = int(on_middle.sum())
+        out[kind] = Handover(on_middle / max(total, 1), total, int(middle(taken).sum()), int(put.sum()) - total)
     return out
 
 
 def table_header() -> str:
     counters = "/".join(f"({x},{y})" for x, y in MIDDLE)
     return (
-        f"| seed | onions on {counters} (of n; elsewhere) | plates on {counters} (of n; elsewhere) "
-        "| plates handed per soup | right seat's onions into the top pot | return |\n|---:|---|---|---:|---:|---:|"
+        f"| seed | onions on {counters} (of n; elsewhere) | onions taken up | plates on {counters} (of n; elsewhere) "
+        "| plates taken up | plates handed per soup | right seat's onions into the top pot | return |\n"
+        "|---:|---|---:|---|---:|---:|---:|---:|"
     )
 
 
-def seed_row(seed: int, states, returns) -> str:
-    """One table row for a seed's recorded self-play (states [E, T+1, ...], returns [E])."""
-    shares = handover_shares(states)
+def seed_row(label, states, returns) -> str:
+    """One table row for a recorded play (states [E, T+1, ...], returns [E]) of a seed or a pair (``label``)."""
+    trips = handovers(states)
     cells = []
     for kind in HANDED:
-        share, total, elsewhere = shares[kind]
-        cells.append("/".join(f"{s:.2f}" for s in share) + f" (of {total}; {elsewhere})")
+        trip = trips[kind]
+        cells.append("/".join(f"{s:.2f}" for s in trip.shares) + f" (of {trip.put}; {trip.elsewhere})")
+        cells.append(f"{trip.taken / trip.put:.2f}" if trip.put else "none put")
     delivered = int(role_counts(states)[3].sum())
-    per_soup = f"{shares['plate'][1] / delivered:.2f}" if delivered else "no soup"
+    per_soup = f"{trips['plate'].put / delivered:.2f}" if delivered else "no soup"
     top = pot_use(states).shares()[0, RIGHT_SEAT]
     top_cell = "none in" if np.isnan(top) else f"{top:.2f}"
-    return f"| {seed} | {cells[0]} | {cells[1]} | {per_soup} | {top_cell} | {float(np.mean(returns)):.1f} |"
+    return f"| {label} | " + " | ".join(cells) + f" | {per_soup} | {top_cell} | {float(np.mean(returns)):.1f} |"
+
+
+def ordered_pair(text: str) -> tuple[int, int]:
+    """argparse type: ``i,j`` (seat 0's seed, seat 1's seed)."""
+    try:
+        first, second = (int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected two seeds as i,j (seat 0's, seat 1's)") from None
+    if min(first, second) < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: seeds are 0 or more")
+    return first, second
 
 
 def main() -> None:
@@ -83,7 +115,11 @@ def main() -> None:
     parser.add_argument("--seeds", type=positive_int, default=10)
     parser.add_argument("--method", default="sp", help="the file names' method prefix (sp, sa, ...)")
     parser.add_argument("--policies", type=Path, default=HERE / "policies", help="a published policies folder")
+    parser.add_argument("--pairs", type=ordered_pair, nargs="*", default=[], help="cross-play pairs i,j to read too")
     args = parser.parse_args()
+    for pair in args.pairs:
+        if max(pair) >= args.seeds:
+            parser.error(f"--pairs {pair[0]},{pair[1]}: seeds are 0 to {args.seeds - 1} (--seeds {args.seeds})")
     files = [args.policies / f"{args.method}_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
     try:
         verify(args.policies, files)
@@ -99,12 +135,15 @@ def main() -> None:
         if play is None:  # one compiled self-play rollout for every seed (same network, same env)
             env = policy_env(policy.env)
             play = jax.jit(
-                lambda params, key: play_recorded(
-                    policy.apply, policy.hidden_size, env, (params, params), key, args.episodes
+                lambda right, left, key: play_recorded(
+                    policy.apply, policy.hidden_size, env, (right, left), key, args.episodes
                 )
             )
-        played = play(policy.params, jax.random.PRNGKey(7))
+        played = play(policy.params, policy.params, jax.random.PRNGKey(7))
         print(seed_row(seed, played.states, played.returns), flush=True)
+    for first, second in args.pairs:
+        played = play(policies[first].params, policies[second].params, jax.random.PRNGKey(7))
+        print(seed_row(f"{first} × {second}", played.states, played.returns), flush=True)
 
 
 if __name__ == "__main__":
