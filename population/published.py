@@ -68,10 +68,14 @@ def sha256_of(path: Path) -> str:
 def read_listing(folder) -> list[PublishedPolicy]:
     """The entries of ``folder``/SHA256SUMS.json (none if the folder has no listing yet)."""
     listed = Path(folder) / SUMS
+    if listed.exists() and not listed.is_file():
+        raise PolicyError(f"{listed}: a folder, not the listing file")
     if not listed.is_file():
         return []
     try:
         raw = json.loads(listed.read_text())
+    except UnicodeDecodeError as error:
+        raise PolicyError(f"{listed}: not UTF-8 text (byte {error.start}: {error.reason})") from None
     except json.JSONDecodeError as error:
         raise PolicyError(f"{listed}: not JSON ({error})") from None
     if not isinstance(raw, list):
@@ -116,29 +120,59 @@ def updates_to_publish(run_dir, seed: int, which: str = "snapshots") -> list[int
 
 def publish_run(run_dir, folder, which: str = "snapshots") -> list[PublishedPolicy]:
     """Export every seed's checkpoints that ``which`` selects into ``folder`` and list them in its
-    SHA256SUMS.json. Files already listed are left as they are (and checked: a listed file that changed or
-    went missing stops it before anything is written). A failure part-way (a damaged checkpoint) removes the
-    files this call wrote, so no unlisted file is left beside the listed ones. Returns the entries added."""
-    run_dir, folder = Path(run_dir), Path(folder)
-    config = load_config(run_dir / "config.yaml")
+    SHA256SUMS.json (``publish_runs`` for one run). Returns the entries added."""
+    return publish_runs([run_dir], folder, which)[Path(run_dir).name]
+
+
+def publish_runs(run_dirs, folder, which: str = "snapshots") -> dict[str, list[PublishedPolicy]]:
+    """Export every run's checkpoints that ``which`` selects into ``folder`` and list them in its SHA256SUMS.json;
+    returns the entries added, per run name. All or nothing:
+
+    - files already listed are left as they are (and checked: a listed file that changed or went missing stops
+      it before anything is written);
+    - a file of a name to be written that the listing does not know is refused before anything is written
+      (publishing never writes over a file);
+    - a failure part-way (a damaged checkpoint, a listing that cannot be written, an interrupt) removes every file
+      this call wrote, and the folder if this call made it, so no unlisted file is left beside the listed ones;
+    - with nothing to add, nothing is written and no folder is made.
+    """
+    run_dirs, folder = [Path(r) for r in run_dirs], Path(folder)
     listing = checked_listing(folder)
     known = {e.file for e in listing}
+    plan = {}
+    for run_dir in run_dirs:
+        config = load_config(run_dir / "config.yaml")
+        plan[run_dir] = [
+            (seed, update)
+            for seed in range(config.population.num_seeds)
+            for update in updates_to_publish(run_dir, seed, which)
+            if policy_name(run_dir.name, seed, update) not in known
+        ]
+    for run_dir, wanted in plan.items():
+        for seed, update in wanted:
+            path = folder / policy_name(run_dir.name, seed, update)
+            if path.exists() or path.is_symlink():
+                raise PolicyError(f"{path}: exists but is not listed in {folder / SUMS}; move it away first")
+    added: dict[str, list[PublishedPolicy]] = {run_dir.name: [] for run_dir in run_dirs}
+    if not any(plan.values()):
+        return added
+    made = not folder.exists()
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise PolicyError(f"{folder}: cannot create the policies folder ({error.strerror or error})") from None
-    added = []
     try:
-        for seed in range(config.population.num_seeds):
-            for update in updates_to_publish(run_dir, seed, which):
-                if policy_name(run_dir.name, seed, update) not in known:
-                    added.append(publish_checkpoint(run_dir, folder, seed, update))
+        for run_dir, wanted in plan.items():
+            for seed, update in wanted:
+                added[run_dir.name].append(publish_checkpoint(run_dir, folder, seed, update))
+        write_listing(folder, [*listing, *(entry for entries in added.values() for entry in entries)])
     except BaseException:  # an interrupt too: what is not listed must not stay
-        for entry in added:
-            (folder / entry.file).unlink(missing_ok=True)
+        for entries in added.values():
+            for entry in entries:
+                (folder / entry.file).unlink(missing_ok=True)
+        if made and not any(folder.iterdir()):
+            folder.rmdir()
         raise
-    if added:
-        write_listing(folder, [*listing, *added])
     return added
 
 

@@ -939,6 +939,38 @@ def test_publish_final_takes_each_seeds_last_checkpoint_only(finished, tmp_path)
         published.read_listing(tmp_path)
 
 
+def test_publish_is_all_runs_or_none_and_never_writes_over_a_file(finished, tmp_path, capsys):
+    """A file of a name to be written that the listing does not know is refused before anything is written; a listing that is a folder or not text is named; a --which that selects nothing is an error,
+    while one whose every file is already listed says so and exits 0."""
+    study = _copy(finished, tmp_path / "study")
+    out = tmp_path / "policies"
+    clash = tmp_path / "clash"
+    clash.mkdir()
+    (clash / "sa_seed0_update8.ocv2policy").write_text("precious")
+    assert main(["study", "publish", str(finished), "--out", str(clash), "--which", "final"]) == 2
+    assert "sa_seed0_update8.ocv2policy: exists but is not listed in" in _one_line(capsys)
+    assert [p.name for p in clash.iterdir()] == ["sa_seed0_update8.ocv2policy"]
+    assert (clash / "sa_seed0_update8.ocv2policy").read_text() == "precious"
+    for name, listing, said in (
+        ("folder", None, "a folder, not the listing file"),
+        ("bytes", b"\xff\xfe", "not UTF-8"),
+    ):
+        target = tmp_path / name
+        (target / published.SUMS).mkdir(parents=True) if listing is None else None
+        if listing is not None:
+            target.mkdir()
+            (target / published.SUMS).write_bytes(listing)
+        assert main(["study", "publish", str(finished), "--out", str(target), "--which", "final"]) == 2
+        assert said in _one_line(capsys) and len(list(target.iterdir())) == 1
+    (study / "runs" / "sp" / "checkpoints").rename(study / "runs" / "sp" / "moved")
+    (study / "runs" / "sa" / "checkpoints").rename(study / "runs" / "sa" / "moved")
+    assert main(["study", "publish", str(study), "--out", str(out)]) == 2
+    assert "nothing to publish: no checkpoint of" in _one_line(capsys) and not out.exists()
+    assert main(["study", "publish", str(finished), "--out", str(out), "--which", "final"]) == 0
+    assert main(["study", "publish", str(finished), "--out", str(out), "--which", "final"]) == 0
+    assert "nothing new; every checkpoint --which final selects is already listed" in capsys.readouterr().out
+
+
 def test_study_pack_latest_only_from_the_command_line(finished, tmp_path):
     assert main(["study", "pack", str(finished), "--out", str(tmp_path / "p"), "--latest-only"]) == 0
     assert json.loads((tmp_path / "p" / "pack.json").read_text())["latest_only"] is True
@@ -1065,11 +1097,9 @@ def test_publish_stopped_by_a_damaged_checkpoint_leaves_no_unlisted_file(finishe
     checkpoint.write_bytes(checkpoint.read_bytes()[:100])
     assert main(["study", "publish", str(study), "--out", str(out), "--which", "final"]) == 2
     assert f"{checkpoint}" in _one_line(capsys)
-    # runs publish in name order: "sa" whole and listed; of "sp" nothing, though seeds before the damaged one
-    # were exported before it was reached
-    on_disk = sorted(p.name for p in out.glob("*.ocv2policy"))
-    assert on_disk == sorted(e.file for e in published.read_listing(out)) and on_disk
-    assert not [name for name in on_disk if name.startswith(checkpoint.parents[2].name + "_")]
+    # all runs or none: "sa" (exported before "sp" was reached) and the seeds of "sp" before the damaged one are
+    # removed, and so is the folder this command made
+    assert not out.exists()
     config = next((study / "runs").glob("*/config.yaml"))
     config.write_text("ppo: [")
     assert main(["study", "publish", str(study), "--out", str(out)]) == 2

@@ -35,7 +35,7 @@ from population.checkpoints import CheckpointError
 from population.config import ClusterConfig, ConfigError
 from population.numerics import enable_deterministic_ops
 from population.policy import PolicyError
-from population.published import WHICH
+from population.published import WHICH, read_listing
 
 BUDGET = bounded(float, 0, 100, "a fraction of the env steps in (0, 100], such as 0.25", low_open=True)
 
@@ -214,8 +214,18 @@ def _pack(args) -> int:
 def _publish(args) -> int:
     try:
         name, added = publish_study(args.dir, args.out, args.which)
+        listed = {entry.file for entry in read_listing(args.out)} if Path(args.out).is_dir() else set()
     except (StudyError, RunDirError, CheckpointError, PolicyError, ConfigError) as error:
         raise CLIError(str(error)) from None
+    if not any(added.values()):
+        if not any(file.startswith(f"{run_name}_seed") for file in listed for run_name in added):
+            hint = "; `--which final` publishes each seed's newest" if args.which == "snapshots" else ""
+            raise CLIError(
+                f"nothing to publish: no checkpoint of {name}'s runs ({', '.join(added)}) on disk is selected by "
+                f"--which {args.which} (a kept snapshot is one of the updates run.num_checkpoints spreads over the "
+                f"run{hint})"
+            )
+        print(f"{name}: nothing new; every checkpoint --which {args.which} selects is already listed in {args.out}")
     for run_name, entries in added.items():
         print(f"{name}/{run_name}: {len(entries)} policies exported into {args.out}")
     return EXIT_OK

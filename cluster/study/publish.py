@@ -12,7 +12,7 @@ from pathlib import Path
 
 from cluster.study.runner import read_state
 from cluster.study.spec import StudyError
-from population.published import PublishedPolicy, publish_run
+from population.published import PublishedPolicy, publish_runs
 
 
 def trained_runs(study) -> tuple[str, list[Path]]:
@@ -28,7 +28,7 @@ def trained_runs(study) -> tuple[str, list[Path]]:
 
 
 def publish_study(study, out, which: str = "snapshots") -> tuple[str, dict[str, list[PublishedPolicy]]]:
-    """Publish every run's checkpoints that ``which`` selects into ``out`` (``population.published.publish_run``);
-    returns the study's name and, per run, the entries added."""
+    """Publish every run's checkpoints that ``which`` selects into ``out``, all runs or none
+    (``population.published.publish_runs``); returns the study's name and, per run, the entries added."""
     name, runs = trained_runs(study)
-    return name, {run_dir.name: publish_run(run_dir, out, which) for run_dir in runs}
+    return name, publish_runs(runs, out, which)
