@@ -233,9 +233,46 @@ def test_a_delta_gap_without_its_interval_says_why(runs, tmp_path, capsys):
     assert row["delta_gap"] == "-47.0" and row["delta_gap_ci95_low"] == ""
     note = f"no Δ gap interval: {runs['ring_sa']}/xp/matrix.csv: 1 cell(s) are not numbers"
     assert note in (out / "report.md").read_text() and note in printed
+    hole = f"{matrix}: 1 cell(s) without a number (row, column: (0, 1)); the SP and XP shown are summary.json's"
+    assert hole in (out / "report.md").read_text() and row["note"].startswith(hole)
     matrix.unlink()
     assert main(["report", str(runs["ring_sp"]), str(runs["ring_sa"]), "--out", str(out)]) == 0
     assert f"no Δ gap interval: no {runs['ring_sa']}/xp/matrix.csv" in (out / "report.md").read_text()
+
+
+def test_report_out_replaces_an_earlier_report_whole_and_refuses_any_other_folder(runs, tmp_path, capsys):
+    out = tmp_path / "report"
+    assert main(["report", str(runs["ring_sp"]), str(runs["ring_sa"]), "--out", str(out)]) == 0
+    first = sorted(p.name for p in out.iterdir())
+    assert "report.csv" in first and any(name.startswith("heatmap_") for name in first)
+    assert main(["report", str(runs["cr_sp"]), "--out", str(out)]) == 0  # an earlier report: replaced whole
+    second = sorted(p.name for p in out.iterdir())
+    assert not [name for name in second if "ring" in name]  # no earlier picture left beside the new ones
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging folder left
+    capsys.readouterr()
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "report.md").write_text("a published report")
+    (results / "curves_coord_ring.png").write_bytes(b"png")
+    assert main(["report", str(runs["cr_sp"]), "--out", str(results)]) == 2
+    assert "holds files but no report.csv of `ocv2 report`" in capsys.readouterr().err
+    (results / "notes.txt").write_text("mine")
+    assert main(["report", str(runs["cr_sp"]), "--out", str(results)]) == 2
+    assert "holds notes.txt, which `ocv2 report` does not write" in capsys.readouterr().err
+    assert (results / "report.md").read_text() == "a published report"
+
+
+def test_report_names_a_metrics_file_or_matrix_that_is_not_text(runs, tmp_path, capsys):
+    matrix = runs["cr_sp"] / "xp" / "matrix.csv"
+    matrix.write_bytes(b"\xff\xfe\x00")
+    assert main(["report", str(runs["cr_sp"]), "--out", str(tmp_path / "r")]) == 2
+    assert f"{matrix}: unreadable cross-play matrix" in capsys.readouterr().err
+    metrics = runs["cr_sa"] / "metrics.csv"
+    metrics.write_bytes(b"\xff\xfe")
+    assert main(["report", str(runs["cr_sa"]), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert f"{metrics}: damaged: byte 0 is not UTF-8 text" in err and "Traceback" not in err
+    assert not (tmp_path / "r").exists()
 
 
 def test_report_on_a_non_run_directory_fails_naming_it(tmp_path, capsys):
@@ -274,9 +311,13 @@ def test_report_on_a_damaged_matrix_names_file_row_and_column(runs, tmp_path, ca
         ("[1, 2]", "holds a JSON list, not a cross-play summary"),
         (
             '{"sp_mean": "abc", "xp_mean": 1.0, "gap": 1.0}',
-            "sp_mean must be a number (or null where it has none), found 'abc'",
+            "sp_mean must be a finite number (or null where it has none), found 'abc'",
         ),
-        ('{"sp_mean": 1.0, "gap": 1.0}', "xp_mean must be a number (or null where it has none), found 'missing'"),
+        ('{"sp_mean": 1.0, "gap": 1.0}', "no xp_mean (not a cross-play summary ocv2 wrote)"),
+        ('{"sp_mean": 1e400, "xp_mean": 1.0, "gap": 1.0}', "sp_mean must be a finite number"),
+        ('{"sp_mean": 1.0, "xp_mean": 1.0, "gap": 1.0, "sp_std": "abc"}', "sp_std must be a finite number"),
+        ('{"sp_mean": 1.0, "xp_mean": 1.0, "gap": 1.0, "num_policies": "ten"}', "num_policies must be a whole"),
+        ('{"sp_mean": 1.0, "xp_mean": 1.0, "gap": 1.0, "episodes_per_pair": [1]}', "episodes_per_pair must be"),
     ],
 )
 def test_report_names_a_damaged_summary_instead_of_crashing_or_showing_n_a(runs, tmp_path, capsys, summary, message):

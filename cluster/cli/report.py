@@ -23,8 +23,11 @@ import argparse
 import csv
 import io
 import math
+import shutil
 import sys
+import tempfile
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from rich.console import Console
@@ -89,6 +92,8 @@ def load_run(path) -> dict:
         summary = _checked_summary(summary_path)
     try:
         metrics = run.read_metrics()
+    except RunDirError as error:  # names the file
+        raise CLIError(str(error)) from None
     except (OSError, csv.Error) as error:
         raise CLIError(f"{run.metrics_path}: unreadable: {error}") from None
     matrix = None
@@ -97,7 +102,7 @@ def load_run(path) -> dict:
         try:
             matrix = read_matrix_csv(matrix_path).values.tolist()
         except (OSError, ValueError) as error:
-            raise CLIError(f"unreadable cross-play matrix: {error}") from None
+            raise CLIError(f"{matrix_path}: unreadable cross-play matrix: {error}") from None
         seeds = config.population.num_seeds
         if len(matrix) != seeds or any(len(row) != seeds for row in matrix):
             shape = f"{len(matrix)} x {len(matrix[0]) if matrix else 0}"
@@ -110,10 +115,27 @@ def load_run(path) -> dict:
         "metrics": metrics,
         "matrix": matrix,
         "status": run.read_manifest().get("status", ""),
+        "matrix_note": _holes(matrix_path, matrix),
     }
 
 
-SUMMARY_NUMBERS = ("sp_mean", "xp_mean", "gap")  # what the table and the plots' titles read
+def _holes(path: Path, matrix: list | None) -> str:
+    """Why the table's numbers are not the whole matrix's: cells with no number ("" when there is none). A blank
+    cell is a pair that was never played or lost; the SP and XP shown are summary.json's all the same."""
+    if matrix is None:
+        return ""
+    cells = np.argwhere(~np.isfinite(np.asarray(matrix, np.float64)))
+    if not len(cells):
+        return ""
+    shown = ", ".join(f"({row}, {col})" for row, col in cells[:5].tolist()) + (", ..." if len(cells) > 5 else "")
+    return (
+        f"{path}: {len(cells)} cell(s) without a number (row, column: {shown}); the SP and XP shown are "
+        "summary.json's, which may have been computed before they were lost"
+    )
+
+
+SUMMARY_NUMBERS = ("sp_mean", "xp_mean", "gap", "sp_std", "xp_std", "sp_ci95", "xp_ci95")  # what the report reads
+SUMMARY_COUNTS = ("num_policies", "episodes_per_pair")
 
 
 def _checked_summary(path: Path) -> dict:
@@ -126,9 +148,17 @@ def _checked_summary(path: Path) -> dict:
     if not isinstance(summary, dict):
         raise CLIError(f"{path}: holds a JSON {type(summary).__name__}, not a cross-play summary (an object)")
     for key in SUMMARY_NUMBERS:
-        value = summary.get(key, "missing")
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int | float)):
-            raise CLIError(f"{path}: {key} must be a number (or null where it has none), found {value!r}")
+        value = summary.get(key)
+        if key in SUMMARY_NUMBERS[:3] and key not in summary:
+            raise CLIError(f"{path}: no {key} (not a cross-play summary ocv2 wrote)")
+        if value is None:
+            continue  # null: nothing to show (e.g. no cross-play pair)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise CLIError(f"{path}: {key} must be a finite number (or null where it has none), found {value!r}")
+    for key in SUMMARY_COUNTS:
+        value = summary.get(key, 0)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise CLIError(f"{path}: {key} must be a whole number of 0 or more, found {value!r}")
     return summary
 
 
@@ -193,6 +223,8 @@ def report_rows(runs: list[dict]) -> list[dict]:
                 row[key] = float_or_nan(summary.get(key)) if summary else math.nan
             row["num_policies"] = int(summary.get("num_policies", 0)) if summary else 0
             row["episodes_per_pair"] = int(summary.get("episodes_per_pair", 0)) if summary else 0
+            if summary and run["matrix_note"]:
+                row["note"] = run["matrix_note"]
             if not summary:
                 row["note"] = NO_XP_NOTE.format(run=run["path"])
             elif baseline is not None and run is not baseline:
@@ -374,7 +406,11 @@ def add_report(sub) -> argparse.ArgumentParser:
         "deltas), curves_<layout>.png and heatmap_<run>.png into --out.",
     )
     parser.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
-    parser.add_argument("--out", default="reports", help="folder to write into (default reports/)")
+    parser.add_argument(
+        "--out",
+        default="reports",
+        help="folder to write into (default reports/): new, empty, or an earlier report's, which is replaced whole",
+    )
     return parser
 
 
@@ -392,10 +428,91 @@ def run_report(args) -> int:
         raise CLIError(f"--out: {out} exists and is not a folder")
     if (out / "config.yaml").is_file() or out.resolve() in seen:
         raise CLIError(f"--out {out}: is a run directory; give a folder of its own for the report")
+    check_replaceable(out)
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".report", dir=out.parent))
     except OSError as error:
         raise CLIError(f"--out: cannot create {out}: {error}", EXIT_FAILURE) from None
+    try:
+        written = write_report_files(runs, staging)
+        replace_folder(staging, out)
+    except OSError as error:  # a full disk, a folder made read-only meanwhile: nothing of the report is left
+        raise CLIError(f"--out: cannot write {out}: {error}", EXIT_FAILURE) from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)  # gone already unless something failed
+    table = Table(title=f"{len(written.rows)} run(s)")
+    for name in written.header:
+        table.add_column(name, justify="right" if name not in ("Layout", "Env", "Method", "Run") else "left")
+    for line in written.cells:
+        table.add_row(*line)
+    stream = sys.stdout
+    Console(file=stream, width=None if stream.isatty() else 240, highlight=False, soft_wrap=False).print(table)
+    for run, note in written.notes:
+        print(f"{run}: {note}")
+    print(
+        f"wrote {out / 'report.md'}, {out / 'report.csv'}, {written.curves} curve plot(s), "
+        f"{written.heatmaps} heatmap(s)"
+    )
+    return EXIT_OK
+
+
+REPORT_FILES = ("report.md", "report.csv")  # and curves_*.png, heatmap_*.png
+
+
+def check_replaceable(out: Path) -> None:
+    """``--out`` must be new, empty, or an earlier ``ocv2 report``'s folder (its report.csv has this report's
+    columns and it holds nothing else than a report writes): that one is replaced whole. Anything else is
+    refused, so a report never writes over other results nor leaves an earlier report's pictures beside its own."""
+    if not out.is_dir():
+        return
+    present = sorted(p.name for p in out.iterdir())
+    if not present:
+        return
+    foreign = [
+        name
+        for name in present
+        if name not in REPORT_FILES and not (name.endswith(".png") and name.startswith(("curves_", "heatmap_")))
+    ]
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise CLIError(f"--out {out}: holds {shown}, which `ocv2 report` does not write; give a new folder")
+    try:
+        header = (out / "report.csv").read_text().splitlines()[:1]
+    except (OSError, UnicodeDecodeError):
+        header = []
+    if header != [",".join(CSV_FIELDS)]:
+        raise CLIError(f"--out {out}: holds files but no report.csv of `ocv2 report`; give a new folder")
+
+
+def replace_folder(staging: Path, out: Path) -> None:
+    """Move the finished ``staging`` folder to ``out``, replacing an earlier report there whole."""
+    if not out.is_dir():
+        staging.rename(out)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+    out.rename(old / out.name)
+    try:
+        staging.rename(out)
+    except OSError:
+        (old / out.name).rename(out)  # the earlier report back where it was
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+class WrittenReport(NamedTuple):
+    """What ``write_report_files`` wrote, for the console."""
+
+    rows: list[dict]
+    header: list[str]
+    cells: list[list[str]]
+    notes: list[tuple[str, str]]  # (run directory, note)
+    curves: int
+    heatmaps: int
+
+
+def write_report_files(runs: list[dict], out: Path) -> WrittenReport:
+    """Write report.csv, report.md and the pictures into the folder ``out``."""
     rows = report_rows(runs)
     header, cells = table_cells(rows)
     curves = write_curves(runs, out)
@@ -428,15 +545,4 @@ def run_report(args) -> int:
         md += ["## Cross-play matrices", ""]
         md += [f"{run}:\n\n![{Path(p).stem}]({Path(p).name})\n" for run, p in heatmaps.items()]
     atomic_write(out / "report.md", "\n".join(md))
-
-    table = Table(title=f"{len(rows)} run(s)")
-    for name in header:
-        table.add_column(name, justify="right" if name not in ("Layout", "Env", "Method", "Run") else "left")
-    for line in cells:
-        table.add_row(*line)
-    stream = sys.stdout
-    Console(file=stream, width=None if stream.isatty() else 240, highlight=False, soft_wrap=False).print(table)
-    for run, note in notes:
-        print(f"{run}: {note}")
-    print(f"wrote {out / 'report.md'}, {out / 'report.csv'}, {len(curves)} curve plot(s), {len(heatmaps)} heatmap(s)")
-    return EXIT_OK
+    return WrittenReport(rows, header, cells, notes, len(curves), len(heatmaps))

@@ -392,6 +392,10 @@ class RunDir:
             text = self.metrics_path.read_text()
         except FileNotFoundError:
             return [], False
+        except UnicodeDecodeError as error:  # ocv2 writes ASCII: bytes that are not text are damage
+            raise RunDirError(
+                f"{self.metrics_path}: damaged: byte {error.start} is not UTF-8 text ({error.reason})"
+            ) from None
         lines = text.splitlines(keepends=True)
         torn = bool(lines) and not lines[-1].endswith("\n")  # the last row was cut short
         if torn:
