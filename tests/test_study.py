@@ -708,6 +708,20 @@ def test_report_out_never_writes_over_what_is_there(finished, tmp_path, capsys):
         assert message in _one_line(capsys)
     assert (full / "report.md").read_text() == "mine"
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    # A report that fails part-way (a metrics file that is not text) leaves no folder and no staging behind; an
+    # empty --out folder is filled whole.
+    (out / "runs" / "sa" / "metrics.csv").write_bytes(b"\xff\xfe")
+    assert main(["study", "report", str(out), "--out", str(tmp_path / "new")]) == 2
+    assert "metrics.csv: damaged: byte 0 is not UTF-8 text" in _one_line(capsys)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["full", "study"]
+    (out / "runs" / "sa" / "metrics.csv").write_bytes(before[out / "runs" / "sa" / "metrics.csv"])
+    (tmp_path / "empty").mkdir()
+    assert main(["study", "report", str(out), "--out", str(tmp_path / "empty")]) == 0
+    assert (tmp_path / "empty" / "report.md").is_file() and sorted(p.name for p in tmp_path.iterdir()) == [
+        "empty",
+        "full",
+        "study",
+    ]
 
 
 def test_a_damaged_result_is_reported_and_its_step_redone(finished, tmp_path, capsys):

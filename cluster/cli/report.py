@@ -434,11 +434,9 @@ def run_report(args) -> int:
         staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".report", dir=out.parent))
     except OSError as error:
         raise CLIError(f"--out: cannot create {out}: {error}", EXIT_FAILURE) from None
-    try:
+    try:  # an OSError (a full disk) is main's one line; nothing of the report is left
         written = write_report_files(runs, staging)
         replace_folder(staging, out)
-    except OSError as error:  # a full disk, a folder made read-only meanwhile: nothing of the report is left
-        raise CLIError(f"--out: cannot write {out}: {error}", EXIT_FAILURE) from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # gone already unless something failed
     table = Table(title=f"{len(written.rows)} run(s)")

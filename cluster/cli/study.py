@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 from cluster.api import require_backend
@@ -272,8 +274,26 @@ def _report(directory: str, dest: str | None) -> int:
                 raise CLIError(f"--out {dest}: lies inside the study directory {out}; give a folder outside it")
         study = kept_study(state, out)
         configs = {r.name: run_config(study, r, out, state.budget, state.seeds, state.budget_mode) for r in study.runs}
-        paths = write_report(study, out, state, configs, None if dest is None else Path(dest))
+        if dest is None:
+            paths = write_report(study, out, state, configs)
+        else:
+            paths = _report_elsewhere(study, out, state, configs, Path(dest))
     except (StudyError, RunDirError) as error:
         raise CLIError(str(error)) from None
     print(f"wrote {paths['report']}")
     return EXIT_OK
+
+
+def _report_elsewhere(study, out: Path, state, configs: dict, dest: Path) -> dict:
+    """The report written into a staging folder beside ``dest`` (new or empty, checked) and moved there whole:
+    a failure part-way leaves ``dest`` as it was, not half a report or a folder this command made."""
+    dest.parent.mkdir(parents=True, exist_ok=True)  # an OSError here or below is main's one line
+    staging = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".report", dir=dest.parent))
+    try:
+        write_report(study, out, state, configs, staging)
+        if dest.is_dir():
+            dest.rmdir()  # empty: check_new_folder refused one that holds files
+        staging.rename(dest)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)  # gone already unless something failed
+    return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}
