@@ -624,6 +624,19 @@ def test_xp_on_a_non_run_directory_exits_2(tmp_path, capsys):
     assert main(["xp", str(tmp_path), "--episodes", "0"]) == 2
 
 
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["xp", "RUN", "--seed", "4294967296"], "--seed: expected a seed in [0, 4294967295]"),  # would wrap onto 0
+        (["xp", "RUN", "--seed", "-1"], "--seed: expected a non-negative integer"),
+        (["export", "RUN", "--out", "p.ocv2policy", "--seed", "-1"], "--seed: expected a non-negative integer"),
+    ],
+)
+def test_seeds_that_a_prng_key_cannot_hold_are_refused_by_name(tmp_path, capsys, argv, said):
+    assert main([str(tmp_path) if a == "RUN" else a for a in argv]) == 2
+    assert said in capsys.readouterr().err
+
+
 def test_checkpoint_of_another_config_is_refused(sp_run, tmp_path, capsys):
     # A second run directory whose config differs only in ppo.lr, holding the first run's checkpoints.
     other = tmp_path / "other"

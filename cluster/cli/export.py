@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cluster.cli.args import check_new_file, checkpoint_choice
+from cluster.cli.args import check_new_file, checkpoint_choice, non_negative_int
 from cluster.cli.errors import EXIT_OK, CLIError
 from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
 
@@ -41,7 +41,7 @@ def add_export(sub) -> argparse.ArgumentParser:
         "--out", required=True, help="the file to write (e.g. cook.ocv2policy), never inside a run directory"
     )
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
-    parser.add_argument("--seed", type=int, help="which seed of a run directory (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, help="which seed of a run directory (default 0)")
     parser.add_argument(
         "--checkpoint",
         default="final",

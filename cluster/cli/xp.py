@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from cluster.archive import ArchiveError
-from cluster.cli.args import check_new_folder, checkpoint_choice
+from cluster.cli.args import check_new_folder, checkpoint_choice, seed
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import crossplay, ray_backend
 from cluster.runtime.evaluate import evaluate_run
@@ -72,7 +72,7 @@ def add_xp(sub) -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--seed",
-        type=int,
+        type=seed,
         help="episode key stream (default: the first row run's population.seed, "
         "so a run against itself reproduces its in-run matrix; else 0)",
     )
