@@ -318,9 +318,28 @@ def test_a_packed_study_is_checked_before_anything_is_unpacked(finished, tmp_pat
     part.write_bytes(good)
     assert main(["study", "unpack", str(packed), "--out", str(finished)]) == 2  # nor over an existing study
     assert "exists; unpack into a new directory" in capsys.readouterr().err
+    record = json.loads((packed / "pack.json").read_text())
+    for change, said in (
+        (lambda r: r.pop("files"), "'files' must be a count of 0 or more, found None"),
+        (lambda r: r.update(study=""), "'study' must be the study's name"),
+        (lambda r: r.update(bytes=r["bytes"] + 1), "bytes, its parts hold"),
+        (lambda r: r.update(parts=r["parts"] * 2), "is listed more than once"),
+    ):
+        damaged = json.loads(json.dumps(record))
+        change(damaged)
+        (packed / "pack.json").write_text(json.dumps(damaged))
+        assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
+        assert said in _one_line(capsys) and not (tmp_path / "u").exists()
+    # A folder of the user's that happens to bear a staging-like name is never touched.
+    (tmp_path / ".u.unpacking").mkdir()
+    (tmp_path / ".u.unpacking" / "keep.txt").write_text("mine")
+    (packed / "pack.json").write_text(json.dumps(record))
+    assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 0
+    assert (tmp_path / ".u.unpacking" / "keep.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == [".u.unpacking"]
     (packed / "pack.json").unlink()
-    assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
-    assert "no pack.json" in capsys.readouterr().err and not (tmp_path / "u").exists()
+    assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u2")]) == 2
+    assert "no pack.json" in capsys.readouterr().err and not (tmp_path / "u2").exists()
 
 
 def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
@@ -745,7 +764,7 @@ def test_a_damaged_result_is_reported_and_its_step_redone(finished, tmp_path, ca
     assert "Not finished" not in (out / "report.md").read_text()
 
 
-def test_a_run_directory_gone_missing_is_reported_as_such_not_as_not_started(finished, tmp_path):
+def test_a_run_directory_gone_missing_is_reported_as_such_not_as_not_started(finished, tmp_path, capsys):
     out = _copy(finished, tmp_path / "study")
     shutil.rmtree(out / "runs" / "sa")
     assert main(["study", "report", str(out)]) == 0
@@ -753,6 +772,14 @@ def test_a_run_directory_gone_missing_is_reported_as_such_not_as_not_started(fin
     sa = next(run for run in summary["runs"] if run["name"] == "sa")
     assert sa["status"] == "damaged" and "missing, though study.json records the step as done" in sa["problem"]
     assert "train sa: " in (out / "report.md").read_text()
+    capsys.readouterr()
+    assert main(["study", "status", str(out)]) == 0
+    (line,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("train sa ")]
+    assert "missing" in line and "missing, though study.json records the step as done" in line
+    # A pack of it would look resumable and train sa again from update 0: refused, nothing written.
+    assert main(["study", "pack", str(out), "--out", str(tmp_path / "packed")]) == 2
+    assert "runs/sa: missing, though study.json records its training as done; nothing was packed" in _one_line(capsys)
+    assert not (tmp_path / "packed").exists()
 
 
 @pytest.mark.parametrize(
@@ -1096,7 +1123,7 @@ def test_unpack_names_a_malformed_pack_json_or_a_cut_stream(finished, tmp_path, 
     cut = (packed / "study.tar.gz.000").read_bytes()[:-200]  # listed with its own sum: only gzip sees the cut
     (packed / "study.tar.gz.000").write_bytes(cut)
     parts = [{"file": "study.tar.gz.000", "bytes": len(cut), "sha256": hashlib.sha256(cut).hexdigest()}]
-    (packed / "pack.json").write_text(json.dumps({**record, "parts": parts}))
+    (packed / "pack.json").write_text(json.dumps({**record, "parts": parts, "bytes": len(cut)}))
     assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
     assert "cannot unpack" in _one_line(capsys) and not (tmp_path / "u").exists()
     assert main(["study", "unpack", str(packed / "pack.json"), "--out", str(tmp_path / "u")]) == 2

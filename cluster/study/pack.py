@@ -21,10 +21,11 @@ import io
 import json
 import shutil
 import tarfile
+import tempfile
 import zlib
 from pathlib import Path
 
-from cluster.study.runner import check_folder, read_state
+from cluster.study.runner import check_folder, kept_study, missing_runs, read_state
 from cluster.study.spec import StudyError
 from population import checkpoints as ckpt
 
@@ -69,6 +70,9 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     state = read_state(out)
     if state is None:
         raise StudyError(f"{out}: not a study directory (no study.json)")
+    missing = missing_runs(kept_study(state, out), out, state)
+    if missing:  # a pack without it would look resumable and train that run again from update 0
+        raise StudyError(f"{missing[0]}; nothing was packed")
     if dest.is_relative_to(out.resolve()):
         raise StudyError(
             f"{dest}: inside the study directory {out} (a later pack would hold this one); choose another --out"
@@ -90,10 +94,12 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
         for path in files:
             tar.add(path, arcname=str(path.relative_to(out)))
     data = buffer.getvalue()
-    staging = dest.with_name(f".{dest.name}.packing")
     try:
-        shutil.rmtree(staging, ignore_errors=True)  # what an earlier pack left when it was killed
-        staging.mkdir(parents=True)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".packing", dir=dest.parent))
+    except OSError as error:
+        raise StudyError(f"{dest}: cannot write the pack ({error.strerror or error}); nothing was packed") from None
+    try:
         parts = []
         for index, start in enumerate(range(0, max(len(data), 1), part_bytes)):
             chunk = data[start : start + part_bytes]
@@ -127,6 +133,7 @@ def read_pack(source: Path) -> tuple[dict, bytes]:
         raise StudyError(f"{source / PACK_NAME}: unreadable ({error})") from None
     if not isinstance(parts, list) or not all(isinstance(part, dict) for part in parts):
         raise StudyError(f"{source / PACK_NAME}: 'parts' must be a list of {{file, bytes, sha256}} entries")
+    _check_record(record, source / PACK_NAME)
     chunks = []
     for part in parts:
         path = source / str(part.get("file", ""))
@@ -138,7 +145,24 @@ def read_pack(source: Path) -> tuple[dict, bytes]:
         if hashlib.sha256(chunk).hexdigest() != part.get("sha256"):
             raise StudyError(f"{path}: sha256 does not match {PACK_NAME} (damaged or from another pack)")
         chunks.append(chunk)
-    return record, b"".join(chunks)
+    data = b"".join(chunks)
+    if len(data) != record["bytes"]:
+        raise StudyError(f"{source / PACK_NAME}: says {record['bytes']:,} bytes, its parts hold {len(data):,}")
+    return record, data
+
+
+def _check_record(record: dict, where: Path) -> None:
+    """pack.json's own fields, as ``pack_study`` writes them, before any part is read."""
+    if not isinstance(record.get("study"), str) or not record["study"]:
+        raise StudyError(f"{where}: 'study' must be the study's name, found {record.get('study')!r}")
+    for key in ("files", "bytes"):
+        value = record.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise StudyError(f"{where}: {key!r} must be a count of 0 or more, found {value!r}")
+    names = [str(part.get("file", "")) for part in record["parts"]]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise StudyError(f"{where}: part {repeated[0]!r} is listed more than once")
 
 
 def unpack_study(source: Path, out: Path) -> dict:
@@ -147,8 +171,11 @@ def unpack_study(source: Path, out: Path) -> dict:
     if out.exists():
         raise StudyError(f"{out}: exists; unpack into a new directory (nothing was written)")
     record, data = read_pack(source)
-    staging = out.with_name(f".{out.name}.unpacking")
-    shutil.rmtree(staging, ignore_errors=True)  # what an earlier unpack left when it was killed
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".unpacking", dir=out.parent))
+    except OSError as error:
+        raise StudyError(f"{out}: cannot unpack here ({error.strerror or error}); nothing was written") from None
     try:
         with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
             tar.extractall(staging, filter="data")  # no absolute paths, links out or devices

@@ -126,9 +126,8 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
         },
     }
     if not (path / "config.yaml").is_file():
-        # study.json says it trained (done, or an update reached): its directory went missing. A step that
-        # failed before it made one (a Ray connection, its SA archives) is only "not started".
-        if step.status == "done" or step.results.get("update"):
+        # study.json says it trained: its directory went missing. Otherwise it is only "not started".
+        if step.recorded_progress:
             entry["status"] = "damaged"
             entry["problem"] = f"{path}: missing, though study.json records the step as {step.status}"
         return entry

@@ -670,6 +670,17 @@ def compare(
 # ---------------------------------------------------------------------------------------------------
 
 
+def missing_runs(study: Study, out: Path, state: StudyState) -> list[str]:
+    """One line per run whose training study.json records but whose directory is gone (empty: none)."""
+    lines = []
+    for run in study.runs:
+        step = state.steps.get(Step("train", run.name).name, StepRecord())
+        path = run_dir(out, run.name)
+        if step.recorded_progress and not (path / "config.yaml").is_file():
+            lines.append(f"{path}: missing, though study.json records its training as {step.status}")
+    return lines
+
+
 def study_status(out) -> list[dict]:
     """One entry per step: name, status (done / running / partial / blocked / left), progress, ETA in seconds
     for training steps (from the throughput this study measured, per model kind; None when unknown)."""
@@ -691,8 +702,9 @@ def study_status(out) -> list[dict]:
         step = state.steps.get(name, StepRecord())
         status = step.status
         entry = {"step": name, "status": status, "wall_s": step.wall_s, "detail": step.reason or "", "eta_s": None}
+        path = run_dir(out, one.target)
         if one.kind == "train":
-            entry.update(_train_progress(run_dir(out, one.target), configs.get(one.target), rates))
+            entry.update(_train_progress(path, configs.get(one.target), rates))
             if status != "done" and entry.pop("finished", False):
                 entry["status"] = "done"
         if status == "running":
@@ -700,6 +712,9 @@ def study_status(out) -> list[dict]:
                 entry["status"] = "interrupted"
             elif step.ticked is not None:  # wall time is saved per chunk; add the running chunk's so far
                 entry["wall_s"] += max(0.0, time.time() - step.ticked)
+        if one.kind == "train" and step.recorded_progress and not (path / "config.yaml").is_file():
+            entry.update(status="missing", detail=f"{path}: missing, though study.json records the step as {status}")
+            entry.pop("progress", None)
         entries.append(entry)
     return entries
 

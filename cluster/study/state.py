@@ -37,6 +37,12 @@ class StepRecord:
     reason: str | None = None  # why the step is blocked
     results: dict = dataclasses.field(default_factory=dict)  # what the step returned (_STEP_RESULTS)
 
+    @property
+    def recorded_progress(self) -> bool:
+        """study.json says the step has made something (done, or an update reached): its run directory must exist.
+        A step that failed before it made one (a Ray connection, its SA archives) has not."""
+        return self.status == "done" or bool(self.results.get("update"))
+
     def update(self, **changes) -> None:
         """Set fields by name; a step's results (``update=...``) go to ``results``."""
         for key, value in changes.items():
