@@ -21,7 +21,7 @@ from pathlib import Path
 from ocv2.atomic import atomic_write
 from population import checkpoints as ckpt
 from population.config import load_config
-from population.policy import SUFFIX, PolicyError, export_checkpoint
+from population.policy import SUFFIX, Policy, PolicyError, export_checkpoint, load
 
 SUMS = "SHA256SUMS.json"
 #: Which checkpoints ``publish_run`` exports: the kept snapshots (run.num_checkpoints), only each seed's last
@@ -202,3 +202,28 @@ def verify(folder, files: Iterable[str | Path]) -> None:
             raise PolicyError(f"{path}: listed in {SUMS} but missing")
         if sha256_of(path) != listed[path.name]:
             raise PolicyError(f"{path}: not the published file (its sha256 is not the one in {SUMS})")
+
+
+def load_population(folder, files: Iterable[str | Path]) -> list[Policy]:
+    """Load published policies that are to be played as one population (each with itself, or pairs of them):
+    every file checked against the folder's SHA256SUMS.json (``verify``), and every policy playing the first one's
+    environment with the first one's network, so that one compiled rollout serves them all. ``PolicyError``
+    naming the file and what differs otherwise."""
+    folder, files = Path(folder), list(files)
+    verify(folder, files)
+    policies = [load(folder / Path(name).name) for name in files]
+    first = policies[0] if policies else None
+    for name, policy in zip(files, policies, strict=True):
+        for what, mine, theirs in (
+            ("environment", policy.env, first.env),
+            ("network", (policy.model, policy.activation), (first.model, first.activation)),
+        ):
+            if mine != theirs:
+                differ = ""
+                if what == "environment":
+                    keys = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+                    differ = f" (differs in {', '.join(keys)}: {mine.get(keys[0])!r} vs {theirs.get(keys[0])!r})"
+                raise PolicyError(
+                    f"{folder / Path(name).name}: plays another {what} than {Path(files[0]).name}{differ}"
+                )
+    return policies

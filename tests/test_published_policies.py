@@ -128,3 +128,33 @@ def test_roles_reads_another_methods_published_folder_and_names_a_wrong_one(tmp_
     assert "sa_seed0_update183.ocv2policy: not listed in" in wrong_method.stderr
     no_episodes = subprocess.run([*run, "--episodes", "0"], capture_output=True, text=True)
     assert no_episodes.returncode == 2 and "--episodes" in no_episodes.stderr and "Traceback" not in no_episodes.stderr
+
+
+def test_a_population_is_one_game_and_one_network_or_the_file_that_differs_is_named(tmp_path):
+    """load_population (what roles.py reads with) once played every seed in seed 0's environment: a seed exported
+    for a 50-step game, or with another network, is refused by name rather than measured in the wrong game."""
+    from population import published
+    from population.policy import PolicyError, export
+
+    names = ["sp_seed0_update183.ocv2policy", "sp_seed1_update183.ocv2policy"]
+    first, second = (load(POLICIES / name) for name in names)
+    for what, env, activation, said in (
+        ("game", {**second.env, "max_steps": 50}, second.activation, "plays another environment than"),
+        ("network", second.env, "tanh", "plays another network than"),
+    ):
+        folder = tmp_path / what
+        export(folder / names[0], params=first.params, model=first.model, env=first.env, activation=first.activation)
+        export(folder / names[1], params=second.params, model=second.model, env=env, activation=activation)
+        published.write_listing(
+            folder,
+            [
+                published.PublishedPolicy(n, seed, 183, None, published.sha256_of(folder / n))
+                for seed, n in enumerate(names)
+            ],
+        )
+        with pytest.raises(PolicyError, match=f"{names[1]}: {said} {names[0]}"):
+            published.load_population(folder, names)
+    loaded = published.load_population(POLICIES, names)
+    assert [p.env for p in loaded] == [first.env, first.env]
+    with pytest.raises(PolicyError, match="max_steps: 50 vs 400"):
+        published.load_population(tmp_path / "game", names)

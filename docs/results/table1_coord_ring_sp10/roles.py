@@ -30,8 +30,8 @@ import numpy as np
 
 from cluster.cli.args import positive_int
 from population.behaviour import ROLES, pot_use, role_counts
-from population.policy import PolicyError, load, policy_env
-from population.published import verify
+from population.policy import PolicyError, policy_env
+from population.published import load_population
 from population.record import play_recorded
 
 HERE = Path(__file__).resolve().parent
@@ -55,8 +55,7 @@ def main() -> None:
     args = parser.parse_args()
     files = [args.policies / f"{args.method}_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
     try:
-        verify(args.policies, files)
-        policies = [load(path) for path in files]
+        policies = load_population(args.policies, files)  # checked sums, one game, one network
     except PolicyError as error:
         sys.exit(str(error))
     for path, policy in zip(files, policies, strict=True):
