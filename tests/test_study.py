@@ -833,6 +833,23 @@ def test_a_kept_spec_that_no_longer_parses_names_study_json(finished, tmp_path, 
         assert f"{out / 'study.json'}: spec: " in err and "run 'sp'.paper.sp: expected a number" in err, err[:300]
 
 
+def test_a_kept_override_that_no_longer_loads_names_study_json_not_the_study_file(finished, tmp_path, capsys):
+    """The bad value is in the spec study.json keeps; the error named the study file, which may hold no such value,
+    and status said nothing of a run that could not go on."""
+    out = _copy(finished, tmp_path / "study")
+    state = json.loads((out / "study.json").read_text())
+    state["spec"]["set"] = [*state["spec"]["set"], "run.num_checkpoints=abc"]
+    del state["steps"]["train sa"]  # sa not trained yet: status plans it
+    shutil.rmtree(out / "runs" / "sa")
+    (out / "study.json").write_text(json.dumps(state))
+    assert main(["study", "report", str(out)]) == 2
+    err = _one_line(capsys)
+    assert err.startswith(f"ocv2 study: error: {out / 'study.json'} (the spec it keeps from ") and "'abc'" in err
+    assert main(["study", "status", str(out)]) == 0
+    (line,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("train sa ")]
+    assert f"cannot go on: {out / 'study.json'} (the spec it keeps from" in line
+
+
 def test_paths_that_are_files_are_one_line_errors(finished, tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("mine")

@@ -173,7 +173,8 @@ def kept_study(state: StudyState, out: Path) -> Study:
         study = parse_study(state.spec, Path(state.source or Path(out) / "study.yaml"))
     except StudyError as error:
         raise StudyError(f"{Path(out) / STATE_NAME}: spec: {error}") from None
-    return with_overrides(study, list(state.overrides))
+    kept = dataclasses.replace(study, where=f"{Path(out) / STATE_NAME} (the spec it keeps from {study.path.name})")
+    return with_overrides(kept, list(state.overrides))
 
 
 class StateFile:
@@ -263,14 +264,14 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
         try:
             check_fits(config, place)
         except ConfigError as error:
-            raise StudyError(f"{study.path}: run {name!r}: {error}") from None
+            raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
     _check_retrain(study, out, retrain)
     for run in study.runs:
         differences = trained_differences(run_dir(out, run.name), configs[run.name])
         if differences and run.name not in retrain:
             more = f" and {len(differences) - 2} more" if len(differences) > 2 else ""
             raise StudyError(
-                f"{study.path}: run {run.name!r}: {run_dir(out, run.name)} was trained with another config "
+                f"{study.origin}: run {run.name!r}: {run_dir(out, run.name)} was trained with another config "
                 f"({'; '.join(differences[:2])}{more}); undo the change, or pass --retrain {run.name} to train it "
                 "again (the trained run and its cross-play move to replaced/)"
             )
@@ -690,12 +691,12 @@ def study_status(out) -> list[dict]:
         raise StudyError(f"{out}: not a study directory (no {STATE_NAME})")
     study = kept_study(state, out)
     rates = _rates(study, out, state)
-    configs = {}
+    configs, unplanned = {}, {}
     for run in study.runs:  # what a run not started yet will train (the budget and seeds the study keeps)
         try:
             configs[run.name] = run_config(study, run, out, state.budget, state.seeds, state.budget_mode)
-        except StudyError:
-            pass
+        except StudyError as error:  # shown beside the step: `study run` would stop on it
+            unplanned[run.name] = str(error)
     entries = []
     for one in study_steps(study):
         name = one.name
@@ -707,6 +708,8 @@ def study_status(out) -> list[dict]:
             entry.update(_train_progress(path, configs.get(one.target), rates))
             if status != "done" and entry.pop("finished", False):
                 entry["status"] = "done"
+            if one.target in unplanned and entry["status"] != "done":
+                entry["progress"] = f"{entry['progress']}; cannot go on: {unplanned[one.target]}"
         if status == "running":
             if not DirLock(out).held_elsewhere():
                 entry["status"] = "interrupted"

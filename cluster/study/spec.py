@@ -105,6 +105,12 @@ class Study:
     comparisons: tuple[Comparison, ...]
     over_training: tuple[str, ...]
     raw: Mapping  # the file's data, kept in the study directory
+    where: str = ""  # what errors name, when the data is not read from ``path`` (a study directory's study.json)
+
+    @property
+    def origin(self) -> str:
+        """Where the study's data was read from, for messages."""
+        return self.where or str(self.path)
 
     def run(self, name: str) -> RunSpec:
         """The run named ``name`` (``StopIteration`` when there is none; the parser checks names)."""
@@ -327,7 +333,7 @@ def run_config(
     """The config ``run`` trains with in study directory ``out`` at ``budget`` (a fraction of
     ``total_timesteps``, applied as ``budget_mode``: see ``budget_overrides``) and ``seeds`` (None: the
     config's own)."""
-    where = f"{study.path}: run {run.name!r}"
+    where = f"{study.origin}: run {run.name!r}"
     overrides = [*STUDY_DEFAULTS, *run.overrides]
     if seeds is not None:
         overrides.append(f"population.num_seeds={seeds}")
