@@ -637,6 +637,17 @@ def test_seeds_that_a_prng_key_cannot_hold_are_refused_by_name(tmp_path, capsys,
     assert said in capsys.readouterr().err
 
 
+def test_xp_refuses_a_source_given_twice_in_one_list(tmp_path, capsys):
+    """Given twice, a source was its own partner under two labels: its self-play counted as cross-play."""
+    policy = tmp_path / "a.ocv2policy"
+    policy.write_bytes(b"")  # refused before anything is read
+    same = [str(policy), str(tmp_path / "." / "a.ocv2policy")]
+    assert main(["xp", "--rows", *same, "--backend", "local"]) == 2
+    assert f"--rows: {same[1]} is given twice (also as {same[0]})" in capsys.readouterr().err
+    assert main(["xp", "--rows", str(policy), "--cols", "human-proxy:coord_ring", "human-proxy:coord_ring"]) == 2
+    assert "--cols: human-proxy:coord_ring is given twice" in capsys.readouterr().err
+
+
 def test_checkpoint_of_another_config_is_refused(sp_run, tmp_path, capsys):
     # A second run directory whose config differs only in ppo.lr, holding the first run's checkpoints.
     other = tmp_path / "other"

@@ -130,7 +130,20 @@ def run_xp(args) -> int:
         raise CLIError(f"give either RUN_DIR ({args.run_dir}) or --rows, not both")
     if args.wait:
         raise CLIError("--wait: only with RUN_DIR (--rows reads checkpoints and takes no run's lock)")
+    for flag, sources in (("--rows", args.rows), ("--cols", args.cols or [])):
+        _refuse_repeats(flag, sources)
     return _cross_run(args)
+
+
+def _refuse_repeats(flag: str, sources: list[str]) -> None:
+    """A source given twice in one list would be its own partner under two labels: its self-play cell counted as
+    cross-play (and the pooled matrix's diagonal blocks all NaN)."""
+    seen: dict = {}
+    for text in sources:
+        key = text if ":" in text and not Path(text).exists() else Path(text).resolve()  # human-proxy:LAYOUT
+        if key in seen:
+            raise CLIError(f"{flag}: {text} is given twice (also as {seen[key]}); give each source once")
+        seen[key] = text
 
 
 def _in_run(args) -> int:
