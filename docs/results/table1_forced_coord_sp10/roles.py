@@ -17,8 +17,8 @@ with ``--pairs``, one more per ordered pair ``i,j`` (seat 0, the right cook, fro
 
 - onions and plates put down on each middle counter (by either seat, as a share of that item's put-downs; the
   count beside it), and how many were put down anywhere else;
-- the share of those put down on the middle counters that were taken up again (a pair whose right cook does not
-  collect what the left one hands over leaves it lying there);
+- the share of those put down on the middle counters that the right cook (seat 0) took up (a pair whose right cook
+  does not collect what the left one hands over leaves it lying there);
 - plates handed over per soup delivered (1.0: one plate crosses for each soup; more: plates wait on the counter);
 - the share of the right seat's onions that go into the top pot (3, 0) rather than the right one (4, 1);
 - the mean return.
@@ -51,7 +51,7 @@ class Handover(NamedTuple):
 
     shares: np.ndarray  # float[3]: each MIDDLE counter's share of the put-downs there
     put: int  # put down on the middle counters
-    taken: int  # taken up from them
+    taken: int  # taken up from them by the right cook
     elsewhere: int  # put down on any other counter
 
 
@@ -66,7 +66,7 @@ def handovers(states) -> dict[str, Handover]:
     out = {}
     for kind in HANDED:
         put = use.put[:, ITEM_KINDS.index(kind), :].sum(axis=1)
-        taken = use.taken[:, ITEM_KINDS.index(kind), :].sum(axis=1)
+        taken = use.taken[:, ITEM_KINDS.index(kind), RIGHT_SEAT]
         on_middle = middle(put)
         total = int(on_middle.sum())
         out[kind] = Handover(on_middle / max(total, 1), total, int(middle(taken).sum()), int(put.sum()) - total)
@@ -76,8 +76,8 @@ def handovers(states) -> dict[str, Handover]:
 def table_header() -> str:
     counters = "/".join(f"({x},{y})" for x, y in MIDDLE)
     return (
-        f"| seed | onions on {counters} (of n; elsewhere) | onions taken up | plates on {counters} (of n; elsewhere) "
-        "| plates taken up | plates handed per soup | right seat's onions into the top pot | return |\n"
+        f"| seed | onions on {counters} (of n; elsewhere) | onions the right cook took | plates on {counters} (of n; elsewhere) "
+        "| plates the right cook took | plates handed per soup | right seat's onions into the top pot | return |\n"
         "|---:|---|---:|---|---:|---:|---:|---:|"
     )
 
