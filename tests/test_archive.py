@@ -281,6 +281,20 @@ def test_replay_to_gif(archive, tmp_path, capsys):
         assert gif.n_frames == STEPS + 1 and gif.size == (5 * 8, 4 * 8)
 
 
+def test_replay_checks_the_frame_size_and_never_replaces_a_file_unless_forced(archive, tmp_path, capsys):
+    """--tile-size 9999 once drew 20 GB of frames until the kernel killed it; a GIF there was written over."""
+    out = tmp_path / "ep.gif"
+    assert main(["archive", "replay", archive, "--out", str(out), "--tile-size", "9999"]) == 2
+    assert "the tile size for cramped_room is at most" in capsys.readouterr().err and not out.exists()
+    out.write_text("precious")
+    assert main(["archive", "replay", archive, "--out", str(out), "--tile-size", "8"]) == 2
+    assert "exists; pass --force to replace it" in capsys.readouterr().err and out.read_text() == "precious"
+    assert main(["archive", "replay", archive, "--out", str(out), "--tile-size", "8", "--force"]) == 0
+    (tmp_path / "file").write_text("x")
+    assert main(["archive", "recover", archive, "--out", str(tmp_path / "file" / "x.mcap")]) == 2
+    assert "lies under" in capsys.readouterr().err
+
+
 def test_archive_as_sa_buffer(archive, recorded, env):
     buffer = states_as_buffer(archive, keep_every=10)
     kept = list(range(0, STEPS, 10))

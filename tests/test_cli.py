@@ -101,6 +101,15 @@ def test_render_creates_missing_output_folder(tmp_path):
     assert main(["render", "cramped_room", "--steps", "3", "--out", str(blocker / "demo.gif")]) == 2
 
 
+def test_render_never_replaces_a_file_unless_forced(tmp_path, capsys):
+    out = tmp_path / "kept.gif"
+    out.write_text("precious")
+    assert main(["render", "cramped_room", "--steps", "2", "--out", str(out)]) == 2
+    assert "exists; pass --force to replace it" in capsys.readouterr().err and out.read_text() == "precious"
+    assert main(["render", "cramped_room", "--steps", "2", "--out", str(out), "--force"]) == 0
+    assert out.read_bytes()[:3] == b"GIF"
+
+
 def test_version(capsys):
     assert main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"ocv2 {version()}"

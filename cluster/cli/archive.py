@@ -13,9 +13,9 @@ import os
 import sys
 
 from cluster.archive import PARTIAL_SUFFIX, ArchiveError, ArchiveReader, recover
-from cluster.cli.args import int_at_least
+from cluster.cli.args import check_new_file, check_not_under_a_file, int_at_least
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
-from ocv2.render import render_frames, write_gif
+from ocv2.render import check_frame_size, render_frames, write_gif
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -58,7 +58,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
         metavar="N",
         help="episode number, as 'info' lists it in its # column (default 0)",
     )
-    replay.add_argument("--out", required=True, help="GIF file to write")
+    replay.add_argument("--out", required=True, help="GIF file to write (a new one unless --force)")
+    replay.add_argument("--force", action="store_true", help="replace --out if it exists")
     replay.add_argument("--fps", type=float, default=5.0, help="frames per second (default 5)")
     replay.add_argument("--tile-size", type=int, default=32, help="pixels per cell (default 32)")
     replay.add_argument(
@@ -174,6 +175,7 @@ def _replay(args) -> int:
         raise CLIError(f"--tile-size must be a positive integer, got {args.tile_size}")
     if args.view_radius is not None and args.view_radius < 0:
         raise CLIError(f"--view-radius must be >= 0, got {args.view_radius}")
+    check_new_file("--out", args.out, force=args.force)
     reader = _reader(args.file)
     try:
         index = reader.position(args.episode)  # the stored number info lists, not the position in the file
@@ -181,6 +183,10 @@ def _replay(args) -> int:
         layout = reader.layout(index)
     except ArchiveError as error:
         raise CLIError(str(error)) from None
+    try:  # the frames of one GIF live in memory together: refused before anything is drawn
+        check_frame_size(layout, args.tile_size, frames=len(episode.states.step))
+    except ValueError as error:
+        raise CLIError(f"--tile-size {args.tile_size}: {error}") from None
     frames = render_frames(episode.states, layout, agent_view_size=args.view_radius, tile_size=args.tile_size)
     folder = os.path.dirname(os.path.abspath(args.out))
     try:
@@ -204,6 +210,7 @@ def _recover(args) -> int:
         else:
             stem = args.file[: -len(".mcap")] if args.file.endswith(".mcap") else args.file
             out = stem + ".recovered.mcap"
+    check_not_under_a_file("--out", out)
     if os.path.exists(out) and not args.force:
         raise CLIError(f"{out!r} already exists; choose another --out or pass --force")
     try:

@@ -50,7 +50,7 @@ from rich.console import Console
 from rich.table import Table
 
 import ocv2
-from cluster.cli.args import fps, layout_or_error, non_negative_int, positive_int, seed
+from cluster.cli.args import check_new_file, fps, layout_or_error, non_negative_int, positive_int, seed
 from cluster.cli.errors import (  # noqa: F401 (EXIT_* re-exported)
     EXIT_FAILURE,
     EXIT_OK,
@@ -152,7 +152,8 @@ def _add_render(sub) -> argparse.ArgumentParser:
     )
     parser.add_argument("layout", help="layout name (see 'ocv2 layouts')")
     parser.add_argument("--steps", type=non_negative_int, default=50, help="transitions to play (default 50)")
-    parser.add_argument("--out", required=True, help="GIF file to write")
+    parser.add_argument("--out", required=True, help="GIF file to write (a new one unless --force)")
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
     parser.add_argument("--seed", type=seed, default=0, help="PRNG seed (default 0)")
     parser.add_argument("--fps", type=fps, default=5.0, help="frames per second (default 5)")
     parser.add_argument(
@@ -173,9 +174,8 @@ def _cmd_render(args) -> int:
         check_frame_size(layout, args.tile_size, frames=args.steps + 1)
     except ValueError as error:
         raise CLIError(f"--steps {args.steps} with --tile-size {args.tile_size}: {error}") from None
+    check_new_file("--out", args.out, force=args.force)
     folder = os.path.dirname(os.path.abspath(args.out))
-    if os.path.exists(folder) and not os.path.isdir(folder):
-        raise CLIError(f"--out: {folder!r} exists and is not a folder")
     os.makedirs(folder, exist_ok=True)  # like the run directories to come: create what is missing
     env = ocv2.make(layout)
     states = rollout_states(env, jax.random.PRNGKey(args.seed), args.steps)
