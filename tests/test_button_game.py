@@ -211,6 +211,22 @@ def test_cli_writes_csv_and_png(tmp_path, capsys):
         assert image.format == "PNG" and min(image.size) > 200
 
 
+def test_cli_keeps_earlier_results_unless_forced_and_titles_the_settings_used(tmp_path, capsys, monkeypatch):
+    from cluster.cli import button_game as cmd
+
+    out = tmp_path / "bg"
+    argv = ["button-game", "--seeds", "2", "--episodes", "50", "--out", str(out)]
+    assert main(argv) == 0
+    first = (out / "button_game_xp.csv").read_bytes()
+    assert main([*argv, "--seed", "7"]) == 2
+    assert "holds button_game_xp.csv and button_game_xp.png of an earlier run" in capsys.readouterr().err
+    assert (out / "button_game_xp.csv").read_bytes() == first
+    titles = []
+    monkeypatch.setattr(cmd, "plot_heatmap", lambda path, matrix, labels, title: titles.append(title))
+    assert main([*argv, "--seed", "7", "--epsilon", "0.2", "--force"]) == 0
+    assert "eps=0.2" in titles[0] and "seed 7" in titles[0]  # the title said eps=0.01 whatever was asked
+
+
 @pytest.mark.parametrize(
     "argv, flag",
     [

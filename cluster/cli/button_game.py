@@ -53,6 +53,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="self-play pairs to train (default 10)",
     )
     parser.add_argument("--out", metavar="DIR", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
+    parser.add_argument("--force", action="store_true", help="replace the results of an earlier run in --out")
     parser.add_argument(
         "--seed",
         metavar="S",
@@ -103,6 +104,12 @@ def run(args) -> int:
         raise CLIError(f"--out: {args.out!r} exists and is not a folder")
     if os.path.isfile(os.path.join(args.out, "config.yaml")):
         raise CLIError(f"--out {args.out}: is a run directory; give a folder of its own")
+    earlier = [name for name in (CSV_NAME, PNG_NAME) if os.path.exists(os.path.join(args.out, name))]
+    if earlier and not args.force:
+        raise CLIError(
+            f"--out {args.out}: holds {' and '.join(earlier)} of an earlier run; pass --force to replace them, "
+            "or give a new folder"
+        )
     try:
         os.makedirs(args.out, exist_ok=True)
     except OSError as error:
@@ -116,7 +123,7 @@ def run(args) -> int:
     png_path = os.path.join(args.out, PNG_NAME)
     title = (
         f"Button Game cross-play (N={game.num_buttons}, {args.seeds} SP pairs, "
-        f"{iql.episodes} games, eps={DEFAULT_EPSILON:g})"
+        f"{iql.episodes} games, eps={iql.epsilon:g}, lr={iql.learning_rate:g}, seed {args.seed})"
     )
     written = [csv_path]
     try:
