@@ -110,6 +110,22 @@ def test_render_never_replaces_a_file_unless_forced(tmp_path, capsys):
     assert out.read_bytes()[:3] == b"GIF"
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "configs/smoke.yaml"],
+        ["xp", "--rows", "x"],
+        ["report", "x"],
+        ["study", "pack", "x"],
+        ["render", "cramped_room"],
+    ],
+)
+def test_an_empty_out_is_refused_rather_than_falling_back_to_the_default(argv, capsys):
+    """`--out "$OUT"` with OUT unset once trained into runs/<layout>_<method>_<time> without a word."""
+    assert main([*argv, "--out", ""]) == 2
+    assert "--out: an empty path (an unset variable?)" in capsys.readouterr().err
+
+
 def test_version(capsys):
     assert main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"ocv2 {version()}"

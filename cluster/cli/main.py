@@ -410,6 +410,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.log_verbose and args.log_quiet:
         print("ocv2: error: -v and -q contradict each other; give one", file=sys.stderr)
         return EXIT_USAGE
+    if isinstance(getattr(args, "out", None), str) and not args.out.strip():  # "$OUT" of an unset variable
+        print(f"ocv2 {args.command}: error: --out: an empty path (an unset variable?)", file=sys.stderr)
+        return EXIT_USAGE
     if args.log_quiet and hasattr(args, "quiet"):
         args.quiet = True  # the command's own --quiet also turns its progress bar off
     quiet = args.log_quiet or getattr(args, "quiet", False) is True
