@@ -41,7 +41,7 @@ import ocv2
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population import checkpoints as ckpt
-from population.config import Config, ConfigError, ModelConfig, load_config, parse_config
+from population.config import Config, ConfigError, ModelConfig, load_run_config, parse_config
 from population.networks import init_params, make_network
 from population.sealed import SealError, is_sealed, seal, unseal
 
@@ -280,7 +280,7 @@ def _pick_update(run_dir: Path, config: Config, seed: int, checkpoint) -> int:
 
 def _run_config(run_dir: Path) -> Config:
     try:
-        return load_config(run_dir / "config.yaml")
+        return load_run_config(run_dir)
     except ConfigError as error:
         raise PolicyError(str(error)) from None
 

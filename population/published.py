@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ocv2.atomic import atomic_write
 from population import checkpoints as ckpt
-from population.config import load_config
+from population.config import load_run_config
 from population.policy import SUFFIX, Policy, PolicyError, export_checkpoint, load
 
 SUMS = "SHA256SUMS.json"
@@ -96,7 +96,7 @@ def publish_checkpoint(run_dir, folder, seed: int, update: int) -> PublishedPoli
     """Export ``run_dir``'s seed ``seed`` at update ``update`` into ``folder`` and return its listing entry
     (not yet written into SHA256SUMS.json: ``write_listing`` does that once for many files)."""
     run_dir, folder = Path(run_dir), Path(folder)
-    config = load_config(run_dir / "config.yaml")
+    config = load_run_config(run_dir)
     path = folder / policy_name(run_dir.name, seed, update)
     export_checkpoint(run_dir, path, seed=seed, checkpoint=update)
     return PublishedPolicy(path.name, seed, update, update * config.ppo.steps_per_update, sha256_of(path))
@@ -113,7 +113,7 @@ def updates_to_publish(run_dir, seed: int, which: str = "snapshots") -> list[int
         return on_disk
     if which == "final":
         return on_disk[-1:]
-    config = load_config(run_dir / "config.yaml")
+    config = load_run_config(run_dir)
     kept = set(ckpt.snapshot_updates(config.ppo.num_updates, config.run.num_checkpoints))
     return [u for u in on_disk if u in kept]
 
@@ -141,7 +141,7 @@ def publish_runs(run_dirs, folder, which: str = "snapshots") -> dict[str, list[P
     known = {e.file for e in listing}
     plan = {}
     for run_dir in run_dirs:
-        config = load_config(run_dir / "config.yaml")
+        config = load_run_config(run_dir)
         plan[run_dir] = [
             (seed, update)
             for seed in range(config.population.num_seeds)

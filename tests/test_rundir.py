@@ -130,6 +130,18 @@ def test_an_empty_or_invalid_manifest_is_reported(tmp_path, config, capsys, text
     assert message in capsys.readouterr().err
 
 
+def test_an_empty_config_yaml_in_a_run_is_damage_not_the_default_config(tmp_path, config, capsys):
+    """An empty config.yaml read as the all-defaults config: export said "no checkpoint at update 457" and
+    --resume listed 28 changed keys, where the file itself was the problem."""
+    run, _ = RunDir.open(tmp_path / "run", config)
+    run.close()
+    run.config_path.write_text("\n")
+    with pytest.raises(RunDirError, match=r"config.yaml: empty \(damaged\)"):
+        RunDir.existing(tmp_path / "run").load_config()
+    assert main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "p.ocv2policy")]) == 2
+    assert "config.yaml: empty (damaged)" in capsys.readouterr().err
+
+
 def test_stale_temporaries_are_removed_when_a_run_is_opened(tmp_path, config, caplog):
     run, _ = RunDir.open(tmp_path / "run", config)
     run.close()

@@ -30,7 +30,7 @@ from ocv2.render import INGREDIENT_COLORS, check_frame_size, render
 from ocv2.state import State
 from population import checkpoints as ckpt
 from population import policy as policies
-from population.config import ConfigError, load_config
+from population.config import ConfigError, load_run_config
 
 #: Cells outside a human's view window are painted this colour: the human sees what their agent sees.
 HIDDEN_RGB = (24, 24, 24)
@@ -175,7 +175,7 @@ def load_policy_partner(path) -> Partner:
             "policy", policy.name, policy.apply, policy.params, policy.hidden_size, str(path), env_kwargs=policy.env
         )
     try:
-        fingerprint = load_config(run_dir / "config.yaml").fingerprint()  # policy.load read the same file
+        fingerprint = load_run_config(run_dir).fingerprint()  # policy.load read the same file
     except ConfigError as error:
         raise PartnerError(f"--partner: {error}") from None
     label = f"seed_{policy.meta['seed']}@update_{policy.meta['update']}"

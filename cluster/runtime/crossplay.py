@@ -32,7 +32,7 @@ import numpy as np
 from cluster.runtime.jobs import InProcessWorkers, spread_jobs
 from cluster.runtime.ray_backend import RayWorkers, actor_env, ray, session
 from cluster.runtime.rundir import write_csv, write_json, write_matrix_csv
-from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_config
+from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_run_config
 from population.evaluation import stack_params
 from population.human import proxy_path
 from population.keys import derive_key
@@ -96,7 +96,7 @@ def _human_proxy_path(layout: str) -> Path:
 
 def _run_group(text: str, path: Path, checkpoint) -> PolicyGroup:
     try:
-        config = load_config(path / "config.yaml")
+        config = load_run_config(path)
     except ConfigError as error:
         raise CrossPlayError(str(error)) from None
     policies = [_load(text, path, checkpoint, seed) for seed in range(config.population.num_seeds)]

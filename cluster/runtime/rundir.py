@@ -35,7 +35,7 @@ import numpy as np
 from cluster.runtime.environment import environment_record
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write, is_temporary, remove_stale_temporaries
-from population.config import Config, ConfigError, dump_config, load_config
+from population.config import Config, ConfigError, dump_config, load_run_config
 
 log = logging.getLogger(__name__)
 
@@ -296,7 +296,7 @@ class RunDir:
     # config, manifest, environment ------------------------------------------------------------------
     def load_config(self) -> Config:
         try:
-            return load_config(self.config_path)
+            return load_run_config(self.path)
         except ConfigError as error:
             raise RunDirError(f"{self.path}: its config.yaml is unusable: {error}") from None
 

@@ -21,6 +21,7 @@ from population.config.parse import (
     RAY_LAUNCHER_KEYS,
     is_ray_launcher_config,
     load_config,
+    load_run_config,
     parse_config,
 )
 from population.config.schema import (
@@ -95,6 +96,7 @@ __all__ = [
     "dump_config",
     "is_ray_launcher_config",
     "load_config",
+    "load_run_config",
     "load_yaml_text",
     "paper_config_files",
     "paper_sp_ppo",

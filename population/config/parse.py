@@ -45,6 +45,19 @@ def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> Confi
         raise error.prefixed(path) from None
 
 
+def load_run_config(run_dir: str | os.PathLike) -> Config:
+    """A run directory's ``config.yaml``. ocv2 writes every key there, so an empty file is damage, not the
+    all-defaults config an empty YAML file means elsewhere: refused by name rather than read as another run."""
+    path = os.path.join(os.fspath(run_dir), "config.yaml")
+    raw = read_yaml(path)
+    if raw is None:
+        raise ConfigError(f"{path}: empty (damaged): a run's config.yaml holds every key of the run's config")
+    try:
+        return parse_config(raw)
+    except ConfigError as error:
+        raise error.prefixed(path) from None
+
+
 def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     """Validate a nested mapping (e.g. from YAML) into a ``Config``; a ConfigError lists every problem."""
     if not isinstance(raw, Mapping):
