@@ -282,12 +282,14 @@ def _read_member(path: Path, name: str) -> tuple[str, io.BytesIO]:
     raise HumanDataError(f"{path}: the archive holds no {name}")
 
 
-def rows_from_frame(frame) -> list[dict]:
-    """The DataFrame's rows as dicts of the ``ROW_KEYS`` (what ``trials_from_rows`` takes)."""
+def rows_from_frame(frame, where: str = "the human data") -> list[dict]:
+    """The DataFrame's rows as dicts of the ``ROW_KEYS`` (what ``trials_from_rows`` takes); ``where`` names the
+    table in an error."""
     missing = [k for k in ROW_KEYS if k not in frame.columns]
     if missing:
-        raise HumanDataError(f"the human data lacks column(s) {missing}; expected the overcooked-ai 1.1.0 trials")
-    return frame[list(ROW_KEYS) + ["next_state"]].to_dict("records")
+        raise HumanDataError(f"{where} lacks column(s) {missing}; expected the overcooked-ai 1.1.0 trials")
+    extra = ["next_state"] if "next_state" in frame.columns else []  # optional: the last row's state ends a game
+    return frame[list(ROW_KEYS) + extra].to_dict("records")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -300,7 +302,9 @@ def check_layout(source_layout: str, grid_text: str) -> Layout:
     if source_layout not in LAYOUT_MAP:
         raise HumanDataError(f"layout {source_layout!r} has no ocv2 counterpart; known: {', '.join(LAYOUT_MAP)}")
     layout = get_layout(LAYOUT_MAP[source_layout])
-    rows = ast.literal_eval(grid_text) if isinstance(grid_text, str) else list(grid_text)
+    rows = _parse(grid_text, f"layout {source_layout!r}: the recorded map")
+    if not isinstance(rows, list | tuple) or not all(isinstance(row, str | list | tuple) for row in rows):
+        raise HumanDataError(f"layout {source_layout!r}: the recorded map {grid_text!r} is not a list of rows")
     try:
         mapped = Layout.from_string(
             "\n".join("".join(_CHAR_MAP[c] for c in row) for row in rows),
@@ -451,7 +455,9 @@ def _trial(source_layout: str, worker: int, split: str, rows: list[dict]) -> Tri
             states.append(state_from_record(layout, record, t, delivered))
             joint = _parse(row["joint_action"], f"{where}, row {t} joint_action")
             actions.append([action_index(a) for a in joint])
-        except (KeyError, TypeError, ValueError) as error:  # HumanDataError is a ValueError
+        except KeyError as error:
+            raise HumanDataError(f"{where}, row {t}: the state has no key {error}") from None
+        except (TypeError, ValueError) as error:  # HumanDataError is a ValueError
             raise HumanDataError(f"{where}, row {t}: {error}") from None
         reward = float(row["reward"]) * REWARD_SCALE
         rewards.append(reward)

@@ -95,6 +95,23 @@ def test_bad_rows_name_the_problem(rows):
         human.trials_from_rows(rows["test"], "test", layouts=["two_rooms"])
     with pytest.raises(human.HumanDataError, match="no such file"):
         human.read_frame("/nonexistent/overcooked_ai-1.1.0.tar.gz", "train")
+    for layout in ("garbage", "[1, 2", "42"):  # a map that is not a list of rows: once a SyntaxError traceback
+        with pytest.raises(human.HumanDataError, match="layout 'cramped_room': the recorded map"):
+            human.trials_from_rows([dict(r, layout=layout) for r in rows["test"][:5]], "test")
+    no_players = [dict(r) for r in rows["test"][:5]]
+    no_players[2]["state"] = "{'objects': []}"
+    with pytest.raises(human.HumanDataError, match="row 2: the state has no key 'players'"):
+        human.trials_from_rows(no_players, "test")
+
+
+def test_a_table_without_a_needed_column_is_named(rows):
+    import pandas as pd
+
+    frame = pd.DataFrame(rows["test"][:5]).drop(columns=["reward"])
+    with pytest.raises(human.HumanDataError, match=r"clean_test_trials.pickle lacks column\(s\) \['reward'\]"):
+        human.rows_from_frame(frame, "clean_test_trials.pickle")
+    without_next = pd.DataFrame(rows["test"][:5]).drop(columns=["next_state"], errors="ignore")
+    assert len(human.trials_from_rows(human.rows_from_frame(without_next), "test")) == 1  # next_state is optional
 
 
 class _Payload:

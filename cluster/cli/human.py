@@ -132,7 +132,8 @@ def _warn_once(message: str, _seen: set = set()) -> None:  # noqa: B006 -- the s
 def _load(source: str, split: str, layouts, max_trials) -> list[human.Trial]:
     try:
         frame = human.read_frame(source, split, warn=_warn_once)
-        return human.trials_from_rows(human.rows_from_frame(frame), split, layouts, max_trials)
+        rows = human.rows_from_frame(frame, f"{source} ({split} split)")
+        return human.trials_from_rows(rows, split, layouts, max_trials)
     except human.HumanDataError as error:
         raise CLIError(str(error), EXIT_FAILURE) from None
 
