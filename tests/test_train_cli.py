@@ -484,7 +484,8 @@ def test_a_full_disk_is_a_one_line_error_and_the_run_resumes(sp_run, tmp_path, c
     monkeypatch.setattr(ocv2.atomic, "_fsync_path", disk_fills_at_the_metrics_write)
     assert train(run, extra=["--resume", "--no-eval"]) == 1  # a failure, not a usage error
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "No space left on device" in err and "--resume" in err
+    assert len(err.splitlines()) == 1 and "No space left on device" in err
+    assert f"continue with `ocv2 train {SMOKE} --out {run} --backend local --resume`" in err  # as it was started
     assert (run / "metrics.csv").read_bytes() == metrics_before  # untouched, not half-written
     assert all(ckpt.list_updates(run, seed) == SNAPSHOTS for seed in range(NUM_SEEDS))
     assert not [p for p in run.rglob("*") if is_temporary(p)]
@@ -492,6 +493,20 @@ def test_a_full_disk_is_a_one_line_error_and_the_run_resumes(sp_run, tmp_path, c
     assert train(run, extra=["--resume", "--no-eval"]) == 0
     assert manifest(run)["status"] == "finished"
     _assert_same_run(run, sp_run)  # update 3-4 rows come back from the update-4 checkpoints' meta
+
+
+def test_a_run_that_could_not_start_is_not_told_to_resume(tmp_path, capsys, monkeypatch):
+    """A read-only --out once got "keeps its last complete checkpoint ... continue with --resume", with nothing
+    to resume and without the run's --set overrides."""
+
+    def read_only(path):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+
+    monkeypatch.setattr(ocv2.atomic, "_fsync_path", read_only)
+    assert train(tmp_path / "ro", "ppo.lr=1e-3", extra=["--no-eval"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "nothing was trained" in err and "--resume" not in err
+    assert f"`ocv2 train {SMOKE} --out {tmp_path / 'ro'} --set ppo.lr=1e-3 --backend local` again" in err
 
 
 def test_resume_refills_a_dropped_last_metrics_row_from_the_checkpoint(sp_run, tmp_path, capsys):

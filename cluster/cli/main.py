@@ -436,8 +436,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:
         return _reader_gone()
     except OSError as error:  # a full disk, a read-only or vanished folder, in any command: one line
-        print(f"ocv2 {args.command}: error: {os_error_message(error, getattr(args, 'os_error_advice', None))}",
-              file=sys.stderr)  # fmt: skip
+        advice = getattr(args, "os_error_advice", None)
+        advice = advice() if callable(advice) else advice  # a command may advise by what it had done by then
+        print(f"ocv2 {args.command}: error: {os_error_message(error, advice)}", file=sys.stderr)
         return EXIT_FAILURE
 
 

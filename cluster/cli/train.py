@@ -10,6 +10,8 @@ import argparse
 import datetime as _dt
 import logging
 import os
+import shlex
+from pathlib import Path
 
 from cluster.api import require_backend, train_population
 from cluster.archive import ArchiveError
@@ -67,6 +69,22 @@ def add_train(sub) -> argparse.ArgumentParser:
     return parser
 
 
+def resume_advice(args, out: str) -> str:
+    """What to do after a full disk or read-only folder stopped ``ocv2 train``: continue the run it had started, with
+    the overrides, backend and loggers it was started with, or, if it had not started, run it again."""
+    command = ["ocv2", "train", args.config, "--out", out]
+    command += [part for override in args.overrides for part in ("--set", override)]
+    command += ["--backend", args.backend] if args.backend != "ray" else []  # ray: the default
+    command += ["--address", args.address] if args.address else []
+    command += [part for logger in args.loggers for part in ("--logger", logger)]
+    if not (Path(out) / "manifest.json").is_file():
+        return f"nothing was trained; fix the cause (e.g. a read-only folder) and run `{shlex.join(command)}` again"
+    return (
+        f"{out} keeps its last complete checkpoint and metrics; fix the cause (e.g. free disk space) and "
+        f"continue with `{shlex.join([*command, '--resume'])}`"
+    )
+
+
 def run_train(args) -> int:
     """Train (or resume) the population ``args.config`` describes into its run directory. Returns
     ``EXIT_OK``; raises ``CLIError`` for a bad config, run directory, backend or logger."""
@@ -98,11 +116,9 @@ def run_train(args) -> int:
         check_loggers(args.loggers)
     except MissingExtraError as error:
         raise CLIError(str(error)) from None
-    # A full disk or a read-only folder while training: one line from cluster.cli.main (every write is atomic).
-    args.os_error_advice = (
-        f"{out} keeps its last complete checkpoint and metrics; fix the cause (e.g. free disk space) and "
-        f"continue with `ocv2 train {args.config} --out {out} --resume`"
-    )
+    # A full disk or a read-only folder while training: one line from cluster.cli.main (every write is atomic),
+    # whose advice depends on whether the run had started when it happened.
+    args.os_error_advice = lambda: resume_advice(args, out)
     if config.run.deterministic:  # XLA reads XLA_FLAGS once, when JAX starts: before anything runs JAX here
         applied, message = enable_deterministic_ops()
         log.log(logging.DEBUG if applied else logging.INFO, message)
