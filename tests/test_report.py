@@ -374,6 +374,25 @@ def test_validate_reports_every_bad_file_and_exits_1(tmp_path, capsys):
     assert "2 of 3 config(s) invalid" in captured.err
 
 
+def test_validate_and_train_refuse_the_same_missing_inputs_and_train_leaves_no_run_directory(tmp_path, capsys):
+    """validate said OK to SA archives that train refused, and train refused a bad FCP partner run only after
+    making the run directory, which then blocked the corrected command as "a run of a different config"."""
+    smoke = str(ROOT / "configs" / "smoke.yaml")
+    (tmp_path / "notes.mcap").write_text("not an archive")
+    cases = [
+        (["population.method=sa", f"population.sa.archives=[{tmp_path / 'nope.mcap'}]"], "population.sa.archives:"),
+        (["population.method=sa", f"population.sa.archives=[{tmp_path / 'notes.mcap'}]"], "population.sa.archives:"),
+        (["population.method=fcp", f"population.fcp.partners={tmp_path / 'none'}"], "population.fcp.partners:"),
+    ]
+    for overrides, said in cases:
+        sets = [part for override in overrides for part in ("--set", override)]
+        assert main(["validate", smoke, *sets]) == 1
+        assert f"FAIL {smoke}: {said}" in capsys.readouterr().err
+        out = tmp_path / "run"
+        assert main(["train", smoke, *sets, "--backend", "local", "--no-eval", "--quiet", "--out", str(out)]) == 2
+        assert said in capsys.readouterr().err and not out.exists()
+
+
 def test_validate_lists_every_problem_of_a_file(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("ppo: {lr: -1, lrr: 2}\nbogus: 1\neval: {episodes: 0}\n")

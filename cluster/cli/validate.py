@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
+from cluster.archive import ArchiveError
 from cluster.cli.args import add_set_option
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from cluster.runtime.coordinator import check_inputs
+from cluster.runtime.rundir import RunDirError
 from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
 from population.memory import check_fits, estimate
 
@@ -77,9 +79,10 @@ def check_config_file(path: str, overrides) -> tuple[str, object]:
             error.problems if all(p.startswith(f"{path}:") for p in error.problems) else error.prefixed(path).problems
         )
         return "fail", problems
-    partners = config.population.fcp.partners
-    if config.population.method == "fcp" and partners and not (Path(partners) / "config.yaml").is_file():
-        return "fail", [f"{path}: population.fcp.partners: {partners} is not an ocv2 run directory (no config.yaml)"]
+    try:  # what the run reads besides its config: what train checks before it makes a run directory
+        check_inputs(config)
+    except (RunDirError, ArchiveError) as error:
+        return "fail", [f"{path}: {error}"]
     return "ok", config
 
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from cluster.archive import ArchiveWriter, record_episodes, states_as_buffer
+from cluster.archive import ArchiveError, ArchiveReader, ArchiveWriter, record_episodes, states_as_buffer
 from cluster.runtime.environment import process_record
 from cluster.runtime.evaluate import post_training
 from cluster.runtime.interrupt import StoppedAfterChunk
@@ -92,9 +92,12 @@ def archived_states(config: Config):
     """``population.sa.archives`` as one numpy state batch (None without archives). Raises ArchiveError."""
     if not config.population.traits.resets_from_buffer or not config.population.sa.archives:
         return None
-    states = states_as_buffer(
-        list(config.population.sa.archives), config.population.sa.keep_every, layout=ppo.eval_env(config).layout
-    )
+    try:
+        states = states_as_buffer(
+            list(config.population.sa.archives), config.population.sa.keep_every, layout=ppo.eval_env(config).layout
+        )
+    except ArchiveError as error:
+        raise ArchiveError(f"population.sa.archives: {error}") from None
     return jax.tree.map(np.asarray, states)
 
 
@@ -126,32 +129,10 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
     and a list of labels per learner (P = k x checkpoints).
     """
     fcp = config.population.fcp
-    try:
-        partner_config = RunDir.existing(partner_run).load_config()
-    except RunDirError as error:
-        raise RunDirError(f"population.fcp.partners: {error}") from None
-    if partner_config.env != config.env or same_function(partner_config.model) != same_function(config.model):
-        raise RunDirError(
-            f"population.fcp.partners: {partner_run} was trained with a different env or model "
-            "section; FCP partners must play the same game with the same network"
-        )
+    partner_config = checked_partner_config(config, partner_run)
     twin = twin_seed_warning(config, partner_config, partner_run)
     if twin:
         log.warning(twin)
-    needed = fcp.stage_seeds(config.population.num_seeds)
-    if partner_config.population.num_seeds < needed:
-        per_learner = (
-            (
-                f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed; "
-                "population.fcp.pool=shared needs partner_seeds)"
-            )
-            if fcp.per_seed
-            else ""
-        )
-        raise RunDirError(
-            f"population.fcp.partner_seeds: {needed} partner seeds needed{per_learner} but {partner_run} has "
-            f"{partner_config.population.num_seeds} seeds"
-        )
     snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
     template = params_template(trainer)
 
@@ -169,6 +150,61 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
         return pool_of(fcp.pool_seeds(0))
     pools = [pool_of(fcp.pool_seeds(learner)) for learner in range(config.population.num_seeds)]
     return jax.tree.map(lambda *xs: np.stack(xs), *[p for p, _ in pools]), [labels for _, labels in pools]
+
+
+def checked_partner_config(config: Config, partner_run) -> Config:
+    """The partner run's config, checked for what ``load_pool`` will read, without loading a parameter: an ocv2
+    run of the same game and network, with enough seeds and each pool checkpoint on disk. ``RunDirError`` naming
+    ``population.fcp.partners`` (or ``partner_seeds``) otherwise; ``train`` asks before it makes a run directory."""
+    fcp = config.population.fcp
+    try:
+        partner_config = RunDir.existing(partner_run).load_config()
+    except RunDirError as error:
+        raise RunDirError(f"population.fcp.partners: {error}") from None
+    if partner_config.env != config.env or same_function(partner_config.model) != same_function(config.model):
+        raise RunDirError(
+            f"population.fcp.partners: {partner_run} was trained with a different env or model "
+            "section; FCP partners must play the same game with the same network"
+        )
+    needed = fcp.stage_seeds(config.population.num_seeds)
+    if partner_config.population.num_seeds < needed:
+        per_learner = (
+            (
+                f" ({config.population.num_seeds} learners x {fcp.partner_seeds}, pool per_seed; "
+                "population.fcp.pool=shared needs partner_seeds)"
+            )
+            if fcp.per_seed
+            else ""
+        )
+        raise RunDirError(
+            f"population.fcp.partner_seeds: {needed} partner seeds needed{per_learner} but {partner_run} has "
+            f"{partner_config.population.num_seeds} seeds"
+        )
+    snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
+    for seed in range(needed):
+        for name in fcp.checkpoints:
+            path = ckpt.checkpoint_path(partner_run, seed, ckpt.resolve_snapshot(name, snapshots))
+            if not path.is_file():
+                raise RunDirError(
+                    f"population.fcp.partners: {path} is missing (the {name} checkpoint of partner seed {seed}); "
+                    "is the partner run finished?"
+                )
+    return partner_config
+
+
+def check_inputs(config: Config) -> None:
+    """What a run reads besides its config, checked before anything is trained (``ocv2 validate`` too): the FCP
+    partner run (``checked_partner_config``) and that every ``population.sa.archives`` file opens as an ocv2
+    archive. ``RunDirError`` / ``ArchiveError`` naming the key."""
+    fcp = config.population.fcp
+    if config.population.traits.partner_pool and fcp.partners:
+        checked_partner_config(config, Path(fcp.partners))
+    if config.population.traits.resets_from_buffer:
+        for path in config.population.sa.archives:
+            try:
+                ArchiveReader(path)
+            except ArchiveError as error:
+                raise ArchiveError(f"population.sa.archives: {error}") from None
 
 
 def twin_seed_warning(config: Config, partner_config: Config, partner_run) -> str | None:
@@ -264,6 +300,8 @@ def train(
     """
     with matmul_precision(config.run.precision):
         extra = archived_states(config)  # a bad archive fails here, before the run directory is touched
+        if config.population.traits.partner_pool and config.population.fcp.partners:  # and a bad partner run
+            checked_partner_config(config, Path(config.population.fcp.partners))
         run, resuming = RunDir.open(run_dir, config, resume=resume)
         try:
             return _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra)
