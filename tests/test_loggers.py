@@ -49,6 +49,8 @@ def fake_wandb() -> types.ModuleType:
 
     module.init = init
     module.Image = lambda path: ("image", path)
+    module.login = lambda **kwargs: module.logged_in
+    module.logged_in = True
     return module
 
 
@@ -174,6 +176,25 @@ def test_missing_extra_is_one_line_before_the_run_starts(tmp_path, capsys, monke
         cluster.train_population(
             SMOKE, out, backend="ray" if blocked == "ray" else "local", loggers=[] if blocked == "ray" else [argv[-1]]
         )
+
+
+def test_wandb_without_credentials_is_one_line_before_the_run_starts(tmp_path, capsys, monkeypatch):
+    """wandb.init failed at the first logged chunk, leaving a half-trained run; W&B's offline mode needs no key."""
+    from cluster.runtime.loggers import LoggerSetupError, check_loggers
+
+    wandb = fake_wandb()
+    wandb.logged_in = False
+    monkeypatch.setitem(sys.modules, "wandb", wandb)
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    out = tmp_path / "run"
+    assert main(["train", SMOKE, "--out", str(out), "--quiet", "--backend", "local", "--logger", "wandb"]) == 2
+    err = capsys.readouterr().err
+    assert "--logger wandb: no W&B API key; run `wandb login`" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and not wandb.runs
+    with pytest.raises(LoggerSetupError):
+        check_loggers(["wandb"])
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    assert check_loggers(["wandb"]) == ["wandb"]
 
 
 def test_without_matplotlib_plots_are_skipped_with_a_warning(logged_run, tmp_path, caplog, monkeypatch):

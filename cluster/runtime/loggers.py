@@ -34,6 +34,10 @@ class MissingExtraError(RuntimeError):
     """An optional dependency that the requested feature needs is not installed."""
 
 
+class LoggerSetupError(MissingExtraError):
+    """A logger's package is installed but cannot log yet (W&B without an API key): said before a run starts."""
+
+
 class MetricsLogger(Protocol):
     def log_rows(self, rows: Sequence[MetricsRow]) -> None:
         """The rows a chunk added to metrics.csv."""
@@ -110,6 +114,19 @@ class TensorBoardLogger:
 class WandbLogger:
     package, extra = "wandb", "wandb"
 
+    @classmethod
+    def preflight(cls) -> None:
+        """Without credentials ``wandb.init`` fails at the first logged chunk, after training has begun: ask first
+        (no prompt, no network), unless W&B is told to log locally."""
+        wandb = require(cls.package, cls.extra, "--logger wandb")
+        if os.environ.get("WANDB_MODE", "").lower() in ("offline", "disabled", "dryrun"):
+            return
+        if not wandb.login(prompt=False, verify=False):
+            raise LoggerSetupError(
+                "--logger wandb: no W&B API key; run `wandb login`, set WANDB_API_KEY, or set WANDB_MODE=offline "
+                "to log into the run directory only"
+            )
+
     def __init__(self, run_dir: Path, config: Config):
         self.wandb = require(self.package, self.extra, "--logger wandb")
         run_dir = Path(run_dir)
@@ -161,6 +178,9 @@ def check_loggers(names: Iterable[str]) -> list[str]:
             raise ValueError(f"unknown logger {name!r}; choose from {', '.join(LOGGERS)}")
     for name in names:
         require(_CLASSES[name].package, _CLASSES[name].extra, f"--logger {name}")
+        preflight = getattr(_CLASSES[name], "preflight", None)
+        if preflight is not None:
+            preflight()
     return names
 
 
