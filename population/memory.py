@@ -103,9 +103,13 @@ def estimate(config: Config, place: str = "local") -> MemoryEstimate:
     worst = None
     for seeds, ppo in stages(config):
         if place == "cluster":
-            found = MemoryEstimate(base + seeds * params_mib(config), f"the driver of {seeds:,} seeds")
+            found = MemoryEstimate(
+                base + seeds * params_mib(config), f"the driver of {seeds:,} seed{'s' * (seeds != 1)}"
+            )
         elif place == "local":
-            found = MemoryEstimate(base + seeds * per_seed_mib(config, ppo), f"{seeds:,} seeds in one process")
+            found = MemoryEstimate(
+                base + seeds * per_seed_mib(config, ppo), f"{seeds:,} seed{'s' * (seeds != 1)} in one process"
+            )
         else:
             actors = shard_count(
                 dataclasses.replace(config, population=dataclasses.replace(config.population, num_seeds=seeds))
@@ -133,6 +137,15 @@ def check_fits(config: Config, place: str = "local", available_mib: float | None
     found = estimate(config, place)
     available = machine_memory_mib() if available_mib is None else available_mib
     if available is not None and found.total_mib > available:
+        one = estimate(
+            dataclasses.replace(config, population=dataclasses.replace(config.population, num_seeds=1)), place
+        )
+        if one.total_mib > available:  # fewer seeds cannot help: the network or the batch is what is too big
+            raise ConfigError(
+                f"model: one seed alone needs about {_gib(one.total_mib)} of memory on this machine ({one.where}; "
+                f"docs/cluster.md, Memory) but it has {_gib(available)}: a smaller network (model.*) or fewer "
+                "ppo.num_envs / ppo.num_steps"
+            )
         advice = "" if place == "cluster" else ", or train on a Ray cluster (--address)"
         raise ConfigError(
             f"population.num_seeds: the run needs about {_gib(found.total_mib)} of memory on this machine "

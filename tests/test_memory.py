@@ -51,3 +51,13 @@ def test_a_run_that_cannot_fit_is_refused_naming_both_sizes():
     assert "it has 24.0 GiB" in message
     small = parse_config({"ppo": SMALL_PPO})
     assert check_fits(small, "ray", available_mib=24 * 1024).total_mib < 24 * 1024
+
+
+def test_a_network_too_big_for_one_seed_is_blamed_not_the_seed_count():
+    """model.fc_dim=10000000 was refused with "lower population.num_seeds", which no seed count could fix."""
+    wide = parse_config({"ppo": SMALL_PPO}, ["model.fc_dim=10000000"])
+    with pytest.raises(ConfigError) as info:
+        check_fits(wide, "cluster", available_mib=24 * 1024)
+    message = str(info.value)
+    assert message.startswith("model: one seed alone needs about") and "population.num_seeds" not in message
+    assert "(the driver of 1 seed;" in message
