@@ -204,15 +204,19 @@ def verify(folder, files: Iterable[str | Path]) -> None:
             raise PolicyError(f"{path}: not the published file (its sha256 is not the one in {SUMS})")
 
 
-def load_population(folder, files: Iterable[str | Path]) -> list[Policy]:
+def load_population(folder, files: Iterable[str | Path], layout: str | None = None) -> list[Policy]:
     """Load published policies that are to be played as one population (each with itself, or pairs of them):
     every file checked against the folder's SHA256SUMS.json (``verify``), and every policy playing the first one's
-    environment with the first one's network, so that one compiled rollout serves them all. ``PolicyError``
-    naming the file and what differs otherwise."""
+    environment with the first one's network, so that one compiled rollout serves them all (and ``layout``, for a
+    script that reads a layout's own cells). ``PolicyError`` naming the file and what differs otherwise."""
     folder, files = Path(folder), list(files)
     verify(folder, files)
     policies = [load(folder / Path(name).name) for name in files]
     first = policies[0] if policies else None
+    if first is not None and layout is not None and first.env.get("layout") != layout:
+        raise PolicyError(
+            f"{folder / Path(files[0]).name}: plays layout {first.env.get('layout')!r}; this reads {layout} only"
+        )
     for name, policy in zip(files, policies, strict=True):
         for what, mine, theirs in (
             ("environment", policy.env, first.env),

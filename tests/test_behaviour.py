@@ -96,7 +96,7 @@ def test_forced_coord_roles_refuses_another_layouts_policies():
         text=True,
     )
     assert run.returncode != 0 and "Traceback" not in run.stderr
-    assert "plays layout 'coord_ring'; this script reads forced_coord only" in run.stderr
+    assert "plays layout 'coord_ring'; this reads forced_coord only" in run.stderr
 
 
 def test_forced_coord_roles_names_a_bad_pair_before_playing():

@@ -125,3 +125,18 @@ def checkpoint_choice(text: str, choices: Sequence[str]) -> str:
     if text in choices or text.isdigit():
         return text
     raise CLIError(f"--checkpoint: expected one of {', '.join(choices)} or an update number, got {text!r}")
+
+
+def add_published_population(parser: argparse.ArgumentParser, default_folder: Path) -> None:
+    """The options of a results script that plays a published population (``<policies>/<method>_seed<i>_update<U>``
+    files): --update, --episodes, --seeds, --method, --policies; ``published_files`` names the files they pick."""
+    parser.add_argument("--update", type=int, required=True, help="the snapshot (<method>_seed<i>_update<U>)")
+    parser.add_argument("--episodes", type=positive_int, default=32)
+    parser.add_argument("--seeds", type=positive_int, default=10)
+    parser.add_argument("--method", default="sp", help="the file names' method prefix (sp, sa, ...)")
+    parser.add_argument("--policies", type=Path, default=default_folder, help="a published policies folder")
+
+
+def published_files(args: argparse.Namespace) -> list[Path]:
+    """The policy files the options of ``add_published_population`` pick, seed by seed."""
+    return [args.policies / f"{args.method}_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]

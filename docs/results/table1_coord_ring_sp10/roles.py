@@ -28,11 +28,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from cluster.cli.args import positive_int
+from cluster.cli.args import add_published_population, published_files
 from population.behaviour import ROLES, pot_use, role_counts
 from population.policy import PolicyError, policy_env
 from population.published import load_population
-from population.record import play_recorded
+from population.record import jitted_play_recorded
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "table1_coord_ring"))
@@ -47,35 +47,22 @@ def first_pot_share(states) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--update", type=int, required=True, help="the snapshot (<method>_seed<i>_update<U>)")
-    parser.add_argument("--episodes", type=positive_int, default=32)
-    parser.add_argument("--seeds", type=positive_int, default=10)
-    parser.add_argument("--method", default="sp", help="the file names' method prefix (sp, sa, ...)")
-    parser.add_argument("--policies", type=Path, default=HERE / "policies", help="a published policies folder")
+    add_published_population(parser, HERE / "policies")
     args = parser.parse_args()
-    files = [args.policies / f"{args.method}_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
-    try:
-        policies = load_population(args.policies, files)  # checked sums, one game, one network
+    files = published_files(args)
+    try:  # checked sums, one game, one network, coord_ring (the cells read are its own)
+        policies = load_population(args.policies, files, layout="coord_ring")
     except PolicyError as error:
         sys.exit(str(error))
-    for path, policy in zip(files, policies, strict=True):
-        if policy.env.get("layout") != "coord_ring":  # direction and pots are read off Coordination Ring's cells
-            sys.exit(f"{path}: plays layout {policy.env.get('layout')!r}; this script reads coord_ring only")
     header = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
     print(
         f"| seed | clockwise share (seat 0, seat 1) | {header} | onions into the first pot (seat 0, seat 1) | return |"
     )
     print("|---:|---|" + "---:|" * len(ROLES) + "---|---:|")
-    play = None
+    first = policies[0]  # one compiled self-play rollout for every seed (same network, same env)
+    play = jitted_play_recorded(first.apply, first.hidden_size, policy_env(first.env), args.episodes)
     for seed, policy in enumerate(policies):
-        if play is None:  # one compiled self-play rollout for every seed (same network, same env)
-            env = policy_env(policy.env)
-            play = jax.jit(
-                lambda params, key: play_recorded(
-                    policy.apply, policy.hidden_size, env, (params, params), key, args.episodes
-                )
-            )
-        played = play(policy.params, jax.random.PRNGKey(7))
+        played = play((policy.params, policy.params), jax.random.PRNGKey(7))
         clockwise, moves = clockwise_moves(played.states.agents.x, played.states.agents.y, time_axis=1)
         share = clockwise / np.maximum(moves, 1)
         counts = role_counts(played.states)

@@ -34,11 +34,11 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from cluster.cli.args import positive_int
+from cluster.cli.args import add_published_population, published_files
 from population.behaviour import ITEM_KINDS, counter_use, pot_use, role_counts
 from population.policy import PolicyError, policy_env
 from population.published import load_population
-from population.record import play_recorded
+from population.record import jitted_play_recorded
 
 HERE = Path(__file__).resolve().parent
 MIDDLE = ((2, 1), (2, 2), (2, 3))  # (x, y) of the counters between the two rooms
@@ -110,39 +110,24 @@ def ordered_pair(text: str) -> tuple[int, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--update", type=int, required=True, help="the snapshot (<method>_seed<i>_update<U>)")
-    parser.add_argument("--episodes", type=positive_int, default=32)
-    parser.add_argument("--seeds", type=positive_int, default=10)
-    parser.add_argument("--method", default="sp", help="the file names' method prefix (sp, sa, ...)")
-    parser.add_argument("--policies", type=Path, default=HERE / "policies", help="a published policies folder")
+    add_published_population(parser, HERE / "policies")
     parser.add_argument("--pairs", type=ordered_pair, nargs="*", default=[], help="cross-play pairs i,j to read too")
     args = parser.parse_args()
     for pair in args.pairs:
         if max(pair) >= args.seeds:
             parser.error(f"--pairs {pair[0]},{pair[1]}: seeds are 0 to {args.seeds - 1} (--seeds {args.seeds})")
-    files = [args.policies / f"{args.method}_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
-    try:
-        policies = load_population(args.policies, files)  # checked sums, one game, one network
+    files = published_files(args)
+    try:  # checked sums, one game, one network, forced_coord (the cells read are its own)
+        policies = load_population(args.policies, files, layout="forced_coord")
     except PolicyError as error:
         sys.exit(str(error))
-    for path, policy in zip(files, policies, strict=True):
-        if policy.env.get("layout") != "forced_coord":  # the counters and seats are Forced Coord.'s cells
-            sys.exit(f"{path}: plays layout {policy.env.get('layout')!r}; this script reads forced_coord only")
     print(table_header())
-    play = None
-    for seed, policy in enumerate(policies):
-        if play is None:  # one compiled self-play rollout for every seed (same network, same env)
-            env = policy_env(policy.env)
-            play = jax.jit(
-                lambda right, left, key: play_recorded(
-                    policy.apply, policy.hidden_size, env, (right, left), key, args.episodes
-                )
-            )
-        played = play(policy.params, policy.params, jax.random.PRNGKey(7))
-        print(seed_row(seed, played.states, played.returns), flush=True)
-    for first, second in args.pairs:
-        played = play(policies[first].params, policies[second].params, jax.random.PRNGKey(7))
-        print(seed_row(f"{first} × {second}", played.states, played.returns), flush=True)
+    first = policies[0]  # one compiled rollout for every seed and pair (same network, same env)
+    play = jitted_play_recorded(first.apply, first.hidden_size, policy_env(first.env), args.episodes)
+    pairs = [(str(seed), seed, seed) for seed in range(args.seeds)] + [(f"{i} × {j}", i, j) for i, j in args.pairs]
+    for label, right, left in pairs:
+        played = play((policies[right].params, policies[left].params), jax.random.PRNGKey(7))
+        print(seed_row(label, played.states, played.returns), flush=True)
 
 
 if __name__ == "__main__":
