@@ -12,6 +12,7 @@ import dataclasses
 import difflib
 import itertools
 import types
+import warnings
 from collections import deque
 from collections.abc import Mapping, Sequence
 
@@ -204,7 +205,40 @@ class Layout:
                 f"layout {name!r}: without a recipe indicator 'R' the possible recipes must be given "
                 "(possible_recipes=[[i, j, k], ...])"
             )
-        return Layout(static, tuple(agents), num_ingredients, possible_recipes, name=name)
+        layout = Layout(static, tuple(agents), num_ingredients, possible_recipes, name=name)
+        problems = kitchen_problems(layout)
+        if problems:  # a legal map (the reference builds it too), but one where no soup is ever delivered
+            warnings.warn(f"layout {name!r}: no soup can be delivered: {'; '.join(problems)}", LayoutWarning, 2)
+        return layout
+
+
+class LayoutWarning(UserWarning):
+    """A map that builds, but where the cooks cannot earn a delivery reward."""
+
+
+def kitchen_problems(layout: Layout) -> list[str]:
+    """Why no soup can be delivered in ``layout`` (empty: none found): no pot, serving window, plate pile or
+    ingredient pile, or none of them that a cook can reach (no floor cell beside it in a room a cook starts in)."""
+    static = np.asarray(layout.static_objects)
+    walkable = static == Static.FLOOR
+    labels = _room_labels(walkable)
+    rooms = [labels[y, x] for x, y in layout.agent_positions if walkable[y, x]]
+    reachable = np.pad(np.isin(labels, rooms) & walkable, 1)
+    beside = reachable[:-2, 1:-1] | reachable[2:, 1:-1] | reachable[1:-1, :-2] | reachable[1:-1, 2:]
+    problems = []
+    for what, cells in (
+        ("pot", static == Static.POT),
+        ("serving window", static == Static.GOAL),
+        ("plate pile", static == Static.PLATE_PILE),
+        ("ingredient pile", static >= Static.INGREDIENT_PILE),
+    ):
+        if not cells.any():
+            problems.append(f"no {what}")
+        elif not (cells & beside).any():
+            y, x = np.argwhere(cells)[0]
+            article = "an" if what[0] in "aeiou" else "a"
+            problems.append(f"no cook can reach {article} {what} (the first at row {y}, column {x})")
+    return problems
 
 
 def _validate_recipes(recipes, grid: np.ndarray, num_ingredients: int, name: str):

@@ -49,6 +49,21 @@ def test_good_layout_and_roundtrip():
         assert (again.static_objects == built_in.static_objects).all(), name
 
 
+def test_a_kitchen_where_no_soup_can_be_delivered_builds_with_a_warning_naming_why():
+    """The reference builds such maps without a word; ocv2 builds them too (a test kitchen may lack parts on
+    purpose) but says why nothing will ever be delivered, down to the cell no cook can reach."""
+    from ocv2.layouts import LAYOUTS, LayoutWarning, kitchen_problems
+
+    assert not [name for name, layout in LAYOUTS.items() if kitchen_problems(layout)]  # every shipped kitchen works
+    with pytest.warns(LayoutWarning, match="layout 'nopot': no soup can be delivered: no pot$"):
+        ocv2.Layout.from_string("WWWWW\nWA AW\nW0 BW\nWWXWW", possible_recipes=[[0, 0, 0]], name="nopot")
+    with pytest.warns(LayoutWarning) as caught:
+        ocv2.Layout.from_string("WWWWW\nWA AW\nWWWWW\nW0PBX\nWWWWW", possible_recipes=[[0, 0, 0]], name="walled")
+    message = str(caught[0].message)
+    assert "no cook can reach a pot (the first at row 3, column 2)" in message
+    assert "no cook can reach an ingredient pile (the first at row 3, column 1)" in message
+
+
 def test_default_recipe_order_matches_reference_table():
     assert default_recipes(2) == ((0, 0, 0), (0, 0, 1), (1, 1, 1), (0, 1, 1))
     assert default_recipes(3)[:3] == ((2, 2, 2), (0, 0, 0), (1, 1, 2))
