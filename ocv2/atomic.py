@@ -5,11 +5,15 @@ Every file ocv2 writes whole (checkpoints, configs, CSV/JSON results, plots, GIF
 (same folder, so the rename cannot cross file systems; the suffix kept, so writers that pick a
 format from the extension still work), flushed to disk, renamed over the target, and the folder
 entry synced. A crash leaves at most a stale temporary, which ``remove_stale_temporaries`` deletes.
+A folder written whole (a report, a pack, an unpacked study) is built by ``staged_folder`` beside its place
+and moved in at the end.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -60,6 +64,35 @@ def atomic_write(path: str | os.PathLike, data: bytes | str, *, fsync: bool = Tr
         else:
             tmp.write_bytes(data)
     return Path(path)
+
+
+@contextmanager
+def staged_folder(path: str | os.PathLike, suffix: str = ".staging") -> Iterator[Path]:
+    """Yield a new hidden folder beside ``path`` to fill; on a clean exit it takes ``path``'s place whole, on an
+    error it is removed and ``path`` is left as it was.
+
+    A folder already at ``path`` (the caller has checked it may go: empty, or an earlier output of its own) is
+    moved aside first and removed once the new one is in; if the new one cannot be moved in, it is put back.
+    The staging name is unique (``tempfile.mkdtemp``), so no folder of the user's is ever taken for one.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent))
+    try:
+        yield staging
+        if not path.exists():
+            staging.rename(path)
+            return
+        aside = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+        path.rename(aside / path.name)
+        try:
+            staging.rename(path)
+        except OSError:
+            (aside / path.name).rename(path)  # the earlier folder back where it was
+            raise
+        shutil.rmtree(aside, ignore_errors=True)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)  # gone already unless something failed
 
 
 def is_temporary(path: str | os.PathLike) -> bool:

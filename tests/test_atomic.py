@@ -2,7 +2,7 @@
 
 import pytest
 
-from ocv2.atomic import atomic_path, atomic_write, is_temporary, remove_stale_temporaries
+from ocv2.atomic import atomic_path, atomic_write, is_temporary, remove_stale_temporaries, staged_folder
 
 
 def test_atomic_write_replaces_whole_file(tmp_path):
@@ -34,3 +34,22 @@ def test_remove_stale_temporaries(tmp_path):
     keep.write_bytes(b"y")
     assert remove_stale_temporaries(tmp_path) == [stale]
     assert keep.exists() and not stale.exists()
+
+
+def test_staged_folder_replaces_whole_or_leaves_everything_as_it_was(tmp_path):
+    out = tmp_path / "out"
+    with staged_folder(out) as staging:
+        (staging / "a.txt").write_text("first")
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]
+    with pytest.raises(RuntimeError):
+        with staged_folder(out) as staging:
+            (staging / "b.txt").write_text("half")
+            raise RuntimeError("stopped part-way")
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]  # the earlier folder as it was
+    with staged_folder(out) as staging:
+        (staging / "b.txt").write_text("second")
+    assert sorted(p.name for p in out.iterdir()) == ["b.txt"]  # replaced whole: nothing of the earlier left
+    (tmp_path / ".out.keep").mkdir()  # a folder of the user's with a staging-like name is never touched
+    with staged_folder(out):
+        pass
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.keep", "out"]

@@ -23,9 +23,7 @@ import argparse
 import csv
 import io
 import math
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -36,7 +34,7 @@ from rich.table import Table
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves
 from ocv2 import boundedjson
-from ocv2.atomic import atomic_write
+from ocv2.atomic import atomic_write, staged_folder
 from population.config import METHOD_TABLE, METHODS
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
 from population.xp import summary_difference
@@ -431,14 +429,10 @@ def run_report(args) -> int:
     check_replaceable(out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".report", dir=out.parent))
     except OSError as error:
         raise CLIError(f"--out: cannot create {out}: {error}", EXIT_FAILURE) from None
-    try:  # an OSError (a full disk) is main's one line; nothing of the report is left
+    with staged_folder(out, ".report") as staging:  # an OSError (a full disk) is main's one line, nothing left
         written = write_report_files(runs, staging)
-        replace_folder(staging, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)  # gone already unless something failed
     table = Table(title=f"{len(written.rows)} run(s)")
     for name in written.header:
         table.add_column(name, justify="right" if name not in ("Layout", "Env", "Method", "Run") else "left")
@@ -481,21 +475,6 @@ def check_replaceable(out: Path) -> None:
         header = []
     if header != [",".join(CSV_FIELDS)]:
         raise CLIError(f"--out {out}: holds files but no report.csv of `ocv2 report`; give a new folder")
-
-
-def replace_folder(staging: Path, out: Path) -> None:
-    """Move the finished ``staging`` folder to ``out``, replacing an earlier report there whole."""
-    if not out.is_dir():
-        staging.rename(out)
-        return
-    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-    out.rename(old / out.name)
-    try:
-        staging.rename(out)
-    except OSError:
-        (old / out.name).rename(out)  # the earlier report back where it was
-        raise
-    shutil.rmtree(old, ignore_errors=True)
 
 
 class WrittenReport(NamedTuple):

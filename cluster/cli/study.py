@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 from cluster.api import require_backend
@@ -33,6 +31,7 @@ from cluster.study.publish import publish_study
 from cluster.study.report import write_report
 from cluster.study.runner import StudyOptions, kept_study, plan_study, read_state, run_study, study_status
 from cluster.study.spec import BUDGET_MODES, StudyError, default_out, load_study, run_config
+from ocv2.atomic import staged_folder
 from population.checkpoints import CheckpointError
 from population.config import ClusterConfig, ConfigError
 from population.numerics import enable_deterministic_ops
@@ -287,13 +286,6 @@ def _report(directory: str, dest: str | None) -> int:
 def _report_elsewhere(study, out: Path, state, configs: dict, dest: Path) -> dict:
     """The report written into a staging folder beside ``dest`` (new or empty, checked) and moved there whole:
     a failure part-way leaves ``dest`` as it was, not half a report or a folder this command made."""
-    dest.parent.mkdir(parents=True, exist_ok=True)  # an OSError here or below is main's one line
-    staging = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".report", dir=dest.parent))
-    try:
+    with staged_folder(dest, ".report") as staging:  # dest is new or empty (checked); an OSError is main's one line
         write_report(study, out, state, configs, staging)
-        if dest.is_dir():
-            dest.rmdir()  # empty: check_new_folder refused one that holds files
-        staging.rename(dest)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)  # gone already unless something failed
     return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}

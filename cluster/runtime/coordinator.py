@@ -192,13 +192,19 @@ def checked_partner_config(config: Config, partner_run) -> Config:
     return partner_config
 
 
-def check_inputs(config: Config) -> None:
-    """What a run reads besides its config, checked before anything is trained (``ocv2 validate`` too): the FCP
-    partner run (``checked_partner_config``) and that every ``population.sa.archives`` file opens as an ocv2
-    archive. ``RunDirError`` / ``ArchiveError`` naming the key."""
+def check_partners(config: Config) -> None:
+    """The FCP partner run a config names (``population.fcp.partners``), checked by ``checked_partner_config``;
+    nothing for a method without a partner pool or one that trains its partners itself."""
     fcp = config.population.fcp
     if config.population.traits.partner_pool and fcp.partners:
         checked_partner_config(config, Path(fcp.partners))
+
+
+def check_inputs(config: Config) -> None:
+    """What a run reads besides its config, checked before anything is trained (``ocv2 validate`` too): the FCP
+    partner run (``check_partners``) and that every ``population.sa.archives`` file opens as an ocv2 archive.
+    ``RunDirError`` / ``ArchiveError`` naming the key."""
+    check_partners(config)
     if config.population.traits.resets_from_buffer:
         for path in config.population.sa.archives:
             try:
@@ -300,8 +306,7 @@ def train(
     """
     with matmul_precision(config.run.precision):
         extra = archived_states(config)  # a bad archive fails here, before the run directory is touched
-        if config.population.traits.partner_pool and config.population.fcp.partners:  # and a bad partner run
-            checked_partner_config(config, Path(config.population.fcp.partners))
+        check_partners(config)  # and a bad partner run (check_inputs would read the archives a second time)
         run, resuming = RunDir.open(run_dir, config, resume=resume)
         try:
             return _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra)

@@ -19,14 +19,13 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import shutil
 import tarfile
-import tempfile
 import zlib
 from pathlib import Path
 
 from cluster.study.runner import check_folder, kept_study, missing_runs, read_state
 from cluster.study.spec import StudyError
+from ocv2.atomic import staged_folder
 from population import checkpoints as ckpt
 
 PACK_NAME = "pack.json"
@@ -95,27 +94,18 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
             tar.add(path, arcname=str(path.relative_to(out)))
     data = buffer.getvalue()
     try:
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".packing", dir=dest.parent))
+        with staged_folder(dest, ".packing") as staging:  # whole or not at all; dest is new or empty (checked)
+            parts = []
+            for index, start in enumerate(range(0, max(len(data), 1), part_bytes)):
+                chunk = data[start : start + part_bytes]
+                name = f"study.tar.gz.{index:03d}"
+                (staging / name).write_bytes(chunk)
+                parts.append({"file": name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
+            record = {"study": state.study, "files": len(files), "bytes": len(data), "latest_only": latest_only}
+            record["parts"] = parts
+            (staging / PACK_NAME).write_text(json.dumps(record, indent=1))
     except OSError as error:
         raise StudyError(f"{dest}: cannot write the pack ({error.strerror or error}); nothing was packed") from None
-    try:
-        parts = []
-        for index, start in enumerate(range(0, max(len(data), 1), part_bytes)):
-            chunk = data[start : start + part_bytes]
-            name = f"study.tar.gz.{index:03d}"
-            (staging / name).write_bytes(chunk)
-            parts.append({"file": name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
-        record = {"study": state.study, "files": len(files), "bytes": len(data), "latest_only": latest_only}
-        record["parts"] = parts
-        (staging / PACK_NAME).write_text(json.dumps(record, indent=1))
-        if dest.exists():
-            dest.rmdir()  # empty, checked above
-        staging.rename(dest)  # whole or not at all
-    except OSError as error:
-        raise StudyError(f"{dest}: cannot write the pack ({error.strerror or error}); nothing was packed") from None
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return record
 
 
@@ -173,17 +163,14 @@ def unpack_study(source: Path, out: Path) -> dict:
     record, data = read_pack(source)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".unpacking", dir=out.parent))
     except OSError as error:
         raise StudyError(f"{out}: cannot unpack here ({error.strerror or error}); nothing was written") from None
     try:
-        with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
-            tar.extractall(staging, filter="data")  # no absolute paths, links out or devices
-        if not (staging / "study.json").is_file():
-            raise StudyError(f"{source}: the pack holds no study.json")
-        staging.rename(out)  # whole or not at all
+        with staged_folder(out, ".unpacking") as staging:  # whole or not at all
+            with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
+                tar.extractall(staging, filter="data")  # no absolute paths, links out or devices
+            if not (staging / "study.json").is_file():
+                raise StudyError(f"{source}: the pack holds no study.json")
     except (tarfile.TarError, OSError, EOFError, zlib.error) as error:  # EOFError, zlib: a cut or bad gzip stream
         raise StudyError(f"{source}: cannot unpack ({error}); nothing was written") from None
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return record
