@@ -6,8 +6,9 @@
 
 From ``gpu_run.json`` (bench/gpu_run.py's record: environment and measurements) it writes the block between ``<!-- gpu_run:start -->``
 and ``<!-- gpu_run:end -->``: the device and versions, every measured trainer rate with its FLOP rate as a share
-of the same GPU's matmul rate (float32 and bf16, measured in the same command), and the environment alone
-against JaxMARL's. From ``results.tar.gz`` it unpacks each study's report folder, exported policies (with
+of the same GPU's matmul rate at the trainer's precision (float32, TF32 or bf16, measured in the same command), and the environment alone
+against JaxMARL's, and how fast this window's studies trained. From ``results_<study>.tar.gz`` (``results.tar.gz``
+before) it unpacks each study's report folder, exported policies (with
 their sha256 sums, checked here), metrics and the study's status into ``docs/results/<study>/``, beside
 gpu_run.json (replacing an earlier window's unfinished part of the same study). Every window's record is
 appended to docs/results/gpu_windows.json, and the block lists below this window's measurements those of earlier
@@ -52,23 +53,37 @@ def _measured(result: dict) -> bool:
     return "env_steps_per_s" in result or "tflops" in result
 
 
+# The matmul measurement whose rate a trainer row's FLOP rate is a share of: the same precision. A row without a
+# precision was measured before trainer rates were traced under run.precision (gpu_run.METHOD 1): at JAX's default,
+# which is TF32 on an H100, so its share is of the TF32 matmul rate.
+PEAK_OF = {"float32": "matmul_f32", "tf32": "matmul_tf32", "bf16": "matmul_bf16", None: "matmul_tf32"}
+DEFAULT_PRECISION = "default (TF32)"
+HEADER = (
+    "| measurement | seeds | kernels | precision | env steps/s | model TFLOP/s | % of the matmul rate at that precision "
+    "| compile+first (s) |"
+)
+RULE = "|---|---:|---|---|---:|---:|---:|---:|"
+
+
 def _trainer_row(name: str, r: dict, peaks: dict, window: str | None = None) -> str:
-    shares = [f"{100 * r['model_tflops'] / p:.2f} %" if p else "-" for p in peaks.values()]
+    peak = peaks.get(PEAK_OF.get(r.get("precision"), ""))
+    share = f"{100 * r['model_tflops'] / peak:.2f} %" if peak else "-"
     return (
-        f"| {name} ({r['config']}) | {r['seeds']} | {_computed(r)} | {_rate(r['env_steps_per_s'])} | "
-        f"{r['model_tflops']:.3f} | {shares[0]} | {shares[1]} | {r['compile_plus_first_s']} |"
+        f"| {name} ({r['config']}) | {r['seeds']} | {_computed(r)} | {r.get('precision') or DEFAULT_PRECISION} | "
+        f"{_rate(r['env_steps_per_s'])} | {r['model_tflops']:.3f} | {share} | {r['compile_plus_first_s']} |"
         + ("" if window is None else f" {window} |")
     )
 
 
 def _peaks(results: dict) -> dict:
-    return {k: results.get(k, {}).get("tflops") for k in ("matmul_f32", "matmul_bf16")}
+    return {k: results.get(k, {}).get("tflops") for k in ("matmul_f32", "matmul_tf32", "matmul_bf16")}
 
 
-def benchmark_block(bench: dict, earlier: list[dict] = ()) -> str:
+def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = ()) -> str:
     """The GPU block of this window's record ``bench``; ``earlier``: the records of earlier windows (oldest
     first), whose trainer measurements this window did not make again (a continued window measures for 30 s only)
-    are listed below its own, each with its window's date and device and shares of that window's matmul peaks."""
+    are listed below its own, each with its window's date and device and shares of that window's matmul peaks;
+    ``studies``: lines saying how fast this window's studies trained (``study_rates``)."""
     env, results = bench["environment"], bench["results"]
     peaks = _peaks(results)
     lines = [
@@ -82,32 +97,40 @@ def benchmark_block(bench: dict, earlier: list[dict] = ()) -> str:
         "- matmul (jitted, random operands, median of 10): "
         + ", ".join(f"{k[7:]} {results[k]['size']}^3 {v:,.1f} TFLOP/s" for k, v in peaks.items() if v),
         "",
-        "| measurement | seeds | kernels | env steps/s | model TFLOP/s | % of f32 matmul | % of bf16 matmul | compile+first (s) |",
-        "|---|---:|---|---:|---:|---:|---:|---:|",
+        HEADER,
+        RULE,
     ]
+    not_measured = {}  # reason -> names: one line each below the table
     for name, r in results.items():
         if name.startswith("matmul") or name.startswith("env_"):
             continue
         if "env_steps_per_s" not in r:
-            lines.append(f"| {name} | | | {r.get('skipped') or r.get('error')} | | | | |")
+            not_measured.setdefault(r.get("skipped") or r.get("error") or "no result", []).append(name)
             continue
         lines.append(_trainer_row(name, r, peaks))
+    if not_measured:
+        lines.append("")
+        lines += [f"Not measured ({reason}): {', '.join(names)}." for reason, names in not_measured.items()]
     older = {}  # name -> (row): the newest earlier success of each measurement this window did not make
     for window in earlier:
         label = f"{window['environment'].get('date', 'undated')}, {', '.join(window['environment']['devices'])}"
         for name, r in window["results"].items():
-            if "env_steps_per_s" in r and not _measured(results.get(name, {})):
+            if "env_steps_per_s" in r and "model_tflops" in r and not _measured(results.get(name, {})):
                 older[name] = _trainer_row(name, r, _peaks(window["results"]), label)
     if older:
+        lines += ["", "Measured in earlier windows and not again in this one:", "", HEADER + " window |", RULE + "---|"]
+        lines += older.values()
+    if any(r.get("precision") is None for r in results.values() if "model_tflops" in r) or any(
+        DEFAULT_PRECISION in row for row in older.values()
+    ):
         lines += [
             "",
-            "Measured in earlier windows and not again in this one:",
-            "",
-            "| measurement | seeds | kernels | env steps/s | model TFLOP/s | % of f32 matmul | % of bf16 matmul "
-            "| compile+first (s) | window |",
-            "|---|---:|---|---:|---:|---:|---:|---:|---|",
-            *older.values(),
+            f"Precision {DEFAULT_PRECISION}: measured before the trainer rates were traced under `run.precision`, at "
+            "JAX's own default, which is TF32 on an H100; the studies train at float32 (`run.precision`'s default) "
+            "unless told otherwise.",
         ]
+    if studies:
+        lines += ["", "Training in this window's studies (`ocv2 study run`, the whole run as it trains):", "", *studies]
     ours, theirs = results.get("env_ocv2", {}), results.get("env_jaxmarl", {})
     lines += ["", "Environment alone (Coordination Ring, random actions, one jitted scan):", ""]
     for r, name in ((ours, "ocv2"), (theirs, "JaxMARL overcooked_v2")):
@@ -123,6 +146,48 @@ def benchmark_block(bench: dict, earlier: list[dict] = ()) -> str:
     return "\n".join(lines)
 
 
+def result_archives(files: Path) -> list[Path]:
+    """What a window returned of its studies: one ``results_<study>.tar.gz`` per study (``results.tar.gz`` from
+    windows before that)."""
+    return sorted(files.glob("results*.tar.gz"))
+
+
+def study_rates(files: Path) -> list[str]:
+    """One line per run trained in the window: its median chunk rate (env steps/s from the run's metrics.csv, each
+    chunk's wall time as the run measured it) and the precision of its config."""
+    import csv
+    import io
+    import statistics
+
+    import yaml
+
+    lines = []
+    for archive in result_archives(files):
+        with tarfile.open(archive) as tar:
+            members = {m.name: m for m in tar.getmembers() if m.isfile()}
+            studies = {Path(n).parent.name.removesuffix("_report") for n in members if Path(n).parent.name.endswith("_report")}
+            for name, member in sorted(members.items()):
+                if not name.endswith("_metrics.csv") or Path(name).parent.name != "results":  # the run's own copy
+                    continue
+                rows = list(csv.DictReader(io.TextIOWrapper(tar.extractfile(member), "utf-8")))
+                chunks = {(r["update"], r["steps_per_s"]) for r in rows if r.get("seed") == rows[0].get("seed")}
+                rates = [float(rate) for _, rate in chunks if rate]
+                if not rates:
+                    continue
+                config = members.get(name.removesuffix("metrics.csv") + "config.yaml")
+                run = yaml.safe_load(tar.extractfile(config)).get("run", {}) if config else {}
+                seeds = len({r["seed"] for r in rows})
+                file = Path(name).name  # study_<study>_<run>_metrics.csv, <study> from its report folder's name
+                study = max((x for x in studies if file.startswith(f"{x}_")), key=len, default="")
+                label = f"{study.removeprefix('study_')}, run {file[len(study) + 1:].removesuffix('_metrics.csv')}"
+                lines.append(
+                    f"- {label}: {_rate(statistics.median(rates))} env steps/s (median over {len(rates)} updates, "
+                    f"{seeds} seeds; precision {run.get('precision', 'float32')}, deterministic "
+                    f"{str(run.get('deterministic', True)).lower()})"
+                )
+    return lines
+
+
 def unfinished(dest: Path) -> bool:
     """Whether ``dest`` holds a study filed before it had finished (its study_status.json has a step not done):
     a later window's results of the same study supersede it."""
@@ -135,8 +200,9 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
     already is replaced only when it holds the same study unfinished (an earlier window's part of it)."""
     written = []
     with tempfile.TemporaryDirectory() as tmp:
-        with tarfile.open(files / "results.tar.gz") as tar:
-            tar.extractall(tmp, filter="data")
+        for archive in result_archives(files):
+            with tarfile.open(archive) as tar:
+                tar.extractall(tmp, filter="data")
         results = Path(tmp) / "results"
         studies = sorted({p.name.split("_report")[0] for p in results.glob("study_*_report")})
         for study in studies:  # every check before anything is written
@@ -209,12 +275,12 @@ def main(argv=None) -> int:
     bench = json.loads((args.files / "gpu_run.json").read_text())
     history = json.loads(Path(args.history).read_text()) if args.history and Path(args.history).is_file() else []
     earlier = [window for window in history if window["environment"] != bench["environment"]]
-    publish(benchmark_block(bench, earlier), args.out, START, END)
+    publish(benchmark_block(bench, earlier, study_rates(args.files)), args.out, START, END)
     if args.history and len(earlier) == len(history):  # this window is not on record yet
         temporary = Path(args.history).with_suffix(".json.tmp")
         temporary.write_text(json.dumps([*history, bench], indent=1) + "\n")
         temporary.replace(args.history)  # whole or not at all
-    if args.results and (args.files / "results.tar.gz").exists():
+    if args.results and result_archives(args.files):
         for dest in unpack_results(args.files, Path(args.results)):
             print(f"wrote {dest}")
     if (args.files / "state").is_dir():

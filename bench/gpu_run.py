@@ -132,20 +132,25 @@ def matmul_rate(size: int, dtype, precision: str, repeats: int = 10) -> dict:
 
 def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -> dict:
     """Env steps/s of ``seeds`` seeds trained together (one vmapped program, as the local backend does):
-    ``updates`` updates timed once after a compile-and-run call of the same program."""
+    ``updates`` updates timed once after a compile-and-run call of the same program, traced under the config's
+    ``run.precision`` as a run's shard traces it. (The first window measured without it, at JAX's default: TF32
+    on an H100, 2.8x the rate its float32 study then trained at.)"""
     from train_throughput import flops_per_env_step
 
+    from population.numerics import matmul_precision
+
     config = load_config(config_path, [*sets, f"population.num_seeds={seeds}"])
-    trainer = ppo.make_trainer(config)
-    states = ppo.init_population(trainer, list(range(seeds)))
-    advance = ppo.make_advance_chunks(trainer, updates)  # the program a run's shard trains with
-    count = jnp.int32(updates)
-    started = time.perf_counter()
-    states, _ = jax.block_until_ready(advance(states, None, None, count))
-    compile_s = time.perf_counter() - started
-    started = time.perf_counter()
-    states, metrics = jax.block_until_ready(advance(states, None, None, count))
-    seconds = time.perf_counter() - started
+    with matmul_precision(config.run.precision):
+        trainer = ppo.make_trainer(config)
+        states = ppo.init_population(trainer, list(range(seeds)))
+        advance = ppo.make_advance_chunks(trainer, updates)  # the program a run's shard trains with
+        count = jnp.int32(updates)
+        started = time.perf_counter()
+        states, _ = jax.block_until_ready(advance(states, None, None, count))
+        compile_s = time.perf_counter() - started
+        started = time.perf_counter()
+        states, metrics = jax.block_until_ready(advance(states, None, None, count))
+        seconds = time.perf_counter() - started
     steps = seeds * updates * config.ppo.steps_per_update
     flops = flops_per_env_step(trainer, ppo.take_seed(states.params, 0)) * steps
     return {
@@ -154,6 +159,7 @@ def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -
         "kernels": config.model.kernels,
         "gru_backward": config.model.gru_backward,
         "gru_unroll": config.model.gru_unroll,
+        "precision": config.run.precision,
         "seeds": seeds,
         "updates": updates,
         "steps_per_update": config.ppo.steps_per_update,
@@ -184,13 +190,15 @@ def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object
     size = 512 if smoke else 8192
     plan_seeds, many = (2, 2) if smoke else (10, 10)
 
-    def cnn(seeds: int):
-        return f"cnn_sp_{seeds}", lambda: trainer_rate(CR_SP, seeds, cnn_updates, sets)
+    def cnn(seeds: int, precision: str = "float32"):
+        sets_p = [*sets, *precision_sets(precision)]
+        return f"cnn_sp_{seeds}{precision_suffix(precision)}", lambda: trainer_rate(CR_SP, seeds, cnn_updates, sets_p)
 
-    def rnn(seeds: int, kernels: str, backward: str = "auto", unroll: int = 1):
+    def rnn(seeds: int, kernels: str, backward: str = "auto", unroll: int = 1, precision: str = "float32"):
         variant = kernels + ("" if backward == "auto" else f"_{backward}") + ("" if unroll == 1 else f"_unroll{unroll}")
-        sets_k = [*sets, *rnn_sets(kernels, backward, unroll)]
-        return f"rnn_sp_{seeds}_{variant}", lambda: trainer_rate(GCS_SP, seeds, rnn_updates, sets_k)
+        sets_k = [*sets, *rnn_sets(kernels, backward, unroll), *precision_sets(precision)]
+        name = f"rnn_sp_{seeds}_{variant}{precision_suffix(precision)}"
+        return name, lambda: trainer_rate(GCS_SP, seeds, rnn_updates, sets_k)
 
     batch, steps = (64, 16) if smoke else (16384, 400)
     plan_case = f"cnn_sp_{plan_seeds}"
@@ -200,10 +208,14 @@ def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object
         ("env_ocv2", lambda: env_rate("ocv2", batch, steps)),
         ("env_jaxmarl", lambda: env_rate("jaxmarl", batch, steps)),
         ("matmul_bf16", lambda: matmul_rate(size, jnp.bfloat16, "bfloat16")),
+        # What float32 fidelity (run.precision, the default) costs: the plan's case at TF32, what JAX computes on
+        # an H100 unless told otherwise, beside the same GPU's TF32 matmul rate.
+        ("matmul_tf32", lambda: matmul_rate(size, jnp.float32, "tensorfloat32")),
+        cnn(plan_seeds, "tf32"),
         rnn(many, "xla"),
         # An RNN update is 2 x 256 sequential GRU steps per minibatch: latency-bound on a GPU. Unrolling the
         # time loop and the hand-written backward pass (a shorter step) are the candidates; the Table 2 plan
-        # trains with whichever 10-seed variant measured fastest (best_rnn_sets).
+        # trains with whichever 10-seed float32 variant measured fastest (best_rnn_sets).
         rnn(many, "xla", "hand", 8),
         # What XLA's deterministic GPU ops (run.deterministic, on in every other measurement: gpu_run.sh sets the
         # flag as the run's own process does) cost: the plan's case again in a process without the flag.
@@ -212,6 +224,7 @@ def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object
         rnn(many, "xla", "autodiff", 8),
         rnn(many, "xla", "hand"),
         rnn(many, "xla", "hand", 32),
+        rnn(many, "xla", "hand", 8, "tf32"),  # what TF32 would buy Table 2
         cnn(1),
         rnn(1, "xla"),
         rnn(1, "cpu"),
@@ -222,16 +235,26 @@ def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object
     return ordered
 
 
+def precision_sets(precision: str) -> list[str]:
+    """The ``--set`` of a measurement at ``precision`` (none at the configs' own float32)."""
+    return [] if precision == "float32" else [f"run.precision={precision}"]
+
+
+def precision_suffix(precision: str) -> str:
+    return "" if precision == "float32" else f"_{precision}"
+
+
 def rnn_sets(kernels: str, backward: str = "auto", unroll: int = 1) -> list[str]:
     """The ``--set`` overrides of one way to compute the RNN (the same function every way: docs/training.md)."""
     return [f"model.kernels={kernels}", f"model.gru_backward={backward}", f"model.gru_unroll={unroll}"]
 
 
 def fastest_rnn(measured: dict, seeds: int) -> dict | None:
-    """The fastest ``seeds``-seed RNN variant measured (its measurement), or None."""
+    """The fastest ``seeds``-seed RNN variant measured at float32, the precision the study trains at (its
+    measurement), or None."""
     rates = [
         result for name, result in measured.items()
-        if name.startswith(f"rnn_sp_{seeds}_") and result.get("env_steps_per_s")
+        if name.startswith(f"rnn_sp_{seeds}_") and result.get("env_steps_per_s") and result.get("precision") == "float32"
     ]  # fmt: skip
     return max(rates, key=lambda result: result["env_steps_per_s"], default=None)
 
@@ -254,10 +277,13 @@ def without_determinism(name: str, smoke: bool) -> dict:
     return {**json.loads(done.stdout.strip().splitlines()[-1]), "XLA_FLAGS": flags}
 
 
-def measure(deadline: float, smoke: bool, rnn_first: bool = False) -> dict:
-    """Every measurement that starts before ``deadline`` (each is one compile and a few seconds)."""
+def measure(deadline: float, smoke: bool, rnn_first: bool = False, known: frozenset = frozenset()) -> dict:
+    """Every measurement that starts before ``deadline`` (each is one compile and a few seconds), but those in
+    ``known`` (made in an earlier window the way they are made now: ``measured_before``)."""
     results = {}
     for name, thunk in measurements(smoke, rnn_first):
+        if name in known:
+            continue
         if time.time() > deadline:
             results[name] = {"skipped": "the measuring time was spent"}
             continue
@@ -269,6 +295,33 @@ def measure(deadline: float, smoke: bool, rnn_first: bool = False) -> dict:
         results[name]["wall_s"] = round(time.perf_counter() - started, 1)
         log(f"measured {name}: {json.dumps(results[name])[:300]}")
     return results
+
+
+# Bumped whenever a change to the measuring makes earlier windows' numbers stale (2: trainer rates traced under
+# run.precision; the first windows measured them at JAX's default precision, TF32 on an H100).
+METHOD = 2
+HISTORY = ROOT / "docs" / "results" / "gpu_windows.json"  # every window's gpu_run.json (bench/gpu_report.py)
+
+
+def measured_before(history: list[dict], devices: list[str]) -> dict:
+    """The newest success of each measurement in earlier windows on the same ``devices`` measured by this
+    ``METHOD``: a window need not spend its minutes on them again (bench/gpu_report.py lists them with their
+    window), and the plan uses them where this window did not measure."""
+    known = {}
+    for window in history:
+        if window.get("method") != METHOD or window.get("environment", {}).get("devices") != devices:
+            continue
+        for name, result in window.get("results", {}).items():
+            if "tflops" in result or "env_steps_per_s" in result:
+                known[name] = result
+    return known
+
+
+def read_history(path: Path = HISTORY) -> list[dict]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):  # none yet, or unreadable: measure everything
+        return []
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -424,10 +477,10 @@ def export_policies(run_dir: Path, dest: Path) -> list:
     return exported
 
 
-def _pack_study_dir(study_dir: Path, staging: Path, returned: Path) -> dict:
-    """One study directory: first, if unfinished, its resumable state into ``returned/state/`` (what the next
-    window needs most), then its report, policies, metrics and status into ``staging``; returns its entry for
-    ``pack``'s record."""
+def _pack_study_dir(study_dir: Path, staging: Path, returned: Path, studies: int = 1) -> dict:
+    """One study directory (of ``studies`` this window packs): first, if unfinished, its resumable state into
+    ``returned/state/`` (what the next window needs most), then its report, policies, metrics and status into
+    ``staging``; returns its entry for ``pack``'s record."""
     import shutil
 
     from cluster.study.pack import pack_study
@@ -446,7 +499,8 @@ def _pack_study_dir(study_dir: Path, staging: Path, returned: Path) -> dict:
             try:
                 record = pack_study(study_dir, state, latest_only=True)
                 packed[study_dir.name] = {"state": record["bytes"], "parts": len(record["parts"])}
-                if len(record["parts"]) + 4 > RETURNED_FILES:  # + pack.json, gpu_run.log, gpu_run.json, results
+                # + pack.json, gpu_run.log, gpu_run.json and one results tarball per study
+                if len(record["parts"]) + 3 + studies > RETURNED_FILES:
                     packed[study_dir.name]["error"] = f"{len(record['parts'])} parts: more than {RETURNED_FILES} return"
             except Exception as error:  # its report and policies below still come back
                 log(f"packing the state of {study_dir.name} failed: {type(error).__name__}: {error}")
@@ -470,24 +524,27 @@ def _pack_study_dir(study_dir: Path, staging: Path, returned: Path) -> dict:
 
 
 def pack(out: Path, returned: Path) -> dict:
-    """results.tar.gz (reports, policies, metrics) into ``returned``; every unfinished study's resumable state
-    as ``returned/state/`` (``ocv2 study pack``: pack.json and parts of at most 16 MiB)."""
+    """One ``results_<study>.tar.gz`` per study (report, policies, metrics, gpu_run.json; each under the 16 MiB a
+    returned file may have) into ``returned``; an unfinished study's resumable state as ``returned/state/``
+    (``ocv2 study pack``: pack.json and parts of at most 16 MiB)."""
     import shutil
     import tarfile
 
-    staging, packed = out / "results", {}
-    staging.mkdir(exist_ok=True)
-    for study_dir in sorted(out.glob("study_*")):
+    packed = {}
+    study_dirs = sorted(out.glob("study_*"))
+    for study_dir in study_dirs:
+        staging = out / "results" / study_dir.name
+        staging.mkdir(parents=True, exist_ok=True)
         try:
-            packed.update(_pack_study_dir(study_dir, staging, returned))
-        except Exception as error:  # one study's problem must not cost the window its results.tar.gz
+            packed.update(_pack_study_dir(study_dir, staging, returned, len(study_dirs)))
+        except Exception as error:  # one study's problem must not cost the window its results
             log(f"packing {study_dir.name} failed: {type(error).__name__}: {error}")
             packed[study_dir.name] = {"error": f"{type(error).__name__}: {error}"}
-    for name in ("gpu_run.json",):
-        shutil.copy(out / name, staging / name)
-    with tarfile.open(returned / "results.tar.gz", "w:gz") as tar:
-        tar.add(staging, arcname="results")
-    packed["results.tar.gz"] = (returned / "results.tar.gz").stat().st_size
+        shutil.copy(out / "gpu_run.json", staging / "gpu_run.json")
+        name = f"results_{study_dir.name.removeprefix('study_')}.tar.gz"
+        with tarfile.open(returned / name, "w:gz") as tar:
+            tar.add(staging, arcname="results")
+        packed[name] = (returned / name).stat().st_size
     return packed
 
 
@@ -502,6 +559,26 @@ def continued_step(state: Path, out: Path) -> Step:
     (out / "study_unpacking").rename(target)
     kept = read_state(target)
     return Step(study, kept.budget, kept.seeds, float("nan"), resume=True)
+
+
+GO_ON_MIN_S = 150.0  # a new study after a finished one: an RNN compile (~35 s) and a few chunks at least
+
+
+def finished(trained: dict) -> bool:
+    """Whether a ``train`` record's study ran to its end (not stopped at the deadline, not failed)."""
+    return trained.get("rc") == 0 and not trained.get("stopped_at_deadline")
+
+
+def train_in_turn(steps: list[Step], out: Path, deadline: float, smoke: bool, record: dict, save) -> None:
+    """``steps`` one after another until ``deadline``, each one's ``train`` record appended to record["trained"]."""
+    save()
+    log(f"plan: {[dataclasses.asdict(s) for s in steps]}")
+    for step in steps:
+        if time.time() > deadline - (5 if smoke else 30):  # a compile and a chunk at least
+            record["trained"].append({"step": dataclasses.asdict(step), "skipped": "no time left"})
+            continue
+        record["trained"].append(train(step, out, deadline, smoke))
+        save()
 
 
 def main(argv=None) -> int:
@@ -528,11 +605,12 @@ def main(argv=None) -> int:
     returned = Path(args.returned or out)
     for folder in (out, returned):
         folder.mkdir(parents=True, exist_ok=True)
-    record = {"environment": environment()}
+    record = {"environment": environment(), "method": METHOD}
 
     def save() -> None:  # after every phase: a window cut short still returns what it reached
         (out / "gpu_run.json").write_text(json.dumps(record, indent=1))
-        shutil.copy(out / "gpu_run.json", returned / "gpu_run.json")
+        if returned.resolve() != out.resolve():
+            shutil.copy(out / "gpu_run.json", returned / "gpu_run.json")
 
     save()
     log(f"devices {record['environment']['devices']}; {record['environment']['nvidia_smi']}; smoke={args.smoke}")
@@ -541,23 +619,26 @@ def main(argv=None) -> int:
         rnn_first = json.loads((args.continue_from / "pack.json").read_text()).get("study") == TABLE2
     else:
         rnn_first = table1_done
-    record["results"] = measure(start + args.measure_s, args.smoke, rnn_first)
+    known = {} if args.smoke else measured_before(read_history(), record["environment"]["devices"])
+    if known:
+        log(f"measured in earlier windows, not again: {', '.join(known)}")
+    record["results"] = measure(start + args.measure_s, args.smoke, rnn_first, frozenset(known))
     save()
     deadline = start + args.deadline_s
     if args.continue_from:
         steps = [continued_step(args.continue_from, out)]
     else:
-        steps = plan(record["results"], deadline - time.time(), args.smoke, table1_done)
+        steps = plan({**known, **record["results"]}, deadline - time.time(), args.smoke, table1_done)
     record["plan"] = [dataclasses.asdict(s) for s in steps]
-    save()
-    log(f"plan: {record['plan']}")
     record["trained"] = []
-    for step in steps:
-        if time.time() > deadline - (5 if args.smoke else 30):  # a compile and a chunk at least
-            record["trained"].append({"step": dataclasses.asdict(step), "skipped": "no time left"})
-            continue
-        record["trained"].append(train(step, out, deadline, args.smoke))
-        save()
+    train_in_turn(steps, out, deadline, args.smoke, record, save)
+    # A continued Table 1 study that finished leaves the rest of the window: Table 2 starts in it, and its state
+    # is what comes back for the next window (one study's state per window: Table 1's has finished).
+    going_on = args.continue_from and steps[0].study == TABLE1 and finished(record["trained"][-1])
+    if going_on and deadline - time.time() > (20 if args.smoke else GO_ON_MIN_S):
+        more = plan_table2({**known, **record["results"]}, args.smoke)
+        record["plan"] += [dataclasses.asdict(s) for s in more]
+        train_in_turn(more, out, deadline, args.smoke, record, save)
     record["packed"] = pack(out, returned)
     save()
     log(f"trained: {json.dumps(record['trained'])}; packed: {record['packed']}; wall {time.time() - start:.0f} s")

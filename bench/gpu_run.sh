@@ -45,7 +45,9 @@ smoke=${GPU_RUN_SMOKE:-0}
 deadline=${GPU_RUN_DEADLINE_S:-$([ "$smoke" = 1 ] && echo 140 || echo 480)}
 measure=$([ "$smoke" = 1 ] && echo 20 || echo 120)
 continue_from=()
-if [ -f gpu_state/pack.json ]; then
+# The rehearsal leaves a committed gpu_state/ alone: it is a full-size study (tests/test_gpu_run.py checks that it
+# resumes under this code), and the rehearsal rehearses the plan of a fresh window.
+if [ "$smoke" != 1 ] && [ -f gpu_state/pack.json ]; then
     continue_from=(--continue-from gpu_state)  # an earlier window's unfinished study: go on with it
     measure=$([ "$smoke" = 1 ] && echo 10 || echo 30)
 fi

@@ -56,6 +56,7 @@ def made_up_bench() -> dict:
         "config": "classic_coord_ring_sp.yaml",
         "model": "cnn",
         "kernels": "auto",
+        "precision": "float32",
         "seeds": 10,
         "env_steps_per_s": 400_000.0,
         "model_tflops": 5.0,
@@ -71,8 +72,10 @@ def made_up_bench() -> dict:
         },
         "results": {
             "matmul_f32": {"size": 8192, "tflops": 50.0},
+            "matmul_tf32": {"size": 8192, "tflops": 200.0},
             "matmul_bf16": {"size": 8192, "tflops": 500.0},
             "cnn_sp_10": trainer,
+            "cnn_sp_10_tf32": {**trainer, "precision": "tf32", "env_steps_per_s": 800_000.0, "model_tflops": 10.0},
             "rnn_sp_10_xla": {"skipped": "the measuring time was spent"},
             "env_ocv2": {"batch": 16384, "steps": 400, "env_steps_per_s": 9e7},
             "env_jaxmarl": {"batch": 16384, "steps": 400, "env_steps_per_s": 3e7},
@@ -84,8 +87,17 @@ def test_the_benchmark_block_states_shares_of_the_measured_peaks():
     block = gpu_report.benchmark_block(made_up_bench())
     assert block.startswith(gpu_report.START) and block.endswith(gpu_report.END)
     assert "gpu: NVIDIA H100 80GB HBM3" in block and "jax 0.11.2" in block and "mcap" not in block
-    assert "| cnn_sp_10 (classic_coord_ring_sp.yaml) | 10 | auto | 400,000 | 5.000 | 10.00 % | 1.00 % | 31.0 |" in block
-    assert "| rnn_sp_10_xla | | | the measuring time was spent |" in block
+    # each share is of the matmul rate at the row's own precision
+    assert "| cnn_sp_10 (classic_coord_ring_sp.yaml) | 10 | auto | float32 | 400,000 | 5.000 | 10.00 % | 31.0 |" in block
+    assert "| cnn_sp_10_tf32 (classic_coord_ring_sp.yaml) | 10 | auto | tf32 | 800,000 | 10.000 | 5.00 % | 31.0 |" in block
+    assert "Not measured (the measuring time was spent): rnn_sp_10_xla." in block
+    assert "default (TF32)" not in block  # every row says its precision
+    # a row of the first windows, measured at JAX's default precision: said so, and shared of the TF32 rate
+    old = made_up_bench()
+    del old["results"]["cnn_sp_10"]["precision"]
+    block = gpu_report.benchmark_block(old)
+    assert "| cnn_sp_10 (classic_coord_ring_sp.yaml) | 10 | auto | default (TF32) | 400,000 | 5.000 | 2.50 % |" in block
+    assert "at JAX's own default, which is TF32 on an H100" in block
     assert "ratio: **3.00x** (target: at least 3x)" in block
 
 
@@ -131,14 +143,21 @@ def test_returned_results_unpack_into_docs_results_with_checked_sums(tmp_path):
 
 
 def test_once_table1_has_finished_table2_trains_its_whole_schedule_the_fastest_measured_way(tmp_path):
+    f32 = {"precision": "float32"}
     measured = {
-        "cnn_sp_10": {"env_steps_per_s": 500_000},
-        "rnn_sp_10_xla": {"env_steps_per_s": 50_000, "kernels": "xla", "gru_backward": "auto", "gru_unroll": 1},
+        "cnn_sp_10": {"env_steps_per_s": 500_000, **f32},
+        "rnn_sp_10_xla": {"env_steps_per_s": 50_000, "kernels": "xla", "gru_backward": "auto", "gru_unroll": 1, **f32},
         "rnn_sp_10_xla_hand_unroll8": {
-            "env_steps_per_s": 80_000, "kernels": "xla", "gru_backward": "hand", "gru_unroll": 8,
+            "env_steps_per_s": 80_000, "kernels": "xla", "gru_backward": "hand", "gru_unroll": 8, **f32,
         },
         "rnn_sp_10_cpu": {"error": "boom"},
-        "rnn_sp_1_xla_hand_unroll32": {"env_steps_per_s": 90_000, "kernels": "xla", "gru_backward": "hand", "gru_unroll": 32},
+        "rnn_sp_1_xla_hand_unroll32": {
+            "env_steps_per_s": 90_000, "kernels": "xla", "gru_backward": "hand", "gru_unroll": 32, **f32,
+        },
+        # faster, but at a precision the study does not train at: never the plan's rate or variant
+        "rnn_sp_10_xla_hand_unroll32_tf32": {
+            "env_steps_per_s": 200_000, "kernels": "xla", "gru_backward": "hand", "gru_unroll": 32, "precision": "tf32",
+        },
     }  # fmt: skip
     (step,) = gpu_run.plan(measured, seconds_left=400, smoke=False, table1_done=True)
     assert step.study == "gpu_grounded_coord_simple_sp" and step.budget == 1.0 and step.seeds == 10
@@ -214,7 +233,7 @@ def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp
     second["environment"]["date"] = "2026-12-02T10:00:00+00:00"
     block = gpu_report.benchmark_block(second, [first])
     assert "Measured in earlier windows and not again in this one" in block
-    assert "| rnn_sp_10_xla (v2_grounded_coord_simple_sp.yaml) | 10 | xla, GRU hand, unroll 8 | 123,000 |" in block
+    assert "| rnn_sp_10_xla (v2_grounded_coord_simple_sp.yaml) | 10 | xla, GRU hand, unroll 8 | float32 | 123,000 |" in block
     assert "2026-12-01T10:00:00+00:00, gpu: NVIDIA H100 80GB HBM3 |" in block
     assert block.count("cnn_sp_10 (") == 1  # measured again: only this window's row
     # through main: the history file gets each window once, however often the report is written
@@ -277,5 +296,124 @@ def test_one_study_that_cannot_be_packed_does_not_cost_the_window_its_results(tm
     monkeypatch.setattr(gpu_run, "log", lambda message: None)
     packed = gpu_run.pack(out, returned)
     assert "StudyError" in packed["study_broken"]["error"]
-    with tarfile.open(returned / "results.tar.gz") as tar:
+    with tarfile.open(returned / "results_broken.tar.gz") as tar:
         assert "results/gpu_run.json" in tar.getnames()
+
+
+def test_trainer_rates_are_measured_at_the_precision_the_studies_train_at_and_at_tf32_beside():
+    names = [name for name, _ in gpu_run.measurements(smoke=False)]
+    assert names.index("cnn_sp_10") < names.index("matmul_tf32") < names.index("cnn_sp_10_tf32")
+    assert "rnn_sp_10_xla_hand_unroll8_tf32" in names
+    assert gpu_run.precision_sets("float32") == [] and gpu_run.precision_sets("tf32") == ["run.precision=tf32"]
+    # with Table 2 next, every float32 RNN variant of the plan's seed count comes before the TF32 one
+    rnn = [n for n, _ in gpu_run.measurements(smoke=False, rnn_first=True) if n.startswith("rnn_sp_10_")]
+    assert rnn[-1] == "rnn_sp_10_xla_hand_unroll8_tf32"
+
+
+def _window(method, devices, results):
+    return {"method": method, "environment": {"devices": devices}, "results": results}
+
+
+def test_a_window_does_not_measure_again_what_an_earlier_window_measured_the_same_way(monkeypatch):
+    gpu = ["gpu: NVIDIA H100 80GB HBM3"]
+    rate = {"env_steps_per_s": 1.0, "model_tflops": 1.0}
+    history = [
+        _window(None, gpu, {"cnn_sp_10": rate, "rnn_sp_10_xla": rate}),  # the first windows: stale
+        _window(gpu_run.METHOD, ["gpu: NVIDIA H200"], {"cnn_sp_1": rate}),  # another device
+        _window(gpu_run.METHOD, gpu, {"env_ocv2": {"env_steps_per_s": 5.0}, "matmul_tf32": {"tflops": 9.0},
+                                      "cnn_sp_4": {"error": "boom"}}),  # fmt: skip
+        _window(gpu_run.METHOD, gpu, {"env_ocv2": {"env_steps_per_s": 6.0}}),  # the newest wins
+    ]
+    known = gpu_run.measured_before(history, gpu)
+    assert known == {"env_ocv2": {"env_steps_per_s": 6.0}, "matmul_tf32": {"tflops": 9.0}}
+    ran = []
+    monkeypatch.setattr(gpu_run, "log", lambda message: None)
+    monkeypatch.setattr(
+        gpu_run, "measurements", lambda smoke, rnn_first: [(n, lambda n=n: ran.append(n) or {"ok": 1}) for n in
+                                                            ("cnn_sp_10", "env_ocv2", "matmul_tf32", "cnn_sp_1")]
+    )  # fmt: skip
+    import time
+
+    results = gpu_run.measure(time.time() + 60, smoke=False, known=frozenset(known))
+    assert ran == ["cnn_sp_10", "cnn_sp_1"] and set(results) == {"cnn_sp_10", "cnn_sp_1"}
+    assert gpu_run.read_history(Path("/nonexistent/gpu_windows.json")) == []
+
+
+def test_a_continued_table1_study_that_finishes_hands_the_rest_of_the_window_to_table2(tmp_path, monkeypatch):
+    state = tmp_path / "state"
+    state.mkdir()
+    (state / "pack.json").write_text(json.dumps({"study": "gpu_coord_ring_sp"}))
+    trained, packed = [], []
+
+    def fake_train(step, out, deadline, smoke):
+        trained.append(step)
+        return {"step": dataclasses.asdict(step), "rc": 0 if step.study == "gpu_coord_ring_sp" else 130,
+                "stopped_at_deadline": step.study != "gpu_coord_ring_sp"}  # fmt: skip
+
+    f32 = {"precision": "float32", "kernels": "xla", "gru_backward": "hand", "gru_unroll": 8}
+    monkeypatch.setattr(gpu_run, "log", lambda message: None)
+    monkeypatch.setattr(gpu_run, "environment", lambda: {"devices": ["gpu: X"], "nvidia_smi": None})
+    monkeypatch.setattr(gpu_run, "measure", lambda *a, **k: {"rnn_sp_10_xla_hand_unroll8": {"env_steps_per_s": 9e4, **f32}})
+    monkeypatch.setattr(gpu_run, "continued_step", lambda s, out: gpu_run.Step("gpu_coord_ring_sp", 1.0, 10, 0.0, True))
+    monkeypatch.setattr(gpu_run, "train", fake_train)
+    monkeypatch.setattr(gpu_run, "pack", lambda out, returned: packed.append(out) or {})
+    args = ["--out", str(tmp_path / "out"), "--deadline-s", "480", "--measure-s", "1", "--continue-from", str(state)]
+    assert gpu_run.main(args) == 0
+    assert [s.study for s in trained] == ["gpu_coord_ring_sp", "gpu_grounded_coord_simple_sp"]
+    assert trained[1].sets == ("model.kernels=xla", "model.gru_backward=hand", "model.gru_unroll=8")
+    record = json.loads((tmp_path / "out" / "gpu_run.json").read_text())
+    assert [p["study"] for p in record["plan"]] == ["gpu_coord_ring_sp", "gpu_grounded_coord_simple_sp"]
+    assert record["method"] == gpu_run.METHOD and packed
+    # stopped at its deadline (or with too little time left), nothing else starts
+    trained.clear()
+    monkeypatch.setattr(gpu_run, "train", lambda *a: trained.append(a[0]) or {"rc": 130, "stopped_at_deadline": True})
+    assert gpu_run.main(args) == 0 and [s.study for s in trained] == ["gpu_coord_ring_sp"]
+    trained.clear()
+    monkeypatch.setattr(gpu_run, "train", fake_train)
+    assert gpu_run.main([*args[:3], "100", *args[4:]]) == 0 and [s.study for s in trained] == ["gpu_coord_ring_sp"]
+
+
+def test_each_study_comes_back_in_its_own_archive_and_the_block_says_how_fast_it_trained(tmp_path):
+    files = tmp_path / "files"
+    files.mkdir()
+    (files / "gpu_run.json").write_text(json.dumps(made_up_bench()))
+    for study, rates in (("gpu_coord_ring_sp", ["150000", "150000", "140000"]), ("gpu_grounded_coord_simple_sp", ["9e4"])):
+        staging = tmp_path / study / "results"
+        (staging / f"study_{study}_report").mkdir(parents=True)
+        (staging / f"study_{study}_report" / "report.md").write_text("# Study\n")
+        (staging / f"study_{study}_report" / "sp_metrics.csv").write_text("seed,update,steps_per_s\n0,1,1\n")
+        rows = [f"{seed},{update + 1},{rate}" for update, rate in enumerate(rates) for seed in (0, 1)]
+        (staging / f"study_{study}_sp_metrics.csv").write_text("seed,update,steps_per_s\n" + "\n".join(rows) + "\n")
+        (staging / f"study_{study}_sp_config.yaml").write_text("run:\n  precision: float32\n  deterministic: true\n")
+        (staging / f"study_{study}_status.json").write_text(json.dumps([{"step": "train sp", "status": "partial"}]))
+        with tarfile.open(files / f"results_{study}.tar.gz", "w:gz") as tar:
+            tar.add(staging, arcname="results")
+    lines = gpu_report.study_rates(files)
+    assert lines == [
+        "- gpu_coord_ring_sp, run sp: 150,000 env steps/s (median over 3 updates, 2 seeds; precision float32, "
+        "deterministic true)",
+        "- gpu_grounded_coord_simple_sp, run sp: 90,000 env steps/s (median over 1 updates, 2 seeds; precision "
+        "float32, deterministic true)",
+    ]
+    assert "Training in this window's studies" in gpu_report.benchmark_block(made_up_bench(), studies=lines)
+    written = gpu_report.unpack_results(files, tmp_path / "docs")
+    assert [d.name for d in written] == ["gpu_coord_ring_sp", "gpu_grounded_coord_simple_sp"]
+
+
+@pytest.mark.skipif(not (ROOT / "gpu_state" / "pack.json").is_file(), reason="no GPU window left a study unfinished")
+def test_the_committed_gpu_state_resumes_under_this_code(tmp_path):
+    """What the next window continues: every run's config still has the fingerprint its checkpoints were saved
+    with, and every seed's latest checkpoint loads into this code's training state."""
+    from cluster.runtime.runstate import restore
+    from cluster.study.pack import unpack_study
+    from population import ppo
+    from population.config.parse import load_run_config
+
+    unpack_study(ROOT / "gpu_state", tmp_path / "study")
+    runs = [d for d in sorted((tmp_path / "study" / "runs").iterdir()) if (d / "config.yaml").is_file()]
+    assert runs
+    for run_dir in runs:
+        config = load_run_config(run_dir)
+        trainer = ppo.make_trainer(config)
+        restored = restore(trainer, run_dir, config, list(range(config.population.num_seeds)), 0)
+        assert restored is not None and restored[1] > 0, run_dir
