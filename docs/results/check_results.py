@@ -59,6 +59,7 @@ CR = HERE / "table1_coord_ring"
 GCS = HERE / "reduced_gcs"
 SP10 = HERE / "table1_coord_ring_sp10"
 SA10 = HERE / "table1_coord_ring_sa10"
+GPU_CR = HERE / "gpu_coord_ring_sp"  # Table 1 Coordination Ring SP on the paper's 10M schedule, trained on a GPU
 
 # ------------------------------------------------------------------------------------------ reading the page
 
@@ -444,6 +445,26 @@ L = None  # a label: present in the span, not compared
 def paper_numbers(paper: dict) -> list:
     """A run's paper column as the tables write it: SP, XP and gap, each mean then std."""
     return [paper[k][v] for k in ("sp", "xp", "gap") for v in ("mean", "std")]
+
+
+def study_metric(study: Path, run_name: str, update: int, column: str) -> list[float]:
+    """``column`` of every seed at ``update`` in a study folder's ``<run>_metrics.csv``, seeds in order."""
+    with (study / f"{run_name}_metrics.csv").open() as f:
+        rows = sorted((r for r in csv.DictReader(f) if int(r["update"]) == update), key=lambda r: int(r["seed"]))
+    return [_float(r[column]) for r in rows]
+
+
+@check("gpu_cr_sp_progress")
+def _():
+    last = max(int(u) for u in _gpu_updates())
+    returns = study_metric(GPU_CR, "sp", last, "sparse_return")
+    steps = study_metric(GPU_CR, "sp", last, "env_steps")[0]
+    return [last, L, steps / 1e6, float(np.mean(returns)), len(returns), paper(GPU_CR, "sp")[0], L]
+
+
+def _gpu_updates() -> list[str]:
+    with (GPU_CR / "sp_metrics.csv").open() as f:
+        return [r["update"] for r in csv.DictReader(f)]
 
 
 @check("top_cr_sp_size")
