@@ -30,7 +30,9 @@ from pathlib import Path
 
 from sections import publish  # bench/ is sys.path[0] when a script runs
 
+from population import checkpoints as ckpt
 from population import published
+from population.config import load_config
 from population.policy import PolicyError
 
 START, END = "<!-- gpu_run:start -->", "<!-- gpu_run:end -->"
@@ -205,10 +207,12 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
                 tar.extractall(tmp, filter="data")
         results = Path(tmp) / "results"
         studies = sorted({p.name.split("_report")[0] for p in results.glob("study_*_report")})
+        kept_by_study = {}
         for study in studies:  # every check before anything is written
             dest = dest_root / study.removeprefix("study_")
             if dest.exists() and not unfinished(dest):
                 raise SystemExit(f"{dest} exists and holds a finished study: move it away first (nothing was written)")
+            kept_by_study[study] = earlier_snapshots(dest, Path(tmp) / f"{study}_kept")
             policies = results / f"{study}_policies"
             if policies.is_dir():
                 try:
@@ -217,6 +221,7 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
                     raise SystemExit(f"{error} (nothing was written)") from None
         for study in studies:
             dest = dest_root / study.removeprefix("study_")
+            kept = kept_by_study[study]
             if dest.exists():
                 print(f"{dest}: an earlier window's unfinished part of this study, replaced by this window's")
                 shutil.rmtree(dest)
@@ -224,6 +229,8 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
             policies = results / f"{study}_policies"
             if policies.is_dir():
                 shutil.copytree(policies, dest / "policies")
+            if kept:
+                keep_snapshots(kept, Path(tmp) / f"{study}_kept", dest / "policies")
             for extra in results.glob(f"{study}_*_*"):
                 if extra.is_file():
                     shutil.copy(extra, dest / extra.name.removeprefix(f"{study}_"))
@@ -233,6 +240,46 @@ def unpack_results(files: Path, dest_root: Path) -> list[Path]:
                 shutil.copy(files / "gpu_run.json", dest / "gpu_run.json")
             written.append(dest)
     return written
+
+
+def earlier_snapshots(dest: Path, holding: Path) -> list:
+    """The snapshot policies (``run.num_checkpoints``' updates, by the run's config beside them) an earlier window
+    published in ``dest``, checked against their sums and copied to ``holding``: a window returns only its own
+    latest snapshots, and the earlier ones would be lost with the folder it replaces. Deadline stops between
+    snapshots are not kept (the next window supersedes them)."""
+    folder = dest / "policies"
+    if not (folder / published.SUMS).is_file():
+        return []
+    try:
+        entries = published.checked_listing(folder)
+    except PolicyError as error:
+        raise SystemExit(f"{error} (nothing was written)") from None
+    kept = []
+    for entry in entries:
+        config = dest / f"{entry.file.rsplit('_seed', 1)[0]}_config.yaml"
+        if not config.is_file():
+            continue
+        run = load_config(config)
+        if entry.update in ckpt.snapshot_updates(run.ppo.num_updates, run.run.num_checkpoints):
+            kept.append(entry)
+    holding.mkdir(parents=True, exist_ok=True)
+    for entry in kept:
+        shutil.copy(folder / entry.file, holding / entry.file)
+    return kept
+
+
+def keep_snapshots(kept: list, holding: Path, folder: Path) -> None:
+    """Add the ``kept`` earlier snapshots (in ``holding``) that this window did not return to ``folder``'s files
+    and listing."""
+    folder.mkdir(exist_ok=True)
+    listing = published.read_listing(folder) if (folder / published.SUMS).is_file() else []
+    known = {entry.file for entry in listing}
+    added = [entry for entry in kept if entry.file not in known]
+    for entry in added:
+        shutil.copy(holding / entry.file, folder / entry.file)
+    published.write_listing(folder, sorted([*listing, *added], key=lambda e: (e.update, e.seed)))
+    if added:
+        print(f"{folder}: kept {len(added)} snapshot policies of earlier windows")
 
 
 TRAVEL_BYTES = 64 << 20  # what the device tool copies to the GPU machine: the work tree and the carried paths

@@ -417,3 +417,44 @@ def test_the_committed_gpu_state_resumes_under_this_code(tmp_path):
         trainer = ppo.make_trainer(config)
         restored = restore(trainer, run_dir, config, list(range(config.population.num_seeds)), 0)
         assert restored is not None and restored[1] > 0, run_dir
+
+
+def test_a_later_window_keeps_the_snapshot_policies_of_earlier_ones(tmp_path):
+    """A window returns its own latest policies; the earlier windows' snapshots (run.num_checkpoints' updates)
+    stay published beside them, and deadline stops between snapshots give way."""
+    config = ROOT / "docs" / "results" / "gpu_coord_ring_sp" / "sp_config.yaml"  # 610 updates, snapshots every 122
+
+    def policies_folder(folder: Path, updates: list[int]) -> None:
+        folder.mkdir(parents=True)
+        listing = []
+        for update in updates:
+            name = f"sp_seed0_update{update}.ocv2policy"
+            (folder / name).write_bytes(f"policy {update}".encode())
+            digest = hashlib.sha256(f"policy {update}".encode()).hexdigest()
+            listing.append({"file": name, "seed": 0, "update": update, "sha256": digest})
+        (folder / "SHA256SUMS.json").write_text(json.dumps(listing))
+
+    dest = tmp_path / "docs" / "gpu_coord_ring_sp"
+    policies_folder(dest / "policies", [122, 290])  # the first window: a snapshot and its deadline stop
+    shutil.copy(config, dest / "sp_config.yaml")
+    (dest / "study_status.json").write_text(json.dumps([{"step": "train sp", "status": "partial"}]))
+    files, staging = tmp_path / "files", tmp_path / "results"
+    files.mkdir()
+    (staging / "study_gpu_coord_ring_sp_report").mkdir(parents=True)
+    (staging / "study_gpu_coord_ring_sp_report" / "report.md").write_text("# Study\n")
+    policies_folder(staging / "study_gpu_coord_ring_sp_policies", [244, 410])
+    (staging / "study_gpu_coord_ring_sp_status.json").write_text(json.dumps([{"step": "train sp", "status": "partial"}]))
+    with tarfile.open(files / "results_gpu_coord_ring_sp.tar.gz", "w:gz") as tar:
+        tar.add(staging, arcname="results")
+    (written,) = gpu_report.unpack_results(files, tmp_path / "docs")
+    listing = json.loads((written / "policies" / "SHA256SUMS.json").read_text())
+    assert [entry["update"] for entry in listing] == [122, 244, 410]
+    assert not (written / "policies" / "sp_seed0_update290.ocv2policy").exists()
+    from population import published
+
+    published.checked_listing(written / "policies")  # every file matches its sum
+    # an earlier policy that no longer matches its sum stops it before anything is written
+    (written / "policies" / "sp_seed0_update122.ocv2policy").write_bytes(b"changed")
+    with pytest.raises(SystemExit, match="nothing was written"):
+        gpu_report.unpack_results(files, tmp_path / "docs")
+    assert (written / "policies" / "sp_seed0_update410.ocv2policy").is_file()
