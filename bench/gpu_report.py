@@ -88,6 +88,9 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
     ``studies``: lines saying how fast this window's studies trained (``study_rates``)."""
     env, results = bench["environment"], bench["results"]
     peaks = _peaks(results)
+    for window in reversed(earlier):  # a rate not measured again: the newest earlier window's on the same device
+        if window["environment"].get("devices") == env.get("devices"):
+            peaks = {k: v or _peaks(window["results"])[k] for k, v in peaks.items()}
     lines = [
         START,
         "## On a GPU (bench/gpu_run.sh)",
@@ -96,8 +99,8 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
         f"- Python {env['python']}; "
         + ", ".join(f"{k} {v}" for k, v in env["versions"].items() if v and k != "python")
         + f"; XLA_FLAGS=`{env.get('XLA_FLAGS') or '(unset)'}`",
-        "- matmul (jitted, random operands, median of 10): "
-        + ", ".join(f"{k[7:]} {results[k]['size']}^3 {v:,.1f} TFLOP/s" for k, v in peaks.items() if v),
+        "- matmul (jitted, random operands, median of 10; * an earlier window's): "
+        + ", ".join(f"{k[7:]} {v:,.1f} TFLOP/s" + ("" if k in results else "*") for k, v in peaks.items() if v),
         "",
         HEADER,
         RULE,
@@ -133,12 +136,13 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
         ]
     if studies:
         lines += ["", "Training in this window's studies (`ocv2 study run`, the whole run as it trains):", "", *studies]
-    ours, theirs = results.get("env_ocv2", {}), results.get("env_jaxmarl", {})
+    ours, theirs = (_newest(name, results, earlier, env) for name in ("env_ocv2", "env_jaxmarl"))
     lines += ["", "Environment alone (Coordination Ring, random actions, one jitted scan):", ""]
     for r, name in ((ours, "ocv2"), (theirs, "JaxMARL overcooked_v2")):
         if "env_steps_per_s" in r:
             lines.append(
-                f"- {name}: {_rate(r['env_steps_per_s'])} env steps/s (batch {r['batch']}, {r['steps']} steps)"
+                f"- {name}: {_rate(r['env_steps_per_s'])} env steps/s (batch {r['batch']}, {r['steps']} steps"
+                + (f"; measured in the window of {r['window']})" if "window" in r else ")")
             )
         else:
             lines.append(f"- {name}: {r.get('skipped') or r.get('error') or 'not measured'}")
@@ -146,6 +150,18 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
         lines.append(f"- ratio: **{ours['env_steps_per_s'] / theirs['env_steps_per_s']:.2f}x** (target: at least 3x)")
     lines += ["", END]
     return "\n".join(lines)
+
+
+def _newest(name: str, results: dict, earlier: list[dict], env: dict) -> dict:
+    """This window's result ``name``, or else the newest earlier window's on the same devices (with its date as
+    "window"), or {}."""
+    if name in results:
+        return results[name]
+    for window in reversed(earlier):
+        found = window["results"].get(name, {})
+        if window["environment"].get("devices") == env.get("devices") and "env_steps_per_s" in found:
+            return {**found, "window": window["environment"].get("date", "undated")}
+    return {}
 
 
 def result_archives(files: Path) -> list[Path]:

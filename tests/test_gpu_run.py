@@ -236,6 +236,12 @@ def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp
     assert "| rnn_sp_10_xla (v2_grounded_coord_simple_sp.yaml) | 10 | xla, GRU hand, unroll 8 | float32 | 123,000 |" in block
     assert "2026-12-01T10:00:00+00:00, gpu: NVIDIA H100 80GB HBM3 |" in block
     assert block.count("cnn_sp_10 (") == 1  # measured again: only this window's row
+    # rates this window did not measure again come from the newest earlier window on the same device, marked
+    for name in ("matmul_f32", "matmul_tf32", "matmul_bf16", "env_ocv2", "env_jaxmarl"):
+        second["results"].pop(name, None)
+    block = gpu_report.benchmark_block(second, [first])
+    assert "f32 50.0 TFLOP/s*" in block and "| float32 | 400,000 | 5.000 | 10.00 % |" in block
+    assert "- ocv2: 90,000,000 env steps/s (batch 16384, 400 steps; measured in the window of 2026-12-01" in block
     # through main: the history file gets each window once, however often the report is written
     for name, bench in (("one", first), ("two", second)):
         (tmp_path / name).mkdir()
@@ -318,14 +324,15 @@ def test_a_window_does_not_measure_again_what_an_earlier_window_measured_the_sam
     gpu = ["gpu: NVIDIA H100 80GB HBM3"]
     rate = {"env_steps_per_s": 1.0, "model_tflops": 1.0}
     history = [
-        _window(None, gpu, {"cnn_sp_10": rate, "rnn_sp_10_xla": rate}),  # the first windows: stale
+        # the first windows: their trainer rates are stale, their matmul and environment rates are not
+        _window(None, gpu, {"cnn_sp_10": rate, "rnn_sp_10_xla": rate, "matmul_f32": {"tflops": 50.0}}),
         _window(gpu_run.METHOD, ["gpu: NVIDIA H200"], {"cnn_sp_1": rate}),  # another device
         _window(gpu_run.METHOD, gpu, {"env_ocv2": {"env_steps_per_s": 5.0}, "matmul_tf32": {"tflops": 9.0},
                                       "cnn_sp_4": {"error": "boom"}}),  # fmt: skip
         _window(gpu_run.METHOD, gpu, {"env_ocv2": {"env_steps_per_s": 6.0}}),  # the newest wins
     ]
     known = gpu_run.measured_before(history, gpu)
-    assert known == {"env_ocv2": {"env_steps_per_s": 6.0}, "matmul_tf32": {"tflops": 9.0}}
+    assert known == {"env_ocv2": {"env_steps_per_s": 6.0}, "matmul_tf32": {"tflops": 9.0}, "matmul_f32": {"tflops": 50.0}}
     ran = []
     monkeypatch.setattr(gpu_run, "log", lambda message: None)
     monkeypatch.setattr(
