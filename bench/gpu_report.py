@@ -100,7 +100,7 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
         + ", ".join(f"{k} {v}" for k, v in env["versions"].items() if v and k != "python")
         + f"; XLA_FLAGS=`{env.get('XLA_FLAGS') or '(unset)'}`",
         "- matmul (jitted, random operands, median of 10; * an earlier window's): "
-        + ", ".join(f"{k[7:]} {v:,.1f} TFLOP/s" + ("" if k in results else "*") for k, v in peaks.items() if v),
+        + ", ".join(f"{k[7:]} {v:,.1f} TFLOP/s" + ("" if results.get(k, {}).get("tflops") else "*") for k, v in peaks.items() if v),
         "",
         HEADER,
         RULE,
