@@ -181,8 +181,13 @@ def study_rates(files: Path) -> list[str]:
 
     lines = []
     for archive in result_archives(files):
-        with tarfile.open(archive) as tar:
+        try:
+            tar = tarfile.open(archive)
             members = {m.name: m for m in tar.getmembers() if m.isfile()}
+        except (tarfile.TarError, OSError, EOFError) as error:
+            lines.append(f"- {archive.name}: unreadable ({type(error).__name__}: {error})")
+            continue
+        with tar:
             studies = {Path(n).parent.name.removesuffix("_report") for n in members if Path(n).parent.name.endswith("_report")}
             for name, member in sorted(members.items()):
                 if not name.endswith("_metrics.csv") or Path(name).parent.name != "results":  # the run's own copy
@@ -214,14 +219,23 @@ def unfinished(dest: Path) -> bool:
 
 
 def unpack_results(files: Path, dest_root: Path) -> list[Path]:
-    """Each study of results.tar.gz into dest_root/<study>/, policies checked against their sums. A folder there
+    """Each study of the returned archives into dest_root/<study>/, policies checked against their sums. A folder there
     already is replaced only when it holds the same study unfinished (an earlier window's part of it)."""
     written = []
     with tempfile.TemporaryDirectory() as tmp:
-        for archive in result_archives(files):
-            with tarfile.open(archive) as tar:
-                tar.extractall(tmp, filter="data")
         results = Path(tmp) / "results"
+        results.mkdir()
+        for index, archive in enumerate(result_archives(files)):
+            whole = Path(tmp) / f"archive{index}"  # an archive is filed whole or not at all (a command cut short)
+            try:
+                with tarfile.open(archive) as tar:
+                    tar.extractall(whole, filter="data")
+            except (tarfile.TarError, OSError, EOFError) as error:
+                print(f"{archive}: unreadable, nothing of it is filed ({type(error).__name__}: {error})")
+                continue
+            for entry in (whole / "results").iterdir():
+                if not (results / entry.name).exists():  # gpu_run.json is in every archive
+                    entry.rename(results / entry.name)
         studies = sorted({p.name.split("_report")[0] for p in results.glob("study_*_report")})
         kept_by_study = {}
         for study in studies:  # every check before anything is written
@@ -348,7 +362,25 @@ def main(argv=None) -> int:
             print(f"wrote {dest}")
     if (args.files / "state").is_dir():
         print(travel_check(args.files / "state"))
+    print(state_advice(args.files, Path(args.results) if args.results else None))
     return 0
+
+
+def state_advice(files: Path, results: Path | None, root: Path = ROOT) -> str:
+    """What to do with gpu_state/ after this window: replace it with a returned state/, or remove it once the study
+    it holds is filed as finished (else the next window would train that study again)."""
+    held = root / "gpu_state" / "pack.json"
+    if (files / "state").is_dir():
+        return (
+            f"next: rm -rf gpu_state && cp -r {files / 'state'} gpu_state && git add -A gpu_state "
+            "(the next window continues it)"
+        )
+    if held.is_file() and results is not None:
+        study = json.loads(held.read_text()).get("study")
+        status = results / str(study) / "study_status.json"
+        if status.is_file() and not unfinished(results / str(study)):
+            return f"next: git rm -r -q gpu_state ({study} is filed as finished; nothing to continue)"
+    return "next: nothing to do with gpu_state/"
 
 
 if __name__ == "__main__":

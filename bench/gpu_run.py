@@ -24,7 +24,7 @@ it can also run by itself (``python bench/gpu_run.py --out DIR``).
 5. **pack**: first the resumable state of a study left unfinished at the deadline -> state/ (``ocv2 study
    pack``: pack.json and parts of at most 16 MiB), then each study's report folder (``ocv2 study report --out``),
    every seed's exported policy (its latest checkpoint, then kept snapshots while 12 MiB allow) with sha256
-   sums, metrics.csv and gpu_run.json -> results.tar.gz. Commit state/ as gpu_state/ and the next window's
+   sums, metrics.csv and gpu_run.json -> results_<study>.tar.gz. Commit state/ as gpu_state/ and the next window's
    ``bench/gpu_run.sh`` continues that study (``--continue-from``) instead of planning a new one.
 
 Everything it learns goes into gpu_run.json, rewritten after every phase: the environment (device, driver,
@@ -260,10 +260,12 @@ def fastest_rnn(measured: dict, seeds: int) -> dict | None:
 
 
 def best_rnn_sets(measured: dict, seeds: int) -> list[str]:
-    """The overrides of the fastest ``seeds``-seed RNN variant measured (the "xla" family's defaults when none was)."""
+    """The overrides of the fastest ``seeds``-seed RNN variant measured at float32; when none was, the hand-written
+    backward unrolled 8 steps, the fastest of the first window's (163k env steps/s against 111k for autodiff, at
+    TF32): a study keeps its ``--set`` for the whole schedule, so the fallback is the best known, not the plainest."""
     best = fastest_rnn(measured, seeds)
     if best is None:
-        return rnn_sets("xla")
+        return rnn_sets("xla", "hand", 8)
     return rnn_sets(best["kernels"], best["gru_backward"], best["gru_unroll"])
 
 
@@ -303,13 +305,17 @@ METHOD = 2
 HISTORY = ROOT / "docs" / "results" / "gpu_windows.json"  # every window's gpu_run.json (bench/gpu_report.py)
 
 
-def measured_before(history: list[dict], devices: list[str]) -> dict:
-    """The newest success of each measurement in earlier windows on the same ``devices`` measured by this
-    ``METHOD``: a window need not spend its minutes on them again (bench/gpu_report.py lists them with their
-    window), and the plan uses them where this window did not measure."""
+SAME_MACHINE = ("devices", "nvidia_smi", "versions")  # what an earlier window must share for its rates to stand
+
+
+def measured_before(history: list[dict], environment: dict) -> dict:
+    """The newest success of each measurement in earlier windows on the same machine (devices, driver and
+    package versions as in ``environment``) measured by this ``METHOD``: a window need not spend its minutes on
+    them again (bench/gpu_report.py lists them with their window), and the plan uses them where this window did
+    not measure."""
     known = {}
     for window in history:
-        if window.get("environment", {}).get("devices") != devices:
+        if any(window.get("environment", {}).get(key) != environment.get(key) for key in SAME_MACHINE):
             continue
         for name, result in window.get("results", {}).items():
             # the matmul and environment-alone cases have been measured the same way by every METHOD so far
@@ -450,7 +456,7 @@ def train(step: Step, out: Path, deadline: float, smoke: bool) -> dict:
 # ---------------------------------------------------------------------------------------------------
 
 RETURNED_FILES = 8  # what the device tool brings back from $OUT
-POLICY_BYTES = 12 << 20  # exported policies per run, inside results.tar.gz's 16 MiB (about 0.4 MB per CNN policy)
+POLICY_BYTES = 12 << 20  # exported policies per run, inside its results_<study>.tar.gz's 16 MiB (0.4 MB per CNN policy)
 
 
 def export_policies(run_dir: Path, dest: Path) -> list:
@@ -479,34 +485,34 @@ def export_policies(run_dir: Path, dest: Path) -> list:
     return exported
 
 
-def _pack_study_dir(study_dir: Path, staging: Path, returned: Path, studies: int = 1) -> dict:
-    """One study directory (of ``studies`` this window packs): first, if unfinished, its resumable state into
-    ``returned/state/`` (what the next window needs most), then its report, policies, metrics and status into
-    ``staging``; returns its entry for ``pack``'s record."""
-    import shutil
-
+def _pack_state(study_dir: Path, returned: Path, studies: int) -> dict:
+    """An unfinished study's resumable state into ``returned/state/`` (what the next window needs most: packed
+    before any report or export), of ``studies`` this window returns; {} for a finished one."""
     from cluster.study.pack import pack_study
     from cluster.study.runner import study_status
 
-    packed = {}
-    status = study_status(study_dir)
-    (staging / f"{study_dir.name}_status.json").write_text(json.dumps(status, indent=1))
-    if any(entry["status"] != "done" for entry in status):
-        state = returned / "state"
-        if state.exists():
-            packed[study_dir.name] = "not packed: another unfinished study took state/ (one per window)"
-        else:
-            # Only each seed's newest checkpoint: the kept snapshots before it travel as exported policies below,
-            # and all of them would not fit (6 snapshots of 10 CNN seeds are about 80 MB; 10 RNN seeds 42 MB each).
-            try:
-                record = pack_study(study_dir, state, latest_only=True)
-                packed[study_dir.name] = {"state": record["bytes"], "parts": len(record["parts"])}
-                # + pack.json, gpu_run.log, gpu_run.json and one results tarball per study
-                if len(record["parts"]) + 3 + studies > RETURNED_FILES:
-                    packed[study_dir.name]["error"] = f"{len(record['parts'])} parts: more than {RETURNED_FILES} return"
-            except Exception as error:  # its report and policies below still come back
-                log(f"packing the state of {study_dir.name} failed: {type(error).__name__}: {error}")
-                packed[study_dir.name] = {"error": f"{type(error).__name__}: {error}"}
+    if all(entry["status"] == "done" for entry in study_status(study_dir)):
+        return {}
+    state = returned / "state"
+    if state.exists():
+        return {study_dir.name: "not packed: another unfinished study took state/ (one per window)"}
+    # Only each seed's newest checkpoint: the kept snapshots before it travel as exported policies, and all of
+    # them would not fit (6 snapshots of 10 CNN seeds are about 80 MB; 10 RNN seeds 42 MB each).
+    record = pack_study(study_dir, state, latest_only=True)
+    packed = {study_dir.name: {"state": record["bytes"], "parts": len(record["parts"])}}
+    # + pack.json, gpu_run.log, gpu_run.json and one results tarball per study
+    if len(record["parts"]) + 3 + studies > RETURNED_FILES:
+        packed[study_dir.name]["error"] = f"{len(record['parts'])} parts: more than {RETURNED_FILES} return"
+    return packed
+
+
+def _stage_results(study_dir: Path, staging: Path) -> None:
+    """A study's status, report folder, exported policies, metrics and configs into ``staging``."""
+    import shutil
+
+    from cluster.study.runner import study_status
+
+    (staging / f"{study_dir.name}_status.json").write_text(json.dumps(study_status(study_dir), indent=1))
     report = staging / f"{study_dir.name}_report"
     subprocess.run(
         [sys.executable, "-m", "cluster.cli", "study", "report", str(study_dir), "--out", str(report)],
@@ -522,30 +528,44 @@ def _pack_study_dir(study_dir: Path, staging: Path, returned: Path, studies: int
         for name in ("metrics.csv", "config.yaml"):
             if (run_dir / name).exists():
                 shutil.copy(run_dir / name, staging / f"{study_dir.name}_{run_dir.name}_{name}")
-    return packed
 
 
-def pack(out: Path, returned: Path) -> dict:
-    """One ``results_<study>.tar.gz`` per study (report, policies, metrics, gpu_run.json; each under the 16 MiB a
-    returned file may have) into ``returned``; an unfinished study's resumable state as ``returned/state/``
-    (``ocv2 study pack``: pack.json and parts of at most 16 MiB)."""
+def results_name(study_dir: Path) -> str:
+    return f"results_{study_dir.name.removeprefix('study_')}.tar.gz"
+
+
+def pack(out: Path, returned: Path, only: Path | None = None) -> dict:
+    """Every study of this window not packed yet (or ``only`` that one): first each unfinished study's resumable
+    state as ``returned/state/`` (``ocv2 study pack``: pack.json and parts of at most 16 MiB), then one
+    ``results_<study>.tar.gz`` per study (report, policies, metrics, gpu_run.json; each under the 16 MiB a returned
+    file may have), written under a temporary name and renamed whole, so that a command cut off while packing
+    returns no half archive."""
     import shutil
     import tarfile
 
     packed = {}
-    study_dirs = sorted(out.glob("study_*"))
+    every = sorted(out.glob("study_*"))
+    study_dirs = [only] if only else [d for d in every if not (returned / results_name(d)).exists()]
+    for study_dir in study_dirs:
+        try:
+            packed.update(_pack_state(study_dir, returned, len(every)))
+        except Exception as error:  # its report and policies below still come back
+            log(f"packing the state of {study_dir.name} failed: {type(error).__name__}: {error}")
+            packed[study_dir.name] = {"error": f"{type(error).__name__}: {error}"}
     for study_dir in study_dirs:
         staging = out / "results" / study_dir.name
         staging.mkdir(parents=True, exist_ok=True)
         try:
-            packed.update(_pack_study_dir(study_dir, staging, returned, len(study_dirs)))
+            _stage_results(study_dir, staging)
         except Exception as error:  # one study's problem must not cost the window its results
             log(f"packing {study_dir.name} failed: {type(error).__name__}: {error}")
             packed[study_dir.name] = {"error": f"{type(error).__name__}: {error}"}
         shutil.copy(out / "gpu_run.json", staging / "gpu_run.json")
-        name = f"results_{study_dir.name.removeprefix('study_')}.tar.gz"
-        with tarfile.open(returned / name, "w:gz") as tar:
+        name = results_name(study_dir)
+        partial = returned / f".{name}.partial"  # a dot name: bench/gpu_report.py reads results*.tar.gz only
+        with tarfile.open(partial, "w:gz") as tar:
             tar.add(staging, arcname="results")
+        partial.rename(returned / name)
         packed[name] = (returned / name).stat().st_size
     return packed
 
@@ -566,9 +586,18 @@ def continued_step(state: Path, out: Path) -> Step:
 GO_ON_MIN_S = 150.0  # a new study after a finished one: an RNN compile (~35 s) and a few chunks at least
 
 
-def finished(trained: dict) -> bool:
-    """Whether a ``train`` record's study ran to its end (not stopped at the deadline, not failed)."""
-    return trained.get("rc") == 0 and not trained.get("stopped_at_deadline")
+def finished(trained: dict, study_dir: Path) -> bool:
+    """Whether a ``train`` record's study ran to its end (not stopped at the deadline, not failed) and its
+    directory says every step is done."""
+    from cluster.study.runner import study_status
+
+    if trained.get("rc") != 0 or trained.get("stopped_at_deadline"):
+        return False
+    try:
+        return all(entry["status"] == "done" for entry in study_status(study_dir))
+    except Exception as error:  # an unreadable study is not finished
+        log(f"{study_dir}: cannot read its status ({type(error).__name__}: {error})")
+        return False
 
 
 def train_in_turn(steps: list[Step], out: Path, deadline: float, smoke: bool, record: dict, save) -> None:
@@ -617,31 +646,40 @@ def main(argv=None) -> int:
     save()
     log(f"devices {record['environment']['devices']}; {record['environment']['nvidia_smi']}; smoke={args.smoke}")
     table1_done = args.plan == "table2" or (args.plan == "auto" and finished_here(TABLE1))
-    if args.continue_from:  # the RNN variants matter to a continued Table 2 run (measured for the record)
-        rnn_first = json.loads((args.continue_from / "pack.json").read_text()).get("study") == TABLE2
-    else:
-        rnn_first = table1_done
-    known = {} if args.smoke else measured_before(read_history(), record["environment"]["devices"])
+    continue_from, held = args.continue_from, None
+    if continue_from:
+        held = json.loads((continue_from / "pack.json").read_text()).get("study")
+        if finished_here(held):  # a window finished it and gpu_state/ was left behind: never train it again
+            log(f"{continue_from} holds {held}, which docs/results holds finished: planning afresh (remove it)")
+            continue_from = None
+    # the RNN variants matter to a continued Table 2 run (measured for the record)
+    rnn_first = held == TABLE2 if continue_from else table1_done
+    known = {} if args.smoke else measured_before(read_history(), record["environment"])
     if known:
         log(f"measured in earlier windows, not again: {', '.join(known)}")
     record["results"] = measure(start + args.measure_s, args.smoke, rnn_first, frozenset(known))
     save()
     deadline = start + args.deadline_s
-    if args.continue_from:
-        steps = [continued_step(args.continue_from, out)]
+    if continue_from:
+        steps = [continued_step(continue_from, out)]
     else:
         steps = plan({**known, **record["results"]}, deadline - time.time(), args.smoke, table1_done)
     record["plan"] = [dataclasses.asdict(s) for s in steps]
     record["trained"] = []
     train_in_turn(steps, out, deadline, args.smoke, record, save)
-    # A continued Table 1 study that finished leaves the rest of the window: Table 2 starts in it, and its state
-    # is what comes back for the next window (one study's state per window: Table 1's has finished).
-    going_on = args.continue_from and steps[0].study == TABLE1 and finished(record["trained"][-1])
-    if going_on and deadline - time.time() > (20 if args.smoke else GO_ON_MIN_S):
-        more = plan_table2({**known, **record["results"]}, args.smoke)
-        record["plan"] += [dataclasses.asdict(s) for s in more]
-        train_in_turn(more, out, deadline, args.smoke, record, save)
-    record["packed"] = pack(out, returned)
+    # A continued Table 1 study that finished leaves the rest of the window: its results are packed at once (the
+    # packing after the deadline must stay as short as with one study), then Table 2 starts in what is left, and
+    # its state is what comes back for the next window (one study's state per window: Table 1's has finished).
+    table1_dir = out / f"study_{TABLE1}"
+    record["packed"] = {}
+    if continue_from and steps[0].study == TABLE1 and finished(record["trained"][-1], table1_dir):
+        record["packed"] = pack(out, returned, only=table1_dir)
+        save()
+        if deadline - time.time() > (20 if args.smoke else GO_ON_MIN_S):
+            more = plan_table2({**known, **record["results"]}, args.smoke)
+            record["plan"] += [dataclasses.asdict(s) for s in more]
+            train_in_turn(more, out, deadline, args.smoke, record, save)
+    record["packed"].update(pack(out, returned))
     save()
     log(f"trained: {json.dumps(record['trained'])}; packed: {record['packed']}; wall {time.time() - start:.0f} s")
     # A study's rc 1 (a step blocked) or 130 (stopped at the deadline) leaves a resumable directory.

@@ -6,7 +6,7 @@
 #   GPU_RUN_SMOKE=1 bash bench/gpu_run.sh          # the rehearsal: the same steps, tiny, on a CPU (~2 minutes)
 #
 # What comes back, in $OUT (the device tool's folder; ./out/gpu_run elsewhere), at most 8 files: gpu_run.log,
-# gpu_run.json (environment, measurements, plan, what trained), results.tar.gz (study reports, exported policies
+# gpu_run.json (environment, measurements, plan, what trained), results_<study>.tar.gz (its report, exported policies
 # with sha256 sums, metrics) and, when a study is left unfinished at the deadline, state/ (its resumable state:
 # pack.json and parts of at most 16 MiB). bench/gpu_report.py files them into the repository; commit state/ as
 # gpu_state/ and the next window continues that study instead of planning a new one.
@@ -49,7 +49,7 @@ continue_from=()
 # resumes under this code), and the rehearsal rehearses the plan of a fresh window.
 if [ "$smoke" != 1 ] && [ -f gpu_state/pack.json ]; then
     continue_from=(--continue-from gpu_state)  # an earlier window's unfinished study: go on with it
-    measure=$([ "$smoke" = 1 ] && echo 10 || echo 30)
+    measure=30
 fi
 "$python" bench/gpu_run.py --out "$work/run" --returned "$out" --deadline-s "$deadline" --measure-s "$measure" \
     "${continue_from[@]}" 2>&1 | tee "$out/gpu_run.log"

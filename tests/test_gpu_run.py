@@ -166,7 +166,8 @@ def test_once_table1_has_finished_table2_trains_its_whole_schedule_the_fastest_m
     command = step.command(tmp_path, smoke=False)
     assert "gpu_grounded_coord_simple_sp.yaml" in command[command.index("run") + 1]
     assert command[command.index("--set") + 1] == "model.kernels=xla"
-    assert gpu_run.best_rnn_sets({}, 10) == ["model.kernels=xla", "model.gru_backward=auto", "model.gru_unroll=1"]
+    # nothing measured at float32: the best known variant, since a study keeps its --set for its whole schedule
+    assert gpu_run.best_rnn_sets({}, 10) == ["model.kernels=xla", "model.gru_backward=hand", "model.gru_unroll=8"]
     # Table 1 first, until it has finished
     assert gpu_run.plan(measured, 400, smoke=False)[0].study == "gpu_coord_ring_sp"
 
@@ -316,8 +317,9 @@ def test_trainer_rates_are_measured_at_the_precision_the_studies_train_at_and_at
     assert rnn[-1] == "rnn_sp_10_xla_hand_unroll8_tf32"
 
 
-def _window(method, devices, results):
-    return {"method": method, "environment": {"devices": devices}, "results": results}
+def _window(method, devices, results, versions=None):
+    environment = {"devices": devices, "nvidia_smi": "H100, 580", "versions": versions or {"jax": "0.11.2"}}
+    return {"method": method, "environment": environment, "results": results}
 
 
 def test_a_window_does_not_measure_again_what_an_earlier_window_measured_the_same_way(monkeypatch):
@@ -330,8 +332,9 @@ def test_a_window_does_not_measure_again_what_an_earlier_window_measured_the_sam
         _window(gpu_run.METHOD, gpu, {"env_ocv2": {"env_steps_per_s": 5.0}, "matmul_tf32": {"tflops": 9.0},
                                       "cnn_sp_4": {"error": "boom"}}),  # fmt: skip
         _window(gpu_run.METHOD, gpu, {"env_ocv2": {"env_steps_per_s": 6.0}}),  # the newest wins
+        _window(gpu_run.METHOD, gpu, {"cnn_sp_4": rate}, versions={"jax": "0.12.0"}),  # other versions: stale
     ]
-    known = gpu_run.measured_before(history, gpu)
+    known = gpu_run.measured_before(history, _window(None, gpu, {})["environment"])
     assert known == {"env_ocv2": {"env_steps_per_s": 6.0}, "matmul_tf32": {"tflops": 9.0}, "matmul_f32": {"tflops": 50.0}}
     ran = []
     monkeypatch.setattr(gpu_run, "log", lambda message: None)
@@ -347,6 +350,8 @@ def test_a_window_does_not_measure_again_what_an_earlier_window_measured_the_sam
 
 
 def test_a_continued_table1_study_that_finishes_hands_the_rest_of_the_window_to_table2(tmp_path, monkeypatch):
+    from cluster.study import runner
+
     state = tmp_path / "state"
     state.mkdir()
     (state / "pack.json").write_text(json.dumps({"study": "gpu_coord_ring_sp"}))
@@ -357,27 +362,91 @@ def test_a_continued_table1_study_that_finishes_hands_the_rest_of_the_window_to_
         return {"step": dataclasses.asdict(step), "rc": 0 if step.study == "gpu_coord_ring_sp" else 130,
                 "stopped_at_deadline": step.study != "gpu_coord_ring_sp"}  # fmt: skip
 
-    f32 = {"precision": "float32", "kernels": "xla", "gru_backward": "hand", "gru_unroll": 8}
+    def fake_pack(out, returned, only=None):
+        packed.append((only.name if only else None, [s.study for s in trained]))
+        return {}
+
+    done = [{"step": "train sp", "status": "done"}, {"step": "xp sp", "status": "done"}]
+    monkeypatch.setattr(runner, "study_status", lambda study_dir: done)
     monkeypatch.setattr(gpu_run, "log", lambda message: None)
     monkeypatch.setattr(gpu_run, "environment", lambda: {"devices": ["gpu: X"], "nvidia_smi": None})
-    monkeypatch.setattr(gpu_run, "measure", lambda *a, **k: {"rnn_sp_10_xla_hand_unroll8": {"env_steps_per_s": 9e4, **f32}})
+    monkeypatch.setattr(gpu_run, "read_history", lambda: [])
+    monkeypatch.setattr(gpu_run, "measure", lambda *a, **k: {})  # a continued window's 30 s: no RNN rate
     monkeypatch.setattr(gpu_run, "continued_step", lambda s, out: gpu_run.Step("gpu_coord_ring_sp", 1.0, 10, 0.0, True))
     monkeypatch.setattr(gpu_run, "train", fake_train)
-    monkeypatch.setattr(gpu_run, "pack", lambda out, returned: packed.append(out) or {})
+    monkeypatch.setattr(gpu_run, "pack", fake_pack)
+    monkeypatch.setattr(gpu_run, "finished_here", lambda study, published=None: False)
     args = ["--out", str(tmp_path / "out"), "--deadline-s", "480", "--measure-s", "1", "--continue-from", str(state)]
     assert gpu_run.main(args) == 0
     assert [s.study for s in trained] == ["gpu_coord_ring_sp", "gpu_grounded_coord_simple_sp"]
+    # no float32 RNN rate known: the best known variant, not the plainest
     assert trained[1].sets == ("model.kernels=xla", "model.gru_backward=hand", "model.gru_unroll=8")
+    # Table 1's results were packed before Table 2 started; the rest after it
+    assert packed == [("study_gpu_coord_ring_sp", ["gpu_coord_ring_sp"]), (None, [s.study for s in trained])]
     record = json.loads((tmp_path / "out" / "gpu_run.json").read_text())
     assert [p["study"] for p in record["plan"]] == ["gpu_coord_ring_sp", "gpu_grounded_coord_simple_sp"]
-    assert record["method"] == gpu_run.METHOD and packed
-    # stopped at its deadline (or with too little time left), nothing else starts
-    trained.clear()
+    assert record["method"] == gpu_run.METHOD
+
+    def only_table1(arguments) -> list[str]:
+        trained.clear()
+        packed.clear()
+        assert gpu_run.main(arguments) == 0
+        return [s.study for s in trained]
+
+    # stopped at its deadline, with too little time left, or a study whose status is not all done: nothing else
     monkeypatch.setattr(gpu_run, "train", lambda *a: trained.append(a[0]) or {"rc": 130, "stopped_at_deadline": True})
-    assert gpu_run.main(args) == 0 and [s.study for s in trained] == ["gpu_coord_ring_sp"]
-    trained.clear()
+    assert only_table1(args) == ["gpu_coord_ring_sp"]
     monkeypatch.setattr(gpu_run, "train", fake_train)
-    assert gpu_run.main([*args[:3], "100", *args[4:]]) == 0 and [s.study for s in trained] == ["gpu_coord_ring_sp"]
+    assert only_table1([*args[:3], "100", *args[4:]]) == ["gpu_coord_ring_sp"]
+    monkeypatch.setattr(runner, "study_status", lambda study_dir: [{"step": "xp sp", "status": "partial"}])
+    assert only_table1(args) == ["gpu_coord_ring_sp"]
+    # a gpu_state/ whose study is already filed as finished is never trained again: the window plans afresh
+    monkeypatch.setattr(gpu_run, "finished_here", lambda study, published=None: study == "gpu_coord_ring_sp")
+    monkeypatch.setattr(gpu_run, "continued_step", lambda s, out: pytest.fail("continued a finished study"))
+    assert only_table1(args) == ["gpu_grounded_coord_simple_sp"]
+
+
+def test_the_state_of_an_unfinished_study_is_packed_before_any_results(tmp_path, monkeypatch):
+    out, returned = tmp_path / "run", tmp_path / "returned"
+    for name in ("study_a", "study_b"):
+        (out / name).mkdir(parents=True)
+    (out / "gpu_run.json").write_text("{}")
+    returned.mkdir()
+    order = []
+    monkeypatch.setattr(gpu_run, "log", lambda message: None)
+    monkeypatch.setattr(gpu_run, "_pack_state", lambda d, r, n: order.append(("state", d.name, n)) or {})
+    monkeypatch.setattr(gpu_run, "_stage_results", lambda d, staging: order.append(("results", d.name)))
+    packed = gpu_run.pack(out, returned, only=out / "study_a")
+    assert order == [("state", "study_a", 2), ("results", "study_a")] and "results_a.tar.gz" in packed
+    order.clear()
+    packed = gpu_run.pack(out, returned)  # what was packed already is not packed again
+    assert order == [("state", "study_b", 2), ("results", "study_b")] and set(packed) == {"results_b.tar.gz"}
+    assert sorted(p.name for p in returned.iterdir()) == ["results_a.tar.gz", "results_b.tar.gz"]  # no .partial
+
+
+def test_a_cut_off_archive_is_reported_and_not_filed(tmp_path):
+    files = tmp_path / "files"
+    files.mkdir()
+    (files / "gpu_run.json").write_text(json.dumps(made_up_bench()))
+    (files / "results_gpu_coord_ring_sp.tar.gz").write_bytes(b"\x1f\x8b\x08\x00 cut off")
+    assert "unreadable" in gpu_report.study_rates(files)[0]
+    assert gpu_report.unpack_results(files, tmp_path / "docs") == []
+    assert not (tmp_path / "docs").exists()
+
+
+def test_after_a_window_the_report_says_what_to_do_with_gpu_state(tmp_path):
+    root, files, results = tmp_path / "repo", tmp_path / "files", tmp_path / "results"
+    (root / "gpu_state").mkdir(parents=True)
+    (root / "gpu_state" / "pack.json").write_text(json.dumps({"study": "gpu_coord_ring_sp"}))
+    files.mkdir()
+    (results / "gpu_coord_ring_sp").mkdir(parents=True)
+    status = results / "gpu_coord_ring_sp" / "study_status.json"
+    status.write_text(json.dumps([{"step": "xp sp", "status": "partial"}]))
+    assert gpu_report.state_advice(files, results, root) == "next: nothing to do with gpu_state/"
+    status.write_text(json.dumps([{"step": "xp sp", "status": "done"}]))
+    assert "git rm -r -q gpu_state" in gpu_report.state_advice(files, results, root)
+    (files / "state").mkdir()
+    assert "cp -r" in gpu_report.state_advice(files, results, root)
 
 
 def test_each_study_comes_back_in_its_own_archive_and_the_block_says_how_fast_it_trained(tmp_path):
@@ -416,7 +485,13 @@ def test_the_committed_gpu_state_resumes_under_this_code(tmp_path):
     from population import ppo
     from population.config.parse import load_run_config
 
-    unpack_study(ROOT / "gpu_state", tmp_path / "study")
+    from cluster.study.runner import StudyOptions, plan_study
+    from cluster.study.spec import load_study
+
+    record = unpack_study(ROOT / "gpu_state", tmp_path / "study")
+    # ocv2 study run accepts the folder as it is: the same options, every run's config the one it trained with
+    study = load_study(ROOT / "configs" / "studies" / f"{record['study']}.yaml")
+    plan_study(study, tmp_path / "study", StudyOptions(backend="local"))
     runs = [d for d in sorted((tmp_path / "study" / "runs").iterdir()) if (d / "config.yaml").is_file()]
     assert runs
     for run_dir in runs:
@@ -465,3 +540,29 @@ def test_a_later_window_keeps_the_snapshot_policies_of_earlier_ones(tmp_path):
     with pytest.raises(SystemExit, match="nothing was written"):
         gpu_report.unpack_results(files, tmp_path / "docs")
     assert (written / "policies" / "sp_seed0_update410.ocv2policy").is_file()
+
+
+def test_a_trainer_rate_is_traced_under_the_precision_of_its_config(monkeypatch):
+    """What makes a measured rate the rate the study trains at: the program is traced (compiled) under the
+    config's ``run.precision``, as a run's shard traces it."""
+    import jax
+
+    from population import ppo
+
+    seen = []
+    real = ppo.make_advance_chunks
+
+    def spy(trainer, updates, *rest):
+        advance = real(trainer, updates, *rest)
+
+        def call(*args):
+            seen.append(jax.config.jax_default_matmul_precision)
+            return advance(*args)
+
+        return call
+
+    monkeypatch.setattr(ppo, "make_advance_chunks", spy)
+    sets = [*gpu_run.SMOKE_SETS, *gpu_run.precision_sets("tf32")]
+    result = gpu_run.trainer_rate(gpu_run.CR_SP, 1, 1, sets)
+    assert result["precision"] == "tf32" and seen == ["tensorfloat32", "tensorfloat32"]
+    assert jax.config.jax_default_matmul_precision is None  # the process default is left as it was
