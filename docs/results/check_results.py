@@ -59,6 +59,7 @@ CR = HERE / "table1_coord_ring"
 GCS = HERE / "reduced_gcs"
 SP10 = HERE / "table1_coord_ring_sp10"
 SA10 = HERE / "table1_coord_ring_sa10"
+FC10 = HERE / "table1_forced_coord_sp10"
 GPU_CR = HERE / "gpu_coord_ring_sp"  # Table 1 Coordination Ring SP on the paper's 10M schedule, trained on a GPU
 
 # ------------------------------------------------------------------------------------------ reading the page
@@ -2008,6 +2009,55 @@ def _():
     ]
 
 
+# --- Forced Coord. SP, 10 seeds at 3M env steps: the verdict and the plate counter each seed hands plates over
+
+
+def fc10_plate_counters() -> list[int]:
+    """Per seed (roles.md at update 183), the middle counter (0, 1, 2 = (2,1), (2,2), (2,3)) most of its plates
+    are handed over on."""
+    counters = []
+    for line in (FC10 / "roles.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 8 and cells[0].isdigit():
+            shares = [float(x) for x in cells[3].split(" ")[0].split("/")]
+            counters.append(int(np.argmax(shares)))
+    return counters
+
+
+def fc10_by_counter() -> tuple[list[float], list[float]]:
+    """Both-seat-order scores of the 45 pairs: those whose seeds hand plates over on the same counter, the rest."""
+    p, counter = both_seats(final_matrix(FC10)), fc10_plate_counters()
+    same = [p[i, j] for i, j in itertools.combinations(range(10), 2) if counter[i] == counter[j]]
+    other = [p[i, j] for i, j in itertools.combinations(range(10), 2) if counter[i] != counter[j]]
+    return same, other
+
+
+@check("fc10_final")
+def _():
+    return final_numbers(FC10, "sp")
+
+
+@check("fc10_low_pairs")
+def _():
+    low = low_pairs(FC10)
+    return [len(low), 45, *[x for pair in low[:3] for x in pair]]
+
+
+@check("fc10_plates")
+def _():
+    counter = fc10_plate_counters()
+    groups = [[k for k in range(10) if counter[k] == c] for c in range(3)]
+    same, other = fc10_by_counter()
+    low = low_pairs(FC10)
+    crossing = sum(counter[i] != counter[j] for i, j, _ in low)
+    return [
+        L, L, *groups[0], L, L, *groups[1], L, L, *groups[2],  # counter (2,1), (2,2), (2,3): labels
+        len(same), np.mean(same), min(same), max(same),
+        len(other), np.mean(other), min(other), max(other),
+        crossing, len(low),
+    ]  # fmt: skip
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--doc", type=Path, default=DOC, help="the page to check (default docs/RESULTS.md)")
@@ -2033,3 +2083,4 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
