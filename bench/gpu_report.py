@@ -88,9 +88,8 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
     ``studies``: lines saying how fast this window's studies trained (``study_rates``)."""
     env, results = bench["environment"], bench["results"]
     peaks = _peaks(results)
-    for window in reversed(earlier):  # a rate not measured again: the newest earlier window's on the same device
-        if window["environment"].get("devices") == env.get("devices"):
-            peaks = {k: v or _peaks(window["results"])[k] for k, v in peaks.items()}
+    for window in _here_newest_first(earlier, env):  # a rate not measured again: the newest earlier window's
+        peaks = {k: v or _peaks(window["results"])[k] for k, v in peaks.items()}
     lines = [
         START,
         "## On a GPU (bench/gpu_run.sh)",
@@ -136,7 +135,7 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
         ]
     if studies:
         lines += ["", "Training in this window's studies (`ocv2 study run`, the whole run as it trains):", "", *studies]
-    ours, theirs = (_newest(name, results, earlier, env) for name in ("env_ocv2", "env_jaxmarl"))
+    ours, theirs = (_newest(name, results, _here_newest_first(earlier, env)) for name in ("env_ocv2", "env_jaxmarl"))
     lines += ["", "Environment alone (Coordination Ring, random actions, one jitted scan):", ""]
     for r, name in ((ours, "ocv2"), (theirs, "JaxMARL overcooked_v2")):
         if "env_steps_per_s" in r:
@@ -152,14 +151,19 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
     return "\n".join(lines)
 
 
-def _newest(name: str, results: dict, earlier: list[dict], env: dict) -> dict:
-    """This window's result ``name``, or else the newest earlier window's on the same devices (with its date as
+def _here_newest_first(earlier: list[dict], env: dict) -> list[dict]:
+    """The earlier windows (oldest first in ``earlier``) on this window's devices, newest first."""
+    return [window for window in reversed(earlier) if window["environment"].get("devices") == env.get("devices")]
+
+
+def _newest(name: str, results: dict, here: list[dict]) -> dict:
+    """This window's result ``name``, or else the newest of the earlier windows ``here`` (with its date as
     "window"), or {}."""
     if name in results:
         return results[name]
-    for window in reversed(earlier):
+    for window in here:
         found = window["results"].get(name, {})
-        if window["environment"].get("devices") == env.get("devices") and "env_steps_per_s" in found:
+        if "env_steps_per_s" in found:
             return {**found, "window": window["environment"].get("date", "undated")}
     return {}
 

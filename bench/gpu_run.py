@@ -485,13 +485,17 @@ def export_policies(run_dir: Path, dest: Path) -> list:
     return exported
 
 
-def _pack_state(study_dir: Path, returned: Path, studies: int) -> dict:
-    """An unfinished study's resumable state into ``returned/state/`` (what the next window needs most: packed
-    before any report or export), of ``studies`` this window returns; {} for a finished one."""
-    from cluster.study.pack import pack_study
-    from cluster.study.runner import study_status
+def study_done(status: list[dict]) -> bool:
+    """Whether a study's ``study_status`` says every step is done."""
+    return all(entry["status"] == "done" for entry in status)
 
-    if all(entry["status"] == "done" for entry in study_status(study_dir)):
+
+def _pack_state(study_dir: Path, status: list[dict], returned: Path, studies: int) -> dict:
+    """An unfinished study's resumable state into ``returned/state/`` (what the next window needs most: packed
+    before any report or export), of ``studies`` this window returns; {} for a finished one (``status``)."""
+    from cluster.study.pack import pack_study
+
+    if study_done(status):
         return {}
     state = returned / "state"
     if state.exists():
@@ -506,13 +510,11 @@ def _pack_state(study_dir: Path, returned: Path, studies: int) -> dict:
     return packed
 
 
-def _stage_results(study_dir: Path, staging: Path) -> None:
-    """A study's status, report folder, exported policies, metrics and configs into ``staging``."""
+def _stage_results(study_dir: Path, status: list[dict], staging: Path) -> None:
+    """A study's ``status``, report folder, exported policies, metrics and configs into ``staging``."""
     import shutil
 
-    from cluster.study.runner import study_status
-
-    (staging / f"{study_dir.name}_status.json").write_text(json.dumps(study_status(study_dir), indent=1))
+    (staging / f"{study_dir.name}_status.json").write_text(json.dumps(status, indent=1))
     report = staging / f"{study_dir.name}_report"
     subprocess.run(
         [sys.executable, "-m", "cluster.cli", "study", "report", str(study_dir), "--out", str(report)],
@@ -543,12 +545,15 @@ def pack(out: Path, returned: Path, only: Path | None = None) -> dict:
     import shutil
     import tarfile
 
-    packed = {}
+    from cluster.study.runner import study_status
+
+    packed, statuses = {}, {}
     every = sorted(out.glob("study_*"))
     study_dirs = [only] if only else [d for d in every if not (returned / results_name(d)).exists()]
     for study_dir in study_dirs:
         try:
-            packed.update(_pack_state(study_dir, returned, len(every)))
+            statuses[study_dir] = study_status(study_dir)
+            packed.update(_pack_state(study_dir, statuses[study_dir], returned, len(every)))
         except Exception as error:  # its report and policies below still come back
             log(f"packing the state of {study_dir.name} failed: {type(error).__name__}: {error}")
             packed[study_dir.name] = {"error": f"{type(error).__name__}: {error}"}
@@ -556,7 +561,8 @@ def pack(out: Path, returned: Path, only: Path | None = None) -> dict:
         staging = out / "results" / study_dir.name
         staging.mkdir(parents=True, exist_ok=True)
         try:
-            _stage_results(study_dir, staging)
+            if study_dir in statuses:  # a study whose status cannot be read has its error recorded above
+                _stage_results(study_dir, statuses[study_dir], staging)
         except Exception as error:  # one study's problem must not cost the window its results
             log(f"packing {study_dir.name} failed: {type(error).__name__}: {error}")
             packed[study_dir.name] = {"error": f"{type(error).__name__}: {error}"}
@@ -594,7 +600,7 @@ def finished(trained: dict, study_dir: Path) -> bool:
     if trained.get("rc") != 0 or trained.get("stopped_at_deadline"):
         return False
     try:
-        return all(entry["status"] == "done" for entry in study_status(study_dir))
+        return study_done(study_status(study_dir))
     except Exception as error:  # an unreadable study is not finished
         log(f"{study_dir}: cannot read its status ({type(error).__name__}: {error})")
         return False

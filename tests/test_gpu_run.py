@@ -414,8 +414,11 @@ def test_the_state_of_an_unfinished_study_is_packed_before_any_results(tmp_path,
     returned.mkdir()
     order = []
     monkeypatch.setattr(gpu_run, "log", lambda message: None)
-    monkeypatch.setattr(gpu_run, "_pack_state", lambda d, r, n: order.append(("state", d.name, n)) or {})
-    monkeypatch.setattr(gpu_run, "_stage_results", lambda d, staging: order.append(("results", d.name)))
+    from cluster.study import runner
+
+    monkeypatch.setattr(runner, "study_status", lambda study_dir: [{"step": "train", "status": "partial"}])
+    monkeypatch.setattr(gpu_run, "_pack_state", lambda d, status, r, n: order.append(("state", d.name, n)) or {})
+    monkeypatch.setattr(gpu_run, "_stage_results", lambda d, status, staging: order.append(("results", d.name)))
     packed = gpu_run.pack(out, returned, only=out / "study_a")
     assert order == [("state", "study_a", 2), ("results", "study_a")] and "results_a.tar.gz" in packed
     order.clear()

@@ -448,24 +448,15 @@ def paper_numbers(paper: dict) -> list:
     return [paper[k][v] for k in ("sp", "xp", "gap") for v in ("mean", "std")]
 
 
-def study_metric(study: Path, run_name: str, update: int, column: str) -> list[float]:
-    """``column`` of every seed at ``update`` in a study folder's ``<run>_metrics.csv``, seeds in order."""
-    with (study / f"{run_name}_metrics.csv").open() as f:
-        rows = sorted((r for r in csv.DictReader(f) if int(r["update"]) == update), key=lambda r: int(r["seed"]))
-    return [_float(r[column]) for r in rows]
-
-
 @check("gpu_cr_sp_progress")
 def _():
-    last = max(int(u) for u in _gpu_updates())
-    returns = study_metric(GPU_CR, "sp", last, "sparse_return")
-    steps = study_metric(GPU_CR, "sp", last, "env_steps")[0]
-    return [last, L, steps / 1e6, float(np.mean(returns)), len(returns), paper(GPU_CR, "sp")[0], L]
-
-
-def _gpu_updates() -> list[str]:
     with (GPU_CR / "sp_metrics.csv").open() as f:
-        return [r["update"] for r in csv.DictReader(f)]
+        rows = list(csv.DictReader(f))
+    last = max(int(r["update"]) for r in rows)
+    at_last = sorted((r for r in rows if int(r["update"]) == last), key=lambda r: int(r["seed"]))
+    returns = [_float(r["sparse_return"]) for r in at_last]
+    steps = _float(at_last[0]["env_steps"])
+    return [last, L, steps / 1e6, float(np.mean(returns)), len(returns), paper(GPU_CR, "sp")[0], L]
 
 
 @check("top_cr_sp_size")
@@ -2015,13 +2006,8 @@ def _():
 def fc10_plate_counters() -> list[int]:
     """Per seed (roles.md at update 183), the middle counter (0, 1, 2 = (2,1), (2,2), (2,3)) most of its plates
     are handed over on."""
-    counters = []
-    for line in (FC10 / "roles.md").read_text().splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 8 and cells[0].isdigit():
-            shares = [float(x) for x in cells[3].split(" ")[0].split("/")]
-            counters.append(int(np.argmax(shares)))
-    return counters
+    (table,) = md_tables(FC10 / "roles.md")
+    return [int(np.argmax([float(x) for x in row[3].split(" ")[0].split("/")])) for row in table]
 
 
 def fc10_by_counter() -> tuple[list[float], list[float]]:
