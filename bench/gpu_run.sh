@@ -49,7 +49,9 @@ continue_from=()
 # resumes under this code), and the rehearsal rehearses the plan of a fresh window.
 if [ "$smoke" != 1 ] && [ -f gpu_state/pack.json ]; then
     continue_from=(--continue-from gpu_state)  # an earlier window's unfinished study: go on with it
-    measure=30
+    # 60 s: the 10-seed CNN at float32 and TF32 (about 25 s each, compile included) and the determinism cost; a
+    # case runs whole if it starts before the measuring time ends, and 30 s could end before the TF32 one starts.
+    measure=60
 fi
 "$python" bench/gpu_run.py --out "$work/run" --returned "$out" --deadline-s "$deadline" --measure-s "$measure" \
     "${continue_from[@]}" 2>&1 | tee "$out/gpu_run.log"
