@@ -26,8 +26,10 @@ What it reads: the two studies' summary.json, the cross-play matrices (xp_*.csv)
 per-episode cross-play returns, the interim cross-plays (xp12_update61/, xp_sp_sa_update152/ and 244/), the
 tables of ring_direction.md and button_use.md (written by the scripts beside them from the lost run
 directories), the Coordination Ring layout in ocv2/layouts.py (parsed as text), and the 10-seed SP and SA studies'
-folders (summary.json, xp_*.csv, roles.md, the policies' SHA256SUMS.json). JAX is imported for one check only:
-sa10_delta takes Δ gap's interval from population.xp.bootstrap_difference, the function the reports use.
+folders (summary.json, xp_*.csv, roles.md, the policies' SHA256SUMS.json), and the GPU study's folders
+(gpu_coord_ring_sp/ and its update-410 cross-play, gpu_coord_ring_sp_update410/). JAX is imported for the checks
+that take an interval the way the reports do: sa10_delta and gpu410_vs_3m (population.xp.bootstrap_difference)
+and the gpu410 checks (population.xp.block_summary).
 
 What it cannot check, and why (the page says so where they stand): the Coordination Ring training-return
 tables and every Coordination Ring speed (no metrics.csv of those runs was committed; their run directories
@@ -61,6 +63,7 @@ SP10 = HERE / "table1_coord_ring_sp10"
 SA10 = HERE / "table1_coord_ring_sa10"
 FC10 = HERE / "table1_forced_coord_sp10"
 GPU_CR = HERE / "gpu_coord_ring_sp"  # Table 1 Coordination Ring SP on the paper's 10M schedule, trained on a GPU
+GPU410 = HERE / "gpu_coord_ring_sp_update410"  # that study at update 410 (6.7M), cross-played on the CPU
 
 # ------------------------------------------------------------------------------------------ reading the page
 
@@ -457,6 +460,106 @@ def _():
     returns = [_float(r["sparse_return"]) for r in at_last]
     steps = _float(at_last[0]["env_steps"])
     return [last, L, steps / 1e6, float(np.mean(returns)), len(returns), paper(GPU_CR, "sp")[0], L]
+
+
+def gpu410() -> np.ndarray:
+    return matrix(GPU410 / "matrix.csv")
+
+
+def gpu410_block() -> dict:
+    """SP, XP, gap and their seed-bootstrap intervals, as a study report computes them."""
+    from population.xp import block_summary
+
+    return block_summary(gpu410(), list(range(10)), list(range(10)))
+
+
+def gpu410_pot_groups() -> dict:
+    """Seeds at update 410 by where seat 0 puts its onions: only the first pot, only the second, or both."""
+    pot = [row[3][0] for row in roles_tables(GPU410)[410]]
+    return {
+        "first": [k for k, x in enumerate(pot) if x >= 0.95],
+        "second": [k for k, x in enumerate(pot) if x <= 0.05],
+        "both": [k for k, x in enumerate(pot) if 0.05 < x < 0.95],
+    }
+
+
+def group_pairs(p: np.ndarray, a: list[int], b: list[int]) -> list[float]:
+    """Both-seat-order scores of the pairs with one seed in ``a`` and the other in ``b`` (each pair once)."""
+    return [p[i, j] for i in a for j in b if i != j and (a != b or i < j)]
+
+
+@check("gpu410_final")
+def _():
+    block = gpu410_block()
+    sums = json.loads((GPU410 / "policies" / "SHA256SUMS.json").read_text())
+    episodes = json.loads((GPU410 / "summary.json").read_text())["episodes_per_pair"]
+    return [
+        len(sums), sums[0]["env_steps"] / 1e6, episodes, block["sp_mean"], block["xp_mean"], block["gap"], len(sums),
+        *block["gap_ci95_interval"], *paper(GPU_CR, "sp"),
+    ]  # fmt: skip
+
+
+@check("gpu410_within")
+def _():
+    block = gpu410_block()
+    sp, xp, gap = paper(GPU_CR, "sp")
+    return [sp, *block["sp_ci95_interval"], xp, *block["xp_ci95_interval"], gap]
+
+
+@check("gpu410_vs_3m")
+def _():
+    from population.xp import bootstrap_difference
+
+    gap = gpu410_block()["gap"] - run(SP10, "sp")["xp"]["gap"]
+    interval = bootstrap_difference(final_matrix(), gpu410())["gap"]
+    return [gpu410_block()["gap"], run(SP10, "sp")["xp"]["gap"], gap, *interval]
+
+
+@check("gpu410_vs_3m_parts")
+def _():
+    block, cpu = gpu410_block(), run(SP10, "sp")["xp"]
+    return [block["xp_mean"], cpu["xp_mean"], block["sp_mean"], cpu["sp_mean"]]
+
+
+@check("gpu410_low_pairs")
+def _():
+    m = gpu410()
+    p = both_seats(m)
+    low = [(i, j) for i, j in itertools.combinations(range(10), 2) if below_half(p[i, j], m[i, i], m[j, j])]
+    with6 = [p[i, j] for i, j in low if 6 in (i, j)]
+    rest = sorted((p[i, j], i, j) for i, j in low if 6 not in (i, j))
+    return [len(low), 45, len(with6), 6, min(with6), max(with6), *[x for r in rest for x in (r[1], r[2], r[0])]]
+
+
+@check("gpu410_claim")
+def _():
+    block = gpu410_block()
+    low = CHECKS["gpu410_low_pairs"]()[0]
+    return [block["sp_mean"], block["xp_mean"], block["gap"], 10, *block["gap_ci95_interval"], low, 45]
+
+
+@check("gpu410_seed6_early")
+def _():
+    row = roles_tables(GPU410)[122][6]
+    return [122, snapshot_env_steps(122, GPU_CR), 6, row[0], row[3][0]]
+
+
+@check("gpu410_groups")
+def _():
+    groups = gpu410_pot_groups()
+    cw = [row[0] for row in roles_tables(GPU410)[410]]
+    p = both_seats(gpu410())
+    second, both, first = groups["second"], groups["both"], groups["first"]
+    others = [k for k in range(10) if k not in first]
+    same = group_pairs(p, second, second)
+    cross = group_pairs(p, second, both)
+    within_both = group_pairs(p, both, both)
+    with_first = group_pairs(p, first, others)
+    return [
+        *first, cw[first[0]], *second, *both, len(same), np.mean(same), min(same), max(same),
+        len(within_both), *both, np.mean(within_both), len(cross), np.mean(cross), min(cross), max(cross),
+        *first, np.mean(with_first),
+    ]  # fmt: skip
 
 
 @check("top_cr_sp_size")
