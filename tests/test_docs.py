@@ -59,3 +59,10 @@ def test_readme_map_names_every_module_script_and_docs_page():
     missing = sorted(str(p.relative_to(ROOT)) for p in files if f"`{p.name}`" not in repository_map)
     assert not missing, f"README's repository map does not name {missing}"
     assert "`CHANGELOG.md`" in repository_map and (ROOT / "CHANGELOG.md").is_file()
+
+
+def test_results_index_names_every_results_folder():
+    index = (ROOT / "docs" / "results" / "README.md").read_text()
+    folders = sorted(p.name for p in (ROOT / "docs" / "results").iterdir() if p.is_dir() and p.name != "__pycache__")
+    missing = [name for name in folders if f"[{name}/]({name}/" not in index]
+    assert not missing, f"docs/results/README.md does not list {missing}"
