@@ -515,10 +515,33 @@ def _():
     return [gpu410_block()["gap"], run(SP10, "sp")["xp"]["gap"], gap, *interval]
 
 
+def paired_gap_difference(base: np.ndarray, other: np.ndarray, resamples: int = 20_000, seed: int = 0) -> list[float]:
+    """95 % interval of ``other``'s gap minus ``base``'s when the two populations' seeds correspond (the same seed
+    numbers and config): each resample draws one set of seed indices and uses it in both matrices, where
+    population.xp.bootstrap_difference resamples each population on its own."""
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, len(base), size=(resamples, len(base)))
+    gaps = []
+    for draw in draws:
+        same = draw[:, None] == draw[None, :]
+        if same.all():
+            continue
+        gap = [m[draw[:, None], draw[None, :]] for m in (base, other)]
+        gaps.append((gap[1][same].mean() - gap[1][~same].mean()) - (gap[0][same].mean() - gap[0][~same].mean()))
+    return list(np.percentile(gaps, [2.5, 97.5]))
+
+
+@check("gpu410_vs_3m_paired")
+def _():
+    return paired_gap_difference(final_matrix(), gpu410())
+
+
 @check("gpu410_vs_3m_parts")
 def _():
     block, cpu = gpu410_block(), run(SP10, "sp")["xp"]
-    return [block["xp_mean"], cpu["xp_mean"], block["sp_mean"], cpu["sp_mean"]]
+    keep = [k for k in range(10) if k not in gpu410_pot_groups()["first"]]
+    without = sp_xp(gpu410()[np.ix_(keep, keep)])[1]
+    return [block["xp_mean"], cpu["xp_mean"], *gpu410_pot_groups()["first"], without, block["sp_mean"], cpu["sp_mean"]]
 
 
 @check("gpu410_low_pairs")
