@@ -49,9 +49,10 @@ continue_from=()
 # resumes under this code), and the rehearsal rehearses the plan of a fresh window.
 if [ "$smoke" != 1 ] && [ -f gpu_state/pack.json ]; then
     continue_from=(--continue-from gpu_state)  # an earlier window's unfinished study: go on with it
-    # 60 s: the 10-seed CNN at float32 and TF32 (about 25 s each, compile included) and the determinism cost; a
-    # case runs whole if it starts before the measuring time ends, and 30 s could end before the TF32 one starts.
-    measure=60
+    # 75 s: the 10-seed CNN at float32 and TF32 (about 33 and 22 s, compile and a first run included) and the
+    # determinism cost; a case runs whole if it starts before the measuring time ends, so these three take about
+    # 100 s and the rest of Coordination Ring SP (about 220 s) with its cross-play still fits the 480 s deadline.
+    measure=75
 fi
 "$python" bench/gpu_run.py --out "$work/run" --returned "$out" --deadline-s "$deadline" --measure-s "$measure" \
     "${continue_from[@]}" 2>&1 | tee "$out/gpu_run.log"
