@@ -567,6 +567,17 @@ def _():
     return [122, snapshot_env_steps(122, GPU_CR), 6, row[0], row[3][0]]
 
 
+@check("gpu410_growth")
+def _():
+    out = []
+    for update in (122, 244, 366):
+        folder = GPU410 / f"xp_update{update}"
+        episodes = json.loads((folder / "summary.json").read_text())["episodes_per_pair"]
+        out += [sp_xp(matrix(folder / "matrix.csv"))[2], snapshot_env_steps(update, GPU_CR)]
+    steps410 = json.loads((GPU410 / "policies" / "SHA256SUMS.json").read_text())[0]["env_steps"] / 1e6
+    return [*out[:2], episodes, *out[2:], gpu410_block()["gap"], steps410]
+
+
 @check("gpu410_groups")
 def _():
     groups = gpu410_pot_groups()
