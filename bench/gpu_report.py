@@ -346,6 +346,12 @@ def travel_check(state: Path, root: Path = ROOT) -> str:
     return line
 
 
+def index_lists(folder: Path) -> bool:
+    """Whether the results index (README.md beside ``folder``) names it, as tests/test_docs.py requires."""
+    index = folder.parent / "README.md"
+    return index.is_file() and f"[{folder.name}/]({folder.name}/" in index.read_text()
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("files", type=Path, help="the folder holding what bench/gpu_run.sh left in $OUT")
@@ -364,6 +370,10 @@ def main(argv=None) -> int:
     if args.results and result_archives(args.files):
         for dest in unpack_results(args.files, Path(args.results)):
             print(f"wrote {dest}")
+            if not index_lists(dest):
+                print(f"also: add {dest.name}/ to {dest.parent / 'README.md'} (tests/test_docs.py checks every folder)")
+    if args.out:
+        print("also: the summary table at the top of docs/BENCHMARKS.md has a GPU row written by hand; bring it up to date")
     if (args.files / "state").is_dir():
         print(travel_check(args.files / "state"))
     print(state_advice(args.files, Path(args.results) if args.results else None))

@@ -131,6 +131,9 @@ def test_returned_results_unpack_into_docs_results_with_checked_sums(tmp_path):
     assert (dest / "report.md").is_file() and (dest / "policies" / "sp_seed0_update610.ocv2policy").is_file()
     assert (dest / "sp_metrics.csv").is_file() and (dest / "gpu_run.json").is_file()
     assert json.loads((dest / "study_status.json").read_text()) == unfinished
+    assert not gpu_report.index_lists(dest)  # the report then asks for its row in docs/results/README.md
+    (dest.parent / "README.md").write_text(f"| [{dest.name}/]({dest.name}/) | ... |\n")
+    assert gpu_report.index_lists(dest)
     # a later window's results of the same study replace an unfinished one; a finished one is never overwritten
     finished = [{"step": "train sp", "status": "done"}, {"step": "xp sp", "status": "done"}]
     (staging / "study_gpu_coord_ring_sp_status.json").write_text(json.dumps(finished))
