@@ -18,7 +18,7 @@ from test_methods import COOK_SCRIPT, SCRIPT_STEPS, _table, script_apply
 import ocv2
 from cluster.cli import main
 from cluster.cli.errors import CLIError
-from cluster.cli.xp import _check_poolable
+from cluster.cli.xp import _check_poolable, _print_blocks
 from cluster.runtime import crossplay
 from cluster.runtime.rundir import read_matrix_csv
 from population import policy as pol
@@ -185,6 +185,18 @@ def test_pool_errors_name_the_problem(run, tmp_path, capsys):
     assert not (tmp_path / "bad").exists()
     assert main(["xp", str(run), "--pool"]) == 2
     assert "--pool: only with --rows" in capsys.readouterr().err
+
+
+def test_a_block_of_one_policy_with_itself_prints_its_self_play_only(capsys):
+    nan = float("nan")
+    own = {"rows": 1, "cols": 1, "sp_mean": 214.6, "xp_mean": nan, "xp_ci95_interval": [nan, nan], "gap": nan}
+    other = {
+        "rows": 1, "cols": 1, "sp_mean": nan, "xp_mean": 153.8, "xp_ci95_interval": [153.8, 153.8], "gap": nan,
+        "gap_std": nan,
+    }  # fmt: skip
+    _print_blocks({"seats": "0", "blocks": [own, other]})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["1 x 1: SP 214.6 (self-play only)", "1 x 1: XP 153.8 [153.8, 153.8]"]
 
 
 def test_pool_refuses_runs_of_different_methods():

@@ -235,6 +235,9 @@ def _check_poolable(args, rows) -> None:
 def _print_blocks(summary: dict) -> None:
     both = summary["seats"] == "both"
     for index, block in enumerate(summary["blocks"]):
+        if block["xp_mean"] != block["xp_mean"]:  # a policy with itself only: self-play, no cross-play to report
+            print(f"{block['rows']} x {block['cols']}: SP {block['sp_mean']:.1f} (self-play only)")
+            continue
         low, high = block["xp_ci95_interval"]
         line = f"{block['rows']} x {block['cols']}: XP {block['xp_mean']:.1f} [{low:.1f}, {high:.1f}]"
         if both:
