@@ -99,7 +99,11 @@ def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = 
         + ", ".join(f"{k} {v}" for k, v in env["versions"].items() if v and k != "python")
         + f"; XLA_FLAGS=`{env.get('XLA_FLAGS') or '(unset)'}`",
         "- matmul (jitted, random operands, median of 10; * an earlier window's): "
-        + ", ".join(f"{k[7:]} {v:,.1f} TFLOP/s" + ("" if results.get(k, {}).get("tflops") else "*") for k, v in peaks.items() if v),
+        + ", ".join(
+            f"{k[7:]} {v:,.1f} TFLOP/s" + ("" if results.get(k, {}).get("tflops") else "*")
+            for k, v in peaks.items()
+            if v
+        ),
         "",
         HEADER,
         RULE,
@@ -192,7 +196,9 @@ def study_rates(files: Path) -> list[str]:
             lines.append(f"- {archive.name}: unreadable ({type(error).__name__}: {error})")
             continue
         with tar:
-            studies = {Path(n).parent.name.removesuffix("_report") for n in members if Path(n).parent.name.endswith("_report")}
+            studies = {
+                Path(n).parent.name.removesuffix("_report") for n in members if Path(n).parent.name.endswith("_report")
+            }
             for name, member in sorted(members.items()):
                 if not name.endswith("_metrics.csv") or Path(name).parent.name != "results":  # the run's own copy
                     continue
@@ -206,7 +212,7 @@ def study_rates(files: Path) -> list[str]:
                 seeds = len({r["seed"] for r in rows})
                 file = Path(name).name  # study_<study>_<run>_metrics.csv, <study> from its report folder's name
                 study = max((x for x in studies if file.startswith(f"{x}_")), key=len, default="")
-                label = f"{study.removeprefix('study_')}, run {file[len(study) + 1:].removesuffix('_metrics.csv')}"
+                label = f"{study.removeprefix('study_')}, run {file[len(study) + 1 :].removesuffix('_metrics.csv')}"
                 lines.append(
                     f"- {label}: {_rate(statistics.median(rates))} env steps/s (median over {len(rates)} updates, "
                     f"{seeds} seeds; precision {run.get('precision', 'float32')}, deterministic "
@@ -373,7 +379,9 @@ def main(argv=None) -> int:
             if not index_lists(dest):
                 print(f"also: add {dest.name}/ to {dest.parent / 'README.md'} (tests/test_docs.py checks every folder)")
     if args.out:
-        print("also: the summary table at the top of docs/BENCHMARKS.md has a GPU row written by hand; bring it up to date")
+        print(
+            "also: the summary table at the top of docs/BENCHMARKS.md has a GPU row written by hand; bring it up to date"
+        )
     if (args.files / "state").is_dir():
         print(travel_check(args.files / "state"))
     print(state_advice(args.files, Path(args.results) if args.results else None))

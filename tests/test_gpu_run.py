@@ -88,8 +88,12 @@ def test_the_benchmark_block_states_shares_of_the_measured_peaks():
     assert block.startswith(gpu_report.START) and block.endswith(gpu_report.END)
     assert "gpu: NVIDIA H100 80GB HBM3" in block and "jax 0.11.2" in block and "mcap" not in block
     # each share is of the matmul rate at the row's own precision
-    assert "| cnn_sp_10 (classic_coord_ring_sp.yaml) | 10 | auto | float32 | 400,000 | 5.000 | 10.00 % | 31.0 |" in block
-    assert "| cnn_sp_10_tf32 (classic_coord_ring_sp.yaml) | 10 | auto | tf32 | 800,000 | 10.000 | 5.00 % | 31.0 |" in block
+    assert (
+        "| cnn_sp_10 (classic_coord_ring_sp.yaml) | 10 | auto | float32 | 400,000 | 5.000 | 10.00 % | 31.0 |" in block
+    )
+    assert (
+        "| cnn_sp_10_tf32 (classic_coord_ring_sp.yaml) | 10 | auto | tf32 | 800,000 | 10.000 | 5.00 % | 31.0 |" in block
+    )
     assert "Not measured (the measuring time was spent): rnn_sp_10_xla." in block
     assert "default (TF32)" not in block  # every row says its precision
     # a row of the first windows, measured at JAX's default precision: said so, and shared of the TF32 rate
@@ -237,7 +241,10 @@ def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp
     second["environment"]["date"] = "2026-12-02T10:00:00+00:00"
     block = gpu_report.benchmark_block(second, [first])
     assert "Measured in earlier windows and not again in this one" in block
-    assert "| rnn_sp_10_xla (v2_grounded_coord_simple_sp.yaml) | 10 | xla, GRU hand, unroll 8 | float32 | 123,000 |" in block
+    assert (
+        "| rnn_sp_10_xla (v2_grounded_coord_simple_sp.yaml) | 10 | xla, GRU hand, unroll 8 | float32 | 123,000 |"
+        in block
+    )
     assert "2026-12-01T10:00:00+00:00, gpu: NVIDIA H100 80GB HBM3 |" in block
     assert block.count("cnn_sp_10 (") == 1  # measured again: only this window's row
     # rates this window did not measure again come from the newest earlier window on the same device, marked
@@ -332,13 +339,20 @@ def test_a_window_does_not_measure_again_what_an_earlier_window_measured_the_sam
         # the first windows: their trainer rates are stale, their matmul and environment rates are not
         _window(None, gpu, {"cnn_sp_10": rate, "rnn_sp_10_xla": rate, "matmul_f32": {"tflops": 50.0}}),
         _window(gpu_run.METHOD, ["gpu: NVIDIA H200"], {"cnn_sp_1": rate}),  # another device
-        _window(gpu_run.METHOD, gpu, {"env_ocv2": {"env_steps_per_s": 5.0}, "matmul_tf32": {"tflops": 9.0},
-                                      "cnn_sp_4": {"error": "boom"}}),  # fmt: skip
+        _window(
+            gpu_run.METHOD,
+            gpu,
+            {"env_ocv2": {"env_steps_per_s": 5.0}, "matmul_tf32": {"tflops": 9.0}, "cnn_sp_4": {"error": "boom"}},
+        ),  # fmt: skip
         _window(gpu_run.METHOD, gpu, {"env_ocv2": {"env_steps_per_s": 6.0}}),  # the newest wins
         _window(gpu_run.METHOD, gpu, {"cnn_sp_4": rate}, versions={"jax": "0.12.0"}),  # other versions: stale
     ]
     known = gpu_run.measured_before(history, _window(None, gpu, {})["environment"])
-    assert known == {"env_ocv2": {"env_steps_per_s": 6.0}, "matmul_tf32": {"tflops": 9.0}, "matmul_f32": {"tflops": 50.0}}
+    assert known == {
+        "env_ocv2": {"env_steps_per_s": 6.0},
+        "matmul_tf32": {"tflops": 9.0},
+        "matmul_f32": {"tflops": 50.0},
+    }
     ran = []
     monkeypatch.setattr(gpu_run, "log", lambda message: None)
     monkeypatch.setattr(
@@ -459,7 +473,10 @@ def test_each_study_comes_back_in_its_own_archive_and_the_block_says_how_fast_it
     files = tmp_path / "files"
     files.mkdir()
     (files / "gpu_run.json").write_text(json.dumps(made_up_bench()))
-    for study, rates in (("gpu_coord_ring_sp", ["150000", "150000", "140000"]), ("gpu_grounded_coord_simple_sp", ["9e4"])):
+    for study, rates in (
+        ("gpu_coord_ring_sp", ["150000", "150000", "140000"]),
+        ("gpu_grounded_coord_simple_sp", ["9e4"]),
+    ):
         staging = tmp_path / study / "results"
         (staging / f"study_{study}_report").mkdir(parents=True)
         (staging / f"study_{study}_report" / "report.md").write_text("# Study\n")
@@ -488,11 +505,10 @@ def test_the_committed_gpu_state_resumes_under_this_code(tmp_path):
     with, and every seed's latest checkpoint loads into this code's training state."""
     from cluster.runtime.runstate import restore
     from cluster.study.pack import unpack_study
-    from population import ppo
-    from population.config.parse import load_run_config
-
     from cluster.study.runner import StudyOptions, plan_study
     from cluster.study.spec import load_study
+    from population import ppo
+    from population.config.parse import load_run_config
 
     record = unpack_study(ROOT / "gpu_state", tmp_path / "study")
     # ocv2 study run accepts the folder as it is: the same options, every run's config the one it trained with
@@ -531,7 +547,9 @@ def test_a_later_window_keeps_the_snapshot_policies_of_earlier_ones(tmp_path):
     (staging / "study_gpu_coord_ring_sp_report").mkdir(parents=True)
     (staging / "study_gpu_coord_ring_sp_report" / "report.md").write_text("# Study\n")
     policies_folder(staging / "study_gpu_coord_ring_sp_policies", [244, 410])
-    (staging / "study_gpu_coord_ring_sp_status.json").write_text(json.dumps([{"step": "train sp", "status": "partial"}]))
+    (staging / "study_gpu_coord_ring_sp_status.json").write_text(
+        json.dumps([{"step": "train sp", "status": "partial"}])
+    )
     with tarfile.open(files / "results_gpu_coord_ring_sp.tar.gz", "w:gz") as tar:
         tar.add(staging, arcname="results")
     (written,) = gpu_report.unpack_results(files, tmp_path / "docs")

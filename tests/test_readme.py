@@ -51,8 +51,10 @@ def test_ci_runs_the_readme_test_command_lint_first_and_without_q():
         for line in (ROOT / ".ci" / "run").read_text().splitlines()
         if line.strip() and not line.lstrip().startswith("#")
     ]
-    assert "ruff check . && ruff format --check ." in ci and "python -m pytest" in ci
-    assert ci.index("ruff check . && ruff format --check .") < ci.index("python -m pytest")
+    # each its own line: under set -e a failure on the left of `&&` would not stop the script
+    assert "ruff check ." in ci and "ruff format --check ." in ci and "python -m pytest" in ci
+    assert ci.index("ruff check .") < ci.index("ruff format --check .") < ci.index("python -m pytest")
+    assert not any("&&" in line and "ruff" in line for line in ci)
     # After it comes only the second leg (Python 3.12 without Ray and mcap), in a virtual environment of its
     # own: nothing more runs in the environment the README's commands made.
     second_leg = ci[ci.index("python -m pytest") + 1 :]
