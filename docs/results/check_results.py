@@ -466,6 +466,7 @@ def gpu410() -> np.ndarray:
     return matrix(GPU410 / "matrix.csv")
 
 
+@functools.cache
 def gpu410_block() -> dict:
     """SP, XP, gap and their seed-bootstrap intervals, as a study report computes them."""
     from population.xp import block_summary
@@ -491,10 +492,10 @@ def group_pairs(p: np.ndarray, a: list[int], b: list[int]) -> list[float]:
 @check("gpu410_final")
 def _():
     block = gpu410_block()
-    sums = json.loads((GPU410 / "policies" / "SHA256SUMS.json").read_text())
+    seeds = len(json.loads((GPU410 / "policies" / "SHA256SUMS.json").read_text()))
     episodes = json.loads((GPU410 / "summary.json").read_text())["episodes_per_pair"]
     return [
-        len(sums), sums[0]["env_steps"] / 1e6, episodes, block["sp_mean"], block["xp_mean"], block["gap"], len(sums),
+        seeds, snapshot_env_steps(410, GPU410), episodes, block["sp_mean"], block["xp_mean"], block["gap"], seeds,
         *block["gap_ci95_interval"], *paper(GPU_CR, "sp"),
     ]  # fmt: skip
 
@@ -510,9 +511,8 @@ def _():
 def _():
     from population.xp import bootstrap_difference
 
-    gap = gpu410_block()["gap"] - run(SP10, "sp")["xp"]["gap"]
-    interval = bootstrap_difference(final_matrix(), gpu410())["gap"]
-    return [gpu410_block()["gap"], run(SP10, "sp")["xp"]["gap"], gap, *interval]
+    here, there = gpu410_block()["gap"], run(SP10, "sp")["xp"]["gap"]
+    return [here, there, here - there, *bootstrap_difference(final_matrix(), gpu410())["gap"]]
 
 
 def paired_gap_difference(base: np.ndarray, other: np.ndarray, resamples: int = 20_000, seed: int = 0) -> list[float]:
@@ -539,25 +539,24 @@ def _():
 @check("gpu410_vs_3m_parts")
 def _():
     block, cpu = gpu410_block(), run(SP10, "sp")["xp"]
-    keep = [k for k in range(10) if k not in gpu410_pot_groups()["first"]]
+    first = gpu410_pot_groups()["first"]
+    keep = [k for k in range(10) if k not in first]
     without = sp_xp(gpu410()[np.ix_(keep, keep)])[1]
-    return [block["xp_mean"], cpu["xp_mean"], *gpu410_pot_groups()["first"], without, block["sp_mean"], cpu["sp_mean"]]
+    return [block["xp_mean"], cpu["xp_mean"], *first, without, block["sp_mean"], cpu["sp_mean"]]
 
 
 @check("gpu410_low_pairs")
 def _():
-    m = gpu410()
-    p = both_seats(m)
-    low = [(i, j) for i, j in itertools.combinations(range(10), 2) if below_half(p[i, j], m[i, i], m[j, j])]
-    with6 = [p[i, j] for i, j in low if 6 in (i, j)]
-    rest = sorted((p[i, j], i, j) for i, j in low if 6 not in (i, j))
-    return [len(low), 45, len(with6), 6, min(with6), max(with6), *[x for r in rest for x in (r[1], r[2], r[0])]]
+    low = failing_pairs(gpu410())
+    with6 = [score for i, j, score in low if 6 in (i, j)]
+    rest = [pair for pair in low if 6 not in pair[:2]]  # lowest first
+    return [len(low), 45, len(with6), 6, min(with6), max(with6), *[x for pair in rest for x in pair]]
 
 
 @check("gpu410_claim")
 def _():
     block = gpu410_block()
-    low = CHECKS["gpu410_low_pairs"]()[0]
+    low = len(failing_pairs(gpu410()))
     return [block["sp_mean"], block["xp_mean"], block["gap"], 10, *block["gap_ci95_interval"], low, 45]
 
 
@@ -574,8 +573,7 @@ def _():
         folder = GPU410 / f"xp_update{update}"
         episodes = json.loads((folder / "summary.json").read_text())["episodes_per_pair"]
         out += [sp_xp(matrix(folder / "matrix.csv"))[2], snapshot_env_steps(update, GPU_CR)]
-    steps410 = json.loads((GPU410 / "policies" / "SHA256SUMS.json").read_text())[0]["env_steps"] / 1e6
-    return [*out[:2], episodes, *out[2:], gpu410_block()["gap"], steps410]
+    return [*out[:2], episodes, *out[2:], gpu410_block()["gap"], snapshot_env_steps(410, GPU410)]
 
 
 @check("gpu410_groups")
@@ -1842,8 +1840,13 @@ def final_matrix(study: Path = SP10, method: str = "sp") -> np.ndarray:
 
 
 def low_pairs(study: Path = SP10, method: str = "sp") -> list[tuple[int, int, float]]:
-    """Pairs (both seat orders) scoring below half the mean of their two seeds' self-play, lowest first."""
-    m = final_matrix(study, method)
+    """A study's final matrix's failing pairs (``failing_pairs``)."""
+    return failing_pairs(final_matrix(study, method))
+
+
+def failing_pairs(m: np.ndarray) -> list[tuple[int, int, float]]:
+    """Pairs (both seat orders) of a K x K matrix scoring below half the mean of their two seeds' self-play, lowest
+    first."""
     p = both_seats(m)
     low = [
         (i, j, p[i, j]) for i, j in itertools.combinations(range(len(m)), 2) if below_half(p[i, j], m[i, i], m[j, j])
@@ -2206,4 +2209,3 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
-
