@@ -62,6 +62,7 @@ GCS = HERE / "reduced_gcs"
 SP10 = HERE / "table1_coord_ring_sp10"
 SA10 = HERE / "table1_coord_ring_sa10"
 FC10 = HERE / "table1_forced_coord_sp10"
+FC_SA10 = HERE / "table1_forced_coord_sa10"  # its SA half at the same budget
 GPU_CR = HERE / "gpu_coord_ring_sp"  # Table 1 Coordination Ring SP on the paper's 10M schedule, trained on a GPU
 GPU410 = HERE / "gpu_coord_ring_sp_update410"  # that study at update 410 (6.7M), cross-played on the CPU
 
@@ -2143,19 +2144,30 @@ def _():
 # --- Forced Coord. SP, 10 seeds at 3M env steps: the verdict and the plate counter each seed hands plates over
 
 
+def handover_counters(study: Path = FC10, item: str = "plates") -> list[int]:
+    """Per seed (the study's roles.md at update 183), the middle counter (0, 1, 2 = (2,1), (2,2), (2,3)) most of its
+    onions or plates are handed over on (the first table: the seeds' self-play; a second holds cross-play pairs)."""
+    table = md_tables(study / "roles.md")[0]
+    column = {"onions": 1, "plates": 3}[item]
+    return [int(np.argmax([float(x) for x in row[column].split(" ")[0].split("/")])) for row in table]
+
+
 def fc10_plate_counters() -> list[int]:
-    """Per seed (roles.md at update 183), the middle counter (0, 1, 2 = (2,1), (2,2), (2,3)) most of its plates
-    are handed over on."""
-    (table,) = md_tables(FC10 / "roles.md")
-    return [int(np.argmax([float(x) for x in row[3].split(" ")[0].split("/")])) for row in table]
+    return handover_counters(FC10, "plates")
+
+
+def by_convention(m: np.ndarray, convention: list) -> tuple[list[float], list[float]]:
+    """Both-seat-order scores of a K x K matrix's pairs: those whose two seeds share ``convention`` (one value per
+    seed), and the rest."""
+    p, ij = both_seats(m), list(itertools.combinations(range(len(m)), 2))
+    same = [p[i, j] for i, j in ij if convention[i] == convention[j]]
+    other = [p[i, j] for i, j in ij if convention[i] != convention[j]]
+    return same, other
 
 
 def fc10_by_counter() -> tuple[list[float], list[float]]:
     """Both-seat-order scores of the 45 pairs: those whose seeds hand plates over on the same counter, the rest."""
-    p, counter = both_seats(final_matrix(FC10)), fc10_plate_counters()
-    same = [p[i, j] for i, j in itertools.combinations(range(10), 2) if counter[i] == counter[j]]
-    other = [p[i, j] for i, j in itertools.combinations(range(10), 2) if counter[i] != counter[j]]
-    return same, other
+    return by_convention(final_matrix(FC10), fc10_plate_counters())
 
 
 @check("fc10_final")
@@ -2182,6 +2194,188 @@ def _():
         len(other), np.mean(other), min(other), max(other),
         crossing, len(low),
     ]  # fmt: skip
+
+
+# --- Forced Coord. SA, 10 seeds at 3M env steps, beside the 10 SP seeds: the verdict and the counters each seed uses
+
+
+def fc_sa10_conventions() -> list[tuple[int, int]]:
+    """Per SA seed, (onion counter, plate counter) it hands over on (0, 1, 2 = (2,1), (2,2), (2,3))."""
+    return list(zip(handover_counters(FC_SA10, "onions"), handover_counters(FC_SA10, "plates"), strict=True))
+
+
+@functools.cache
+def fc_sa10_delta() -> dict:
+    """SA's SP, XP and gap minus SP's on Forced Coord., with 95 % intervals, each population's seeds resampled on
+    their own (``population.xp.bootstrap_difference``, as ``ocv2 report`` computes it)."""
+    from population.xp import bootstrap_difference
+
+    return bootstrap_difference(final_matrix(FC10), final_matrix(FC_SA10, "sa"))
+
+
+def _fc_sa10_delta_numbers() -> list:
+    sa, sp = run(FC_SA10, "sa")["xp"]["gap"], run(FC10, "sp")["xp"]["gap"]
+    return [sa - sp, *fc_sa10_delta()["gap"], paper(FC_SA10, "sa")[2] - paper(FC10, "sp")[2]]
+
+
+@check("fc_sa10_final")
+def _():
+    return final_numbers(FC_SA10, "sa")
+
+
+@check("fc_sa10_delta")
+def _():
+    return [run(FC_SA10, "sa")["xp"]["gap"], run(FC10, "sp")["xp"]["gap"], *_fc_sa10_delta_numbers()]
+
+
+@check("fc_sa10_low_pairs")
+def _():
+    low = low_pairs(FC_SA10, "sa")
+    return [len(low), 45, *[x for pair in low[:3] for x in pair], len(low_pairs(FC10)), 45]
+
+
+@check("fc_sa10_conventions")
+def _():
+    onions, plates = handover_counters(FC_SA10, "onions"), handover_counters(FC_SA10, "plates")
+    sp_onions = handover_counters(FC10, "onions")
+    on_21 = [k for k in range(10) if onions[k] == 0]
+    return [
+        *on_21, L, L, L, L,  # the seeds whose onions cross on (2,1); the others on (2,2)
+        sum(o == 1 for o in sp_onions), L, L,  # all 10 SP seeds on (2,2)
+        *[x for c in range(3) for x in [L, L, *[k for k in range(10) if plates[k] == c]]],
+        len(set(fc_sa10_conventions())), 10,
+        len(set(zip(sp_onions, handover_counters(FC10, "plates"), strict=True))),
+    ]  # fmt: skip
+
+
+@check("fc_sa10_by_convention")
+def _():
+    m, conventions = final_matrix(FC_SA10, "sa"), fc_sa10_conventions()
+    same, other = by_convention(m, conventions)
+    low = low_pairs(FC_SA10, "sa")
+    crossing = sum(conventions[i] != conventions[j] for i, j, _ in low)
+    return [
+        len(same), np.mean(same), min(same), max(same),
+        len(other), np.mean(other), min(other), max(other),
+        crossing, len(low),
+    ]  # fmt: skip
+
+
+def by_plate_distance(study: Path, method: str) -> list:
+    """Pairs of a Forced Coord. population by how far apart their seeds' plate counters are (0: the same counter,
+    1: neighbours, 2: (2,1) against (2,3)): per distance, the number of pairs, their mean (both seat orders) and
+    how many fail."""
+    m, plates = final_matrix(study, method), handover_counters(study, "plates")
+    p, out = both_seats(m), []
+    for distance in range(3):
+        ij = [(i, j) for i, j in itertools.combinations(range(10), 2) if abs(plates[i] - plates[j]) == distance]
+        far = [L, L, L, L] if distance == 2 else []  # "(2,1) against (2,3)"
+        mean = np.mean([p[i, j] for i, j in ij])
+        out += [len(ij), *far, mean, sum(below_half(p[i, j], m[i, i], m[j, j]) for i, j in ij)]
+    return out
+
+
+@check("fc_plate_distance")
+def _():
+    return [*by_plate_distance(FC10, "sp"), *by_plate_distance(FC_SA10, "sa")]
+
+
+@check("fc_sa10_pair_handovers")
+def _():
+    rows = md_tables(FC_SA10 / "roles.md")[1]
+    onions, plates, returns = ([float(row[k]) for row in rows] for k in (2, 4, 7))
+    low, high = slice(0, 6), slice(6, 10)  # three failing pairs in both orders; then 2,4 and 0,7 in both
+    return [
+        min(onions[low]), max(onions[low]), min(plates[low]), max(plates[low]), max(returns[low]),
+        L, L, L, L, min(plates[high]), max(plates[high]), min(returns[high]),  # the pairs 2-4 and 0-7: labels
+    ]  # fmt: skip
+
+
+@check("fc_sa10_table")
+def _():
+    sp, sa = run(FC10, "sp")["xp"], run(FC_SA10, "sa")["xp"]
+    rows = [
+        x
+        for key, mean in (("sp", "sp_mean"), ("xp", "xp_mean"), ("gap", "gap"))
+        for block in (sp, sa)
+        for x in (block[mean], *interval(block, key))
+    ]
+    conventions = [
+        set(zip(handover_counters(st, "onions"), handover_counters(st, "plates"), strict=True))
+        for st in (FC10, FC_SA10)
+    ]
+    return [
+        *rows,
+        min(pairs(final_matrix(FC10))), min(pairs(final_matrix(FC_SA10, "sa"))),
+        len(low_pairs(FC10)), 45, len(low_pairs(FC_SA10, "sa")), 45,
+        *[len(c) for c in conventions],
+    ]  # fmt: skip
+
+
+@check("fc_sa10_sp_sa")
+def _():
+    m = matrix(FC_SA10 / "xp_sp_sa" / "matrix_mean.csv")  # row = SP seed, column = SA seed, both seat orders
+    sp_self, sa_self = np.diag(final_matrix(FC10)), np.diag(final_matrix(FC_SA10, "sa"))
+    low = below_half(m, sp_self[:, None], sa_self[None, :])
+    plates = [handover_counters(study, "plates") for study in (FC10, FC_SA10)]
+    onions = [handover_counters(study, "onions") for study in (FC10, FC_SA10)]
+    out = [
+        m.size,
+        m.mean(),
+        run(FC10, "sp")["xp"]["xp_mean"],
+        run(FC_SA10, "sa")["xp"]["xp_mean"],
+        int(low.sum()),
+        m.size,
+    ]
+    for distance in range(3):
+        cells = [(i, j) for i in range(10) for j in range(10) if abs(plates[0][i] - plates[1][j]) == distance]
+        far = [L, L, L, L] if distance == 2 else []  # "(2,1) against (2,3)"
+        out += [len(cells), *far, np.mean([m[c] for c in cells]), sum(low[c] for c in cells)]
+    same = [
+        (i, j) for i in range(10) for j in range(10) if (plates[0][i], onions[0][i]) == (plates[1][j], onions[1][j])
+    ]
+    return [*out, len(same), np.mean([m[c] for c in same]), min(m[c] for c in same)]
+
+
+@check("fc_sa10_growth")
+def _():
+    out = []
+    for study, method in ((FC10, "sp"), (FC_SA10, "sa")):
+        for update in (92, 122, 152):
+            snapshot = matrix(FC_SA10 / "xp_snapshots" / f"{method}_update{update}.csv")
+            out += [sp_xp(snapshot)[2], snapshot_env_steps(update, study)]
+        out += [run(study, method)["xp"]["gap"], millions(study, method)]
+    return out
+
+
+@check("fc_sa10_claim")
+def _():
+    return [*claim_row(FC_SA10, "sa"), *_fc_sa10_delta_numbers()[:3], len(low_pairs(FC_SA10, "sa")), 45]
+
+
+@check("fc10_claim")
+def _():
+    return [*claim_row(FC10, "sp"), len(low_pairs(FC10)), 45]
+
+
+@check("run_fc10")
+def _():
+    return run_size(FC10, "sp")
+
+
+@check("run_fc10_wall")
+def _():
+    return hm(summary(FC10)["wall_s"])
+
+
+@check("run_fc_sa10")
+def _():
+    return run_size(FC_SA10, "sa")
+
+
+@check("run_fc_sa10_wall")
+def _():
+    return hm(summary(FC_SA10)["wall_s"])
 
 
 def main(argv=None) -> int:
