@@ -2348,6 +2348,32 @@ def _():
     return out
 
 
+def failing_cells(m: np.ndarray) -> int:
+    """Ordered cells (i in seat 0, j in seat 1, i != j) of a K x K matrix below half the mean of the two seeds'
+    self-play: a pair can fail in one seat order only."""
+    d = np.diag(m)
+    return int((below_half(m, d[:, None], d[None, :]) & ~np.eye(len(m), dtype=bool)).sum())
+
+
+@check("fc_sa10_seats")
+def _():
+    sa, sp = final_matrix(FC_SA10, "sa"), final_matrix(FC10)
+    return [failing_cells(sa), 90, failing_cells(sp), 90]
+
+
+@check("fc_sa10_paired")
+def _():
+    return paired_gap_difference(final_matrix(FC10), final_matrix(FC_SA10, "sa"))
+
+
+@check("fc_sa10_rest")
+def _():
+    onions = handover_counters(FC_SA10, "onions")
+    on_21 = [k for k in range(10) if onions[k] == 0]
+    rest = [k for k in range(10) if k not in on_21]
+    return [*on_21, len(rest), sp_xp(final_matrix(FC_SA10, "sa"), rest)[2], run(FC10, "sp")["xp"]["gap"]]
+
+
 @check("fc_sa10_claim")
 def _():
     return [*claim_row(FC_SA10, "sa"), *_fc_sa10_delta_numbers()[:3], len(low_pairs(FC_SA10, "sa")), 45]
