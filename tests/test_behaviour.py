@@ -65,14 +65,7 @@ def test_item_kind_tells_ingredients_plates_and_dishes_apart():
 
 
 def _forced_coord_roles():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "docs/results/table1_forced_coord_sp10/roles.py"
-    spec = importlib.util.spec_from_file_location("fc_roles", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module, path
+    return _results_script("docs/results/table1_forced_coord_sp10/roles.py")
 
 
 def test_forced_coord_roles_row_reads_the_handover(handover_states):
@@ -109,3 +102,55 @@ def test_forced_coord_roles_names_a_bad_pair_before_playing():
             [sys.executable, str(script), "--update", "183", "--pairs", *pairs], capture_output=True, text=True
         )
         assert run.returncode == 2 and said in run.stderr and "Traceback" not in run.stderr, run.stderr
+
+
+# Counter Circuit: seat 0 starts at (6, 3) below the island, beside the onions; seat 1 at (2, 1) above it, beside the
+# pots. Seat 0 walks left to (3, 3), takes an onion from (3, 4) and puts it on the island (3, 2); seat 1 steps right
+# to (3, 1), takes it up and puts it into the left pot (3, 0). Both walk clockwise as the layout is drawn.
+ISLAND_PASS = [
+    (L, S), (L, S), (L, S), (D, S), (I, S), (U, S), (I, S),  # seat 0: to (3, 3), take an onion, onto the island
+    (S, R), (S, D), (S, I), (S, U), (S, I),  # seat 1: to (3, 1), take it up, into the left pot
+]  # fmt: skip
+
+
+def _results_script(relative: str):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / relative
+    spec = importlib.util.spec_from_file_location(path.stem + "_" + path.parent.name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module, path
+
+
+def test_counter_circuit_roles_row_reads_the_island_pass():
+    """The Counter Circuit study's roles.py: one onion over the island, put down by seat 0, potted by seat 1 into
+    the left pot; both seats moved clockwise; no soup."""
+    env = ocv2.make("counter_circuit")
+    _, state = env.reset(jax.random.PRNGKey(0))
+    step = jax.jit(lambda key, s, a: env.step_env(key, s, {"agent_0": a[0], "agent_1": a[1]})[1])
+    states = [state]
+    for t, joint in enumerate(ISLAND_PASS):
+        states.append(step(jax.random.PRNGKey(t), states[-1], np.array(joint, np.int32)))
+    assert [int(a) for a in states[0].agents.x] == [6, 2] and [int(a) for a in states[-1].agents.x] == [3, 3]
+    played = jax.tree.map(lambda *x: np.stack(x)[None], *states)
+    roles, _ = _results_script("docs/results/table1_counter_circuit_sp10/roles.py")
+    row = roles.seed_row(5, played, np.array([0.0]))
+    assert row == "| 5 | 0.00 of 1 | none | none | none | 1.00, 1.00 | 1.00 (1.00) | no soup | none in, 1.00 | 0.0 |"
+    assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2
+
+
+def test_counter_circuit_roles_refuses_another_layouts_policies():
+    import subprocess
+    import sys
+
+    _, script = _results_script("docs/results/table1_counter_circuit_sp10/roles.py")
+    forced_coord = script.parents[1] / "table1_forced_coord_sp10" / "policies"
+    run = subprocess.run(
+        [sys.executable, str(script), "--update", "183", "--seeds", "1", "--policies", str(forced_coord)],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode != 0 and "Traceback" not in run.stderr
+    assert "plays layout 'forced_coord'; this reads counter_circuit only" in run.stderr

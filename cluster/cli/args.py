@@ -127,14 +127,37 @@ def checkpoint_choice(text: str, choices: Sequence[str]) -> str:
     raise CLIError(f"--checkpoint: expected one of {', '.join(choices)} or an update number, got {text!r}")
 
 
-def add_published_population(parser: argparse.ArgumentParser, default_folder: Path) -> None:
+def add_published_population(parser: argparse.ArgumentParser, default_folder: Path, pairs: bool = False) -> None:
     """The options of a results script that plays a published population (``<policies>/<method>_seed<i>_update<U>``
-    files): --update, --episodes, --seeds, --method, --policies; ``published_files`` names the files they pick."""
+    files): --update, --episodes, --seeds, --method, --policies; ``published_files`` names the files they pick.
+    With ``pairs``, also --pairs i,j ... (cross-play pairs: seat 0's seed, seat 1's), checked by
+    ``published_pairs``."""
     parser.add_argument("--update", type=int, required=True, help="the snapshot (<method>_seed<i>_update<U>)")
     parser.add_argument("--episodes", type=positive_int, default=32)
     parser.add_argument("--seeds", type=positive_int, default=10)
     parser.add_argument("--method", default="sp", help="the file names' method prefix (sp, sa, ...)")
     parser.add_argument("--policies", type=Path, default=default_folder, help="a published policies folder")
+    if pairs:
+        parser.add_argument("--pairs", type=seed_pair, nargs="*", default=[], help="cross-play pairs i,j to read too")
+
+
+def seed_pair(text: str) -> tuple[int, int]:
+    """argparse type: ``i,j`` (seat 0's seed, seat 1's seed)."""
+    try:
+        first, second = (int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected two seeds as i,j (seat 0's, seat 1's)") from None
+    if min(first, second) < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: seeds are 0 or more")
+    return first, second
+
+
+def published_pairs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[tuple[int, int]]:
+    """--pairs, each seed below --seeds (else the usage error that names the pair, before anything is played)."""
+    for pair in args.pairs:
+        if max(pair) >= args.seeds:
+            parser.error(f"--pairs {pair[0]},{pair[1]}: seeds are 0 to {args.seeds - 1} (--seeds {args.seeds})")
+    return list(args.pairs)
 
 
 def published_files(args: argparse.Namespace) -> list[Path]:

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from cluster.cli.args import add_published_population, published_files
+from cluster.cli.args import add_published_population, published_files, published_pairs
 from population.behaviour import ITEM_KINDS, counter_use, pot_use, role_counts
 from population.policy import PolicyError, policy_env
 from population.published import load_population
@@ -97,25 +97,11 @@ def seed_row(label, states, returns) -> str:
     return f"| {label} | " + " | ".join(cells) + f" | {per_soup} | {top_cell} | {float(np.mean(returns)):.1f} |"
 
 
-def ordered_pair(text: str) -> tuple[int, int]:
-    """argparse type: ``i,j`` (seat 0's seed, seat 1's seed)."""
-    try:
-        first, second = (int(part) for part in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected two seeds as i,j (seat 0's, seat 1's)") from None
-    if min(first, second) < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: seeds are 0 or more")
-    return first, second
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_published_population(parser, HERE / "policies")
-    parser.add_argument("--pairs", type=ordered_pair, nargs="*", default=[], help="cross-play pairs i,j to read too")
+    add_published_population(parser, HERE / "policies", pairs=True)
     args = parser.parse_args()
-    for pair in args.pairs:
-        if max(pair) >= args.seeds:
-            parser.error(f"--pairs {pair[0]},{pair[1]}: seeds are 0 to {args.seeds - 1} (--seeds {args.seeds})")
+    pairs = published_pairs(parser, args)
     files = published_files(args)
     try:  # checked sums, one game, one network, forced_coord (the cells read are its own)
         policies = load_population(args.policies, files, layout="forced_coord")
@@ -124,8 +110,8 @@ def main() -> None:
     print(table_header())
     first = policies[0]  # one compiled rollout for every seed and pair (same network, same env)
     play = jitted_play_recorded(first.apply, first.hidden_size, policy_env(first.env), args.episodes)
-    pairs = [(str(seed), seed, seed) for seed in range(args.seeds)] + [(f"{i} × {j}", i, j) for i, j in args.pairs]
-    for label, right, left in pairs:
+    plays = [(str(seed), seed, seed) for seed in range(args.seeds)] + [(f"{i} × {j}", i, j) for i, j in pairs]
+    for label, right, left in plays:
         played = play((policies[right].params, policies[left].params), jax.random.PRNGKey(7))
         print(seed_row(label, played.states, played.returns), flush=True)
 
