@@ -20,15 +20,21 @@ HANDOVER = [
 ]  # fmt: skip
 
 
-@pytest.fixture(scope="module")
-def handover_states():
-    env = ocv2.make("forced_coord")
+def scripted_play(layout: str, joint_actions):
+    """A scripted play of ``layout`` from its fixed start, every state kept: [E=1, T+1, ...], as play_recorded
+    returns it."""
+    env = ocv2.make(layout)
     _, state = env.reset(jax.random.PRNGKey(0))
     step = jax.jit(lambda key, s, a: env.step_env(key, s, {"agent_0": a[0], "agent_1": a[1]})[1])
     states = [state]
-    for t, joint in enumerate(HANDOVER):
+    for t, joint in enumerate(joint_actions):
         states.append(step(jax.random.PRNGKey(t), states[-1], np.array(joint, np.int32)))
-    both = jax.tree.map(lambda *x: np.stack(x)[None], *states)  # [E=1, T+1, ...], as play_recorded returns
+    return jax.tree.map(lambda *x: np.stack(x)[None], *states)
+
+
+@pytest.fixture(scope="module")
+def handover_states():
+    both = scripted_play("forced_coord", HANDOVER)
     assert np.asarray(both.agents.inventory[0, -1]).tolist() == [PLATE, 0]  # the script did what it says
     return jax.tree.map(lambda x: np.concatenate([x, x]), both)  # two identical episodes: counts double
 
@@ -77,19 +83,34 @@ def test_forced_coord_roles_row_reads_the_handover(handover_states):
     assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2  # its columns
 
 
-def test_forced_coord_roles_refuses_another_layouts_policies():
+@pytest.mark.parametrize(
+    "study, layout, other, other_layout",
+    [
+        ("table1_forced_coord_sp10", "forced_coord", "table1_coord_ring_sp10", "coord_ring"),
+        ("table1_counter_circuit_sp10", "counter_circuit", "table1_forced_coord_sp10", "forced_coord"),
+    ],
+)
+def test_roles_scripts_refuse_another_layouts_policies(study, layout, other, other_layout):
     import subprocess
     import sys
 
-    _, script = _forced_coord_roles()
-    coord_ring = script.parents[1] / "table1_coord_ring_sp10" / "policies"
+    _, script = _results_script(f"docs/results/{study}/roles.py")
     run = subprocess.run(
-        [sys.executable, str(script), "--update", "183", "--seeds", "1", "--policies", str(coord_ring)],
+        [
+            sys.executable,
+            str(script),
+            "--update",
+            "183",
+            "--seeds",
+            "1",
+            "--policies",
+            str(script.parents[1] / other / "policies"),
+        ],
         capture_output=True,
         text=True,
     )
     assert run.returncode != 0 and "Traceback" not in run.stderr
-    assert "plays layout 'coord_ring'; this reads forced_coord only" in run.stderr
+    assert f"plays layout '{other_layout}'; this reads {layout} only" in run.stderr
 
 
 def test_forced_coord_roles_names_a_bad_pair_before_playing():
@@ -127,30 +148,9 @@ def _results_script(relative: str):
 def test_counter_circuit_roles_row_reads_the_island_pass():
     """The Counter Circuit study's roles.py: one onion over the island, put down by seat 0, potted by seat 1 into
     the left pot; both seats moved clockwise; no soup."""
-    env = ocv2.make("counter_circuit")
-    _, state = env.reset(jax.random.PRNGKey(0))
-    step = jax.jit(lambda key, s, a: env.step_env(key, s, {"agent_0": a[0], "agent_1": a[1]})[1])
-    states = [state]
-    for t, joint in enumerate(ISLAND_PASS):
-        states.append(step(jax.random.PRNGKey(t), states[-1], np.array(joint, np.int32)))
-    assert [int(a) for a in states[0].agents.x] == [6, 2] and [int(a) for a in states[-1].agents.x] == [3, 3]
-    played = jax.tree.map(lambda *x: np.stack(x)[None], *states)
+    played = scripted_play("counter_circuit", ISLAND_PASS)
+    assert np.asarray(played.agents.x[0, [0, -1]]).tolist() == [[6, 2], [3, 3]]  # the script did what it says
     roles, _ = _results_script("docs/results/table1_counter_circuit_sp10/roles.py")
     row = roles.seed_row(5, played, np.array([0.0]))
     assert row == "| 5 | 0.00 of 1 | none | none | none | 1.00, 1.00 | 1.00 (1.00) | no soup | none in, 1.00 | 0.0 |"
     assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2
-
-
-def test_counter_circuit_roles_refuses_another_layouts_policies():
-    import subprocess
-    import sys
-
-    _, script = _results_script("docs/results/table1_counter_circuit_sp10/roles.py")
-    forced_coord = script.parents[1] / "table1_forced_coord_sp10" / "policies"
-    run = subprocess.run(
-        [sys.executable, str(script), "--update", "183", "--seeds", "1", "--policies", str(forced_coord)],
-        capture_output=True,
-        text=True,
-    )
-    assert run.returncode != 0 and "Traceback" not in run.stderr
-    assert "plays layout 'forced_coord'; this reads counter_circuit only" in run.stderr

@@ -29,18 +29,12 @@ actions, a fixed key), keeping every state; ``population.behaviour`` reads the e
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 
-import jax
 import numpy as np
 
-from cluster.cli.args import add_published_population, published_files, published_pairs
+from cluster.cli.roles_table import print_roles_table
 from population.behaviour import ITEM_KINDS, ROLES, counter_use, pot_use, role_counts
-from population.policy import PolicyError, policy_env
-from population.published import load_population
-from population.record import jitted_play_recorded
 
 HERE = Path(__file__).resolve().parent
 ISLAND = tuple((x, 2) for x in range(2, 6))  # (x, y) of the counters inside the loop
@@ -97,22 +91,7 @@ def seed_row(label, states, returns) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_published_population(parser, HERE / "policies", pairs=True)
-    args = parser.parse_args()
-    pairs = published_pairs(parser, args)
-    files = published_files(args)
-    try:  # checked sums, one game, one network, counter_circuit (the cells read are its own)
-        policies = load_population(args.policies, files, layout="counter_circuit")
-    except PolicyError as error:
-        sys.exit(str(error))
-    print(table_header())
-    first = policies[0]  # one compiled rollout for every seed and pair (same network, same env)
-    play = jitted_play_recorded(first.apply, first.hidden_size, policy_env(first.env), args.episodes)
-    plays = [(str(seed), seed, seed) for seed in range(args.seeds)] + [(f"{i} × {j}", i, j) for i, j in pairs]
-    for label, seat0, seat1 in plays:
-        played = play((policies[seat0].params, policies[seat1].params), jax.random.PRNGKey(7))
-        print(seed_row(label, played.states, played.returns), flush=True)
+    print_roles_table(__doc__.split("\n\n")[0], HERE / "policies", "counter_circuit", table_header(), seed_row)
 
 
 if __name__ == "__main__":

@@ -26,19 +26,13 @@ with ``--pairs``, one more per ordered pair ``i,j`` (seat 0, the right cook, fro
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 from typing import NamedTuple
 
-import jax
 import numpy as np
 
-from cluster.cli.args import add_published_population, published_files, published_pairs
+from cluster.cli.roles_table import print_roles_table
 from population.behaviour import ITEM_KINDS, counter_use, pot_use, role_counts
-from population.policy import PolicyError, policy_env
-from population.published import load_population
-from population.record import jitted_play_recorded
 
 HERE = Path(__file__).resolve().parent
 MIDDLE = ((2, 1), (2, 2), (2, 3))  # (x, y) of the counters between the two rooms
@@ -98,22 +92,7 @@ def seed_row(label, states, returns) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_published_population(parser, HERE / "policies", pairs=True)
-    args = parser.parse_args()
-    pairs = published_pairs(parser, args)
-    files = published_files(args)
-    try:  # checked sums, one game, one network, forced_coord (the cells read are its own)
-        policies = load_population(args.policies, files, layout="forced_coord")
-    except PolicyError as error:
-        sys.exit(str(error))
-    print(table_header())
-    first = policies[0]  # one compiled rollout for every seed and pair (same network, same env)
-    play = jitted_play_recorded(first.apply, first.hidden_size, policy_env(first.env), args.episodes)
-    plays = [(str(seed), seed, seed) for seed in range(args.seeds)] + [(f"{i} × {j}", i, j) for i, j in pairs]
-    for label, right, left in plays:
-        played = play((policies[right].params, policies[left].params), jax.random.PRNGKey(7))
-        print(seed_row(label, played.states, played.returns), flush=True)
+    print_roles_table(__doc__.split("\n\n")[0], HERE / "policies", "forced_coord", table_header(), seed_row)
 
 
 if __name__ == "__main__":
