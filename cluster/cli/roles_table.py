@@ -9,7 +9,12 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import jax
+
 from cluster.cli.args import add_published_population, published_files, published_pairs
+from population.policy import PolicyError, policy_env
+from population.published import load_population
+from population.record import jitted_play_recorded
 
 ROLLOUT_KEY = 7  # the same sampled actions in every script and every run
 
@@ -20,12 +25,6 @@ def print_roles_table(
     """Parse --update/--episodes/--seeds/--method/--policies/--pairs (``argv``, default sys.argv), load the policies
     (checked sums, one game, one network, ``layout`` only: the cells a script reads are its layout's), print
     ``header`` and then ``row(label, states [E, T+1, ...], returns [E])`` for each seed's self-play and each pair."""
-    import jax  # loaded only once the arguments are good
-
-    from population.policy import PolicyError, policy_env
-    from population.published import load_population
-    from population.record import jitted_play_recorded
-
     parser = argparse.ArgumentParser(description=description)
     add_published_population(parser, default_folder, pairs=True)
     args = parser.parse_args(argv)
