@@ -28,7 +28,7 @@ tables of ring_direction.md and button_use.md (written by the scripts beside the
 directories), the Coordination Ring layout in ocv2/layouts.py (parsed as text), and the 10-seed SP and SA studies'
 folders (summary.json, xp_*.csv, roles.md, the policies' SHA256SUMS.json), and the GPU study's folders
 (gpu_coord_ring_sp/ and its update-410 cross-play, gpu_coord_ring_sp_update410/). JAX is imported for the checks
-that take an interval the way the reports do: sa10_delta and gpu410_vs_3m (population.xp.bootstrap_difference)
+that take an interval the way the reports do: study_delta and gpu410_vs_3m (population.xp.bootstrap_difference)
 and the gpu410 checks (population.xp.block_summary).
 
 What it cannot check, and why (the page says so where they stand): the Coordination Ring training-return
@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parents[1]))  # the repository, for population.xp (sa10_delta) outside an install
+sys.path.insert(0, str(HERE.parents[1]))  # the repository, for population.xp (study_delta) outside an install
 DOC = HERE.parent / "RESULTS.md"
 LAYOUTS = HERE.parents[1] / "ocv2" / "layouts.py"
 CR = HERE / "table1_coord_ring"
@@ -1989,12 +1989,20 @@ def sa10_final() -> np.ndarray:
 
 
 @functools.cache
-def sa10_delta() -> dict:
-    """SA's SP, XP and gap minus SP's, with 95 % intervals, both populations' seeds resampled each on its own:
-    the function ``ocv2 report`` and the study report use (imported here, so JAX loads only for this check)."""
+def study_delta(base: Path, base_method: str, other: Path, other_method: str) -> dict:
+    """``other``'s SP, XP and gap minus ``base``'s (two finished 10-seed studies), with 95 % intervals, both
+    populations' seeds resampled each on its own: the function ``ocv2 report`` and the study report use (imported
+    here, so JAX loads only for these checks)."""
     from population.xp import bootstrap_difference
 
-    return bootstrap_difference(final_matrix(), sa10_final())
+    return bootstrap_difference(final_matrix(base, base_method), final_matrix(other, other_method))
+
+
+def gap_delta_numbers(base: Path, base_method: str, other: Path, other_method: str) -> list:
+    """[other's gap minus base's, its 95 % interval (``study_delta``), the paper's gap difference]."""
+    here, there = run(other, other_method)["xp"]["gap"], run(base, base_method)["xp"]["gap"]
+    paper_delta = paper(other, other_method)[2] - paper(base, base_method)[2]
+    return [here - there, *study_delta(base, base_method, other, other_method)["gap"], paper_delta]
 
 
 @check("sa10_final")
@@ -2003,8 +2011,7 @@ def _():
 
 
 def _sa10_delta_numbers() -> list:
-    sa, sp = run(SA10, "sa")["xp"]["gap"], run(SP10, "sp")["xp"]["gap"]
-    return [sa - sp, *sa10_delta()["gap"], paper(SA10, "sa")[2] - paper(SP10, "sp")[2]]
+    return gap_delta_numbers(SP10, "sp", SA10, "sa")
 
 
 @check("sa10_delta")
@@ -2199,23 +2206,19 @@ def _():
 # --- Forced Coord. SA, 10 seeds at 3M env steps, beside the 10 SP seeds: the verdict and the counters each seed uses
 
 
-def fc_sa10_conventions() -> list[tuple[int, int]]:
-    """Per SA seed, (onion counter, plate counter) it hands over on (0, 1, 2 = (2,1), (2,2), (2,3))."""
-    return list(zip(handover_counters(FC_SA10, "onions"), handover_counters(FC_SA10, "plates"), strict=True))
+def conventions(study: Path) -> list[tuple[int, int]]:
+    """Per seed of a Forced Coord. study, (onion counter, plate counter) it hands over on (0, 1, 2 = (2,1), (2,2),
+    (2,3))."""
+    return list(zip(handover_counters(study, "onions"), handover_counters(study, "plates"), strict=True))
 
 
-@functools.cache
-def fc_sa10_delta() -> dict:
-    """SA's SP, XP and gap minus SP's on Forced Coord., with 95 % intervals, each population's seeds resampled on
-    their own (``population.xp.bootstrap_difference``, as ``ocv2 report`` computes it)."""
-    from population.xp import bootstrap_difference
-
-    return bootstrap_difference(final_matrix(FC10), final_matrix(FC_SA10, "sa"))
+def onions_on_21(study: Path) -> list[int]:
+    """The seeds of a Forced Coord. study that hand their onions over on (2,1)."""
+    return [k for k, (onion, _) in enumerate(conventions(study)) if onion == 0]
 
 
 def _fc_sa10_delta_numbers() -> list:
-    sa, sp = run(FC_SA10, "sa")["xp"]["gap"], run(FC10, "sp")["xp"]["gap"]
-    return [sa - sp, *fc_sa10_delta()["gap"], paper(FC_SA10, "sa")[2] - paper(FC10, "sp")[2]]
+    return gap_delta_numbers(FC10, "sp", FC_SA10, "sa")
 
 
 @check("fc_sa10_final")
@@ -2236,24 +2239,22 @@ def _():
 
 @check("fc_sa10_conventions")
 def _():
-    onions, plates = handover_counters(FC_SA10, "onions"), handover_counters(FC_SA10, "plates")
-    sp_onions = handover_counters(FC10, "onions")
-    on_21 = [k for k in range(10) if onions[k] == 0]
+    plates = handover_counters(FC_SA10, "plates")
     return [
-        *on_21, L, L, L, L,  # the seeds whose onions cross on (2,1); the others on (2,2)
-        sum(o == 1 for o in sp_onions), L, L,  # all 10 SP seeds on (2,2)
+        *onions_on_21(FC_SA10), L, L, L, L,  # the seeds whose onions cross on (2,1); the others on (2,2)
+        sum(onion == 1 for onion, _ in conventions(FC10)), L, L,  # all 10 SP seeds on (2,2)
         *[x for c in range(3) for x in [L, L, *[k for k in range(10) if plates[k] == c]]],
-        len(set(fc_sa10_conventions())), 10,
-        len(set(zip(sp_onions, handover_counters(FC10, "plates"), strict=True))),
+        len(set(conventions(FC_SA10))), 10,
+        len(set(conventions(FC10))),
     ]  # fmt: skip
 
 
 @check("fc_sa10_by_convention")
 def _():
-    m, conventions = final_matrix(FC_SA10, "sa"), fc_sa10_conventions()
-    same, other = by_convention(m, conventions)
+    m, seeds = final_matrix(FC_SA10, "sa"), conventions(FC_SA10)
+    same, other = by_convention(m, seeds)
     low = low_pairs(FC_SA10, "sa")
-    crossing = sum(conventions[i] != conventions[j] for i, j, _ in low)
+    crossing = sum(seeds[i] != seeds[j] for i, j, _ in low)
     return [
         len(same), np.mean(same), min(same), max(same),
         len(other), np.mean(other), min(other), max(other),
@@ -2261,18 +2262,27 @@ def _():
     ]  # fmt: skip
 
 
-def by_plate_distance(study: Path, method: str) -> list:
-    """Pairs of a Forced Coord. population by how far apart their seeds' plate counters are (0: the same counter,
-    1: neighbours, 2: (2,1) against (2,3)): per distance, the number of pairs, their mean (both seat orders) and
-    how many fail."""
-    m, plates = final_matrix(study, method), handover_counters(study, "plates")
-    p, out = both_seats(m), []
+def by_distance(scored: list[tuple[int, float, bool]]) -> list:
+    """Pairs given as (distance between their seeds' plate counters, score, failed), by that distance (0: the same
+    counter, 1: neighbours, 2: (2,1) against (2,3)): per distance, how many, their mean score and how many fail."""
+    out = []
     for distance in range(3):
-        ij = [(i, j) for i, j in itertools.combinations(range(10), 2) if abs(plates[i] - plates[j]) == distance]
+        group = [(score, failed) for d, score, failed in scored if d == distance]
         far = [L, L, L, L] if distance == 2 else []  # "(2,1) against (2,3)"
-        mean = np.mean([p[i, j] for i, j in ij])
-        out += [len(ij), *far, mean, sum(below_half(p[i, j], m[i, i], m[j, j]) for i, j in ij)]
+        out += [len(group), *far, np.mean([score for score, _ in group]), sum(failed for _, failed in group)]
     return out
+
+
+def by_plate_distance(study: Path, method: str) -> list:
+    """``by_distance`` of the 45 pairs of a Forced Coord. population (scores: both seat orders)."""
+    m, plates = final_matrix(study, method), handover_counters(study, "plates")
+    p = both_seats(m)
+    return by_distance(
+        [
+            (abs(plates[i] - plates[j]), p[i, j], below_half(p[i, j], m[i, i], m[j, j]))
+            for i, j in itertools.combinations(range(len(m)), 2)
+        ]
+    )
 
 
 @check("fc_plate_distance")
@@ -2300,15 +2310,11 @@ def _():
         for block in (sp, sa)
         for x in (block[mean], *interval(block, key))
     ]
-    conventions = [
-        set(zip(handover_counters(st, "onions"), handover_counters(st, "plates"), strict=True))
-        for st in (FC10, FC_SA10)
-    ]
     return [
         *rows,
         min(pairs(final_matrix(FC10))), min(pairs(final_matrix(FC_SA10, "sa"))),
         len(low_pairs(FC10)), 45, len(low_pairs(FC_SA10, "sa")), 45,
-        *[len(c) for c in conventions],
+        len(set(conventions(FC10))), len(set(conventions(FC_SA10))),
     ]  # fmt: skip
 
 
@@ -2317,24 +2323,14 @@ def _():
     m = matrix(FC_SA10 / "xp_sp_sa" / "matrix_mean.csv")  # row = SP seed, column = SA seed, both seat orders
     sp_self, sa_self = np.diag(final_matrix(FC10)), np.diag(final_matrix(FC_SA10, "sa"))
     low = below_half(m, sp_self[:, None], sa_self[None, :])
-    plates = [handover_counters(study, "plates") for study in (FC10, FC_SA10)]
-    onions = [handover_counters(study, "onions") for study in (FC10, FC_SA10)]
-    out = [
-        m.size,
-        m.mean(),
-        run(FC10, "sp")["xp"]["xp_mean"],
-        run(FC_SA10, "sa")["xp"]["xp_mean"],
-        int(low.sum()),
-        m.size,
-    ]
-    for distance in range(3):
-        cells = [(i, j) for i in range(10) for j in range(10) if abs(plates[0][i] - plates[1][j]) == distance]
-        far = [L, L, L, L] if distance == 2 else []  # "(2,1) against (2,3)"
-        out += [len(cells), *far, np.mean([m[c] for c in cells]), sum(low[c] for c in cells)]
-    same = [
-        (i, j) for i in range(10) for j in range(10) if (plates[0][i], onions[0][i]) == (plates[1][j], onions[1][j])
-    ]
-    return [*out, len(same), np.mean([m[c] for c in same]), min(m[c] for c in same)]
+    sp, sa = conventions(FC10), conventions(FC_SA10)  # (onion counter, plate counter) per seed
+    cells = list(itertools.product(range(len(sp)), range(len(sa))))
+    distances = by_distance([(abs(sp[i][1] - sa[j][1]), m[i, j], low[i, j]) for i, j in cells])
+    same = [m[i, j] for i, j in cells if sp[i] == sa[j]]
+    return [
+        m.size, m.mean(), run(FC10, "sp")["xp"]["xp_mean"], run(FC_SA10, "sa")["xp"]["xp_mean"], int(low.sum()), m.size,
+        *distances, len(same), np.mean(same), min(same),
+    ]  # fmt: skip
 
 
 @check("fc_sa10_growth")
@@ -2368,8 +2364,7 @@ def _():
 
 @check("fc_sa10_rest")
 def _():
-    onions = handover_counters(FC_SA10, "onions")
-    on_21 = [k for k in range(10) if onions[k] == 0]
+    on_21 = onions_on_21(FC_SA10)
     rest = [k for k in range(10) if k not in on_21]
     return [*on_21, len(rest), sp_xp(final_matrix(FC_SA10, "sa"), rest)[2], run(FC10, "sp")["xp"]["gap"]]
 
