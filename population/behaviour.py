@@ -12,6 +12,9 @@ An event is read from the held item before and after a transition and the cell t
 - a soup is plated: a plate becomes a cooked dish while facing a pot;
 - a delivery: a cooked dish leaves the hand while facing the serving window;
 - a put-down / take-up on a counter: an item leaves / enters the hand while facing a counter (``Static.WALL``).
+
+Which way round a loop of floor a cook walks (Coordination Ring's ring, Counter Circuit's circuit) is read from its
+positions: ``clockwise_moves``.
 """
 
 from __future__ import annotations
@@ -137,3 +140,14 @@ def counter_use(states) -> CounterUse:
     taken = np.stack([_per_cell(taken_up & (taken_kind == k), t, every) for k in range(len(ITEM_KINDS))], axis=1)
     used = (put.sum(axis=(1, 2)) + taken.sum(axis=(1, 2))) > 0
     return CounterUse(every[used], put[used], taken[used])
+
+
+def clockwise_moves(x, y, centre: tuple[float, float], time_axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """How many moves went clockwise round ``centre`` (x, y) and how many moves round it were made, summed over every
+    axis but the last (the seat). Clockwise as the layout is drawn: y grows downward, so a rise of
+    atan2(y - centre_y, x - centre_x) is clockwise on screen. A move is a step that changes that angle."""
+    angle = np.arctan2(np.asarray(y, float) - centre[1], np.asarray(x, float) - centre[0])
+    turn = (np.diff(angle, axis=time_axis) + np.pi) % (2 * np.pi) - np.pi
+    moved = np.abs(turn) > 1e-9
+    axes = tuple(range(turn.ndim - 1))
+    return (moved & (turn > 0)).sum(axes), moved.sum(axes)

@@ -154,3 +154,12 @@ def test_counter_circuit_roles_row_reads_the_island_pass():
     row = roles.seed_row(5, played, np.array([0.0]))
     assert row == "| 5 | 0.00 of 1 | none | none | none | 1.00, 1.00 | 1.00 (1.00) | no soup | none in, 1.00 | 0.0 |"
     assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2
+
+
+def test_clockwise_moves_counts_turns_round_a_centre_per_seat():
+    """Seat 0 walks clockwise on screen round (1, 1) (right along the top, down the right side), seat 1 the other
+    way and then stands still: standing is no move, and each step counts by the way it turns."""
+    x = np.array([[0, 2], [1, 2], [2, 2], [2, 2]])  # [T+1, seat]
+    y = np.array([[0, 2], [0, 1], [0, 0], [1, 0]])
+    clockwise, moves = behaviour.clockwise_moves(x, y, (1, 1))
+    assert clockwise.tolist() == [3, 0] and moves.tolist() == [3, 2]

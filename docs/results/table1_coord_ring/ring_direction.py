@@ -22,20 +22,11 @@ import jax
 import numpy as np
 
 from cluster.archive.reader import ArchiveReader
+from population.behaviour import clockwise_moves
 from population.evaluation import play_episodes
 from population.policy import load, policy_env
 
-CENTRE = 2  # the ring's centre counter is at (2, 2) in coord_ring
-
-
-def clockwise_moves(x, y, time_axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """How many moves went clockwise and how many moves were made, summed over every axis but the last
-    (the seat)."""
-    angle = np.arctan2(np.asarray(y, float) - CENTRE, np.asarray(x, float) - CENTRE)
-    turn = (np.diff(angle, axis=time_axis) + np.pi) % (2 * np.pi) - np.pi
-    moved = np.abs(turn) > 1e-9
-    axes = tuple(range(turn.ndim - 1))
-    return (moved & (turn > 0)).sum(axes), moved.sum(axes)
+CENTRE = (2, 2)  # (x, y) of the ring's centre counter in coord_ring
 
 
 def from_archive(folder: str, per_pair: int) -> None:
@@ -52,7 +43,7 @@ def from_archive(folder: str, per_pair: int) -> None:
             clockwise, moves, returns = np.zeros(2), np.zeros(2), []
             for k in chosen:
                 episode = reader.episode(k)
-                c, m = clockwise_moves(episode.states.agents.x, episode.states.agents.y)
+                c, m = clockwise_moves(episode.states.agents.x, episode.states.agents.y, CENTRE)
                 clockwise += c
                 moves += m
                 returns.append(episode.meta["return"])
@@ -83,7 +74,7 @@ def from_snapshots(run_dir: str, updates: list[int], episodes: int, seeds: int) 
             play = self_play(policy.apply, policy.hidden_size, policy_env(policy.env), episodes)
             played = play(policy.params, jax.random.PRNGKey(7))
             agents = played.states.agents  # [R, S, seat]
-            clockwise, moves = clockwise_moves(agents.x, agents.y, time_axis=1)
+            clockwise, moves = clockwise_moves(agents.x, agents.y, CENTRE, time_axis=1)
             share = clockwise / np.maximum(moves, 1)
             cells.append(f"{share[0]:.2f}, {share[1]:.2f}, {float(np.mean(played.returns)):.0f}")
         print(f"| {update} | " + " | ".join(cells) + " |", flush=True)

@@ -29,14 +29,13 @@ import jax
 import numpy as np
 
 from cluster.cli.args import add_published_population, published_files
-from population.behaviour import ROLES, pot_use, role_counts
+from population.behaviour import ROLES, clockwise_moves, pot_use, role_counts
 from population.policy import PolicyError, policy_env
 from population.published import load_population
 from population.record import jitted_play_recorded
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "table1_coord_ring"))
-from ring_direction import clockwise_moves  # noqa: E402
+RING_CENTRE = (2, 2)  # (x, y) of Coordination Ring's centre counter, as ring_direction.py in table1_coord_ring/
 
 
 def first_pot_share(states) -> np.ndarray:
@@ -63,7 +62,7 @@ def main() -> None:
     play = jitted_play_recorded(first.apply, first.hidden_size, policy_env(first.env), args.episodes)
     for seed, policy in enumerate(policies):
         played = play((policy.params, policy.params), jax.random.PRNGKey(7))
-        clockwise, moves = clockwise_moves(played.states.agents.x, played.states.agents.y, time_axis=1)
+        clockwise, moves = clockwise_moves(played.states.agents.x, played.states.agents.y, RING_CENTRE, time_axis=1)
         share = clockwise / np.maximum(moves, 1)
         counts = role_counts(played.states)
         cells = [f"{c[0] / max(c.sum(), 1):.2f} of {int(c.sum())}" for c in counts]

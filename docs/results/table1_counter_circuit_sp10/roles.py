@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from cluster.cli.roles_table import print_roles_table
-from population.behaviour import ITEM_KINDS, ROLES, counter_use, pot_use, role_counts
+from population.behaviour import ITEM_KINDS, ROLES, clockwise_moves, counter_use, pot_use, role_counts
 
 HERE = Path(__file__).resolve().parent
 ISLAND = tuple((x, 2) for x in range(2, 6))  # (x, y) of the counters inside the loop
@@ -51,11 +51,9 @@ def island_put_downs(states, kind: str) -> np.ndarray:
 def clockwise_share(x, y) -> np.ndarray:
     """Per seat, the share of its moves round the island that go clockwise on screen (NaN: it never moved).
     ``x``, ``y``: positions [E, T+1, seat]."""
-    angle = np.arctan2(np.asarray(y, float) - CENTRE[1], np.asarray(x, float) - CENTRE[0])
-    turn = (np.diff(angle, axis=1) + np.pi) % (2 * np.pi) - np.pi
-    moved = np.abs(turn) > 1e-9
+    clockwise, moves = clockwise_moves(x, y, CENTRE, time_axis=1)
     with np.errstate(invalid="ignore"):
-        return (moved & (turn > 0)).sum(axis=(0, 1)) / moved.sum(axis=(0, 1))
+        return clockwise / moves
 
 
 def table_header() -> str:
