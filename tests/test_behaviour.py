@@ -88,6 +88,7 @@ def test_forced_coord_roles_row_reads_the_handover(handover_states):
     [
         ("table1_forced_coord_sp10", "forced_coord", "table1_coord_ring_sp10", "coord_ring"),
         ("table1_counter_circuit_sp10", "counter_circuit", "table1_forced_coord_sp10", "forced_coord"),
+        ("table1_coord_ring_sp10", "coord_ring", "table1_forced_coord_sp10", "forced_coord"),
     ],
 )
 def test_roles_scripts_refuse_another_layouts_policies(study, layout, other, other_layout):
