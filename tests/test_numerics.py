@@ -96,6 +96,10 @@ def test_the_local_backend_records_its_device_precision_and_flags(tmp_path, caps
     err = capsys.readouterr().err
     assert "run.precision tf32 (matmuls compute" in err
     assert f"seeds 0-1 train on {numerics_device()} (this process)" in err
+    # the deterministic GPU flag is set in this process, but on a CPU nothing it governs runs: the header says so
+    on_cpu = numerics_device() == "cpu"
+    assert ("(CPU only, deterministic as it is)" in err) == on_cpu
+    assert ("(XLA's deterministic GPU ops on)" in err) != on_cpu
 
 
 def numerics_device() -> str:

@@ -465,10 +465,10 @@ def record_workers(config: Config, run: RunDir, workers: Workers) -> list[str]:
     groups: dict[tuple, list[dict]] = {}
     for record in records:
         groups.setdefault((record["device"], record["worker"], record.get("num_gpus")), []).append(record)
-    if any(record["xla_gpu_deterministic_ops"] for record in records):
-        determinism = "XLA's deterministic GPU ops on"
-    elif all(record["device"] == "cpu" for record in records):
+    if all(record["device"] == "cpu" for record in records):  # the GPU flag may be set, but nothing it governs runs
         determinism = "CPU only, deterministic as it is"
+    elif any(record["xla_gpu_deterministic_ops"] for record in records):
+        determinism = "XLA's deterministic GPU ops on"
     else:
         determinism = "XLA's deterministic GPU ops off"
     computes = ", ".join(sorted({record["computes"] for record in records}))
