@@ -1896,6 +1896,11 @@ def partner_means(p: np.ndarray) -> list[float]:
     return [np.mean([p[k, j] for j in range(len(p)) if j != k]) for k in range(len(p))]
 
 
+@check("gpu_cr_sp_final")
+def _():
+    return final_numbers(GPU_CR, "sp")
+
+
 @check("sp10_final")
 def _():
     return final_numbers(SP10, "sp")
