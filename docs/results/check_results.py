@@ -2404,6 +2404,172 @@ def _():
     return hm(summary(FC_SA10)["wall_s"])
 
 
+# --- Coordination Ring SP on the paper's whole 10M schedule (gpu_coord_ring_sp, update 610)
+
+
+def gpu_cr_matrix() -> np.ndarray:
+    return final_matrix(GPU_CR, "sp")
+
+
+def pot_groups(roles: list) -> dict:
+    """Seeds by where seat 0 puts its onions in a roles.md table: only the first pot, only the second, or both."""
+    pot = [row[3][0] for row in roles]
+    return {
+        "first": [k for k, x in enumerate(pot) if x >= 0.95],
+        "second": [k for k, x in enumerate(pot) if x <= 0.05],
+        "both": [k for k, x in enumerate(pot) if 0.05 < x < 0.95],
+    }
+
+
+def gpu_cr_groups() -> dict:
+    return pot_groups(roles_tables(GPU_CR)[610])
+
+
+@check("gpu_cr_sp_within")
+def _():
+    xp = run(GPU_CR, "sp")["xp"]
+    sp, cross, gap = paper(GPU_CR, "sp")
+    return [sp, *interval(xp, "sp"), cross, *interval(xp, "xp"), gap, *interval(xp, "gap")]
+
+
+@check("gpu_cr_sp_low_pairs")
+def _():
+    low = failing_pairs(gpu_cr_matrix())
+    first = gpu_cr_groups()["first"]
+    with_first = [score for i, j, score in low if first[0] in (i, j)]
+    return [len(low), 45, len(with_first), *first, min(with_first), max(with_first)]
+
+
+@check("gpu_cr_sp_vs_410")
+def _():
+    before, after = gpu410_block()["gap"], run(GPU_CR, "sp")["xp"]["gap"]
+    return [before, 410, after, 610, after - before, *paired_gap_difference(gpu410(), gpu_cr_matrix())]
+
+
+@check("gpu_cr_sp_claim")
+def _():
+    return [*claim_row(GPU_CR, "sp"), len(failing_pairs(gpu_cr_matrix())), 45]
+
+
+@check("gpu_cr_sp_groups")
+def _():
+    groups = gpu_cr_groups()
+    changed = sum(
+        a != b
+        for a, b in zip(
+            [next(g for g, ks in pot_groups(roles_tables(GPU410)[410]).items() if k in ks) for k in range(10)],
+            [next(g for g, ks in groups.items() if k in ks) for k in range(10)],
+        )
+    )
+    cw = [row[0] for row in roles_tables(GPU_CR)[610]]
+    p = both_seats(gpu_cr_matrix())
+    second, both, first = groups["second"], groups["both"], groups["first"]
+    others = [k for k in range(10) if k not in first]
+    same = group_pairs(p, second, second)
+    cross = group_pairs(p, second, both)
+    within_both = group_pairs(p, both, both)
+    with_first = group_pairs(p, first, others)
+    return [
+        *first, cw[first[0]], *second, *both, len(same), np.mean(same), min(same), max(same),
+        len(within_both), *both, np.mean(within_both), len(cross), np.mean(cross), min(cross), max(cross),
+        *first, np.mean(with_first), changed, 10, 410,
+    ]  # fmt: skip
+
+
+@check("gpu_cr_sp_without6")
+def _():
+    from population.xp import block_summary
+
+    first = gpu_cr_groups()["first"]
+    keep = [k for k in range(10) if k not in first]
+    block = block_summary(gpu_cr_matrix()[np.ix_(keep, keep)], list(range(len(keep))), list(range(len(keep))))
+    return [*first, block["sp_mean"], block["xp_mean"], block["gap"], len(keep), *block["gap_ci95_interval"]]
+
+
+@check("gpu_cr_sp_recovered")
+def _():
+    now, then = both_seats(gpu_cr_matrix()), both_seats(gpu410())
+    both = gpu_cr_groups()["both"]
+    first = gpu_cr_groups()["first"]
+    others = [k for k in range(10) if k not in first]
+    recovered = [(i, j) for i, j, _ in failing_pairs(gpu410()) if not set(first) & {i, j}]
+    out = [x for i, j in recovered for x in (i, j, now[i, j], then[i, j])]
+    return [
+        *out[:4], 410, *out[4:], np.mean(group_pairs(now, both, both)), np.mean(group_pairs(then, both, both)), 410,
+        *first, np.mean(group_pairs(now, first, others)), np.mean(group_pairs(then, first, others)), 410,
+    ]  # fmt: skip
+
+
+@check("gpu_cr_sp_seed4")
+def _():
+    m = gpu_cr_matrix()
+    sp = np.diag(m)
+    top = int(np.argmax(sp))
+    rest = [x for k, x in enumerate(sp) if k != top]
+    roles = roles_tables(GPU_CR)[610]
+    deliveries = [row[2][3][0] for row in roles]
+    others = [x for k, x in enumerate(deliveries) if k != top]
+    keep = [k for k in range(10) if k != top]
+    rest_sp = sp_xp(m, keep)[0]
+    return [
+        top, sp[top], min(rest), max(rest), deliveries[top], min(others), max(others), top, rest_sp, sp.mean() - rest_sp,
+    ]  # fmt: skip
+
+
+@check("gpu_cr_sp_growth")
+def _():
+    out = []
+    for update in (122, 244, 366):
+        folder = GPU410 / f"xp_update{update}"
+        out += [sp_xp(matrix(folder / "matrix.csv"))[2], snapshot_env_steps(update, GPU_CR)]
+    episodes = json.loads((GPU410 / "xp_update122" / "summary.json").read_text())["episodes_per_pair"]
+    at488 = GPU_CR / "xp_update488"
+    return [
+        *out, episodes, gpu410_block()["gap"], snapshot_env_steps(410, GPU410),
+        json.loads((GPU410 / "summary.json").read_text())["episodes_per_pair"],
+        sp_xp(matrix(at488 / "matrix.csv"))[2], snapshot_env_steps(488, GPU_CR),
+        json.loads((at488 / "summary.json").read_text())["episodes_per_pair"],
+        run(GPU_CR, "sp")["xp"]["gap"], snapshot_env_steps(610, GPU_CR), run(GPU_CR, "sp")["xp"]["episodes_per_pair"],
+    ]  # fmt: skip
+
+
+@check("gpu_cr_sp_vs_3m")
+def _():
+    from population.xp import bootstrap_difference
+
+    here, there = run(GPU_CR, "sp")["xp"]["gap"], run(SP10, "sp")["xp"]["gap"]
+    return [
+        here, there, here - there, *bootstrap_difference(final_matrix(), gpu_cr_matrix())["gap"],
+        *paired_gap_difference(final_matrix(), gpu_cr_matrix()),
+    ]  # fmt: skip
+
+
+@check("gpu_cr_sp_paper_xp")
+def _():
+    """How many of the 45 pairs would have to fail for the paper's XP, if working and failing pairs scored what
+    ours score on average."""
+    p = both_seats(gpu_cr_matrix())
+    low = {(i, j) for i, j, _ in failing_pairs(gpu_cr_matrix())}
+    fail = np.mean([p[i, j] for i, j in low])
+    ok = np.mean([p[i, j] for i, j in itertools.combinations(range(10), 2) if (i, j) not in low])
+    xp = paper(GPU_CR, "sp")[1]
+    return [xp, ok, fail, 45 * (ok - xp) / (ok - fail), 45, len(low)]
+
+
+@check("run_gpu_cr")
+def _():
+    return run_size(GPU_CR, "sp")
+
+
+@check("run_gpu_cr_rates")
+def _():
+    with (GPU_CR / "sp_metrics.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["seed"] == "0"]
+    gpu = [_float(r["steps_per_s"]) for r in rows if int(r["update"]) <= 410]
+    cpu = [_float(r["steps_per_s"]) for r in rows if int(r["update"]) > 410]
+    return [1, 410, np.median(gpu), 411, 610, np.median(cpu), *hm(summary(GPU_CR)["wall_s"])]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--doc", type=Path, default=DOC, help="the page to check (default docs/RESULTS.md)")
