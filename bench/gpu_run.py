@@ -254,14 +254,20 @@ def rnn_sets(kernels: str, backward: str = "auto", unroll: int = 1) -> list[str]
     return [f"model.kernels={kernels}", f"model.gru_backward={backward}", f"model.gru_unroll={unroll}"]
 
 
-def fastest_rnn(measured: dict, seeds: int) -> dict | None:
-    """The fastest ``seeds``-seed RNN variant measured at float32, the precision the study trains at (its
-    measurement), or None."""
+def fastest_rnn_name(measured: dict, seeds: int) -> str | None:
+    """The name of the fastest ``seeds``-seed RNN variant measured at float32, the precision the study trains at,
+    or None."""
     rates = [
-        result for name, result in measured.items()
+        name for name, result in measured.items()
         if name.startswith(f"rnn_sp_{seeds}_") and result.get("env_steps_per_s") and result.get("precision") == "float32"
     ]  # fmt: skip
-    return max(rates, key=lambda result: result["env_steps_per_s"], default=None)
+    return max(rates, key=lambda name: measured[name]["env_steps_per_s"], default=None)
+
+
+def fastest_rnn(measured: dict, seeds: int) -> dict | None:
+    """The measurement ``fastest_rnn_name`` names, or None."""
+    name = fastest_rnn_name(measured, seeds)
+    return None if name is None else measured[name]
 
 
 def best_rnn_sets(measured: dict, seeds: int) -> list[str]:
@@ -358,6 +364,7 @@ class Step:
     train_s: float  # the planned training time at the measured rate
     resume: bool = False  # an earlier window's study, unpacked: its directory keeps budget, seeds and --set
     sets: tuple[str, ...] = ()  # --set overrides beyond the smoke sizes (e.g. the fastest RNN variant)
+    rate_case: str = ""  # the measurement (gpu_run.json "results") whose rate planned it; "" when none did (resumed)
 
     def command(self, out: Path, smoke: bool) -> list[str]:
         study = [sys.executable, "-m", "cluster.cli", "study", "run", str(STUDIES / f"{self.study}.yaml")]
@@ -393,20 +400,23 @@ def plan_table1(measured: dict, seconds_left: float, smoke: bool) -> list[Step]:
     rate = measured.get(f"cnn_sp_{seeds}", {}).get("env_steps_per_s")
     config = load_config(CR_SP, SMOKE_SETS if smoke else [])
     full_steps = seeds * config.ppo.total_timesteps
+    case = f"cnn_sp_{seeds}" if rate else ""
     if smoke:  # 20 tiny updates: two chunks, a snapshot between them, then the cross-play
-        return [Step(TABLE1, 20 * config.ppo.steps_per_update / config.ppo.total_timesteps, seeds, float("nan"))]
+        budget = 20 * config.ppo.steps_per_update / config.ppo.total_timesteps
+        return [Step(TABLE1, budget, seeds, float("nan"), rate_case=case)]
     if not rate:
         log("no 10-seed CNN rate measured: training SP at 10 % and letting the deadline stop it")
         return [Step(TABLE1, 0.1, seeds, float("nan"))]
     reserve = 90.0  # compile (~30 s) + 10x10 cross-play in both orders + export, from the CPU's proportions
     budget = max(0.01, min(1.0, (seconds_left - reserve) * rate / full_steps))
-    steps = [Step(TABLE1, round(budget, 3), seeds, budget * full_steps / rate)]
+    steps = [Step(TABLE1, round(budget, 3), seeds, budget * full_steps / rate, rate_case=case)]
     left = seconds_left - reserve - steps[0].train_s
     if budget == 1.0 and left > reserve + 60:
         # SA trains as fast as SP between its iterations, plus 10 collections of 100 pairs x 10 rollouts.
         sa_budget = min(1.0, (left - reserve) * rate / full_steps / 1.3)
         if sa_budget >= 0.1:
-            steps.append(Step(TABLE1_SA, round(sa_budget, 3), seeds, sa_budget * full_steps / rate * 1.3))
+            train_s = sa_budget * full_steps / rate * 1.3
+            steps.append(Step(TABLE1_SA, round(sa_budget, 3), seeds, train_s, rate_case=case))
     return steps
 
 
@@ -416,9 +426,10 @@ def plan_table2(measured: dict, smoke: bool) -> list[Step]:
     seeds = 2 if smoke else 10
     config = load_config(GCS_SP, SMOKE_SETS if smoke else [])
     budget = 12 * config.ppo.steps_per_update / config.ppo.total_timesteps if smoke else 1.0
-    rate = (fastest_rnn(measured, seeds) or {}).get("env_steps_per_s")
+    case = fastest_rnn_name(measured, seeds)
+    rate = measured[case]["env_steps_per_s"] if case else None
     train_s = budget * seeds * config.ppo.total_timesteps / rate if rate else float("nan")
-    return [Step(TABLE2, budget, seeds, train_s, sets=tuple(best_rnn_sets(measured, seeds)))]
+    return [Step(TABLE2, budget, seeds, train_s, sets=tuple(best_rnn_sets(measured, seeds)), rate_case=case or "")]
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ def test_a_fast_gpu_trains_the_whole_schedule_then_sa_in_what_is_left():
     assert [s.study for s in steps] == ["gpu_coord_ring_sp", "gpu_coord_ring_sa"] and steps[0].budget == 1.0
     assert steps[0].train_s == pytest.approx(FULL_STEPS / 1_000_000)
     assert 0.1 <= steps[1].budget <= 1.0
+    assert [s.rate_case for s in steps] == ["cnn_sp_10", "cnn_sp_10"]  # gpu_run.json's plan names the rate it used
 
 
 def test_a_slow_gpu_truncates_the_schedule_and_never_compresses_it(tmp_path):
@@ -48,7 +49,8 @@ def test_a_slow_gpu_truncates_the_schedule_and_never_compresses_it(tmp_path):
     assert command[command.index("--seeds") + 1] == "10" and "--backend" in command
     assert "gpu_coord_ring_sp.yaml" in command[command.index("run") + 1]
     # nothing measured: a tenth, and the deadline stops it if that is too much
-    assert gpu_run.plan({"cnn_sp_10": {"error": "boom"}}, 390, smoke=False)[0].budget == 0.1
+    guess = gpu_run.plan({"cnn_sp_10": {"error": "boom"}}, 390, smoke=False)[0]
+    assert guess.budget == 0.1 and guess.rate_case == ""
 
 
 def made_up_bench() -> dict:
@@ -170,11 +172,13 @@ def test_once_table1_has_finished_table2_trains_its_whole_schedule_the_fastest_m
     assert step.study == "gpu_grounded_coord_simple_sp" and step.budget == 1.0 and step.seeds == 10
     assert step.sets == ("model.kernels=xla", "model.gru_backward=hand", "model.gru_unroll=8")
     assert step.train_s == pytest.approx(10 * 30_000_000 / 80_000, rel=0.01)  # at the chosen variant's rate
+    assert step.rate_case == "rnn_sp_10_xla_hand_unroll8"
     command = step.command(tmp_path, smoke=False)
     assert "gpu_grounded_coord_simple_sp.yaml" in command[command.index("run") + 1]
     assert command[command.index("--set") + 1] == "model.kernels=xla"
     # nothing measured at float32: the best known variant, since a study keeps its --set for its whole schedule
     assert gpu_run.best_rnn_sets({}, 10) == ["model.kernels=xla", "model.gru_backward=hand", "model.gru_unroll=8"]
+    assert gpu_run.plan({}, 400, smoke=False, table1_done=True)[0].rate_case == ""
     # Table 1 first, until it has finished
     assert gpu_run.plan(measured, 400, smoke=False)[0].study == "gpu_coord_ring_sp"
 
