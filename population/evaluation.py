@@ -128,6 +128,18 @@ def play_seats(seats, env, key: jax.Array, episodes: int, keep_every: int | None
     return play_episodes(applies, hiddens, env, tuple(params), key, episodes, keep_every, greedy)
 
 
+def episode_states(seats, env, key: jax.Array, greedy=False) -> tuple[State, jax.Array]:
+    """One episode of a pair, seats given as ``play_seats`` takes them: the same actions for the same key as
+    ``play_seats(seats, env, key, 1)``. Returns every state from the reset one to the one the last step reached
+    (before any auto-reset), [env.max_steps + 1, ...], and the episode's team sparse return (a scalar)."""
+    applies, params, hiddens = zip(*seats)
+    start = initial_carry(hiddens, env, len(params), key, 1)
+    step = lambda c, x: play_step(applies, env, tuple(params), c, x, greedy)
+    end, record = jax.lax.scan(step, start, None, length=env.max_steps)
+    states = jax.tree.map(lambda first, reached: jnp.concatenate([first, reached[:, 0]]), start.state, record.reached)
+    return states, end.total[0]
+
+
 def play_pairs(
     apply,
     hidden_size,

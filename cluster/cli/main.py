@@ -3,6 +3,7 @@
     ocv2 --version
     ocv2 layouts [--show NAME]          the built-in kitchens (table, or one ASCII map with a legend)
     ocv2 render LAYOUT --steps N --out FILE.gif [--seed S] [--fps F] [--view-radius V] [--tile-size T]
+    ocv2 render --seats SEAT0 SEAT1 --out FILE.gif [--greedy]   one episode of two trained policies
     ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume] [--logger tensorboard|wandb]
     ocv2 xp RUN_DIR [--episodes N]      cross-play of one run
     ocv2 xp --rows SRC ... [--cols SRC ...] [--checkpoint C] [--greedy] [--out DIR]   across runs (docs/evaluation.md)
@@ -45,12 +46,10 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
-import jax
 from rich.console import Console
 from rich.table import Table
 
-import ocv2
-from cluster.cli.args import check_new_file, fps, layout_or_error, non_negative_int, positive_int, seed
+from cluster.cli.args import layout_or_error
 from cluster.cli.errors import (  # noqa: F401 (EXIT_* re-exported)
     EXIT_FAILURE,
     EXIT_OK,
@@ -60,7 +59,6 @@ from cluster.cli.errors import (  # noqa: F401 (EXIT_* re-exported)
 )
 from cluster.runtime.interrupt import ChunkAbandoned, StoppedAfterChunk, exit_now, jax_started
 from ocv2.layouts import LAYOUTS, Layout
-from ocv2.render import check_frame_size, render_frames, rollout_states, write_gif
 
 # ---------------------------------------------------------------------------------------------------
 # helpers
@@ -135,60 +133,6 @@ def _cmd_layouts(args) -> int:
             name, f"{layout.height}x{layout.width}", str(layout.num_agents), str(layout.num_ingredients), recipes
         )
     _console().print(table)
-    return EXIT_OK
-
-
-# ---------------------------------------------------------------------------------------------------
-# ocv2 render
-# ---------------------------------------------------------------------------------------------------
-
-
-def _add_render(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser(
-        "render",
-        help="render a random-action episode to a GIF",
-        description="Play uniformly random actions on LAYOUT and write the frames "
-        "(the reset state plus one per step) to a looping GIF.",
-    )
-    parser.add_argument("layout", help="layout name (see 'ocv2 layouts')")
-    parser.add_argument("--steps", type=non_negative_int, default=50, help="transitions to play (default 50)")
-    parser.add_argument("--out", required=True, help="GIF file to write (a new one unless --force)")
-    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
-    parser.add_argument("--seed", type=seed, default=0, help="PRNG seed (default 0)")
-    parser.add_argument("--fps", type=fps, default=5.0, help="frames per second (default 5)")
-    parser.add_argument(
-        "--view-radius",
-        type=non_negative_int,
-        default=None,
-        help="highlight every cell within this radius of an agent (default: none)",
-    )
-    parser.add_argument("--tile-size", type=positive_int, default=32, help="pixels per cell (default 32)")
-    return parser
-
-
-def _cmd_render(args) -> int:
-    layout = layout_or_error(args.layout)
-    if not args.out.lower().endswith(".gif"):
-        raise CLIError(f"--out must name a .gif file, got {args.out!r}")
-    try:  # the frames of one GIF live in memory together: the reset state plus one per step
-        check_frame_size(layout, args.tile_size, frames=args.steps + 1)
-    except ValueError as error:
-        raise CLIError(f"--steps {args.steps} with --tile-size {args.tile_size}: {error}") from None
-    check_new_file("--out", args.out, force=args.force)
-    folder = os.path.dirname(os.path.abspath(args.out))
-    os.makedirs(folder, exist_ok=True)  # like the run directories to come: create what is missing
-    env = ocv2.make(layout)
-    states = rollout_states(env, jax.random.PRNGKey(args.seed), args.steps)
-    frames = render_frames(states, layout, agent_view_size=args.view_radius, tile_size=args.tile_size)
-    try:
-        path = write_gif(frames, args.out, fps=args.fps)
-    except OSError as error:
-        raise CLIError(f"could not write {args.out!r}: {error}", EXIT_FAILURE) from None
-    height, width = frames.shape[1:3]
-    print(
-        f"wrote {path}: {len(frames)} frames ({args.steps} steps of {layout.name}), {width}x{height} px, "
-        f"{args.fps:g} fps"
-    )
     return EXIT_OK
 
 
@@ -273,7 +217,12 @@ class Command(NamedTuple):
 #: The order is the help listing's.
 COMMANDS: list[Command] = [
     Command("layouts", "list the built-in kitchen layouts", _add_layouts, _cmd_layouts),
-    Command("render", "render a random-action episode to a GIF", _add_render, _cmd_render),
+    Command(
+        "render",
+        "render an episode to a GIF: random actions, or two trained policies (--seats)",
+        "cluster.cli.render:add_render",
+        "cluster.cli.render:run_render",
+    ),
     Command(
         "train", "train a population from a YAML config", "cluster.cli.train:add_train", "cluster.cli.train:run_train"
     ),

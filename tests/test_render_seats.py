@@ -1,0 +1,67 @@
+"""``ocv2 render --seats``: one episode of two trained policies to a GIF, from the published policy files
+(docs/results/table1_coord_ring_sp10/policies/, update 30, and Forced Coord.'s for a pair that plays two
+environments); ``population.evaluation.episode_states`` is the episode ``play_seats`` plays for the same key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from PIL import Image
+
+from cluster.cli import main
+from population.evaluation import episode_states, play_seats
+from population.policy import load
+
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
+RING = RESULTS / "table1_coord_ring_sp10" / "policies"
+SEAT0, SEAT1 = (str(RING / f"sp_seed{i}_update30.ocv2policy") for i in (0, 1))
+FORCED = str(RESULTS / "table1_forced_coord_sp10" / "policies" / "sp_seed0_update30.ocv2policy")
+
+
+def test_episode_states_is_the_episode_play_seats_plays_for_the_same_key():
+    seats = [load(SEAT0).seat, load(SEAT1).seat]
+    env = load(SEAT0).make_env()
+    key = jax.random.PRNGKey(3)
+    states, episode_return = jax.jit(lambda k: episode_states(seats, env, k))(key)
+    played = play_seats(seats, env, key, episodes=1, keep_every=1)
+    assert float(episode_return) == float(played.returns[0])
+    assert states.step.shape == (env.max_steps + 1,)  # the reset state, then one per step
+    assert int(states.step[-1]) == env.max_steps  # the last step's state, before the auto-reset
+    for mine, theirs in zip(jax.tree.leaves(states), jax.tree.leaves(played.states)):
+        np.testing.assert_array_equal(mine[:-1], theirs[0])
+
+
+def test_render_seats_writes_the_pairs_episode_and_its_return(tmp_path, capsys):
+    out = tmp_path / "pair.gif"
+    argv = ["render", "--seats", SEAT0, SEAT1, "--steps", "4", "--tile-size", "8", "--seed", "3", "--out"]
+    assert main([*argv, str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "5 frames (4 steps of coord_ring" in printed
+    expected = episode_states([load(SEAT0).seat, load(SEAT1).seat], load(SEAT0).make_env(), jax.random.PRNGKey(3))[1]
+    assert f"episode return {float(expected):g} over the whole 400-step episode (seed 3)" in printed
+    with Image.open(out) as im:
+        assert im.n_frames == 5 and im.size == (5 * 8, 5 * 8)  # Coordination Ring is 5 x 5
+    # LAYOUT may be given when it is the seats' own
+    assert main(["render", "coord_ring", *argv[1:], str(tmp_path / "again.gif")]) == 0
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--seats", SEAT0, FORCED], "plays another environment than"),
+        (["forced_coord", "--seats", SEAT0, SEAT1], "the --seats policies play 'coord_ring'"),
+        (["--seats", SEAT0, SEAT1, "--steps", "401"], "--steps 401: an episode of coord_ring has 400 steps"),
+        (["--seats", SEAT0, "no_such.ocv2policy"], "--seats SEAT1: no_such.ocv2policy: no such file"),
+        ([], "give a LAYOUT to render random actions on, or two policies with --seats"),
+        (["coord_ring", "--greedy"], "--greedy applies to --seats"),
+    ],
+)
+def test_render_seats_refuses_what_it_cannot_play(argv, message, tmp_path, capsys):
+    out = tmp_path / "x.gif"
+    assert main(["render", *argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not out.exists()
