@@ -2556,6 +2556,22 @@ def _():
     return [xp, ok, fail, 45 * (ok - xp) / (ok - fail), 45, len(low)]
 
 
+@check("gpu_cr_sp_pairs_onions")
+def _():
+    """Onions into the pots over 32 episodes: ordered cross-play pairs with seed 6 (roles_pairs.md), the seeds' own
+    self-play (roles.md), and the ordered pairs among the other seeds read beside them."""
+    (table,) = md_tables(GPU_CR / "roles_pairs.md")
+    first = gpu_cr_groups()["first"][0]
+    counts = {tuple(int(k) for k in row[0].split(" × ")): float(row[2].split(" of ")[1]) for row in table}
+    with_first = [n for pair, n in counts.items() if first in pair]
+    others = [n for pair, n in counts.items() if first not in pair]
+    own = [row[2][0][1] for row in roles_tables(GPU_CR)[610]]
+    return [
+        len(with_first), first, min(with_first), max(with_first), 32, min(with_first) / 32, max(with_first) / 32,
+        min(own), max(own), len(others), min(others), max(others),
+    ]  # fmt: skip
+
+
 @check("run_gpu_cr")
 def _():
     return run_size(GPU_CR, "sp")
