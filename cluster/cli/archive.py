@@ -13,7 +13,7 @@ import os
 import sys
 
 from cluster.archive import PARTIAL_SUFFIX, ArchiveError, ArchiveReader, recover
-from cluster.cli.args import check_new_file, check_not_under_a_file, int_at_least
+from cluster.cli.args import add_gif_options, check_new_file, check_not_under_a_file, int_at_least
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from ocv2.render import check_frame_size, render_frames, write_gif
 
@@ -58,16 +58,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         metavar="N",
         help="episode number, as 'info' lists it in its # column (default 0)",
     )
-    replay.add_argument("--out", required=True, help="GIF file to write (a new one unless --force)")
-    replay.add_argument("--force", action="store_true", help="replace --out if it exists")
-    replay.add_argument("--fps", type=float, default=5.0, help="frames per second (default 5)")
-    replay.add_argument("--tile-size", type=int, default=32, help="pixels per cell (default 32)")
-    replay.add_argument(
-        "--view-radius",
-        type=int,
-        default=None,
-        help="highlight every cell within this radius of an agent (default: none)",
-    )
+    add_gif_options(replay)
 
     recover = actions.add_parser(
         "recover",
@@ -169,12 +160,6 @@ def _info(args) -> int:
 def _replay(args) -> int:
     if not args.out.lower().endswith(".gif"):
         raise CLIError(f"--out must name a .gif file, got {args.out!r}")
-    if not 0 < args.fps <= 100:
-        raise CLIError(f"--fps must be > 0 and <= 100, got {args.fps:g}")
-    if args.tile_size < 1:
-        raise CLIError(f"--tile-size must be a positive integer, got {args.tile_size}")
-    if args.view_radius is not None and args.view_radius < 0:
-        raise CLIError(f"--view-radius must be >= 0, got {args.view_radius}")
     check_new_file("--out", args.out, force=args.force)
     reader = _reader(args.file)
     try:

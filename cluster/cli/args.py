@@ -163,3 +163,18 @@ def published_pairs(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 def published_files(args: argparse.Namespace) -> list[Path]:
     """The policy files the options of ``add_published_population`` pick, seed by seed."""
     return [args.policies / f"{args.method}_seed{seed}_update{args.update}.ocv2policy" for seed in range(args.seeds)]
+
+
+def add_gif_options(parser: argparse.ArgumentParser) -> None:
+    """The options of every command that writes one episode to a GIF (``render``, ``archive replay``): --out,
+    --force, --fps, --view-radius and --tile-size, each checked by its type."""
+    parser.add_argument("--out", required=True, help="GIF file to write (a new one unless --force)")
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
+    parser.add_argument("--fps", type=fps, default=5.0, help="frames per second (default 5)")
+    parser.add_argument(
+        "--view-radius",
+        type=non_negative_int,
+        default=None,
+        help="highlight every cell within this radius of an agent (default: none)",
+    )
+    parser.add_argument("--tile-size", type=positive_int, default=32, help="pixels per cell (default 32)")

@@ -18,7 +18,7 @@ import os
 import jax
 
 import ocv2
-from cluster.cli.args import check_new_file, fps, layout_or_error, non_negative_int, positive_int, seed
+from cluster.cli.args import add_gif_options, check_new_file, layout_or_error, non_negative_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from ocv2.render import check_frame_size, render_frames, rollout_states, write_gif
 from population import policy as policies
@@ -52,17 +52,8 @@ def add_render(sub) -> argparse.ArgumentParser:
         help=f"transitions to show (default {RANDOM_STEPS}; with --seats the whole episode)",
     )
     parser.add_argument("--greedy", action="store_true", help="with --seats: argmax actions instead of sampled")
-    parser.add_argument("--out", required=True, help="GIF file to write (a new one unless --force)")
-    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
     parser.add_argument("--seed", type=seed, default=0, help="PRNG seed (default 0)")
-    parser.add_argument("--fps", type=fps, default=5.0, help="frames per second (default 5)")
-    parser.add_argument(
-        "--view-radius",
-        type=non_negative_int,
-        default=None,
-        help="highlight every cell within this radius of an agent (default: none)",
-    )
-    parser.add_argument("--tile-size", type=positive_int, default=32, help="pixels per cell (default 32)")
+    add_gif_options(parser)
     return parser
 
 

@@ -475,14 +475,36 @@ def gpu410_block() -> dict:
     return block_summary(gpu410(), list(range(10)), list(range(10)))
 
 
-def gpu410_pot_groups() -> dict:
-    """Seeds at update 410 by where seat 0 puts its onions: only the first pot, only the second, or both."""
-    pot = [row[3][0] for row in roles_tables(GPU410)[410]]
+def pot_groups(roles: list) -> dict:
+    """Seeds by where seat 0 puts its onions in a roles.md table: only the first pot, only the second, or both."""
+    pot = [row[3][0] for row in roles]
     return {
         "first": [k for k, x in enumerate(pot) if x >= 0.95],
         "second": [k for k, x in enumerate(pot) if x <= 0.05],
         "both": [k for k, x in enumerate(pot) if 0.05 < x < 0.95],
     }
+
+
+def gpu410_pot_groups() -> dict:
+    """Seeds at update 410 by where seat 0 puts its onions."""
+    return pot_groups(roles_tables(GPU410)[410])
+
+
+def pot_group_pairs(groups: dict, roles: list, p: np.ndarray) -> list:
+    """The "conventions" bullets' numbers: the first-pot seed and its clockwise share, the second-pot and both-pot
+    seeds, the pairs within and across those groups (count, mean, range), the first-pot seed's mean with the rest."""
+    cw = [row[0] for row in roles]
+    second, both, first = groups["second"], groups["both"], groups["first"]
+    others = [k for k in range(len(p)) if k not in first]
+    same = group_pairs(p, second, second)
+    cross = group_pairs(p, second, both)
+    within_both = group_pairs(p, both, both)
+    with_first = group_pairs(p, first, others)
+    return [
+        *first, cw[first[0]], *second, *both, len(same), np.mean(same), min(same), max(same),
+        len(within_both), *both, np.mean(within_both), len(cross), np.mean(cross), min(cross), max(cross),
+        *first, np.mean(with_first),
+    ]  # fmt: skip
 
 
 def group_pairs(p: np.ndarray, a: list[int], b: list[int]) -> list[float]:
@@ -579,20 +601,7 @@ def _():
 
 @check("gpu410_groups")
 def _():
-    groups = gpu410_pot_groups()
-    cw = [row[0] for row in roles_tables(GPU410)[410]]
-    p = both_seats(gpu410())
-    second, both, first = groups["second"], groups["both"], groups["first"]
-    others = [k for k in range(10) if k not in first]
-    same = group_pairs(p, second, second)
-    cross = group_pairs(p, second, both)
-    within_both = group_pairs(p, both, both)
-    with_first = group_pairs(p, first, others)
-    return [
-        *first, cw[first[0]], *second, *both, len(same), np.mean(same), min(same), max(same),
-        len(within_both), *both, np.mean(within_both), len(cross), np.mean(cross), min(cross), max(cross),
-        *first, np.mean(with_first),
-    ]  # fmt: skip
+    return pot_group_pairs(gpu410_pot_groups(), roles_tables(GPU410)[410], both_seats(gpu410()))
 
 
 @check("top_cr_sp_size")
@@ -2411,14 +2420,9 @@ def gpu_cr_matrix() -> np.ndarray:
     return final_matrix(GPU_CR, "sp")
 
 
-def pot_groups(roles: list) -> dict:
-    """Seeds by where seat 0 puts its onions in a roles.md table: only the first pot, only the second, or both."""
-    pot = [row[3][0] for row in roles]
-    return {
-        "first": [k for k, x in enumerate(pot) if x >= 0.95],
-        "second": [k for k, x in enumerate(pot) if x <= 0.05],
-        "both": [k for k, x in enumerate(pot) if 0.05 < x < 0.95],
-    }
+def group_of(groups: dict, seed: int) -> str:
+    """The name of the group of ``pot_groups`` that holds ``seed``."""
+    return next(name for name, seeds in groups.items() if seed in seeds)
 
 
 def gpu_cr_groups() -> dict:
@@ -2453,27 +2457,10 @@ def _():
 
 @check("gpu_cr_sp_groups")
 def _():
-    groups = gpu_cr_groups()
-    changed = sum(
-        a != b
-        for a, b in zip(
-            [next(g for g, ks in pot_groups(roles_tables(GPU410)[410]).items() if k in ks) for k in range(10)],
-            [next(g for g, ks in groups.items() if k in ks) for k in range(10)],
-        )
-    )
-    cw = [row[0] for row in roles_tables(GPU_CR)[610]]
-    p = both_seats(gpu_cr_matrix())
-    second, both, first = groups["second"], groups["both"], groups["first"]
-    others = [k for k in range(10) if k not in first]
-    same = group_pairs(p, second, second)
-    cross = group_pairs(p, second, both)
-    within_both = group_pairs(p, both, both)
-    with_first = group_pairs(p, first, others)
-    return [
-        *first, cw[first[0]], *second, *both, len(same), np.mean(same), min(same), max(same),
-        len(within_both), *both, np.mean(within_both), len(cross), np.mean(cross), min(cross), max(cross),
-        *first, np.mean(with_first), changed, 10, 410,
-    ]  # fmt: skip
+    groups, before = gpu_cr_groups(), gpu410_pot_groups()
+    changed = sum(group_of(groups, k) != group_of(before, k) for k in range(10))
+    numbers = pot_group_pairs(groups, roles_tables(GPU_CR)[610], both_seats(gpu_cr_matrix()))
+    return [*numbers, changed, 10, 410]
 
 
 @check("gpu_cr_sp_without6")
