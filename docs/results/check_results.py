@@ -2559,6 +2559,20 @@ def _():
     ]  # fmt: skip
 
 
+@check("sp10_pairs_onions")
+def _():
+    """The 3M population's failing pairs, both seat orders (roles_pairs.md): onions into the pots and soups plated
+    over 32 episodes, beside the seeds' own self-play (roles.md, update 183)."""
+    (table,) = md_tables(SP10 / "roles_pairs.md")
+    rows = {tuple(int(k) for k in row[0].split(" × ")): row for row in table}
+    failing = [pair for i, j, _ in low_pairs() for pair in ((i, j), (j, i))]
+    onions = [float(rows[pair][2].split(" of ")[1]) for pair in failing]
+    soups = [float(rows[pair][4].split(" of ")[1]) for pair in failing]
+    own = roles_tables()[183]
+    own_onions, own_soups = [row[2][0][1] for row in own], [row[2][2][1] for row in own]
+    return [len(failing), min(onions), max(onions), 32, *span(own_onions), *span(soups), *span(own_soups)]
+
+
 @check("run_gpu_cr")
 def _():
     return run_size(GPU_CR, "sp")
