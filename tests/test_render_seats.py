@@ -12,18 +12,39 @@ import pytest
 from PIL import Image
 
 from cluster.cli import main
+from cluster.runtime.rundir import RunDir
+from population import checkpoints as ckpt
+from population import ppo
+from population.config import load_config
 from population.evaluation import episode_states, play_seats
+from population.networks import init_params
 from population.policy import load
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 RING = RESULTS / "table1_coord_ring_sp10" / "policies"
 SEAT0, SEAT1 = (str(RING / f"sp_seed{i}_update30.ocv2policy") for i in (0, 1))
 FORCED = str(RESULTS / "table1_forced_coord_sp10" / "policies" / "sp_seed0_update30.ocv2policy")
+SMOKE = str(Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml")
 
 
-def test_episode_states_is_the_episode_play_seats_plays_for_the_same_key():
-    seats = [load(SEAT0).seat, load(SEAT1).seat]
-    env = load(SEAT0).make_env()
+@pytest.fixture(scope="module")
+def rnn_run(tmp_path_factory):
+    """A run directory with one untrained RNN checkpoint: a seat that carries a hidden state from step to step."""
+    run = tmp_path_factory.mktemp("runs") / "rnn"
+    overrides = ["model.kind=rnn", "model.gru_dim=8", "model.mixer_features=[8]", "model.conv_features=[8]"]
+    config = load_config(SMOKE, [*overrides, "model.conv_kernels=[3]", "model.fc_dim=8", "env.max_steps=12"])
+    RunDir(run).create(config)
+    network = ppo.make_trainer(config).network
+    params = jax.jit(lambda key: init_params(network, key, ppo.eval_env(config).obs_shape))(jax.random.PRNGKey(3))
+    ckpt.save(ckpt.checkpoint_path(run, 0, 4), {"params": params}, config.fingerprint(), seed=0, update=4)
+    return run
+
+
+@pytest.mark.parametrize("kind", ["cnn", "rnn"])
+def test_episode_states_is_the_episode_play_seats_plays_for_the_same_key(kind, request):
+    first, second = (SEAT0, SEAT1) if kind == "cnn" else (request.getfixturevalue("rnn_run"),) * 2
+    seats = [load(first).seat, load(second).seat]
+    env = load(first).make_env()
     key = jax.random.PRNGKey(3)
     states, episode_return = jax.jit(lambda k: episode_states(seats, env, k))(key)
     played = play_seats(seats, env, key, episodes=1, keep_every=1)
@@ -46,6 +67,14 @@ def test_render_seats_writes_the_pairs_episode_and_its_return(tmp_path, capsys):
         assert im.n_frames == 5 and im.size == (5 * 8, 5 * 8)  # Coordination Ring is 5 x 5
     # LAYOUT may be given when it is the seats' own
     assert main(["render", "coord_ring", *argv[1:], str(tmp_path / "again.gif")]) == 0
+
+
+def test_render_seats_plays_a_recurrent_policy_from_its_run_directory(rnn_run, tmp_path, capsys):
+    out = tmp_path / "rnn.gif"
+    assert main(["render", "--seats", str(rnn_run), str(rnn_run), "--tile-size", "8", "--out", str(out)]) == 0
+    assert "13 frames (12 steps of cramped_room" in capsys.readouterr().out  # the whole episode by default
+    with Image.open(out) as im:
+        assert im.n_frames == 13
 
 
 @pytest.mark.parametrize(
