@@ -781,14 +781,14 @@ def test_a_tile_size_too_big_is_refused_before_anything_is_drawn(tmp_path, capsy
     one-line bound, before any frame is drawn (the drawing functions are replaced by ones that fail, so
     a missing check fails here instead of allocating GBs).
     """
-    main_cli = importlib.import_module("cluster.cli.main")  # ``cluster.cli.main`` is also the function
+    render_cli = importlib.import_module("cluster.cli.render")
     play_cli = importlib.import_module("cluster.cli.play")
 
     def drawn(*_args, **_kwargs):
         raise AssertionError("frames were drawn")
 
     monkeypatch.setattr(play_cli, "make_game", drawn)
-    monkeypatch.setattr(main_cli, "rollout_states", drawn)
+    monkeypatch.setattr(render_cli, "rollout_states", drawn)
     out = tmp_path / "x.mcap"
     for tile in ("644", "1500", "6000"):  # cramped_room is 5x4 cells: 643 px a cell is a 4K screen's worth
         code, err = _cli_error(capsys, "cramped_room", "--tile-size", tile, "--out", str(out), "--port", "0")
