@@ -308,6 +308,13 @@ def _from_checkpoint(config: Config, path: Path, run_dir: Path, seed: int) -> Po
 # ---------------------------------------------------------------------------------------------------
 
 
+def env_difference(env: Mapping, reference: Mapping) -> str:
+    """How two policies' environment settings (``Policy.env``) differ, for an error message: "differs in KEYS:
+    <env's value> vs <reference's value>" of the first differing key; "" when they are the same."""
+    keys = sorted(k for k in set(env) | set(reference) if env.get(k) != reference.get(k))
+    return f"differs in {', '.join(keys)}: {env.get(keys[0])!r} vs {reference.get(keys[0])!r}" if keys else ""
+
+
 def policy_env(env_kwargs: Mapping) -> ocv2.OvercookedV2:
     """``ocv2.make(**env_kwargs)``, one object per distinct settings: jitted rollouts are cached per env
     object, so policies (or worker calls) with equal settings share compiled programs."""

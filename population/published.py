@@ -21,7 +21,7 @@ from pathlib import Path
 from ocv2.atomic import atomic_write
 from population import checkpoints as ckpt
 from population.config import load_run_config
-from population.policy import SUFFIX, Policy, PolicyError, export_checkpoint, load
+from population.policy import SUFFIX, Policy, PolicyError, env_difference, export_checkpoint, load
 
 SUMS = "SHA256SUMS.json"
 #: Which checkpoints ``publish_run`` exports: the kept snapshots (run.num_checkpoints), only each seed's last
@@ -223,10 +223,7 @@ def load_population(folder, files: Iterable[str | Path], layout: str | None = No
             ("network", (policy.model, policy.activation), (first.model, first.activation)),
         ):
             if mine != theirs:
-                differ = ""
-                if what == "environment":
-                    keys = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
-                    differ = f" (differs in {', '.join(keys)}: {mine.get(keys[0])!r} vs {theirs.get(keys[0])!r})"
+                differ = f" ({env_difference(mine, theirs)})" if what == "environment" else ""
                 raise PolicyError(
                     f"{folder / Path(name).name}: plays another {what} than {Path(files[0]).name}{differ}"
                 )

@@ -81,6 +81,7 @@ def test_render_seats_plays_a_recurrent_policy_from_its_run_directory(rnn_run, t
     ("argv", "message"),
     [
         (["--seats", SEAT0, FORCED], "plays another environment than"),
+        (["--seats", SEAT0, FORCED], "(differs in layout: 'forced_coord' vs 'coord_ring')"),
         (["forced_coord", "--seats", SEAT0, SEAT1], "the --seats policies play 'coord_ring'"),
         (["--seats", SEAT0, SEAT1, "--steps", "401"], "--steps 401: an episode of coord_ring has 400 steps"),
         (["--seats", SEAT0, "no_such.ocv2policy"], "--seats SEAT1: no_such.ocv2policy: no such file"),

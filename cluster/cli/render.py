@@ -114,10 +114,9 @@ def _shared_env(seats: list, layout: str | None) -> ocv2.OvercookedV2:
     """The environment both seats were trained in; a CLIError when they differ or LAYOUT is another."""
     first, second = seats
     if first.env != second.env:
-        differ = sorted(k for k in set(first.env) | set(second.env) if first.env.get(k) != second.env.get(k))
         raise CLIError(
-            f"--seats: {second.source} plays another environment than {first.source} (differs in "
-            f"{', '.join(differ)}: {second.env.get(differ[0])!r} vs {first.env.get(differ[0])!r})"
+            f"--seats: {second.source} plays another environment than {first.source} "
+            f"({policies.env_difference(second.env, first.env)})"
         )
     env = first.make_env()
     if layout is not None and layout != env.layout.name:

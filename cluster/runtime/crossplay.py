@@ -38,7 +38,7 @@ from population.human import proxy_path
 from population.keys import derive_key
 from population.networks import same_function
 from population.plots import xp_heatmap
-from population.policy import PolicyError, hidden_size_of, load, network, policy_env
+from population.policy import PolicyError, env_difference, hidden_size_of, load, network, policy_env
 from population.xp import Side, block_summary, cross_play, recipe_names
 
 HUMAN_PROXY = "human-proxy:"
@@ -150,10 +150,8 @@ def check_same_env(groups) -> dict:
     first = groups[0]
     for group in groups[1:]:
         if group.env != first.env:
-            differ = sorted(k for k in set(first.env) | set(group.env) if first.env.get(k) != group.env.get(k))
             raise CrossPlayError(
-                f"{group.label} plays another environment than {first.label} (differs in "
-                f"{', '.join(differ)}: {group.env.get(differ[0])!r} vs {first.env.get(differ[0])!r})"
+                f"{group.label} plays another environment than {first.label} ({env_difference(group.env, first.env)})"
             )
     return first.env
 
