@@ -589,13 +589,21 @@ def _():
     return [122, snapshot_env_steps(122, GPU_CR), 6, row[0], row[3][0]]
 
 
-@check("gpu410_growth")
-def _():
+def gpu410_snapshot_gaps() -> list:
+    """The gap and env steps per seed (millions) of the snapshots cross-played beside update 410 (122, 244, 366)."""
     out = []
     for update in (122, 244, 366):
-        folder = GPU410 / f"xp_update{update}"
-        episodes = json.loads((folder / "summary.json").read_text())["episodes_per_pair"]
-        out += [sp_xp(matrix(folder / "matrix.csv"))[2], snapshot_env_steps(update, GPU_CR)]
+        out += [sp_xp(matrix(GPU410 / f"xp_update{update}" / "matrix.csv"))[2], snapshot_env_steps(update, GPU_CR)]
+    return out
+
+
+def episodes_per_pair(folder: Path) -> int:
+    return json.loads((folder / "summary.json").read_text())["episodes_per_pair"]
+
+
+@check("gpu410_growth")
+def _():
+    out, episodes = gpu410_snapshot_gaps(), episodes_per_pair(GPU410 / "xp_update366")
     return [*out[:2], episodes, *out[2:], gpu410_block()["gap"], snapshot_env_steps(410, GPU410)]
 
 
@@ -2425,6 +2433,17 @@ def group_of(groups: dict, seed: int) -> str:
     return next(name for name, seeds in groups.items() if seed in seeds)
 
 
+def roles_pairs(study: Path) -> dict:
+    """roles_pairs.md: {(seat-0 seed, seat-1 seed): the row's cells} of its one table of ordered cross-play pairs."""
+    (table,) = md_tables(study / "roles_pairs.md")
+    return {tuple(int(k) for k in row[0].split(" × ")): row for row in table}
+
+
+def cell_count(cell: str) -> float:
+    """The count of a roles table's "<share> of <count>" cell."""
+    return float(cell.split(" of ")[1])
+
+
 def gpu_cr_groups() -> dict:
     return pot_groups(roles_tables(GPU_CR)[610])
 
@@ -2476,8 +2495,8 @@ def _():
 @check("gpu_cr_sp_recovered")
 def _():
     now, then = both_seats(gpu_cr_matrix()), both_seats(gpu410())
-    both = gpu_cr_groups()["both"]
-    first = gpu_cr_groups()["first"]
+    groups = gpu_cr_groups()
+    both, first = groups["both"], groups["first"]
     others = [k for k in range(10) if k not in first]
     recovered = [(i, j) for i, j, _ in failing_pairs(gpu410()) if not set(first) & {i, j}]
     out = [x for i, j in recovered for x in (i, j, now[i, j], then[i, j])]
@@ -2505,17 +2524,11 @@ def _():
 
 @check("gpu_cr_sp_growth")
 def _():
-    out = []
-    for update in (122, 244, 366):
-        folder = GPU410 / f"xp_update{update}"
-        out += [sp_xp(matrix(folder / "matrix.csv"))[2], snapshot_env_steps(update, GPU_CR)]
-    episodes = json.loads((GPU410 / "xp_update122" / "summary.json").read_text())["episodes_per_pair"]
     at488 = GPU_CR / "xp_update488"
     return [
-        *out, episodes, gpu410_block()["gap"], snapshot_env_steps(410, GPU410),
-        json.loads((GPU410 / "summary.json").read_text())["episodes_per_pair"],
-        sp_xp(matrix(at488 / "matrix.csv"))[2], snapshot_env_steps(488, GPU_CR),
-        json.loads((at488 / "summary.json").read_text())["episodes_per_pair"],
+        *gpu410_snapshot_gaps(), episodes_per_pair(GPU410 / "xp_update366"),
+        gpu410_block()["gap"], snapshot_env_steps(410, GPU410), episodes_per_pair(GPU410),
+        sp_xp(matrix(at488 / "matrix.csv"))[2], snapshot_env_steps(488, GPU_CR), episodes_per_pair(at488),
         run(GPU_CR, "sp")["xp"]["gap"], snapshot_env_steps(610, GPU_CR), run(GPU_CR, "sp")["xp"]["episodes_per_pair"],
     ]  # fmt: skip
 
@@ -2547,9 +2560,8 @@ def _():
 def _():
     """Onions into the pots over 32 episodes: ordered cross-play pairs with seed 6 (roles_pairs.md), the seeds' own
     self-play (roles.md), and the ordered pairs among the other seeds read beside them."""
-    (table,) = md_tables(GPU_CR / "roles_pairs.md")
     first = gpu_cr_groups()["first"][0]
-    counts = {tuple(int(k) for k in row[0].split(" × ")): float(row[2].split(" of ")[1]) for row in table}
+    counts = {pair: cell_count(row[2]) for pair, row in roles_pairs(GPU_CR).items()}
     with_first = [n for pair, n in counts.items() if first in pair]
     others = [n for pair, n in counts.items() if first not in pair]
     own = [row[2][0][1] for row in roles_tables(GPU_CR)[610]]
@@ -2563,11 +2575,10 @@ def _():
 def _():
     """The 3M population's failing pairs, both seat orders (roles_pairs.md): onions into the pots and soups plated
     over 32 episodes, beside the seeds' own self-play (roles.md, update 183)."""
-    (table,) = md_tables(SP10 / "roles_pairs.md")
-    rows = {tuple(int(k) for k in row[0].split(" × ")): row for row in table}
+    rows = roles_pairs(SP10)
     failing = [pair for i, j, _ in low_pairs() for pair in ((i, j), (j, i))]
-    onions = [float(rows[pair][2].split(" of ")[1]) for pair in failing]
-    soups = [float(rows[pair][4].split(" of ")[1]) for pair in failing]
+    onions = [cell_count(rows[pair][2]) for pair in failing]
+    soups = [cell_count(rows[pair][4]) for pair in failing]
     own = roles_tables()[183]
     own_onions, own_soups = [row[2][0][1] for row in own], [row[2][2][1] for row in own]
     return [len(failing), min(onions), max(onions), 32, *span(own_onions), *span(soups), *span(own_soups)]
