@@ -65,6 +65,7 @@ FC10 = HERE / "table1_forced_coord_sp10"
 FC_SA10 = HERE / "table1_forced_coord_sa10"  # its SA half at the same budget
 GPU_CR = HERE / "gpu_coord_ring_sp"  # Table 1 Coordination Ring SP on the paper's 10M schedule, trained on a GPU
 GPU410 = HERE / "gpu_coord_ring_sp_update410"  # that study at update 410 (6.7M), cross-played on the CPU
+CC10 = HERE / "table1_counter_circuit_sp10"  # Table 1 Counter Circuit SP, 10 seeds, the 10M schedule truncated at 3M
 
 # ------------------------------------------------------------------------------------------ reading the page
 
@@ -2596,6 +2597,122 @@ def _():
     gpu = [_float(r["steps_per_s"]) for r in rows if int(r["update"]) <= 410]
     cpu = [_float(r["steps_per_s"]) for r in rows if int(r["update"]) > 410]
     return [1, 410, np.median(gpu), 411, 610, np.median(cpu), *hm(summary(GPU_CR)["wall_s"])]
+
+
+# --- Table 1 Counter Circuit SP, 10 seeds at 3M env steps
+
+
+@check("cc10_final")
+def _():
+    return final_numbers(CC10, "sp")
+
+
+@check("cc10_within")
+def _():
+    xp = run(CC10, "sp")["xp"]
+    sp, cross, gap = paper(CC10, "sp")
+    return [sp, *interval(xp, "sp"), cross, *interval(xp, "xp"), gap, *interval(xp, "gap")]
+
+
+@check("cc10_low_pairs")
+def _():
+    low = low_pairs(CC10)
+    return [len(low), 45, *[x for pair in low[:3] for x in pair]]
+
+
+def cc10_roles() -> tuple[list[list[str]], dict]:
+    """Counter Circuit's roles.md: the seeds' rows at update 183 and {(seat-0 seed, seat-1 seed): row} of its
+    cross-play pairs."""
+    seeds, pairs = md_tables(CC10 / "roles.md")
+    return seeds, {tuple(int(k) for k in row[0].split(" × ")): row for row in pairs}
+
+
+def two_shares(cell: str) -> tuple[float, float]:
+    """A roles table's "<seat 0>, <seat 1>" cell."""
+    first, second = cell.split(",")
+    return float(first), float(second)
+
+
+def cc10_conventions() -> list[tuple[str, str]]:
+    """Per seed, (pot, direction) of its self-play: "left" where seat 0 puts most of its onions into the left pot,
+    "cw" where more than half of seat 0's moves round the island go clockwise."""
+    seeds, _ = cc10_roles()
+    return [
+        ("left" if two_shares(row[8])[0] >= 0.5 else "right", "cw" if two_shares(row[5])[0] > 0.5 else "ccw")
+        for row in seeds
+    ]
+
+
+def cc10_pairs_by_convention() -> dict:
+    """The 45 pairs' scores (both seat orders) and whether they fail, by what their two seeds share: "both", "pot",
+    "direction" or "neither"."""
+    conv = cc10_conventions()
+    p = both_seats(final_matrix(CC10, "sp"))
+    low = {(i, j) for i, j, _ in low_pairs(CC10)}
+    groups = {"both": [], "pot": [], "direction": [], "neither": []}
+    for i, j in itertools.combinations(range(10), 2):
+        pot, way = conv[i][0] == conv[j][0], conv[i][1] == conv[j][1]
+        key = "both" if pot and way else "pot" if pot else "direction" if way else "neither"
+        groups[key].append((p[i, j], (i, j) in low))
+    return groups
+
+
+@check("cc10_conventions")
+def _():
+    seeds, _ = cc10_roles()
+    conv = cc10_conventions()
+    left = [k for k, c in enumerate(conv) if c[0] == "left"]
+    right = [k for k, c in enumerate(conv) if c[0] == "right"]
+    ccw = [k for k, c in enumerate(conv) if c[1] == "ccw"]
+    cw = [k for k, c in enumerate(conv) if c[1] == "cw"]
+    left_share = [two_shares(row[8]) for row in seeds]
+    clockwise = [two_shares(row[5])[0] for row in seeds]
+    island = [float(row[6].split()[0]) for row in seeds]
+    crossing = [k for k in range(10) if island[k] > 0.2]
+    return [
+        *left, min(min(left_share[k]) for k in left), *right, max(max(left_share[k]) for k in right),
+        *ccw, min(clockwise[k] for k in ccw), max(clockwise[k] for k in ccw),
+        *cw, min(clockwise[k] for k in cw), max(clockwise[k] for k in cw), L, clockwise[9],  # seed 9: a label
+        *crossing, *[island[k] for k in crossing], max(island[k] for k in range(10) if k not in crossing),
+    ]  # fmt: skip
+
+
+@check("cc10_by_convention")
+def _():
+    out = []
+    for key in ("both", "neither", "pot", "direction"):
+        scores = [score for score, _ in cc10_pairs_by_convention()[key]]
+        fails = sum(f for _, f in cc10_pairs_by_convention()[key])
+        out += [len(scores), np.mean(scores), min(scores), max(scores), fails]
+    return out
+
+
+@check("cc10_pairs")
+def _():
+    _, pairs = cc10_roles()
+    failing = [pairs[k] for k in ((1, 7), (7, 1), (6, 7), (7, 6))]
+    sharing = [pairs[k] for k in ((2, 5), (5, 2))]
+    onions = [cell_count(row[1]) for row in failing]
+    soups = [cell_count(row[3]) for row in failing]
+    return [
+        L, L, L, L, min(onions), max(onions), min(soups), max(soups),
+        L, L, *sorted(cell_count(row[1]) for row in sharing), *sorted(cell_count(row[3]) for row in sharing),
+    ]  # fmt: skip
+
+
+@check("cc10_claim")
+def _():
+    return [*claim_row(CC10, "sp"), len(low_pairs(CC10)), 45]
+
+
+@check("run_cc10")
+def _():
+    return run_size(CC10, "sp")
+
+
+@check("run_cc10_wall")
+def _():
+    return hm(summary(CC10)["wall_s"])
 
 
 def main(argv=None) -> int:
