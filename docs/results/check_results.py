@@ -2700,6 +2700,16 @@ def _():
     ]  # fmt: skip
 
 
+@check("cc10_growth")
+def _():
+    out = []
+    for update in (92, 122, 152):
+        sp, xp, gap = sp_xp(matrix(CC10 / "xp_snapshots" / f"sp_update{update}.csv"))
+        out += [gap, snapshot_env_steps(update, CC10), sp, xp]
+    final = run(CC10, "sp")["xp"]
+    return [*out, final["gap"], millions(CC10, "sp"), final["sp_mean"], final["xp_mean"]]
+
+
 @check("cc10_claim")
 def _():
     return [*claim_row(CC10, "sp"), len(low_pairs(CC10)), 45]
