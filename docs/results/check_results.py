@@ -1941,16 +1941,6 @@ def _():
     return [1, 6, cw[1], cw[6], min(rest), max(rest)]
 
 
-@check("run_sp10")
-def _():
-    return run_size(SP10, "sp")
-
-
-@check("run_sp10_wall")
-def _():
-    return hm(summary(SP10)["wall_s"])
-
-
 @check("sp10_interval_vs_pairs")
 def _():
     xp = run(SP10, "sp")["xp"]
@@ -2064,16 +2054,6 @@ def sa10_low_pairs() -> list[tuple[int, int, float]]:
 @check("sa10_claim")
 def _():
     return [*claim_row(SA10, "sa"), *_sa10_delta_numbers()[:3], len(sa10_low_pairs()), 45]
-
-
-@check("run_sa10")
-def _():
-    return run_size(SA10, "sa")
-
-
-@check("run_sa10_wall")
-def _():
-    return hm(summary(SA10)["wall_s"])
 
 
 @check("sa10_table")
@@ -2402,26 +2382,6 @@ def _():
     return [*claim_row(FC10, "sp"), len(low_pairs(FC10)), 45]
 
 
-@check("run_fc10")
-def _():
-    return run_size(FC10, "sp")
-
-
-@check("run_fc10_wall")
-def _():
-    return hm(summary(FC10)["wall_s"])
-
-
-@check("run_fc_sa10")
-def _():
-    return run_size(FC_SA10, "sa")
-
-
-@check("run_fc_sa10_wall")
-def _():
-    return hm(summary(FC_SA10)["wall_s"])
-
-
 # --- Coordination Ring SP on the paper's whole 10M schedule (gpu_coord_ring_sp, update 610)
 
 
@@ -2445,15 +2405,20 @@ def cell_count(cell: str) -> float:
     return float(cell.split(" of ")[1])
 
 
+def paper_beside_intervals(study: Path, name: str) -> list[float]:
+    """The paper's SP, XP and gap, each followed by our 95 % interval over the seeds."""
+    xp = run(study, name)["xp"]
+    sp, cross, gap = paper(study, name)
+    return [sp, *interval(xp, "sp"), cross, *interval(xp, "xp"), gap, *interval(xp, "gap")]
+
+
 def gpu_cr_groups() -> dict:
     return pot_groups(roles_tables(GPU_CR)[610])
 
 
 @check("gpu_cr_sp_within")
 def _():
-    xp = run(GPU_CR, "sp")["xp"]
-    sp, cross, gap = paper(GPU_CR, "sp")
-    return [sp, *interval(xp, "sp"), cross, *interval(xp, "xp"), gap, *interval(xp, "gap")]
+    return paper_beside_intervals(GPU_CR, "sp")
 
 
 @check("gpu_cr_sp_low_pairs")
@@ -2609,9 +2574,7 @@ def _():
 
 @check("cc10_within")
 def _():
-    xp = run(CC10, "sp")["xp"]
-    sp, cross, gap = paper(CC10, "sp")
-    return [sp, *interval(xp, "sp"), cross, *interval(xp, "xp"), gap, *interval(xp, "gap")]
+    return paper_beside_intervals(CC10, "sp")
 
 
 @check("cc10_low_pairs")
@@ -2715,14 +2678,27 @@ def _():
     return [*claim_row(CC10, "sp"), len(low_pairs(CC10)), 45]
 
 
-@check("run_cc10")
-def _():
-    return run_size(CC10, "sp")
+def study_wall(study: Path) -> list:
+    """A study's wall time in its record, as hours and minutes."""
+    return hm(summary(study)["wall_s"])
 
 
-@check("run_cc10_wall")
-def _():
-    return hm(summary(CC10)["wall_s"])
+def register_run_rows() -> None:
+    """The runs table's size and wall-time cells of each 10-seed CPU study: ``run_<name>`` (env steps per seed and
+    updates) and ``run_<name>_wall`` (hours and minutes in the study's record)."""
+    studies = {
+        "sp10": (SP10, "sp"),
+        "sa10": (SA10, "sa"),
+        "fc10": (FC10, "sp"),
+        "fc_sa10": (FC_SA10, "sa"),
+        "cc10": (CC10, "sp"),
+    }
+    for name, (study, method) in studies.items():
+        check(f"run_{name}")(functools.partial(run_size, study, method))
+        check(f"run_{name}_wall")(functools.partial(study_wall, study))
+
+
+register_run_rows()
 
 
 def main(argv=None) -> int:
