@@ -2678,6 +2678,13 @@ def _():
     return [*claim_row(CC10, "sp"), len(low_pairs(CC10)), 45]
 
 
+@check("run_cc10_rate")
+def _():
+    with (CC10 / "sp_metrics.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["seed"] == "0" and int(r["update"]) > 125]
+    return [np.median([_float(r["steps_per_s"]) for r in rows]), 126, 183]
+
+
 def study_wall(study: Path) -> list:
     """A study's wall time in its record, as hours and minutes."""
     return hm(summary(study)["wall_s"])
