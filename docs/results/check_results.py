@@ -308,6 +308,11 @@ def hm(seconds: float) -> list[int]:
     return [minutes // 60, minutes % 60]
 
 
+def study_wall(study: Path) -> list:
+    """A study's wall time in its record, as hours and minutes."""
+    return hm(summary(study)["wall_s"])
+
+
 def span(values) -> list[float]:
     values = list(values)
     return [min(values), max(values)]
@@ -873,7 +878,7 @@ def _():
 
 @check("run_cr_wall")
 def _():
-    return hm(summary(CR)["wall_s"])
+    return study_wall(CR)
 
 
 @check("run_gcs_size")
@@ -905,7 +910,7 @@ def _():
 
 @check("run_gcs_wall")
 def _():
-    return hm(summary(GCS)["wall_s"])
+    return study_wall(GCS)
 
 
 @check("run_gcs_chunk")
@@ -1886,6 +1891,12 @@ def seed_measures(update: int = 183, study: Path = SP10) -> dict:
     return {"cw": [r[0] for r in rows], "deliveries": [r[2][3][0] for r in rows], "pot": [r[3][0] for r in rows]}
 
 
+def low_pair_numbers(study: Path, method: str = "sp") -> list:
+    """A 10-seed study's failing pairs: how many of the 45, then the three lowest as (seed, seed, score)."""
+    low = low_pairs(study, method)
+    return [len(low), 45, *[x for pair in low[:3] for x in pair]]
+
+
 def final_numbers(study: Path, method: str) -> list:
     """A 10-seed study's headline: seeds x env steps, episodes per pair, SP, XP, gap with its interval over the
     seeds, and the paper's SP / XP / gap."""
@@ -2187,8 +2198,7 @@ def _():
 
 @check("fc10_low_pairs")
 def _():
-    low = low_pairs(FC10)
-    return [len(low), 45, *[x for pair in low[:3] for x in pair]]
+    return low_pair_numbers(FC10)
 
 
 @check("fc10_plates")
@@ -2236,8 +2246,7 @@ def _():
 
 @check("fc_sa10_low_pairs")
 def _():
-    low = low_pairs(FC_SA10, "sa")
-    return [len(low), 45, *[x for pair in low[:3] for x in pair], len(low_pairs(FC10)), 45]
+    return [*low_pair_numbers(FC_SA10, "sa"), len(low_pairs(FC10)), 45]
 
 
 @check("fc_sa10_conventions")
@@ -2394,10 +2403,15 @@ def group_of(groups: dict, seed: int) -> str:
     return next(name for name, seeds in groups.items() if seed in seeds)
 
 
-def roles_pairs(study: Path) -> dict:
-    """roles_pairs.md: {(seat-0 seed, seat-1 seed): the row's cells} of its one table of ordered cross-play pairs."""
-    (table,) = md_tables(study / "roles_pairs.md")
+def pair_rows(table: list[list[str]]) -> dict:
+    """A roles table of ordered cross-play pairs as {(seat-0 seed, seat-1 seed): the row's cells}."""
     return {tuple(int(k) for k in row[0].split(" × ")): row for row in table}
+
+
+def roles_pairs(study: Path) -> dict:
+    """roles_pairs.md's one table of ordered cross-play pairs (``pair_rows``)."""
+    (table,) = md_tables(study / "roles_pairs.md")
+    return pair_rows(table)
 
 
 def cell_count(cell: str) -> float:
@@ -2561,7 +2575,7 @@ def _():
         rows = [r for r in csv.DictReader(f) if r["seed"] == "0"]
     gpu = [_float(r["steps_per_s"]) for r in rows if int(r["update"]) <= 410]
     cpu = [_float(r["steps_per_s"]) for r in rows if int(r["update"]) > 410]
-    return [1, 410, np.median(gpu), 411, 610, np.median(cpu), *hm(summary(GPU_CR)["wall_s"])]
+    return [1, 410, np.median(gpu), 411, 610, np.median(cpu), *study_wall(GPU_CR)]
 
 
 # --- Table 1 Counter Circuit SP, 10 seeds at 3M env steps
@@ -2579,15 +2593,14 @@ def _():
 
 @check("cc10_low_pairs")
 def _():
-    low = low_pairs(CC10)
-    return [len(low), 45, *[x for pair in low[:3] for x in pair]]
+    return low_pair_numbers(CC10)
 
 
 def cc10_roles() -> tuple[list[list[str]], dict]:
     """Counter Circuit's roles.md: the seeds' rows at update 183 and {(seat-0 seed, seat-1 seed): row} of its
     cross-play pairs."""
     seeds, pairs = md_tables(CC10 / "roles.md")
-    return seeds, {tuple(int(k) for k in row[0].split(" × ")): row for row in pairs}
+    return seeds, pair_rows(pairs)
 
 
 def two_shares(cell: str) -> tuple[float, float]:
@@ -2642,11 +2655,10 @@ def _():
 
 @check("cc10_by_convention")
 def _():
-    out = []
+    groups, out = cc10_pairs_by_convention(), []
     for key in ("both", "neither", "pot", "direction"):
-        scores = [score for score, _ in cc10_pairs_by_convention()[key]]
-        fails = sum(f for _, f in cc10_pairs_by_convention()[key])
-        out += [len(scores), np.mean(scores), min(scores), max(scores), fails]
+        scores = [score for score, _ in groups[key]]
+        out += [len(scores), np.mean(scores), min(scores), max(scores), sum(fails for _, fails in groups[key])]
     return out
 
 
@@ -2683,11 +2695,6 @@ def _():
     with (CC10 / "sp_metrics.csv").open() as f:
         rows = [r for r in csv.DictReader(f) if r["seed"] == "0" and int(r["update"]) > 125]
     return [np.median([_float(r["steps_per_s"]) for r in rows]), 126, 183]
-
-
-def study_wall(study: Path) -> list:
-    """A study's wall time in its record, as hours and minutes."""
-    return hm(summary(study)["wall_s"])
 
 
 def register_run_rows() -> None:
