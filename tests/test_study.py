@@ -28,7 +28,18 @@ from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir, read_matrix_csv
 from cluster.runtime.runstate import Schedule
 from cluster.study.pack import pack_study
-from cluster.study.runner import StateFile, StudyOptions, kept_study, open_state, read_state, run_study, study_status
+from cluster.study.runner import (
+    STEP_KINDS,
+    StateFile,
+    Step,
+    StudyOptions,
+    kept_study,
+    open_state,
+    read_state,
+    result_problem,
+    run_study,
+    study_status,
+)
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config, with_overrides
 from cluster.study.state import StepRecord, StudyState
 from population import checkpoints as ckpt
@@ -614,6 +625,13 @@ def test_status_of_a_running_step_counts_the_time_since_its_last_save(finished, 
 def test_status_of_a_folder_that_is_no_study(tmp_path, capsys):
     assert main(["study", "status", str(tmp_path)]) == 2
     assert "not a study directory" in capsys.readouterr().err
+
+
+def test_a_step_kind_without_a_done_rule_is_an_error_not_a_finished_step(tmp_path):
+    """result_problem names each kind's done rule; an unknown kind must not fall through to another's."""
+    assert "nope" not in STEP_KINDS
+    with pytest.raises(ValueError, match="unknown study step kind 'nope'"):
+        result_problem(Step("nope", "sp"), None, tmp_path, {})
 
 
 def test_shipped_studies_load(tmp_path):

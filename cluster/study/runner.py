@@ -451,6 +451,8 @@ def result_problem(step: Step, study: Study, out: Path, configs: dict) -> str | 
             if kept is not None and kept != comparison_inputs(comparison, configs):
                 problem = f"{path} was made from other runs or episodes than the comparison has now"
         return problem
+    if kind != "over_training":  # a new kind must say when its result counts as done, not pass as this one
+        raise ValueError(f"result_problem: unknown study step kind {kind!r} (STEP_KINDS: {', '.join(STEP_KINDS)})")
     folder = out / "over_training" / name
     data, problem = read_result(folder / "done.json", ("snapshots",))
     if problem is not None:
