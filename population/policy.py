@@ -299,7 +299,13 @@ def _from_checkpoint(config: Config, path: Path, run_dir: Path, seed: int) -> Po
         params,
         name=f"{run_dir.name}/seed_{seed}@{update}",
         source=str(path),
-        meta={"run_dir": str(run_dir), "seed": seed, "update": update, "method": config.population.method},
+        meta={
+            "run_dir": str(run_dir),
+            "seed": seed,
+            "update": update,
+            "method": config.population.method,
+            "precision": config.run.precision,  # the matmul precision its run trained and cross-played at
+        },
     )
 
 

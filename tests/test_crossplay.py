@@ -4,6 +4,7 @@ seed-bootstrap confidence intervals."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from pathlib import Path
 from types import SimpleNamespace
@@ -74,6 +75,7 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, c
         assert block[key] == pytest.approx(own[key])
     # a run against itself: its one matrix holds both seat orders, so it is played once
     assert summary["seats"] == "both" and not (out / "matrix_cols_seat0.csv").exists()
+    assert summary["precision"] == "float32"  # the run's run.precision, as its in-run cross-play played at
     np.testing.assert_allclose(read_matrix_csv(out / "matrix_mean.csv").values, (in_run + in_run.T) / 2, atol=1e-4)
     for name in ("matrix.csv", "episodes.csv", "blocks.csv", "summary.json", "heatmap.png", "heatmap_mean.png"):
         assert (out / name).exists()
@@ -235,6 +237,45 @@ def test_cross_play_jobs_spread_over_workers_give_the_same_matrix(run, ray_sessi
         players.close()
     np.testing.assert_array_equal(on_ray.returns, here.returns)
     np.testing.assert_array_equal(on_ray.start_recipe, here.start_recipe)
+
+
+def test_cross_play_traces_at_the_precision_its_runs_trained_with(run, tmp_path, monkeypatch):
+    """On a GPU JAX's default matmul precision is TF32: cross-play of runs trained at float32 must not use it."""
+    group = crossplay.resolve_source(str(run))
+    assert group.precision == "float32"  # the run's run.precision
+    assert crossplay.resolve_source(str(run / "checkpoints" / "seed_1")).precision == "float32"  # a checkpoint's meta
+    seed_0 = pol.load(run)
+    tf32_file = pol.export(
+        tmp_path / "tf32.ocv2policy",
+        params=seed_0.params,
+        model=seed_0.model,
+        env=seed_0.env,
+        meta={"precision": "tf32"},
+    )
+    tf32 = crossplay.resolve_source(str(tf32_file))
+    unknown = dataclasses.replace(tf32, label="unknown", precision=None)
+    assert crossplay.played_precision([group, unknown]) == "float32"
+    assert crossplay.played_precision([unknown]) == "float32"  # nothing known: the default
+    assert crossplay.played_precision([tf32, unknown]) == "tf32"
+    with pytest.raises(crossplay.CrossPlayError, match=r"different run.precision .*: float32, .*: tf32.*--precision"):
+        crossplay.played_precision([group, tf32])
+    assert crossplay.played_precision([group, tf32], "bf16") == "bf16"
+    # The CLI refuses the mix before playing anything, and takes a choice.
+    out = tmp_path / "mixed"
+    assert main(["xp", "--rows", str(run), "--cols", str(tf32_file), "--backend", "local", "--out", str(out)]) == 2
+    assert not out.exists()
+    # Each job is traced under the chosen precision (the setting a GPU honours; a CPU computes float32 anyway).
+    seen = []
+
+    def recording_cross_play(*args, **kwargs):
+        seen.append(jax.config.jax_default_matmul_precision)
+        return cross_play(*args, **kwargs)
+
+    monkeypatch.setattr(crossplay, "cross_play", recording_cross_play)
+    for precision, jax_name in (("tf32", "tensorfloat32"), ("float32", "float32")):
+        crossplay.play_matrix([group], [tf32], crossplay.LocalPlayers(precision), crossplay.xp_key(0), 1)
+        assert seen[-1] == jax_name
+    assert jax.config.jax_default_matmul_precision is None  # only inside the job
 
 
 def test_sources_of_different_environments_are_refused(run, tmp_path):

@@ -3,7 +3,7 @@
     ocv2 xp RUN_DIR [--episodes N] [--wait]
     ocv2 xp --rows SRC [SRC ...] [--cols SRC ...] [--checkpoint final|mid|init|latest|N] [--greedy]
             [--seats both|0] [--pool] [--episodes N] [--seed S] [--out DIR] [--backend ray|local]
-            [--address A] [--workers N]
+            [--address A] [--workers N] [--precision float32|tf32|bf16]
 
 A source SRC is a run directory (all its seeds), a seed directory RUN_DIR/checkpoints/seed_<i>, a
 checkpoint file, a file written by ``ocv2 export`` (``cluster/cli/export.py``), or ``human-proxy:LAYOUT``.
@@ -26,7 +26,7 @@ from cluster.runtime.progress import Bar
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDir, RunDirError
 from population.checkpoints import CheckpointError
-from population.config import ClusterConfig
+from population.config import PRECISIONS, ClusterConfig
 from population.policy import CHECKPOINT_CHOICES
 
 
@@ -83,6 +83,12 @@ def add_xp(sub) -> argparse.ArgumentParser:
         "XP = all other cells, bootstrap over all of them), e.g. two runs of one config with different "
         "population.seed; the sources must be runs of one method",
     )
+    parser.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        help="with --rows: matmul precision the episodes are played at (default: the run.precision the sources "
+        "trained with, as their in-run cross-play; a choice is required when they trained at different ones)",
+    )
     parser.add_argument("--out", help="output directory for --rows (default runs/xp_<time>)")
     parser.add_argument(
         "--backend",
@@ -117,6 +123,7 @@ def run_xp(args) -> int:
                 ("--workers", args.workers),
                 ("--seats", args.seats),
                 ("--pool", args.pool or None),
+                ("--precision", args.precision),
             )
             if value is not None
         ]
@@ -179,6 +186,7 @@ def _cross_run(args) -> int:
                 rows = [crossplay.resolve_source(s, checkpoint) for s in args.rows]
                 cols = rows if not args.cols else [crossplay.resolve_source(s, checkpoint) for s in args.cols]
                 env_kwargs = crossplay.check_same_env([*rows, *cols])
+                precision = crossplay.played_precision([*rows, *cols], args.precision)
             except crossplay.CrossPlayError as error:
                 raise CLIError(str(error)) from None
             if args.pool:
@@ -189,7 +197,7 @@ def _cross_run(args) -> int:
             started = time.perf_counter()
             label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
             with (
-                crossplay.players(backend, jobs, args.address, args.workers) as workers,
+                crossplay.players(backend, jobs, args.address, args.workers, precision) as workers,
                 Bar(label, enabled=not args.quiet) as bar,
             ):
                 result = crossplay.play_seat_fair(
@@ -207,6 +215,7 @@ def _cross_run(args) -> int:
             "checkpoint": str(checkpoint),
             "greedy": bool(args.greedy),
             "seed": seed,
+            "precision": precision,
             "env": env_kwargs,
             "backend": backend,
             "wall_s": round(time.perf_counter() - started, 2),

@@ -13,6 +13,9 @@ reproduces ``ocv2 xp RUN``.
 On OvercookedV2 layouts the two seats are different roles, so ``play_seat_fair`` plays both orders
 (row policies in seat 0, then column policies in seat 0, with the same episode keys) and reports each
 order and their mean (``summarize_seat_fair``); ``play_matrix`` is one order.
+
+Cross-play traces at the matmul precision the runs trained with (``run.precision``, as their in-run cross-play
+does; ``played_precision``): on a GPU, JAX's own default would be TF32 for runs trained at float32.
 """
 
 from __future__ import annotations
@@ -32,11 +35,12 @@ import numpy as np
 from cluster.runtime.jobs import InProcessWorkers, spread_jobs
 from cluster.runtime.ray_backend import RayWorkers, actor_env, ray, session
 from cluster.runtime.rundir import write_csv, write_json, write_matrix_csv
-from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_run_config
+from population.config import ClusterConfig, Config, ConfigError, ModelConfig, RunConfig, load_run_config
 from population.evaluation import stack_params
 from population.human import proxy_path
 from population.keys import derive_key
 from population.networks import same_function
+from population.numerics import matmul_precision
 from population.plots import xp_heatmap
 from population.policy import PolicyError, env_difference, hidden_size_of, load, network, policy_env
 from population.xp import Side, block_summary, cross_play, recipe_names
@@ -64,6 +68,7 @@ class PolicyGroup:
     params: Any
     method: str | None = None  # the run's population method, when known
     seed: int | None = None  # the run's population seed, when known
+    precision: str | None = None  # the run's run.precision, when known
 
     @property
     def spec(self) -> tuple:
@@ -111,6 +116,7 @@ def _run_group(text: str, path: Path, checkpoint) -> PolicyGroup:
         stack_params([jax.tree.map(np.asarray, p.params) for p in policies]),
         config.population.method,
         config.population.seed,
+        config.run.precision,
     )
 
 
@@ -126,6 +132,7 @@ def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
         policy.env,
         stack_params([jax.tree.map(np.asarray, policy.params)]),
         meta.get("method"),
+        precision=meta.get("precision"),  # a checkpoint's, or a file exported from one
     )
 
 
@@ -156,6 +163,19 @@ def check_same_env(groups) -> dict:
     return first.env
 
 
+def played_precision(groups, chosen: str | None = None) -> str:
+    """The ``run.precision`` cross-play of ``groups`` traces at: ``chosen`` if given, else the one every group
+    that knows it trained with (the default, float32, when none does). ``CrossPlayError`` when they differ and
+    nothing was chosen: which one the numbers come from must be a decision, not an accident of order."""
+    if chosen is not None:
+        return chosen
+    known = {g.label: g.precision for g in groups if g.precision is not None}
+    if len(set(known.values())) > 1:
+        trained = ", ".join(f"{label}: {precision}" for label, precision in known.items())
+        raise CrossPlayError(f"the sources trained at different run.precision ({trained}); choose one with --precision")
+    return next(iter(known.values()), RunConfig().precision)
+
+
 # ---------------------------------------------------------------------------------------------------
 # workers
 # ---------------------------------------------------------------------------------------------------
@@ -168,11 +188,19 @@ class RowsResult(NamedTuple):
 
 
 class CrossPlayPlayer:
-    """Plays jobs: seat-0 ``rows`` of one group against every policy of another group."""
+    """Plays jobs: seat-0 ``rows`` of one group against every policy of another group, traced at ``precision``
+    (a ``run.precision`` name)."""
+
+    def __init__(self, precision: str = RunConfig().precision):
+        self.precision = precision
 
     def play(
         self, row_spec, row_params, col_spec, col_params, rows, key, episodes: int, greedy: bool, job
     ) -> RowsResult:
+        with matmul_precision(self.precision):
+            return self._play(row_spec, row_params, col_spec, col_params, rows, key, episodes, greedy, job)
+
+    def _play(self, row_spec, row_params, col_spec, col_params, rows, key, episodes, greedy, job) -> RowsResult:
         env = policy_env(row_spec[2])
         row_side = _side(row_spec, row_params, env)
         # No column group: the row group against itself, through the in-run code path (numbers included).
@@ -207,14 +235,14 @@ def _side(spec, params, env) -> Side:
 class LocalPlayers(InProcessWorkers):
     """One in-process player."""
 
-    def __init__(self):
-        super().__init__([[0]], CrossPlayPlayer())
+    def __init__(self, precision: str = RunConfig().precision):
+        super().__init__([[0]], CrossPlayPlayer(precision))
 
 
 class RayPlayers(RayWorkers):
     """``num_workers`` Ray actors, each a ``CrossPlayPlayer``; ``call``/``share`` are the Ray backend's."""
 
-    def __init__(self, num_workers: int, cluster: ClusterConfig):
+    def __init__(self, num_workers: int, cluster: ClusterConfig, precision: str = RunConfig().precision):
         self.config = Config(cluster=cluster)  # RayWorkers.call reads cluster.max_restarts
         self.shards = [[i] for i in range(num_workers)]
         self._pool = None
@@ -226,7 +254,7 @@ class RayPlayers(RayWorkers):
             runtime_env={"env_vars": actor_env(cluster)},
         )
         actor = ray.remote(CrossPlayPlayer)
-        self.actors = [actor.options(**options).remote() for _ in range(num_workers)]
+        self.actors = [actor.options(**options).remote(precision) for _ in range(num_workers)]
         self.events = []
 
 
@@ -236,16 +264,22 @@ def ray_worker_count(requested: int | None, jobs: int, cpus_per_worker: float) -
 
 
 @contextmanager
-def players(backend: str, jobs: int, address: str | None = None, workers: int | None = None):
+def players(
+    backend: str,
+    jobs: int,
+    address: str | None = None,
+    workers: int | None = None,
+    precision: str = RunConfig().precision,
+):
     """``LocalPlayers``, or ``RayPlayers`` on the Ray cluster at ``address`` (default: started here and
-    shut down afterwards); one worker per CPU unless ``workers``, never more than ``jobs``.
-    Raises ``RayBackendError`` when Ray cannot be reached."""
+    shut down afterwards); one worker per CPU unless ``workers``, never more than ``jobs``; every player traces
+    at ``precision``. Raises ``RayBackendError`` when Ray cannot be reached."""
     if backend == "local":
-        yield LocalPlayers()
+        yield LocalPlayers(precision)
         return
     cluster = ClusterConfig(address=address)
     with session("ray", cluster):
-        ray_players = RayPlayers(ray_worker_count(workers, jobs, 1), cluster)
+        ray_players = RayPlayers(ray_worker_count(workers, jobs, 1), cluster, precision)
         try:
             yield ray_players
         finally:

@@ -47,7 +47,7 @@ from cluster.study.spec import (
 from cluster.study.state import StepRecord, StudyState
 from ocv2 import boundedjson
 from population import checkpoints as ckpt
-from population.config import Config, ConfigError
+from population.config import Config, ConfigError, RunConfig
 from population.memory import check_fits
 from population.xp import block_summary
 
@@ -560,7 +560,7 @@ def _over_training(plan: Plan, name: str, timer: StepTimer) -> dict:
     if todo:
         groups = {u: _source(str(path), str(u)) for u in todo}
         jobs = created.population.num_seeds * len(todo)
-        with crossplay.players(options.backend, jobs, options.address) as workers:
+        with crossplay.players(options.backend, jobs, options.address, precision=created.run.precision) as workers:
             for update in todo:
                 group = groups[update]
                 result = crossplay.play_matrix(
@@ -602,9 +602,10 @@ def _compare(plan: Plan, name: str, timer: StepTimer) -> dict:
         groups.append(_source(crossplay.HUMAN_PROXY + first.env_kwargs["layout"]))
     try:
         crossplay.check_same_env(groups)
+        precision = crossplay.played_precision(groups)
     except crossplay.CrossPlayError as error:
         raise StudyError(f"comparison {comparison.name!r}: {error}") from None
-    result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer)
+    result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer, precision)
     result.summary["study_inputs"] = comparison_inputs(comparison, configs)
     folder = comparison_dir(out, comparison.name)
     crossplay.write_seat_fair_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
@@ -632,9 +633,10 @@ def _source(text: str, checkpoint: str = "final") -> crossplay.PolicyGroup:
         raise StudyError(str(error)) from None
 
 
-def _play(options: StudyOptions, rows, cols, seed: int, episodes: int, label: str) -> crossplay.Matrix:
+def _play(options: StudyOptions, rows, cols, seed: int, episodes: int, label: str, precision: str) -> crossplay.Matrix:
     jobs = sum(len(g.names) for g in rows) * len(cols)
-    with crossplay.players(options.backend, jobs, options.address) as workers, Bar(label, options.show_progress) as bar:
+    players = crossplay.players(options.backend, jobs, options.address, precision=precision)
+    with players as workers, Bar(label, options.show_progress) as bar:
         return crossplay.play_matrix(rows, cols, workers, crossplay.xp_key(seed), episodes, progress=bar)
 
 
@@ -652,16 +654,22 @@ class ComparisonResult:
 
 
 def compare(
-    groups, options: StudyOptions, seed: int, episodes: int, label: str, timer: StepTimer | None = None
+    groups,
+    options: StudyOptions,
+    seed: int,
+    episodes: int,
+    label: str,
+    timer: StepTimer | None = None,
+    precision: str = RunConfig().precision,
 ) -> ComparisonResult:
-    """Every group against every group in both seats; a group against itself is its own in-run cross-play
-    (same episode keys); ``label`` names the progress lines.
+    """Every group against every group in both seats, traced at ``precision`` (a ``run.precision``); a group
+    against itself is its own in-run cross-play (same episode keys); ``label`` names the progress lines.
 
     Returns the matrix (rows in seat 0, so cell (i, j) and (j, i) are the two orders of a pair) and
     ``crossplay.summarize_seat_fair``'s summary of it: ``blocks`` (the mean of both orders) and ``orders``
     (each order's blocks), from which ``crossplay.seat_pairs`` reads each pair of groups. Raises
     ``RayBackendError`` when Ray cannot be reached."""
-    played = _play(options, groups, groups, seed, episodes, label)
+    played = _play(options, groups, groups, seed, episodes, label, precision)
     if timer is not None:
         timer.tick()
     result = crossplay.SeatFairMatrix(played, played)
