@@ -27,7 +27,7 @@ from cluster.cli import main
 from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir, read_matrix_csv
 from cluster.runtime.runstate import Schedule
-from cluster.study.pack import pack_study
+from cluster.study.pack import pack_study, snapshots_still_read
 from cluster.study.runner import (
     STEP_KINDS,
     StateFile,
@@ -952,6 +952,38 @@ def test_a_pack_of_the_latest_checkpoints_only_still_resumes(finished, tmp_path)
     for seed in range(2):
         assert ckpt.list_updates(moved / "runs" / "sp", seed) == [4]
         assert ckpt.list_updates(moved / "runs" / "sa", seed) == [8]
+
+
+def test_a_latest_only_pack_keeps_the_snapshots_a_step_to_come_reads(finished, tmp_path):
+    """A study packed before its over_training step ran still has that step's snapshots after unpacking, and the
+    step then gives the numbers of the uninterrupted study; an unfinished FCP run keeps its partners' snapshots."""
+    before = tmp_path / "before"
+    shutil.copytree(finished, before)
+    data = json.loads((before / "study.json").read_text())
+    data["steps"]["over_training sp"] = {"status": "left", "wall_s": 0.0}
+    (before / "study.json").write_text(json.dumps(data))
+    shutil.rmtree(before / "over_training" / "sp")
+    record = pack_study(before, tmp_path / "pack", latest_only=True)
+    assert record["kept_whole"] == ["runs/sp"]
+    moved = tmp_path / "moved"
+    assert main(["study", "unpack", str(tmp_path / "pack"), "--out", str(moved)]) == 0
+    for seed in range(2):
+        assert ckpt.list_updates(moved / "runs" / "sp", seed) == ckpt.list_updates(finished / "runs" / "sp", seed)
+        assert len(ckpt.list_updates(moved / "runs" / "sp", seed)) > 1
+        assert ckpt.list_updates(moved / "runs" / "sa", seed) == [8]  # no step to come reads sa's older ones
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    run_study(study, moved, StudyOptions(backend="local", show_progress=False), say=lambda _: None)
+    for path in sorted((finished / "over_training" / "sp").glob("update_*.json")):
+        again = json.loads((moved / "over_training" / "sp" / path.name).read_text())
+        assert again["matrix"] == json.loads(path.read_text())["matrix"]
+    # FCP: the partner run a learner run takes its pool from, and its own partner stage, while it trains.
+    data["spec"]["runs"].append(
+        {"name": "fcp", "config": str(SMOKE), "set": ["population.method=fcp"], "partners_from": "sp"}
+    )
+    data["steps"]["over_training sp"] = {"status": "done", "wall_s": 1.0}
+    data["steps"]["train fcp"] = {"status": "running", "wall_s": 1.0, "update": 2}
+    kept = snapshots_still_read(StudyState.from_json(data, before / "study.json"), before)
+    assert kept == (before / "runs" / "fcp" / "partners", before / "runs" / "sp")
 
 
 def test_study_json_reads_into_typed_state_and_writes_back_the_same_shape(finished, tmp_path):

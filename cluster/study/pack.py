@@ -23,8 +23,9 @@ import tarfile
 import zlib
 from pathlib import Path
 
-from cluster.study.runner import check_folder, kept_study, missing_runs, read_state
-from cluster.study.spec import StudyError
+from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state
+from cluster.study.spec import StudyError, run_dir
+from cluster.study.state import StepRecord, StudyState
 from ocv2.atomic import staged_folder
 from population import checkpoints as ckpt
 
@@ -34,7 +35,8 @@ _SKIPPED_DIRS = {"gifs", "plots", "archive"}
 _SKIPPED_SUFFIXES = {".png", ".gif", ".mcap", ".lock"}
 
 
-def _packed_files(out: Path, latest_only: bool = False) -> list[Path]:
+def _packed_files(out: Path, latest_only: bool = False, whole: tuple[Path, ...] = ()) -> list[Path]:
+    """The files a pack holds; ``latest_only``: of each seed's checkpoints only the newest, except under ``whole``."""
     files = []
     for path in sorted(out.rglob("*")):
         relative = path.relative_to(out)
@@ -42,10 +44,36 @@ def _packed_files(out: Path, latest_only: bool = False) -> list[Path]:
             continue
         if _SKIPPED_DIRS & set(relative.parts[:-1]) or path.suffix in _SKIPPED_SUFFIXES or path.name == ".lock":
             continue
-        if latest_only and ckpt.update_of(path) is not None and path != _newest_beside(path):
+        if (
+            latest_only
+            and ckpt.update_of(path) is not None
+            and path != _newest_beside(path)
+            and not any(path.is_relative_to(folder) for folder in whole)
+        ):
             continue
         files.append(path)
     return files
+
+
+def snapshots_still_read(state: StudyState, out: Path) -> tuple[Path, ...]:
+    """Run directories whose older checkpoints a step still to come reads, which ``latest_only`` must keep: a run
+    whose over_training step is not done (it cross-plays every kept snapshot), and the partners of an FCP run that
+    has not finished training (its pool reads their mid and final snapshots): the study's ``partners_from`` run,
+    or the partner stage it trains into RUN/partners."""
+    study = kept_study(state, out)
+
+    def done(kind: str, name: str) -> bool:
+        return state.steps.get(Step(kind, name).name, StepRecord()).done
+
+    folders = []
+    for run in study.runs:
+        if run.name in study.over_training and not done("over_training", run.name):
+            folders.append(run_dir(out, run.name))
+        if not done("train", run.name):
+            folders.append(run_dir(out, run.name) / "partners")
+            if run.partners_from is not None:
+                folders.append(run_dir(out, run.partners_from))
+    return tuple(folders)
 
 
 def _newest_beside(path: Path) -> Path:
@@ -57,9 +85,10 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     """Write ``out``'s resumable state into ``dest`` (created; must be empty): parts and ``pack.json``.
 
     ``latest_only``: of each seed's checkpoints only the newest, which is all that resuming training needs (a
-    10-seed PPO-CNN checkpoint is about 13.5 MB); the kept snapshots before it are left behind, so what needs
-    them later (over-training cross-play, FCP partners, ``ocv2 export --checkpoint mid``) will not find them --
-    export their policies first (``ocv2 export RUN --checkpoint N``) if they matter.
+    10-seed PPO-CNN checkpoint is about 13.5 MB), except where a step still to come reads older snapshots
+    (``snapshots_still_read``: over-training cross-play not done, FCP partners of an unfinished run), which are
+    packed whole. What no step reads is left behind (``ocv2 export --checkpoint mid`` will not find it):
+    publish the snapshots first (``ocv2 study publish``) if they matter.
 
     Everything is checked before anything is written -- study.json field by field, every packed checkpoint's
     checksum (a pack is what a later session resumes from, so a damaged one must not replace a good one) -- and
@@ -81,7 +110,8 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
         raise StudyError(f"{dest}: exists and is not an empty folder; choose another --out")
     if part_bytes < 1:
         raise StudyError(f"part size must be positive, got {part_bytes}")
-    files = _packed_files(out, latest_only)
+    whole = snapshots_still_read(state, out) if latest_only else ()
+    files = _packed_files(out, latest_only, whole)
     for path in files:
         if ckpt.update_of(path) is not None:
             try:
@@ -102,6 +132,8 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
                 (staging / name).write_bytes(chunk)
                 parts.append({"file": name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
             record = {"study": state.study, "files": len(files), "bytes": len(data), "latest_only": latest_only}
+            if latest_only:  # the run directories packed with every checkpoint, because a step to come reads them
+                record["kept_whole"] = [str(folder.relative_to(out)) for folder in whole if folder.is_dir()]
             record["parts"] = parts
             (staging / PACK_NAME).write_text(json.dumps(record, indent=1))
     except OSError as error:
