@@ -12,7 +12,7 @@ before) it unpacks each study's report folder, exported policies (with
 their sha256 sums, checked here), metrics and the study's status into ``docs/results/<study>/``, beside
 gpu_run.json (replacing an earlier window's unfinished part of the same study). Every window's record is
 appended to docs/results/gpu_windows.json, and the block lists below this window's measurements those of earlier
-windows it did not make again (a continued window measures for 30 s only). A ``state/`` folder that came back
+windows it did not make again (a continued window measures for 75 s only). A ``state/`` folder that came back
 is the next window's starting point: move it to ``gpu_state/`` and commit it; this script says whether it fits
 what travels to the GPU machine (64 MiB with the work tree and .whl/).
 """
@@ -83,7 +83,7 @@ def _peaks(results: dict) -> dict:
 
 def benchmark_block(bench: dict, earlier: list[dict] = (), studies: list[str] = ()) -> str:
     """The GPU block of this window's record ``bench``; ``earlier``: the records of earlier windows (oldest
-    first), whose trainer measurements this window did not make again (a continued window measures for 30 s only)
+    first), whose trainer measurements this window did not make again (a continued window measures for 75 s only)
     are listed below its own, each with its window's date and device and shares of that window's matmul peaks;
     ``studies``: lines saying how fast this window's studies trained (``study_rates``)."""
     env, results = bench["environment"], bench["results"]
