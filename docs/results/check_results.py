@@ -2596,10 +2596,10 @@ def _():
     return low_pair_numbers(CC10)
 
 
-def cc10_roles() -> tuple[list[list[str]], dict]:
-    """Counter Circuit's roles.md: the seeds' rows at update 183 and {(seat-0 seed, seat-1 seed): row} of its
-    cross-play pairs."""
-    seeds, pairs = md_tables(CC10 / "roles.md")
+def cc_roles(study: Path = CC10) -> tuple[list[list[str]], dict]:
+    """A Counter Circuit study's roles.md: the seeds' rows at update 183 and {(seat-0 seed, seat-1 seed): row} of
+    its cross-play pairs."""
+    seeds, pairs = md_tables(study / "roles.md")
     return seeds, pair_rows(pairs)
 
 
@@ -2609,22 +2609,22 @@ def two_shares(cell: str) -> tuple[float, float]:
     return float(first), float(second)
 
 
-def cc10_conventions() -> list[tuple[str, str]]:
+def cc_conventions(study: Path = CC10) -> list[tuple[str, str]]:
     """Per seed, (pot, direction) of its self-play: "left" where seat 0 puts most of its onions into the left pot,
     "cw" where more than half of seat 0's moves round the island go clockwise."""
-    seeds, _ = cc10_roles()
+    seeds, _ = cc_roles(study)
     return [
         ("left" if two_shares(row[8])[0] >= 0.5 else "right", "cw" if two_shares(row[5])[0] > 0.5 else "ccw")
         for row in seeds
     ]
 
 
-def cc10_pairs_by_convention() -> dict:
+def cc_pairs_by_convention(study: Path = CC10, method: str = "sp") -> dict:
     """The 45 pairs' scores (both seat orders) and whether they fail, by what their two seeds share: "both", "pot",
     "direction" or "neither"."""
-    conv = cc10_conventions()
-    p = both_seats(final_matrix(CC10, "sp"))
-    low = {(i, j) for i, j, _ in low_pairs(CC10)}
+    conv = cc_conventions(study)
+    p = both_seats(final_matrix(study, method))
+    low = {(i, j) for i, j, _ in low_pairs(study, method)}
     groups = {"both": [], "pot": [], "direction": [], "neither": []}
     for i, j in itertools.combinations(range(10), 2):
         pot, way = conv[i][0] == conv[j][0], conv[i][1] == conv[j][1]
@@ -2635,8 +2635,8 @@ def cc10_pairs_by_convention() -> dict:
 
 @check("cc10_conventions")
 def _():
-    seeds, _ = cc10_roles()
-    conv = cc10_conventions()
+    seeds, _ = cc_roles()
+    conv = cc_conventions()
     left = [k for k, c in enumerate(conv) if c[0] == "left"]
     right = [k for k, c in enumerate(conv) if c[0] == "right"]
     ccw = [k for k, c in enumerate(conv) if c[1] == "ccw"]
@@ -2655,7 +2655,7 @@ def _():
 
 @check("cc10_by_convention")
 def _():
-    groups, out = cc10_pairs_by_convention(), []
+    groups, out = cc_pairs_by_convention(), []
     for key in ("both", "neither", "pot", "direction"):
         scores = [score for score, _ in groups[key]]
         out += [len(scores), np.mean(scores), min(scores), max(scores), sum(fails for _, fails in groups[key])]
@@ -2664,7 +2664,7 @@ def _():
 
 @check("cc10_pairs")
 def _():
-    _, pairs = cc10_roles()
+    _, pairs = cc_roles()
     failing = [pairs[k] for k in ((1, 7), (7, 1), (6, 7), (7, 6))]
     sharing = [pairs[k] for k in ((2, 5), (5, 2))]
     onions = [cell_count(row[1]) for row in failing]
