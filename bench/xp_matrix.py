@@ -63,8 +63,8 @@ def random_population(config, num: int) -> crossplay.PolicyGroup:
 class RowTimer(crossplay.LocalPlayers):
     """In-process player that records when each job (one seat-0 row) ends."""
 
-    def __init__(self):
-        super().__init__()
+    def __init__(self, precision: str):
+        super().__init__(precision)
         self.ends, self.cpu = [], []
 
     def call(self, method, jobs):
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
         group.method,
         group.seed,
     )
-    players = RowTimer()
+    players = RowTimer(config.run.precision)  # as the runs of that config would be cross-played
     cpu_started = time.process_time()
     started = time.perf_counter()
     result = crossplay.play_matrix([rows], [group], players, crossplay.xp_key(0), args.episodes)

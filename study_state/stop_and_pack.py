@@ -108,8 +108,9 @@ def main() -> None:
     except failures as error:
         raise SystemExit(f"{error}\nnothing was stopped, published or packed") from None
     stop(study)
-    # The pack first: it is what the next session continues from, and needs only each seed's newest
-    # checkpoint; a damaged older snapshot must not cost it (it stops only the publishing below).
+    # The pack first: it is what the next session continues from, and needs only each seed's newest checkpoint
+    # (and the snapshots a later step reads, checked like it); a damaged older snapshot that no step reads must not
+    # cost it (it stops only the publishing below).
     target, fresh, old = (args.into / f"{name}{suffix}" for suffix in ("", ".new", ".old"))
     try:
         shutil.rmtree(fresh, ignore_errors=True)

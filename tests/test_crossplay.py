@@ -230,9 +230,10 @@ def test_cross_play_jobs_spread_over_workers_give_the_same_matrix(run, ray_sessi
     np.testing.assert_array_equal(spread.returns, here.returns)
     assert three.calls == [[0, 1, 2], [0]]  # 4 jobs (2 rows x 2 column groups) in waves of one per worker
     assert seen == [0, 3, 1]  # the progress bar moves after every wave
-    players = crossplay.RayPlayers(1, ClusterConfig(num_cpus=1))  # the Ray backend's call, on an actor
+    players = crossplay.RayPlayers(1, ClusterConfig(num_cpus=1), "tf32")  # the Ray backend's call, on an actor
     try:
-        on_ray = crossplay.play_matrix(rows, cols, players, key, 3)
+        on_ray = crossplay.play_matrix(rows, cols, players, key, 3)  # TF32 computes float32 on a CPU
+        assert crossplay.ray.get(players.actors[0].__ray_call__.remote(lambda player: player.precision)) == "tf32"
     finally:
         players.close()
     np.testing.assert_array_equal(on_ray.returns, here.returns)
@@ -257,7 +258,7 @@ def test_cross_play_traces_at_the_precision_its_runs_trained_with(run, tmp_path,
     assert crossplay.played_precision([group, unknown]) == "float32"
     assert crossplay.played_precision([unknown]) == "float32"  # nothing known: the default
     assert crossplay.played_precision([tf32, unknown]) == "tf32"
-    with pytest.raises(crossplay.CrossPlayError, match=r"different run.precision .*: float32, .*: tf32.*--precision"):
+    with pytest.raises(crossplay.CrossPlayError, match=r"different run.precision \(.*: float32, .*: tf32\)$"):
         crossplay.played_precision([group, tf32])
     assert crossplay.played_precision([group, tf32], "bf16") == "bf16"
     # The CLI refuses the mix before playing anything, and takes a choice.
@@ -276,6 +277,15 @@ def test_cross_play_traces_at_the_precision_its_runs_trained_with(run, tmp_path,
         crossplay.play_matrix([group], [tf32], crossplay.LocalPlayers(precision), crossplay.xp_key(0), 1)
         assert seen[-1] == jax_name
     assert jax.config.jax_default_matmul_precision is None  # only inside the job
+    # ... and the command passes its choice to its players and records it.
+    out = tmp_path / "chosen"
+    command = ["xp", "--rows", str(run), "--cols", str(tf32_file), "--backend", "local", "--episodes", "1"]
+    assert main([*command, "--seats", "0", "--precision", "tf32", "--quiet", "--out", str(out)]) == 0
+    assert seen[-1] == "tensorfloat32" and json.loads((out / "summary.json").read_text())["precision"] == "tf32"
+    broken = pol.export(tmp_path / "broken.ocv2policy", params=seed_0.params, model=seed_0.model, env=seed_0.env,
+                        meta={"precision": "fp16"})  # fmt: skip
+    with pytest.raises(crossplay.CrossPlayError, match="meta precision 'fp16' is not one of float32, tf32, bf16"):
+        crossplay.resolve_source(str(broken))
 
 
 def test_sources_of_different_environments_are_refused(run, tmp_path):

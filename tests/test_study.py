@@ -954,15 +954,25 @@ def test_a_pack_of_the_latest_checkpoints_only_still_resumes(finished, tmp_path)
         assert ckpt.list_updates(moved / "runs" / "sa", seed) == [8]
 
 
-def test_a_latest_only_pack_keeps_the_snapshots_a_step_to_come_reads(finished, tmp_path):
+def test_a_latest_only_pack_keeps_the_snapshots_a_step_to_come_reads(finished, tmp_path, monkeypatch):
     """A study packed before its over_training step ran still has that step's snapshots after unpacking, and the
-    step then gives the numbers of the uninterrupted study; an unfinished FCP run keeps its partners' snapshots."""
+    step then gives the numbers of the uninterrupted study; an unfinished FCP run keeps its partners' snapshots.
+    The snapshot and comparison steps play at the runs' run.precision and record it."""
     before = tmp_path / "before"
     shutil.copytree(finished, before)
     data = json.loads((before / "study.json").read_text())
     data["steps"]["over_training sp"] = {"status": "left", "wall_s": 0.0}
+    data["steps"]["compare sp_vs_sa"] = {"status": "left", "wall_s": 0.0}
     (before / "study.json").write_text(json.dumps(data))
     shutil.rmtree(before / "over_training" / "sp")
+    shutil.rmtree(before / "comparisons" / "sp_vs_sa")
+    players, played_at = crossplay.players, []
+
+    def recording_players(*args, **kwargs):
+        played_at.append(kwargs.get("precision"))
+        return players(*args, **kwargs)
+
+    monkeypatch.setattr(crossplay, "players", recording_players)
     record = pack_study(before, tmp_path / "pack", latest_only=True)
     assert record["kept_whole"] == ["runs/sp"]
     moved = tmp_path / "moved"
@@ -975,15 +985,27 @@ def test_a_latest_only_pack_keeps_the_snapshots_a_step_to_come_reads(finished, t
     run_study(study, moved, StudyOptions(backend="local", show_progress=False), say=lambda _: None)
     for path in sorted((finished / "over_training" / "sp").glob("update_*.json")):
         again = json.loads((moved / "over_training" / "sp" / path.name).read_text())
-        assert again["matrix"] == json.loads(path.read_text())["matrix"]
-    # FCP: the partner run a learner run takes its pool from, and its own partner stage, while it trains.
-    data["spec"]["runs"].append(
-        {"name": "fcp", "config": str(SMOKE), "set": ["population.method=fcp"], "partners_from": "sp"}
+        assert again["matrix"] == json.loads(path.read_text())["matrix"] and again["precision"] == "float32"
+    assert played_at == ["float32", "float32"]  # the snapshots', then the comparison's
+    compared = json.loads((moved / "comparisons" / "sp_vs_sa" / "summary.json").read_text())
+    assert compared["precision"] == "float32"
+    assert (
+        compared["blocks"] == json.loads((finished / "comparisons" / "sp_vs_sa" / "summary.json").read_text())["blocks"]
     )
+    # FCP, while it trains: the partner run its pool comes from, or else its own partner stage.
+    fcp = {"name": "fcp", "config": str(SMOKE), "set": ["population.method=fcp"], "partners_from": "sp"}
+    data["spec"]["runs"].append(fcp)
     data["steps"]["over_training sp"] = {"status": "done", "wall_s": 1.0}
     data["steps"]["train fcp"] = {"status": "running", "wall_s": 1.0, "update": 2}
     kept = snapshots_still_read(StudyState.from_json(data, before / "study.json"), before)
-    assert kept == (before / "runs" / "fcp" / "partners", before / "runs" / "sp")
+    assert kept == (before / "runs" / "sp",)
+    del fcp["partners_from"]
+    kept = snapshots_still_read(StudyState.from_json(data, before / "study.json"), before)
+    assert kept == (before / "runs" / "fcp" / "partners",)
+    # A run study.json calls done whose result is damaged is trained again, so what it reads is kept too.
+    data["steps"]["train fcp"] = {"status": "done", "wall_s": 1.0}
+    kept = snapshots_still_read(StudyState.from_json(data, before / "study.json"), before)
+    assert kept == (before / "runs" / "fcp" / "partners",)
 
 
 def test_study_json_reads_into_typed_state_and_writes_back_the_same_shape(finished, tmp_path):

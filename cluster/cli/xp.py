@@ -186,9 +186,12 @@ def _cross_run(args) -> int:
                 rows = [crossplay.resolve_source(s, checkpoint) for s in args.rows]
                 cols = rows if not args.cols else [crossplay.resolve_source(s, checkpoint) for s in args.cols]
                 env_kwargs = crossplay.check_same_env([*rows, *cols])
-                precision = crossplay.played_precision([*rows, *cols], args.precision)
             except crossplay.CrossPlayError as error:
                 raise CLIError(str(error)) from None
+            try:
+                precision = crossplay.played_precision([*rows, *cols], args.precision)
+            except crossplay.CrossPlayError as error:
+                raise CLIError(f"{error}; choose one with --precision") from None
             if args.pool:
                 _check_poolable(args, rows)
             episodes = args.episodes or 500

@@ -35,7 +35,7 @@ import numpy as np
 from cluster.runtime.jobs import InProcessWorkers, spread_jobs
 from cluster.runtime.ray_backend import RayWorkers, actor_env, ray, session
 from cluster.runtime.rundir import write_csv, write_json, write_matrix_csv
-from population.config import ClusterConfig, Config, ConfigError, ModelConfig, RunConfig, load_run_config
+from population.config import PRECISIONS, ClusterConfig, Config, ConfigError, ModelConfig, RunConfig, load_run_config
 from population.evaluation import stack_params
 from population.human import proxy_path
 from population.keys import derive_key
@@ -45,6 +45,8 @@ from population.plots import xp_heatmap
 from population.policy import PolicyError, env_difference, hidden_size_of, load, network, policy_env
 from population.xp import Side, block_summary, cross_play, recipe_names
 
+#: The precision cross-play traces at when no source says how it trained: ``run.precision``'s default.
+DEFAULT_PRECISION = RunConfig().precision
 HUMAN_PROXY = "human-proxy:"
 HUMAN_PROXY_METHOD = "human-proxy"  # the method named for a human-proxy source
 SEATS = ("both", "0")  # both seat orders, or the row policies in seat 0 only
@@ -123,6 +125,9 @@ def _run_group(text: str, path: Path, checkpoint) -> PolicyGroup:
 def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
     policy = _load(text, path, checkpoint)
     meta = policy.meta
+    precision = meta.get("precision")  # a checkpoint's, or a file exported from one
+    if precision is not None and precision not in PRECISIONS:
+        raise CrossPlayError(f"{text}: meta precision {precision!r} is not one of {', '.join(PRECISIONS)}")
     return PolicyGroup(
         text,
         (policy.name,),
@@ -132,7 +137,7 @@ def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
         policy.env,
         stack_params([jax.tree.map(np.asarray, policy.params)]),
         meta.get("method"),
-        precision=meta.get("precision"),  # a checkpoint's, or a file exported from one
+        precision=precision,
     )
 
 
@@ -166,14 +171,15 @@ def check_same_env(groups) -> dict:
 def played_precision(groups, chosen: str | None = None) -> str:
     """The ``run.precision`` cross-play of ``groups`` traces at: ``chosen`` if given, else the one every group
     that knows it trained with (the default, float32, when none does). ``CrossPlayError`` when they differ and
-    nothing was chosen: which one the numbers come from must be a decision, not an accident of order."""
+    nothing was chosen (the caller says how to choose): which one the numbers come from must be a decision, not an
+    accident of order."""
     if chosen is not None:
         return chosen
     known = {g.label: g.precision for g in groups if g.precision is not None}
     if len(set(known.values())) > 1:
         trained = ", ".join(f"{label}: {precision}" for label, precision in known.items())
-        raise CrossPlayError(f"the sources trained at different run.precision ({trained}); choose one with --precision")
-    return next(iter(known.values()), RunConfig().precision)
+        raise CrossPlayError(f"the sources trained at different run.precision ({trained})")
+    return next(iter(known.values()), DEFAULT_PRECISION)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -191,7 +197,7 @@ class CrossPlayPlayer:
     """Plays jobs: seat-0 ``rows`` of one group against every policy of another group, traced at ``precision``
     (a ``run.precision`` name)."""
 
-    def __init__(self, precision: str = RunConfig().precision):
+    def __init__(self, precision: str = DEFAULT_PRECISION):
         self.precision = precision
 
     def play(
@@ -235,14 +241,14 @@ def _side(spec, params, env) -> Side:
 class LocalPlayers(InProcessWorkers):
     """One in-process player."""
 
-    def __init__(self, precision: str = RunConfig().precision):
+    def __init__(self, precision: str = DEFAULT_PRECISION):
         super().__init__([[0]], CrossPlayPlayer(precision))
 
 
 class RayPlayers(RayWorkers):
     """``num_workers`` Ray actors, each a ``CrossPlayPlayer``; ``call``/``share`` are the Ray backend's."""
 
-    def __init__(self, num_workers: int, cluster: ClusterConfig, precision: str = RunConfig().precision):
+    def __init__(self, num_workers: int, cluster: ClusterConfig, precision: str = DEFAULT_PRECISION):
         self.config = Config(cluster=cluster)  # RayWorkers.call reads cluster.max_restarts
         self.shards = [[i] for i in range(num_workers)]
         self._pool = None
@@ -269,7 +275,7 @@ def players(
     jobs: int,
     address: str | None = None,
     workers: int | None = None,
-    precision: str = RunConfig().precision,
+    precision: str = DEFAULT_PRECISION,
 ):
     """``LocalPlayers``, or ``RayPlayers`` on the Ray cluster at ``address`` (default: started here and
     shut down afterwards); one worker per CPU unless ``workers``, never more than ``jobs``; every player traces

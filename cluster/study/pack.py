@@ -23,7 +23,7 @@ import tarfile
 import zlib
 from pathlib import Path
 
-from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state
+from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state, run_finished
 from cluster.study.spec import StudyError, run_dir
 from cluster.study.state import StepRecord, StudyState
 from ocv2.atomic import staged_folder
@@ -59,7 +59,8 @@ def snapshots_still_read(state: StudyState, out: Path) -> tuple[Path, ...]:
     """Run directories whose older checkpoints a step still to come reads, which ``latest_only`` must keep: a run
     whose over_training step is not done (it cross-plays every kept snapshot), and the partners of an FCP run that
     has not finished training (its pool reads their mid and final snapshots): the study's ``partners_from`` run,
-    or the partner stage it trains into RUN/partners."""
+    or else the partner stage it trains into RUN/partners. A run counts as finished by its directory, as the
+    runner judges it, not by study.json alone (a damaged result is trained again)."""
     study = kept_study(state, out)
 
     def done(kind: str, name: str) -> bool:
@@ -69,10 +70,9 @@ def snapshots_still_read(state: StudyState, out: Path) -> tuple[Path, ...]:
     for run in study.runs:
         if run.name in study.over_training and not done("over_training", run.name):
             folders.append(run_dir(out, run.name))
-        if not done("train", run.name):
-            folders.append(run_dir(out, run.name) / "partners")
-            if run.partners_from is not None:
-                folders.append(run_dir(out, run.partners_from))
+        if not run_finished(run_dir(out, run.name)):
+            partners = run_dir(out, run.partners_from) if run.partners_from else run_dir(out, run.name) / "partners"
+            folders.append(partners)
     return tuple(folders)
 
 
@@ -87,7 +87,8 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     ``latest_only``: of each seed's checkpoints only the newest, which is all that resuming training needs (a
     10-seed PPO-CNN checkpoint is about 13.5 MB), except where a step still to come reads older snapshots
     (``snapshots_still_read``: over-training cross-play not done, FCP partners of an unfinished run), which are
-    packed whole. What no step reads is left behind (``ocv2 export --checkpoint mid`` will not find it):
+    packed whole -- for a study with 11 kept snapshots and over-training, about 150 MB per 10-seed CNN run, more
+    than a GPU window carries: run such a study where its pack need not travel. What no step reads is left behind (``ocv2 export --checkpoint mid`` will not find it):
     publish the snapshots first (``ocv2 study publish``) if they matter.
 
     Everything is checked before anything is written -- study.json field by field, every packed checkpoint's

@@ -47,7 +47,7 @@ from cluster.study.spec import (
 from cluster.study.state import StepRecord, StudyState
 from ocv2 import boundedjson
 from population import checkpoints as ckpt
-from population.config import Config, ConfigError, RunConfig
+from population.config import Config, ConfigError
 from population.memory import check_fits
 from population.xp import block_summary
 
@@ -577,6 +577,7 @@ def _over_training(plan: Plan, name: str, timer: StepTimer) -> dict:
                     update=update,
                     env_steps_per_seed=update * created.ppo.steps_per_update,
                     episodes_per_pair=created.eval.episodes,
+                    precision=created.run.precision,
                     matrix=result.matrix.round(4).tolist(),
                     study_inputs=inputs,
                 )
@@ -604,9 +605,12 @@ def _compare(plan: Plan, name: str, timer: StepTimer) -> dict:
         crossplay.check_same_env(groups)
         precision = crossplay.played_precision(groups)
     except crossplay.CrossPlayError as error:
-        raise StudyError(f"comparison {comparison.name!r}: {error}") from None
+        raise StudyError(
+            f"comparison {comparison.name!r}: {error}; give the compared runs one run.precision (set:)"
+        ) from None
     result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer, precision)
     result.summary["study_inputs"] = comparison_inputs(comparison, configs)
+    result.summary["precision"] = precision
     folder = comparison_dir(out, comparison.name)
     crossplay.write_seat_fair_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
     return {}
@@ -660,7 +664,7 @@ def compare(
     episodes: int,
     label: str,
     timer: StepTimer | None = None,
-    precision: str = RunConfig().precision,
+    precision: str = crossplay.DEFAULT_PRECISION,
 ) -> ComparisonResult:
     """Every group against every group in both seats, traced at ``precision`` (a ``run.precision``); a group
     against itself is its own in-run cross-play (same episode keys); ``label`` names the progress lines.

@@ -2597,8 +2597,8 @@ def _():
 
 
 def cc_roles(study: Path = CC10) -> tuple[list[list[str]], dict]:
-    """A Counter Circuit study's roles.md: the seeds' rows at update 183 and {(seat-0 seed, seat-1 seed): row} of
-    its cross-play pairs."""
+    """A Counter Circuit study's roles.md: the seeds' rows at its final update and {(seat-0 seed, seat-1 seed): row}
+    of its cross-play pairs."""
     seeds, pairs = md_tables(study / "roles.md")
     return seeds, pair_rows(pairs)
 
@@ -2620,13 +2620,13 @@ def cc_conventions(study: Path = CC10) -> list[tuple[str, str]]:
 
 
 def cc_pairs_by_convention(study: Path = CC10, method: str = "sp") -> dict:
-    """The 45 pairs' scores (both seat orders) and whether they fail, by what their two seeds share: "both", "pot",
+    """Every pair's score (both seat orders) and whether it fails, by what its two seeds share: "both", "pot",
     "direction" or "neither"."""
     conv = cc_conventions(study)
     p = both_seats(final_matrix(study, method))
     low = {(i, j) for i, j, _ in low_pairs(study, method)}
     groups = {"both": [], "pot": [], "direction": [], "neither": []}
-    for i, j in itertools.combinations(range(10), 2):
+    for i, j in itertools.combinations(range(len(conv)), 2):
         pot, way = conv[i][0] == conv[j][0], conv[i][1] == conv[j][1]
         key = "both" if pot and way else "pot" if pot else "direction" if way else "neither"
         groups[key].append((p[i, j], (i, j) in low))
