@@ -12,6 +12,8 @@ from pathlib import Path
 import jax
 
 from cluster.cli.args import add_published_population, published_files, published_pairs
+from population.config import RunConfig
+from population.numerics import matmul_precision
 from population.policy import PolicyError, policy_env
 from population.published import load_population
 from population.record import jitted_play_recorded
@@ -37,6 +39,9 @@ def print_roles_table(
     first = policies[0]  # one compiled rollout for every seed and pair (same network, same env)
     play = jitted_play_recorded(first.apply, first.hidden_size, policy_env(first.env), args.episodes)
     plays = [(str(seed), seed, seed) for seed in range(args.seeds)] + [(f"{i} × {j}", i, j) for i, j in pairs]
-    for label, seat0, seat1 in plays:
-        played = play((policies[seat0].params, policies[seat1].params), jax.random.PRNGKey(ROLLOUT_KEY))
-        print(row(label, played.states, played.returns), flush=True)
+    # As the population trained (its run.precision; float32 for files exported before it was recorded): on a GPU the
+    # default would be TF32.
+    with matmul_precision(first.meta.get("precision") or RunConfig().precision):
+        for label, seat0, seat1 in plays:
+            played = play((policies[seat0].params, policies[seat1].params), jax.random.PRNGKey(ROLLOUT_KEY))
+            print(row(label, played.states, played.returns), flush=True)
