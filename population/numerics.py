@@ -31,9 +31,11 @@ import os
 import sys
 from collections.abc import Iterator, MutableMapping
 
-from population.config.schema import PRECISIONS
+from population.config.schema import PRECISIONS, RunConfig
 from population.xla_flags import extend_xla_flags, flag_name, supported_flags
 
+#: ``run.precision``'s default: also what a policy is played at where nothing says how it trained.
+DEFAULT_PRECISION = RunConfig().precision
 #: ``run.precision`` -> the name ``jax.default_matmul_precision`` takes.
 _JAX_NAMES = {"float32": "float32", "tf32": "tensorfloat32", "bf16": "bfloat16"}
 assert tuple(_JAX_NAMES) == PRECISIONS

@@ -954,6 +954,12 @@ def test_a_pack_of_the_latest_checkpoints_only_still_resumes(finished, tmp_path)
         assert ckpt.list_updates(moved / "runs" / "sa", seed) == [8]
 
 
+def kept_and_state(data: dict, out: Path) -> tuple:
+    """The study a study.json mapping keeps, and its typed state: what ``snapshots_still_read`` reads."""
+    state = StudyState.from_json(data, out / "study.json")
+    return kept_study(state, out), state
+
+
 def test_a_latest_only_pack_keeps_the_snapshots_a_step_to_come_reads(finished, tmp_path, monkeypatch):
     """A study packed before its over_training step ran still has that step's snapshots after unpacking, and the
     step then gives the numbers of the uninterrupted study; an unfinished FCP run keeps its partners' snapshots.
@@ -997,14 +1003,14 @@ def test_a_latest_only_pack_keeps_the_snapshots_a_step_to_come_reads(finished, t
     data["spec"]["runs"].append(fcp)
     data["steps"]["over_training sp"] = {"status": "done", "wall_s": 1.0}
     data["steps"]["train fcp"] = {"status": "running", "wall_s": 1.0, "update": 2}
-    kept = snapshots_still_read(StudyState.from_json(data, before / "study.json"), before)
+    kept = snapshots_still_read(*kept_and_state(data, before), before)
     assert kept == (before / "runs" / "sp",)
     del fcp["partners_from"]
-    kept = snapshots_still_read(StudyState.from_json(data, before / "study.json"), before)
+    kept = snapshots_still_read(*kept_and_state(data, before), before)
     assert kept == (before / "runs" / "fcp" / "partners",)
     # A run study.json calls done whose result is damaged is trained again, so what it reads is kept too.
     data["steps"]["train fcp"] = {"status": "done", "wall_s": 1.0}
-    kept = snapshots_still_read(StudyState.from_json(data, before / "study.json"), before)
+    kept = snapshots_still_read(*kept_and_state(data, before), before)
     assert kept == (before / "runs" / "fcp" / "partners",)
 
 

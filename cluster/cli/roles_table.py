@@ -12,8 +12,7 @@ from pathlib import Path
 import jax
 
 from cluster.cli.args import add_published_population, published_files, published_pairs
-from population.config import RunConfig
-from population.numerics import matmul_precision
+from population.numerics import DEFAULT_PRECISION, matmul_precision
 from population.policy import PolicyError, policy_env
 from population.published import load_population
 from population.record import jitted_play_recorded
@@ -41,7 +40,7 @@ def print_roles_table(
     plays = [(str(seed), seed, seed) for seed in range(args.seeds)] + [(f"{i} × {j}", i, j) for i, j in pairs]
     # As the population trained (its run.precision; float32 for files exported before it was recorded): on a GPU the
     # default would be TF32.
-    with matmul_precision(first.meta.get("precision") or RunConfig().precision):
+    with matmul_precision(first.meta.get("precision") or DEFAULT_PRECISION):
         for label, seat0, seat1 in plays:
             played = play((policies[seat0].params, policies[seat1].params), jax.random.PRNGKey(ROLLOUT_KEY))
             print(row(label, played.states, played.returns), flush=True)

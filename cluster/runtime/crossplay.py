@@ -35,18 +35,16 @@ import numpy as np
 from cluster.runtime.jobs import InProcessWorkers, spread_jobs
 from cluster.runtime.ray_backend import RayWorkers, actor_env, ray, session
 from cluster.runtime.rundir import write_csv, write_json, write_matrix_csv
-from population.config import PRECISIONS, ClusterConfig, Config, ConfigError, ModelConfig, RunConfig, load_run_config
+from population.config import PRECISIONS, ClusterConfig, Config, ConfigError, ModelConfig, load_run_config
 from population.evaluation import stack_params
 from population.human import proxy_path
 from population.keys import derive_key
 from population.networks import same_function
-from population.numerics import matmul_precision
+from population.numerics import DEFAULT_PRECISION, matmul_precision
 from population.plots import xp_heatmap
 from population.policy import PolicyError, env_difference, hidden_size_of, load, network, policy_env
 from population.xp import Side, block_summary, cross_play, recipe_names
 
-#: The precision cross-play traces at when no source says how it trained: ``run.precision``'s default.
-DEFAULT_PRECISION = RunConfig().precision
 HUMAN_PROXY = "human-proxy:"
 HUMAN_PROXY_METHOD = "human-proxy"  # the method named for a human-proxy source
 SEATS = ("both", "0")  # both seat orders, or the row policies in seat 0 only

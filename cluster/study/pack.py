@@ -24,7 +24,7 @@ import zlib
 from pathlib import Path
 
 from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state, run_finished
-from cluster.study.spec import StudyError, run_dir
+from cluster.study.spec import Study, StudyError, run_dir
 from cluster.study.state import StepRecord, StudyState
 from ocv2.atomic import staged_folder
 from population import checkpoints as ckpt
@@ -55,13 +55,13 @@ def _packed_files(out: Path, latest_only: bool = False, whole: tuple[Path, ...] 
     return files
 
 
-def snapshots_still_read(state: StudyState, out: Path) -> tuple[Path, ...]:
+def snapshots_still_read(study: Study, state: StudyState, out: Path) -> tuple[Path, ...]:
     """Run directories whose older checkpoints a step still to come reads, which ``latest_only`` must keep: a run
     whose over_training step is not done (it cross-plays every kept snapshot), and the partners of an FCP run that
     has not finished training (its pool reads their mid and final snapshots): the study's ``partners_from`` run,
     or else the partner stage it trains into RUN/partners. A run counts as finished by its directory, as the
-    runner judges it, not by study.json alone (a damaged result is trained again)."""
-    study = kept_study(state, out)
+    runner judges it, not by study.json alone (a damaged result is trained again). ``study``: the one ``state``
+    keeps (``kept_study``)."""
 
     def done(kind: str, name: str) -> bool:
         return state.steps.get(Step(kind, name).name, StepRecord()).done
@@ -88,8 +88,9 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     10-seed PPO-CNN checkpoint is about 13.5 MB), except where a step still to come reads older snapshots
     (``snapshots_still_read``: over-training cross-play not done, FCP partners of an unfinished run), which are
     packed whole -- for a study with 11 kept snapshots and over-training, about 150 MB per 10-seed CNN run, more
-    than a GPU window carries: run such a study where its pack need not travel. What no step reads is left behind (``ocv2 export --checkpoint mid`` will not find it):
-    publish the snapshots first (``ocv2 study publish``) if they matter.
+    than a GPU window carries: run such a study where its pack need not travel. What no step reads is left behind
+    (``ocv2 export --checkpoint mid`` will not find it): publish the snapshots first (``ocv2 study publish``) if
+    they matter.
 
     Everything is checked before anything is written -- study.json field by field, every packed checkpoint's
     checksum (a pack is what a later session resumes from, so a damaged one must not replace a good one) -- and
@@ -99,7 +100,8 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     state = read_state(out)
     if state is None:
         raise StudyError(f"{out}: not a study directory (no study.json)")
-    missing = missing_runs(kept_study(state, out), out, state)
+    study = kept_study(state, out)
+    missing = missing_runs(study, out, state)
     if missing:  # a pack without it would look resumable and train that run again from update 0
         raise StudyError(f"{missing[0]}; nothing was packed")
     if dest.is_relative_to(out.resolve()):
@@ -111,7 +113,7 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
         raise StudyError(f"{dest}: exists and is not an empty folder; choose another --out")
     if part_bytes < 1:
         raise StudyError(f"part size must be positive, got {part_bytes}")
-    whole = snapshots_still_read(state, out) if latest_only else ()
+    whole = snapshots_still_read(study, state, out) if latest_only else ()
     files = _packed_files(out, latest_only, whole)
     for path in files:
         if ckpt.update_of(path) is not None:

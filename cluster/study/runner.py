@@ -49,6 +49,7 @@ from ocv2 import boundedjson
 from population import checkpoints as ckpt
 from population.config import Config, ConfigError
 from population.memory import check_fits
+from population.numerics import DEFAULT_PRECISION
 from population.xp import block_summary
 
 log = logging.getLogger(__name__)
@@ -664,7 +665,7 @@ def compare(
     episodes: int,
     label: str,
     timer: StepTimer | None = None,
-    precision: str = crossplay.DEFAULT_PRECISION,
+    precision: str = DEFAULT_PRECISION,
 ) -> ComparisonResult:
     """Every group against every group in both seats, traced at ``precision`` (a ``run.precision``); a group
     against itself is its own in-run cross-play (same episode keys); ``label`` names the progress lines.
