@@ -2743,6 +2743,23 @@ def _():
     return [len(low), len(low), odd, len(keep), block["gap"], *block["gap_ci95_interval"], run(CC10, "sp")["xp"]["gap"]]
 
 
+@check("cc_sa10_conventions")
+def _():
+    """The SA seeds' direction round the island and pot use (roles.md: one table, the seeds at update 183)."""
+    (seeds,) = md_tables(CC_SA10 / "roles.md")
+    clockwise = [two_shares(row[5])[0] for row in seeds]
+    left = [two_shares(row[8]) for row in seeds]
+    ccw = [k for k in range(10) if clockwise[k] < 0.5]
+    cw = [k for k in range(10) if k not in ccw]
+    one_pot = [k for k in range(10) if min(left[k]) >= 0.9]
+    both = [k for k in range(10) if k not in one_pot]
+    return [
+        *ccw, *[clockwise[k] for k in ccw], len(cw), min(clockwise[k] for k in cw), max(clockwise[k] for k in cw),
+        *one_pot, min(min(left[k]) for k in one_pot), *both, min(min(left[k]) for k in both),
+        max(max(left[k]) for k in both), sum(c[1] == "ccw" for c in cc_conventions()),
+    ]  # fmt: skip
+
+
 @check("cc_sa10_growth")
 def _():
     out = []
