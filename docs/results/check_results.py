@@ -2765,7 +2765,10 @@ def _():
     out = []
     for study, method in ((CC10, "sp"), (CC_SA10, "sa")):
         for update in (92, 122, 152):
-            out += [sp_xp(matrix(study / "xp_snapshots" / f"{method}_update{update}.csv"))[2], snapshot_env_steps(update, study)]
+            out += [
+                sp_xp(matrix(study / "xp_snapshots" / f"{method}_update{update}.csv"))[2],
+                snapshot_env_steps(update, study),
+            ]
         out += [run(study, method)["xp"]["gap"], millions(study, method)]
     return out
 
