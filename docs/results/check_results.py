@@ -2760,6 +2760,19 @@ def _():
     ]  # fmt: skip
 
 
+@check("cc_sa10_sp_sa")
+def _():
+    m = matrix(CC_SA10 / "xp_sp_sa" / "matrix_mean.csv")  # row = SP seed, column = SA seed, both seat orders
+    sp_self, sa_self = np.diag(final_matrix(CC10)), np.diag(final_matrix(CC_SA10, "sa"))
+    low = below_half(m, sp_self[:, None], sa_self[None, :])
+    ccw = [k for k, c in enumerate(cc_conventions()) if c[1] == "ccw"]  # the SP seeds circling counter-clockwise
+    cw = [k for k in range(10) if k not in ccw]
+    return [
+        m.size, m.mean(), run(CC10, "sp")["xp"]["xp_mean"], run(CC_SA10, "sa")["xp"]["xp_mean"], int(low.sum()), m.size,
+        *ccw, m[np.ix_(ccw, range(10))].mean(), m[np.ix_(cw, range(10))].mean(),
+    ]  # fmt: skip
+
+
 @check("cc_sa10_growth")
 def _():
     out = []
