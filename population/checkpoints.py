@@ -14,6 +14,7 @@ checksum).
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 from pathlib import Path
 
@@ -137,6 +138,20 @@ def latest(run_dir, seed: int) -> Path | None:
 def snapshot_updates(num_updates: int, count: int) -> list[int]:
     """The paper's NUM_CHECKPOINTS snapshots: ``count`` points evenly over [0, num_updates]."""
     return sorted({int(round(x)) for x in np.linspace(0, num_updates, count)})
+
+
+def earlier_snapshots(run_dir) -> tuple[int, ...]:
+    """The snapshots of the earlier stops of an extended run (``cluster.runtime.extend``), which its
+    manifest.json records; () for a run never extended. They stay kept like the run's own snapshots."""
+    path = Path(run_dir) / "manifest.json"
+    try:
+        manifest = json.loads(path.read_text())
+    except FileNotFoundError:
+        return ()
+    except ValueError as error:
+        raise CheckpointError(f"{path}: is not valid JSON ({error})") from None
+    records = manifest.get("extensions", []) if isinstance(manifest, dict) else []
+    return tuple(sorted({int(u) for record in records for u in record.get("snapshots", [])}))
 
 
 def resolve_snapshot(name: str, snapshots: list[int]) -> int:

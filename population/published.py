@@ -115,6 +115,7 @@ def updates_to_publish(run_dir, seed: int, which: str = "snapshots") -> list[int
         return on_disk[-1:]
     config = load_run_config(run_dir)
     kept = set(ckpt.snapshot_updates(config.ppo.num_updates, config.run.num_checkpoints))
+    kept |= set(ckpt.earlier_snapshots(run_dir))  # an extended run's snapshots from before it was extended
     return [u for u in on_disk if u in kept]
 
 

@@ -4,6 +4,7 @@ mid-run and resumed; both must report the same numbers, and a finished run is ne
 from __future__ import annotations
 
 import csv
+import dataclasses
 import errno
 import hashlib
 import importlib.util
@@ -35,6 +36,7 @@ from cluster.study.runner import (
     StudyOptions,
     kept_study,
     open_state,
+    plan_study,
     read_state,
     result_problem,
     run_study,
@@ -103,6 +105,11 @@ def numbers(out: Path) -> dict:
     }
 
 
+def _seed_update(row: dict) -> tuple[int, int]:
+    """A metrics row's place (a resumed or extended run appends its rows chunk by chunk)."""
+    return int(row["seed"]), int(row["update"])
+
+
 def assert_same_runs(out: Path, reference: Path) -> None:
     for name, seeds, updates in (("sp", 2, 4), ("sa", 2, 8)):
         for seed in range(seeds):  # whole TrainStates, bit for bit
@@ -110,8 +117,8 @@ def assert_same_runs(out: Path, reference: Path) -> None:
             theirs = ckpt.read(ckpt.checkpoint_path(reference / "runs" / name, seed, updates))[1]
             for x, y in zip(jax.tree.leaves(mine), jax.tree.leaves(theirs), strict=True):
                 np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-        rows = read_csv(out / "runs" / name / "metrics.csv")
-        reference_rows = read_csv(reference / "runs" / name / "metrics.csv")
+        rows = sorted(read_csv(out / "runs" / name / "metrics.csv"), key=_seed_update)
+        reference_rows = sorted(read_csv(reference / "runs" / name / "metrics.csv"), key=_seed_update)
         assert len(rows) == len(reference_rows) == seeds * updates
         for row, other in zip(rows, reference_rows):
             assert {k: v for k, v in row.items() if k not in TIMING_COLUMNS} == {
@@ -1244,3 +1251,46 @@ def test_publish_stopped_by_a_damaged_checkpoint_leaves_no_unlisted_file(finishe
     shutil.copy(next((finished / "runs").glob("*/config.yaml")), config)
     assert main(["study", "publish", str(study), "--out", str(tmp_path / "a_file")]) == 2
     assert "a file, not a policies folder" in _one_line(capsys)
+
+
+def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(finished, tmp_path):
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    out = tmp_path / "extended"
+    half = StudyOptions(backend="local", show_progress=False, budget=0.5)
+    run_study(study, out, half, say=lambda _: None)
+    before = json.loads((out / "summary.json").read_text())
+    with pytest.raises(StudyError, match=r"started with --budget 0.5; .*or add --extend to train its runs on"):
+        plan_study(study, out, dataclasses.replace(half, budget=1.0))
+    lines = []
+    state = run_study(study, out, dataclasses.replace(half, budget=1.0, extend=True), say=lines.append)
+    assert all(step.done for step in state.steps.values())
+    assert [e["from"] for e in state.extensions] == [0.5] and state.budget == 1.0
+    assert any("run sa: extended from update 4 to 8" in line for line in lines), lines
+    # The same TrainStates, metrics, cross-play and over-training numbers as the study run at budget 1 at once:
+    assert_same_runs(out, finished)
+    assert numbers(out) == numbers(finished)
+    # and nothing made at 0.5 is lost.
+    kept = out / "extended" / "budget_0.5"
+    assert json.loads((kept / "summary.json").read_text()) == before
+    assert (kept / "over_training").is_dir() and (kept / "comparisons").is_dir()
+    assert (out / "runs" / "sp" / "extended" / "update_0000002" / "xp" / "summary.json").is_file()
+    assert "trained first to budget 0.5, then on along the same schedules to 1" in (out / "report.md").read_text()
+    assert ckpt.list_updates(out / "runs" / "sp", 0) == [0, 1, 2, 4]  # 0.5's snapshot at update 1 stays
+    # Once extended, the same command (or none of the options) continues it as any study.
+    assert run_study(study, out, dataclasses.replace(half, budget=1.0, extend=True), say=lambda _: None).budget == 1.0
+
+
+def test_extend_is_refused_where_a_larger_budget_is_another_schedule(tmp_path):
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    squeezed = tmp_path / "squeezed"
+    squeezed.mkdir()
+    StateFile(squeezed, open_state(study, squeezed, 0.5, None, "local", mode="compress")).save()
+    with pytest.raises(StudyError, match=r"--extend: .* compresses each schedule into its budget"):
+        open_state(study, squeezed, 1.0, None, "local", extend=True)
+    with pytest.raises(StudyError, match="--budget 0.25 is less than the 0.5"):
+        StateFile(squeezed, dataclasses.replace(read_state(squeezed), budget_mode="truncate")).save()
+        open_state(study, squeezed, 0.25, None, "local", extend=True)
+    with pytest.raises(StudyError, match="--extend needs --budget F"):
+        open_state(study, squeezed, None, None, "local", extend=True)
+    with pytest.raises(StudyError, match="holds no study yet"):
+        open_state(study, tmp_path / "new", 0.5, None, "local", extend=True)

@@ -1,6 +1,6 @@
 """``ocv2 study``: many population runs and their comparisons as one resumable command.
 
-    ocv2 study run STUDY.yaml [--budget F [--budget-mode truncate|compress]] [--seeds N] [--set K=V ...] [--backend ray|local] [--address A] [--out DIR] [--retrain RUN ...]
+    ocv2 study run STUDY.yaml [--budget F [--budget-mode truncate|compress]] [--seeds N] [--set K=V ...] [--backend ray|local] [--address A] [--out DIR] [--retrain RUN ...] [--extend]
     ocv2 study status DIR
     ocv2 study report DIR [--out FOLDER]
     ocv2 study publish DIR --out FOLDER [--which snapshots|final|all]
@@ -94,6 +94,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="train RUN again although it was trained with another config than the study now asks for "
         "(repeatable); the trained run and its cross-play move to DIR/replaced/. Without it such a run is refused",
     )
+    run.add_argument(
+        "--extend",
+        action="store_true",
+        help="with a --budget larger than a truncating DIR has: train its runs on along the same schedules "
+        "(the same numbers as training to that budget at once); the report and cross-play made at the old "
+        "budget move to DIR/extended/",
+    )
     run.add_argument("--quiet", action="store_true", help="no progress output")
     status = commands.add_parser("status", help="what is done, running and left, with an ETA")
     status.add_argument("dir", help="study directory")
@@ -165,6 +172,7 @@ def _run(args) -> int:
         budget_mode=args.budget_mode,
         overrides=tuple(args.overrides),
         retrain=tuple(args.retrain),
+        extend=args.extend,
     )
     # Every check before Ray starts and before the directory is written: a bad --set, a budget too small for
     # a config, a run this machine cannot hold, a trained run whose config changed (docs/studies.md).

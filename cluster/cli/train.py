@@ -1,7 +1,7 @@
 """``ocv2 train``: train a population (``ocv2 xp`` lives in ``cluster.cli.xp``).
 
 ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--backend ray|local] [--address A] [--resume]
-          [--logger tensorboard|wandb]
+          [--extend] [--logger tensorboard|wandb]
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from cluster.archive import ArchiveError
 from cluster.cli.args import add_set_option
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import ray_backend
+from cluster.runtime.extend import extend_run
 from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
@@ -55,6 +56,12 @@ def add_train(sub) -> argparse.ArgumentParser:
         help="Ray cluster to join: auto or HOST:PORT (default: cluster.address, else start Ray on this machine)",
     )
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoints")
+    parser.add_argument(
+        "--extend",
+        action="store_true",
+        help="with --resume: train a truncated run on to this config's later ppo.total_timesteps (the same "
+        "schedule, so the same numbers as training there at once; docs/studies.md, Extending a study)",
+    )
     parser.add_argument(
         "--logger",
         dest="loggers",
@@ -111,6 +118,8 @@ def run_train(args) -> int:
     out = args.out or _default_run_dir(config)
     if args.resume and not args.out:
         raise CLIError("--resume needs --out RUN_DIR (the run to continue)")
+    if args.extend and not args.resume:
+        raise CLIError("--extend needs --resume --out RUN_DIR (the truncated run to train on)")
     try:  # missing extras are reported before the run directory is touched
         require_backend(args.backend)
         check_loggers(args.loggers)
@@ -123,6 +132,8 @@ def run_train(args) -> int:
         applied, message = enable_deterministic_ops()
         log.log(logging.DEBUG if applied else logging.INFO, message)
     try:
+        if args.extend and (record := extend_run(out, config)) is not None:
+            log.info("%s: extended from update %d to %d", out, record["from_updates"], record["to_updates"])
         with ray_backend.session(args.backend, config.cluster):  # Ray before JAX starts here (its docstring)
             summary = train_population(
                 config,

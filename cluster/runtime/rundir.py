@@ -214,10 +214,14 @@ class RunDir:
             if existing.fingerprint() != config.fingerprint():
                 changed = trained_keys_changed(existing, config)
                 shown = "; ".join(changed[:5]) + (f"; and {len(changed) - 5} more" if len(changed) > 5 else "")
+                longer = all(c.split(":")[0] in ("ppo.total_timesteps", "ppo.schedule_timesteps") for c in changed)
+                advice = "choose another --out"
+                if longer and existing.ppo.schedule_timesteps is not None:  # a truncated run trained further
+                    advice = "add --extend to train this truncated run on along its schedule, or " + advice
                 raise RunDirError(
                     f"{self.path}: holds a run of a different config (fingerprint "
                     f"{existing.fingerprint()} vs {config.fingerprint()}{': ' + shown if shown else ''}); "
-                    "choose another --out"
+                    f"{advice}"
                 )
             if not resume:
                 raise RunDirError(

@@ -53,6 +53,7 @@ class Schedule:
             created = _created_config(run_dir)
             if created is not None:
                 protected = tuple(ckpt.snapshot_updates(created.ppo.num_updates, created.run.num_checkpoints))
+            protected = tuple(sorted({*protected, *ckpt.earlier_snapshots(run_dir)}))  # an extended run's
         return Schedule(
             updates,
             tuple(ckpt.snapshot_updates(updates, config.run.num_checkpoints)),

@@ -50,6 +50,7 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
         "source": str(study.path),
         "budget": state.budget,
         "budget_mode": state.budget_mode,
+        "extensions": [{"from": e["from"], "to": e["to"]} for e in state.extensions],
         "seeds": state.seeds,
         "set": list(state.overrides),
         "backend": state.backend,
@@ -500,6 +501,11 @@ def markdown(study: Study, summary: dict, state: StudyState) -> str:
     lines += [
         f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps"
         + (" (the paper's experiment)" if budget == 1 else f" (**reduced: not the paper's experiment**; {how})"),
+        *[
+            f"- extended (`--extend`): trained first to budget {e['from']:g}, then on along the same schedules to "
+            f"{e['to']:g}; the report and cross-play at {e['from']:g} are in `extended/budget_{e['from']:g}/`"
+            for e in summary.get("extensions", [])
+        ],
         f"- seeds per run: {summary['seeds'] or 'as each config'}; backend: {summary['backend']}; "
         f"wall time{' so far' if left else ''}: {duration(summary['wall_s'])}",
         *([f"- every run also with `{' '.join(summary['set'])}` (`--set`)"] if summary["set"] else []),

@@ -31,6 +31,7 @@ from pathlib import Path
 
 from cluster.api import train_population
 from cluster.runtime import crossplay
+from cluster.runtime.extend import extend_run, extension_problem
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import DirLock, RunDir, RunDirError, write_json
 from cluster.study.report import read_result, write_report
@@ -66,8 +67,9 @@ class StudyOptions:
     overrides for every run, after the study file's own. Left None (or empty), each is what the study
     directory was started with; a new directory takes 1, "truncate", each config's own seeds and none.
     ``backend``/``address``: as ``ocv2 train``; ``show_progress``: the training bars and progress lines;
-    ``retrain``: runs trained with another config that are trained again. ``Plan.options`` holds them
-    resolved against the directory (``budget`` and ``budget_mode`` set)."""
+    ``retrain``: runs trained with another config that are trained again; ``extend``: a larger ``budget``
+    than a truncating directory keeps trains its runs on along the same schedules (``cluster.runtime.extend``).
+    ``Plan.options`` holds them resolved against the directory (``budget`` and ``budget_mode`` set)."""
 
     budget: float | None = None
     seeds: int | None = None
@@ -77,6 +79,7 @@ class StudyOptions:
     budget_mode: str | None = None
     overrides: tuple[str, ...] = ()
     retrain: tuple[str, ...] = ()
+    extend: bool = False
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -127,14 +130,20 @@ def open_state(
     backend: str,
     overrides: Sequence[str] = (),
     mode: str | None = None,
+    extend: bool = False,
 ) -> StudyState:
     """The study directory's state, created or checked: a directory keeps the budget, its mode, the seed
-    count and ``--set`` overrides it was started with (options left out on a later run take those values)."""
+    count and ``--set`` overrides it was started with (options left out on a later run take those values);
+    with ``extend``, a larger budget of a truncating directory is taken and recorded (``extensions``)."""
     state = read_state(out)
     given_overrides = tuple(overrides) or None
+    if extend and budget is None:
+        raise StudyError("--extend needs --budget F, the larger budget to train the study's runs on to")
     if state is not None:
         if state.study != study.name:
             raise StudyError(f"{out}: holds study {state.study!r}, not {study.name!r}; choose another --out")
+        if extend and budget != state.budget:
+            _extend_budget(state, out, budget)
         kept_options = (
             ("--budget", budget, state.budget),
             ("--budget-mode", mode, state.budget_mode),
@@ -146,11 +155,15 @@ def open_state(
                 shown = f"{flag} {kept}"
                 if flag == "--set":
                     shown = " ".join(f"--set {o}" for o in kept) or "no --set"
+                longer = flag == "--budget" and state.budget_mode == "truncate" and given > kept
                 raise StudyError(
                     f"{out}: was started with {shown}; pass the same value (or none) to continue "
                     "it, or choose another --out"
+                    + ("; or add --extend to train its runs on along the same schedules" if longer else "")
                 )
     else:
+        if extend:
+            raise StudyError(f"--extend: {out} holds no study yet; a new study takes --budget without it")
         if out.exists() and not out.is_dir():
             raise StudyError(f"{out}: is a file, not a study directory")
         if out.is_dir() and any(p.name not in ("runs", ".lock") for p in out.iterdir()):
@@ -166,6 +179,19 @@ def open_state(
         )
     state.source, state.spec, state.backend = str(study.path), study.raw, backend
     return state
+
+
+def _extend_budget(state: StudyState, out: Path, budget: float) -> None:
+    """Raise ``state``'s budget to ``budget`` for ``--extend`` (the runs follow in ``run_study``)."""
+    if state.budget_mode != "truncate":
+        raise StudyError(
+            f"--extend: {out} compresses each schedule into its budget (--budget-mode compress), so a larger "
+            "budget is another schedule, not more of the same; choose another --out"
+        )
+    if budget < state.budget:
+        raise StudyError(f"--extend: --budget {budget:g} is less than the {state.budget:g} {out} has trained to")
+    state.extensions.append({"from": state.budget, "to": budget, "at": time.time()})
+    state.budget = budget
 
 
 def kept_study(state: StudyState, out: Path) -> Study:
@@ -245,7 +271,9 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     directory that cannot be read)."""
     out = Path(out).resolve()
     backend, address = options.backend, options.address
-    state = open_state(study, out, options.budget, options.seeds, backend, options.overrides, options.budget_mode)
+    state = open_state(
+        study, out, options.budget, options.seeds, backend, options.overrides, options.budget_mode, options.extend
+    )
     study = with_overrides(study, list(state.overrides))
     retrain = tuple(dict.fromkeys(options.retrain))
     options = dataclasses.replace(
@@ -269,6 +297,8 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     _check_retrain(study, out, retrain)
     for run in study.runs:
         differences = trained_differences(run_dir(out, run.name), configs[run.name])
+        if differences and state.extensions and _only_longer(run_dir(out, run.name), configs[run.name]):
+            continue  # trained to an earlier budget of this study: run_study extends it
         if differences and run.name not in retrain:
             more = f" and {len(differences) - 2} more" if len(differences) > 2 else ""
             raise StudyError(
@@ -277,6 +307,11 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
                 "again (the trained run and its cross-play move to replaced/)"
             )
     return Plan(study, out, state, options, configs, retrain)
+
+
+def _only_longer(path: Path, planned: Config) -> bool:
+    """Whether the run in ``path`` can be extended to ``planned`` (a later stop on its schedule)."""
+    return extension_problem(RunDir(path).load_config(), planned) is None
 
 
 def _check_retrain(study: Study, out: Path, retrain: tuple[str, ...]) -> None:
@@ -356,7 +391,19 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         state = StateFile(out, plan.state)
         for name in plan.retrain:
             _set_aside(study, out, name, state, say)
+        kept = read_state(out)
+        if kept is not None and kept.budget != plan.state.budget:  # --extend, now: the old results step aside
+            _set_aside_results(study, out, kept.budget, state, say)
         state.save()
+        for run in study.runs if plan.state.extensions else ():  # runs trained to an earlier budget
+            path = run_dir(out, run.name)
+            if not trained_differences(path, configs[run.name]):
+                continue
+            if (record := extend_run(path, configs[run.name])) is not None:
+                say(
+                    f"study {study.name}: run {run.name}: extended from update {record['from_updates']} to "
+                    f"{record['to_updates']} (its evaluation there kept in {path / 'extended'})"
+                )
         steps = study_steps(study)
         for number, step in enumerate(steps, start=1):
             name = step.name
@@ -397,6 +444,22 @@ def _set_aside(study: Study, out: Path, name: str, state: StateFile, say: Callab
             source.rename(destination)
             say(f"study {study.name}: --retrain {name}: moved {source} to {destination}")
     state.save()
+
+
+def _set_aside_results(study: Study, out: Path, budget: float, state: StateFile, say: Callable[[str], None]) -> None:
+    """Move the report and the cross-play results made at ``budget`` to ``out/extended/budget_<budget>/`` (a
+    study extended with ``--extend``; nothing is deleted) and mark the cross-play steps left."""
+    target = out / "extended" / f"budget_{budget:g}"
+    names = ["report.md", "summary.json", *(p.name for p in out.glob("*.png")), "over_training", "comparisons"]
+    for name in names:
+        source = out / name
+        if source.exists():
+            target.mkdir(parents=True, exist_ok=True)
+            source.rename(target / name)
+    for step in study_steps(study):
+        if step.kind != "train":
+            state.state.steps.pop(step.name, None)
+    say(f"study {study.name}: --extend: the results at budget {budget:g} moved to {target}")
 
 
 class StudyBlocked(Exception):

@@ -103,6 +103,8 @@ class StudyState:
     created: float | None = None
     report: dict | None = None
     steps: dict[str, StepRecord] = dataclasses.field(default_factory=dict)
+    # ``--extend``: each raise of the budget, {"from": old budget, "to": new budget, "at": unix time}
+    extensions: list[dict] = dataclasses.field(default_factory=list)
     extra: dict = dataclasses.field(default_factory=dict)  # fields this version does not know, kept as they were
 
     def step(self, name: str) -> StepRecord:
@@ -122,6 +124,8 @@ class StudyState:
         for key in ("created", "source", "backend", "report"):
             if getattr(self, key) is not None:
                 data[key] = getattr(self, key)
+        if self.extensions:
+            data["extensions"] = self.extensions
         return {**self.extra, **data, "spec": self.spec}
 
     @classmethod
@@ -156,7 +160,15 @@ class StudyState:
         steps = data.get("steps", {})
         if not isinstance(steps, dict):
             raise _bad(path, "steps", "an object of steps", steps)
-        known = ("study", "spec", "budget", "budget_mode", "seeds", "set", "source", "backend", "created", "report")
+        extensions = data.get("extensions", [])
+        if not isinstance(extensions, list) or not all(
+            isinstance(e, dict) and is_number(e.get("from")) and is_number(e.get("to")) for e in extensions
+        ):
+            raise _bad(path, "extensions", 'a list of {"from": budget, "to": budget} objects', extensions)
+        known = (
+            *("study", "spec", "budget", "budget_mode", "seeds", "set", "source", "backend", "created", "report"),
+            "extensions",
+        )
         return cls(
             study=study,
             spec=data["spec"],
@@ -169,6 +181,7 @@ class StudyState:
             created=data.get("created"),
             report=data.get("report"),
             steps={name: StepRecord.from_json(step, f"steps[{name!r}]", path) for name, step in steps.items()},
+            extensions=extensions,
             extra={k: v for k, v in data.items() if k not in (*known, "steps")},
         )
 
