@@ -2030,20 +2030,6 @@ def gap_delta_numbers(base: Path, base_method: str, other: Path, other_method: s
     return [here - there, *study_delta(base, base_method, other, other_method)["gap"], paper_delta]
 
 
-@check("sa10_final")
-def _():
-    return final_numbers(SA10, "sa")
-
-
-def _sa10_delta_numbers() -> list:
-    return gap_delta_numbers(SP10, "sp", SA10, "sa")
-
-
-@check("sa10_delta")
-def _():
-    return [run(SA10, "sa")["xp"]["gap"], run(SP10, "sp")["xp"]["gap"], *_sa10_delta_numbers()]
-
-
 @check("sa10_pairs")
 def _():
     p = both_seats(sa10_final())
@@ -2061,11 +2047,6 @@ def _():
 
 def sa10_low_pairs() -> list[tuple[int, int, float]]:
     return low_pairs(SA10, "sa")
-
-
-@check("sa10_claim")
-def _():
-    return [*claim_row(SA10, "sa"), *_sa10_delta_numbers()[:3], len(sa10_low_pairs()), 45]
 
 
 @check("sa10_table")
@@ -2231,25 +2212,6 @@ def onions_on_21(study: Path) -> list[int]:
     return [k for k, (onion, _) in enumerate(conventions(study)) if onion == 0]
 
 
-def _fc_sa10_delta_numbers() -> list:
-    return gap_delta_numbers(FC10, "sp", FC_SA10, "sa")
-
-
-@check("fc_sa10_final")
-def _():
-    return final_numbers(FC_SA10, "sa")
-
-
-@check("fc_sa10_delta")
-def _():
-    return [run(FC_SA10, "sa")["xp"]["gap"], run(FC10, "sp")["xp"]["gap"], *_fc_sa10_delta_numbers()]
-
-
-@check("fc_sa10_low_pairs")
-def _():
-    return [*low_pair_numbers(FC_SA10, "sa"), len(low_pairs(FC10)), 45]
-
-
 @check("fc_sa10_conventions")
 def _():
     plates = handover_counters(FC_SA10, "plates")
@@ -2346,15 +2308,23 @@ def _():
     ]  # fmt: skip
 
 
-@check("fc_sa10_growth")
-def _():
+def gap_growth(*studies: tuple[Path, str, Path]) -> list:
+    """For each (study, method, folder of its snapshot cross-play): the gap at updates 92, 122 and 152 (32 episodes
+    per pair, ``<folder>/xp_snapshots/<method>_update<u>.csv``) with their env steps, then the final gap and
+    env steps in millions."""
     out = []
-    for study, method in ((FC10, "sp"), (FC_SA10, "sa")):
+    for study, method, folder in studies:
         for update in (92, 122, 152):
-            snapshot = matrix(FC_SA10 / "xp_snapshots" / f"{method}_update{update}.csv")
+            snapshot = matrix(folder / "xp_snapshots" / f"{method}_update{update}.csv")
             out += [sp_xp(snapshot)[2], snapshot_env_steps(update, study)]
         out += [run(study, method)["xp"]["gap"], millions(study, method)]
     return out
+
+
+@check("fc_sa10_growth")
+def _():
+    # The SP snapshots' cross-play lies in the SA study's folder.
+    return gap_growth((FC10, "sp", FC_SA10), (FC_SA10, "sa", FC_SA10))
 
 
 def failing_cells(m: np.ndarray) -> int:
@@ -2370,21 +2340,11 @@ def _():
     return [failing_cells(sa), 90, failing_cells(sp), 90]
 
 
-@check("fc_sa10_paired")
-def _():
-    return paired_gap_difference(final_matrix(FC10), final_matrix(FC_SA10, "sa"))
-
-
 @check("fc_sa10_rest")
 def _():
     on_21 = onions_on_21(FC_SA10)
     rest = [k for k in range(10) if k not in on_21]
     return [*on_21, len(rest), sp_xp(final_matrix(FC_SA10, "sa"), rest)[2], run(FC10, "sp")["xp"]["gap"]]
-
-
-@check("fc_sa10_claim")
-def _():
-    return [*claim_row(FC_SA10, "sa"), *_fc_sa10_delta_numbers()[:3], len(low_pairs(FC_SA10, "sa")), 45]
 
 
 @check("fc10_claim")
@@ -2701,33 +2661,9 @@ def _():
 # --- Table 1 Counter Circuit SA, 10 seeds at 3M env steps, beside the SP seeds
 
 
-def _cc_sa10_delta_numbers() -> list:
-    return gap_delta_numbers(CC10, "sp", CC_SA10, "sa")
-
-
-@check("cc_sa10_final")
-def _():
-    return final_numbers(CC_SA10, "sa")
-
-
-@check("cc_sa10_delta")
-def _():
-    return [run(CC_SA10, "sa")["xp"]["gap"], run(CC10, "sp")["xp"]["gap"], *_cc_sa10_delta_numbers()]
-
-
-@check("cc_sa10_paired")
-def _():
-    return paired_gap_difference(final_matrix(CC10), final_matrix(CC_SA10, "sa"))
-
-
 @check("cc_sa10_within")
 def _():
     return paper_beside_intervals(CC_SA10, "sa")
-
-
-@check("cc_sa10_low_pairs")
-def _():
-    return [*low_pair_numbers(CC_SA10, "sa"), len(low_pairs(CC10)), 45]
 
 
 @check("cc_sa10_rest")
@@ -2775,20 +2711,54 @@ def _():
 
 @check("cc_sa10_growth")
 def _():
-    out = []
-    for study, method in ((CC10, "sp"), (CC_SA10, "sa")):
-        for update in (92, 122, 152):
-            out += [
-                sp_xp(matrix(study / "xp_snapshots" / f"{method}_update{update}.csv"))[2],
-                snapshot_env_steps(update, study),
-            ]
-        out += [run(study, method)["xp"]["gap"], millions(study, method)]
-    return out
+    return gap_growth((CC10, "sp", CC10), (CC_SA10, "sa", CC_SA10))
 
 
-@check("cc_sa10_claim")
-def _():
-    return [*claim_row(CC_SA10, "sa"), *_cc_sa10_delta_numbers()[:3], len(low_pairs(CC_SA10, "sa")), 45]
+# --- what every 10-seed SA study beside its 10 SP seeds at the same budget reports
+
+
+def sa_final(sp: Path, sa: Path) -> list:
+    """The SA population's SP, XP and gap with intervals (``final_numbers``)."""
+    return final_numbers(sa, "sa")
+
+
+def sa_delta(sp: Path, sa: Path) -> list:
+    """SA's gap, SP's gap, their difference with its interval and the paper's difference."""
+    return [run(sa, "sa")["xp"]["gap"], run(sp, "sp")["xp"]["gap"], *gap_delta_numbers(sp, "sp", sa, "sa")]
+
+
+def sa_paired(sp: Path, sa: Path) -> list:
+    """The gap difference's interval with the same seeds resampled in both populations."""
+    return paired_gap_difference(final_matrix(sp), final_matrix(sa, "sa"))
+
+
+def sa_low_pairs(sp: Path, sa: Path) -> list:
+    """SA's failing pairs (``low_pair_numbers``) beside SP's count."""
+    return [*low_pair_numbers(sa, "sa"), len(low_pairs(sp)), 45]
+
+
+def sa_claim(sp: Path, sa: Path) -> list:
+    """The claims table's row: SA's numbers, the gap difference and the failing pairs."""
+    return [*claim_row(sa, "sa"), *gap_delta_numbers(sp, "sp", sa, "sa")[:3], len(low_pairs(sa, "sa")), 45]
+
+
+SA_BESIDE_SP = {"final": sa_final, "delta": sa_delta, "paired": sa_paired, "low_pairs": sa_low_pairs, "claim": sa_claim}
+
+
+def register_sa_beside_sp() -> None:
+    """``<name>_final``, ``_delta``, ``_paired``, ``_low_pairs`` and ``_claim`` of each SA study beside its SP seeds
+    (the Coordination Ring section, written first, states its failing pairs and no paired interval: sa10_pairs)."""
+    studies = {
+        "sa10": (SP10, SA10, ("final", "delta", "claim")),
+        "fc_sa10": (FC10, FC_SA10, tuple(SA_BESIDE_SP)),
+        "cc_sa10": (CC10, CC_SA10, tuple(SA_BESIDE_SP)),
+    }
+    for name, (sp, sa, kinds) in studies.items():
+        for kind in kinds:
+            check(f"{name}_{kind}")(functools.partial(SA_BESIDE_SP[kind], sp, sa))
+
+
+register_sa_beside_sp()
 
 
 def register_run_rows() -> None:
