@@ -2681,8 +2681,8 @@ def _():
 
 @check("cc_sa10_conventions")
 def _():
-    """The SA seeds' direction round the island and pot use (roles.md: one table, the seeds at update 183)."""
-    (seeds,) = md_tables(CC_SA10 / "roles.md")
+    """The SA seeds' direction round the island and pot use (roles.md's first table, the seeds at update 183)."""
+    seeds, _ = cc_roles(CC_SA10)
     clockwise = [two_shares(row[5])[0] for row in seeds]
     left = [two_shares(row[8]) for row in seeds]
     ccw = [k for k in range(10) if clockwise[k] < 0.5]
@@ -2693,6 +2693,32 @@ def _():
         *ccw, *[clockwise[k] for k in ccw], len(cw), min(clockwise[k] for k in cw), max(clockwise[k] for k in cw),
         *one_pot, min(min(left[k]) for k in one_pot), *both, min(min(left[k]) for k in both),
         max(max(left[k]) for k in both), sum(c[1] == "ccw" for c in cc_conventions()),
+    ]  # fmt: skip
+
+
+def seat_count(cell: str) -> tuple[float, float]:
+    """A roles table's "<seat 0 share> of <count>" cell."""
+    share, count = cell.split(" of ")
+    return float(share), float(count)
+
+
+@check("cc_sa10_pair_roles")
+def _():
+    """The failing SA pairs (all seed 2's, both seat orders) from roles.md's second table: how seed 2 circles the
+    island there beside on its own, the onions the pair pots against its two seeds' self-play mean, and how often
+    the partner delivers 0.65 or more of the soups."""
+    seeds, pairs = cc_roles(CC_SA10)
+    (odd,) = set.intersection(*({i, j} for i, j, _ in low_pairs(CC_SA10, "sa")))  # the seed in every failing pair
+    cw, onions, partner = [], [], []
+    for (i, j), row in pairs.items():
+        seat = 0 if i == odd else 1
+        delivered = seat_count(row[4])[0]
+        partner.append(1 - delivered if seat == 0 else delivered)
+        cw.append(two_shares(row[5])[seat])
+        onions.append(seat_count(row[1])[1] / np.mean([seat_count(seeds[k][1])[1] for k in (i, j)]))
+    return [
+        len(pairs), len(low_pairs(CC_SA10, "sa")), odd, two_shares(seeds[odd][5])[0], min(cw), max(cw),
+        min(onions), max(onions), 0.65, sum(p >= 0.65 for p in partner), len(pairs),
     ]  # fmt: skip
 
 
