@@ -25,6 +25,7 @@ from test_train_cli import (
 from cluster.runtime.extend import extend_run, sealed_files
 from cluster.runtime.rundir import RunDirError
 from population import checkpoints as ckpt
+from population import published
 from population.config import load_config
 
 SCHEDULE = "ppo.schedule_timesteps=768"  # 6 updates of 128 env steps
@@ -58,6 +59,7 @@ def test_an_extended_run_is_the_run_trained_to_the_later_stop(truncated, straigh
     # The first stop's snapshots stay (its update 2 is none of the longer run's 0, 3, 6) ...
     assert all(ckpt.list_updates(run, seed) == [0, 2, 3, 6] for seed in range(NUM_SEEDS))
     assert all(ckpt.list_updates(straight, seed) == [0, 3, 6] for seed in range(NUM_SEEDS))
+    assert published.updates_to_publish(run, 0) == [2, 3, 6]  # `ocv2 study publish` exports them too
     # ... and so does the evaluation made there; the manifest says what happened.
     kept = run / "extended" / "update_0000003"
     assert json.loads((kept / "xp" / "summary.json").read_text()) == json.loads(
