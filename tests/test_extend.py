@@ -66,6 +66,10 @@ def test_an_extended_run_is_the_run_trained_to_the_later_stop(truncated, straigh
         (truncated / "xp" / "summary.json").read_text()
     )
     assert not (run / "xp").exists()
+    assert sorted(p.name for p in (kept / "archive" / "xp").iterdir()) == sorted(
+        p.name for p in (truncated / "archive" / "xp").iterdir()
+    )  # the old stop's cross-play episodes: the new evaluation writes the same file names
+    assert load_config(run / "config.yaml").eval.episodes == 3  # keys outside the fingerprint stay the run's
     (record,) = manifest(run)["extensions"]
     assert (record["from_updates"], record["to_updates"], record["snapshots"]) == (3, 6, [0, 2, 3])
     assert manifest(run)["update"] == 6
@@ -93,10 +97,10 @@ def test_resuming_to_a_later_stop_without_extend_says_how(truncated, capsys):
 def test_what_is_no_extension_is_refused_and_the_run_left_as_it_was(truncated, tmp_path, capsys, overrides, message):
     run = tmp_path / "run"
     shutil.copytree(truncated, run)
-    files = {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != ".lock"}
+    files = _files(run)
     assert train(run, *overrides, extra=["--resume", "--extend"]) == 2
     assert message in capsys.readouterr().err
-    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != ".lock"} == files
+    assert _files(run) == files
 
 
 def test_a_run_that_trained_its_whole_schedule_cannot_be_extended(tmp_path):
@@ -124,12 +128,28 @@ def test_an_interrupted_extension_is_finished_by_running_it_again(truncated, tmp
     assert extend_run(run, later) is None  # already extended: nothing to do
 
 
-def test_a_file_of_another_run_stops_the_extension_naming_it(truncated, tmp_path):
+def _files(run) -> dict:
+    return {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != ".lock"}
+
+
+def test_a_file_of_another_run_stops_the_extension_before_anything_is_written(truncated, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(truncated, run)
-    stray = ckpt.checkpoint_path(run, 0, 2)
+    stray = ckpt.checkpoint_path(run, 1, 2)  # after seed 0's files: those must not be re-stamped first
     meta, state = ckpt.read(stray)
     ckpt.save(stray, state, "0123456789abcdef", update=meta["update"])
-    with pytest.raises(RunDirError, match=r"update_0000002.msgpack: carries fingerprint 0123456789abcdef"):
+    before = _files(run)
+    with pytest.raises(RunDirError, match=r"update_0000002.msgpack: carries fingerprint 0123456789abcdef.*nothing"):
         extend_run(run, load_config(SMOKE, [SCHEDULE, LATER]))
-    assert (run / "xp").is_dir() and "extensions" not in manifest(run)
+    assert _files(run) == before
+
+
+def test_a_damaged_file_stops_the_extension_before_anything_is_written(truncated, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(truncated, run)
+    damaged = ckpt.checkpoint_path(run, 1, 3)
+    damaged.write_bytes(damaged.read_bytes()[:-100])
+    before = _files(run)
+    with pytest.raises(RunDirError, match=r"seed_1/update_0000003.msgpack: .*nothing was changed: restore the file"):
+        extend_run(run, load_config(SMOKE, [SCHEDULE, LATER]))
+    assert _files(run) == before

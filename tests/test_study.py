@@ -34,6 +34,7 @@ from cluster.study.runner import (
     StateFile,
     Step,
     StudyOptions,
+    _set_aside_results,
     kept_study,
     open_state,
     plan_study,
@@ -1261,6 +1262,12 @@ def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(
     before = json.loads((out / "summary.json").read_text())
     with pytest.raises(StudyError, match=r"started with --budget 0.5; .*or add --extend to train its runs on"):
         plan_study(study, out, dataclasses.replace(half, budget=1.0))
+    # As `ocv2 study status` sees it right after the old results were set aside: the runs train on.
+    plan = plan_study(study, out, dataclasses.replace(half, budget=1.0, extend=True))
+    aside = StateFile(out, plan.state)
+    shutil.copytree(out, tmp_path / "aside")
+    _set_aside_results(study, tmp_path / "aside", 0.5, aside, lambda _: None)
+    assert {name: step.status for name, step in aside.state.steps.items()} == {"train sp": "left", "train sa": "left"}
     lines = []
     state = run_study(study, out, dataclasses.replace(half, budget=1.0, extend=True), say=lines.append)
     assert all(step.done for step in state.steps.values())
@@ -1276,8 +1283,25 @@ def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(
     assert (out / "runs" / "sp" / "extended" / "update_0000002" / "xp" / "summary.json").is_file()
     assert "trained first to budget 0.5, then on along the same schedules to 1" in (out / "report.md").read_text()
     assert ckpt.list_updates(out / "runs" / "sp", 0) == [0, 1, 2, 4]  # 0.5's snapshot at update 1 stays
+    # An extended study still refuses a run whose other settings changed (here the episodes its cross-play used).
+    changed = load_study(write_study(tmp_path / "more.yaml", {**STUDY, "set": ["eval.episodes=3", *STUDY["set"][1:]]}))
+    with pytest.raises(StudyError, match=r"run 'sp': .* was trained with another config \(eval.episodes: 2 in the run"):
+        plan_study(changed, out, dataclasses.replace(half, budget=1.0))
     # Once extended, the same command (or none of the options) continues it as any study.
     assert run_study(study, out, dataclasses.replace(half, budget=1.0, extend=True), say=lambda _: None).budget == 1.0
+
+
+def test_extend_with_retrain_sets_the_old_results_aside_too(finished, tmp_path):
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    out = tmp_path / "both"
+    half = StudyOptions(backend="local", show_progress=False, budget=0.5)
+    run_study(study, out, half, say=lambda _: None)
+    before = json.loads((out / "summary.json").read_text())
+    both = dataclasses.replace(half, budget=1.0, extend=True, retrain=("sa",))
+    run_study(study, out, both, say=lambda _: None)
+    assert json.loads((out / "extended" / "budget_0.5" / "summary.json").read_text()) == before
+    assert_same_runs(out, finished)  # sp extended, sa trained again from update 0: the same numbers
+    assert numbers(out) == numbers(finished)
 
 
 def test_extend_is_refused_where_a_larger_budget_is_another_schedule(tmp_path):

@@ -214,9 +214,8 @@ class RunDir:
             if existing.fingerprint() != config.fingerprint():
                 changed = trained_keys_changed(existing, config)
                 shown = "; ".join(changed[:5]) + (f"; and {len(changed) - 5} more" if len(changed) > 5 else "")
-                longer = all(c.split(":")[0] in ("ppo.total_timesteps", "ppo.schedule_timesteps") for c in changed)
                 advice = "choose another --out"
-                if longer and existing.ppo.schedule_timesteps is not None:  # a truncated run trained further
+                if later_stop(existing, config, changed):
                     advice = "add --extend to train this truncated run on along its schedule, or " + advice
                 raise RunDirError(
                     f"{self.path}: holds a run of a different config (fingerprint "
@@ -423,6 +422,18 @@ class RunDir:
                 continue
             rows.append(row)
         return rows, torn
+
+
+def later_stop(run: Config, now: Config, changed: list[str]) -> bool:
+    """Whether ``now`` differs from ``run`` (a truncated run; ``changed``: ``trained_keys_changed``) only in a later
+    stop on the same schedule: what ``--extend`` trains (``cluster.runtime.extend``)."""
+    stop_only = all(line.split(":")[0] in ("ppo.total_timesteps", "ppo.schedule_timesteps") for line in changed)
+    schedule = now.ppo.schedule_timesteps or now.ppo.total_timesteps
+    return (
+        stop_only
+        and run.ppo.schedule_timesteps == schedule  # None (a whole schedule) never equals it
+        and now.ppo.num_updates > run.ppo.num_updates
+    )
 
 
 def trained_keys_changed(run: Config, now: Config) -> list[str]:

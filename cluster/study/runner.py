@@ -31,7 +31,7 @@ from pathlib import Path
 
 from cluster.api import train_population
 from cluster.runtime import crossplay
-from cluster.runtime.extend import extend_run, extension_problem
+from cluster.runtime.extend import EXTENDED_KEYS, extend_run, extension_problem
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import DirLock, RunDir, RunDirError, write_json
 from cluster.study.report import read_result, write_report
@@ -297,21 +297,20 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     _check_retrain(study, out, retrain)
     for run in study.runs:
         differences = trained_differences(run_dir(out, run.name), configs[run.name])
-        if differences and state.extensions and _only_longer(run_dir(out, run.name), configs[run.name]):
+        if not differences or run.name in retrain:
+            continue
+        problem = extension_problem(RunDir(run_dir(out, run.name)).load_config(), configs[run.name])
+        longer = all(d.split(":")[0] in EXTENDED_KEYS for d in differences) and problem is None
+        if longer and state.extensions:
             continue  # trained to an earlier budget of this study: run_study extends it
-        if differences and run.name not in retrain:
-            more = f" and {len(differences) - 2} more" if len(differences) > 2 else ""
-            raise StudyError(
-                f"{study.origin}: run {run.name!r}: {run_dir(out, run.name)} was trained with another config "
-                f"({'; '.join(differences[:2])}{more}); undo the change, or pass --retrain {run.name} to train it "
-                "again (the trained run and its cross-play move to replaced/)"
-            )
+        more = f" and {len(differences) - 2} more" if len(differences) > 2 else ""
+        why = f"; it cannot be extended: {problem}" if state.extensions and problem else ""
+        raise StudyError(
+            f"{study.origin}: run {run.name!r}: {run_dir(out, run.name)} was trained with another config "
+            f"({'; '.join(differences[:2])}{more}){why}; undo the change, or pass --retrain {run.name} to train it "
+            "again (the trained run and its cross-play move to replaced/)"
+        )
     return Plan(study, out, state, options, configs, retrain)
-
-
-def _only_longer(path: Path, planned: Config) -> bool:
-    """Whether the run in ``path`` can be extended to ``planned`` (a later stop on its schedule)."""
-    return extension_problem(RunDir(path).load_config(), planned) is None
 
 
 def _check_retrain(study: Study, out: Path, retrain: tuple[str, ...]) -> None:
@@ -388,10 +387,10 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
     try:
         plan = plan_study(*arguments)  # again under the lock: what another driver did before it is seen
         study, configs = plan.study, plan.configs
+        kept = read_state(out)  # before _set_aside saves the plan's state
         state = StateFile(out, plan.state)
         for name in plan.retrain:
             _set_aside(study, out, name, state, say)
-        kept = read_state(out)
         if kept is not None and kept.budget != plan.state.budget:  # --extend, now: the old results step aside
             _set_aside_results(study, out, kept.budget, state, say)
         state.save()
@@ -450,6 +449,8 @@ def _set_aside_results(study: Study, out: Path, budget: float, state: StateFile,
     """Move the report and the cross-play results made at ``budget`` to ``out/extended/budget_<budget>/`` (a
     study extended with ``--extend``; nothing is deleted) and mark the cross-play steps left."""
     target = out / "extended" / f"budget_{budget:g}"
+    if target.exists():  # an extension to this budget set aside before (then the study went on at it)
+        target = target.with_name(f"{target.name}_{time.strftime('%Y%m%d-%H%M%S')}")
     names = ["report.md", "summary.json", *(p.name for p in out.glob("*.png")), "over_training", "comparisons"]
     for name in names:
         source = out / name
@@ -459,6 +460,8 @@ def _set_aside_results(study: Study, out: Path, budget: float, state: StateFile,
     for step in study_steps(study):
         if step.kind != "train":
             state.state.steps.pop(step.name, None)
+        elif step.name in state.state.steps:  # trains on: not done (its wall time so far stays)
+            state.state.steps[step.name].status = "left"
     say(f"study {study.name}: --extend: the results at budget {budget:g} moved to {target}")
 
 
