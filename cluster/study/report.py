@@ -50,7 +50,6 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
         "source": str(study.path),
         "budget": state.budget,
         "budget_mode": state.budget_mode,
-        "extensions": [{"from": e["from"], "to": e["to"]} for e in state.extensions],
         "seeds": state.seeds,
         "set": list(state.overrides),
         "backend": state.backend,
@@ -62,6 +61,8 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
         "ci_method": "95% percentile bootstrap over training seeds",
         "wall_s": round(sum(step.wall_s for step in state.steps.values()), 1),
     }
+    if state.extensions:  # only then: a study never extended keeps the summary it always had
+        summary["extensions"] = [{"from": e["from"], "to": e["to"]} for e in state.extensions]
     pictures = (
         _curves(study, out, configs, dest) + _heatmaps(out, runs, comparisons, dest) + _over_training_plots(dest, over)
     )
