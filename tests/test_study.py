@@ -1254,22 +1254,30 @@ def test_publish_stopped_by_a_damaged_checkpoint_leaves_no_unlisted_file(finishe
     assert "a file, not a policies folder" in _one_line(capsys)
 
 
-def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(finished, tmp_path):
+#: The tiny study at half its budget: what the --extend tests extend to 1.
+HALF = StudyOptions(backend="local", show_progress=False, budget=0.5)
+
+
+def study_at_half(tmp_path: Path, name: str) -> tuple:
+    """The tiny study run at ``HALF`` into ``tmp_path / name``: (the study, its directory, its summary.json)."""
     study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
-    out = tmp_path / "extended"
-    half = StudyOptions(backend="local", show_progress=False, budget=0.5)
-    run_study(study, out, half, say=lambda _: None)
-    before = json.loads((out / "summary.json").read_text())
+    out = tmp_path / name
+    run_study(study, out, HALF, say=lambda _: None)
+    return study, out, json.loads((out / "summary.json").read_text())
+
+
+def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(finished, tmp_path):
+    study, out, before = study_at_half(tmp_path, "extended")
     with pytest.raises(StudyError, match=r"started with --budget 0.5; .*or add --extend to train its runs on"):
-        plan_study(study, out, dataclasses.replace(half, budget=1.0))
+        plan_study(study, out, dataclasses.replace(HALF, budget=1.0))
     # As `ocv2 study status` sees it right after the old results were set aside: the runs train on.
-    plan = plan_study(study, out, dataclasses.replace(half, budget=1.0, extend=True))
+    plan = plan_study(study, out, dataclasses.replace(HALF, budget=1.0, extend=True))
     aside = StateFile(out, plan.state)
     shutil.copytree(out, tmp_path / "aside")
     _set_aside_results(study, tmp_path / "aside", 0.5, aside, lambda _: None)
     assert {name: step.status for name, step in aside.state.steps.items()} == {"train sp": "left", "train sa": "left"}
     lines = []
-    state = run_study(study, out, dataclasses.replace(half, budget=1.0, extend=True), say=lines.append)
+    state = run_study(study, out, dataclasses.replace(HALF, budget=1.0, extend=True), say=lines.append)
     assert all(step.done for step in state.steps.values())
     assert [e["from"] for e in state.extensions] == [0.5] and state.budget == 1.0
     assert any("run sa: extended from update 4 to 8" in line for line in lines), lines
@@ -1286,18 +1294,14 @@ def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(
     # An extended study still refuses a run whose other settings changed (here the episodes its cross-play used).
     changed = load_study(write_study(tmp_path / "more.yaml", {**STUDY, "set": ["eval.episodes=3", *STUDY["set"][1:]]}))
     with pytest.raises(StudyError, match=r"run 'sp': .* was trained with another config \(eval.episodes: 2 in the run"):
-        plan_study(changed, out, dataclasses.replace(half, budget=1.0))
+        plan_study(changed, out, dataclasses.replace(HALF, budget=1.0))
     # Once extended, the same command (or none of the options) continues it as any study.
-    assert run_study(study, out, dataclasses.replace(half, budget=1.0, extend=True), say=lambda _: None).budget == 1.0
+    assert run_study(study, out, dataclasses.replace(HALF, budget=1.0, extend=True), say=lambda _: None).budget == 1.0
 
 
 def test_extend_with_retrain_sets_the_old_results_aside_too(finished, tmp_path):
-    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
-    out = tmp_path / "both"
-    half = StudyOptions(backend="local", show_progress=False, budget=0.5)
-    run_study(study, out, half, say=lambda _: None)
-    before = json.loads((out / "summary.json").read_text())
-    both = dataclasses.replace(half, budget=1.0, extend=True, retrain=("sa",))
+    study, out, before = study_at_half(tmp_path, "both")
+    both = dataclasses.replace(HALF, budget=1.0, extend=True, retrain=("sa",))
     run_study(study, out, both, say=lambda _: None)
     assert json.loads((out / "extended" / "budget_0.5" / "summary.json").read_text()) == before
     assert_same_runs(out, finished)  # sp extended, sa trained again from update 0: the same numbers
