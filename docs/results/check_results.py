@@ -2110,9 +2110,15 @@ def _():
     return [pair_r(m["pot"], SA10, "sa"), pair_r(m["cw"], SA10, "sa"), same, across]
 
 
-def sp_sa_mean() -> np.ndarray:
-    """SP x SA (xp_sp_sa/matrix_mean.csv): row = SP seed, column = SA seed, mean of both seat orders."""
-    return matrix(SA10 / "xp_sp_sa" / "matrix_mean.csv")
+def sp_sa_mean(sa: Path = SA10) -> np.ndarray:
+    """SP x SA (``sa``'s xp_sp_sa/matrix_mean.csv): row = SP seed, column = SA seed, mean of both seat orders."""
+    return matrix(sa / "xp_sp_sa" / "matrix_mean.csv")
+
+
+def sp_sa_low(sp: Path = SP10, sa: Path = SA10) -> np.ndarray:
+    """The SP x SA pairs (``sp_sa_mean``'s cells) below half of what their two seeds score with themselves."""
+    sp_self, sa_self = np.diag(final_matrix(sp)), np.diag(final_matrix(sa, "sa"))
+    return below_half(sp_sa_mean(sa), sp_self[:, None], sa_self[None, :])
 
 
 @check("sa10_sp_sa")
@@ -2122,7 +2128,7 @@ def _():
     with_sp = partner_means(both_seats(final_matrix()))
     odd = [1, 3, 6]
     rest = [k for k in range(10) if k not in odd]
-    low = below_half(m, np.diag(final_matrix())[:, None], np.diag(sa10_final())[None, :])
+    low = sp_sa_low()
     return [
         m.size,
         m.mean(),
@@ -2295,9 +2301,7 @@ def _():
 
 @check("fc_sa10_sp_sa")
 def _():
-    m = matrix(FC_SA10 / "xp_sp_sa" / "matrix_mean.csv")  # row = SP seed, column = SA seed, both seat orders
-    sp_self, sa_self = np.diag(final_matrix(FC10)), np.diag(final_matrix(FC_SA10, "sa"))
-    low = below_half(m, sp_self[:, None], sa_self[None, :])
+    m, low = sp_sa_mean(FC_SA10), sp_sa_low(FC10, FC_SA10)  # row = SP seed, column = SA seed, both seat orders
     sp, sa = conventions(FC10), conventions(FC_SA10)  # (onion counter, plate counter) per seed
     cells = list(itertools.product(range(len(sp)), range(len(sa))))
     distances = by_distance([(abs(sp[i][1] - sa[j][1]), m[i, j], low[i, j]) for i, j in cells])
@@ -2724,9 +2728,7 @@ def _():
 
 @check("cc_sa10_sp_sa")
 def _():
-    m = matrix(CC_SA10 / "xp_sp_sa" / "matrix_mean.csv")  # row = SP seed, column = SA seed, both seat orders
-    sp_self, sa_self = np.diag(final_matrix(CC10)), np.diag(final_matrix(CC_SA10, "sa"))
-    low = below_half(m, sp_self[:, None], sa_self[None, :])
+    m, low = sp_sa_mean(CC_SA10), sp_sa_low(CC10, CC_SA10)  # row = SP seed, column = SA seed, both seat orders
     ccw = [k for k, c in enumerate(cc_conventions()) if c[1] == "ccw"]  # the SP seeds circling counter-clockwise
     cw = [k for k in range(10) if k not in ccw]
     return [
