@@ -18,40 +18,13 @@ import dataclasses
 import time
 from pathlib import Path
 
-from cluster.runtime.rundir import RunDir, RunDirError, trained_keys_changed
+from cluster.runtime.rundir import RunDir, RunDirError, extension_problem
 from population import checkpoints as ckpt
 from population.config import Config, dump_config
 
 #: What the evaluation at the old stop wrote (its cross-play episodes in ``archive/xp``); kept under
 #: ``extended/update_<n>/``: the evaluation at the new stop writes the same paths.
 EVALUATION_DIRS = ("xp", "plots", "gifs", "archive/xp")
-#: The config keys an extension may change: the stop, and the schedule's length only in how it is written (a
-#: run extended to its schedule's end is the whole run, whose config leaves ``schedule_timesteps`` unset).
-EXTENDED_KEYS = ("ppo.total_timesteps", "ppo.schedule_timesteps")
-
-
-def extension_problem(run: Config, now: Config) -> str | None:
-    """Why ``run`` (a run's config.yaml) cannot be extended to ``now``; None when it can (or ``now`` is it)."""
-    if run.fingerprint() == now.fingerprint():
-        return None
-    if run.population.traits.partner_pool:
-        return "its partners were trained for the old budget; a longer run would need another partner pool"
-    changed = [line for line in trained_keys_changed(run, now) if line.split(":")[0] not in EXTENDED_KEYS]
-    if changed:
-        return "only ppo.total_timesteps may change when a run is extended, but " + "; ".join(changed[:3])
-    if run.ppo.schedule_timesteps is None:
-        return (
-            "it trained its whole schedule (no ppo.schedule_timesteps): training longer would change its "
-            "learning-rate schedule, so it is another run"
-        )
-    if run.ppo.schedule_timesteps != (now.ppo.schedule_timesteps or now.ppo.total_timesteps):
-        return (
-            f"its schedule is {run.ppo.schedule_timesteps:,} env steps, this config's "
-            f"{now.ppo.schedule_timesteps or now.ppo.total_timesteps:,}: that is another run"
-        )
-    if now.ppo.num_updates < run.ppo.num_updates:
-        return f"it trained {run.ppo.num_updates} updates; an extension cannot stop earlier ({now.ppo.num_updates})"
-    return None
 
 
 def extended_config(run: Config, now: Config) -> Config:
@@ -83,7 +56,7 @@ def extend_run(path, config: Config) -> dict | None:
         old_print, new_print = before.fingerprint(), after.fingerprint()
         files = sealed_files(run.path)
         for file in files:  # every file checked before any is written: a refusal leaves the run as it was
-            stamp_of(file, old_print, new_print)
+            check_stamp(file, old_print, new_print)
         manifest = run.read_manifest()
         old = before.ppo.num_updates
         record = {
@@ -94,7 +67,7 @@ def extend_run(path, config: Config) -> dict | None:
             "at": time.time(),
         }
         for file in files:
-            restamp(file, old_print, new_print)
+            restamp(file, new_print)
         kept = run.path / "extended" / f"update_{old:07d}"
         for name in EVALUATION_DIRS:
             source = run.path / name
@@ -115,9 +88,9 @@ def sealed_files(run_dir: Path) -> list[Path]:
     return sorted(run_dir.glob("checkpoints/seed_*/update_*.msgpack")) + sorted(run_dir.glob("sa/buffer_*.msgpack"))
 
 
-def stamp_of(path: Path, old: str, new: str) -> str:
-    """The fingerprint ``path`` carries, which must be ``old`` or ``new``; ``RunDirError`` naming the file otherwise
-    or when it cannot be read (nothing has been written yet when this is raised)."""
+def check_stamp(path: Path, old: str, new: str) -> None:
+    """``RunDirError`` naming ``path`` unless it can be read and carries fingerprint ``old`` or ``new`` (raised
+    before anything has been written)."""
     try:
         meta, _ = ckpt.read(path)
     except ckpt.CheckpointError as error:
@@ -130,13 +103,13 @@ def stamp_of(path: Path, old: str, new: str) -> str:
             f"{path}: carries fingerprint {found}, neither the run's ({old}) nor the extension's ({new}); nothing "
             "was changed"
         )
-    return found
 
 
-def restamp(path: Path, old: str, new: str) -> None:
-    """Rewrite ``path`` (a checkpoint or SA buffer) with fingerprint ``new``; it must carry ``old`` or ``new``."""
-    if stamp_of(path, old, new) == new:
+def restamp(path: Path, new: str) -> None:
+    """Rewrite ``path`` (a checkpoint or SA buffer, checked by ``check_stamp``) with fingerprint ``new`` unless it
+    carries it already."""
+    meta, state = ckpt.read(path)
+    if meta.get("fingerprint") == new:
         return
-    meta, state = ckpt.read(path, old)
     extra = {k: v for k, v in meta.items() if k not in ("version", "fingerprint", "sha256")}
     ckpt.save(path, state, new, **extra)

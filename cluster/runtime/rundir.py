@@ -215,7 +215,7 @@ class RunDir:
                 changed = trained_keys_changed(existing, config)
                 shown = "; ".join(changed[:5]) + (f"; and {len(changed) - 5} more" if len(changed) > 5 else "")
                 advice = "choose another --out"
-                if later_stop(existing, config, changed):
+                if extension_problem(existing, config) is None:  # a later stop on the same schedule
                     advice = "add --extend to train this truncated run on along its schedule, or " + advice
                 raise RunDirError(
                     f"{self.path}: holds a run of a different config (fingerprint "
@@ -424,18 +424,6 @@ class RunDir:
         return rows, torn
 
 
-def later_stop(run: Config, now: Config, changed: list[str]) -> bool:
-    """Whether ``now`` differs from ``run`` (a truncated run; ``changed``: ``trained_keys_changed``) only in a later
-    stop on the same schedule: what ``--extend`` trains (``cluster.runtime.extend``)."""
-    stop_only = all(line.split(":")[0] in ("ppo.total_timesteps", "ppo.schedule_timesteps") for line in changed)
-    schedule = now.ppo.schedule_timesteps or now.ppo.total_timesteps
-    return (
-        stop_only
-        and run.ppo.schedule_timesteps == schedule  # None (a whole schedule) never equals it
-        and now.ppo.num_updates > run.ppo.num_updates
-    )
-
-
 def trained_keys_changed(run: Config, now: Config) -> list[str]:
     """The keys behind a fingerprint mismatch ("ppo.lr: 0.0004 in the run, 0.01 now"): every key of the
     fingerprinted sections (``Config.fingerprinted``) whose value differs."""
@@ -445,6 +433,36 @@ def trained_keys_changed(run: Config, now: Config) -> list[str]:
         for key in sorted(set(before) | set(after))
         if before.get(key) != after.get(key)
     ]
+
+
+#: The config keys an extension may change: the stop, and the schedule's length only in how it is written (a
+#: run extended to its schedule's end is the whole run, whose config leaves ``schedule_timesteps`` unset).
+EXTENDED_KEYS = ("ppo.total_timesteps", "ppo.schedule_timesteps")
+
+
+def extension_problem(run: Config, now: Config) -> str | None:
+    """Why ``run`` (a run's config.yaml) cannot be extended to ``now`` (``cluster.runtime.extend``: a later stop on
+    the same schedule); None when it can (or ``now`` is it)."""
+    if run.fingerprint() == now.fingerprint():
+        return None
+    if run.population.traits.partner_pool:
+        return "its partners were trained for the old budget; a longer run would need another partner pool"
+    changed = [line for line in trained_keys_changed(run, now) if line.split(":")[0] not in EXTENDED_KEYS]
+    if changed:
+        return "only ppo.total_timesteps may change when a run is extended, but " + "; ".join(changed[:3])
+    if run.ppo.schedule_timesteps is None:
+        return (
+            "it trained its whole schedule (no ppo.schedule_timesteps): training longer would change its "
+            "learning-rate schedule, so it is another run"
+        )
+    if run.ppo.schedule_timesteps != (now.ppo.schedule_timesteps or now.ppo.total_timesteps):
+        return (
+            f"its schedule is {run.ppo.schedule_timesteps:,} env steps, this config's "
+            f"{now.ppo.schedule_timesteps or now.ppo.total_timesteps:,}: that is another run"
+        )
+    if now.ppo.num_updates < run.ppo.num_updates:
+        return f"it trained {run.ppo.num_updates} updates; an extension cannot stop earlier ({now.ppo.num_updates})"
+    return None
 
 
 def _warn(message: str) -> None:

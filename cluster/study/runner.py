@@ -31,9 +31,9 @@ from pathlib import Path
 
 from cluster.api import train_population
 from cluster.runtime import crossplay
-from cluster.runtime.extend import EXTENDED_KEYS, extend_run, extension_problem
+from cluster.runtime.extend import extend_run
 from cluster.runtime.progress import Bar
-from cluster.runtime.rundir import DirLock, RunDir, RunDirError, write_json
+from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, extension_problem, write_json
 from cluster.study.report import read_result, write_report
 from cluster.study.spec import (
     Comparison,
@@ -251,7 +251,8 @@ class StepTimer:
 @dataclasses.dataclass(frozen=True)
 class Plan:
     """What ``run_study`` will do, checked before anything is written: the study with the directory's
-    ``--set`` overrides, its state (created or read, not saved yet), the options and every run's config."""
+    ``--set`` overrides, its state (created or read, not saved yet), the options, every run's config and the runs
+    trained to an earlier budget of the study that ``run_study`` extends first."""
 
     study: Study
     out: Path
@@ -259,6 +260,7 @@ class Plan:
     options: StudyOptions
     configs: dict
     retrain: tuple[str, ...] = ()
+    extend: tuple[str, ...] = ()
 
 
 def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Plan:
@@ -295,14 +297,16 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
         except ConfigError as error:
             raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
     _check_retrain(study, out, retrain)
+    extend = []
     for run in study.runs:
         differences = trained_differences(run_dir(out, run.name), configs[run.name])
         if not differences or run.name in retrain:
             continue
         problem = extension_problem(RunDir(run_dir(out, run.name)).load_config(), configs[run.name])
         longer = all(d.split(":")[0] in EXTENDED_KEYS for d in differences) and problem is None
-        if longer and state.extensions:
-            continue  # trained to an earlier budget of this study: run_study extends it
+        if longer and state.extensions:  # trained to an earlier budget of this study: run_study extends it
+            extend.append(run.name)
+            continue
         more = f" and {len(differences) - 2} more" if len(differences) > 2 else ""
         why = f"; it cannot be extended: {problem}" if state.extensions and problem else ""
         raise StudyError(
@@ -310,7 +314,7 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
             f"({'; '.join(differences[:2])}{more}){why}; undo the change, or pass --retrain {run.name} to train it "
             "again (the trained run and its cross-play move to replaced/)"
         )
-    return Plan(study, out, state, options, configs, retrain)
+    return Plan(study, out, state, options, configs, retrain, tuple(extend))
 
 
 def _check_retrain(study: Study, out: Path, retrain: tuple[str, ...]) -> None:
@@ -394,13 +398,11 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         if kept is not None and kept.budget != plan.state.budget:  # --extend, now: the old results step aside
             _set_aside_results(study, out, kept.budget, state, say)
         state.save()
-        for run in study.runs if plan.state.extensions else ():  # runs trained to an earlier budget
-            path = run_dir(out, run.name)
-            if not trained_differences(path, configs[run.name]):
-                continue
-            if (record := extend_run(path, configs[run.name])) is not None:
+        for name in plan.extend:
+            path = run_dir(out, name)
+            if (record := extend_run(path, configs[name])) is not None:
                 say(
-                    f"study {study.name}: run {run.name}: extended from update {record['from_updates']} to "
+                    f"study {study.name}: run {name}: extended from update {record['from_updates']} to "
                     f"{record['to_updates']} (its evaluation there kept in {path / 'extended'})"
                 )
         steps = study_steps(study)
