@@ -327,28 +327,31 @@ TRAVEL_BYTES = 64 << 20  # what the device tool copies to the GPU machine: the w
 
 def travel_check(state: Path, root: Path = ROOT) -> str:
     """Whether the next window's input fits what travels: the tracked work tree (gpu_state/ replaced by ``state``)
-    and the carried .whl/; and if not, whether it fits once bench/gpu_slim.sh has taken the published policies out
-    of the work tree (they are not read on the GPU machine)."""
+    and the carried .whl/; and if not, whether it fits once bench/gpu_slim.sh has taken what the GPU machine never
+    reads out of the work tree: the published policies and the CPU studies packed in study_state/."""
     tracked = subprocess.run(["git", "ls-files", "-z"], cwd=root, capture_output=True, check=True).stdout.split(b"\0")
     files = [root / n.decode() for n in tracked if n and not n.startswith(b"gpu_state/")]
     sizes = {path: path.stat().st_size for path in files if path.is_file()}
     tree = sum(sizes.values())
-    results = root / "docs" / "results"  # the files bench/gpu_slim.sh takes out: docs/results/**/*.ocv2policy
+    results, packs = root / "docs" / "results", root / "study_state"  # what bench/gpu_slim.sh takes out
     policies = sum(
         size for path, size in sizes.items() if path.suffix == ".ocv2policy" and path.is_relative_to(results)
     )
+    packed = sum(size for path, size in sizes.items() if path.parent != packs and path.is_relative_to(packs))
     wheels = sum(p.stat().st_size for p in (root / ".whl").glob("*")) if (root / ".whl").is_dir() else 0
     carried = sum(p.stat().st_size for p in state.rglob("*") if p.is_file())
     total = tree + wheels + carried
     line = (
         f"next window carries {total / 2**20:.1f} MiB of {TRAVEL_BYTES / 2**20:.0f} MiB: work tree "
-        f"{tree / 2**20:.1f} (published policies {policies / 2**20:.1f} of it), .whl {wheels / 2**20:.1f}, "
-        f"state {carried / 2**20:.1f}"
+        f"{tree / 2**20:.1f} (published policies {policies / 2**20:.1f} and study_state/ packs {packed / 2**20:.1f} "
+        f"of it), .whl {wheels / 2**20:.1f}, state {carried / 2**20:.1f}"
     )
-    if total - policies > TRAVEL_BYTES:
-        line += " -- TOO MUCH even without the published policies: remove study_state/ folders or large results first"
+    if total - policies - packed > TRAVEL_BYTES:
+        line += " -- TOO MUCH even without the published policies and study packs: remove large results first"
     elif total > TRAVEL_BYTES:
-        line += " -- run `bash bench/gpu_slim.sh` before the call (and `git checkout -- docs/results` after it)"
+        line += (
+            " -- run `bash bench/gpu_slim.sh` before the call (and `git checkout -- docs/results study_state` after it)"
+        )
     return line
 
 

@@ -199,10 +199,15 @@ def test_the_next_windows_input_is_checked_against_what_travels(tmp_path):
 
 
 def _repo_with_a_policy(root: Path) -> Path:
-    """A git repository holding one committed published policy (1 MiB) and bench/gpu_slim.sh."""
+    """A git repository holding one committed published policy (1 MiB), one committed study pack (2 MiB) with
+    study_state/README.md beside it, and bench/gpu_slim.sh."""
     policy = root / "docs" / "results" / "study" / "policies" / "sp_seed0_update9.ocv2policy"
     policy.parent.mkdir(parents=True)
     policy.write_bytes(b"p" * (1 << 20))
+    pack = root / "study_state" / "study" / "study.tar.gz.000"
+    pack.parent.mkdir(parents=True)
+    pack.write_bytes(b"s" * (2 << 20))
+    (root / "study_state" / "README.md").write_text("packs\n")
     (root / "bench").mkdir()
     shutil.copy(ROOT / "bench" / "gpu_slim.sh", root / "bench" / "gpu_slim.sh")
     for command in (["init", "-q"], ["add", "."], ["-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "x"]):
@@ -217,21 +222,28 @@ def test_a_window_that_fits_without_the_published_policies_is_told_to_slim(tmp_p
     state.mkdir()
     (state / "part").write_bytes(b"\0" * (gpu_report.TRAVEL_BYTES - (1 << 19)))
     line = gpu_report.travel_check(state, root)
-    assert "TOO MUCH" not in line and "bash bench/gpu_slim.sh" in line and "published policies 1.0" in line
+    assert "TOO MUCH" not in line and "bash bench/gpu_slim.sh" in line
+    assert "published policies 1.0 and study_state/ packs 2.0" in line
+    (state / "more").write_bytes(b"\0" * (3 << 20))  # more than the policies and the pack together
+    assert "TOO MUCH" in gpu_report.travel_check(state, root)
 
 
-def test_gpu_slim_takes_committed_policies_out_of_the_work_tree_and_git_brings_them_back(tmp_path):
+def test_gpu_slim_takes_committed_policies_and_packs_out_of_the_work_tree_and_git_brings_them_back(tmp_path):
     root = tmp_path / "repo"
     policy = _repo_with_a_policy(root)
-    stray = policy.with_name("sp_seed1_update9.ocv2policy")
-    stray.write_bytes(b"not committed")
-    done = subprocess.run(["bash", "bench/gpu_slim.sh"], cwd=root, capture_output=True, text=True)
-    assert done.returncode == 1 and "commit them first" in done.stderr and policy.is_file()  # nothing removed
-    stray.unlink()
+    pack = root / "study_state" / "study" / "study.tar.gz.000"
+    for stray in (policy.with_name("sp_seed1_update9.ocv2policy"), pack.with_name("pack.json")):
+        stray.write_bytes(b"not committed")
+        done = subprocess.run(["bash", "bench/gpu_slim.sh"], cwd=root, capture_output=True, text=True)
+        assert done.returncode == 1 and "commit them first" in done.stderr  # and nothing was removed:
+        assert policy.is_file() and pack.is_file()
+        stray.unlink()
     done = subprocess.run(["bash", "bench/gpu_slim.sh"], cwd=root, capture_output=True, text=True, check=True)
     assert not policy.exists() and "1 published policies (1 MiB)" in done.stdout
-    subprocess.run(["git", "checkout", "--", "docs/results"], cwd=root, check=True)
-    assert policy.read_bytes() == b"p" * (1 << 20)
+    assert not pack.exists() and "1 study_state/ pack files (2 MiB)" in done.stdout
+    assert (root / "study_state" / "README.md").is_file()  # only the packs leave
+    subprocess.run(["git", "checkout", "--", "docs/results", "study_state"], cwd=root, check=True)
+    assert policy.read_bytes() == b"p" * (1 << 20) and pack.read_bytes() == b"s" * (2 << 20)
 
 
 def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp_path):
