@@ -2647,7 +2647,10 @@ def _():
         sp, xp, gap = sp_xp(matrix(CC10 / "xp_snapshots" / f"sp_update{update}.csv"))
         out += [gap, snapshot_env_steps(update, CC10), sp, xp]
     final = run(CC10, "sp")["xp"]
-    return [*out, final["gap"], millions(CC10, "sp"), final["sp_mean"], final["xp_mean"]]
+    out += [final["gap"], millions(CC10, "sp"), final["sp_mean"], final["xp_mean"]]
+    later = matrix(CC10 / "xp_snapshots" / "sp_update244.csv")  # the 6M extension's first snapshot
+    sp, xp, gap = sp_xp(later)
+    return [*out, gap, snapshot_env_steps(244, CC10), sp, xp, len(failing_pairs(later)), 45]
 
 
 @check("cc10_claim")
