@@ -1,0 +1,18 @@
+"""Where the checks read: docs/results/, its study folders, and the layout file the geometry check parses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parents[1]  # docs/results/
+LAYOUTS = RESULTS.parents[1] / "ocv2" / "layouts.py"
+CR = RESULTS / "table1_coord_ring"
+GCS = RESULTS / "reduced_gcs"
+SP10 = RESULTS / "table1_coord_ring_sp10"
+SA10 = RESULTS / "table1_coord_ring_sa10"
+FC10 = RESULTS / "table1_forced_coord_sp10"
+FC_SA10 = RESULTS / "table1_forced_coord_sa10"  # its SA half at the same budget
+GPU_CR = RESULTS / "gpu_coord_ring_sp"  # Table 1 Coordination Ring SP on the paper's 10M schedule, trained on a GPU
+GPU410 = RESULTS / "gpu_coord_ring_sp_update410"  # that study at update 410 (6.7M), cross-played on the CPU
+CC10 = RESULTS / "table1_counter_circuit_sp10"  # Table 1 Counter Circuit SP, 10 seeds, the 10M schedule truncated at 3M
+CC_SA10 = RESULTS / "table1_counter_circuit_sa10"  # its SA half at the same budget

@@ -1,0 +1,145 @@
+"""What several sections of the page read the same way from the 10-seed studies: a snapshot's env steps, the
+roles tables, the final matrix and its failing pairs, the headline row, SP x SA, the gap's growth over the
+snapshots, the gap difference with the seeds paired, and the cells of the roles tables."""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .data import both_seats, interval, matrix, md_tables, millions, paper, run, sp_xp
+from .folders import SA10, SP10
+
+
+def snapshot_env_steps(update: int, study: Path = SP10) -> float:
+    """Env steps per seed of snapshot ``update``, in millions, from the published policies' SHA256SUMS.json."""
+    sums = json.loads((study / "policies" / "SHA256SUMS.json").read_text())
+    return next(entry["env_steps"] for entry in sums if entry["update"] == update) / 1e6
+
+
+@functools.cache
+def roles_tables(study: Path = SP10) -> dict:
+    """roles.md: {update: [(cw seat 0, cw seat 1, [seat-0 share, count] per job, first-pot share per seat, return)
+    per seed]}."""
+    tables = md_tables(study / "roles.md")
+    updates = [int(m) for m in re.findall(r"^## update (\d+)$", (study / "roles.md").read_text(), re.M)]
+    parsed = {}
+    for update, table in zip(updates, tables, strict=True):
+        rows = []
+        for row in table:
+            cw = tuple(float(x) for x in row[1].split(","))
+            jobs = [tuple(float(x) for x in cell.split(" of ")) for cell in row[2:6]]
+            pot = tuple(float(x) for x in row[6].split(","))
+            rows.append((*cw, jobs, pot, float(row[-1])))
+        parsed[update] = rows
+    return parsed
+
+
+def final_matrix(study: Path = SP10, method: str = "sp") -> np.ndarray:
+    return matrix(study / f"xp_{method}.csv")
+
+
+def low_pairs(study: Path = SP10, method: str = "sp") -> list[tuple[int, int, float]]:
+    """A study's final matrix's failing pairs (``failing_pairs``)."""
+    return failing_pairs(final_matrix(study, method))
+
+
+def failing_pairs(m: np.ndarray) -> list[tuple[int, int, float]]:
+    """Pairs (both seat orders) of a K x K matrix scoring below half the mean of their two seeds' self-play, lowest
+    first."""
+    p = both_seats(m)
+    low = [
+        (i, j, p[i, j]) for i, j in itertools.combinations(range(len(m)), 2) if below_half(p[i, j], m[i, i], m[j, j])
+    ]
+    return sorted(low, key=lambda pair: pair[2])
+
+
+def below_half(score, self_play_a, self_play_b):
+    """A pair "fails": it scores under half the mean of its two seeds' self-play (numbers, or arrays that
+    broadcast: a whole matrix of pairs at once)."""
+    return score < (self_play_a + self_play_b) / 4
+
+
+def low_pair_numbers(study: Path, method: str = "sp") -> list:
+    """A 10-seed study's failing pairs: how many of the 45, then the three lowest as (seed, seed, score)."""
+    low = low_pairs(study, method)
+    return [len(low), 45, *[x for pair in low[:3] for x in pair]]
+
+
+def final_numbers(study: Path, method: str) -> list:
+    """A 10-seed study's headline: seeds x env steps, episodes per pair, SP, XP, gap with its interval over the
+    seeds, and the paper's SP / XP / gap."""
+    xp = run(study, method)["xp"]
+    return [
+        xp["num_policies"],
+        millions(study, method),
+        xp["episodes_per_pair"],
+        xp["sp_mean"],
+        xp["xp_mean"],
+        xp["gap"],
+        xp["num_policies"],
+        *interval(xp, "gap"),
+        *paper(study, method),
+    ]
+
+
+def sp_sa_mean(sa: Path = SA10) -> np.ndarray:
+    """SP x SA (``sa``'s xp_sp_sa/matrix_mean.csv): row = SP seed, column = SA seed, mean of both seat orders."""
+    return matrix(sa / "xp_sp_sa" / "matrix_mean.csv")
+
+
+def sp_sa_low(sp: Path = SP10, sa: Path = SA10) -> np.ndarray:
+    """The SP x SA pairs (``sp_sa_mean``'s cells) below half of what their two seeds score with themselves."""
+    sp_self, sa_self = np.diag(final_matrix(sp)), np.diag(final_matrix(sa, "sa"))
+    return below_half(sp_sa_mean(sa), sp_self[:, None], sa_self[None, :])
+
+
+def gap_growth(*studies: tuple[Path, str, Path]) -> list:
+    """For each (study, method, folder of its snapshot cross-play): the gap at updates 92, 122 and 152 (32 episodes
+    per pair, ``<folder>/xp_snapshots/<method>_update<u>.csv``) with their env steps, then the final gap and
+    env steps in millions."""
+    out = []
+    for study, method, folder in studies:
+        for update in (92, 122, 152):
+            snapshot = matrix(folder / "xp_snapshots" / f"{method}_update{update}.csv")
+            out += [sp_xp(snapshot)[2], snapshot_env_steps(update, study)]
+        out += [run(study, method)["xp"]["gap"], millions(study, method)]
+    return out
+
+
+def paired_gap_difference(base: np.ndarray, other: np.ndarray, resamples: int = 20_000, seed: int = 0) -> list[float]:
+    """95 % interval of ``other``'s gap minus ``base``'s when the two populations' seeds correspond (the same seed
+    numbers and config): each resample draws one set of seed indices and uses it in both matrices, where
+    population.xp.bootstrap_difference resamples each population on its own."""
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, len(base), size=(resamples, len(base)))
+    gaps = []
+    for draw in draws:
+        same = draw[:, None] == draw[None, :]
+        if same.all():
+            continue
+        gap = [m[draw[:, None], draw[None, :]] for m in (base, other)]
+        gaps.append((gap[1][same].mean() - gap[1][~same].mean()) - (gap[0][same].mean() - gap[0][~same].mean()))
+    return list(np.percentile(gaps, [2.5, 97.5]))
+
+
+def pair_rows(table: list[list[str]]) -> dict:
+    """A roles table of ordered cross-play pairs as {(seat-0 seed, seat-1 seed): the row's cells}."""
+    return {tuple(int(k) for k in row[0].split(" × ")): row for row in table}
+
+
+def cell_count(cell: str) -> float:
+    """The count of a roles table's "<share> of <count>" cell."""
+    return float(cell.split(" of ")[1])
+
+
+def paper_beside_intervals(study: Path, name: str) -> list[float]:
+    """The paper's SP, XP and gap, each followed by our 95 % interval over the seeds."""
+    xp = run(study, name)["xp"]
+    sp, cross, gap = paper(study, name)
+    return [sp, *interval(xp, "sp"), cross, *interval(xp, "xp"), gap, *interval(xp, "gap")]
