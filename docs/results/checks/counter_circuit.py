@@ -47,8 +47,8 @@ def _():
 
 def cc_roles(study: Path = CC10) -> tuple[list[list[str]], dict]:
     """A Counter Circuit study's roles.md: the seeds' rows at its final update and {(seat-0 seed, seat-1 seed): row}
-    of its cross-play pairs."""
-    seeds, pairs = md_tables(study / "roles.md")
+    of its cross-play pairs (its first two tables; the tables of later snapshots follow them)."""
+    seeds, pairs = md_tables(study / "roles.md")[:2]
     return seeds, pair_rows(pairs)
 
 
@@ -131,10 +131,12 @@ def _():
         sp, xp, gap = sp_xp(matrix(CC10 / "xp_snapshots" / f"sp_update{update}.csv"))
         out += [gap, snapshot_env_steps(update, CC10), sp, xp]
     final = run(CC10, "sp")["xp"]
-    out += [final["gap"], millions(CC10, "sp"), final["sp_mean"], final["xp_mean"]]
-    later = matrix(CC10 / "xp_snapshots" / "sp_update244.csv")  # the 6M extension's first snapshot
-    sp, xp, gap = sp_xp(later)
-    return [*out, gap, snapshot_env_steps(244, CC10), sp, xp, len(failing_pairs(later)), 45]
+    out += [final["gap"], millions(CC10, "sp"), final["sp_mean"], final["xp_mean"], len(low_pairs(CC10)), 45]
+    for update in (244, 305):  # the 6M extension's snapshots, cross-played as it trained on
+        later = matrix(CC10 / "xp_snapshots" / f"sp_update{update}.csv")
+        sp, xp, gap = sp_xp(later)
+        out += [gap, snapshot_env_steps(update, CC10), sp, xp, len(failing_pairs(later)), 45]
+    return out
 
 
 @check("cc10_claim")
