@@ -68,12 +68,13 @@ def cc_conventions(study: Path = CC10) -> list[tuple[str, str]]:
     ]
 
 
-def cc_pairs_by_convention(study: Path = CC10, method: str = "sp") -> dict:
+def cc_pairs_by_convention(study: Path = CC10, method: str = "sp", m: np.ndarray | None = None) -> dict:
     """Every pair's score (both seat orders) and whether it fails, by what its two seeds share: "both", "pot",
-    "direction" or "neither"."""
+    "direction" or "neither" (the conventions of the study's roles.md; the pairs of its final matrix, or of ``m``)."""
     conv = cc_conventions(study)
-    p = both_seats(final_matrix(study, method))
-    low = {(i, j) for i, j, _ in low_pairs(study, method)}
+    m = final_matrix(study, method) if m is None else m
+    p = both_seats(m)
+    low = {(i, j) for i, j, _ in failing_pairs(m)}
     groups = {"both": [], "pot": [], "direction": [], "neither": []}
     for i, j in itertools.combinations(range(len(conv)), 2):
         pot, way = conv[i][0] == conv[j][0], conv[i][1] == conv[j][1]
@@ -108,6 +109,30 @@ def _():
     for key in ("both", "neither", "pot", "direction"):
         scores = [score for score, _ in groups[key]]
         out += [len(scores), np.mean(scores), min(scores), max(scores), sum(fails for _, fails in groups[key])]
+    return out
+
+
+@check("cc10_by_convention_later")
+def _():
+    def failing(groups, *keys):
+        return [sum(fails for key in keys for _, fails in groups[key]), sum(len(groups[key]) for key in keys)]
+
+    def mean(groups, key):
+        return np.mean([score for score, _ in groups[key]])
+
+    final = cc_pairs_by_convention()
+    later = [cc_pairs_by_convention(m=matrix(CC10 / "xp_snapshots" / f"sp_update{u}.csv")) for u in (244, 305)]
+    steps = [snapshot_env_steps(update, CC10) for update in (244, 305)]
+    one = [failing(groups, "pot", "direction") for groups in (final, *later)]  # [fail, of] at 3M, 4.0M, 5.0M
+    out = [one[0][1]]
+    for (fails, _), millions_then in zip(one, [millions(CC10, "sp"), *steps]):
+        out += [fails, millions_then]
+    out.append(one[0][1])
+    every = [final, *later]
+    both_fail = max(failing(groups, "both")[0] for groups in every)  # at any of the three
+    neither_fail = min(failing(groups, "neither")[0] for groups in every)  # at each of the three
+    out += [len(final["both"]), both_fail, mean(later[0], "both"), steps[0], mean(later[1], "both"), steps[1]]
+    out += [len(final["neither"]), neither_fail, mean(later[0], "neither"), mean(later[1], "neither")]
     return out
 
 
