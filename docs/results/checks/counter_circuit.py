@@ -112,28 +112,31 @@ def _():
     return out
 
 
+EXTENSION_UPDATES = (244, 305)  # the 6M extension's snapshots, cross-played (32 episodes) as it trained on
+
+
+def cc10_snapshot(update: int) -> np.ndarray:
+    """The 10 x 10 cross-play of the SP seeds' snapshot at ``update`` (xp_snapshots/, 32 episodes per pair)."""
+    return matrix(CC10 / "xp_snapshots" / f"sp_update{update}.csv")
+
+
 @check("cc10_by_convention_later")
 def _():
-    def failing(groups, *keys):
-        return [sum(fails for key in keys for _, fails in groups[key]), sum(len(groups[key]) for key in keys)]
+    def fails(groups, *keys):
+        return sum(failed for key in keys for _, failed in groups[key])
 
     def mean(groups, key):
         return np.mean([score for score, _ in groups[key]])
 
-    final = cc_pairs_by_convention()
-    later = [cc_pairs_by_convention(m=matrix(CC10 / "xp_snapshots" / f"sp_update{u}.csv")) for u in (244, 305)]
-    steps = [snapshot_env_steps(update, CC10) for update in (244, 305)]
-    one = [failing(groups, "pot", "direction") for groups in (final, *later)]  # [fail, of] at 3M, 4.0M, 5.0M
-    out = [one[0][1]]
-    for (fails, _), millions_then in zip(one, [millions(CC10, "sp"), *steps]):
-        out += [fails, millions_then]
-    out.append(one[0][1])
-    every = [final, *later]
-    both_fail = max(failing(groups, "both")[0] for groups in every)  # at any of the three
-    neither_fail = min(failing(groups, "neither")[0] for groups in every)  # at each of the three
-    out += [len(final["both"]), both_fail, mean(later[0], "both"), steps[0], mean(later[1], "both"), steps[1]]
-    out += [len(final["neither"]), neither_fail, mean(later[0], "neither"), mean(later[1], "neither")]
-    return out
+    final = cc_pairs_by_convention()  # at 3M: the final cross-play
+    later = [(snapshot_env_steps(u, CC10), cc_pairs_by_convention(m=cc10_snapshot(u))) for u in EXTENSION_UPDATES]
+    every = [(millions(CC10, "sp"), final), *later]
+    one = len(final["pot"]) + len(final["direction"])  # the pairs that share one of the two conventions
+    out = [one, *[x for steps, groups in every for x in (fails(groups, "pot", "direction"), steps)], one]
+    out += [len(final["both"]), max(fails(groups, "both") for _, groups in every)]  # at any of the three
+    out += [x for steps, groups in later for x in (mean(groups, "both"), steps)]
+    out += [len(final["neither"]), min(fails(groups, "neither") for _, groups in every)]  # at each of the three
+    return out + [mean(groups, "neither") for _, groups in later]
 
 
 @check("cc10_pairs")
@@ -153,12 +156,12 @@ def _():
 def _():
     out = []
     for update in (92, 122, 152):
-        sp, xp, gap = sp_xp(matrix(CC10 / "xp_snapshots" / f"sp_update{update}.csv"))
+        sp, xp, gap = sp_xp(cc10_snapshot(update))
         out += [gap, snapshot_env_steps(update, CC10), sp, xp]
     final = run(CC10, "sp")["xp"]
     out += [final["gap"], millions(CC10, "sp"), final["sp_mean"], final["xp_mean"], len(low_pairs(CC10)), 45]
-    for update in (244, 305):  # the 6M extension's snapshots, cross-played as it trained on
-        later = matrix(CC10 / "xp_snapshots" / f"sp_update{update}.csv")
+    for update in EXTENSION_UPDATES:
+        later = cc10_snapshot(update)
         sp, xp, gap = sp_xp(later)
         out += [gap, snapshot_env_steps(update, CC10), sp, xp, len(failing_pairs(later)), 45]
     return out
