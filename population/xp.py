@@ -9,7 +9,8 @@ intervals and a per-recipe breakdown. Every pair uses the same episode keys (com
 so differences between cells come from the policies, not from luck of the draw.
 
 Confidence intervals come from a bootstrap over seeds (``bootstrap_block``; ``bootstrap_difference`` for
-one population's numbers minus another's, and ``summary_difference`` for the reports' Δ rows built on it):
+one population's numbers minus another's, ``paired_difference`` for the same seeds at two points of their
+training, and ``summary_difference`` for the reports' Δ rows built on the first):
 the training seeds are the independent samples, while the cells of one matrix share policies and are not
 independent, so resampling cells (or a normal interval over cells) claims too much certainty.
 """
@@ -209,15 +210,49 @@ def bootstrap_difference(
     of other resamples than it says, without a word (``names`` name the two in the message).
     """
     for name, matrix in zip(names, (base, other), strict=True):
-        matrix = np.asarray(matrix, np.float64)
-        if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or matrix.shape[0] < 2:
-            raise ValueError(
-                f"{name}: a {' x '.join(map(str, matrix.shape))} matrix, not one population's K x K (K >= 2)"
-            )
-        if not np.isfinite(matrix).all():
-            raise ValueError(f"{name}: {int((~np.isfinite(matrix)).sum())} cell(s) are not numbers")
+        _check_population(name, matrix)
     base_sp, base_xp = bootstrap_samples(base, resamples=resamples, seed=seed)
     other_sp, other_xp = bootstrap_samples(other, resamples=resamples, seed=seed + 1)
+    return _difference_intervals(base_sp, base_xp, other_sp, other_xp)
+
+
+def paired_difference(
+    before: np.ndarray,
+    after: np.ndarray,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+    names: tuple[str, str] = ("before", "after"),
+) -> dict:
+    """95 % intervals of ``after``'s SP, XP and gap minus ``before``'s, for two K x K matrices of the *same*
+    seeds (say one population at 3M and, trained on, at 6M: row k of both is seed k).
+
+    Each resample draws one set of seed indices and uses it in both matrices, so what a seed contributes
+    cancels where it stayed the same; ``bootstrap_difference`` (for populations that share no seed) would
+    add both populations' spread. Returns {"sp": (low, high), "xp": (low, high), "gap": (low, high)}.
+    ``ValueError`` for a matrix that is not square or not all numbers, or two of different sizes (they
+    cannot be the same seeds)."""
+    for name, matrix in zip(names, (before, after), strict=True):
+        _check_population(name, matrix)
+    if np.shape(before) != np.shape(after):
+        raise ValueError(
+            f"{names[0]} has {np.shape(before)[0]} seeds and {names[1]} {np.shape(after)[0]}: not the same seeds"
+        )
+    before_sp, before_xp = bootstrap_samples(before, resamples=resamples, seed=seed)
+    after_sp, after_xp = bootstrap_samples(after, resamples=resamples, seed=seed)  # the same draws
+    return _difference_intervals(before_sp, before_xp, after_sp, after_xp)
+
+
+def _check_population(name: str, matrix) -> None:
+    """``ValueError`` naming ``name`` unless ``matrix`` is one population's K x K (K >= 2) matrix of numbers: a
+    cut or holed matrix would give an interval over other resamples than it says, without a word."""
+    matrix = np.asarray(matrix, np.float64)
+    if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or matrix.shape[0] < 2:
+        raise ValueError(f"{name}: a {' x '.join(map(str, matrix.shape))} matrix, not one population's K x K (K >= 2)")
+    if not np.isfinite(matrix).all():
+        raise ValueError(f"{name}: {int((~np.isfinite(matrix)).sum())} cell(s) are not numbers")
+
+
+def _difference_intervals(base_sp, base_xp, other_sp, other_xp) -> dict:
     return {
         "sp": _interval(other_sp - base_sp),
         "xp": _interval(other_xp - base_xp),

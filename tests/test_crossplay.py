@@ -27,7 +27,14 @@ from population.config import ClusterConfig, load_config
 from population.evaluation import gather_params, play_row, stack_params
 from population.networks import init_params
 from population.record import play_recorded_pairs, play_recorded_row
-from population.xp import Side, bootstrap_block, bootstrap_difference, cross_play, summary_difference
+from population.xp import (
+    Side,
+    bootstrap_block,
+    bootstrap_difference,
+    cross_play,
+    paired_difference,
+    summary_difference,
+)
 
 
 @pytest.fixture(scope="module")
@@ -407,6 +414,30 @@ def test_bootstrap_difference_resamples_each_population_on_its_own():
     assert bootstrap_difference(base, shifted) == ci  # fixed seeds: the same matrices, the same interval
     same = bootstrap_difference(base, base)["gap"]
     assert same[0] < 0.0 < same[1]
+
+
+def test_paired_difference_resamples_the_same_seeds_in_both_matrices():
+    rng = np.random.default_rng(3)
+    before = rng.normal(100.0, 30.0, size=(6, 6))
+    after = before.copy()
+    after[np.eye(6, dtype=bool)] += 50.0  # every seed's self-play 50 higher, its cross-play unchanged
+    ci = paired_difference(before, after)
+    # One draw of seeds serves both matrices, so the spread between seeds cancels: exactly 50, where
+    # bootstrap_difference (two populations) gives a wide interval for the same matrices.
+    assert ci["sp"] == pytest.approx((50.0, 50.0)) and ci["gap"] == pytest.approx((50.0, 50.0))
+    assert ci["xp"] == pytest.approx((0.0, 0.0))
+    # One seed's cross-play fell by 60 (10 of the 30 cells, -20 over all): a draw without that seed sees no
+    # change at all, so the interval runs from well below -20 up to exactly 0.
+    fell = after.copy()
+    fell[0, 1:] -= 60.0
+    fell[1:, 0] -= 60.0
+    low, high = paired_difference(before, fell)["xp"]
+    assert low < -20.0 and high == pytest.approx(0.0)
+    assert paired_difference(before, fell) == paired_difference(before, fell)  # fixed draws
+    with pytest.raises(ValueError, match="before has 6 seeds and after 5: not the same seeds"):
+        paired_difference(before, after[:5, :5])
+    with pytest.raises(ValueError, match="after: a 5 x 6 matrix"):
+        paired_difference(before, after[:5])
 
 
 def test_bootstrap_difference_refuses_a_cut_or_holed_matrix():

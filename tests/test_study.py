@@ -1290,6 +1290,26 @@ def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(
     assert (kept / "over_training").is_dir() and (kept / "comparisons").is_dir()
     assert (out / "runs" / "sp" / "extended" / "update_0000002" / "xp" / "summary.json").is_file()
     assert "trained first to budget 0.5, then on along the same schedules to 1" in (out / "report.md").read_text()
+    # What the extension changed, per run: the same seeds at 0.5's stop and at 1's, from the kept cross-play.
+    now = json.loads((out / "summary.json").read_text())
+    since = {entry["run"]: entry for entry in now["since_extension"]}
+    assert [(e["run"], e["from_update"]) for e in now["since_extension"]] == [("sp", 2), ("sa", 4)]
+    for run_before, run_now in zip(before["runs"], now["runs"], strict=True):
+        entry = since[run_now["name"]]
+        assert entry["env_steps_per_seed"] == run_now["env_steps_per_seed"] == 2 * entry["from_env_steps_per_seed"]
+        assert entry["before"] == {k: run_before["xp"][k] for k in ("sp_mean", "xp_mean", "gap")}
+        assert entry["after"] == {k: run_now["xp"][k] for k in ("sp_mean", "xp_mean", "gap")}
+        assert entry["delta_gap"] == pytest.approx(run_now["xp"]["gap"] - run_before["xp"]["gap"])
+        # 2 seeds: a draw has cross-play only when it holds both, so the paired interval is the change itself.
+        assert entry["delta_gap_ci95_interval"] == pytest.approx([entry["delta_gap"]] * 2)
+    assert "## Since the extension: the same seeds at the old stop and trained on" in (out / "report.md").read_text()
+    # A kept matrix that lost a row: the numbers stay, the interval is refused with the file named.
+    cut = out / "runs" / "sp" / "extended" / "update_0000002" / "xp" / "matrix.csv"
+    cut.write_text("\n".join(cut.read_text().splitlines()[:-1]) + "\n")
+    assert main(["study", "report", str(out), "--out", str(tmp_path / "cut_report")]) == 0
+    entry = json.loads((tmp_path / "cut_report" / "summary.json").read_text())["since_extension"][0]
+    assert entry["delta_gap"] == since["sp"]["delta_gap"] and "delta_gap_ci95_interval" not in entry
+    assert entry["problem"].startswith(f"no interval: {cut}: a 1 x 2 matrix")
     assert ckpt.list_updates(out / "runs" / "sp", 0) == [0, 1, 2, 4]  # 0.5's snapshot at update 1 stays
     # An extended study still refuses a run whose other settings changed (here the episodes its cross-play used).
     changed = load_study(write_study(tmp_path / "more.yaml", {**STUDY, "set": ["eval.episodes=3", *STUDY["set"][1:]]}))

@@ -23,6 +23,8 @@ import numpy as np
 from cluster.runtime.crossplay import seat_pairs
 from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves, write_json
+from cluster.study.results import read_result
+from cluster.study.since import KEYS, since_extension
 from cluster.study.spec import PaperValue, Study, comparison_dir, run_dir
 from cluster.study.state import StepRecord, StudyState
 from ocv2 import boundedjson
@@ -63,6 +65,7 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
     }
     if state.extensions:  # only then: a study never extended keeps the summary it always had
         summary["extensions"] = [{"from": e["from"], "to": e["to"]} for e in state.extensions]
+        summary["since_extension"] = since_extension(study, out, runs, configs)
     pictures = (
         _curves(study, out, configs, dest) + _heatmaps(out, runs, comparisons, dest) + _over_training_plots(dest, over)
     )
@@ -70,23 +73,6 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
     write_json(dest / "summary.json", summary)  # strict JSON: NaN as null
     atomic_write(dest / "report.md", markdown(study, summary, state))
     return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}
-
-
-def read_result(path: Path, required: tuple[str, ...] = ()) -> tuple[dict, str | None]:
-    """A step's result file as (data, None), or ({}, why it cannot be used): missing, unreadable, not a JSON
-    object or without the ``required`` keys (a file another command wrote over it)."""
-    try:
-        data = boundedjson.loads(Path(path).read_text())
-    except FileNotFoundError:
-        return {}, f"{path} is missing"
-    except (OSError, ValueError) as error:  # ValueError: not JSON (UnicodeDecodeError, JSONDecodeError, too deep)
-        return {}, f"{path} is unreadable ({error})"
-    if not isinstance(data, dict):
-        return {}, f"{path} holds a JSON {type(data).__name__}, not a result"
-    missing = [key for key in required if key not in data]
-    if missing:
-        return {}, f"{path} is not a result of this step (no {', '.join(missing)})"
-    return data, None
 
 
 def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
@@ -588,6 +574,7 @@ def markdown(study: Study, summary: dict, state: StudyState) -> str:
                 f"{' (' + entry['problem'] + ')' if entry.get('problem') else ''} | "
                 f"{'–' if paper is None else f'{paper:+g}'} |"
             )
+    lines += since_extension_lines(summary.get("since_extension", []))
     for entry in summary["over_training"]:
         left += [f"- over_training {entry['run']}: {problem}" for problem in entry.get("damaged", [])]
         if not entry["points"]:
@@ -612,6 +599,33 @@ def markdown(study: Study, summary: dict, state: StudyState) -> str:
     if left:
         lines += ["", "## Not finished", ""] + left
     return "\n".join(lines) + "\n"
+
+
+def since_extension_lines(entries: list[dict]) -> list[str]:
+    """report.md's table of what each extension changed (``cluster.study.since``), or nothing."""
+    if not entries:
+        return []
+    lines = [
+        "",
+        "## Since the extension: the same seeds at the old stop and trained on",
+        "",
+        "Each Δ's interval resamples the seeds once and uses the draw at both stops (seed k is row k of both "
+        "matrices).",
+        "",
+        "| run | env steps per seed | SP then → now | XP then → now | gap then → now | Δ SP [95% CI] | Δ XP [95% CI] "
+        "| Δ gap [95% CI] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for e in entries:
+        stops = f"{steps_text(e['from_env_steps_per_seed'])} → {steps_text(e['env_steps_per_seed'])}"
+        if "after" not in e:
+            lines.append(f"| {e['run']} | {stops} | n/a ({e['problem']}) | | | | | |")
+            continue
+        cells = [f"{_with_ci(e['before'][key], None)} → {_with_ci(e['after'][key], None)}" for key in KEYS]
+        cells += [_with_ci(e[f"delta_{n}"], e.get(f"delta_{n}_ci95_interval"), signed=True) for n in KEYS.values()]
+        note = f" ({e['problem']})" if e.get("problem") else ""
+        lines.append(f"| {e['run']} | {stops} | " + " | ".join(cells) + note + " |")
+    return lines
 
 
 def steps_text(steps: int) -> str:

@@ -34,7 +34,8 @@ from cluster.runtime import crossplay
 from cluster.runtime.extend import extend_run
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, extension_problem, write_json
-from cluster.study.report import read_result, write_report
+from cluster.study.report import write_report
+from cluster.study.results import read_result
 from cluster.study.spec import (
     Comparison,
     Study,

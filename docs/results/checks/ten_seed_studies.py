@@ -112,20 +112,14 @@ def gap_growth(*studies: tuple[Path, str, Path]) -> list:
     return out
 
 
-def paired_gap_difference(base: np.ndarray, other: np.ndarray, resamples: int = 20_000, seed: int = 0) -> list[float]:
+def paired_gap_difference(base: np.ndarray, other: np.ndarray) -> list[float]:
     """95 % interval of ``other``'s gap minus ``base``'s when the two populations' seeds correspond (the same seed
-    numbers and config): each resample draws one set of seed indices and uses it in both matrices, where
-    population.xp.bootstrap_difference resamples each population on its own."""
-    rng = np.random.default_rng(seed)
-    draws = rng.integers(0, len(base), size=(resamples, len(base)))
-    gaps = []
-    for draw in draws:
-        same = draw[:, None] == draw[None, :]
-        if same.all():
-            continue
-        gap = [m[draw[:, None], draw[None, :]] for m in (base, other)]
-        gaps.append((gap[1][same].mean() - gap[1][~same].mean()) - (gap[0][same].mean() - gap[0][~same].mean()))
-    return list(np.percentile(gaps, [2.5, 97.5]))
+    numbers and config): ``population.xp.paired_difference``, one draw of seed indices used in both matrices,
+    where ``population.xp.bootstrap_difference`` resamples each population on its own. 20,000 resamples, as the
+    page's paired intervals have always had."""
+    from population.xp import paired_difference
+
+    return list(paired_difference(base, other, resamples=20_000)["gap"])
 
 
 def pair_rows(table: list[list[str]]) -> dict:
