@@ -1,5 +1,5 @@
 """Checks of the 10-seed Counter Circuit studies at 3M: SP (table1_counter_circuit_sp10/) and SA beside it
-(table1_counter_circuit_sa10/)."""
+(table1_counter_circuit_sa10/); and of the same SP seeds trained on to 6M (table1_counter_circuit_sp10_6m/)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .data import both_seats, claim_row, float_or_nan, matrix, md_tables, millions, run, sp_xp
-from .folders import CC10, CC_SA10
+from .folders import CC10, CC10_6M, CC_SA10
 from .registry import L, check
 from .ten_seed_studies import (
     cell_count,
@@ -177,6 +177,97 @@ def _():
     with (CC10 / "sp_metrics.csv").open() as f:
         rows = [r for r in csv.DictReader(f) if r["seed"] == "0" and int(r["update"]) > 125]
     return [np.median([float_or_nan(r["steps_per_s"]) for r in rows]), 126, 183]
+
+
+# --- the same 10 SP seeds trained on to 6M (--extend), cross-played at 500 episodes per ordered pair
+
+
+@check("cc10_6m_final")
+def _():
+    return final_numbers(CC10_6M, "sp")
+
+
+@check("cc10_6m_within")
+def _():
+    return paper_beside_intervals(CC10_6M, "sp")
+
+
+@check("cc10_6m_low_pairs")
+def _():
+    return low_pair_numbers(CC10_6M)
+
+
+@check("cc10_6m_vs_3m")
+def _():
+    """The gap at 3M and at 6M (each with its env steps per seed); SP's, XP's and the gap's change with their 95 % intervals, the same seeds resampled
+    at both stops (recomputed from the two matrices, as the study report does); the gap's change with each stop
+    resampled on its own, as if the two were unrelated populations."""
+    from population.xp import bootstrap_difference, paired_difference
+
+    before, after = final_matrix(CC10), final_matrix(CC10_6M)
+    gaps = [run(study, "sp")["xp"]["gap"] for study in (CC10, CC10_6M)]
+    changes = {key: run(CC10_6M, "sp")["xp"][key] - run(CC10, "sp")["xp"][key] for key in ("sp_mean", "xp_mean")}
+    paired = paired_difference(before, after)
+    return [
+        gaps[0], millions(CC10, "sp"), gaps[1], millions(CC10_6M, "sp"), gaps[1] - gaps[0], *paired["gap"],
+        changes["sp_mean"], *paired["sp"], -changes["xp_mean"], *paired["xp"],  # "fell by": written positive
+        *bootstrap_difference(before, after)["gap"],
+    ]  # fmt: skip
+
+
+@check("cc10_6m_by_convention")
+def _():
+    """The pairs of the 6M cross-play grouped by their seeds' 3M conventions (each seed keeps them: roles.md at
+    update 366): count, mean, lowest, highest and failing, per group."""
+    groups, out = cc_pairs_by_convention(m=final_matrix(CC10_6M)), []
+    for key in ("both", "neither", "pot", "direction"):
+        scores = [score for score, _ in groups[key]]
+        out += [len(scores), np.mean(scores), min(scores), max(scores), sum(fails for _, fails in groups[key])]
+    return out
+
+
+def seed_sp_xp(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per seed, its self-play and the mean of its cross-play cells with the other seeds in both seat orders."""
+    p = both_seats(m)
+    off = ~np.eye(len(m), dtype=bool)
+    return np.diag(m), np.array([p[k][off[k]].mean() for k in range(len(m))])
+
+
+@check("cc10_6m_seeds")
+def _():
+    """Seeds 3 and 8 from 3M to 6M: self-play and cross-play (mean of its cells with the other seeds, both seat
+    orders); the pairs failing at 6M and not at 3M, and how many of them hold seed 3 or 8."""
+    (sp3, xp3), (sp6, xp6) = seed_sp_xp(final_matrix(CC10)), seed_sp_xp(final_matrix(CC10_6M))
+    new = {(i, j) for i, j, _ in low_pairs(CC10_6M)} - {(i, j) for i, j, _ in low_pairs(CC10)}
+    out = [L, L]
+    for k in (3, 8):
+        out += [L, sp3[k], sp6[k], xp3[k], xp6[k]]
+    both = sum(3 in pair or 8 in pair for pair in new)
+    return out + [len(new), millions(CC10_6M, "sp"), millions(CC10, "sp"), both, L, L]
+
+
+@check("cc10_6m_roles")
+def _():
+    """roles.md at update 366 (its fifth table) beside the earlier ones: how many seeds keep their 3M pot and their
+    3M direction; seed 9's clockwise share at 183 and 366 (the one that changes side, by a hair); seed 4's
+    clockwise share and onions over the island at 244 and 366; seed 8's seat-0 share of the dishes at 305 and 366;
+    seed 9's at 366."""
+    tables = md_tables(CC10 / "roles.md")
+    at = {183: tables[0], 244: tables[2], 305: tables[3], 366: tables[4]}
+    conv = cc_conventions()
+    pots = sum(("left" if two_shares(row[8])[0] >= 0.5 else "right") == c[0] for row, c in zip(at[366], conv))
+    ways = sum(("cw" if two_shares(row[5])[0] > 0.5 else "ccw") == c[1] for row, c in zip(at[366], conv))
+    island = {u: float(at[u][4][6].split()[0]) for u in (244, 366)}
+    dishes = {u: float(at[u][8][2].split()[0]) for u in (305, 366)}
+    return [pots, millions(CC10, "sp"), ways, L, two_shares(at[183][9][5])[0], two_shares(at[366][9][5])[0],
+            L, two_shares(at[366][4][5])[0], island[366], island[244], snapshot_env_steps(244, CC10),
+            L, dishes[366], dishes[305], snapshot_env_steps(305, CC10), L, float(at[366][9][2].split()[0])]  # fmt: skip
+
+
+@check("cc10_6m_claim")
+def _():
+    row = claim_row(CC10_6M, "sp")
+    return [*row[:2], millions(CC10, "sp"), *row[2:], len(low_pairs(CC10_6M)), 45]
 
 
 # --- Table 1 Counter Circuit SA, 10 seeds at 3M env steps, beside the SP seeds
