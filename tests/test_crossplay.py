@@ -608,3 +608,49 @@ def test_seat_pairs_of_a_study_comparison_put_each_order_where_it_belongs():
     assert ac["a_seat1_std"] == pytest.approx(np.std([51, 52], ddof=1))
     with pytest.raises(KeyError):  # one order only: no pairs
         crossplay.seat_pairs(crossplay.summarize_seat_fair(crossplay.SeatFairMatrix(played)))
+
+
+def test_cross_play_on_workers_plays_waves_of_one_row_per_shard_and_says_so(caplog):
+    from cluster.runtime.evaluate import _cross_play_spread
+    from cluster.runtime.jobs import InProcessWorkers
+    from cluster.runtime.shard import CrossPlayRows
+
+    class Rows:  # a row's returns depend on the row only, as a real shard's do (every row uses the same keys)
+        def __init__(self):
+            self.calls = []
+
+        def cross_play(self, params, rows, key, episodes, archive_dir):
+            self.calls.append(list(rows))
+            returns = np.stack([np.full((3, episodes), 10.0 * row + np.arange(3)[:, None]) for row in rows])
+            return CrossPlayRows(list(rows), returns, np.zeros_like(returns, np.int32))
+
+    params = {"w": np.zeros((3, 2))}
+    for shards in ([[0, 1, 2]], [[0, 1], [2]], [[0], [1], [2]]):
+        target, progress = Rows(), []
+        result = _cross_play_spread(
+            InProcessWorkers(shards, target),
+            params,
+            jax.random.PRNGKey(0),
+            2,
+            None,
+            on_progress=lambda *a: progress.append(a),
+        )
+        np.testing.assert_array_equal(result.matrix, 10.0 * np.arange(3)[:, None] + np.arange(3)[None, :])
+        width = len(shards)
+        assert all(len(call) == 1 for call in target.calls) and sorted(r for c in target.calls for r in c) == [0, 1, 2]
+        # 0 first (the bar appears), then one report per wave of up to one row per shard
+        expected = [(0, 3)] + [(min(width, 3 - first), 3) for first in range(0, 3, width)]
+        assert progress == expected, (shards, progress)
+    # In a log (no terminal), each wave is a line: a local study's 20-minute cross-play is no longer silent.
+    from cluster.runtime.progress import Bar
+
+    caplog.set_level("INFO", logger="cluster.runtime.progress")
+    with Bar("cross-play 3x3, 2 episodes/pair", unit="seat-0 rows") as bar:
+        _cross_play_spread(
+            InProcessWorkers([[0], [1]], Rows()), params, jax.random.PRNGKey(0), 2, None, on_progress=bar
+        )
+    lines = [m.split(" (")[0] for m in caplog.messages]
+    assert lines == [
+        "  cross-play 3x3, 2 episodes/pair: 2/3 seat-0 rows",
+        "  cross-play 3x3, 2 episodes/pair: 3/3 seat-0 rows",
+    ]
