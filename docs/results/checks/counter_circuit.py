@@ -103,13 +103,19 @@ def _():
     ]  # fmt: skip
 
 
-@check("cc10_by_convention")
-def _():
-    groups, out = cc_pairs_by_convention(), []
+def convention_numbers(groups: dict) -> list:
+    """Per group of ``cc_pairs_by_convention`` (both, neither, pot, direction): how many pairs, their mean, lowest
+    and highest score, and how many of them fail."""
+    out = []
     for key in ("both", "neither", "pot", "direction"):
         scores = [score for score, _ in groups[key]]
         out += [len(scores), np.mean(scores), min(scores), max(scores), sum(fails for _, fails in groups[key])]
     return out
+
+
+@check("cc10_by_convention")
+def _():
+    return convention_numbers(cc_pairs_by_convention())
 
 
 EXTENSION_UPDATES = (244, 305)  # the 6M extension's snapshots, cross-played (32 episodes) as it trained on
@@ -199,9 +205,9 @@ def _():
 
 @check("cc10_6m_vs_3m")
 def _():
-    """The gap at 3M and at 6M (each with its env steps per seed); SP's, XP's and the gap's change with their 95 % intervals, the same seeds resampled
-    at both stops (recomputed from the two matrices, as the study report does); the gap's change with each stop
-    resampled on its own, as if the two were unrelated populations."""
+    """The gap at 3M and at 6M (each with its env steps per seed); SP's, XP's and the gap's change with their 95 %
+    intervals, the same seeds resampled at both stops (recomputed from the two matrices, as the study report does);
+    the gap's change with each stop resampled on its own, as if the two were unrelated populations."""
     from population.xp import bootstrap_difference, paired_difference
 
     before, after = final_matrix(CC10), final_matrix(CC10_6M)
@@ -218,12 +224,8 @@ def _():
 @check("cc10_6m_by_convention")
 def _():
     """The pairs of the 6M cross-play grouped by their seeds' 3M conventions (each seed keeps them: roles.md at
-    update 366): count, mean, lowest, highest and failing, per group."""
-    groups, out = cc_pairs_by_convention(m=final_matrix(CC10_6M)), []
-    for key in ("both", "neither", "pot", "direction"):
-        scores = [score for score, _ in groups[key]]
-        out += [len(scores), np.mean(scores), min(scores), max(scores), sum(fails for _, fails in groups[key])]
-    return out
+    update 366)."""
+    return convention_numbers(cc_pairs_by_convention(m=final_matrix(CC10_6M)))
 
 
 def seed_sp_xp(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
