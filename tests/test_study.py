@@ -1342,3 +1342,31 @@ def test_extend_is_refused_where_a_larger_budget_is_another_schedule(tmp_path):
         open_state(study, squeezed, None, None, "local", extend=True)
     with pytest.raises(StudyError, match="holds no study yet"):
         open_state(study, tmp_path / "new", 0.5, None, "local", extend=True)
+
+
+def test_the_since_extension_table_shows_numbers_intervals_and_what_is_missing():
+    from cluster.study.report import since_extension_lines
+
+    assert since_extension_lines([]) == []  # a study never extended has no such section
+    done = {
+        "run": "sp",
+        "from_update": 2,
+        "from_env_steps_per_seed": 1_000_000,
+        "env_steps_per_seed": 2_000_000,
+        "before": {"sp_mean": 100.0, "xp_mean": 60.0, "gap": 40.0},
+        "after": {"sp_mean": 120.0, "xp_mean": 50.0, "gap": 70.0},
+        "delta_sp": 20.0,
+        "delta_xp": -10.0,
+        "delta_gap": 30.0,
+        "delta_sp_ci95_interval": [10.0, 30.0],
+        "delta_xp_ci95_interval": [-20.0, -1.0],
+        "delta_gap_ci95_interval": [12.5, 45.0],
+    }
+    waiting = {**{k: done[k] for k in ("from_update", "from_env_steps_per_seed", "env_steps_per_seed")}, "run": "sa"}
+    waiting |= {"before": done["before"], "problem": "no cross-play at the new stop yet"}
+    lines = since_extension_lines([done, waiting])
+    assert lines[-2] == (
+        "| sp | 1.00M → 2.00M | 100.0 → 120.0 | 60.0 → 50.0 | 40.0 → 70.0 | +20.0 [+10.0, +30.0] "
+        "| -10.0 [-20.0, -1.0] | +30.0 [+12.5, +45.0] |"
+    )
+    assert lines[-1] == "| sa | 1.00M → 2.00M | n/a (no cross-play at the new stop yet) | | | | | |"
