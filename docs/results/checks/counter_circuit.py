@@ -350,3 +350,20 @@ def _():
 @check("cc_sa10_growth")
 def _():
     return gap_growth((CC10, "sp", CC10), (CC_SA10, "sa", CC_SA10))
+
+
+SA_EXTENSION_UPDATES = (244,)  # the SA seeds' 6M extension's snapshots cross-played so far (32 episodes per pair)
+
+
+@check("cc_sa10_extension")
+def _():
+    """The SA seeds' gap at 3M (the final cross-play) and at each extension snapshot (SP, XP, gap, failing pairs),
+    beside the SP seeds' gap at the same snapshot."""
+    final = run(CC_SA10, "sa")["xp"]
+    out = [final["gap"], millions(CC_SA10, "sa"), final["sp_mean"], final["xp_mean"]]
+    for update in SA_EXTENSION_UPDATES:
+        later = matrix(CC_SA10 / "xp_snapshots" / f"sa_update{update}.csv")
+        sp, xp, gap = sp_xp(later)
+        out += [gap, snapshot_env_steps(update, CC_SA10), sp, xp, len(failing_pairs(later)), 45]
+        out += [snapshot_env_steps(update, CC10), sp_xp(cc10_snapshot(update))[2]]
+    return out
