@@ -4,7 +4,7 @@ A *source* is anything ``population.policy.load`` reads, plus ``human-proxy:LAYO
 contributes every seed (at the chosen checkpoint), a seed directory / checkpoint / exported file one
 policy. Each source is a ``PolicyGroup``: its policies share one network, so a job -- one seat-0
 policy against every policy of one column group -- is one vmapped, jitted program
-(``population.xp.cross_play``). Jobs go to workers in blocks (``spread_jobs``); the workers
+(``population.xp.cross_play``). Jobs go to workers in blocks, wave by wave (``in_waves``); the workers
 are in-process (``LocalPlayers``) or Ray actors (``RayPlayers``, which reuse the Ray backend's
 retrying ``call``). Every cell uses the same episode keys whatever worker plays it, and a row group
 playing against itself goes through exactly the in-run cross-play code, so ``--rows RUN --cols RUN``
@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cluster.runtime.jobs import InProcessWorkers, spread_jobs
+from cluster.runtime.jobs import InProcessWorkers, in_waves
 from cluster.runtime.ray_backend import RayWorkers, actor_env, ray, session
 from cluster.runtime.rundir import write_csv, write_json, write_matrix_csv
 from population.config import PRECISIONS, ClusterConfig, Config, ConfigError, ModelConfig, load_run_config
@@ -329,39 +329,31 @@ def play_matrix(row_groups, col_groups, workers, key, episodes: int, greedy: boo
     items = [
         (r, c, i) for r, group in enumerate(row_groups) for c in range(len(col_groups)) for i in range(len(group.names))
     ]
-    jobs = []
-    for shard, block in spread_jobs(workers, items, lambda block: block):  # consecutive blocks, one per worker
-        for r, c, i in block:
-            same = row_groups[r].ids == col_groups[c].ids and row_groups[r].spec == col_groups[c].spec
-            jobs.append(
-                (
-                    shard,
-                    (
-                        row_groups[r].spec,
-                        row_params[r],
-                        None if same else col_groups[c].spec,
-                        None if same else col_params[c],
-                        [i],
-                        np.asarray(key),
-                        episodes,
-                        greedy,
-                        (r, c, i),
-                    ),
-                )
-            )
-    # A wave holds at most one job per worker (consecutive blocks interleaved), then the bar moves.
-    by_shard = [[job for job in jobs if job[0] == s] for s in range(len(workers.shards))]
-    waves = [[queue[w] for queue in by_shard if w < len(queue)] for w in range(max(map(len, by_shard), default=0))]
+
+    def job(r: int, c: int, i: int) -> tuple:
+        same = row_groups[r].ids == col_groups[c].ids and row_groups[r].spec == col_groups[c].spec
+        return (
+            row_groups[r].spec,
+            row_params[r],
+            None if same else col_groups[c].spec,
+            None if same else col_params[c],
+            [i],
+            np.asarray(key),
+            episodes,
+            greedy,
+            (r, c, i),
+        )
+
     if progress is not None:
-        progress(0, len(jobs))
-    for wave in waves:
-        for part in workers.call("play", wave):
+        progress(0, len(items))
+    for wave in in_waves(workers, items):  # at most one job per worker, then the bar moves
+        for part in workers.call("play", [(shard, job(*item)) for shard, item in wave]):
             r, c, i = part.job
             row = row_offsets[r] + i
             cols = slice(col_offsets[c], col_offsets[c + 1])
             returns[row, cols], recipes[row, cols] = part.returns[0], part.start_recipe[0]
         if progress is not None:
-            progress(len(wave), len(jobs))
+            progress(len(wave), len(items))
     if np.isnan(returns).any():
         raise RuntimeError("cross-play: some pairs were not evaluated")
     return Matrix(returns, recipes, tuple(row_groups), tuple(col_groups))

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cluster.archive import ArchiveWriter, record_episodes
+from cluster.runtime.jobs import in_waves
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import RunDir, RunDirError, seed_curves, write_csv, write_json, write_matrix_csv
 from cluster.runtime.runstate import archive_meta, hidden_size, load_params, pair_meta, params_template
@@ -109,12 +110,10 @@ def _cross_play_spread(workers, params, key, episodes: int, archive_dir, on_prog
     directory = None if archive_dir is None else str(archive_dir)
     returns = np.full((num, num, episodes), np.nan, np.float32)
     recipes = np.zeros((num, num, episodes), np.int32)
-    width = len(workers.shards)
     if on_progress is not None:
         on_progress(0, num)
-    for first in range(0, num, width):
-        wave = list(range(first, min(first + width, num)))
-        jobs = [(shard, (handle, [row], np.asarray(key), episodes, directory)) for shard, row in enumerate(wave)]
+    for wave in in_waves(workers, list(range(num))):
+        jobs = [(shard, (handle, [row], np.asarray(key), episodes, directory)) for shard, row in wave]
         for part in workers.call("cross_play", jobs):
             returns[part.rows], recipes[part.rows] = part.returns, part.start_recipe  # by row: idempotent
         if on_progress is not None:

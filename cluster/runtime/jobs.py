@@ -75,6 +75,13 @@ def spread_jobs(workers: Workers, items: Sequence, make_args: Callable[[list], t
     return [(shard, make_args(block)) for shard, block in enumerate(spread(items, len(workers.shards))) if block]
 
 
+def in_waves(workers: Workers, items: Sequence) -> list[list[tuple[int, object]]]:
+    """``items`` spread over the shards in consecutive blocks (as ``spread_jobs``), dealt into waves of at most one
+    (shard index, item) per shard: calling the workers wave by wave lets a progress bar move as items finish."""
+    by_shard = [[(shard, item) for item in block] for shard, block in spread_jobs(workers, items, lambda b: b)]
+    return [[queue[w] for queue in by_shard if w < len(queue)] for w in range(max(map(len, by_shard), default=0))]
+
+
 def on_every_shard(workers: Workers, *args) -> list[tuple[int, tuple]]:
     """The same arguments for every shard."""
     return [(shard, args) for shard in range(len(workers.shards))]
