@@ -154,6 +154,22 @@ def earlier_snapshots(run_dir) -> tuple[int, ...]:
     return tuple(sorted({int(u) for record in records for u in record.get("snapshots", [])}))
 
 
+def run_snapshots(run_dir, num_updates: int, count: int) -> list[int]:
+    """The snapshots a run holds: ``snapshot_updates(num_updates, count)``, or for an extended run those of them
+    past its last earlier stop plus those before it that were snapshots then. When some of the longer
+    schedule's snapshots before that stop were not kept (the two schedules' snapshots do not nest), the
+    earlier stops' snapshots stand in for that stretch, so it is still covered."""
+    now = snapshot_updates(num_updates, count)
+    earlier = earlier_snapshots(run_dir)
+    if not earlier:
+        return now
+    stop = max(earlier)
+    kept = {u for u in now if u > stop or u in earlier}
+    if len(kept) < len(now):
+        kept |= set(earlier)
+    return sorted(kept)
+
+
 def resolve_snapshot(name: str, snapshots: list[int]) -> int:
     """'init' / 'mid' / 'final' / an update number -> an update number among ``snapshots``."""
     if name == "init":

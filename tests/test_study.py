@@ -722,6 +722,12 @@ def test_retrain_trains_a_changed_run_again_and_keeps_the_old_one(finished, tmp_
     compared = [json.loads((d / "comparisons" / "sp_vs_sa" / "summary.json").read_text()) for d in (out, replaced)]
     assert compared[0]["study_inputs"]["runs"]["sa"] != compared[1]["study_inputs"]["runs"]["sa"]  # ... and compared
     assert {e["status"] for e in study_status(out)} == {"done"}
+    # The same command again (as after a stop) continues: it set the retrained run aside and trained it anew.
+    trained = {p: p.read_bytes() for p in (out / "runs" / "sa").rglob("*") if p.is_file()}
+    code = main(["study", "run", str(path), "--backend", "local", "--out", str(out), "--quiet", "--retrain", "sa"])
+    assert code == 0, capsys.readouterr().err
+    assert [d.name for d in (out / "replaced").iterdir()] == [replaced.name]
+    assert {p: p.read_bytes() for p in (out / "runs" / "sa").rglob("*") if p.is_file()} == trained
 
 
 def test_a_study_too_big_for_this_machine_is_refused_before_anything_is_written(tmp_path, capsys):
@@ -1317,6 +1323,22 @@ def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(
         plan_study(changed, out, dataclasses.replace(HALF, budget=1.0))
     # Once extended, the same command (or none of the options) continues it as any study.
     assert run_study(study, out, dataclasses.replace(HALF, budget=1.0, extend=True), say=lambda _: None).budget == 1.0
+
+
+def test_an_extended_run_whose_snapshots_do_not_nest_plays_the_ones_it_kept(tmp_path):
+    """sa at 0.5 keeps snapshots 0, 2, 4; at 0.75 its schedule's are 0, 3, 6, and update 3 lies before the
+    earlier stop and was never kept: the over-training step stopped the whole study with "no checkpoint at
+    update 3". The earlier stop's snapshots stand in for that stretch."""
+    study = load_study(write_study(tmp_path / "tiny.yaml", {**STUDY, "over_training": ["sa"]}))
+    out = tmp_path / "study"
+    run_study(study, out, HALF, say=lambda _: None)
+    state = run_study(study, out, dataclasses.replace(HALF, budget=0.75, extend=True), say=lambda _: None)
+    assert all(step.done for step in state.steps.values())
+    folder = out / "over_training" / "sa"
+    assert json.loads((folder / "done.json").read_text())["snapshots"] == [0, 2, 4, 6]
+    assert sorted(p.name for p in folder.glob("update_*.json")) == [f"update_{u:07d}.json" for u in (0, 2, 4, 6)]
+    assert ckpt.run_snapshots(out / "runs" / "sa", 6, 3) == [0, 2, 4, 6]
+    assert ckpt.run_snapshots(out / "runs" / "sa", 8, 3) == [0, 4, 8]  # they nest: the longer schedule's own
 
 
 def test_extend_with_retrain_sets_the_old_results_aside_too(finished, tmp_path):

@@ -268,7 +268,8 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     """Every check ``run_study`` makes before it writes: the directory (not a file, the same options it was
     started with), every run's config at the budget and seed count, that each fits this machine's memory,
     and that every run already trained in it was trained with the config the study now asks for (a run
-    in ``options.retrain`` may differ: ``run_study`` trains it again). Writes nothing.
+    in ``options.retrain`` may differ: ``run_study`` trains it again, once: ``Plan.retrain`` holds only those
+    that still differ). Writes nothing.
 
     Returns the ``Plan``; raises ``StudyError`` naming what is refused (``RunDirError`` for a run
     directory that cannot be read)."""
@@ -298,6 +299,7 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
         except ConfigError as error:
             raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
     _check_retrain(study, out, retrain)
+    retrain = _still_to_retrain(study, out, configs, retrain)
     extend = []
     for run in study.runs:
         differences = trained_differences(run_dir(out, run.name), configs[run.name])
@@ -316,6 +318,20 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
             "again (the trained run and its cross-play move to replaced/)"
         )
     return Plan(study, out, state, options, configs, retrain, tuple(extend))
+
+
+def _still_to_retrain(study: Study, out: Path, configs: dict, asked: tuple[str, ...]) -> tuple[str, ...]:
+    """The runs of ``asked`` (``--retrain``) to set aside now: those trained with another config than ``configs``
+    holds for them, and FCP runs whose partner run is set aside. A run already created with the planned config
+    (by an earlier ``--retrain``, then stopped) is continued, so the same command resumes instead of starting
+    that run over each time."""
+    chosen: list[str] = []
+    for run in study.runs:  # a partner run comes before the runs that take it (spec.py checks)
+        if run.name in asked and (
+            trained_differences(run_dir(out, run.name), configs[run.name]) or run.partners_from in chosen
+        ):
+            chosen.append(run.name)
+    return tuple(chosen)
 
 
 def _check_retrain(study: Study, out: Path, retrain: tuple[str, ...]) -> None:
@@ -396,6 +412,11 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         state = StateFile(out, plan.state)
         for name in plan.retrain:
             _set_aside(study, out, name, state, say)
+        for name in (n for n in plan.options.retrain if n not in plan.retrain):
+            say(
+                f"study {study.name}: --retrain {name}: nothing to set aside, {run_dir(out, name)} holds no run of "
+                "another config (an earlier --retrain made it); it is continued, not started over"
+            )
         if kept is not None and kept.budget != plan.state.budget:  # --extend, now: the old results step aside
             _set_aside_results(study, out, kept.budget, state, say)
         state.save()
@@ -617,7 +638,7 @@ def _over_training(plan: Plan, name: str, timer: StepTimer) -> dict:
     if not run_finished(path):
         raise StudyBlocked(f"run {name} has not finished")
     created = RunDir.existing(path).load_config()  # its snapshots are protected for good
-    snapshots = ckpt.snapshot_updates(created.ppo.num_updates, created.run.num_checkpoints)
+    snapshots = ckpt.run_snapshots(path, created.ppo.num_updates, created.run.num_checkpoints)
     folder = out / "over_training" / name
     inputs = over_training_inputs(created)
     todo = []
