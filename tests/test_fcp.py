@@ -7,6 +7,7 @@ stage is then 2 SP seeds, the same programs as the smoke SP run).
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import jax
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 
 from cluster.runtime import coordinator, runstate
+from cluster.runtime.extend import repoint_partners
 from cluster.runtime.local import LocalWorkers
 from cluster.runtime.rundir import RunDir, RunDirError
 from cluster.runtime.shard import SeedShard
@@ -254,6 +256,41 @@ def test_per_seed_run_resumes_where_it_stopped(per_seed_run, tmp_path, monkeypat
     template = runstate.params_template(ppo.make_trainer(config))
     for seed in range(NUM_SEEDS):
         ours = runstate.load_params(ckpt.checkpoint_path(run, seed, NUM_UPDATES), config.fingerprint(), template)
+        theirs = runstate.load_params(
+            ckpt.checkpoint_path(reference, seed, NUM_UPDATES), smoke().fingerprint(), template
+        )
+        for x, y in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_a_run_whose_partners_moved_with_it_resumes_once_repointed(per_seed_run, tmp_path):
+    """A study directory carried elsewhere (``ocv2 study unpack``) holds the FCP run and its partner run; the
+    partners' place is in the fingerprint, so resuming refused "holds a run of a different config"."""
+    reference, _ = per_seed_run
+    shutil.copytree(reference / "partners", tmp_path / "here" / "partners")
+    stopped = tmp_path / "here" / "fcp"
+
+    def die(update, workers, _rows):
+        if update == 2:
+            raise KeyboardInterrupt
+
+    config = smoke(f"population.fcp.partners={tmp_path / 'here' / 'partners'}")
+    with pytest.raises(KeyboardInterrupt):
+        coordinator.train(config, stopped, LocalWorkers, show_progress=False, evaluate=False, on_chunk=die)
+    shutil.copytree(tmp_path / "here", tmp_path / "there")
+    moved = smoke(f"population.fcp.partners={tmp_path / 'there' / 'partners'}")
+    run = tmp_path / "there" / "fcp"
+    with pytest.raises(RunDirError, match="holds a run of a different config"):
+        coordinator.train(moved, run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    assert not repoint_partners(
+        run, smoke("population.fcp.partners=" + str(tmp_path / "there" / "partners"), "ppo.lr=0.1")
+    )
+    assert repoint_partners(run, moved) and not repoint_partners(run, moved)
+    assert RunDir(run).load_config().population.fcp.partners == str(tmp_path / "there" / "partners")
+    coordinator.train(moved, run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    template = runstate.params_template(ppo.make_trainer(moved))
+    for seed in range(NUM_SEEDS):  # where the uninterrupted run ended
+        ours = runstate.load_params(ckpt.checkpoint_path(run, seed, NUM_UPDATES), moved.fingerprint(), template)
         theirs = runstate.load_params(
             ckpt.checkpoint_path(reference, seed, NUM_UPDATES), smoke().fingerprint(), template
         )

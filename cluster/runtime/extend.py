@@ -82,6 +82,37 @@ def extend_run(path, config: Config) -> dict | None:
         run.close()
 
 
+def repoint_partners(path, config: Config) -> bool:
+    """Make the FCP run in ``path`` take its partners from where ``config`` says, when that is the only thing
+    its fingerprint changes: a study directory moved or unpacked elsewhere, its partner run moved with it.
+    Where the partners lie is part of the fingerprint, so the run's checkpoints are re-stamped (every file
+    checked before the first is rewritten) and ``config.yaml`` is written last, as ``extend_run`` does.
+
+    Returns True when the run was rewritten; False when the partners' place is unchanged or something else
+    differs too (resuming then refuses and names it). Raises ``RunDirError`` as ``extend_run``."""
+    run = RunDir.existing(path)
+    run.lock(advice="wait for it to finish or stop it before resuming it")
+    try:
+        before = run.load_config()
+        fcp = before.population.fcp
+        partners = config.population.fcp.partners
+        if fcp.partners == partners or None in (fcp.partners, partners):
+            return False
+        moved = dataclasses.replace(fcp, partners=partners)
+        after = dataclasses.replace(before, population=dataclasses.replace(before.population, fcp=moved))
+        if after.fingerprint() != config.fingerprint():
+            return False
+        files = sealed_files(run.path)
+        for file in files:  # every file checked before any is written: a refusal leaves the run as it was
+            check_stamp(file, before.fingerprint(), after.fingerprint())
+        for file in files:
+            restamp(file, after.fingerprint())
+        dump_config(after, run.config_path)  # last: until here the run is still the old one
+        return True
+    finally:
+        run.close()
+
+
 def sealed_files(run_dir: Path) -> list[Path]:
     """The files of a run that carry its fingerprint: every seed's checkpoints and the SA buffers."""
     run_dir = Path(run_dir)

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from cluster.api import train_population
 from cluster.runtime import crossplay
-from cluster.runtime.extend import extend_run
+from cluster.runtime.extend import extend_run, repoint_partners
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, extension_problem, write_json
 from cluster.study.report import write_report
@@ -618,6 +618,8 @@ def _train(plan: Plan, name: str, timer: StepTimer) -> dict:
     if options.address:
         config = dataclasses.replace(config, cluster=dataclasses.replace(config.cluster, address=options.address))
     resume = (path / "config.yaml").is_file()
+    if resume and repoint_partners(path, config):
+        log.info(f"study {plan.study.name}: run {name}: its partners now lie in {config.population.fcp.partners}")
     train_population(
         config,
         path,
