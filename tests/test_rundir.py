@@ -17,7 +17,7 @@ import pytest
 
 from cluster.cli import main
 from cluster.runtime.environment import git_state
-from cluster.runtime.rundir import RunDir, RunDirError, write_json
+from cluster.runtime.rundir import DirLock, RunDir, RunDirError, write_json
 from population import checkpoints as ckpt
 from population.config import load_config
 from population.keys import OFFSETS, derive_key
@@ -349,3 +349,26 @@ def test_json_files_are_strict_json_with_null_for_undefined_numbers(tmp_path):
         "n": 2,
         "cells": [1.0, None],
     }
+
+
+def test_asking_whether_a_lock_is_held_writes_nothing(tmp_path):
+    """``study status`` asked by taking the lock: it created .lock, wrote its own pid over the holder's, and in a
+    directory it could not write reported a crashed step as running for ever."""
+    assert not DirLock(tmp_path).held_elsewhere() and not (tmp_path / ".lock").exists()
+    holder = DirLock(tmp_path)
+    holder.acquire()
+    written = (tmp_path / ".lock").read_bytes()
+    (tmp_path / ".lock").write_bytes(b"4242\n")  # as if another process held it
+    tmp_path.chmod(0o555)
+    (tmp_path / ".lock").chmod(0o444)
+    try:
+        asker = DirLock(tmp_path)  # another open file description: flock tells the two apart
+        assert asker.held_elsewhere()
+        assert (tmp_path / ".lock").read_bytes() == b"4242\n"
+        holder.release()
+        assert not asker.held_elsewhere()  # read-only and free: not "running"
+        assert (tmp_path / ".lock").read_bytes() == b"4242\n"
+    finally:
+        tmp_path.chmod(0o755)
+        (tmp_path / ".lock").chmod(0o644)
+    assert written == f"{os.getpid()}\n".encode()

@@ -376,7 +376,7 @@ def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
         run_study(
             load_study(study), finished, StudyOptions(backend="local", budget_mode="compress"), say=lambda _: None
         )
-    with pytest.raises(StudyError, match="was started with --seeds None"):  # each config's own
+    with pytest.raises(StudyError, match=r"was started with no --seeds \(each config's own\); pass the same"):
         run_study(load_study(study), finished, StudyOptions(seeds=3, backend="local"), say=lambda _: None)
     # a directory from before --budget-mode compressed its budget, and keeps doing so
     old = tmp_path / "old"
@@ -502,6 +502,7 @@ def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
         ),
         (lambda d: d.update(study="tiny\n"), "study: expected a name"),
         (lambda d: d["comparisons"][0].update(name="c\n"), "comparisons[0].name: expected a name"),
+        (lambda d: d["runs"][1].update(name="plots"), "runs[1].name: 'plots' names the folders a pack leaves out"),
         (lambda d: d["runs"][0]["paper"].update(sp=10**400), "not valid YAML: an integer of 401 digits (at most 100)"),
     ],
     ids=lambda v: None if callable(v) else v[:40],
@@ -633,6 +634,32 @@ def test_status_of_a_running_step_counts_the_time_since_its_last_save(finished, 
 def test_status_of_a_folder_that_is_no_study(tmp_path, capsys):
     assert main(["study", "status", str(tmp_path)]) == 2
     assert "not a study directory" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["mine.yaml", "table1_coord_ring_sp10.yaml"])
+def test_status_after_the_study_file_is_gone(tmp_path, capsys, name):
+    """A study unpacked into another checkout (or its file renamed): its configs are named relative to a file
+    that is gone. A shipped study's name resolves them as shipped; another name is one line saying what to do."""
+    (tmp_path / "studies").mkdir()
+    shutil.copy(SMOKE, tmp_path / "smoke.yaml")
+    study_file = write_study(
+        tmp_path / "studies" / name,
+        {**STUDY, "runs": [{**STUDY["runs"][0], "config": "../smoke.yaml"}], "comparisons": []},
+    )
+    study, out = load_study(study_file), tmp_path / "out"
+    out.mkdir()
+    StateFile(out, open_state(study, out, 0.5, None, "local")).save()
+    assert main(["study", "status", str(out)]) == 0
+    study_file.unlink()
+    (tmp_path / "smoke.yaml").unlink()
+    if name == "mine.yaml":
+        assert main(["study", "status", str(out)]) == 2
+        err = _one_line(capsys)
+        assert "no such config file ../smoke.yaml" in err and f"{study_file}, which is gone" in err, err
+        assert f"run `ocv2 study run STUDY.yaml --out {out.resolve()}` once" in err, err
+    else:
+        assert main(["study", "status", str(out)]) == 0
+        assert kept_study(read_state(out), out).runs[0].config == SMOKE.resolve()
 
 
 def test_a_step_kind_without_a_done_rule_is_an_error_not_a_finished_step(tmp_path):

@@ -140,14 +140,23 @@ class DirLock:
             self._fd = None
 
     def held_elsewhere(self) -> bool:
-        """Whether another process holds the lock now (or the lock file cannot be opened)."""
+        """Whether another process holds the lock now (or the lock file cannot be read). Writes nothing: a
+        shared lock is tried on the file opened read-only and let go at once, so ``study status`` may look at a
+        directory it cannot write, and no holder's pid is replaced by its own."""
         if self._fd is not None:
             return False
         try:
-            self.acquire()
-        except (RunDirError, OSError):
+            fd = os.open(self.path / LOCK_NAME, os.O_RDONLY)
+        except FileNotFoundError:  # whoever holds the lock made the file first
+            return False
+        except OSError:
             return True
-        self.release()
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            return True
+        finally:
+            os.close(fd)  # closing lets a shared lock go
         return False
 
     def __del__(self):

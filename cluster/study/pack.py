@@ -24,14 +24,14 @@ import zlib
 from pathlib import Path
 
 from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state, run_finished
-from cluster.study.spec import Study, StudyError, run_dir
+from cluster.study.spec import RESERVED_NAMES, Study, StudyError, run_dir
 from cluster.study.state import StepRecord, StudyState
 from ocv2.atomic import staged_folder
 from population import checkpoints as ckpt
 
 PACK_NAME = "pack.json"
 PART_BYTES = 16 << 20  # the largest file the device tool brings back
-_SKIPPED_DIRS = {"gifs", "plots", "archive"}
+_SKIPPED_DIRS = set(RESERVED_NAMES)  # which is why no run or comparison may take these names
 _SKIPPED_SUFFIXES = {".png", ".gif", ".mcap", ".lock"}
 
 

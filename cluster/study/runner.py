@@ -50,6 +50,7 @@ from cluster.study.state import StepRecord, StudyState
 from ocv2 import boundedjson
 from population import checkpoints as ckpt
 from population.config import Config, ConfigError
+from population.config.paper import PACKAGED_CONFIGS
 from population.memory import check_fits
 from population.numerics import DEFAULT_PRECISION
 from population.xp import block_summary
@@ -153,7 +154,7 @@ def open_state(
         )
         for flag, given, kept in kept_options:
             if given is not None and given != kept:
-                shown = f"{flag} {kept}"
+                shown = f"{flag} {kept}" if kept is not None else f"no {flag} (each config's own)"
                 if flag == "--set":
                     shown = " ".join(f"--set {o}" for o in kept) or "no --set"
                 longer = flag == "--budget" and state.budget_mode == "truncate" and given > kept
@@ -197,10 +198,20 @@ def _extend_budget(state: StudyState, out: Path, budget: float) -> None:
 
 def kept_study(state: StudyState, out: Path) -> Study:
     """The study a study directory runs: the file's data it keeps, with the ``--set`` overrides it was started with."""
+    source = Path(state.source or Path(out) / "study.yaml")
+    if not source.is_file():  # run from another checkout (unpacked elsewhere): its configs resolve as shipped
+        shipped = Path(str(PACKAGED_CONFIGS / "studies")) / source.name
+        source = shipped if shipped.is_file() else source
     try:
-        study = parse_study(state.spec, Path(state.source or Path(out) / "study.yaml"))
+        study = parse_study(state.spec, source)
     except StudyError as error:
-        raise StudyError(f"{Path(out) / STATE_NAME}: spec: {error}") from None
+        gone = ""
+        if not source.is_file():
+            gone = (
+                f" (its configs are named relative to the study file it was run from, {source}, which is gone: "
+                f"run `ocv2 study run STUDY.yaml --out {out}` once with that file where it lies now)"
+            )
+        raise StudyError(f"{Path(out) / STATE_NAME}: spec: {error}{gone}") from None
     kept = dataclasses.replace(study, where=f"{Path(out) / STATE_NAME} (the spec it keeps from {study.path.name})")
     return with_overrides(kept, list(state.overrides))
 

@@ -46,6 +46,8 @@ PAPER_KEYS = ("source", "sp", "xp", "gap", "note")
 COMPARISON_KEYS = ("name", "runs", "human_proxy")
 #: A study, run or comparison name (a folder name): matched whole, so no trailing newline slips through ``$``.
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+#: Names a run or comparison may not take: the folders of pictures and archives ``cluster.study.pack`` leaves out.
+RESERVED_NAMES = ("archive", "gifs", "plots")
 
 
 class StudyError(ValueError):
@@ -252,6 +254,11 @@ def _named_entry(where: str, section: str, noun: str, index: int, entry, keys, e
     name = entry.get("name")
     if not isinstance(name, str) or not NAME.fullmatch(name):
         raise StudyError(f"{where}: {label}.name: expected a name (letters, digits, _ . -), got {name!r}")
+    if name in RESERVED_NAMES:
+        raise StudyError(
+            f"{where}: {label}.name: {name!r} names the folders a pack leaves out ({', '.join(RESERVED_NAMES)}), "
+            f"so a {noun} of that name would not be packed; choose another"
+        )
     label = f"{noun} {name!r}"
     _unknown(where, f"{label}: ", entry, keys)
     if name in earlier:
