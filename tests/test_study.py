@@ -732,6 +732,26 @@ def test_a_trained_run_whose_config_changed_is_refused_and_study_json_kept(finis
     assert numbers(out) == numbers(finished)
 
 
+def test_the_report_describes_runs_as_they_were_trained(finished, tmp_path, capsys):
+    """The report took a run's fingerprint and env steps from today's config files, beside numbers trained with
+    another config; it now takes them from the run and says what changed."""
+    out = _copy(finished, tmp_path / "study")
+    data = json.loads((out / "study.json").read_text())
+    data["spec"]["runs"][0]["set"].append("ppo.lr=0.01")  # as if sp's config file had changed since
+    (out / "study.json").write_text(json.dumps(data))
+    assert main(["study", "report", str(out), "--out", str(tmp_path / "report")]) == 0, capsys.readouterr().err
+    runs = json.loads((tmp_path / "report" / "summary.json").read_text())["runs"]
+    theirs = json.loads((finished / "summary.json").read_text())["runs"]
+    assert (
+        runs[0]["fingerprint"]
+        == theirs[0]["fingerprint"]
+        == load_config(out / "runs" / "sp" / "config.yaml").fingerprint()
+    )
+    assert runs[0]["config_changed"] == ["ppo.lr: 0.001 in the run, 0.01 now"] and "config_changed" not in runs[1]
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert "- train sp: its numbers are of the config it was trained with" in report and "--retrain sp" in report
+
+
 def test_retrain_trains_a_changed_run_again_and_keeps_the_old_one(finished, tmp_path, capsys):
     out = _copy(finished, tmp_path / "study")
     path = _changed_study(tmp_path, 1, "ppo.lr=0.002")  # sa: the run after sp, compared with it

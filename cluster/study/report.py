@@ -23,7 +23,7 @@ import numpy as np
 from cluster.runtime.crossplay import seat_pairs
 from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves, write_json
-from cluster.study.results import read_result
+from cluster.study.results import config_differences, read_result
 from cluster.study.since import KEYS, since_extension
 from cluster.study.spec import PaperValue, Study, comparison_dir, run_dir
 from cluster.study.state import StepRecord, StudyState
@@ -122,10 +122,23 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
     run = RunDir(path)
     try:
         manifest = run.read_manifest()
+        trained = run.load_config()
     except RunDirError as error:
         entry["status"] = "damaged"
         entry["problem"] = str(error)
         return entry
+    # The run as it was trained, not as the study's files say today (a config changed since: `run` refuses it).
+    entry.update(
+        method=trained.population.method,
+        layout=trained.env_kwargs["layout"],
+        model=trained.model.kind,
+        seeds=trained.population.num_seeds,
+        env_steps_per_seed=trained.ppo.num_updates * trained.ppo.steps_per_update,
+        fingerprint=trained.fingerprint(),
+    )
+    changed = config_differences(trained, config)
+    if changed:
+        entry["config_changed"] = changed
     entry["status"] = manifest.get("status", "created")
     entry["update"] = manifest.get("update")
     entry["commits"] = _commits(path)
@@ -595,6 +608,13 @@ def markdown(study: Study, summary: dict, state: StudyState) -> str:
     if summary["pictures"]:
         lines += ["", "## Pictures", ""] + [f"![{name}]({name})" for name in summary["pictures"]]
     left += [f"- train {run['name']}: {run['problem']}" for run in summary["runs"] if run.get("problem")]
+    left += [
+        f"- train {run['name']}: its numbers are of the config it was trained with, not of the one the study asks "
+        f"for now ({'; '.join(run['config_changed'])}); `ocv2 study run` refuses it until the change is undone or "
+        f"--retrain {run['name']} trains it again"
+        for run in summary["runs"]
+        if run.get("config_changed")
+    ]
     left += [f"- compare {c['name']}: {c['reason']}" for c in summary["comparisons"] if c["status"] == "damaged"]
     if left:
         lines += ["", "## Not finished", ""] + left

@@ -35,7 +35,7 @@ from cluster.runtime.extend import extend_run, repoint_partners
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, extension_problem, write_json
 from cluster.study.report import write_report
-from cluster.study.results import read_result
+from cluster.study.results import compared_settings, config_differences, read_result
 from cluster.study.spec import (
     Comparison,
     Study,
@@ -361,14 +361,6 @@ def _check_retrain(study: Study, out: Path, retrain: tuple[str, ...]) -> None:
                 )
 
 
-#: Config keys compared between a trained run and what the study asks for it: the training settings the
-#: fingerprint covers and eval.episodes, which the reported cross-play used. Where the partners of an FCP
-#: run lie is left out (the study directory may have moved), as are cluster, archive and the checkpoint
-#: cadence, which may change between drivers.
-COMPARED_RUN_KEYS = ("run.precision", "run.deterministic", "eval.episodes")
-_NOT_COMPARED = ("population.fcp.partners",)
-
-
 def trained_differences(path: Path, planned: Config) -> list[str]:
     """How the config the run in ``path`` was created with differs from ``planned`` ("ppo.lr: 0.0004 in the
     run, 0.01 now"); empty when nothing was trained there yet or nothing that matters differs."""
@@ -378,26 +370,7 @@ def trained_differences(path: Path, planned: Config) -> list[str]:
         trained = RunDir(path).load_config()
     except RunDirError as error:
         raise StudyError(str(error)) from None
-    before, now = _compared(trained), _compared(planned)
-    return [
-        f"{key}: {_shown(before.get(key))} in the run, {_shown(now.get(key))} now"
-        for key in sorted(set(before) | set(now))
-        if before.get(key) != now.get(key)
-    ]
-
-
-def _compared(config: Config) -> dict:
-    every = config.flat()
-    flat = {key: value for key, value in every.items() if key.split(".")[0] in ("env", "model", "ppo", "population")}
-    flat.update({dotted: every[dotted] for dotted in COMPARED_RUN_KEYS})
-    for dotted in _NOT_COMPARED:
-        flat.pop(dotted, None)
-    return flat
-
-
-def _shown(value) -> str:
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
+    return config_differences(trained, planned)
 
 
 def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Callable[[str], None] = log.info) -> dict:
@@ -597,7 +570,7 @@ def over_training_inputs(config: Config) -> dict:
 def inputs_fingerprint(config: Config) -> str:
     """A hash of what ``trained_differences`` compares: the training settings and eval.episodes, but not
     where an FCP run's partners lie (a study directory carried to another machine keeps its results)."""
-    text = json.dumps(_compared(config), sort_keys=True, default=list)
+    text = json.dumps(compared_settings(config), sort_keys=True, default=list)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
