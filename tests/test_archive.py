@@ -193,6 +193,8 @@ def test_killed_writer_is_recovered(tmp_path, recorded, capsys):
     summary = partial.info()
     assert not summary["finished"] and summary["episodes"] == 2
     assert summary["uncommitted_messages"] > 0  # part of episode 2 reached the disk and is ignored
+    with pytest.raises(ArchiveError, match=r"\.partial' is unfinished .*ocv2 archive recover"):
+        states_as_buffer(path + ".partial")  # an SA reset buffer (population.sa.archives) takes no half file
 
     assert main(["archive", "recover", path + ".partial"]) == 0
     out = capsys.readouterr().out
@@ -204,6 +206,7 @@ def test_killed_writer_is_recovered(tmp_path, recorded, capsys):
         assert got.meta["seed"] == e
         _assert_same_episode(got, recorded, e)
         assert fixed.frames(e).shape == (STEPS + 1, 4 * 8, 5 * 8, 3)
+    assert int(states_as_buffer(path, keep_every=1).step.shape[0]) == 2 * STEPS  # the recovered file: both episodes
 
     report = recover(path + ".partial", tmp_path / "again.mcap")
     assert (report.episodes, report.transitions, report.source_finished) == (2, 2 * STEPS, False)

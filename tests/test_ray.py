@@ -29,6 +29,7 @@ import pytest
 from cluster.archive import ArchiveReader
 from cluster.cli import main
 from cluster.runtime import coordinator, evaluate, ray_backend, runstate
+from cluster.runtime.local import LocalWorkers
 from cluster.runtime.rundir import RunDir
 from cluster.runtime.shard import SeedShard
 from population import checkpoints as ckpt
@@ -146,6 +147,55 @@ def test_fcp_on_ray_trains_against_a_pool_from_an_sp_run(tmp_path, reference, ra
     assert manifest["status"] == "finished" and manifest["shards"] == [[0], [1]]
     assert manifest["pool"] == ["seed0@4", "seed0@8", "seed1@4", "seed1@8"]  # mid and final snapshots
     assert jax.tree.leaves(final_params(run))[0].shape[0] == 2  # both learners finished
+
+
+class Died(Exception):
+    pass
+
+
+def killed_between_shards(run) -> None:
+    """The reference run's shards ([0], [1]) killed as the chunk to update 4 ends: seed 0 has saved it, seed 1
+    has not, and the coordinator has merged update 2."""
+
+    class SecondShardDies(ShardsHere):
+        def call(self, method, jobs):
+            if method == "advance" and any(args[0] == 4 for _, args in jobs):
+                self.targets[0].advance(*jobs[0][1])
+                raise Died
+            return super().call(method, jobs)
+
+    with pytest.raises(Died):
+        coordinator.train(load_config(SMOKE, LONGER), run, SecondShardDies, show_progress=False, evaluate=False)
+    assert ckpt.list_updates(run, 0)[-1] == 4 and ckpt.list_updates(run, 1)[-1] == 2
+
+
+def test_a_resume_that_groups_the_seeds_otherwise_starts_where_the_coordinator_stood(tmp_path, reference):
+    """Seed 0 pruned update 2 once it saved 4, so one local shard holding seeds 0 and 1 shared only the
+    snapshot at update 0 and trained everything again without a word."""
+    run = tmp_path / "regrouped"
+    killed_between_shards(run)
+    coordinator.train(load_config(SMOKE, LONGER), run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    manifest = RunDir(run).read_manifest()
+    assert manifest["resumed_from"] == 2 and manifest["status"] == "finished"
+    rows = metrics_without_timing(run)  # one vmapped shard sums in other orders than two: compare keys after 2
+    assert sorted((r["seed"], r["update"]) for r in rows) == sorted(
+        (r["seed"], r["update"]) for r in metrics_without_timing(reference)
+    )
+    assert [r for r in rows if int(r["update"]) <= 2] == [
+        r for r in metrics_without_timing(reference) if int(r["update"]) <= 2
+    ]
+
+
+def test_a_shard_ahead_of_the_others_gives_each_metrics_row_once(tmp_path, reference):
+    """Resumed with checkpoints every update, seed 0's shard (at update 4, the others at 2) returned its rows
+    of updates 3-4 at the stop at 3 and update 4's again at the stop at 4: metrics.csv held it twice."""
+    run = tmp_path / "ahead"
+    killed_between_shards(run)
+    finer = load_config(SMOKE, [*LONGER, "run.checkpoint_every=1"])
+    coordinator.train(finer, run, ShardsHere, resume=True, show_progress=False, evaluate=False)
+    assert_same_tree(final_params(run), final_params(reference))
+    by_row = lambda rows: sorted(rows, key=lambda r: (int(r["seed"]), int(r["update"])))  # noqa: E731
+    assert by_row(metrics_without_timing(run)) == by_row(metrics_without_timing(reference))  # chunked otherwise
 
 
 def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_numbers(tmp_path, reference, ray_session):

@@ -28,7 +28,7 @@ from cluster.runtime import coordinator, evaluate, interrupt, runstate
 from cluster.runtime.rundir import METRIC_FIELDS, RunDir, RunDirError
 from ocv2.atomic import is_temporary
 from population import checkpoints as ckpt
-from population import ppo
+from population import ppo, published
 from population.config import dump_config, load_config
 from population.keys import derive_key
 from population.sa import collect_buffer
@@ -149,7 +149,7 @@ def test_xp_command_rewrites_the_summary(sp_run, tmp_path):
 # ---------------------------------------------------------------------------------------------------
 
 
-def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp_path):
+def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp_path, capsys):
     run = tmp_path / "sa"
     assert train(run, "population.method=sa", extra=["--no-eval"]) == 0
     assert manifest(run)["status"] == "finished" and manifest(run)["method"] == "sa"
@@ -222,6 +222,12 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
     every_other = lambda x: x.reshape((-1, 4) + x.shape[1:])[:, ::2].reshape((-1,) + x.shape[1:])
     _assert_trees_equal(head, jax.tree.map(every_other, collected[1]))
     _assert_trees_equal(tail, jax.tree.map(np.asarray, serialization.to_state_dict(archived)))
+    # The archive is pinned by its bytes: one that changed between sessions would feed the later iterations
+    # other states than an uninterrupted run had.
+    assert manifest(augmented)["sa_archives"] == {str(archive): published.sha256_of(archive)}
+    shutil.copy(run / "archive" / "sa" / "iteration_000.mcap", archive)
+    assert train(augmented, "population.method=sa", *sparser, extra=["--no-eval", "--resume"]) == 2
+    assert f"population.sa.archives: {archive} has changed since this run started" in capsys.readouterr().err
 
 
 def test_sa_archives_that_do_not_exist_fail_before_the_run_starts(tmp_path, capsys):
@@ -315,6 +321,36 @@ def test_op_runs_and_archives_training_episodes(tmp_path):
     assert len(read_csv(run / "metrics.csv")) == NUM_SEEDS * NUM_UPDATES
     for seed in range(NUM_SEEDS):
         assert ckpt.list_updates(run, seed) == SNAPSHOTS
+
+
+def test_a_training_archive_a_kill_prevented_is_written_on_resume(tmp_path, monkeypatch):
+    """Killed after update 2's checkpoints, before its training archive: the resume started after update 2 and
+    archive/train/update_0000002.mcap was never written."""
+    from cluster.archive import ArchiveReader
+    from cluster.runtime.local import LocalWorkers
+
+    config = load_config(SMOKE, ["archive.train_every=2", "run.checkpoint_every=2"])
+    coordinator.train(config, tmp_path / "whole", LocalWorkers, show_progress=False, evaluate=False)
+    real = coordinator._archive_training
+
+    def killed(config, run, workers, before, stop):
+        if stop == 2:
+            raise SystemExit("killed")
+        real(config, run, workers, before, stop)
+
+    monkeypatch.setattr(coordinator, "_archive_training", killed)
+    with pytest.raises(SystemExit):
+        coordinator.train(config, tmp_path / "killed", LocalWorkers, show_progress=False, evaluate=False)
+    monkeypatch.setattr(coordinator, "_archive_training", real)
+    assert not (tmp_path / "killed" / "archive" / "train" / "update_0000002.mcap").exists()
+    coordinator.train(config, tmp_path / "killed", LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    for update in (2, 4):
+        name = f"update_{update:07d}.mcap"
+        with ArchiveReader(tmp_path / "whole" / "archive" / "train" / name) as whole:
+            with ArchiveReader(tmp_path / "killed" / "archive" / "train" / name) as resumed:
+                assert len(resumed) == len(whole) == NUM_SEEDS
+                for index in range(NUM_SEEDS):
+                    np.testing.assert_array_equal(resumed.episode(index).actions, whole.episode(index).actions)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -33,7 +33,7 @@ def states_as_buffer(paths, keep_every: int = 10, layout: Layout | str | None = 
             this kitchen.
 
     Raises:
-        ArchiveError: no complete episode, or an episode of another layout / shape.
+        ArchiveError: an unfinished or damaged file, no complete episode, or an episode of another layout / shape.
     """
     if isinstance(keep_every, bool) or not isinstance(keep_every, (int, np.integer)) or keep_every < 1:
         raise ValueError(f"keep_every must be a positive integer, got {keep_every!r}")
@@ -42,6 +42,13 @@ def states_as_buffer(paths, keep_every: int = 10, layout: Layout | str | None = 
     parts = []
     for path in paths:
         reader = ArchiveReader(path)
+        if not reader.finished or reader.warnings:  # a killed writer's file, or skipped chunks: states lost quietly
+            what = "is unfinished (its writer was killed or still runs)" if not reader.finished else "is damaged"
+            detail = f" ({reader.warnings[0]})" if reader.warnings else ""
+            raise ArchiveError(
+                f"{os.fspath(path)!r} {what}{detail}; copy its complete episodes into a clean file with "
+                "`ocv2 archive recover FILE --out FIXED.mcap` and name that file"
+            )
         for index, meta in enumerate(reader.episodes()):
             episode_layout = reader.layout(index)
             if target is None:

@@ -33,7 +33,7 @@ from cluster.runtime.interrupt import StoppedAfterChunk
 from cluster.runtime.jobs import Workers, WorkersFactory, gather_params, on_every_shard, spread_jobs
 from cluster.runtime.progress import PopulationProgress
 from cluster.runtime.rundir import RunDir, RunDirError
-from cluster.runtime.runstate import Schedule, archive_meta, load_params, pair_meta, params_template
+from cluster.runtime.runstate import Schedule, archive_meta, load_params, pair_meta, params_template, prune_checkpoints
 from cluster.runtime.shard import SABuffer
 from population import checkpoints as ckpt
 from population import ppo
@@ -42,6 +42,7 @@ from population.config import shards as seed_shards
 from population.evaluation import stack_params
 from population.networks import same_function
 from population.numerics import matmul_precision
+from population.published import sha256_of
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
 
 log = logging.getLogger(__name__)
@@ -99,6 +100,22 @@ def archived_states(config: Config):
     except ArchiveError as error:
         raise ArchiveError(f"population.sa.archives: {error}") from None
     return jax.tree.map(np.asarray, states)
+
+
+def pin_archives(config: Config, run: RunDir, resuming: bool) -> None:
+    """Record the sha256 of every ``population.sa.archives`` file in the manifest; on a resume, refuse a file
+    that changed since (the fingerprint holds their paths, not their bytes, and the SA iterations still to
+    come would draw from other states than an uninterrupted run did)."""
+    digests = {str(path): sha256_of(Path(path)) for path in config.population.sa.archives}
+    kept = run.read_manifest().get("sa_archives") or {}
+    for path, digest in digests.items():
+        if resuming and kept.get(path) not in (None, digest):
+            raise RunDirError(
+                f"population.sa.archives: {path} has changed since this run started (sha256 {kept[path][:12]} then, "
+                f"{digest[:12]} now), so its later SA iterations would draw from other states; restore the file or "
+                "start a new run"
+            )
+    run.update_manifest(sa_archives=digests)
 
 
 def _archive_collection(config: Config, run: RunDir, iteration: int, by_pair: dict) -> None:
@@ -316,6 +333,8 @@ def train(
 
 def _train_locked(config, run, resuming, factory, show_progress, evaluate, label, on_chunk, extra) -> dict:
     past_events = run.read_manifest().get("restart_events", []) if resuming else []
+    if extra is not None:
+        pin_archives(config, run, resuming)
     schedule = Schedule.of(config, run.path)
     pool, pool_labels = (None, [])
     if config.population.traits.partner_pool:
@@ -383,6 +402,9 @@ def _train_loop(
     )
     with progress:
         progress.advance_to(update, None)
+        missed = _missed_training_archive(config, run, schedule, update)
+        if missed is not None and set(workers.call("position", on_every_shard(workers))) == {update}:
+            _archive_training(config, run, workers, missed, update)  # the policies are still those of `update`
         while update < schedule.num_updates:
             if schedule.iteration_starts:
                 iteration = schedule.iteration_at(update)
@@ -392,7 +414,9 @@ def _train_loop(
                     buffer_handle = workers.share(buffer)
             stop = schedule.next_stop(update)
             results = workers.call("advance", [(i, (stop, buffer_handle, update)) for i in range(num_shards)])
-            rows = merge_rows(results, update)
+            # A shard ahead of the others (restored from a later checkpoint than they were) returns its saved
+            # rows past this stop too; they are merged at the stops they belong to, once.
+            rows = merge_rows(results, update, stop)
             run.append_metrics(rows)
             wall = max(r.wall_s for r in results)
             trained = sum(r.trained_updates * len(workers.shards[i]) for i, r in enumerate(results))
@@ -406,6 +430,8 @@ def _train_loop(
                 unreported = []
             if any(r.stop_requested for r in results):
                 raise StoppedAfterChunk  # the first Ctrl-C (cluster.runtime.interrupt), now that the chunk is on disk
+    # Every shard has saved the last update: the stop before it, kept for a resume that regroups the seeds, goes.
+    prune_checkpoints(run.path, range(config.population.num_seeds), schedule.kept(update))
     run.update_manifest(status="trained", update=update)
 
 
@@ -493,6 +519,20 @@ def seed_ranges(seeds) -> str:
         else:
             parts.append([seed, seed])
     return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in parts)
+
+
+def _missed_training_archive(config: Config, run: RunDir, schedule: Schedule, update: int) -> int | None:
+    """The stop before ``update`` when the chunk that ended at ``update`` passed a multiple of
+    ``archive.train_every`` but its archive is not there (killed after the checkpoints, before the archive was
+    written), else None."""
+    every = config.archive.train_every
+    if not every or update == 0:
+        return None
+    before = 0
+    while (stop := schedule.next_stop(before)) < update:
+        before = stop
+    path = run.path / "archive" / "train" / f"update_{update:07d}.mcap"
+    return before if update // every != before // every and not path.exists() else None
 
 
 def _archive_training(config: Config, run: RunDir, workers: Workers, before: int, stop: int) -> None:

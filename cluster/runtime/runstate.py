@@ -146,12 +146,21 @@ def restore(trainer: ppo.Trainer, run_dir, config: Config, seeds, pool_size: int
 
 
 def save_checkpoints(
-    run_dir, config: Config, seeds, states, update: int, schedule: Schedule, rows: list[dict] = ()
+    run_dir,
+    config: Config,
+    seeds,
+    states,
+    update: int,
+    schedule: Schedule,
+    rows: list[dict] = (),
+    merged: int | None = None,
 ) -> None:
     """Every seed's checkpoint at ``update`` (with its metrics rows), then prune superseded ones.
 
     All seeds are written before any old file is removed, so a kill at any moment leaves an update
-    that every seed of the shard still has.
+    that every seed of the shard still has. ``merged`` (the coordinator's last merged update) is kept
+    too: other shards may not have saved ``update`` yet when a kill comes, and a resume that groups the
+    seeds into other shards must still find an update that every seed of each new shard has.
     """
     host = jax.tree.map(np.asarray, states)
     for index, seed in enumerate(seeds):
@@ -165,7 +174,11 @@ def save_checkpoints(
             method=config.population.method,
             metrics=seed_rows,
         )
-    keep = schedule.kept(update)
+    prune_checkpoints(run_dir, seeds, schedule.kept(update) | ({merged} if merged is not None else set()))
+
+
+def prune_checkpoints(run_dir, seeds, keep: set[int]) -> None:
+    """Remove every checkpoint of ``seeds`` whose update is not in ``keep``."""
     for seed in seeds:
         for old in ckpt.list_updates(run_dir, seed):
             if old not in keep:

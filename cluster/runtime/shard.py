@@ -157,7 +157,9 @@ class SeedShard:
             wall = time.perf_counter() - chunk_start
             steps_per_s = len(self.seeds) * count * self.config.ppo.steps_per_update / wall
             chunk_rows = metric_rows(self.seeds, metrics, steps_per_s, wall, self._recipe_labels)
-            save_checkpoints(self.run_dir, self.config, self.seeds, self.states, stop, self.schedule, chunk_rows)
+            save_checkpoints(
+                self.run_dir, self.config, self.seeds, self.states, stop, self.schedule, chunk_rows, merged=since
+            )
             self.update, self._saved_rows = stop, chunk_rows
             rows += chunk_rows
             trained += count
