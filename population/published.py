@@ -149,11 +149,18 @@ def publish_runs(run_dirs, folder, which: str = "snapshots") -> dict[str, list[P
             for update in updates_to_publish(run_dir, seed, which)
             if policy_name(run_dir.name, seed, update) not in known
         ]
+    targets: dict[Path, Path] = {}  # file to write -> the run it comes from
     for run_dir, wanted in plan.items():
         for seed, update in wanted:
             path = folder / policy_name(run_dir.name, seed, update)
+            if path in targets:
+                raise PolicyError(
+                    f"{targets[path]} and {run_dir}: both would publish {path.name} (files are named by the run "
+                    "directory's name); publish them into separate folders"
+                )
             if path.exists() or path.is_symlink():
                 raise PolicyError(f"{path}: exists but is not listed in {folder / SUMS}; move it away first")
+            targets[path] = run_dir
     added: dict[str, list[PublishedPolicy]] = {run_dir.name: [] for run_dir in run_dirs}
     if not any(plan.values()):
         return added
@@ -168,9 +175,8 @@ def publish_runs(run_dirs, folder, which: str = "snapshots") -> dict[str, list[P
                 added[run_dir.name].append(publish_checkpoint(run_dir, folder, seed, update))
         write_listing(folder, [*listing, *(entry for entries in added.values() for entry in entries)])
     except BaseException:  # an interrupt too: what is not listed must not stay
-        for entries in added.values():
-            for entry in entries:
-                (folder / entry.file).unlink(missing_ok=True)
+        for path in targets:  # none was there before (checked above), so each is this call's, written or not
+            path.unlink(missing_ok=True)
         if made and not any(folder.iterdir()):
             folder.rmdir()
         raise

@@ -1136,6 +1136,26 @@ def test_publish_final_takes_each_seeds_last_checkpoint_only(finished, tmp_path)
         published.read_listing(tmp_path)
 
 
+def test_publish_leaves_no_unlisted_file_and_refuses_two_runs_of_one_name(finished, tmp_path, monkeypatch):
+    """Interrupted after a file was written but before it was listed, publishing left the file behind (and the
+    next publish refused it); two run directories of one name wrote the same file names over each other."""
+    out = tmp_path / "policies"
+    real = published.sha256_of
+
+    def interrupted(path):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(published, "sha256_of", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        published.publish_run(finished / "runs" / "sa", out, which="final")
+    assert not out.exists()  # the file exported before the interrupt went with the folder it made
+    monkeypatch.setattr(published, "sha256_of", real)
+    twin = _copy(finished / "runs" / "sa", tmp_path / "elsewhere" / "sa")
+    with pytest.raises(policy.PolicyError, match=r"both would publish sa_seed0_update8.ocv2policy"):
+        published.publish_runs([finished / "runs" / "sa", twin], out, which="final")
+    assert not out.exists()
+
+
 def test_publish_is_all_runs_or_none_and_never_writes_over_a_file(finished, tmp_path, capsys):
     """A file of a name to be written that the listing does not know is refused before anything is written; a listing that is a folder or not text is named; a --which that selects nothing is an error,
     while one whose every file is already listed says so and exits 0."""
