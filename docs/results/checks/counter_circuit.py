@@ -352,7 +352,7 @@ def _():
     return gap_growth((CC10, "sp", CC10), (CC_SA10, "sa", CC_SA10))
 
 
-SA_EXTENSION_UPDATES = (244,)  # the SA seeds' 6M extension's snapshots cross-played so far (32 episodes per pair)
+SA_EXTENSION_UPDATES = (244, 305)  # the SA seeds' 6M extension's snapshots cross-played so far (32 episodes per pair)
 
 
 @check("cc_sa10_extension")
