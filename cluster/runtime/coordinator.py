@@ -531,8 +531,13 @@ def _missed_training_archive(config: Config, run: RunDir, schedule: Schedule, up
     before = 0
     while (stop := schedule.next_stop(before)) < update:
         before = stop
-    path = run.path / "archive" / "train" / f"update_{update:07d}.mcap"
+    path = run.path.joinpath(*_training_archive(update))
     return before if update // every != before // every and not path.exists() else None
+
+
+def _training_archive(update: int) -> tuple[str, ...]:
+    """Where the ``archive.train_every`` episodes of ``update`` go, under the run directory."""
+    return ("archive", "train", f"update_{update:07d}.mcap")
 
 
 def _archive_training(config: Config, run: RunDir, workers: Workers, before: int, stop: int) -> None:
@@ -543,7 +548,7 @@ def _archive_training(config: Config, run: RunDir, workers: Workers, before: int
     env = ppo.eval_env(config)
     results = workers.call("record_selfplay", on_every_shard(workers))
     base = archive_meta(config, "training", checkpoint_update=stop)
-    path = run.sub("archive", "train", f"update_{stop:07d}.mcap")
+    path = run.sub(*_training_archive(stop))
     with ArchiveWriter(path, overwrite=True, foxglove_frames=config.archive.foxglove) as writer:
         for seeds, (_, recorded) in zip(workers.shards, results):
             for index, seed in enumerate(seeds):

@@ -53,10 +53,7 @@ def extend_run(path, config: Config) -> dict | None:
         if before.fingerprint() == config.fingerprint():
             return None
         after = extended_config(before, config)
-        old_print, new_print = before.fingerprint(), after.fingerprint()
-        files = sealed_files(run.path)
-        for file in files:  # every file checked before any is written: a refusal leaves the run as it was
-            check_stamp(file, old_print, new_print)
+        old_print = before.fingerprint()
         manifest = run.read_manifest()
         old = before.ppo.num_updates
         record = {
@@ -66,8 +63,7 @@ def extend_run(path, config: Config) -> dict | None:
             "fingerprint": old_print,
             "at": time.time(),
         }
-        for file in files:
-            restamp(file, new_print)
+        restamp_run(run.path, old_print, after.fingerprint())
         kept = run.path / "extended" / f"update_{old:07d}"
         for name in EVALUATION_DIRS:
             source = run.path / name
@@ -102,15 +98,21 @@ def repoint_partners(path, config: Config) -> bool:
         after = dataclasses.replace(before, population=dataclasses.replace(before.population, fcp=moved))
         if after.fingerprint() != config.fingerprint():
             return False
-        files = sealed_files(run.path)
-        for file in files:  # every file checked before any is written: a refusal leaves the run as it was
-            check_stamp(file, before.fingerprint(), after.fingerprint())
-        for file in files:
-            restamp(file, after.fingerprint())
+        restamp_run(run.path, before.fingerprint(), after.fingerprint())
         dump_config(after, run.config_path)  # last: until here the run is still the old one
         return True
     finally:
         run.close()
+
+
+def restamp_run(run_dir: Path, old: str, new: str) -> None:
+    """Re-stamp every sealed file of the run with fingerprint ``new``; every file is checked (``check_stamp``) before
+    any is written, so a refusal leaves the run as it was."""
+    files = sealed_files(run_dir)
+    for file in files:
+        check_stamp(file, old, new)
+    for file in files:
+        restamp(file, new)
 
 
 def sealed_files(run_dir: Path) -> list[Path]:

@@ -88,6 +88,18 @@ def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
 # ---------------------------------------------------------------------------------------------------
 
 
+def _described(config) -> dict:
+    """What the report says of a run's config: method, layout, model, seeds, env steps per seed, fingerprint."""
+    return {
+        "method": config.population.method,
+        "layout": config.env_kwargs["layout"],
+        "model": config.model.kind,
+        "seeds": config.population.num_seeds,
+        "env_steps_per_seed": config.ppo.num_updates * config.ppo.steps_per_update,
+        "fingerprint": config.fingerprint(),
+    }
+
+
 def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict:
     path = run_dir(out, spec.name)
     step = state.steps.get(f"train {spec.name}", StepRecord())
@@ -95,12 +107,7 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
         "name": spec.name,
         "config": str(spec.config),
         "overrides": list(spec.overrides),
-        "method": config.population.method,
-        "layout": config.env_kwargs["layout"],
-        "model": config.model.kind,
-        "seeds": config.population.num_seeds,
-        "env_steps_per_seed": config.ppo.num_updates * config.ppo.steps_per_update,
-        "fingerprint": config.fingerprint(),
+        **_described(config),
         "status": "not started",
         "wall_s": step.wall_s if f"train {spec.name}" in state.steps else None,
         "commits": [],
@@ -128,14 +135,7 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
         entry["problem"] = str(error)
         return entry
     # The run as it was trained, not as the study's files say today (a config changed since: `run` refuses it).
-    entry.update(
-        method=trained.population.method,
-        layout=trained.env_kwargs["layout"],
-        model=trained.model.kind,
-        seeds=trained.population.num_seeds,
-        env_steps_per_seed=trained.ppo.num_updates * trained.ppo.steps_per_update,
-        fingerprint=trained.fingerprint(),
-    )
+    entry.update(_described(trained))
     changed = config_differences(trained, config)
     if changed:
         entry["config_changed"] = changed

@@ -310,10 +310,11 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
         except ConfigError as error:
             raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
     _check_retrain(study, out, retrain)
-    retrain = _still_to_retrain(study, out, configs, retrain)
+    differs = {run.name: trained_differences(run_dir(out, run.name), configs[run.name]) for run in study.runs}
+    retrain = _still_to_retrain(study, differs, retrain)
     extend = []
     for run in study.runs:
-        differences = trained_differences(run_dir(out, run.name), configs[run.name])
+        differences = differs[run.name]
         if not differences or run.name in retrain:
             continue
         problem = extension_problem(RunDir(run_dir(out, run.name)).load_config(), configs[run.name])
@@ -331,16 +332,14 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     return Plan(study, out, state, options, configs, retrain, tuple(extend))
 
 
-def _still_to_retrain(study: Study, out: Path, configs: dict, asked: tuple[str, ...]) -> tuple[str, ...]:
-    """The runs of ``asked`` (``--retrain``) to set aside now: those trained with another config than ``configs``
-    holds for them, and FCP runs whose partner run is set aside. A run already created with the planned config
-    (by an earlier ``--retrain``, then stopped) is continued, so the same command resumes instead of starting
-    that run over each time."""
+def _still_to_retrain(study: Study, differs: dict, asked: tuple[str, ...]) -> tuple[str, ...]:
+    """The runs of ``asked`` (``--retrain``) to set aside now: those trained with another config than planned
+    (``differs``: run name -> ``trained_differences``), and FCP runs whose partner run is set aside. A run
+    already created with the planned config (by an earlier ``--retrain``, then stopped) is continued, so the
+    same command resumes instead of starting that run over each time."""
     chosen: list[str] = []
     for run in study.runs:  # a partner run comes before the runs that take it (spec.py checks)
-        if run.name in asked and (
-            trained_differences(run_dir(out, run.name), configs[run.name]) or run.partners_from in chosen
-        ):
+        if run.name in asked and (differs[run.name] or run.partners_from in chosen):
             chosen.append(run.name)
     return tuple(chosen)
 
