@@ -171,7 +171,8 @@ def run_snapshots(run_dir, num_updates: int, count: int) -> list[int]:
 
 
 def resolve_snapshot(name: str, snapshots: list[int]) -> int:
-    """'init' / 'mid' / 'final' / an update number -> an update number among ``snapshots``."""
+    """'init' / 'mid' / 'final' / an update number -> an update number among ``snapshots``. 'mid' is the
+    middle snapshot (with an even count, the later of the two middle ones)."""
     if name == "init":
         return snapshots[0]
     if name == "final":
@@ -182,3 +183,20 @@ def resolve_snapshot(name: str, snapshots: list[int]) -> int:
     if update not in snapshots:
         raise CheckpointError(f"no snapshot at update {update}; snapshots are {snapshots}")
     return update
+
+
+def pool_updates(names, snapshots: list[int]) -> list[int]:
+    """The updates an FCP pool's checkpoint names pick among a partner run's snapshots, one per name.
+    ``CheckpointError`` for a name that is no snapshot, or for two names that pick the same update (with two
+    snapshots 'mid' is 'final'): the pool would hold one partner twice and the learner would train with fewer
+    distinct partners than it asked for, without a word."""
+    picked: dict[int, str] = {}
+    for name in names:
+        update = resolve_snapshot(str(name), snapshots)
+        if update in picked:
+            raise CheckpointError(
+                f"{picked[update]!r} and {str(name)!r} are both update {update} (snapshots {snapshots}): "
+                "the pool would hold the same partner twice"
+            )
+        picked[update] = str(name)
+    return list(picked)

@@ -263,7 +263,7 @@ def _pick_update(run_dir: Path, config: Config, seed: int, checkpoint) -> int:
     if choice == "latest":
         return available[-1]
     if choice in ("init", "mid", "final"):
-        snapshots = ckpt.snapshot_updates(config.ppo.num_updates, config.run.num_checkpoints)
+        snapshots = ckpt.run_snapshots(run_dir, config.ppo.num_updates, config.run.num_checkpoints)
         update = ckpt.resolve_snapshot(choice, snapshots)
     elif choice.isdigit():
         update = int(choice)

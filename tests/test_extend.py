@@ -25,7 +25,7 @@ from test_train_cli import (
 from cluster.runtime.extend import extend_run, sealed_files
 from cluster.runtime.rundir import RunDirError
 from population import checkpoints as ckpt
-from population import published
+from population import policy, published
 from population.config import load_config
 
 SCHEDULE = "ppo.schedule_timesteps=768"  # 6 updates of 128 env steps
@@ -153,3 +153,14 @@ def test_a_damaged_file_stops_the_extension_before_anything_is_written(truncated
     with pytest.raises(RunDirError, match=r"seed_1/update_0000003.msgpack: .*nothing was changed: restore the file"):
         extend_run(run, load_config(SMOKE, [SCHEDULE, LATER]))
     assert _files(run) == before
+
+
+def test_mid_of_an_extended_run_is_a_snapshot_it_kept(tmp_path):
+    """Snapshots of 4 updates (0, 2, 4) and of 6 (0, 3, 6) do not nest: the run extended from 4 to 6 keeps
+    0, 2, 4, 6, and its "mid" is 4 (as the study runner reads it), not the never-kept 3."""
+    schedule, run = "ppo.schedule_timesteps=1024", tmp_path / "run"  # an 8-update schedule
+    assert train(run, schedule, "ppo.total_timesteps=512", extra=["--no-eval"]) == 0
+    assert train(run, schedule, "ppo.total_timesteps=768", extra=["--resume", "--extend", "--no-eval"]) == 0
+    assert ckpt.list_updates(run, 0) == ckpt.run_snapshots(run, 6, 3) == [0, 2, 4, 6]
+    assert policy.load(run, checkpoint="mid").meta["update"] == 4
+    assert policy.load(run, seed=1, checkpoint="final").meta["update"] == 6

@@ -65,9 +65,9 @@ def test_paper_fcp_partners_default_to_the_self_play_hyperparameters(layout):
 def test_partner_ppo_keys_replace_single_self_play_values():
     path = PAPER / "v2_grounded_coord_simple_fcp.yaml"
     sp = load_config(PAPER / "v2_grounded_coord_simple_sp.yaml").ppo
-    config = load_config(path, ["population.fcp.partner_ppo.total_timesteps=65536"])
+    config = load_config(path, ["population.fcp.partner_ppo.total_timesteps=196608"])
     partner = config.population.fcp.partner_ppo
-    assert partner.total_timesteps == 65536 and partner.num_updates == 1
+    assert partner.total_timesteps == 196608 and partner.num_updates == 3
     assert (partner.lr, partner.ent_coef, partner.gae_lambda) == (sp.lr, sp.ent_coef, sp.gae_lambda)
     # the resolved section is written into the run's config.yaml and reads back the same
     assert parse_config(config.to_dict()) == config
@@ -86,6 +86,9 @@ BAD = [
     (["population.fcp.partner_ppo.total_timesteps=10"], "population.fcp.partner_ppo.total_timesteps"),
     (["population.fcp.partner_ppo.gamma=2"], "population.fcp.partner_ppo.gamma"),
     (["population.fcp.checkpoints=[mid, '9']"], "population.fcp.checkpoints"),
+    # the partner stage keeps updates 0, 2 and 4 only: update 3 would fail after every partner seed trained
+    (["population.fcp.checkpoints=[mid, '3']"], "population.fcp.checkpoints"),
+    (["population.fcp.checkpoints=[final, final]"], "population.fcp.checkpoints"),
     # no paper self-play config for this layout and model kind: the key must be set
     (["population.fcp.partner_ppo=null", "env.layout=cramped_room_v2", "model.kind=cnn"], "population.fcp.partner_ppo"),
 ]
@@ -99,6 +102,26 @@ def test_fcp_config_errors_are_one_line_naming_the_key(overrides, key):
     # every problem here comes from an override: it names --set, not the file
     assert f"{key}:" in message and "\n" not in message and message.startswith("--set population.")
     assert "smoke.yaml" not in message
+
+
+def test_a_pool_that_would_hold_one_partner_twice_is_refused():
+    """With two snapshots (0 and 4) "mid" is "final": the pool [mid, final] would hold each partner twice."""
+    with pytest.raises(ConfigError, match=r"population.fcp.checkpoints: 'mid' and 'final' are both update 4"):
+        smoke("run.num_checkpoints=2")
+    assert smoke("run.num_checkpoints=2", "population.fcp.checkpoints=[init, final]")
+
+
+#: configs/smoke.yaml with method sp (its partner_ppo unused) as runs written before 2026-11-29 recorded it
+SMOKE_SP_FINGERPRINT = "85dc74ec6df231e4"
+
+
+def test_partner_ppo_of_a_run_without_a_partner_stage_is_checked_and_kept():
+    """Unused there, but in such runs' config.yaml and fingerprint since they were first written (a partner
+    stage's own config holds it): kept as given, and a bad value refused like a used one."""
+    sp = load_config(SMOKE, ["population.method=sp"])
+    assert sp.population.fcp.partner_ppo.lr == 1.0e-3 and sp.fingerprint() == SMOKE_SP_FINGERPRINT
+    with pytest.raises(ConfigError, match=r"population.fcp.partner_ppo.lr: must be > 0"):
+        load_config(SMOKE, ["population.method=sp", "population.fcp.partner_ppo.lr=-1"])
 
 
 def test_missing_paper_configs_are_an_error_not_default_hyperparameters(tmp_path, monkeypatch):
@@ -323,6 +346,15 @@ def test_per_seed_partner_run_needs_a_pool_of_seeds_per_learner(per_seed_run, tm
     pool, labels = coordinator.load_pool(shared, ppo.make_trainer(shared), run / "partners")
     assert labels == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
     assert jax.tree.leaves(pool)[0].shape[0] == 4
+
+
+def test_a_pool_checkpoint_the_partner_run_did_not_keep_is_refused_by_key(per_seed_run):
+    run, _ = per_seed_run  # its partner run keeps updates 0, 2 and 4
+    config = smoke(f"population.fcp.partners={run / 'partners'}", "population.fcp.checkpoints=[init, '3']")
+    with pytest.raises(
+        RunDirError, match=r"population.fcp.checkpoints: .*no snapshot at update 3; snapshots are \[0, 2, 4\]"
+    ):
+        coordinator.check_partners(config)
 
 
 def test_partners_of_the_same_population_seed_are_the_learners_twins_and_it_is_said(per_seed_run, caplog):

@@ -150,14 +150,13 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
     twin = twin_seed_warning(config, partner_config, partner_run)
     if twin:
         log.warning(twin)
-    snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
+    updates = pool_updates(config, partner_config, partner_run)
     template = params_template(trainer)
 
     def pool_of(seeds) -> tuple[object, list[str]]:
         params, labels = [], []
         for seed in seeds:
-            for name in fcp.checkpoints:
-                update = ckpt.resolve_snapshot(name, snapshots)
+            for update in updates:
                 path = ckpt.checkpoint_path(partner_run, seed, update)
                 params.append(load_params(path, partner_config.fingerprint(), template))
                 labels.append(f"seed{seed}@{update}")
@@ -197,16 +196,27 @@ def checked_partner_config(config: Config, partner_run) -> Config:
             f"population.fcp.partner_seeds: {needed} partner seeds needed{per_learner} but {partner_run} has "
             f"{partner_config.population.num_seeds} seeds"
         )
-    snapshots = ckpt.snapshot_updates(partner_config.ppo.num_updates, partner_config.run.num_checkpoints)
+    updates = pool_updates(config, partner_config, partner_run)
     for seed in range(needed):
-        for name in fcp.checkpoints:
-            path = ckpt.checkpoint_path(partner_run, seed, ckpt.resolve_snapshot(name, snapshots))
+        for name, update in zip(fcp.checkpoints, updates, strict=True):
+            path = ckpt.checkpoint_path(partner_run, seed, update)
             if not path.is_file():
                 raise RunDirError(
                     f"population.fcp.partners: {path} is missing (the {name} checkpoint of partner seed {seed}); "
                     "is the partner run finished?"
                 )
     return partner_config
+
+
+def pool_updates(config: Config, partner_config: Config, partner_run) -> list[int]:
+    """The partner run's updates that ``population.fcp.checkpoints`` names, in order, among the snapshots that
+    run keeps (an extended run's earlier stops' too); ``RunDirError`` naming the key otherwise."""
+    partner = partner_config.ppo.num_updates, partner_config.run.num_checkpoints
+    snapshots = ckpt.run_snapshots(partner_run, *partner)
+    try:
+        return ckpt.pool_updates(config.population.fcp.checkpoints, snapshots)
+    except ckpt.CheckpointError as error:
+        raise RunDirError(f"population.fcp.checkpoints: {partner_run}: {error}") from None
 
 
 def check_partners(config: Config) -> None:

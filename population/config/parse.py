@@ -31,7 +31,7 @@ from population.config.schema import (
     RunConfig,
     SAConfig,
 )
-from population.config.validate import validate
+from population.config.validate import ppo_problems, validate
 from population.config.yaml_io import apply_overrides, check_plain_data, read_yaml
 
 
@@ -229,8 +229,16 @@ def _partner_ppo(raw, env, model: ModelConfig, population: PopulationConfig) -> 
     if raw is not None and not isinstance(raw, Mapping):
         raise ConfigError(f"{key}: expected a mapping of ppo keys, got {type(raw).__name__}")
     if not population.trains_partners:
-        # Not used (another method, or partners from a finished SP run): only checked, never looked up.
-        return None if raw is None else parse_section(key, PPOConfig, raw)
+        # Not used (another method, or partners from a finished SP run), but kept as given: it has always been in
+        # such runs' config.yaml and fingerprint (a partner stage's own config holds it), so dropping it now would
+        # orphan their checkpoints. Checked like a used one, so that a bad value is not carried along unseen.
+        if raw is None:
+            return None
+        partner = parse_section(key, PPOConfig, raw)
+        problems = ppo_problems(key, partner)
+        if problems:
+            raise ConfigError(problems)
+        return partner
     layout = dict(env)["layout"]
     base = paper_sp_ppo(layout, model.kind)
     if base is None and raw is None:
