@@ -320,7 +320,11 @@ def test_load_config_with_overrides(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("ppo:\n  num_envs: 4\n  num_steps: 16\n  num_minibatches: 2\n  total_timesteps: 640\n")
     empty = tmp_path / "empty.yaml"
-    empty.write_text("")
+    for text in ("", "# only a comment\n"):  # refused by name, not trained as every default
+        empty.write_text(text)
+        with pytest.raises(ConfigError, match=rf"{empty}: empty .*write {{}} for a config of every default"):
+            load_config(empty)
+    empty.write_text("{}\n")
     assert load_config(empty) == parse_config({})
     config = load_config(path, ["ppo.lr=5e-4", "eval.episodes=3"])
     assert config.ppo.num_envs == 4 and config.ppo.lr == pytest.approx(5e-4) and config.eval.episodes == 3
@@ -355,7 +359,7 @@ def _file_error(tmp_path, text: str, overrides=(), start=None) -> str:
 
 
 def test_override_with_broken_yaml_is_one_line(tmp_path):
-    message = _file_error(tmp_path, "", ["ppo.lr=[1,"], start="--set ppo.lr=[1,: ")
+    message = _file_error(tmp_path, "{}", ["ppo.lr=[1,"], start="--set ppo.lr=[1,: ")
     assert "not valid YAML" in message and "line 1" in message
 
 
@@ -452,7 +456,7 @@ def test_hostile_or_ambiguous_yaml_is_a_one_line_error(tmp_path, text, what):
     ids=["5000-nested", "5000-digits", "key-twice", "5000-key-parts"],
 )
 def test_hostile_set_values_are_one_line_errors_naming_the_override(tmp_path, item, what):
-    message = _file_error(tmp_path, "", [item], start=f"--set {item[:20]}")
+    message = _file_error(tmp_path, "{}", [item], start=f"--set {item[:20]}")
     assert what in message, message[:300]
 
 
@@ -619,3 +623,32 @@ def test_a_key_that_did_not_parse_is_not_blamed_again_through_its_default():
         parse_config({"ppo": {"num_envs": 4, "num_steps": 16, "total_timesteps": 32, "lr": "x"}})
     keys = [p.split(":")[0] for p in info.value.problems]
     assert keys[0] == "ppo.lr" and "ppo.total_timesteps" in keys  # it names num_envs and num_steps, not lr
+
+
+def test_an_override_into_an_empty_section_fills_it(tmp_path):
+    """ "env:" with nothing under it is an empty section (YAML null), which --set fills like an absent one; a
+    key that holds a value is still no section."""
+    path = tmp_path / "c.yaml"
+    path.write_text("env:\nppo:\n")
+    assert load_config(path, ["env.layout=coord_ring"]).env_kwargs["layout"] == "coord_ring"
+    with pytest.raises(ConfigError, match=r"--set eval.episodes.x=1: episodes is not a section"):
+        load_config(path, ["eval.episodes=3", "eval.episodes.x=1"])
+
+
+def test_env_problems_name_their_key_and_their_source(tmp_path):
+    """The env section as every other: env.<key> in each problem, the nearest name for a typo, and a problem of
+    the file not blamed on an override of another env key."""
+    message = _file_error(tmp_path, "env: {layuot: coord_ring}")
+    assert "env.layuot: unknown parameter; did you mean env.layout?" in message
+    message = _file_error(tmp_path, "env: {max_steps: 0}", ["env.layout=coord_ring"])
+    assert message.startswith(f"{tmp_path / 'c.yaml'}: env.max_steps: max_steps must be an integer"), message
+    _file_error(tmp_path, "{}", ["env.max_steps=0"], start="--set env.max_steps=0: env.max_steps:")
+
+
+def test_env_integers_may_be_written_as_1e3_as_elsewhere(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("env: {layout: coord_ring, max_steps: 1e3, agent_view_size: 2.0}\nppo: {total_timesteps: 1e5}\n")
+    env = dict(load_config(path).env_kwargs)
+    assert env["max_steps"] == 1000 and env["agent_view_size"] == 2
+    assert type(env["max_steps"]) is int and type(env["agent_view_size"]) is int
+    _file_error(tmp_path, "env: {max_steps: 1.5}")

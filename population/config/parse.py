@@ -12,7 +12,7 @@ import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from ocv2.config import build_config
+from ocv2.config import EnvConfig, build_config
 from population.config.errors import SET_PREFIX, ConfigError
 from population.config.fields import bounded_int, finite_float32, nearest, parse_section
 from population.config.paper import paper_sp_ppo
@@ -39,8 +39,10 @@ def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> Confi
     """Read a YAML file, apply ``section.key=value`` overrides, validate. Errors name file and key."""
     path = os.fspath(path)
     raw = read_yaml(path)
+    if raw is None:  # a truncated or mistaken file, not a wish for the default run (about 300M env steps)
+        raise ConfigError(f"{path}: empty (only comments or nothing); write {{}} for a config of every default")
     try:
-        return parse_config(raw if raw is not None else {}, overrides)
+        return parse_config(raw, overrides)
     except ConfigError as error:
         raise error.prefixed(path) from None
 
@@ -167,20 +169,45 @@ def _parse_env(raw) -> tuple[tuple[str, Any], ...]:
         raise ConfigError(f"env: expected a mapping of ocv2.make parameters, got {type(raw).__name__}")
     if "initial_state_buffer" in raw:
         raise ConfigError("env.initial_state_buffer: state buffers come from population.method=sa, not the config")
-    # Integral floats (YAML reads 1e3 as a float) count as integers, as in the other sections.
-    params = {k: int(v) if isinstance(v, float) and v.is_integer() else v for k, v in raw.items()}
+    names = [f.name for f in dataclasses.fields(EnvConfig)]
+    problems = [
+        f"env.{key}: unknown parameter{nearest(key, names, 'env')} (valid parameters: {', '.join(names)})"
+        for key in raw
+        if key not in names
+    ]
+    # Integral numbers count as integers where the parameter is one, as in the other sections: 1000.0, and
+    # 1e3, which YAML reads as a string (it needs a dot to read a float).
+    params = {k: _env_integer(v) if k in ENV_INTEGERS else v for k, v in raw.items() if k in names}
     params.setdefault("layout", "cramped_room")
-    problems = [problem for key, value in params.items() for problem in _number_problems(f"env.{key}", value)]
+    problems += [problem for key, value in params.items() for problem in _number_problems(f"env.{key}", value)]
     if problems:
         raise ConfigError(problems)
     try:
         build_config(**params)
-    except TypeError as error:
-        raise ConfigError(f"env: {error}") from None
-    except ValueError as error:
-        raise ConfigError(f"env: {error}") from None
+    except (TypeError, ValueError) as error:
+        # build_config's messages start with the parameter's name: name the key as every other section does
+        named = next((n for n in names if str(error).startswith(n)), None)
+        raise ConfigError(f"env.{named}: {error}" if named else f"env: {error}") from None
     frozen = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in params.items()))
     return frozen
+
+
+#: env parameters that are integers (or lists of them), to take in any integral form
+ENV_INTEGERS = ("max_steps", "agent_view_size", "op_ingredient_permutations")
+
+
+def _env_integer(value):
+    """An integral float or numeric string as an int (elementwise in a list); anything else unchanged, for
+    build_config to judge."""
+    if isinstance(value, list):
+        return [_env_integer(v) for v in value]
+    if isinstance(value, bool) or not isinstance(value, (float, str)):
+        return value
+    try:
+        number = float(value)
+    except ValueError:
+        return value
+    return int(number) if number.is_integer() else value
 
 
 def _number_problems(key: str, value) -> list[str]:

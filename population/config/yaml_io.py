@@ -177,7 +177,9 @@ def apply_overrides(raw: Mapping, overrides: Sequence[str]) -> dict:
             raise ConfigError(f"{where}: a key nested deeper than {MAX_YAML_DEPTH} levels")
         node = data
         for part in parts[:-1]:
-            node = node.setdefault(part, {})
+            if node.get(part) is None:  # absent, or written as an empty section ("env:" with nothing under it)
+                node[part] = {}
+            node = node[part]
             if not isinstance(node, dict):
                 raise ConfigError(f"{where}: {part} is not a section")
         try:
