@@ -29,6 +29,7 @@ from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir, read_matrix_csv
 from cluster.runtime.runstate import Schedule
 from cluster.study.pack import pack_study, snapshots_still_read
+from cluster.study.publish import publish_study
 from cluster.study.runner import (
     STEP_KINDS,
     StateFile,
@@ -436,6 +437,10 @@ def test_compressed_budget_scales_steps_and_schedules_of_every_stage():
     assert partner.total_timesteps == 3_000_000 and partner.rew_shaping_horizon == 1_500_000
     assert partner.lr == config.population.fcp.partner_ppo.lr  # only the budget changes
     assert budget_overrides(config, 1.0, "compress") == budget_overrides(config, 1.0) == []
+    # past the schedule's end: only compress stretches it; truncate says so instead of naming a --set never given
+    assert "ppo.total_timesteps=60000000" in budget_overrides(config, 2.0, "compress")
+    with pytest.raises(StudyError, match=r"--budget 2: --budget-mode truncate .*cannot run past its end"):
+        budget_overrides(config, 2.0)
 
 
 def test_truncated_budget_is_the_first_part_of_the_paper_schedule():
@@ -1136,6 +1141,23 @@ def test_publish_final_takes_each_seeds_last_checkpoint_only(finished, tmp_path)
         published.read_listing(tmp_path)
 
 
+def test_publish_into_the_study_or_a_run_directory_is_refused(finished, tmp_path):
+    """Policy files beside a run's config.yaml and checkpoints (or anywhere a later pack would hold them)."""
+    copy = tmp_path / "study"
+    shutil.copytree(finished, copy)
+    other = tmp_path / "other_run"
+    shutil.copytree(finished / "runs" / "sp", other)
+    for out, where in (
+        (copy / "runs" / "sp", "study directory"),
+        (copy / "pub", "study directory"),
+        (other, "run directory"),
+        (other / "p", "run directory"),
+    ):
+        with pytest.raises(StudyError, match=rf"--out {out}: lies inside the {where}"):
+            publish_study(copy, out)
+        assert not list(out.glob("*.ocv2policy")) and not (out / published.SUMS).exists()
+
+
 def test_publish_leaves_no_unlisted_file_and_refuses_two_runs_of_one_name(finished, tmp_path, monkeypatch):
     """Interrupted after a file was written but before it was listed, publishing left the file behind (and the
     next publish refused it); two run directories of one name wrote the same file names over each other."""
@@ -1268,7 +1290,7 @@ def test_stop_and_pack_checks_everything_before_it_stops_the_study(finished, tmp
 
 
 def test_pack_checks_the_study_and_every_checkpoint_before_writing(finished, tmp_path, capsys):
-    """A damaged study.json or checkpoint stops `study pack` with the file named and no pack folder made (a pack
+    """A damaged study.json, checkpoint, run config or manifest stops `study pack` with the file named and no pack folder made (a pack
     replaces the last good one between sessions); a pack inside the study would be packed into the next one."""
     study = _copy(finished, tmp_path / "study")
     dest = tmp_path / "packed"
@@ -1284,6 +1306,16 @@ def test_pack_checks_the_study_and_every_checkpoint_before_writing(finished, tmp
     shutil.copy(finished / "study.json", study / "study.json")
     assert main(["study", "pack", str(study), "--out", str(study / "packed")]) == 2
     assert "inside the study directory" in _one_line(capsys) and not (study / "packed").exists()
+    for damaged, said in (
+        ("config.yaml", "its config.yaml is unusable"),
+        ("manifest.json", "manifest.json: is not valid JSON"),
+    ):
+        path = study / "runs" / "sa" / damaged
+        good = path.read_bytes()
+        path.write_text("garbage: [")
+        assert main(["study", "pack", str(study), "--out", str(dest)]) == 2
+        assert said in _one_line(capsys) and not dest.exists()
+        path.write_bytes(good)
     assert main(["study", "pack", str(study), "--out", str(dest)]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["packed", "study"]  # no staging folder left
 

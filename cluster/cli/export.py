@@ -11,21 +11,11 @@ written inside a run directory, nor over a file without ``--force``.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from cluster.cli.args import check_new_file, checkpoint_choice, non_negative_int
 from cluster.cli.errors import EXIT_OK, CLIError
+from cluster.runtime.rundir import enclosing_run
 from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
-
-
-def enclosing_run(path: str) -> Path | None:
-    """The run directory (config.yaml beside manifest.json or checkpoints/) that holds ``path``, if any."""
-    for folder in Path(path).resolve().parents:
-        if (folder / "config.yaml").is_file() and (
-            (folder / "manifest.json").is_file() or (folder / "checkpoints").is_dir()
-        ):
-            return folder
-    return None
 
 
 def add_export(sub) -> argparse.ArgumentParser:

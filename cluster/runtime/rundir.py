@@ -433,6 +433,16 @@ class RunDir:
         return rows, torn
 
 
+def enclosing_run(path) -> Path | None:
+    """The run directory (config.yaml beside manifest.json or checkpoints/) that holds ``path``, if any."""
+    for folder in Path(path).resolve().parents:
+        if (folder / "config.yaml").is_file() and (
+            (folder / "manifest.json").is_file() or (folder / "checkpoints").is_dir()
+        ):
+            return folder
+    return None
+
+
 def trained_keys_changed(run: Config, now: Config) -> list[str]:
     """The keys behind a fingerprint mismatch ("ppo.lr: 0.0004 in the run, 0.01 now"): every key of the
     fingerprinted sections (``Config.fingerprinted``) whose value differs."""

@@ -23,6 +23,7 @@ import tarfile
 import zlib
 from pathlib import Path
 
+from cluster.runtime.rundir import RunDir, RunDirError
 from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state, run_finished
 from cluster.study.spec import RESERVED_NAMES, Study, StudyError, run_dir
 from cluster.study.state import StepRecord, StudyState
@@ -116,11 +117,15 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     whole = snapshots_still_read(study, state, out) if latest_only else ()
     files = _packed_files(out, latest_only, whole)
     for path in files:
-        if ckpt.update_of(path) is not None:
-            try:
+        try:
+            if ckpt.update_of(path) is not None:
                 ckpt.read(path)
-            except ckpt.CheckpointError as error:
-                raise StudyError(f"{error}; nothing was packed") from None
+            elif path.name == "config.yaml":  # a run's: what resuming and every later step reads first
+                RunDir(path.parent).load_config()
+            elif path.name == "manifest.json":
+                RunDir(path.parent).read_manifest()
+        except (ckpt.CheckpointError, RunDirError) as error:
+            raise StudyError(f"{error}; nothing was packed") from None
     buffer = io.BytesIO()
     with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
         for path in files:

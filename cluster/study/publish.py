@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from cluster.runtime.rundir import enclosing_run
 from cluster.study.runner import read_state
 from cluster.study.spec import StudyError
 from population.published import PublishedPolicy, publish_runs
@@ -31,4 +32,10 @@ def publish_study(study, out, which: str = "snapshots") -> tuple[str, dict[str, 
     """Publish every run's checkpoints that ``which`` selects into ``out``, all runs or none
     (``population.published.publish_runs``); returns the study's name and, per run, the entries added."""
     name, runs = trained_runs(study)
+    where = Path(out).resolve()
+    if where == Path(study).resolve() or Path(study).resolve() in where.parents:
+        raise StudyError(f"--out {out}: lies inside the study directory {study}; give a folder outside it")
+    run = enclosing_run(where / "policy")
+    if run is not None:  # policy files beside a run's config.yaml and checkpoints, as `ocv2 export` refuses
+        raise StudyError(f"--out {out}: lies inside the run directory {run}; give a folder outside it")
     return name, publish_runs(runs, out, which)

@@ -371,6 +371,11 @@ def budget_overrides(config: Config, budget: float, mode: str = "truncate") -> l
         raise StudyError(f"--budget-mode: expected one of {', '.join(BUDGET_MODES)}, got {mode!r}")
     if budget == 1.0:
         return []
+    if mode == "truncate" and budget > 1:
+        raise StudyError(
+            f"--budget {budget:g}: --budget-mode truncate stops each schedule early and cannot run past its end; "
+            "give --budget 1 or less, or --budget-mode compress to stretch the schedules over more env steps"
+        )
 
     def scaled(prefix: str, ppo) -> list[str]:
         steps = max(ppo.steps_per_update, round(ppo.total_timesteps * budget))
