@@ -188,6 +188,22 @@ def test_pooled_sources_read_as_one_population(run, tmp_path, capsys):
     assert float(lines[-1]["gap"]) == pytest.approx(own["gap"], abs=1e-3)
 
 
+def test_a_failure_while_writing_leaves_no_folder_and_the_same_command_runs_again(run, tmp_path, monkeypatch, capsys):
+    """The results are written whole or not at all: a half folder would make the rerun that main's error message
+    advises refuse its --out ("already holds files")."""
+    out, real = tmp_path / "xp", crossplay.write_json
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(crossplay, "write_json", full_disk)  # summary.json, after the matrices and episodes
+    assert _xp(out, "--rows", str(run)) != 0
+    assert "No space left on device" in capsys.readouterr().err
+    assert not out.exists() and not list(tmp_path.glob(".xp.*"))
+    monkeypatch.setattr(crossplay, "write_json", real)
+    assert _xp(out, "--rows", str(run)) == 0 and (out / "summary.json").is_file()
+
+
 def test_pool_errors_name_the_problem(run, tmp_path, capsys):
     assert _xp(tmp_path / "bad", "--rows", str(run), "--cols", str(run), "--pool") == 2
     assert "--pool: pools the --rows sources against themselves" in capsys.readouterr().err

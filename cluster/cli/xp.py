@@ -25,6 +25,7 @@ from cluster.runtime.evaluate import evaluate_run
 from cluster.runtime.progress import Bar
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDir, RunDirError
+from ocv2.atomic import staged_folder
 from population.checkpoints import CheckpointError
 from population.config import PRECISIONS, ClusterConfig
 from population.policy import CHECKPOINT_CHOICES
@@ -224,7 +225,8 @@ def _cross_run(args) -> int:
             "wall_s": round(time.perf_counter() - started, 2),
         }
     )
-    crossplay.write_seat_fair_outputs(result, out, summary, crossplay.policy_env(env_kwargs))
+    with staged_folder(out, ".xp") as staging:  # whole or not at all: a rerun after a failure finds no half folder
+        crossplay.write_seat_fair_outputs(result, staging, summary, crossplay.policy_env(env_kwargs))
     if not args.quiet:
         _print_blocks(summary)
     print(f"wrote {out}/: {', '.join(sorted(p.name for p in Path(out).iterdir()))}")
