@@ -106,6 +106,14 @@ class Layout:
         object.__setattr__(self, "num_ingredients", int(self.num_ingredients))
         recipes = self.possible_recipes
         if recipes is None:
+            present = sorted({int(v) - Static.INGREDIENT_PILE for v in grid.ravel() if v >= Static.INGREDIENT_PILE})
+            absent = [i for i in range(self.num_ingredients) if i not in present]
+            if absent:  # the default is every recipe of ingredients 0..n-1, some of which no pile gives
+                raise ValueError(
+                    f"layout {self.name!r}: ingredient piles {', '.join(map(str, present))} but no "
+                    f"{', '.join(map(str, absent))}; number the piles 0 to {len(present) - 1} without gaps, or "
+                    "give possible_recipes that use only the piles on the map"
+                )
             recipes = default_recipes(self.num_ingredients)
         object.__setattr__(self, "possible_recipes", _validate_recipes(recipes, grid, self.num_ingredients, self.name))
         self._validate_agents(grid, positions)

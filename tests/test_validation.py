@@ -26,11 +26,18 @@ GOOD = "WWPWW\n0A AX\nW   R\nWBWWW"
         (GOOD, {"possible_recipes": [[0, 0, 1]]}, r"ingredient 1, which has no pile"),
         (GOOD, {"possible_recipes": "000"}, r"list of 3-ingredient lists"),
         ("", {}, r"empty"),
+        # piles 0 and 2: the default recipes (of ingredients 0..2) would need a pile 1 that is not on the map
+        ("WWPWWW\n0A A2W\nW    R\nWBWXWW", {}, r"ingredient piles 0, 2 but no 1; number the piles 0 to 1"),
     ],
 )
 def test_bad_layouts(grid, kwargs, match):
     with pytest.raises(ValueError, match=match):
         ocv2.Layout.from_string(grid, **kwargs)
+
+
+def test_piles_with_a_gap_build_with_recipes_of_the_piles_on_the_map():
+    layout = ocv2.Layout.from_string("WWPWWW\n0A A2W\nW    R\nWBWXWW", possible_recipes=[[0, 0, 2], [2, 2, 2]])
+    assert layout.num_ingredients == 3 and layout.possible_recipes == ((0, 0, 2), (2, 2, 2))
 
 
 def test_non_integer_recipe_is_type_error():
