@@ -366,12 +366,15 @@ def test_validate_reports_every_bad_file_and_exits_1(tmp_path, capsys):
     bad.write_text("ppo:\n  learning_rate: 0.1\n")
     worse = tmp_path / "worse.yaml"
     worse.write_text("env: {layout: no_such_kitchen}\n")
-    assert main(["validate", str(bad), str(good), str(worse)]) == 1
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# nothing yet\n")
+    assert main(["validate", str(bad), str(good), str(worse), str(empty)]) == 1
     captured = capsys.readouterr()
     assert f"OK   {good}: sp on cramped_room" in captured.out
     assert f"FAIL {bad}: ppo.learning_rate: unknown key" in captured.err
-    assert f"FAIL {worse}: env:" in captured.err and "no_such_kitchen" in captured.err
-    assert "2 of 3 config(s) invalid" in captured.err
+    assert f"FAIL {worse}: env.layout:" in captured.err and "no_such_kitchen" in captured.err
+    assert f"FAIL {empty}: empty (only comments or nothing)" in captured.err  # as train refuses it
+    assert "3 of 4 config(s) invalid" in captured.err
 
 
 def test_validate_and_train_refuse_the_same_missing_inputs_and_train_leaves_no_run_directory(tmp_path, capsys):
@@ -387,7 +390,7 @@ def test_validate_and_train_refuse_the_same_missing_inputs_and_train_leaves_no_r
     for overrides, said in cases:
         sets = [part for override in overrides for part in ("--set", override)]
         assert main(["validate", smoke, *sets]) == 1
-        assert f"FAIL {smoke}: {said}" in capsys.readouterr().err
+        assert f"FAIL --set {overrides[-1]}: {said}" in capsys.readouterr().err  # the --set gave it, not the file
         out = tmp_path / "run"
         assert main(["train", smoke, *sets, "--backend", "local", "--no-eval", "--quiet", "--out", str(out)]) == 2
         assert said in capsys.readouterr().err and not out.exists()

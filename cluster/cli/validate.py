@@ -17,7 +17,8 @@ from cluster.cli.args import add_set_option
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.coordinator import check_inputs
 from cluster.runtime.rundir import RunDirError
-from population.config import ConfigError, is_ray_launcher_config, parse_config, read_yaml
+from population.config import ConfigError, is_ray_launcher_config, parse_config, read_config_file
+from population.config.parse import blame_overrides
 from population.memory import check_fits, estimate
 
 
@@ -67,10 +68,10 @@ def describe_config(config) -> str:
 def check_config_file(path: str, overrides) -> tuple[str, object]:
     """("ok", Config), ("skip", reason) for a Ray launcher YAML, or ("fail", [every problem])."""
     try:
-        raw = read_yaml(path)
+        raw = read_config_file(path)
         if is_ray_launcher_config(raw):
             return "skip", "a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config"
-        config = parse_config(raw if raw is not None else {}, overrides)
+        config = parse_config(raw, overrides)
         # What a run needs on this machine at the least (training on a cluster, this machine the
         # driver) must fit; what it needs when it trains here is shown.
         check_fits(config, "cluster")
@@ -81,8 +82,9 @@ def check_config_file(path: str, overrides) -> tuple[str, object]:
         return "fail", problems
     try:  # what the run reads besides its config: what train checks before it makes a run directory
         check_inputs(config)
-    except (RunDirError, ArchiveError) as error:
-        return "fail", [f"{path}: {error}"]
+    except (RunDirError, ArchiveError) as error:  # named after the --set that gave the key, or else the file
+        (problem,) = blame_overrides([str(error)], overrides)
+        return "fail", [problem if problem != str(error) else f"{path}: {error}"]
     return "ok", config
 
 

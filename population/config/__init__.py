@@ -23,6 +23,7 @@ from population.config.parse import (
     load_config,
     load_run_config,
     parse_config,
+    read_config_file,
 )
 from population.config.schema import (
     ACTIVATIONS,
@@ -78,6 +79,7 @@ __all__ = [
     "PAPER_CONFIGS",
     "PRECISIONS",
     "RAY_LAUNCHER_KEYS",
+    "read_config_file",
     "SECTIONS",
     "ArchiveConfig",
     "ClusterConfig",

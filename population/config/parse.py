@@ -38,13 +38,22 @@ from population.config.yaml_io import apply_overrides, check_plain_data, read_ya
 def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> Config:
     """Read a YAML file, apply ``section.key=value`` overrides, validate. Errors name file and key."""
     path = os.fspath(path)
-    raw = read_yaml(path)
-    if raw is None:  # a truncated or mistaken file, not a wish for the default run (about 300M env steps)
-        raise ConfigError(f"{path}: empty (only comments or nothing); write {{}} for a config of every default")
+    raw = read_config_file(path)
     try:
         return parse_config(raw, overrides)
     except ConfigError as error:
         raise error.prefixed(path) from None
+
+
+def read_config_file(path: str | os.PathLike):
+    """A config file's YAML, refused by name when it is empty or only comments: a truncated or mistaken file, not
+    a wish for the all-defaults run (about 300M env steps), which ``{}`` asks for."""
+    raw = read_yaml(path)
+    if raw is None:
+        raise ConfigError(
+            f"{os.fspath(path)}: empty (only comments or nothing); write {{}} for a config of every default"
+        )
+    return raw
 
 
 def load_run_config(run_dir: str | os.PathLike) -> Config:
@@ -185,8 +194,10 @@ def _parse_env(raw) -> tuple[tuple[str, Any], ...]:
     try:
         build_config(**params)
     except (TypeError, ValueError) as error:
-        # build_config's messages start with the parameter's name: name the key as every other section does
-        named = next((n for n in names if str(error).startswith(n)), None)
+        # build_config's messages name the parameter first ("max_steps must be ...", "unknown layout ..."): name
+        # the key as every other section does
+        found = [(m.start(), n) for n in names for m in [re.search(rf"\b{n}\b", str(error))] if m]
+        named = min(found)[1] if found else None
         raise ConfigError(f"env.{named}: {error}" if named else f"env: {error}") from None
     frozen = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in params.items()))
     return frozen
