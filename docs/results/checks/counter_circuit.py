@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .data import both_seats, claim_row, float_or_nan, matrix, md_tables, millions, run, sp_xp
-from .folders import CC10, CC10_6M, CC_SA10
+from .folders import CC10, CC10_6M, CC_SA10, CC_SA10_6M
 from .registry import L, check
 from .ten_seed_studies import (
     cell_count,
@@ -203,22 +203,26 @@ def _():
     return low_pair_numbers(CC10_6M)
 
 
-@check("cc10_6m_vs_3m")
-def _():
+def since_3m(early: Path, late: Path, method: str) -> list:
     """The gap at 3M and at 6M (each with its env steps per seed); SP's, XP's and the gap's change with their 95 %
     intervals, the same seeds resampled at both stops (recomputed from the two matrices, as the study report does);
     the gap's change with each stop resampled on its own, as if the two were unrelated populations."""
     from population.xp import bootstrap_difference, paired_difference
 
-    before, after = final_matrix(CC10), final_matrix(CC10_6M)
-    gaps = [run(study, "sp")["xp"]["gap"] for study in (CC10, CC10_6M)]
-    changes = {key: run(CC10_6M, "sp")["xp"][key] - run(CC10, "sp")["xp"][key] for key in ("sp_mean", "xp_mean")}
+    before, after = final_matrix(early, method), final_matrix(late, method)
+    gaps = [run(study, method)["xp"]["gap"] for study in (early, late)]
+    changes = {key: run(late, method)["xp"][key] - run(early, method)["xp"][key] for key in ("sp_mean", "xp_mean")}
     paired = paired_difference(before, after)
     return [
-        gaps[0], millions(CC10, "sp"), gaps[1], millions(CC10_6M, "sp"), gaps[1] - gaps[0], *paired["gap"],
+        gaps[0], millions(early, method), gaps[1], millions(late, method), gaps[1] - gaps[0], *paired["gap"],
         changes["sp_mean"], *paired["sp"], -changes["xp_mean"], *paired["xp"],  # "fell by": written positive
         *bootstrap_difference(before, after)["gap"],
     ]  # fmt: skip
+
+
+@check("cc10_6m_vs_3m")
+def _():
+    return since_3m(CC10, CC10_6M, "sp")
 
 
 @check("cc10_6m_by_convention")
@@ -367,3 +371,34 @@ def _():
         out += [gap, snapshot_env_steps(update, CC_SA10), sp, xp, len(failing_pairs(later)), 45]
         out += [snapshot_env_steps(update, CC10), sp_xp(cc10_snapshot(update))[2]]
     return out
+
+
+# --- the same 10 SA seeds trained on to 6M (--extend), beside the SP seeds at 6M (their SA_BESIDE_SP rows are
+# registered in ten_seed_rows: cc_sa10_6m_final, _delta, _paired, _low_pairs, _claim)
+
+
+@check("cc_sa10_6m_within")
+def _():
+    return paper_beside_intervals(CC_SA10_6M, "sa")
+
+
+@check("cc_sa10_6m_vs_3m")
+def _():
+    """``since_3m`` of the SA seeds, whose cross-play rose: its change written as it is, not as a fall."""
+    out = since_3m(CC_SA10, CC_SA10_6M, "sa")
+    out[10] = -out[10]
+    return out
+
+
+@check("cc_sa10_6m_odd_seed")
+def _():
+    """The seed in every failing SA pair at 3M: its self-play and cross-play (mean with the other nine, both seat
+    orders) at 3M and at 6M; the lowest pair score of the 6M matrix (both seat orders) as a share of its two seeds'
+    self-play mean."""
+    (odd,) = set.intersection(*({i, j} for i, j, _ in low_pairs(CC_SA10, "sa")))
+    (sp3, xp3), (sp6, xp6) = seed_sp_xp(final_matrix(CC_SA10, "sa")), seed_sp_xp(final_matrix(CC_SA10_6M, "sa"))
+    m = final_matrix(CC_SA10_6M, "sa")
+    pairs = both_seats(m)
+    shares = [pairs[i, j] / ((m[i, i] + m[j, j]) / 2) for i, j in itertools.combinations(range(len(m)), 2)]
+    steps = millions(CC_SA10, "sa"), millions(CC_SA10_6M, "sa")
+    return [odd, steps[0], sp3[odd], sp6[odd], xp3[odd], xp6[odd], steps[1], min(shares)]

@@ -17,3 +17,4 @@ GPU410 = RESULTS / "gpu_coord_ring_sp_update410"  # that study at update 410 (6.
 CC10 = RESULTS / "table1_counter_circuit_sp10"  # Table 1 Counter Circuit SP, 10 seeds, the 10M schedule truncated at 3M
 CC_SA10 = RESULTS / "table1_counter_circuit_sa10"  # its SA half at the same budget
 CC10_6M = RESULTS / "table1_counter_circuit_sp10_6m"  # the same SP seeds trained on to 6M (--extend)
+CC_SA10_6M = RESULTS / "table1_counter_circuit_sa10_6m"  # the same SA seeds trained on to 6M (--extend)
