@@ -394,11 +394,17 @@ def _():
 def _():
     """The seed in every failing SA pair at 3M: its self-play and cross-play (mean with the other nine, both seat
     orders) at 3M and at 6M; the lowest pair score of the 6M matrix (both seat orders) as a share of its two seeds'
-    self-play mean."""
+    self-play mean; how many of the 5 lowest pairs hold the seed with the lowest cross-play at 6M, which seed that
+    is, the 5 pairs' range of shares, and its cross-play beside the 3M odd seed's."""
     (odd,) = set.intersection(*({i, j} for i, j, _ in low_pairs(CC_SA10, "sa")))
     (sp3, xp3), (sp6, xp6) = seed_sp_xp(final_matrix(CC_SA10, "sa")), seed_sp_xp(final_matrix(CC_SA10_6M, "sa"))
     m = final_matrix(CC_SA10_6M, "sa")
     pairs = both_seats(m)
     shares = [pairs[i, j] / ((m[i, i] + m[j, j]) / 2) for i, j in itertools.combinations(range(len(m)), 2)]
     steps = millions(CC_SA10, "sa"), millions(CC_SA10_6M, "sa")
-    return [odd, steps[0], sp3[odd], sp6[odd], xp3[odd], xp6[odd], steps[1], min(shares)]
+    weak = int(np.argmin(xp6))  # the seed with the lowest cross-play at 6M
+    lowest = sorted(zip(shares, itertools.combinations(range(len(m)), 2)))[:5]
+    held = sum(weak in pair for _, pair in lowest)
+    # "The 5 lowest pairs all hold seed W": the 5 written is how many of them hold it
+    return [odd, steps[0], sp3[odd], sp6[odd], xp3[odd], xp6[odd], steps[1], min(shares),
+            held, weak, lowest[0][0], lowest[-1][0], xp6[weak], odd, xp6[odd]]  # fmt: skip
