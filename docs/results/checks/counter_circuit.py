@@ -408,3 +408,24 @@ def _():
     # "The 5 lowest pairs all hold seed W": the 5 written is how many of them hold it
     return [odd, steps[0], sp3[odd], sp6[odd], xp3[odd], xp6[odd], steps[1], min(shares),
             held, weak, lowest[0][0], lowest[-1][0], xp6[weak], odd, xp6[odd]]  # fmt: skip
+
+
+@check("cc_sa10_6m_widening")
+def _():
+    """SA's gap minus SP's at 3M and at 6M, and the change between them with its 95 % interval, one draw of seed
+    indices used in all four matrices (seed k: the same SP seed at both stops, the same SA seed at both, and SA seed
+    k starts from SP seed k's initial parameters, as the paired intervals above take them); 20,000 resamples."""
+    from population.xp import bootstrap_samples
+
+    def gap_samples(study: Path, method: str) -> np.ndarray:
+        sp, xp = bootstrap_samples(final_matrix(study, method), resamples=20_000)  # the same seed: the same draws
+        return sp - xp
+
+    widening = (gap_samples(CC_SA10_6M, "sa") - gap_samples(CC10_6M, "sp")) - (
+        gap_samples(CC_SA10, "sa") - gap_samples(CC10, "sp")
+    )
+    gap = {study: run(study, method)["xp"]["gap"] for study, method in
+           ((CC10, "sp"), (CC_SA10, "sa"), (CC10_6M, "sp"), (CC_SA10_6M, "sa"))}  # fmt: skip
+    before, after = gap[CC_SA10] - gap[CC10], gap[CC_SA10_6M] - gap[CC10_6M]
+    steps = millions(CC_SA10, "sa"), millions(CC_SA10_6M, "sa")
+    return [before, steps[0], after, steps[1], after - before, *np.percentile(widening, [2.5, 97.5])]
