@@ -30,6 +30,15 @@ def _fsync_path(path: Path) -> None:
         os.close(fd)
 
 
+def fsync_folder(folder: str | os.PathLike) -> None:
+    """Make a rename inside ``folder`` durable (a power loss can otherwise undo it while later files survive);
+    some file systems refuse to open folders, where the rename itself is all there is."""
+    try:
+        _fsync_path(Path(folder))
+    except OSError:
+        pass
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, *, fsync: bool = True) -> Iterator[Path]:
     """Yield a temporary path to write; on a clean exit it replaces ``path``, on an error it is removed.
@@ -49,10 +58,7 @@ def atomic_path(path: str | os.PathLike, *, fsync: bool = True) -> Iterator[Path
         tmp.unlink(missing_ok=True)
         raise
     if fsync:
-        try:
-            _fsync_path(path.parent)
-        except OSError:  # some file systems refuse to open folders; the rename itself is done
-            pass
+        fsync_folder(path.parent)
 
 
 def atomic_write(path: str | os.PathLike, data: bytes | str, *, fsync: bool = True) -> Path:

@@ -253,6 +253,38 @@ def test_an_exception_inside_with_keeps_the_episodes_unfinished_and_an_old_file_
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap"]  # no header-only .partial left
 
 
+def test_ctrl_c_in_the_first_episode_leaves_no_header_only_file(tmp_path, recorded):
+    """Nothing to recover, and a later writer (``ocv2 play --out`` the same path) would refuse it as unfinished."""
+    path = str(tmp_path / "first.mcap")
+    with pytest.raises(KeyboardInterrupt), ArchiveWriter(path) as writer:
+        real, calls = writer._out.mcap.add_message, []
+
+        def interrupted(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 5:  # inside the first episode's step messages
+                raise KeyboardInterrupt
+            return real(*args, **kwargs)
+
+        writer._out.mcap.add_message = interrupted
+        writer.write_episode({}, *_episode(recorded, 0), layout="cramped_room")
+    assert not os.path.exists(path) and not os.path.exists(path + ".partial")
+    with ArchiveWriter(path) as writer:  # the same path again, as a rerun would
+        writer.write_episode({}, *_episode(recorded, 0), layout="cramped_room")
+    assert len(ArchiveReader(path)) == 1
+
+
+def test_a_finished_archive_s_rename_is_made_durable(tmp_path, recorded, monkeypatch):
+    """The folder is fsynced after the rename: an SA buffer saved after its archive must not outlive it."""
+    import cluster.archive.writer as writer_module
+
+    synced = []
+    monkeypatch.setattr(writer_module, "fsync_folder", lambda folder: synced.append((folder, os.listdir(folder))))
+    path = tmp_path / "durable.mcap"
+    with ArchiveWriter(str(path)) as writer:
+        writer.write_episode({}, *_episode(recorded, 0), layout="cramped_room")
+    assert synced == [(str(tmp_path), ["durable.mcap"])]  # after the rename, of the folder that holds it
+
+
 def test_write_episode_rejects_bad_input(tmp_path, recorded):
     states, actions, rewards, shaped, dones = _episode(recorded, 0)
     with ArchiveWriter(tmp_path / "bad.mcap") as writer:
@@ -317,6 +349,29 @@ def test_archive_as_sa_buffer(archive, recorded, env):
     ocv2.make("cramped_room", max_steps=STEPS, initial_state_buffer=buffer)  # validates as an SA buffer
     with pytest.raises(ArchiveError, match="not 'asymm_advantages'"):
         states_as_buffer(archive, layout="asymm_advantages")
+
+
+def test_archive_as_sa_buffer_keeps_the_states_collection_keeps_when_k_does_not_divide_t(tmp_path):
+    """T = 30, k = 7: SA collection keeps t = 0, 7, 14, 21 (t < 28) of each episode; the buffer read back from its
+    archive must hold the same states (it also took t = 28)."""
+    from population.config.schema import SAConfig
+    from population.sa import collect_pairs
+
+    def apply(params, hidden, obs, reset):  # a fixed policy: the logits are the parameters
+        batch = obs.shape[1]
+        return hidden, jnp.broadcast_to(params, (1, batch, params.shape[0])), jnp.zeros((1, batch))
+
+    env = ocv2.make("cramped_room", max_steps=30)
+    params = jnp.stack([jnp.zeros(6), jnp.array([0.0, 0, 0, 0, 0, 2.0])])
+    sa = SAConfig(rollouts_per_pair=2, keep_every=7)
+    part, record = collect_pairs(apply, 4, env, params, jax.random.PRNGKey(1), sa, pairs=[(0, 1)], record=True)
+    path = tmp_path / "sa.mcap"
+    with ArchiveWriter(path) as writer:
+        record_episodes(writer, env, jax.tree.map(lambda x: np.asarray(x[0]), record), {"method": "sa"})
+    buffer = states_as_buffer(path, keep_every=7)
+    assert np.asarray(buffer.step).tolist() == [0, 7, 14, 21] * 2
+    for a, b in zip(jax.tree.leaves(buffer), jax.tree.leaves(part.states), strict=True):  # part: [pairs, states]
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[0])
 
 
 def test_buffer_rejects_mixed_layouts(tmp_path, archive):
@@ -630,11 +685,11 @@ def _rewrite(src, dst, commit=None, step_metadata=None):
         writer.finish()
 
 
-def _field_table_with(path, name, **changes):
+def _field_table_with(path, field_name, **changes):
     with open(path, "rb") as f:
         channel = next(c for c in make_reader(f).get_summary().channels.values() if c.topic == "step")
     table = json.loads(channel.metadata["fields"])
-    next(field for field in table if field["name"] == name).update(changes)
+    next(field for field in table if field["name"] == field_name).update(changes)
     return json.dumps(table)
 
 
@@ -656,6 +711,8 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
         (dict(commit=edited(steps=10**12)), "key 'steps' is 1000000000000"),
         (dict(commit=edited(steps=-3)), "key 'steps' is -3"),
         (dict(commit=edited(num_agents="two")), "key 'num_agents' is 'two'"),
+        # a later format may give the same keys other meanings: refused, not read as this one
+        (dict(commit=edited(format_version=99)), "episode 0: format_version 99; this ocv2 reads version 1"),
     ]
     decoding = [  # refused when an episode is decoded (replay)
         (dict(step_metadata={"fields": "[not json"}), "key 'fields' is not JSON"),
@@ -673,6 +730,11 @@ def test_crafted_records_are_one_line_errors(tmp_path, archive, capsys):
             "states do not fit",
         ),
         (dict(step_metadata={"layout": "{}"}), "key 'layout'"),
+        (dict(step_metadata={"byte_order": "big"}), "byte_order 'big'"),
+        (  # another version's field table: the file (one of several SA archives, say) is named
+            dict(step_metadata={"fields": _field_table_with(archive, "state.grid", name="state.board")}),
+            "step fields",
+        ),
         (dict(step_metadata={"layout": "[" * 5000 + "]" * 5000}), "nested deeper than 32 levels"),
     ]
     # A crafted record after good episodes: recover stops with the error and leaves no half-copied file.

@@ -23,6 +23,7 @@ import numpy as np
 
 from cluster.archive.format import (
     EPISODE_TOPIC,
+    FORMAT_VERSION,
     FRAMES_TOPIC,
     MAGIC,
     MAX_CHUNK_BYTES,
@@ -335,6 +336,7 @@ def _learn(record, status: ScanStatus, fallback: ScanStatus) -> None:
 # ---------------------------------------------------------------------------------------------------
 
 _COMMIT_KEYS = {
+    "format_version": int,
     "episode": int,
     "layout": str,
     "steps": int,
@@ -367,6 +369,11 @@ def _commit_meta(path: str, message: Message) -> dict:
                 f"{where}: key {key!r} is {value!r}, not of type "
                 f"{kind.__name__ if isinstance(kind, type) else 'number'}"
             )
+    if meta["format_version"] != FORMAT_VERSION:  # a later format may reuse these keys with other meanings
+        raise ArchiveError(
+            f"{where}: format_version {meta['format_version']}; this ocv2 reads version {FORMAT_VERSION} "
+            "(read it with the ocv2 that wrote it)"
+        )
     if not 1 <= meta["steps"] <= MAX_STEPS:
         raise ArchiveError(f"{where}: key 'steps' is {meta['steps']}, not a transition count in 1..{MAX_STEPS}")
     if not 1 <= meta["num_agents"] <= 64:
@@ -458,7 +465,9 @@ def _step_table(path: str, meta: dict, channel: Channel) -> list[dict]:
     names = [f["name"] for f in table]
     expected = ["state." + n for n in STATE_NAMES] + list(TRANSITION_FIELDS)
     if names != expected:
-        raise ArchiveError(f"the archive's step fields {names} differ from this ocv2 version's {expected}")
+        raise ArchiveError(f"{where}: the archive's step fields {names} differ from this ocv2 version's {expected}")
+    if channel.metadata.get("byte_order", "little") != "little":
+        raise ArchiveError(f"{where}: byte_order {channel.metadata['byte_order']!r}; ocv2 writes and reads 'little'")
     for field in table:
         try:
             dtype = np.dtype(field["dtype"])

@@ -22,7 +22,7 @@ from population.record import jitted_play_recorded_pairs
 def states_as_buffer(paths, keep_every: int = 10, layout: Layout | str | None = None) -> State:
     """Archived states as a state-augmentation reset buffer (a batched ``ocv2.State`` of jax arrays).
 
-    Takes s_0, s_k, s_2k, ... (t < T, as SA collection keeps them) of every complete episode of every
+    Takes s_0, s_k, s_2k, ... (t < floor(T / k) k, as SA collection keeps them) of every complete episode of every
     file, in file and episode order. Use it as ``env.reset_state(key, state_buffer=buffer)``, an
     ``ocv2.make(..., initial_state_buffer=buffer)`` or the SA buffer of a training run.
 
@@ -61,8 +61,8 @@ def states_as_buffer(paths, keep_every: int = 10, layout: Layout | str | None = 
                     "holds states of one kitchen"
                 )
         for episode in reader.iter_episodes():
-            steps = episode.meta["steps"]
-            parts.append(jax.tree.map(lambda x: x[0:steps:keep_every], episode.states))
+            kept = episode.meta["steps"] // keep_every * keep_every  # as collect_pairs: t < T // k * k
+            parts.append(jax.tree.map(lambda x: x[0:kept:keep_every], episode.states))
     if not parts:
         raise ArchiveError(f"no complete episode in {', '.join(map(repr, map(os.fspath, paths)))}")
     buffer = jax.tree.map(lambda *xs: jnp.asarray(np.concatenate(xs)), *parts)

@@ -35,6 +35,7 @@ from cluster.archive.format import (
     to_json,
 )
 from ocv2 import boundedjson
+from ocv2.atomic import fsync_folder
 from ocv2.layouts import Layout, get_layout
 from ocv2.render import render_frames
 from ocv2.state import State
@@ -158,6 +159,9 @@ class Output:
         self.closed = True
         self._file.close()
         os.replace(self.partial, self.path)
+        # The rename made durable: a state buffer or checkpoint written after this file must not survive a power
+        # loss that undoes it (a resumed run would take the archive for written).
+        fsync_folder(os.path.dirname(os.path.abspath(self.path)))
 
     def abandon(self):
         """After a write error: close without finishing, keeping ``PATH.partial`` up to ``committed``.
@@ -302,6 +306,8 @@ class ArchiveWriter:
         self.failed = error
         self._done = True
         self._out.abandon()
+        if self.episodes_written == 0:  # a header alone (Ctrl-C or a full disk in the first episode): nothing to
+            _unlink_quietly(self._out.partial)  # recover, and a later writer of PATH would refuse it as unfinished
 
     def __enter__(self) -> ArchiveWriter:
         return self.open()
