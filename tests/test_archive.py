@@ -430,6 +430,21 @@ def test_bad_input_is_a_clear_error(tmp_path, archive, capsys):
     assert main(["archive"]) == 2  # no action: argparse usage
 
 
+def test_a_file_without_a_header_is_no_archive_and_nothing_to_recover(tmp_path, capsys):
+    """Past what a writer killed inside its header can leave, a file with no header is not an ocv2 archive (it was
+    reported as an unfinished one, and recover made a "finished" archive of it); an empty one has nothing to recover."""
+    garbage, empty = tmp_path / "garbage.mcap", tmp_path / "empty.mcap"
+    garbage.write_bytes(b"\x89MCAP0\r\n" + np.random.default_rng(0).bytes(3000))
+    empty.write_bytes(b"")
+    assert main(["archive", "info", str(garbage)]) == 2
+    assert "is not an ocv2 archive: no readable header record in its 3008 bytes" in capsys.readouterr().err
+    assert main(["archive", "recover", str(garbage), "--out", str(tmp_path / "g.mcap")]) == 2
+    capsys.readouterr()
+    assert main(["archive", "recover", str(empty), "--out", str(tmp_path / "e.mcap")]) == 2
+    assert "nothing to recover (empty file" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.mcap", "garbage.mcap"]
+
+
 def test_foxglove_channel_only_when_enabled(tmp_path, archive, recorded):
     from mcap.reader import make_reader  # an independent reader: the file is standard MCAP
 

@@ -382,9 +382,11 @@ def test_validate_and_train_refuse_the_same_missing_inputs_and_train_leaves_no_r
     making the run directory, which then blocked the corrected command as "a run of a different config"."""
     smoke = str(ROOT / "configs" / "smoke.yaml")
     (tmp_path / "notes.mcap").write_text("not an archive")
+    (tmp_path / "cut.mcap").write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 4)  # a file cut after its magic
     cases = [
         (["population.method=sa", f"population.sa.archives=[{tmp_path / 'nope.mcap'}]"], "population.sa.archives:"),
         (["population.method=sa", f"population.sa.archives=[{tmp_path / 'notes.mcap'}]"], "population.sa.archives:"),
+        (["population.method=sa", f"population.sa.archives=[{tmp_path / 'cut.mcap'}]"], "population.sa.archives:"),
         (["population.method=fcp", f"population.fcp.partners={tmp_path / 'none'}"], "population.fcp.partners:"),
     ]
     for overrides, said in cases:

@@ -351,6 +351,27 @@ def test_a_training_archive_a_kill_prevented_is_written_on_resume(tmp_path, monk
                 assert len(resumed) == len(whole) == NUM_SEEDS
                 for index in range(NUM_SEEDS):
                     np.testing.assert_array_equal(resumed.episode(index).actions, whole.episode(index).actions)
+    # Killed after the archive's first seed: the user follows the advice and recovers the .partial, which takes the
+    # archive's own name with one episode of two; the resume writes it again whole rather than take it as done.
+    real_record, calls = coordinator.record_episodes, []
+
+    def killed_after_one(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise SystemExit("killed")
+        return real_record(*args, **kwargs)
+
+    monkeypatch.setattr(coordinator, "record_episodes", killed_after_one)
+    with pytest.raises(SystemExit):
+        coordinator.train(config, tmp_path / "cut", LocalWorkers, show_progress=False, evaluate=False)
+    monkeypatch.setattr(coordinator, "record_episodes", real_record)
+    cut = tmp_path / "cut" / "archive" / "train" / "update_0000002.mcap"
+    assert main(["archive", "recover", f"{cut}.partial"]) == 0 and len(ArchiveReader(cut)) == 1
+    coordinator.train(config, tmp_path / "cut", LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    with ArchiveReader(cut) as resumed, ArchiveReader(tmp_path / "whole" / "archive" / "train" / cut.name) as whole:
+        assert len(resumed) == NUM_SEEDS
+        for index in range(NUM_SEEDS):
+            np.testing.assert_array_equal(resumed.episode(index).actions, whole.episode(index).actions)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -385,6 +385,11 @@ def _commit_meta(path: str, message: Message) -> dict:
     return meta
 
 
+#: The most bytes a file can hold without a complete header when its writer died while writing that header (the
+#: magic and one header record of ocv2's profile and library names; writers flush it before anything else).
+HEADER_ROOM = len(MAGIC) + 256
+
+
 def scan(path: str, status: ScanStatus, time_range: tuple[int, int] | None = None) -> Iterator[Group]:
     """Committed episodes of an archive, in file order, with their messages."""
     size = check_file(path)
@@ -440,6 +445,11 @@ def scan(path: str, status: ScanStatus, time_range: tuple[int, int] | None = Non
         yield Group(meta, record, steps, others)
     if pending:
         status.orphan_messages += len(pending)
+    if first and size > HEADER_ROOM:  # no header where a writer puts one first: not an archive, not a torn one
+        raise ArchiveError(
+            f"{path!r} is not an ocv2 archive: no readable header record in its {size} bytes"
+            + (f" ({status.tail_error})" if status.tail_error else "")
+        )
     if first and status.tail_error is None:
         status.tail_error = "no records"
 

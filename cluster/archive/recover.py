@@ -27,6 +27,8 @@ def recover(src, dst, *, overwrite: bool = False) -> RecoveryReport:
     status = ScanStatus()
     groups = scan(src, status)
     first = next(groups, None)  # raises ArchiveError for a non-archive before dst is created
+    if status.header is None:  # empty, or cut inside its header: no episode, and nothing that says it is ocv2's
+        raise ArchiveError(f"{src!r}: nothing to recover ({status.tail_error or 'no header record'})")
     # Not dst.partial: that is usually the source itself.
     out = Output(dst, chunk_size=1 << 20, compression="zstd", overwrite=overwrite, fsync=False, suffix=".recovering")
     episodes = transitions = 0

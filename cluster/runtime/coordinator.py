@@ -229,15 +229,11 @@ def check_partners(config: Config) -> None:
 
 def check_inputs(config: Config) -> None:
     """What a run reads besides its config, checked before anything is trained (``ocv2 validate`` too): the FCP
-    partner run (``check_partners``) and that every ``population.sa.archives`` file opens as an ocv2 archive.
-    ``RunDirError`` / ``ArchiveError`` naming the key."""
+    partner run (``check_partners``) and the ``population.sa.archives`` files read as training reads them
+    (``archived_states``: finished, undamaged, of the run's kitchen). ``RunDirError`` / ``ArchiveError`` naming the
+    key."""
     check_partners(config)
-    if config.population.traits.resets_from_buffer:
-        for path in config.population.sa.archives:
-            try:
-                ArchiveReader(path)
-            except ArchiveError as error:
-                raise ArchiveError(f"population.sa.archives: {error}") from None
+    archived_states(config)
 
 
 def twin_seed_warning(config: Config, partner_config: Config, partner_run) -> str | None:
@@ -541,8 +537,22 @@ def _missed_training_archive(config: Config, run: RunDir, schedule: Schedule, up
     before = 0
     while (stop := schedule.next_stop(before)) < update:
         before = stop
+    if update // every == before // every:
+        return None
     path = run.path.joinpath(*_training_archive(update))
-    return before if update // every != before // every and not path.exists() else None
+    return None if _whole_training_archive(path, config.population.num_seeds) else before
+
+
+def _whole_training_archive(path, num_seeds: int) -> bool:
+    """Whether ``path`` is a finished training archive of one episode per seed. A file ``ocv2 archive recover``
+    made of a killed writer's ``.partial`` takes the same name but may hold fewer: written again, not kept."""
+    if not path.exists():
+        return False
+    try:
+        reader = ArchiveReader(path)
+    except ArchiveError:
+        return False
+    return reader.finished and not reader.warnings and len(reader) == num_seeds
 
 
 def _training_archive(update: int) -> tuple[str, ...]:
