@@ -37,6 +37,8 @@ from cluster.archive import (
 )
 from cluster.cli import main
 from cluster.cli.play import _writer as play_writer
+from ocv2 import dynamics
+from ocv2.render import render_frames
 from population.evaluation import play_episodes
 from population.record import jitted_play_recorded
 
@@ -109,6 +111,16 @@ def test_recorded_episodes_are_play_episodes(env, recorded):
         np.testing.assert_array_equal(a[:, :STEPS], np.asarray(b))
     np.testing.assert_array_equal(recorded.returns, recorded.rewards.sum(axis=1))
     assert (recorded.shaped_rewards != 0).any()  # the data is not trivially zero
+    # The last state is the episode's terminal one (not the auto-reset state that follows it), and every
+    # state is the transition of the one before it under the recorded actions.
+    assert (recorded.states.step[:, -1] == STEPS).all() and recorded.states.done[:, -1].all()
+    transition = jax.jit(lambda s, a: dynamics.transition(env.config, jax.random.PRNGKey(0), s, a).state)
+    for e in range(EPISODES):
+        for t in (0, STEPS // 2, STEPS - 1):
+            state = jax.tree.map(lambda x: x[e, t], recorded.states)
+            following = transition(state, jnp.asarray(recorded.actions[e, t]))
+            for a, b in zip(jax.tree.leaves(following), jax.tree.leaves(recorded.states), strict=True):
+                np.testing.assert_array_equal(np.asarray(a), b[e, t + 1])
 
 
 def test_round_trip(archive, recorded):
@@ -308,12 +320,23 @@ def test_write_episode_rejects_bad_input(tmp_path, recorded):
     assert len(ArchiveReader(tmp_path / "bad.mcap")) == 0
 
 
-def test_replay_to_gif(archive, tmp_path, capsys):
+def test_replay_to_gif(archive, recorded, tmp_path, capsys):
     out = tmp_path / "ep1.gif"
     assert main(["archive", "replay", archive, "--episode", "1", "--out", str(out), "--tile-size", "8"]) == 0
     assert f"{STEPS + 1} frames" in capsys.readouterr().out
     with Image.open(out) as gif:
         assert gif.n_frames == STEPS + 1 and gif.size == (5 * 8, 4 * 8)
+        frames = []
+        for index in range(gif.n_frames):
+            gif.seek(index)
+            frames.append(np.asarray(gif.convert("RGB")))
+
+    # The frames are episode 1's, not another's: the GIF's palette may move a few pixels, another episode most
+    def off(e: int) -> float:
+        expected = render_frames(jax.tree.map(lambda x: x[e], recorded.states), "cramped_room", tile_size=8)
+        return float(np.mean(np.any(np.stack(frames) != expected, axis=-1)))
+
+    assert off(1) < 0.005 < min(off(0), off(2)), [off(e) for e in range(EPISODES)]
 
 
 def test_replay_checks_the_frame_size_and_never_replaces_a_file_unless_forced(archive, tmp_path, capsys):
@@ -445,6 +468,33 @@ def test_a_file_without_a_header_is_no_archive_and_nothing_to_recover(tmp_path, 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.mcap", "garbage.mcap"]
 
 
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_a_chunk_is_never_decompressed_past_the_size_its_header_claims(compression):
+    """A frame may state its own (larger) content size, which mcap's reader believes: 1 MiB of zeros behind a
+    claim of 100 bytes is refused after 101 bytes, not decompressed whole (the same ratio asks gigabytes of a
+    20 KB file)."""
+    import lz4.frame
+    import zstandard
+    from mcap.records import Chunk
+
+    from cluster.archive.reader import _decompressed
+
+    def chunk(plain: bytes, claimed: int) -> Chunk:
+        compress = zstandard.ZstdCompressor().compress if compression == "zstd" else lz4.frame.compress
+        return Chunk(
+            message_start_time=0,
+            message_end_time=0,
+            uncompressed_size=claimed,
+            uncompressed_crc=0,
+            compression=compression,
+            data=compress(plain),
+        )
+
+    assert _decompressed(chunk(b"\0" * (1 << 20), 100)) is None
+    assert _decompressed(chunk(b"records", 100)) is None  # fewer bytes than claimed: damaged too
+    assert _decompressed(chunk(b"records", 7)) == b"records"
+
+
 def test_foxglove_channel_only_when_enabled(tmp_path, archive, recorded):
     from mcap.reader import make_reader  # an independent reader: the file is standard MCAP
 
@@ -473,8 +523,6 @@ def test_foxglove_channel_only_when_enabled(tmp_path, archive, recorded):
         fields = json.loads(next(s for s in summary.schemas.values() if s.name == "foxglove.RawImage").data)
         assert set(fields["properties"]) >= {"timestamp", "frame_id", "width", "height", "encoding", "step", "data"}
     assert len(images) == STEPS + 1 and images[0].shape == (4 * 8, 5 * 8, 3)
-    from ocv2.render import render_frames
-
     expected = render_frames(jax.tree.map(lambda x: x[0], recorded.states), "cramped_room", tile_size=8)
     np.testing.assert_array_equal(np.stack(images), expected)
     np.testing.assert_array_equal(ArchiveReader(path).frames(0), expected)

@@ -149,9 +149,32 @@ def _chunk_at(data, offset: int, size: int) -> tuple[Chunk, list, int] | None:
         return None
     try:
         chunk = Chunk.read(ReadDataStream(io.BytesIO(data[start:end])))
-        return chunk, breakup_chunk(chunk, validate_crc=True), end
+        plain = _decompressed(chunk)
+        if plain is None:
+            return None
+        return chunk, breakup_chunk(dataclasses.replace(chunk, compression="", data=plain), validate_crc=True), end
     except Exception:  # noqa: BLE001 -- any failure to decode means: not a whole, valid chunk here
         return None
+
+
+def _decompressed(chunk: Chunk) -> bytes | None:
+    """A chunk's records, decompressed to at most the size its header claims (checked against MAX_CHUNK_BYTES):
+    a frame that says more in its own header, or holds more than it says, is not decompressed past that size
+    (mcap's own reader would take the frame's word: a 20 KB file could ask for gigabytes). None when the
+    decompressed size is not the claimed one."""
+    limit = chunk.uncompressed_size
+    if chunk.compression == "zstd":
+        import zstandard
+
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(chunk.data)) as reader:
+            plain = reader.read(limit + 1)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        plain = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=limit + 1)
+    else:
+        plain = chunk.data
+    return plain if len(plain) == limit else None
 
 
 def _resync(data, offset: int, size: int):
