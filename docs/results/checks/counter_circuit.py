@@ -429,3 +429,19 @@ def _():
     before, after = gap[CC_SA10] - gap[CC10], gap[CC_SA10_6M] - gap[CC10_6M]
     steps = millions(CC_SA10, "sa"), millions(CC_SA10_6M, "sa")
     return [before, steps[0], after, steps[1], after - before, *np.percentile(widening, [2.5, 97.5])]
+
+
+@check("cc_sa10_6m_sp_sa")
+def _():
+    """SP x SA at 6M (the update-366 policies, both seat orders): the mean of the 100 pairs beside SP's and SA's
+    own cross-play at 6M, how many fail, the pairs of the SP seeds that circle counter-clockwise (their 3M
+    convention, which every SP seed kept: cc10_6m_roles) beside the others', and the SA seed they all score best
+    with (a set: one number where they agree)."""
+    m, low = sp_sa_mean(CC_SA10_6M), sp_sa_low(CC10_6M, CC_SA10_6M)
+    ccw = [k for k, c in enumerate(cc_conventions()) if c[1] == "ccw"]
+    cw = [k for k in range(10) if k not in ccw]
+    return [
+        m.size, m.mean(), run(CC10_6M, "sp")["xp"]["xp_mean"], run(CC_SA10_6M, "sa")["xp"]["xp_mean"],
+        int(low.sum()), m.size, *ccw, m[np.ix_(ccw, range(10))].mean(), m[np.ix_(cw, range(10))].mean(),
+        *{int(np.argmax(m[k])) for k in ccw},  # the SA seed each counter-clockwise SP seed scores best with: one
+    ]  # fmt: skip
