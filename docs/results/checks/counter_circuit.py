@@ -445,3 +445,22 @@ def _():
         int(low.sum()), m.size, *ccw, m[np.ix_(ccw, range(10))].mean(), m[np.ix_(cw, range(10))].mean(),
         *{int(np.argmax(m[k])) for k in ccw},  # the SA seed each counter-clockwise SP seed scores best with: one
     ]  # fmt: skip
+
+
+@check("cc_sa10_6m_roles")
+def _():
+    """roles.md of the SA seeds at update 366 (its third table) beside 183 (its first): the seed in every failing
+    3M pair, its clockwise share (seat 0) at 6M and at 3M, and the other nine's range at 6M."""
+    tables = md_tables(CC_SA10 / "roles.md")
+    at = {183: tables[0], 366: tables[2]}
+    (odd,) = set.intersection(*({i, j} for i, j, _ in low_pairs(CC_SA10, "sa")))
+    others = [two_shares(row[5])[0] for k, row in enumerate(at[366]) if k != odd]
+    steps = millions(CC_SA10_6M, "sa"), millions(CC_SA10, "sa")
+    return [
+        two_shares(at[366][odd][5])[0],
+        steps[0],
+        two_shares(at[183][odd][5])[0],
+        steps[1],
+        min(others),
+        max(others),
+    ]
