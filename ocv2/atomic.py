@@ -79,11 +79,16 @@ def staged_folder(path: str | os.PathLike, suffix: str = ".staging") -> Iterator
 
     A folder already at ``path`` (the caller has checked it may go: empty, or an earlier output of its own) is
     moved aside first and removed once the new one is in; if the new one cannot be moved in, it is put back.
-    The staging name is unique (``tempfile.mkdtemp``), so no folder of the user's is ever taken for one.
+    The staging name is unique (``tempfile.mkdtemp``), so no folder of the user's is ever taken for one. An empty
+    folder at ``path`` is filled in place instead (staged inside it, the files moved up at the end): it may be one
+    that cannot be renamed, such as the current directory (``--out .``) or a mount point.
     """
     path = Path(path)
+    if path.is_dir() and not any(path.iterdir()):
+        yield from _staged_inside(path, suffix)
+        return
     path.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent))
+    staging = _new_folder(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
     try:
         yield staging
         if not path.exists():
@@ -122,3 +127,23 @@ def remove_stale_temporaries(folder: str | os.PathLike, recursive: bool = True) 
             path.unlink(missing_ok=True)
             removed.append(path)
     return removed
+
+
+def _staged_inside(path: Path, suffix: str) -> Iterator[Path]:
+    staging = _new_folder(prefix=".", suffix=suffix, dir=path)
+    try:
+        yield staging
+        for item in sorted(staging.iterdir()):
+            item.rename(path / item.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _new_folder(prefix: str, suffix: str, dir: Path) -> Path:
+    """A new uniquely named folder with the permissions ``mkdir`` would give it (``mkdtemp`` makes it 0700, which
+    would otherwise become the output's mode once renamed into place)."""
+    folder = Path(tempfile.mkdtemp(prefix=prefix, suffix=suffix, dir=dir))
+    mask = os.umask(0)
+    os.umask(mask)
+    folder.chmod(0o777 & ~mask)
+    return folder

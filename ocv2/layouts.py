@@ -108,6 +108,8 @@ class Layout:
         if recipes is None:
             present = sorted({int(v) - Static.INGREDIENT_PILE for v in grid.ravel() if v >= Static.INGREDIENT_PILE})
             absent = [i for i in range(self.num_ingredients) if i not in present]
+            if not present:
+                raise ValueError(f"layout {self.name!r}: no ingredient pile on the map (characters 0-9)")
             if absent:  # the default is every recipe of ingredients 0..n-1, some of which no pile gives
                 raise ValueError(
                     f"layout {self.name!r}: ingredient piles {', '.join(map(str, present))} but no "

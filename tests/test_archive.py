@@ -397,6 +397,11 @@ def test_archive_as_sa_buffer_keeps_the_states_collection_keeps_when_k_does_not_
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[0])
 
 
+def test_an_episode_shorter_than_keep_every_is_named_not_silently_dropped(archive):
+    with pytest.raises(ArchiveError, match=r"episode 0 has 30 steps, fewer than keep_every=31: SA collection would"):
+        states_as_buffer(archive, keep_every=31)
+
+
 def test_buffer_rejects_mixed_layouts(tmp_path, archive):
     other = ocv2.make("asymm_advantages", max_steps=2)
     state = other.reset_state(jax.random.PRNGKey(0))
@@ -414,7 +419,7 @@ def test_buffer_rejects_mixed_layouts(tmp_path, archive):
         )
     assert states_as_buffer(path, keep_every=1).grid.shape == (2, 5, 9, 3)
     with pytest.raises(ArchiveError, match="one kitchen"):
-        states_as_buffer([path, archive])
+        states_as_buffer([path, archive], keep_every=1)
 
 
 def test_info_lists_episodes_layouts_returns(archive, recorded, capsys):
@@ -493,6 +498,40 @@ def test_a_chunk_is_never_decompressed_past_the_size_its_header_claims(compressi
     assert _decompressed(chunk(b"\0" * (1 << 20), 100)) is None
     assert _decompressed(chunk(b"records", 100)) is None  # fewer bytes than claimed: damaged too
     assert _decompressed(chunk(b"records", 7)) == b"records"
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_reading_a_crafted_chunk_allocates_what_it_claims_not_what_it_holds(tmp_path, compression, capsys):
+    """Through the reader, on every path a refused chunk takes (the scan, then the warning that describes it):
+    64 MiB of zeros behind a claim of 100 bytes never become 64 MiB in memory."""
+    import tracemalloc
+
+    import lz4.frame
+    import zstandard
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import Chunk, Header
+
+    compress = zstandard.ZstdCompressor().compress if compression == "zstd" else lz4.frame.compress
+    builder = RecordBuilder()
+    Header(profile="ocv2-archive", library="crafted").write(builder)
+    Chunk(
+        message_start_time=0,
+        message_end_time=0,
+        uncompressed_size=100,
+        uncompressed_crc=0,
+        compression=compression,
+        data=compress(bytes(64 << 20)),
+    ).write(builder)
+    path = tmp_path / "bomb.mcap"
+    path.write_bytes(b"\x89MCAP0\r\n" + builder.end())
+    tracemalloc.start()
+    try:
+        reader = ArchiveReader(str(path))
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 << 20, f"{peak / 2**20:.0f} MiB"
+    assert len(reader) == 0 and any("does not decompress to the 100 bytes it claims" in w for w in reader.warnings)
 
 
 def test_foxglove_channel_only_when_enabled(tmp_path, archive, recorded):

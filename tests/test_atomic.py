@@ -1,5 +1,7 @@
 """ocv2.atomic: whole-file writes are all or nothing, and leave nothing behind on failure."""
 
+import os
+
 import pytest
 
 from ocv2.atomic import atomic_path, atomic_write, is_temporary, remove_stale_temporaries, staged_folder
@@ -53,3 +55,26 @@ def test_staged_folder_replaces_whole_or_leaves_everything_as_it_was(tmp_path):
     with staged_folder(out):
         pass
     assert sorted(p.name for p in tmp_path.iterdir()) == [".out.keep", "out"]
+
+
+def test_staged_folder_fills_an_empty_folder_in_place_even_the_current_directory(tmp_path, monkeypatch):
+    """`ocv2 xp --out .` in an empty directory: '.' cannot be renamed, so it is filled in place, whole or not at all;
+    a new folder gets mkdir's permissions, not mkdtemp's 0700."""
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    with pytest.raises(OSError), staged_folder(".") as staging:
+        (staging / "matrix.csv").write_text("half")
+        raise OSError(28, "No space left on device")
+    assert list(here.iterdir()) == []
+    with staged_folder(".") as staging:
+        (staging / "matrix.csv").write_text("whole")
+        (staging / "plots").mkdir()
+    assert sorted(p.name for p in here.iterdir()) == ["matrix.csv", "plots"]
+    old = os.umask(0o022)
+    try:
+        with staged_folder(tmp_path / "new") as staging:
+            (staging / "a").write_text("x")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "new").stat().st_mode & 0o777 == 0o755

@@ -85,10 +85,6 @@ BAD = [
     (["population.fcp.partner_ppo.num_minibatches=3"], "population.fcp.partner_ppo.num_minibatches"),
     (["population.fcp.partner_ppo.total_timesteps=10"], "population.fcp.partner_ppo.total_timesteps"),
     (["population.fcp.partner_ppo.gamma=2"], "population.fcp.partner_ppo.gamma"),
-    (["population.fcp.checkpoints=[mid, '9']"], "population.fcp.checkpoints"),
-    # the partner stage keeps updates 0, 2 and 4 only: update 3 would fail after every partner seed trained
-    (["population.fcp.checkpoints=[mid, '3']"], "population.fcp.checkpoints"),
-    (["population.fcp.checkpoints=[final, final]"], "population.fcp.checkpoints"),
     # no paper self-play config for this layout and model kind: the key must be set
     (["population.fcp.partner_ppo=null", "env.layout=cramped_room_v2", "model.kind=cnn"], "population.fcp.partner_ppo"),
 ]
@@ -104,11 +100,27 @@ def test_fcp_config_errors_are_one_line_naming_the_key(overrides, key):
     assert "smoke.yaml" not in message
 
 
-def test_a_pool_that_would_hold_one_partner_twice_is_refused():
-    """With two snapshots (0 and 4) "mid" is "final": the pool [mid, final] would hold each partner twice."""
-    with pytest.raises(ConfigError, match=r"population.fcp.checkpoints: 'mid' and 'final' are both update 4"):
-        smoke("run.num_checkpoints=2")
-    assert smoke("run.num_checkpoints=2", "population.fcp.checkpoints=[init, final]")
+@pytest.mark.parametrize(
+    "overrides, said",
+    [  # the partner stage keeps updates 0, 2 and 4 (with 2 snapshots: 0 and 4)
+        (["population.fcp.checkpoints=[mid, '3']"], r"no snapshot at update 3; snapshots are \[0, 2, 4\]"),
+        (["population.fcp.checkpoints=[mid, '9']"], r"no snapshot at update 9; .* of its 4 updates"),
+        (["population.fcp.checkpoints=[final, final]"], r"'final' and 'final' are both update 4"),
+        (["run.num_checkpoints=2"], r"'mid' and 'final' are both update 4 \(snapshots \[0, 4\]\)"),
+    ],
+)
+def test_a_pool_the_partner_stage_cannot_give_is_refused_before_anything_trains(overrides, said, tmp_path):
+    """Update 3 would fail only after every partner seed had trained; with two snapshots "mid" is "final", and the
+    pool [mid, final] would hold each partner twice. Refused by train (before the run directory is made) and by
+    validate; the config itself still parses, so a run directory written with it by an earlier version loads."""
+    config = smoke(*overrides)
+    assert parse_config(config.to_dict()) == config
+    with pytest.raises(RunDirError, match=rf"population.fcp.checkpoints: {said}"):
+        coordinator.check_partners(config)
+    with pytest.raises(RunDirError, match="population.fcp.checkpoints"):
+        coordinator.train(config, tmp_path / "run", LocalWorkers, show_progress=False, evaluate=False)
+    assert not (tmp_path / "run").exists()
+    coordinator.check_partners(smoke("run.num_checkpoints=2", "population.fcp.checkpoints=[init, final]"))
 
 
 #: configs/smoke.yaml with method sp (its partner_ppo unused) as runs written before 2026-11-29 recorded it

@@ -35,6 +35,13 @@ def test_bad_layouts(grid, kwargs, match):
         ocv2.Layout.from_string(grid, **kwargs)
 
 
+def test_a_layout_built_without_piles_says_so():
+    grid = ocv2.Layout.from_string(GOOD).static_objects.copy()
+    grid[grid >= ocv2.layouts.Static.INGREDIENT_PILE] = ocv2.layouts.Static.WALL
+    with pytest.raises(ValueError, match="no ingredient pile on the map"):
+        ocv2.Layout(grid, ((1, 1), (3, 1)), num_ingredients=1)
+
+
 def test_piles_with_a_gap_build_with_recipes_of_the_piles_on_the_map():
     layout = ocv2.Layout.from_string("WWPWWW\n0A A2W\nW    R\nWBWXWW", possible_recipes=[[0, 0, 2], [2, 2, 2]])
     assert layout.num_ingredients == 3 and layout.possible_recipes == ((0, 0, 2), (2, 2, 2))

@@ -334,7 +334,10 @@ def _describe_chunk(data, offset: int, end: int) -> str:
         name = f"{name} (messages at log times {chunk.message_start_time}..{chunk.message_end_time})"
         if chunk.uncompressed_size > MAX_CHUNK_BYTES:
             return f"{name}: it claims {chunk.uncompressed_size} bytes uncompressed (at most {MAX_CHUNK_BYTES})"
-        breakup_chunk(chunk, validate_crc=True)
+        plain = _decompressed(chunk)  # bounded here too: this is the path every refused chunk takes
+        if plain is None:
+            return f"{name}: it does not decompress to the {chunk.uncompressed_size} bytes it claims"
+        breakup_chunk(dataclasses.replace(chunk, compression="", data=plain), validate_crc=True)
     except Exception as error:  # noqa: BLE001 -- the reason is only reported
         return f"{name}: {type(error).__name__}: {error}"
     return f"{name}: its header is malformed"

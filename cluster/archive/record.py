@@ -50,6 +50,11 @@ def states_as_buffer(paths, keep_every: int = 10, layout: Layout | str | None = 
                 "`ocv2 archive recover FILE --out FIXED.mcap` and name that file"
             )
         for index, meta in enumerate(reader.episodes()):
+            if meta["steps"] < keep_every:  # SA collection keeps nothing of it: say so, not "no state" later
+                raise ArchiveError(
+                    f"{os.fspath(path)!r} episode {meta['episode']} has {meta['steps']} steps, fewer than "
+                    f"keep_every={keep_every}: SA collection would keep none of its states"
+                )
             episode_layout = reader.layout(index)
             if target is None:
                 target = episode_layout

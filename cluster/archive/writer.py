@@ -304,10 +304,16 @@ class ArchiveWriter:
 
     def _fail(self, error: BaseException) -> None:
         self.failed = error
+        self._abandon()
+
+    def _abandon(self) -> None:
+        """Stop without finishing: the episodes written so far stay in the ``.partial`` (``recover`` makes a file
+        of them); a header alone (Ctrl-C or a full disk in the first episode) is removed, as there is nothing to
+        recover and a later writer of PATH would refuse it as unfinished."""
         self._done = True
         self._out.abandon()
-        if self.episodes_written == 0:  # a header alone (Ctrl-C or a full disk in the first episode): nothing to
-            _unlink_quietly(self._out.partial)  # recover, and a later writer of PATH would refuse it as unfinished
+        if self.episodes_written == 0:
+            _unlink_quietly(self._out.partial)
 
     def __enter__(self) -> ArchiveWriter:
         return self.open()
@@ -316,13 +322,9 @@ class ArchiveWriter:
         if exc_type is None:
             self.close()
         elif self._out is not None and not self._done:
-            # Interrupted or failed inside the block: not finished. The episodes written so far stay in the
-            # .partial (``ocv2 archive recover`` makes a file of them), and an existing PATH is not replaced by
-            # what would look like a finished archive holding only part of them.
-            self._done = True
-            self._out.abandon()
-            if self.episodes_written == 0:  # a header alone (Ctrl-C during a compile): nothing to recover
-                _unlink_quietly(self._out.partial)
+            # Interrupted or failed inside the block: not finished, and an existing PATH is not replaced by what
+            # would look like a finished archive holding only part of the episodes.
+            self._abandon()
         return False
 
     # -- episodes

@@ -220,11 +220,33 @@ def pool_updates(config: Config, partner_config: Config, partner_run) -> list[in
 
 
 def check_partners(config: Config) -> None:
-    """The FCP partner run a config names (``population.fcp.partners``), checked by ``checked_partner_config``;
-    nothing for a method without a partner pool or one that trains its partners itself."""
+    """The FCP pool a run will build, checked before anything trains: the partner run a config names
+    (``population.fcp.partners``, by ``checked_partner_config``), or else that ``population.fcp.checkpoints``
+    picks distinct snapshots the partner stage will keep (``check_stage_pool``). Nothing for a method without a
+    partner pool. Not part of parsing, so the run directories of earlier versions still load."""
     fcp = config.population.fcp
-    if config.population.traits.partner_pool and fcp.partners:
+    if not config.population.traits.partner_pool:
+        return
+    if fcp.partners:
         checked_partner_config(config, Path(fcp.partners))
+    elif config.population.trains_partners:
+        check_stage_pool(config)
+
+
+def check_stage_pool(config: Config) -> None:
+    """The partner stage keeps ``run.num_checkpoints`` snapshots and no other update: a pool checkpoint that is
+    none of them would fail only once every partner seed had trained, and two names of one update (``mid`` and
+    ``final`` with 2 snapshots) would put each partner in the pool twice. ``RunDirError`` naming the key."""
+    stage = partner_stage(config)
+    snapshots = ckpt.snapshot_updates(stage.ppo.num_updates, stage.run.num_checkpoints)
+    try:
+        ckpt.pool_updates(config.population.fcp.checkpoints, snapshots)
+    except ckpt.CheckpointError as error:
+        raise RunDirError(
+            f"population.fcp.checkpoints: {error}; the partner stage keeps run.num_checkpoints="
+            f"{stage.run.num_checkpoints} snapshots of its {stage.ppo.num_updates} updates "
+            "(population.fcp.partner_ppo.total_timesteps)"
+        ) from None
 
 
 def check_inputs(config: Config) -> None:

@@ -87,19 +87,28 @@ def coerce(key: str, value, hint, bounds: tuple[int, int] = INT32):
     return value
 
 
-def _integer(key: str, value) -> int:
-    if isinstance(value, float) and value.is_integer():
-        return int(value)
+def integral(value) -> int | None:
+    """``value`` as an int when it is one in any form YAML gives: an int, an integral float (1e7 written with a
+    dot), or a numeric string (1e7 without one, which YAML reads as a string); None otherwise (bools included)."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
     if isinstance(value, str):
         try:
-            as_float = float(value)
+            value = float(value)
         except ValueError:
-            as_float = math.nan
-        if as_float.is_integer():
-            return int(as_float)
-    if isinstance(value, bool) or not isinstance(value, int):
+            return None
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return None
+
+
+def _integer(key: str, value) -> int:
+    number = integral(value)
+    if number is None:
         raise ConfigError(f"{key}: expected an integer, got {value!r}")
-    return value
+    return number
 
 
 def _number(key: str, value) -> float:

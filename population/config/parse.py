@@ -14,7 +14,7 @@ from typing import Any
 
 from ocv2.config import EnvConfig, build_config
 from population.config.errors import SET_PREFIX, ConfigError
-from population.config.fields import bounded_int, finite_float32, nearest, parse_section
+from population.config.fields import bounded_int, finite_float32, integral, nearest, parse_section
 from population.config.paper import paper_sp_ppo
 from population.config.schema import (
     MODEL_DEFAULTS,
@@ -208,17 +208,12 @@ ENV_INTEGERS = ("max_steps", "agent_view_size", "op_ingredient_permutations")
 
 
 def _env_integer(value):
-    """An integral float or numeric string as an int (elementwise in a list); anything else unchanged, for
-    build_config to judge."""
+    """``value`` as an int when it is integral in any YAML form (``fields.integral``), elementwise in a list;
+    anything else unchanged, for build_config to judge."""
     if isinstance(value, list):
         return [_env_integer(v) for v in value]
-    if isinstance(value, bool) or not isinstance(value, (float, str)):
-        return value
-    try:
-        number = float(value)
-    except ValueError:
-        return value
-    return int(number) if number.is_integer() else value
+    number = integral(value)
+    return value if number is None else number
 
 
 def _number_problems(key: str, value) -> list[str]:

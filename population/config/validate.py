@@ -7,7 +7,6 @@ together with the type errors, so ``ocv2 validate`` lists them all at once.
 from __future__ import annotations
 
 from ocv2.config import build_config
-from population.checkpoints import CheckpointError, pool_updates, snapshot_updates
 from population.config.fields import INT32
 from population.config.schema import (
     ACTIVATIONS,
@@ -81,7 +80,7 @@ def ppo_problems(prefix: str, ppo: PPOConfig) -> list[str]:
     return problems
 
 
-def _validate_fcp(fcp: FCPConfig, num_agents: int, num_checkpoints: int) -> list[str]:
+def _validate_fcp(fcp: FCPConfig, num_agents: int) -> list[str]:
     problems = _positive("population.fcp.partner_seeds", fcp.partner_seeds)
     if fcp.pool not in FCP_POOLS:
         problems.append(f"population.fcp.pool: expected one of {', '.join(FCP_POOLS)}, got {fcp.pool!r}")
@@ -90,11 +89,6 @@ def _validate_fcp(fcp: FCPConfig, num_agents: int, num_checkpoints: int) -> list
     for c in fcp.checkpoints:
         if c not in ("init", "mid", "final") and not str(c).isdigit():
             problems.append(f"population.fcp.checkpoints: {c!r} is not init, mid, final or an update number")
-    twice = sorted({str(c) for c in fcp.checkpoints if list(map(str, fcp.checkpoints)).count(str(c)) > 1})
-    if twice:
-        problems.append(
-            f"population.fcp.checkpoints: {', '.join(twice)} named twice (the pool would hold a partner twice)"
-        )
     if num_agents != 2:
         problems.append("population.method: fcp needs a two-agent layout")
     partner = fcp.partner_ppo
@@ -103,26 +97,13 @@ def _validate_fcp(fcp: FCPConfig, num_agents: int, num_checkpoints: int) -> list
     key = "population.fcp.partner_ppo"
     partner_problems = ppo_problems(key, partner)
     problems += partner_problems
-    if partner_problems or fcp.partners:  # the checks below divide by these sizes, and are of a stage that trains
+    if partner_problems or fcp.partners:  # the check below divides by these sizes, and is of a stage that trains
         return problems
     if (partner.num_envs * num_agents) % partner.num_minibatches:
         problems.append(
             f"{key}.num_minibatches: {partner.num_minibatches} does not divide the "
             f"{partner.num_envs * num_agents} self-play sequences per update of the partner stage "
             f"(num_envs x {num_agents} agents)"
-        )
-    names_ok = not twice and all(c in ("init", "mid", "final") or str(c).isdigit() for c in fcp.checkpoints)
-    if not (names_ok and 2 <= num_checkpoints <= max(partner.num_updates + 1, MIN_SNAPSHOT_BOUND)):
-        return problems  # reported above, or by run.num_checkpoints' own checks
-    # The partner stage keeps run.num_checkpoints snapshots and no other update: a pool checkpoint that is
-    # none of them would fail only once every partner seed had trained.
-    snapshots = snapshot_updates(partner.num_updates, num_checkpoints)
-    try:
-        pool_updates(fcp.checkpoints, snapshots)
-    except CheckpointError as error:
-        problems.append(
-            f"population.fcp.checkpoints: {error}; the partner stage keeps run.num_checkpoints={num_checkpoints} "
-            f"snapshots of its {partner.num_updates} updates ({key}.total_timesteps)"
         )
     return problems
 
@@ -190,7 +171,7 @@ def validate(config: Config) -> list[str]:
                 "(evaluation must run without permutations)"
             )
     if pop.method == "fcp":
-        problems += _validate_fcp(pop.fcp, env.num_agents, config.run.num_checkpoints)
+        problems += _validate_fcp(pop.fcp, env.num_agents)
     problems += _positive("eval.episodes", config.eval.episodes)
     problems += _positive("eval.gifs", config.eval.gifs, allow_zero=True)
     problems += _positive("run.checkpoint_every", config.run.checkpoint_every)
