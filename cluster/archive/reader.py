@@ -149,12 +149,19 @@ def _chunk_at(data, offset: int, size: int) -> tuple[Chunk, list, int] | None:
         return None
     try:
         chunk = Chunk.read(ReadDataStream(io.BytesIO(data[start:end])))
-        plain = _decompressed(chunk)
-        if plain is None:
-            return None
-        return chunk, breakup_chunk(dataclasses.replace(chunk, compression="", data=plain), validate_crc=True), end
+        records = _chunk_records(chunk)
+        return None if records is None else (chunk, records, end)
     except Exception:  # noqa: BLE001 -- any failure to decode means: not a whole, valid chunk here
         return None
+
+
+def _chunk_records(chunk: Chunk) -> list | None:
+    """The records of a chunk decompressed within its claimed size (``_decompressed``), CRC checked; None when it
+    does not decompress to that size. mcap's parser reads the already decompressed copy."""
+    plain = _decompressed(chunk)
+    if plain is None:
+        return None
+    return breakup_chunk(dataclasses.replace(chunk, compression="", data=plain), validate_crc=True)
 
 
 def _decompressed(chunk: Chunk) -> bytes | None:
@@ -334,10 +341,8 @@ def _describe_chunk(data, offset: int, end: int) -> str:
         name = f"{name} (messages at log times {chunk.message_start_time}..{chunk.message_end_time})"
         if chunk.uncompressed_size > MAX_CHUNK_BYTES:
             return f"{name}: it claims {chunk.uncompressed_size} bytes uncompressed (at most {MAX_CHUNK_BYTES})"
-        plain = _decompressed(chunk)  # bounded here too: this is the path every refused chunk takes
-        if plain is None:
+        if _chunk_records(chunk) is None:  # bounded here too: this is the path every refused chunk takes
             return f"{name}: it does not decompress to the {chunk.uncompressed_size} bytes it claims"
-        breakup_chunk(dataclasses.replace(chunk, compression="", data=plain), validate_crc=True)
     except Exception as error:  # noqa: BLE001 -- the reason is only reported
         return f"{name}: {type(error).__name__}: {error}"
     return f"{name}: its header is malformed"

@@ -33,7 +33,7 @@ def publish_study(study, out, which: str = "snapshots") -> tuple[str, dict[str, 
     (``population.published.publish_runs``); returns the study's name and, per run, the entries added."""
     name, runs = trained_runs(study)
     where = Path(out).resolve()
-    if where == Path(study).resolve() or Path(study).resolve() in where.parents:
+    if where.is_relative_to(Path(study).resolve()):
         raise StudyError(f"--out {out}: lies inside the study directory {study}; give a folder outside it")
     run = enclosing_run(where / "policy")
     if run is not None:  # policy files beside a run's config.yaml and checkpoints, as `ocv2 export` refuses
