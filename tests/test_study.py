@@ -3,6 +3,7 @@ mid-run and resumed; both must report the same numbers, and a finished run is ne
 
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
 import errno
@@ -424,6 +425,32 @@ def test_a_bad_set_or_budget_is_a_one_line_error_before_anything_is_written(tmp_
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err, err
     assert not (tmp_path / "out").exists()  # so the same command with a good value starts afresh
+
+
+@pytest.mark.parametrize(
+    "where, message",
+    [
+        ("study", "run 'sp': set: ppo.lrr=1: ppo.lrr: unknown key; did you mean ppo.lr?"),
+        ("run", "run 'sp': run 'sp'.set: ppo.lrr=1: ppo.lrr: unknown key; did you mean ppo.lr?"),
+    ],
+)
+def test_a_bad_override_in_the_study_file_is_named_by_its_key_not_as_a_set_never_typed(
+    tmp_path, capsys, where, message
+):
+    data = copy.deepcopy(STUDY)
+    (data if where == "study" else data["runs"][0])["set"].append("ppo.lrr=1")
+    path = write_study(tmp_path / "tiny.yaml", data)
+    assert main(["study", "run", str(path), "--backend", "local", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "--set" not in err, err
+    # the same key given on the command line is still named as the --set it was
+    data["runs"][0]["set"].remove("ppo.lrr=1") if where == "run" else data["set"].remove("ppo.lrr=1")
+    path = write_study(tmp_path / "tiny.yaml", data)
+    assert (
+        main(["study", "run", str(path), "--backend", "local", "--out", str(tmp_path / "out"), "--set", "ppo.lrr=1"])
+        == 2
+    )
+    assert "run 'sp': --set ppo.lrr=1: ppo.lrr: unknown key" in capsys.readouterr().err
 
 
 def test_compressed_budget_scales_steps_and_schedules_of_every_stage():

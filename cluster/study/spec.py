@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from population.config import Config, ConfigError, load_config, read_yaml
+from population.config.errors import SET_PREFIX
 
 STUDY_KEYS = ("study", "description", "set", "runs", "over_training", "comparisons")
 RUN_KEYS = ("name", "config", "set", "partners_from", "paper")
@@ -83,6 +84,13 @@ class RunSpec:
     overrides: tuple[str, ...] = ()  # the study file's, the run's, then ``ocv2 study run --set``
     partners_from: str | None = None
     paper: PaperNumbers | None = None
+    #: Where each override came from, as errors name it ("set", "run 'sp'.set", "--set"); () for all "--set".
+    sources: tuple[str, ...] = ()
+
+    def override_sources(self) -> dict[str, str]:
+        """Each override's source; an override given twice goes by the later one, which wins."""
+        sources = self.sources or ("--set",) * len(self.overrides)
+        return dict(zip(self.overrides, sources, strict=True))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,8 +203,9 @@ def _parse_run(where: str, index: int, entry, base: Path, shared: tuple[str, ...
             raise StudyError(f"{where}: {label}.partners_from: expected a run name")
         _known_run(where, f"{label}.partners_from", partners, earlier, before=True)
     paper = _parse_paper(where, label, entry.get("paper"))
-    overrides = shared + _overrides(where, f"{label}.set", entry.get("set"))
-    return RunSpec(name, config_path, overrides, partners, paper)
+    own = _overrides(where, f"{label}.set", entry.get("set"))
+    sources = ("set",) * len(shared) + (f"{label}.set",) * len(own)
+    return RunSpec(name, config_path, shared + own, partners, paper, sources)
 
 
 def _parse_paper(where: str, label: str, raw) -> PaperNumbers | None:
@@ -319,7 +328,14 @@ def with_overrides(study: Study, overrides: Sequence[str]) -> Study:
     own, e.g. ``eval.episodes=8`` for a quick pilot of the whole pipeline (not checked: ``check_runs``)."""
     if not overrides:
         return study
-    runs = tuple(dataclasses.replace(r, overrides=(*r.overrides, *overrides)) for r in study.runs)
+    runs = tuple(
+        dataclasses.replace(
+            r,
+            overrides=(*r.overrides, *overrides),
+            sources=(*(r.sources or ("--set",) * len(r.overrides)), *("--set",) * len(overrides)),
+        )
+        for r in study.runs
+    )
     return dataclasses.replace(study, runs=runs)
 
 
@@ -341,22 +357,28 @@ def run_config(
     ``total_timesteps``, applied as ``budget_mode``: see ``budget_overrides``) and ``seeds`` (None: the
     config's own)."""
     where = f"{study.origin}: run {run.name!r}"
+    sources = run.override_sources()
     overrides = [*STUDY_DEFAULTS, *run.overrides]
     if seeds is not None:
         overrides.append(f"population.num_seeds={seeds}")
+        sources[overrides[-1]] = "--seeds"
     if run.partners_from is not None:
         partner = study.run(run.partners_from)
         partner_seeds = run_config(study, partner, out, budget, seeds, budget_mode).population.num_seeds
-        overrides += [
+        given = [
             "population.fcp.pool=shared",
             f"population.fcp.partners={run_dir(out, partner.name)}",
             f"population.fcp.partner_seeds={partner_seeds}",
         ]
-    base = _load(where, run.config, overrides)
+        overrides += given
+        sources |= dict.fromkeys(given, f"run {run.name!r}.partners_from")
+    base = _load(where, run.config, overrides, sources)
     if run.partners_from is not None and base.population.method != "fcp":
         raise StudyError(f"{where}.partners_from: only FCP runs take partners (this run is {base.population.method})")
-    overrides += budget_overrides(base, budget, budget_mode)
-    return _load(where if budget == 1.0 else f"{where} at --budget {budget:g}", run.config, overrides)
+    scaled = budget_overrides(base, budget, budget_mode)
+    overrides += scaled
+    sources |= dict.fromkeys(scaled, f"--budget {budget:g}")
+    return _load(where if budget == 1.0 else f"{where} at --budget {budget:g}", run.config, overrides, sources)
 
 
 def budget_overrides(config: Config, budget: float, mode: str = "truncate") -> list[str]:
@@ -393,8 +415,22 @@ def budget_overrides(config: Config, budget: float, mode: str = "truncate") -> l
     return out
 
 
-def _load(where: str, path: Path, overrides: list[str]) -> Config:
+def _load(where: str, path: Path, overrides: list[str], sources: Mapping[str, str]) -> Config:
     try:
         return load_config(path, overrides)
     except ConfigError as error:
-        raise StudyError(f"{where}: {error}") from None
+        raise StudyError(f"{where}: {_named_by_source(error, sources)}") from None
+
+
+def _named_by_source(error: ConfigError, sources: Mapping[str, str]) -> ConfigError:
+    """``error`` with each problem of an override the study file gave named after the file's key that gave it
+    (``set: ppo.lr=abc: ...``, ``run 'sp'.set: ...``) rather than ``--set``, which the user did not type."""
+
+    def named(problem: str) -> str:
+        for item, source in sources.items():
+            given = f"{SET_PREFIX}{item}"
+            if source != "--set" and (problem == given or problem.startswith(f"{given}: ")):
+                return f"{source}: {item}{problem[len(given) :]}"
+        return problem
+
+    return ConfigError([named(problem) for problem in error.problems])
