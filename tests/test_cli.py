@@ -419,3 +419,21 @@ def test_train_and_study_start_ray_once_before_any_work(monkeypatch, tmp_path, c
     }[command]
     assert main([*argv, "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert events == ["ray", "work"]
+
+
+def test_a_dead_worker_in_a_study_says_to_rerun_the_study_not_ocv2_train(monkeypatch, tmp_path, capsys):
+    """A study's run trains with the study's budget and overrides: `ocv2 train CONFIG --resume` would not match its
+    fingerprint, so the study command names itself as the way to continue."""
+    import cluster.cli.study as study_cli
+    from cluster.runtime.ray_backend import TRAIN_RESUME_HINT, RayBackendError
+
+    def dead_worker(*args, **kwargs):
+        raise RayBackendError(
+            f"worker for seeds [0] died and cannot be restarted. Its checkpoints ...; {TRAIN_RESUME_HINT}"
+        )
+
+    monkeypatch.setattr(study_cli, "run_study", dead_worker)
+    study = Path(__file__).resolve().parents[1] / "configs" / "studies" / "table1_coord_ring.yaml"
+    assert main(["study", "run", str(study), "--backend", "local", "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "continue with the same `ocv2 study run` command" in err and "ocv2 train" not in err, err

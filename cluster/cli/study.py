@@ -24,7 +24,7 @@ from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime import ray_backend
 from cluster.runtime.loggers import MissingExtraError
 from cluster.runtime.progress import duration
-from cluster.runtime.ray_backend import RayBackendError
+from cluster.runtime.ray_backend import TRAIN_RESUME_HINT, RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
 from cluster.study.publish import publish_study
@@ -38,6 +38,8 @@ from population.numerics import enable_deterministic_ops
 from population.policy import PolicyError
 from population.published import WHICH, read_listing
 
+#: A study's run is continued by the study command, with its budget and overrides, not by `ocv2 train CONFIG`.
+STUDY_RESUME_HINT = "continue with the same `ocv2 study run` command"
 BUDGET = bounded(float, 0, 100, "a fraction of the env steps in (0, 100], such as 0.25", low_open=True)
 
 
@@ -194,7 +196,7 @@ def _run(args) -> int:
         with ray_backend.session(args.backend, ClusterConfig(address=args.address)):
             state = run_study(study, out, options, say=say)
     except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
-        raise CLIError(str(error)) from None
+        raise CLIError(str(error).replace(TRAIN_RESUME_HINT, STUDY_RESUME_HINT)) from None
     blocked = {name: step for name, step in state.steps.items() if not step.done}
     print(f"report: {state.report['report']}")
     if blocked:

@@ -51,6 +51,11 @@ class RayBackendError(RuntimeError):
     """Ray cannot run this population as asked (unreachable address, impossible resources, dead worker)."""
 
 
+#: How a run a dead worker stopped is continued; ``ocv2 study run`` says "the same study command" instead, since
+#: a study's runs train with its budget and overrides, which ``ocv2 train CONFIG`` alone would not match.
+TRAIN_RESUME_HINT = "continue with `ocv2 train CONFIG --out RUN_DIR --resume`"
+
+
 # ---------------------------------------------------------------------------------------------------
 # connecting
 # ---------------------------------------------------------------------------------------------------
@@ -390,12 +395,12 @@ class RayWorkers:
                 raise RayBackendError(
                     f"worker for seeds {self.shards[shard]} died and cannot be restarted (cluster.max_restarts="
                     f"{self.config.cluster.max_restarts} used up, or no node can host it): {error}. Its checkpoints "
-                    "are in the run directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`"
+                    f"are in the run directory; {TRAIN_RESUME_HINT}"
                 ) from None
         raise RayBackendError(
             f"worker for seeds {self.shards[shard]} did not come back within "
             f"{RESTART_TIMEOUT_S:.0f} s after it died ({cause}). Its checkpoints are in the run "
-            "directory; continue with `ocv2 train CONFIG --out RUN_DIR --resume`"
+            f"directory; {TRAIN_RESUME_HINT}"
         )
 
     def close(self) -> None:
