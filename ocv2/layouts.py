@@ -92,18 +92,12 @@ class Layout:
     name: str = "custom"
 
     def __post_init__(self):
-        grid = np.array(self.static_objects, dtype=np.int32)
-        if grid.ndim != 2 or grid.size == 0:
-            raise ValueError(
-                f"layout {self.name!r}: static_objects must be a non-empty 2-D array, got shape {grid.shape}"
-            )
+        grid = _checked_grid(self.static_objects, self.name)
         grid.setflags(write=False)
         object.__setattr__(self, "static_objects", grid)
-        positions = tuple((int(x), int(y)) for x, y in self.agent_positions)
+        positions = _checked_positions(self.agent_positions, self.name)
         object.__setattr__(self, "agent_positions", positions)
-        if int(self.num_ingredients) < 1:
-            raise ValueError(f"layout {self.name!r}: needs at least one ingredient pile (characters 0-9)")
-        object.__setattr__(self, "num_ingredients", int(self.num_ingredients))
+        object.__setattr__(self, "num_ingredients", _checked_num_ingredients(self.num_ingredients, grid, self.name))
         recipes = self.possible_recipes
         if recipes is None:
             present = sorted({int(v) - Static.INGREDIENT_PILE for v in grid.ravel() if v >= Static.INGREDIENT_PILE})
@@ -215,20 +209,91 @@ class Layout:
                 f"layout {name!r}: without a recipe indicator 'R' the possible recipes must be given "
                 "(possible_recipes=[[i, j, k], ...])"
             )
+        _check_padding_closed(static, agents, [len(row) for row in rows], name)
         layout = Layout(static, tuple(agents), num_ingredients, possible_recipes, name=name)
-        problems = kitchen_problems(layout)
-        if problems:  # a legal map (the reference builds it too), but one where no soup is ever delivered
-            warnings.warn(f"layout {name!r}: no soup can be delivered: {'; '.join(problems)}", LayoutWarning, 2)
+        problems, some_served = _kitchen_report(layout)
+        if problems:  # a legal map (the reference builds it too), but one where some or all orders never pay
+            what = "some orders can never be delivered" if some_served else "no soup can be delivered"
+            warnings.warn(f"layout {name!r}: {what}: {'; '.join(problems)}", LayoutWarning, 2)
         return layout
 
 
+def _check_padding_closed(static: np.ndarray, agents, row_lengths: list[int], name: str) -> None:
+    """Refuse a short row whose floor padding a cook can walk on: padding runs to the right edge, so that
+    cook could walk off the map. Said by row length, since the padded column is nowhere in the text."""
+    width = static.shape[1]
+    padding = np.arange(width)[None, :] >= np.asarray(row_lengths)[:, None]
+    rooms = _room_labels(static == Static.FLOOR)
+    for index, (x, y) in enumerate(agents):
+        reached = np.argwhere((rooms == rooms[y, x]) & padding)
+        if len(reached):
+            row = int(reached[0][0])
+            raise ValueError(
+                f"layout {name!r}: row {row} has {row_lengths[row]} characters, the map is {width} wide; short rows "
+                f"are padded with floor, and agent {index} (row {y}, column {x}) can walk through that padding off "
+                f"the map: the border is open; write the row out to its full width, ending in a counter ('W')"
+            )
+
+
 class LayoutWarning(UserWarning):
-    """A map that builds, but where the cooks cannot earn a delivery reward."""
+    """A map that builds, but where the cooks can never earn the delivery reward of some or all orders."""
 
 
 def kitchen_problems(layout: Layout) -> list[str]:
-    """Why no soup can be delivered in ``layout`` (empty: none found): no pot, serving window, plate pile or
-    ingredient pile, or none of them that a cook can reach (no floor cell beside it in a room a cook starts in)."""
+    """Why some or all orders of ``layout`` can never be delivered (empty: none found).
+
+    A soup needs every ingredient of its recipe carried from a pile to one pot, a plate carried to that
+    pot, and the dish carried to a serving window. Cooks stay in the room they start in; items cross
+    between rooms on a counter both rooms touch, and a pot both touch passes its soup (filled from one
+    side, plated from the other). Reported: a missing pot, window, plate pile or ingredient pile, one no
+    cook can reach, no pot whose soup can be plated and served, and each recipe some of whose
+    ingredients cannot reach such a pot.
+    """
+    return _kitchen_report(layout)[0]
+
+
+def _kitchen_report(layout: Layout) -> tuple[list[str], bool]:
+    """(problems, whether any recipe can be delivered at all)."""
+    static = np.asarray(layout.static_objects)
+    problems = _unreachable_parts(layout)
+    if problems:
+        return problems, False
+    teams = _teams_beside(layout)
+
+    def teams_at(cells: np.ndarray) -> set[int]:
+        return set().union(*(teams[y][x] for y, x in np.argwhere(cells)))
+
+    serving = teams_at(static == Static.PLATE_PILE) & teams_at(static == Static.GOAL)
+    servable_pots = [teams[y][x] for y, x in np.argwhere(static == Static.POT) if teams[y][x] & serving]
+    if not servable_pots:
+        return [
+            "no pot where a cook who can fetch a plate and reach a serving window can take the soup out "
+            "(no counter links the rooms that hold them)"
+        ], False
+    suppliers = {i: teams_at(static == Static.INGREDIENT_PILE + i) for i in range(layout.num_ingredients)}
+    blocked = {}  # missing ingredients -> the recipes they block
+    for recipe in dict.fromkeys(layout.possible_recipes):
+        needed = sorted(set(recipe))
+        missing = min(([i for i in needed if not pot & suppliers[i]] for pot in servable_pots), key=len)
+        if missing:
+            blocked.setdefault(tuple(missing), []).append(list(recipe))
+    problems = [
+        f"recipe{'s' if len(recipes) > 1 else ''} {', '.join(map(str, recipes))} can never be served: no cook can "
+        f"bring ingredient{'s' if len(missing) > 1 else ''} {', '.join(_pile_place(static, i) for i in missing)} to a pot whose soup can be plated "
+        "and served"
+        for missing, recipes in blocked.items()
+    ]
+    unservable = sum(len(recipes) for recipes in blocked.values())
+    return problems, unservable < len(set(layout.possible_recipes))
+
+
+def _pile_place(static: np.ndarray, ingredient: int) -> str:
+    y, x = np.argwhere(static == Static.INGREDIENT_PILE + ingredient)[0]
+    return f"{ingredient} (pile at row {y}, column {x})"
+
+
+def _unreachable_parts(layout: Layout) -> list[str]:
+    """A missing pot, serving window, plate pile or ingredient pile, or one beside no room a cook starts in."""
     static = np.asarray(layout.static_objects)
     walkable = static == Static.FLOOR
     labels = _room_labels(walkable)
@@ -249,6 +314,101 @@ def kitchen_problems(layout: Layout) -> list[str]:
             article = "an" if what[0] in "aeiou" else "a"
             problems.append(f"no cook can reach {article} {what} (the first at row {y}, column {x})")
     return problems
+
+
+def _teams_beside(layout: Layout) -> list[list[frozenset[int]]]:
+    """For every cell, the teams whose cooks can use it from a neighbouring floor cell.
+
+    A team is the cooks of rooms linked by counters: a counter beside two rooms lets their cooks pass
+    any item. A team's id is the id of one of its rooms."""
+    static = np.asarray(layout.static_objects)
+    labels = _room_labels(static == Static.FLOOR)
+    cook_rooms = {int(labels[y, x]) for x, y in layout.agent_positions}
+    height, width = static.shape
+
+    def rooms_beside(y: int, x: int) -> set[int]:
+        around = ((y + dy, x + dx) for dy, dx in ((1, 0), (-1, 0), (0, 1), (0, -1)))
+        return {int(labels[ny, nx]) for ny, nx in around if 0 <= ny < height and 0 <= nx < width} & cook_rooms
+
+    team = {room: room for room in cook_rooms}
+
+    def root(room: int) -> int:
+        while team[room] != room:
+            room = team[room]
+        return room
+
+    for y, x in np.argwhere(static == Static.WALL):
+        linked = sorted(root(r) for r in rooms_beside(y, x))
+        for other in linked[1:]:
+            team[other] = linked[0]
+    return [[frozenset(root(r) for r in rooms_beside(y, x)) for x in range(width)] for y in range(height)]
+
+
+def _is_integer(value) -> bool:
+    """A Python or numpy integer (not a bool, a float or a numeric string, which ``int()`` would coerce)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_sequence(value) -> bool:
+    return isinstance(value, (Sequence, np.ndarray)) and not isinstance(value, (str, bytes))
+
+
+def _valid_cell_ids() -> str:
+    named = ", ".join(f"{v} ({STATIC_TO_CHAR[v]!r})" for v in sorted(STATIC_TO_CHAR) if v < Static.INGREDIENT_PILE)
+    last = Static.INGREDIENT_PILE + MAX_INGREDIENT_KINDS - 1
+    return f"{named}, {int(Static.INGREDIENT_PILE)}-{last} (piles '0'-'{MAX_INGREDIENT_KINDS - 1}')"
+
+
+def _checked_grid(static_objects, name: str) -> np.ndarray:
+    """``static_objects`` as an int32 grid of known cell ids; the first unknown id is named by row and column."""
+    raw = np.asarray(static_objects)
+    if raw.ndim != 2 or raw.size == 0:
+        raise ValueError(f"layout {name!r}: static_objects must be a non-empty 2-D array, got shape {raw.shape}")
+    if raw.dtype.kind not in "iu":  # a float or bool grid would be cast, and 2.9 silently read as 2
+        raise ValueError(f"layout {name!r}: static_objects must hold integer cell ids, got dtype {raw.dtype}")
+    unknown = ~np.isin(raw, list(STATIC_TO_CHAR))
+    if unknown.any():
+        y, x = (int(v) for v in np.argwhere(unknown)[0])
+        raise ValueError(
+            f"layout {name!r}: static_objects has unknown cell id {raw[y, x]} at row {y}, column {x}; "
+            f"valid ids (with their map characters) are {_valid_cell_ids()}"
+        )
+    return raw.astype(np.int32)
+
+
+def _checked_positions(agent_positions, name: str) -> tuple[tuple[int, int], ...]:
+    """Agent starts as (x, y) integer pairs; a float or string coordinate is refused, not truncated."""
+    if not _is_sequence(agent_positions):
+        raise ValueError(f"layout {name!r}: agent_positions must be a list of (x, y) pairs, got {agent_positions!r}")
+    positions = []
+    for index, position in enumerate(agent_positions):
+        if not _is_sequence(position) or np.ndim(position) != 1 or len(position) != 2:
+            raise ValueError(f"layout {name!r}: agent_positions[{index}] must be an (x, y) pair, got {position!r}")
+        if not all(_is_integer(v) for v in position):
+            raise TypeError(
+                f"layout {name!r}: agent_positions[{index}] = {tuple(position)!r} must hold integer cell coordinates"
+            )
+        positions.append((int(position[0]), int(position[1])))
+    return tuple(positions)
+
+
+def _checked_num_ingredients(num_ingredients, grid: np.ndarray, name: str) -> int:
+    """n must cover every pile on the map (else a pile's ingredient is invisible in observations) and fit
+    the item encoding (at most ``MAX_INGREDIENT_KINDS`` kinds)."""
+    if not _is_integer(num_ingredients):
+        raise TypeError(f"layout {name!r}: num_ingredients must be an integer, got {num_ingredients!r}")
+    piles = np.argwhere(grid >= Static.INGREDIENT_PILE)
+    highest = max((int(grid[y, x]) - Static.INGREDIENT_PILE for y, x in piles), default=-1)
+    low = max(1, highest + 1)
+    if not low <= num_ingredients <= MAX_INGREDIENT_KINDS:
+        where = ""
+        if num_ingredients < low and highest >= 0:
+            y, x = (int(v) for v in piles[np.argmax(grid[tuple(piles.T)])])
+            where = f" (the map has a pile of ingredient {highest} at row {y}, column {x})"
+        raise ValueError(
+            f"layout {name!r}: num_ingredients is {num_ingredients}, must be in [{low}, {MAX_INGREDIENT_KINDS}]{where}"
+        )
+    return int(num_ingredients)
 
 
 def _validate_recipes(recipes, grid: np.ndarray, num_ingredients: int, name: str):

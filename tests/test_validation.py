@@ -18,7 +18,7 @@ GOOD = "WWPWW\n0A AX\nW   R\nWBWWW"
         ("WWPWW\n0A?AX\nW   R\nWBWWW", {}, r"unknown character '\?' at row 1, column 2"),
         ("WWPWW\n0   X\nW   R\nWBWWW", {}, r"no agent"),
         ("WWPWW\n0A AX\n    R\nWBWWW", {}, r"map edge at row 2, column 0: the border is open"),
-        ("WWPWW\n0A AX\nW   R\nWBW", {}, r"open"),  # short last row padded with floor
+        ("WWPWW\n0A AX\nW   R\nWBW", {}, r"row 3 has 3 characters, the map is 5 wide.*open"),  # padded with floor
         ("WWPWW\nWA AX\nW   R\nWBWWW", {}, r"no ingredient pile"),
         ("WWPWW\n0A AX\nW   W\nWBWWW", {}, r"recipe indicator 'R'"),
         (GOOD, {"possible_recipes": []}, r"possible_recipes is empty"),
@@ -138,3 +138,110 @@ def test_missing_action_names_agent():
     _, state = env.reset(jax.random.PRNGKey(0))
     with pytest.raises(KeyError, match="agent_1"):
         env.step(jax.random.PRNGKey(1), state, {"agent_0": 0})
+
+
+def _cramped(**changes):
+    """cramped_room's fields as Layout keyword arguments, with ``changes`` applied."""
+    base = ocv2.LAYOUTS["cramped_room"]
+    fields = {
+        "static_objects": base.static_objects.copy(),
+        "agent_positions": base.agent_positions,
+        "num_ingredients": 1,
+        "possible_recipes": ((0, 0, 0),),
+    }
+    return {**fields, **changes}
+
+
+def _with_cell(value, row=2, column=2):
+    grid = ocv2.LAYOUTS["cramped_room"].static_objects.copy()
+    grid[row, column] = value
+    return grid
+
+
+@pytest.mark.parametrize(
+    "changes,error,match",
+    [
+        ({"static_objects": _with_cell(8)}, ValueError, r"unknown cell id 8 at row 2, column 2"),
+        ({"static_objects": _with_cell(-3, 0, 0)}, ValueError, r"unknown cell id -3 at row 0, column 0"),
+        # a pile of ingredient 20 would overflow the int32 item encoding
+        ({"static_objects": _with_cell(10 + 20, 0, 0)}, ValueError, r"unknown cell id 30 at row 0, column 0"),
+        ({"static_objects": _with_cell(1).astype(float)}, ValueError, r"integer cell ids, got dtype float64"),
+        ({"num_ingredients": 25}, ValueError, r"num_ingredients is 25, must be in \[1, 10\]"),
+        (
+            {"static_objects": _with_cell(11, 0, 0)},
+            ValueError,
+            r"num_ingredients is 1, must be in \[2, 10\] \(the map has a pile of ingredient 1 at row 0, column 0\)",
+        ),
+        ({"num_ingredients": "2"}, TypeError, r"num_ingredients must be an integer, got '2'"),
+        ({"num_ingredients": 2.9}, TypeError, r"num_ingredients must be an integer, got 2.9"),
+        ({"agent_positions": ((1.5, 1), (3, 1))}, TypeError, r"agent_positions\[0\] = \(1.5, 1\) must hold integer"),
+        ({"agent_positions": ((1, 1), (3,))}, ValueError, r"agent_positions\[1\] must be an \(x, y\) pair"),
+    ],
+)
+def test_a_layout_built_directly_is_checked_cell_by_cell(changes, error, match):
+    with pytest.raises(error, match=match):
+        ocv2.Layout(**_cramped(**changes))
+
+
+def test_an_archived_layout_spec_is_checked_like_a_built_one():
+    from cluster.archive.format import layout_from_spec, layout_spec
+
+    spec = {**layout_spec(ocv2.LAYOUTS["cramped_room"]), "name": "stored", "num_ingredients": 25}
+    with pytest.raises(ValueError, match=r"layout 'stored': num_ingredients is 25"):
+        layout_from_spec(spec)
+    spec = {**layout_spec(ocv2.LAYOUTS["cramped_room"]), "name": "stored", "agent_positions": [[1.0, 1], [3, 1]]}
+    with pytest.raises(TypeError, match=r"agent_positions\[0\]"):
+        layout_from_spec(spec)
+
+
+def test_a_short_row_that_opens_the_border_is_named_by_its_length():
+    """The padded column is nowhere in the text, so the error names the short row instead."""
+    with pytest.raises(ValueError, match=r"row 1 has 4 characters, the map is 5 wide.*the border is open"):
+        ocv2.Layout.from_string("WWWWW\nW0A \nWPXBW\nWRWWW")
+    # a short row the cooks cannot reach leaves a floor hole in the border, which the reference accepts too
+    layout = ocv2.Layout.from_string("WWPWW\n0A AX\nW   R\nWBWW")
+    assert layout.static_objects[3, 4] == ocv2.layouts.Static.FLOOR
+
+
+@pytest.mark.parametrize(
+    "grid,recipes,match",
+    [
+        # pile 1 walled in: the only recipe needs it
+        (
+            "WWWWWWW\n0A  PW1\nW A XWW\nWBWWRWW",
+            [[1, 1, 1]],
+            r"no soup can be delivered: recipe \[1, 1, 1\] can never be served: no cook can bring ingredient 1 "
+            r"\(pile at row 1, column 6\)",
+        ),
+        # the same with the default recipes: three of four need ingredient 1
+        (
+            "WWWWWWW\n0A  PW1\nW A XWW\nWBWWRWW",
+            None,
+            r"some orders can never be delivered: recipes \[0, 0, 1\], \[1, 1, 1\], \[0, 1, 1\] can never be served",
+        ),
+        # pot in one room, pile, plates and window in the other, no counter between them
+        (
+            "WWWWWWWWW\nW  PWW 0W\nW A WW AX\nW   WWB W\nWWWWWWWWW",
+            [[0, 0, 0]],
+            r"no soup can be delivered: no pot where a cook who can fetch a plate and reach a serving window",
+        ),
+    ],
+)
+def test_a_kitchen_whose_rooms_cannot_complete_a_soup_warns(grid, recipes, match):
+    from ocv2.layouts import LayoutWarning
+
+    with pytest.warns(LayoutWarning, match=match):
+        ocv2.Layout.from_string(grid, recipes)
+
+
+@pytest.mark.parametrize(
+    "grid",
+    [
+        "WWWWWWWWW\nW  PW  0W\nW A W AXW\nW   WWB W\nWWWWWWWWW",  # a counter both rooms touch passes the soup
+        "WWWWWWWWW\n0   WWBXW\nW A P A W\nW   WW  W\nWWWWWWWWW",  # ... and so does a pot both rooms touch
+    ],
+)
+def test_rooms_linked_by_a_shared_counter_or_pot_make_a_working_kitchen(grid):
+    from ocv2.layouts import kitchen_problems
+
+    assert kitchen_problems(ocv2.Layout.from_string(grid, [[0, 0, 0]])) == []
