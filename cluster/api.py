@@ -84,7 +84,7 @@ def train_population(
     """Train (or resume) a population into ``run_dir``, then (``evaluate``) cross-play, plots, GIFs.
 
     ``config``: a ``Config`` or a YAML path. ``backend``: "ray" (one actor per shard of seeds; needs
-    ``ocv2[ray]``) or "local" (one process). ``loggers``: any of "tensorboard", "wandb". Returns the
+    ``ocv2[ray]``) or "local" (one process). ``loggers``: names from ``cluster.runtime.loggers.LOGGERS``. Returns the
     summary ``ocv2 train`` prints from (run_dir, updates, restarts and, after evaluation, xp).
     Without the ``mcap`` package, a run that writes or reads the trajectory archive (``archive_settings``) is
     an ``ArchiveError`` naming ``pip install mcap`` before anything is written; with it turned off it trains.

@@ -197,6 +197,44 @@ def test_wandb_without_credentials_is_one_line_before_the_run_starts(tmp_path, c
     assert check_loggers(["wandb"]) == ["wandb"]
 
 
+def test_the_logger_help_is_made_from_the_table(monkeypatch):
+    """``--logger``'s help names every logger of ``_CLASSES`` with where it logs and its extra, so a new logger
+    cannot be left out of it; a logger that imports nothing beyond the core names no extra."""
+    import argparse
+
+    from cluster.cli.main import build_parser
+    from cluster.runtime import loggers
+
+    parsers = next(a for a in build_parser(full=True)._actions if isinstance(a, argparse._SubParsersAction))
+    action = next(a for a in parsers.choices["train"]._actions if a.dest == "loggers")
+    assert action.help == loggers.logger_help() and action.choices == loggers.LOGGERS
+    for name, cls in loggers._CLASSES.items():
+        assert f"{name} ({cls.about}; needs ocv2[{cls.extra}])" in action.help
+
+    class PlainLogger:  # no package, no extra
+        def __init__(self, run_dir, config):
+            self.run_dir = run_dir
+
+    monkeypatch.setitem(loggers._CLASSES, "plain", PlainLogger)
+    assert loggers.logger_help().endswith(", plain")
+
+
+def test_a_logger_without_a_package_needs_no_extra(tmp_path, monkeypatch):
+    from cluster.runtime import loggers
+
+    class PlainLogger:
+        about = "lines in RUN_DIR/plain.txt"
+
+        def __init__(self, run_dir, config):
+            self.run_dir = run_dir
+
+    monkeypatch.setitem(loggers._CLASSES, "plain", PlainLogger)
+    assert loggers.check_loggers(["plain", "plain"]) == ["plain"]
+    [made] = loggers.make_loggers(["plain"], tmp_path, load_config(SMOKE))
+    assert isinstance(made, PlainLogger) and made.run_dir == tmp_path
+    assert "plain (lines in RUN_DIR/plain.txt)" in loggers.logger_help()
+
+
 def test_without_matplotlib_plots_are_skipped_with_a_warning(logged_run, tmp_path, caplog, monkeypatch):
     run_dir, _, _, _ = logged_run
     monkeypatch.setitem(sys.modules, "matplotlib", None)

@@ -4,7 +4,7 @@
     ocv2 layouts [--show NAME]          the built-in kitchens (table, or one ASCII map with a legend)
     ocv2 render LAYOUT --steps N --out FILE.gif [--seed S] [--fps F] [--view-radius V] [--tile-size T]
     ocv2 render --seats SEAT0 SEAT1 --out FILE.gif [--greedy]   one episode of two trained policies
-    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume] [--logger tensorboard|wandb]
+    ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--resume] [--logger NAME]
     ocv2 xp RUN_DIR [--episodes N]      cross-play of one run
     ocv2 xp --rows SRC ... [--cols SRC ...] [--checkpoint C] [--greedy] [--out DIR]   across runs (docs/evaluation.md)
     ocv2 export SRC --out FILE [--force] [--seed I] [--checkpoint C]   one policy to one file (never into a run)

@@ -1,7 +1,7 @@
 """``ocv2 train``: train a population (``ocv2 xp`` lives in ``cluster.cli.xp``).
 
 ocv2 train CONFIG [--set section.key=value ...] [--out RUN_DIR] [--backend ray|local] [--address A] [--resume]
-          [--extend] [--logger tensorboard|wandb]
+          [--extend] [--logger NAME]   (NAME: one of cluster.runtime.loggers.LOGGERS; repeatable)
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from cluster.cli.args import add_set_option
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import ray_backend
 from cluster.runtime.extend import extend_run
-from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers
+from cluster.runtime.loggers import LOGGERS, MissingExtraError, check_loggers, logger_help
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from population.checkpoints import CheckpointError
@@ -68,8 +68,7 @@ def add_train(sub) -> argparse.ArgumentParser:
         action="append",
         default=[],
         choices=LOGGERS,
-        help="also log metrics, cross-play and heatmap to tensorboard (RUN_DIR/tensorboard/) or "
-        "wandb (repeatable; needs ocv2[tensorboard] / ocv2[wandb])",
+        help=logger_help(),
     )
     parser.add_argument("--no-eval", action="store_true", help="skip cross-play, plots and GIFs after training")
     parser.add_argument("--quiet", action="store_true", help="no progress output")

@@ -85,6 +85,7 @@ def _image(path: Path | None) -> np.ndarray | None:
 
 class TensorBoardLogger:
     package, extra = "tensorboardX", "tensorboard"  # what it imports, and the extra that installs it
+    about = "event files in RUN_DIR/tensorboard/"  # where it logs, for --logger's help
 
     def __init__(self, run_dir: Path, config: Config):
         tensorboardx = require(self.package, self.extra, "--logger tensorboard")
@@ -113,6 +114,7 @@ class TensorBoardLogger:
 
 class WandbLogger:
     package, extra = "wandb", "wandb"
+    about = "one W&B run per run directory, files in RUN_DIR/wandb/"
 
     @classmethod
     def preflight(cls) -> None:
@@ -164,10 +166,21 @@ def _wandb_id(name: str) -> str:
     return cleaned[:64] or "ocv2-run"
 
 
-#: Every logger by its ``--logger`` name; a new one is a class like those above (``package``, ``extra``, the three
-#: ``MetricsLogger`` methods) and its entry here (docs/extending.md, "A logger").
+#: Every logger by its ``--logger`` name; a new one is a class like those above (the three ``MetricsLogger``
+#: methods; ``package`` and ``extra`` unless it imports nothing beyond the core, ``about`` for the help) and its entry
+#: here: ``LOGGERS``, ``--logger``'s choices and help and the missing-package error follow (docs/extending.md).
 _CLASSES = {"tensorboard": TensorBoardLogger, "wandb": WandbLogger}
 LOGGERS = tuple(_CLASSES)
+
+
+def logger_help() -> str:
+    """``ocv2 train --logger``'s help, made from ``_CLASSES``: each logger's name, ``about`` and the extra it needs."""
+    described = []
+    for name, cls in _CLASSES.items():
+        extra = getattr(cls, "extra", None) if getattr(cls, "package", None) else None
+        notes = [note for note in (getattr(cls, "about", ""), extra and f"needs ocv2[{extra}]") if note]
+        described.append(f"{name} ({'; '.join(notes)})" if notes else name)
+    return "also log metrics, cross-play and heatmap to an experiment logger (repeatable): " + ", ".join(described)
 
 
 def check_loggers(names: Iterable[str]) -> list[str]:
@@ -177,7 +190,9 @@ def check_loggers(names: Iterable[str]) -> list[str]:
         if name not in _CLASSES:
             raise ValueError(f"unknown logger {name!r}; choose from {', '.join(LOGGERS)}")
     for name in names:
-        require(_CLASSES[name].package, _CLASSES[name].extra, f"--logger {name}")
+        package = getattr(_CLASSES[name], "package", None)  # None: a logger that imports nothing beyond the core
+        if package is not None:
+            require(package, _CLASSES[name].extra, f"--logger {name}")
         preflight = getattr(_CLASSES[name], "preflight", None)
         if preflight is not None:
             preflight()
