@@ -15,7 +15,7 @@ import os
 import shutil
 import tempfile
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -73,19 +73,22 @@ def atomic_write(path: str | os.PathLike, data: bytes | str, *, fsync: bool = Tr
 
 
 @contextmanager
-def staged_folder(path: str | os.PathLike, suffix: str = ".staging") -> Iterator[Path]:
+def staged_folder(path: str | os.PathLike, suffix: str = ".staging", markers: Sequence[str] = ()) -> Iterator[Path]:
     """Yield a new hidden folder beside ``path`` to fill; on a clean exit it takes ``path``'s place whole, on an
-    error it is removed and ``path`` is left as it was.
+    error (any, Ctrl-C included) it is removed and ``path`` is left as it was.
 
     A folder already at ``path`` (the caller has checked it may go: empty, or an earlier output of its own) is
     moved aside first and removed once the new one is in; if the new one cannot be moved in, it is put back.
     The staging name is unique (``tempfile.mkdtemp``), so no folder of the user's is ever taken for one. An empty
     folder at ``path`` is filled in place instead (staged inside it, the files moved up at the end): it may be one
-    that cannot be renamed, such as the current directory (``--out .``) or a mount point.
+    that cannot be renamed, such as the current directory (``--out .``) or a mount point. There the move is not one
+    step, so ``markers`` -- the names of the files whose presence says the folder is complete (a pack's pack.json,
+    a report's report.md) -- are moved last, in the order given, after the others are on disk: a kill part-way never
+    leaves a marker without what it vouches for. A failure part-way removes what was moved: the folder is empty again.
     """
     path = Path(path)
     if path.is_dir() and not any(path.iterdir()):
-        yield from _staged_inside(path, suffix)
+        yield from _staged_inside(path, suffix, markers)
         return
     path.parent.mkdir(parents=True, exist_ok=True)
     staging = _new_folder(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
@@ -129,14 +132,37 @@ def remove_stale_temporaries(folder: str | os.PathLike, recursive: bool = True) 
     return removed
 
 
-def _staged_inside(path: Path, suffix: str) -> Iterator[Path]:
+def _staged_inside(path: Path, suffix: str, markers: Sequence[str]) -> Iterator[Path]:
     staging = _new_folder(prefix=".", suffix=suffix, dir=path)
+    moved = []
     try:
         yield staging
-        for item in sorted(staging.iterdir()):
-            item.rename(path / item.name)
+        contents, last = _moving_order(staging, markers)
+        for group in (contents, last):
+            for item in group:
+                item.rename(path / item.name)
+                moved.append(path / item.name)
+            fsync_folder(path)  # the contents' entries on disk before any marker's: a power loss keeps that order
+    except BaseException:  # Ctrl-C and SIGTERM too: the folder was empty, and must not look half filled
+        for item in reversed(moved):  # the markers first
+            _remove(item)
+        raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def _moving_order(staging: Path, markers: Sequence[str]) -> tuple[list[Path], list[Path]]:
+    """(what ``staging`` holds other than ``markers``, sorted; the markers it holds, in the order named)."""
+    contents = [item for item in sorted(staging.iterdir()) if item.name not in markers]
+    last = [staging / name for name in markers if (staging / name).exists()]
+    return contents, last
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
 
 
 def _new_folder(prefix: str, suffix: str, dir: Path) -> Path:

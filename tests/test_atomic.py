@@ -1,6 +1,7 @@
 """ocv2.atomic: whole-file writes are all or nothing, and leave nothing behind on failure."""
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -78,3 +79,48 @@ def test_staged_folder_fills_an_empty_folder_in_place_even_the_current_directory
     finally:
         os.umask(old)
     assert (tmp_path / "new").stat().st_mode & 0o777 == 0o755
+
+
+def _moves_then_interrupts(monkeypatch, allowed: int) -> list[str]:
+    """Path.rename moves ``allowed`` items, then raises KeyboardInterrupt (a SIGTERM between two moves); returns
+    the names it was asked to move, in order."""
+    rename, asked = Path.rename, []
+
+    def interrupted(self, target):
+        asked.append(self.name)
+        if len(asked) > allowed:
+            raise KeyboardInterrupt
+        return rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", interrupted)
+    return asked
+
+
+@pytest.mark.parametrize("allowed", [0, 1, 2, 3])
+def test_an_empty_folder_filled_in_place_is_empty_again_after_an_interruption(tmp_path, monkeypatch, allowed):
+    """A pack into an empty --out was moved up in sorted order: pack.json (the marker read_pack takes as "finished")
+    went first, and a stop on the next move left a folder holding only pack.json, which a rerun refused as not
+    empty. Now the named markers move last, and what was moved is taken back."""
+    dest = tmp_path / "pack"
+    dest.mkdir()
+    asked = []
+    with pytest.raises(KeyboardInterrupt), staged_folder(dest, ".packing", markers=["pack.json"]) as staging:
+        for name in ("study.tar.gz.000", "study.tar.gz.001", "pack.json"):
+            (staging / name).write_text(name)
+        (staging / "plots").mkdir()
+        (staging / "plots" / "a.png").write_text("png")
+        asked = _moves_then_interrupts(monkeypatch, allowed)
+    monkeypatch.undo()
+    assert list(dest.iterdir()) == []
+    assert asked == ["plots", "study.tar.gz.000", "study.tar.gz.001", "pack.json"][: allowed + 1]
+
+
+def test_markers_are_moved_in_last_in_the_order_named(tmp_path, monkeypatch):
+    dest = tmp_path / "report"
+    dest.mkdir()
+    with staged_folder(dest, ".report", markers=["summary.json", "report.md", "absent.txt"]) as staging:
+        for name in ("report.md", "summary.json", "a.csv", "z.png"):
+            (staging / name).write_text(name)
+        asked = _moves_then_interrupts(monkeypatch, allowed=99)
+    assert asked == ["a.csv", "z.png", "summary.json", "report.md"]
+    assert sorted(p.name for p in dest.iterdir()) == ["a.csv", "report.md", "summary.json", "z.png"]

@@ -431,7 +431,8 @@ def run_report(args) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise CLIError(f"--out: cannot create {out}: {error}", EXIT_FAILURE) from None
-    with staged_folder(out, ".report") as staging:  # an OSError (a full disk) is main's one line, nothing left
+    # An OSError (a full disk) is main's one line, nothing left; the report's own files move in last, as written.
+    with staged_folder(out, ".report", markers=["report.csv", "report.md"]) as staging:
         written = write_report_files(runs, staging)
     table = Table(title=f"{len(written.rows)} run(s)")
     for name in written.header:

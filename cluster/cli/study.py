@@ -296,6 +296,7 @@ def _report(directory: str, dest: str | None) -> int:
 def _report_elsewhere(study, out: Path, state, configs: dict, dest: Path) -> dict:
     """The report written into a staging folder beside ``dest`` (new or empty, checked) and moved there whole:
     a failure part-way leaves ``dest`` as it was, not half a report or a folder this command made."""
-    with staged_folder(dest, ".report") as staging:  # dest is new or empty (checked); an OSError is main's one line
+    # dest is new or empty (checked); an OSError is main's one line. The files that say "done" move in last.
+    with staged_folder(dest, ".report", markers=["summary.json", "report.md"]) as staging:
         write_report(study, out, state, configs, staging)
     return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}

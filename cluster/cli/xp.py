@@ -225,7 +225,8 @@ def _cross_run(args) -> int:
             "wall_s": round(time.perf_counter() - started, 2),
         }
     )
-    with staged_folder(out, ".xp") as staging:  # whole or not at all: a rerun after a failure finds no half folder
+    # Whole or not at all: a rerun after a failure finds no half folder; summary.json, read as the result, moves last.
+    with staged_folder(out, ".xp", markers=["summary.json"]) as staging:
         crossplay.write_seat_fair_outputs(result, staging, summary, crossplay.policy_env(env_kwargs))
     if not args.quiet:
         _print_blocks(summary)

@@ -132,7 +132,8 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
             tar.add(path, arcname=str(path.relative_to(out)))
     data = buffer.getvalue()
     try:
-        with staged_folder(dest, ".packing") as staging:  # whole or not at all; dest is new or empty (checked)
+        # Whole or not at all; dest is new or empty (checked). pack.json, which says the pack is complete, moves last.
+        with staged_folder(dest, ".packing", markers=[PACK_NAME]) as staging:
             parts = []
             for index, start in enumerate(range(0, max(len(data), 1), part_bytes)):
                 chunk = data[start : start + part_bytes]
