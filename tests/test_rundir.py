@@ -164,18 +164,53 @@ def test_torn_metrics_rows_are_dropped_and_the_file_repaired(tmp_path, caplog):
     run = RunDir(tmp_path)
     header = "seed,update,sparse_return"
     # an appending writer killed twice: once mid-row (then appended again), once mid-last-row
-    (tmp_path / "metrics.csv").write_text(f"{header}\n0,1,0.5\n0,2\n1,1,0.25\n1,2,0.")
+    damaged = f"{header}\n0,1,0.5\n0,2\n1,1,0.25\n1,2,0."
+    (tmp_path / "metrics.csv").write_text(damaged)
     assert [(r["seed"], r["update"]) for r in run.read_metrics()] == [("0", "1"), ("1", "1")]
     # ocv2 rewrites metrics.csv atomically: a bad row before the last is damage, not a torn append
     assert "the file is damaged: line 3 (row 2) is not a complete metrics row (0,2)" in caplog.text
     assert "line 5 is incomplete (an interrupted write)" in caplog.text
     assert not any("line 3" in line and "interrupted" in line for line in caplog.text.splitlines())
-    assert [r["update"] for r in run.truncate_metrics(after_update=1)] == ["1", "1"]
+    fields = header.split(",")
+    # a resume refuses the damage, naming the line, and leaves the file as it was
+    with pytest.raises(RunDirError, match=r"line 3 \(row 2\) is not a complete metrics row \(0,2\)"):
+        run.metrics_to_resume(fields)
+    assert (tmp_path / "metrics.csv").read_text() == damaged
+    # a torn last row alone is what a kill leaves: reported; the resume drops it once its checks pass
+    (tmp_path / "metrics.csv").write_text(f"{header}\n0,1,0.5\n1,1,0.25\n1,2,0.")
+    caplog.clear()
+    found = run.metrics_to_resume(fields)
+    assert "line 4 is incomplete (an interrupted write)" in caplog.text
+    assert [r["update"] for r in found.rows] == ["1", "1"]
+    run.restart_metrics(fields, found.rows)
     caplog.clear()
     assert (tmp_path / "metrics.csv").read_text().splitlines() == [header, "0,1,0.5", "1,1,0.25"]
     run.append_metrics([{"seed": 0, "update": 2, "sparse_return": 1.0}, {"seed": 1, "update": 2, "sparse_return": ""}])
     assert [(r["seed"], r["update"]) for r in run.read_metrics()] == [("0", "1"), ("1", "1"), ("0", "2"), ("1", "2")]
     assert caplog.records == []
+
+
+def test_a_resume_refuses_a_metrics_header_of_other_columns_naming_line_1(tmp_path):
+    run = RunDir(tmp_path)
+    text = "seed,update,sparse_return,lr\r\n0,1,0.5,0.1\r\n"
+    (tmp_path / "metrics.csv").write_bytes(text.encode())
+    with pytest.raises(RunDirError, match=r"line 1, the header, has columns \['lr'\] this run does not write"):
+        run.metrics_to_resume(["seed", "update", "sparse_return"])
+    assert (tmp_path / "metrics.csv").read_bytes() == text.encode()
+
+
+def test_resumed_metrics_keep_the_runs_column_order_and_unchanged_files_are_not_rewritten(tmp_path):
+    run = RunDir(tmp_path)
+    fields = ["seed", "update", "sparse_return", "lr"]
+    # rows restored from a checkpoint's meta come back with their keys sorted
+    restored = [{"lr": 0.1, "seed": 0, "sparse_return": 0.5, "update": 1}]
+    run.restart_metrics(fields, restored)
+    assert (tmp_path / "metrics.csv").read_text().splitlines()[0] == "seed,update,sparse_return,lr"
+    before = (tmp_path / "metrics.csv").stat().st_mtime_ns
+    RunDir(tmp_path).restart_metrics(fields, RunDir(tmp_path).metrics_to_resume(fields).rows)
+    assert (tmp_path / "metrics.csv").stat().st_mtime_ns == before  # the same bytes: not written again
+    RunDir(tmp_path / "new").restart_metrics(fields, [])
+    assert not (tmp_path / "new" / "metrics.csv").exists()  # nothing to write before the first chunk
 
 
 def test_metrics_are_not_touched_by_a_write_that_fails(tmp_path, monkeypatch):

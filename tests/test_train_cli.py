@@ -412,7 +412,15 @@ def _without_final_checkpoints(sp_run, run):
 def _interrupted_at_update_2(sp_run, run):
     """A copy of the SP run as if its driver was killed after update 2's chunk was complete."""
     _without_final_checkpoints(sp_run, run)
-    RunDir(run).truncate_metrics(2)
+    _keep_metrics_through(run, 2)
+
+
+def _keep_metrics_through(run, update: int) -> None:
+    """metrics.csv as the driver had written it after ``update``: the rows of later updates gone."""
+    with open(run / "metrics.csv", newline="") as handle:
+        header, *rows = handle.read().splitlines(keepends=True)
+    kept = [row for row in rows if int(row.split(",")[1]) <= update]
+    (run / "metrics.csv").write_bytes((header + "".join(kept)).encode())
 
 
 def _assert_same_run(run, reference):
@@ -593,6 +601,39 @@ def test_resume_refuses_a_metrics_file_cut_before_the_last_chunk(sp_run, tmp_pat
     (run / "metrics.csv").write_text(text)  # restored: it resumes
     assert train(run, extra=["--resume", "--no-eval"]) == 0
     assert (run / "metrics.csv").read_text() == text
+
+
+def test_resume_refuses_a_damaged_metrics_row_naming_it_and_leaves_the_file_as_it_was(sp_run, tmp_path, capsys):
+    """A damaged row before the last (line 3: seed 0, update 2) was deleted from disk before the resume refused,
+    and the refusal blamed a cut file."""
+    run = tmp_path / "damaged"
+    shutil.copytree(sp_run, run)
+    text = (run / "metrics.csv").read_bytes()
+    lines = text.decode().splitlines(keepends=True)
+    lines[2] = lines[2].replace(",", ";", 3)
+    damaged = "".join(lines).encode()
+    (run / "metrics.csv").write_bytes(damaged)
+    assert train(run, extra=["--resume", "--no-eval"]) == 2
+    err = capsys.readouterr().err
+    assert "the file is damaged: line 3 (row 2) is not a complete metrics row (0;2;" in err, err
+    assert "cut or emptied" not in err and "nothing was trained and the file was not changed" in err
+    assert (run / "metrics.csv").read_bytes() == damaged
+    (run / "metrics.csv").write_bytes(text)  # repaired: it resumes, the file as it was
+    assert train(run, extra=["--resume", "--no-eval"]) == 0
+    assert (run / "metrics.csv").read_bytes() == text
+
+
+def test_metrics_rebuilt_from_checkpoints_keep_the_column_order_of_a_straight_run(sp_run, tmp_path):
+    """Killed after the first chunk's checkpoints but before its rows reached metrics.csv: the rows come back from
+    the checkpoints' meta, whose keys are sorted, and once made the header (actor_loss,approx_kl,...)."""
+    run = tmp_path / "no_metrics"
+    _without_final_checkpoints(sp_run, run)
+    (run / "metrics.csv").unlink()
+    assert train(run, extra=["--resume", "--no-eval"]) == 0
+    with open(run / "metrics.csv", newline="") as mine, open(sp_run / "metrics.csv", newline="") as straight:
+        assert mine.readline() == straight.readline() == ",".join([*METRIC_FIELDS, "return_recipe_0+0+0"]) + "\r\n"
+    _assert_same_metrics(read_csv(run / "metrics.csv"), read_csv(sp_run / "metrics.csv"))
+    assert seed_keys(read_csv(run / "metrics.csv")) == seed_keys(read_csv(sp_run / "metrics.csv"))
 
 
 def test_a_corrupt_latest_checkpoint_falls_back_to_the_previous_one(sp_run, tmp_path, capsys):

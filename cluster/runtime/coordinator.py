@@ -32,7 +32,7 @@ from cluster.runtime.evaluate import post_training
 from cluster.runtime.interrupt import StoppedAfterChunk
 from cluster.runtime.jobs import Workers, WorkersFactory, gather_params, on_every_shard, spread_jobs
 from cluster.runtime.progress import PopulationProgress
-from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.rundir import RunDir, RunDirError, metric_fields, recipe_labels
 from cluster.runtime.runstate import Schedule, archive_meta, load_params, pair_meta, params_template, prune_checkpoints
 from cluster.runtime.shard import SABuffer
 from population import checkpoints as ckpt
@@ -373,25 +373,7 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
         # Shards restore themselves; the slowest decides where the population stands.
         update = min(workers.call("position", on_every_shard(workers)))
         devices = record_workers(config, run, workers)
-        # A driver killed after the shards saved a chunk but before it merged their rows, or a last row
-        # dropped from a torn metrics.csv: those rows live in the checkpoints' meta; collect them before
-        # training on, from the seed whose rows stop earliest.
-        kept = {(int(r["seed"]), int(float(r["update"]))) for r in run.truncate_metrics(update)}
-        latest = {}
-        for seed, row_update in kept:
-            latest[seed] = max(latest.get(seed, 0), row_update)
-        since = min(latest.get(seed, 0) for seed in range(config.population.num_seeds))
-        caught_up_rows = []
-        if since < update:
-            caught_up = workers.call("advance", [(i, (update, None, since)) for i in range(len(workers.shards))])
-            caught_up_rows = [
-                row
-                for row in merge_rows(caught_up, since, update)
-                if (int(row["seed"]), int(row["update"])) not in kept
-            ]
-        check_metrics_cover(run, kept | {(int(r["seed"]), int(r["update"])) for r in caught_up_rows}, update, config)
-        if caught_up_rows:
-            run.append_metrics(caught_up_rows)
+        caught_up_rows = resume_metrics(config, run, workers, update)
         run.update_manifest(
             status="training",
             method=config.population.method,
@@ -461,6 +443,34 @@ def _train_loop(
     # Every shard has saved the last update: the stop before it, kept for a resume that regroups the seeds, goes.
     prune_checkpoints(run.path, range(config.population.num_seeds), schedule.kept(update))
     run.update_manifest(status="trained", update=update)
+
+
+def resume_metrics(config: Config, run: RunDir, workers: Workers, update: int) -> list[dict]:
+    """Bring ``metrics.csv`` to ``update``, where the shards stand, before training on; returns the rows it
+    took from the checkpoints.
+
+    Rows past ``update`` are dropped (they are trained again, identically). A driver killed after the shards
+    saved a chunk but before it merged their rows, or a torn last row: those rows live in the checkpoints'
+    meta and are collected from the seed whose rows stop earliest. Everything is checked on the file as read
+    (``RunDir.metrics_to_resume``, ``check_metrics_cover``) before it is rewritten once, in the run's own
+    columns (``metric_fields``), so a refused resume leaves the file as it was.
+    """
+    fields = metric_fields(recipe_labels(ppo.eval_env(config).layout))
+    kept_rows = [r for r in run.metrics_to_resume(fields).rows if int(float(r["update"])) <= update]
+    kept = {(int(r["seed"]), int(float(r["update"]))) for r in kept_rows}
+    latest = {}
+    for seed, row_update in kept:
+        latest[seed] = max(latest.get(seed, 0), row_update)
+    since = min(latest.get(seed, 0) for seed in range(config.population.num_seeds))
+    caught_up_rows = []
+    if since < update:
+        caught_up = workers.call("advance", [(i, (update, None, since)) for i in range(len(workers.shards))])
+        caught_up_rows = [
+            row for row in merge_rows(caught_up, since, update) if (int(row["seed"]), int(row["update"])) not in kept
+        ]
+    check_metrics_cover(run, kept | {(int(r["seed"]), int(r["update"])) for r in caught_up_rows}, update, config)
+    run.restart_metrics(fields, kept_rows + caught_up_rows)
+    return caught_up_rows
 
 
 def check_metrics_cover(run: RunDir, rows: set[tuple[int, int]], update: int, config: Config) -> None:

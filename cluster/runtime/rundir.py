@@ -365,15 +365,13 @@ class RunDir:
         """Add ``rows`` to ``metrics.csv``, rewriting the file atomically (a kill never leaves a torn row).
 
         The table is kept here after the first call (the driver holding the lock is the only writer),
-        so each chunk costs one write, not a read and a write.
+        so each chunk costs one write, not a read and a write. A driver sets it with ``restart_metrics``
+        first, in the run's own column order.
         """
-        if self._metrics is None:
-            existing = self.read_metrics()
-            if existing:  # the file's own column order (rows restored from checkpoint meta come back key-sorted)
-                fields = list(existing[0].keys())
-            else:
-                fields = list(rows[0].keys()) if rows else list(METRIC_FIELDS)
-            self._metrics = (fields, [[row.get(k, "") for k in fields] for row in existing])
+        if self._metrics is None:  # a writer that did not start with restart_metrics (tools, tests)
+            found = self._read_metrics()
+            fields = found.fields or default_metric_fields(rows)
+            self._metrics = (fields, [[row.get(k, "") for k in fields] for row in found.rows])
         fields, table = self._metrics
         unknown = sorted({key for row in rows for key in row} - set(fields))
         if unknown:
@@ -382,55 +380,106 @@ class RunDir:
         write_csv(self.metrics_path, fields, table)
         self._metrics = (fields, table)
 
-    def truncate_metrics(self, after_update: int) -> list[dict]:
-        """Drop rows past ``after_update`` (resume replays them from the checkpoint) and torn rows;
-        returns the rows kept."""
-        self._metrics = None
-        rows, torn = self._read_metrics()
-        kept = [r for r in rows if int(float(r["update"])) <= after_update]
-        if rows and (torn or len(kept) != len(rows)):
-            _write_rows(self.metrics_path, list(rows[0].keys()), kept)
-        elif torn:  # not one complete row: start the file again
-            self.metrics_path.unlink()
-        return kept
+    def metrics_to_resume(self, fields: list[str]) -> MetricsFile:
+        """``metrics.csv`` as a resume finds it, read and checked, nothing rewritten: ``RunDirError`` naming the
+        line for a header of other columns than ``fields`` or a damaged row before the last (ocv2 rewrites the
+        file whole, so no kill leaves one, and rows older than the last chunk are in no checkpoint). A torn
+        last row (an older, appending writer's kill) is reported and left for the resume to drop and refill."""
+        found = self._read_metrics()
+        if found.fields and sorted(found.fields) != sorted(fields):
+            raise RunDirError(f"{self.metrics_path}: {_header_problem(found.fields, fields)}; {_RESTORE}")
+        if found.damaged:
+            shown = "; ".join(_damaged_line(number, text) for number, text in found.damaged[:5])
+            more = f"; and {len(found.damaged) - 5} more such lines" if len(found.damaged) > 5 else ""
+            raise RunDirError(
+                f"{self.metrics_path}: the file is damaged: {shown}{more}. No interrupted write leaves such a line "
+                f"before the last (ocv2 rewrites this file whole), and rows before the last chunk cannot be rebuilt "
+                f"from the checkpoints: {_RESTORE}"
+            )
+        for number, why in found.torn:
+            _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped{why}")
+        return found
+
+    def restart_metrics(self, fields: list[str], rows: list[dict]) -> None:
+        """Make ``rows`` the table that ``append_metrics`` extends, in the columns ``fields``, and write it when
+        ``metrics.csv`` holds anything else (rows a resume dropped or refilled, columns in another order)."""
+        table = [[row.get(k, "") for k in fields] for row in rows]
+        try:
+            before = self.metrics_path.read_bytes()  # bytes: csv ends its lines with \r\n
+        except FileNotFoundError:
+            before = None
+        if (before is not None or table) and before != csv_text(fields, table).encode():
+            write_csv(self.metrics_path, fields, table)
+        self._metrics = (fields, table)
 
     def read_metrics(self) -> list[dict]:
-        return self._read_metrics()[0]
+        """The complete rows of ``metrics.csv``; a torn or damaged row is skipped with a warning."""
+        found = self._read_metrics()
+        for number, why in found.torn:
+            _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped{why}")
+        for number, text in found.damaged:
+            _warn(f"{self.metrics_path}: the file is damaged: {_damaged_line(number, text)}; dropped")
+        return found.rows
 
-    def _read_metrics(self) -> tuple[list[dict], bool]:
-        """(complete rows, whether a torn row was dropped). Torn rows come from a kill in the middle of a
-        write by an appending writer (older versions; this one rewrites the file atomically)."""
+    def _read_metrics(self) -> MetricsFile:
+        """``metrics.csv`` as it is, sorted into complete rows, a torn last row and damaged rows; says nothing.
+        Torn rows come from a kill in the middle of a write by an appending writer (older versions; this one
+        rewrites the file atomically)."""
         try:
             text = self.metrics_path.read_text()
         except FileNotFoundError:
-            return [], False
+            return MetricsFile([], [], [], [])
         except UnicodeDecodeError as error:  # ocv2 writes ASCII: bytes that are not text are damage
             raise RunDirError(
                 f"{self.metrics_path}: damaged: byte {error.start} is not UTF-8 text ({error.reason})"
             ) from None
         lines = text.splitlines(keepends=True)
-        torn = bool(lines) and not lines[-1].endswith("\n")  # the last row was cut short
-        if torn:
-            _warn(f"{self.metrics_path}: line {len(lines)} is incomplete (an interrupted write); dropped")
+        torn = []
+        if lines and not lines[-1].endswith("\n"):  # the last row was cut short
+            torn.append((len(lines), ""))
             lines = lines[:-1]
-        rows = []
-        records = list(csv.DictReader(io.StringIO("".join(lines), newline="")))
+        reader = csv.DictReader(io.StringIO("".join(lines), newline=""))
+        records = list(reader)
+        rows, damaged = [], []
         for number, row in enumerate(records, start=2):
             if None in row or None in row.values() or not _is_int(row.get("update")) or not _is_int(row.get("seed")):
                 if number == len(records) + 1:  # the last row: what an appending writer's kill leaves
-                    _warn(
-                        f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped "
-                        "(--resume refills it from the checkpoint if it belongs to the last chunk)"
-                    )
+                    torn.insert(0, (number, _REFILLED))
                 else:  # ocv2 rewrites the file atomically: a bad row before the last is damage
-                    _warn(
-                        f"{self.metrics_path}: the file is damaged: line {number} (row {number - 1}) is not a "
-                        f"complete metrics row ({_shown(row)}); dropped"
-                    )
-                torn = True
+                    damaged.append((number, _shown(row)))
                 continue
             rows.append(row)
-        return rows, torn
+        return MetricsFile(list(reader.fieldnames or []), rows, torn, damaged)
+
+
+class MetricsFile(NamedTuple):
+    """``metrics.csv`` as read, before anything is dropped or rewritten."""
+
+    fields: list[str]  # its header (empty: no file, or an empty one)
+    rows: list[dict]  # its complete rows, in the file's order
+    torn: list[tuple[int, str]]  # (line, note) of a last row cut short: an older, appending writer's kill
+    damaged: list[tuple[int, str]]  # (line, the row as it reads) of bad rows before the last: damage, not a kill
+
+
+_REFILLED = " (--resume refills it from the checkpoint if it belongs to the last chunk)"
+_RESTORE = (
+    "restore the file from a copy (`ocv2 study pack` keeps one) or repair the line, and resume again; nothing was "
+    "trained and the file was not changed"
+)
+
+
+def _damaged_line(number: int, text: str) -> str:
+    return f"line {number} (row {number - 1}) is not a complete metrics row ({text})"
+
+
+def _header_problem(found: list[str], fields: list[str]) -> str:
+    """What is wrong with a header (line 1) whose columns are not the run's."""
+    extra = [f for f in found if f not in fields]
+    missing = [f for f in fields if f not in found]
+    parts = ([f"columns {extra} this run does not write"] if extra else []) + (
+        [f"no columns {missing}"] if missing else []
+    )
+    return f"line 1, the header, has {' and '.join(parts) or 'a column twice'}"
 
 
 def enclosing_run(path) -> Path | None:
@@ -503,10 +552,6 @@ def _is_int(text) -> bool:
         return False
 
 
-def _write_rows(path: Path, fields: list, rows: list[dict]) -> None:
-    write_csv(path, fields, [[row.get(k, "") for k in fields] for row in rows])
-
-
 class SeedCurves(NamedTuple):
     """``metrics.csv`` columns as seeds x updates arrays (NaN where a seed has no value, e.g. no episode
     had finished yet): what the training plot and ``ocv2 report`` draw."""
@@ -537,6 +582,28 @@ def seed_curves(rows: list[dict], fields=("sparse_return",)) -> SeedCurves:
     return SeedCurves(seeds, updates, steps, values)
 
 
+def recipe_labels(layout) -> list[str]:
+    """The names of a layout's recipes in ``metrics.csv`` columns ("0+0+1"), in the layout's order."""
+    return ["+".join(map(str, recipe)) for recipe in layout.possible_recipes]
+
+
+def metric_fields(labels: list[str]) -> list[str]:
+    """The columns of ``metrics.csv`` in the order ``metric_rows`` makes them: the one header of a run, whether it
+    ran straight through or was resumed (rows that come back from a checkpoint's meta have their keys sorted)."""
+    return [*METRIC_FIELDS, *(_recipe_column(label) for label in labels)]
+
+
+def default_metric_fields(rows: list[dict]) -> list[str]:
+    """Columns for rows written without the run's own list (``metric_fields``): ``METRIC_FIELDS``, then the
+    others sorted."""
+    others = sorted({key for row in rows for key in row} - set(METRIC_FIELDS))
+    return [*METRIC_FIELDS, *others]
+
+
+def _recipe_column(label: str) -> str:
+    return f"return_recipe_{label}"
+
+
 def metric_rows(seeds, metrics, steps_per_s: float, wall_s: float, recipe_labels: list[str]) -> list[dict]:
     """Rows for ``metrics.csv`` from population metrics [S, n] (numpy)."""
     rows = []
@@ -562,7 +629,7 @@ def metric_rows(seeds, metrics, steps_per_s: float, wall_s: float, recipe_labels
                 "wall_s": round(wall_s, 2),
             }
             for r, label in enumerate(recipe_labels):
-                row[f"return_recipe_{label}"] = _num(metrics.recipe_returns[s, u, r])
+                row[_recipe_column(label)] = _num(metrics.recipe_returns[s, u, r])
             rows.append(row)
     return rows
 
@@ -580,13 +647,18 @@ def _json_default(value):
     raise TypeError(f"not JSON-serialisable: {type(value).__name__}")
 
 
-def write_csv(path: Path, header, rows) -> None:
-    """A CSV file written atomically (a reader sees the old or the new file, never half of one)."""
+def csv_text(header, rows) -> str:
+    """What ``write_csv`` writes."""
     buffer = io.StringIO(newline="")
     writer = csv.writer(buffer)
     writer.writerow(header)
     writer.writerows(rows)
-    atomic_write(path, buffer.getvalue())  # CSV rows keep their \r\n
+    return buffer.getvalue()
+
+
+def write_csv(path: Path, header, rows) -> None:
+    """A CSV file written atomically (a reader sees the old or the new file, never half of one)."""
+    atomic_write(path, csv_text(header, rows))  # CSV rows keep their \r\n
 
 
 MATRIX_CORNER = "seat0\\seat1"
