@@ -875,6 +875,32 @@ def test_a_damaged_result_is_reported_and_its_step_redone(finished, tmp_path, ca
     assert "Not finished" not in (out / "report.md").read_text()
 
 
+def test_a_run_summary_of_other_episodes_is_evaluated_again_not_trained_again(finished, tmp_path):
+    """``ocv2 xp RUN --episodes 1`` rewrites xp/summary.json in place: the study counted those 1-episode numbers
+    as the run's (eval.episodes 2) and reported them."""
+    out = _copy(finished, tmp_path / "study")
+    run = out / "runs" / "sp"
+    summary = json.loads((run / "xp" / "summary.json").read_text())
+    assert summary["episodes_per_pair"] == 2 and summary["num_policies"] == 2
+    (run / "xp" / "summary.json").write_text(json.dumps({**summary, "episodes_per_pair": 1, "sp_mean": -1.0}))
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    configs = plan_study(study, out, LOCAL).configs
+    problem = result_problem(Step("train", "sp"), study, out, configs)
+    assert problem is not None and "made with 1 episodes per pair of 2 policies" in problem, problem
+    (run / "xp" / "summary.json").write_text(json.dumps({**summary, "num_policies": 3}))
+    assert "of 3 policies, not the run's eval.episodes 2 of its 2 seeds" in result_problem(
+        Step("train", "sp"), study, out, configs
+    )
+    trained = {p: p.read_bytes() for p in (run / "checkpoints").rglob("*") if p.is_file()}
+    trained[run / "metrics.csv"] = (run / "metrics.csv").read_bytes()
+    said = []
+    run_study(study, out, LOCAL, say=said.append)
+    assert [line.split(": ")[1] for line in said if "doing the step again" in line] == ["train sp"], said
+    assert {p: p.read_bytes() for p in trained} == trained  # evaluated again, not trained again
+    assert result_problem(Step("train", "sp"), study, out, configs) is None
+    assert numbers(out) == numbers(finished)
+
+
 def test_a_run_directory_gone_missing_is_reported_as_such_not_as_not_started(finished, tmp_path, capsys):
     out = _copy(finished, tmp_path / "study")
     shutil.rmtree(out / "runs" / "sa")

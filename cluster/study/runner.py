@@ -574,16 +574,42 @@ def inputs_fingerprint(config: Config) -> str:
 
 
 def run_problem(path: Path) -> str | None:
-    """Why the run in ``path`` is not trained and evaluated (None: it is, and is never trained again)."""
+    """Why the run in ``path`` is not trained and evaluated (None: it is, and is never trained again). A run
+    whose training is done but whose cross-play is missing, damaged or not the one its config asks for
+    (``evaluation_problem``) is evaluated again by ``_train``: its resume trains nothing."""
     if not (path / "config.yaml").is_file():
         return f"{path} holds no run"
+    run = RunDir(path)
     try:
-        status = RunDir(path).read_manifest().get("status")
+        status = run.read_manifest().get("status")
     except RunDirError as error:
         return str(error)
     if status != "finished":
         return f"{path} has not finished training"
-    return read_result(path / "xp" / "summary.json", ("sp_mean", "xp_mean", "num_policies"))[1]
+    summary_path = path / "xp" / "summary.json"
+    summary, problem = read_result(summary_path, ("sp_mean", "xp_mean", "num_policies"))
+    if problem is not None:
+        return problem
+    try:
+        return evaluation_problem(summary_path, summary, run.load_config())
+    except RunDirError as error:
+        return str(error)
+
+
+def evaluation_problem(path: Path, summary: dict, config: Config) -> str | None:
+    """Why a run's cross-play ``summary`` (read from ``path``) is not the evaluation of the run's ``config``:
+    made with another number of episodes per pair (``ocv2 xp RUN_DIR --episodes N`` rewrites it in place) or of
+    another number of policies; None when it is. Every summary ocv2 has written carries both keys. Nothing else
+    varies: the in-run form plays every ordered pair (both seat orders) of the final policies at
+    ``run.precision``."""
+    made = (summary.get("episodes_per_pair"), summary.get("num_policies"))
+    asked = (config.eval.episodes, config.population.num_seeds)
+    if made == asked:
+        return None
+    return (
+        f"{path} was made with {made[0]} episodes per pair of {made[1]} policies, not the run's eval.episodes "
+        f"{asked[0]} of its {asked[1]} seeds (`ocv2 xp RUN_DIR --episodes N` rewrites it)"
+    )
 
 
 def run_finished(path: Path) -> bool:
