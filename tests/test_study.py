@@ -1095,6 +1095,28 @@ def test_a_pack_into_an_empty_folder_stopped_between_moves_leaves_it_empty(finis
     assert main(["study", "unpack", str(dest), "--out", str(tmp_path / "unpacked")]) == 0
 
 
+def test_a_latest_only_pack_after_a_save_cut_short_keeps_the_update_every_seed_has(finished, tmp_path, capsys):
+    """Seeds are saved one at a time, so a stop part-way leaves seed 0 one stop ahead of seed 1. The pack kept each
+    seed's newest file, which shared no update: its resume started over from update 0, pruning checkpoints and
+    cutting metrics.csv back. It now keeps the newest update both have; seeds that share none stop it."""
+    study = _copy(finished, tmp_path / "study")
+    sa = study / "runs" / "sa"
+    ckpt.checkpoint_path(sa, 1, ckpt.list_updates(sa, 1)[-1]).unlink()  # seed 1's last save never happened
+    newest, common = ckpt.list_updates(sa, 0)[-1], ckpt.list_updates(sa, 1)[-1]
+    pack_study(study, tmp_path / "pack", latest_only=True)
+    moved = tmp_path / "moved"
+    assert main(["study", "unpack", str(tmp_path / "pack"), "--out", str(moved)]) == 0
+    assert [ckpt.list_updates(moved / "runs" / "sa", seed) for seed in range(2)] == [[common], [common]]
+    for seed, kept in ((0, newest), (1, common)):  # as a pack of each seed's newest file left them
+        for update in ckpt.list_updates(sa, seed):
+            if update != kept:
+                ckpt.checkpoint_path(sa, seed, update).unlink()
+    assert main(["study", "pack", str(study), "--out", str(tmp_path / "refused"), "--latest-only"]) == 2
+    err = _one_line(capsys)
+    assert f"{sa / 'checkpoints'}: the seeds share no checkpoint update (seed 0: {newest}; seed 1: {common})" in err
+    assert "nothing was packed" in err and not (tmp_path / "refused").exists()
+
+
 def kept_and_state(data: dict, out: Path) -> tuple:
     """The study a study.json mapping keeps, and its typed state: what ``snapshots_still_read`` reads."""
     state = StudyState.from_json(data, out / "study.json")

@@ -114,15 +114,55 @@ def load_params(path, fingerprint: str, template):
     return jax.tree.map(lambda t, x: jnp.asarray(x, t.dtype), template, restored)
 
 
+def resume_updates(run_dir, seeds) -> list[int]:
+    """The updates every seed of ``seeds`` has a checkpoint of, newest first: where a resume of them may start.
+
+    ``save_checkpoints`` writes one seed at a time, so a kill, a full disk or a stopped Ray actor may leave some
+    seeds at the stop being saved and the others at the one before, which they all still have: that one comes
+    first. [] when no seed has a checkpoint past update 0 (a run stopped before or while saving its first ones:
+    starting again from update 0 loses nothing). Seeds with checkpoints past update 0 but none in common (a copy
+    or pack missing some seeds' files) raise ``CheckpointError`` naming each seed's updates: starting again
+    would prune their checkpoints and cut metrics.csv back, and no common update means none is safe to resume.
+    """
+    found = {seed: ckpt.list_updates(run_dir, seed) for seed in seeds}
+    common = set.intersection(*map(set, found.values())) if found else set()
+    if not common and any(update > 0 for updates in found.values() for update in updates):
+        listed = "; ".join(f"seed {seed}: {', '.join(map(str, updates)) or 'none'}" for seed, updates in found.items())
+        raise ckpt.CheckpointError(
+            f"{Path(run_dir) / 'checkpoints'}: the seeds share no checkpoint update ({listed}), so none can resume "
+            "them all; put the missing checkpoints back (from the study directory, a copy or a full pack) and resume "
+            "again (nothing was trained or deleted)"
+        )
+    return sorted(common, reverse=True)
+
+
+def _note_seeds_ahead(run_dir, seeds, update: int) -> None:
+    """Say so when some seeds have checkpoints past ``update``, the newest they all have (a save cut short)."""
+    ahead = {seed: ckpt.list_updates(run_dir, seed)[-1] for seed in seeds}
+    ahead = {seed: newest for seed, newest in ahead.items() if newest > update}
+    if ahead:
+        listed = ", ".join(f"seed {seed} at {newest}" for seed, newest in ahead.items())
+        log.warning(
+            "%s: %s, but update %s is the newest every seed of %s has: resuming from it (the updates after it are "
+            "trained again, to the same numbers)",
+            Path(run_dir) / "checkpoints",
+            listed,
+            update,
+            list(seeds),
+        )
+
+
 def restore(trainer: ppo.Trainer, run_dir, config: Config, seeds, pool_size: int):
-    """(stacked states, update, metrics rows stored with them) at the latest update every seed has, or None.
+    """(stacked states, update, metrics rows stored with them) at the latest update every seed has
+    (``resume_updates``), or None when there is none and the run may start from update 0.
 
     A damaged checkpoint (truncated, checksum mismatch) falls back to the previous common update, with
     a message; the updates after it are trained again (same numbers: training is deterministic).
     """
-    common = sorted(set.intersection(*(set(ckpt.list_updates(run_dir, s)) for s in seeds)), reverse=True)
+    common = resume_updates(run_dir, seeds)
     if not common:
         return None
+    _note_seeds_ahead(run_dir, seeds, common[0])
     template = state_template(trainer, pool_size)
 
     def at(update):

@@ -90,7 +90,7 @@ class SeedShard:
         self.pool = None if pool is None else jax.tree.map(jnp.asarray, self._own_pool(pool))
         pool_size = 0 if pool is None else int(jax.tree.leaves(self.pool)[0].shape[int(self.pool_per_seed)])
         restored = restore(self.trainer, self.run_dir, config, self.seeds, pool_size)
-        if restored is None:
+        if restored is None:  # no seed past update 0; seeds that share no update were refused, not started over
             self.states, self.update, self._saved_rows = (
                 ppo.init_population(self.trainer, self.seeds, None, pool_size),
                 0,

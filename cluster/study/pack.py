@@ -23,7 +23,8 @@ import tarfile
 import zlib
 from pathlib import Path
 
-from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.rundir import LOCK_NAME, RunDir, RunDirError
+from cluster.runtime.runstate import resume_updates
 from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state, run_finished
 from cluster.study.spec import RESERVED_NAMES, Study, StudyError, run_dir
 from cluster.study.state import StepRecord, StudyState
@@ -37,23 +38,43 @@ _SKIPPED_SUFFIXES = {".png", ".gif", ".mcap", ".lock"}
 
 
 def _packed_files(out: Path, latest_only: bool = False, whole: tuple[Path, ...] = ()) -> list[Path]:
-    """The files a pack holds; ``latest_only``: of each seed's checkpoints only the newest, except under ``whole``."""
-    files = []
-    for path in sorted(out.rglob("*")):
-        relative = path.relative_to(out)
-        if not path.is_file() or path.is_symlink():
-            continue
-        if _SKIPPED_DIRS & set(relative.parts[:-1]) or path.suffix in _SKIPPED_SUFFIXES or path.name == ".lock":
-            continue
-        if (
-            latest_only
-            and ckpt.update_of(path) is not None
-            and path != _newest_beside(path)
-            and not any(path.is_relative_to(folder) for folder in whole)
-        ):
-            continue
-        files.append(path)
-    return files
+    """The files a pack holds; ``latest_only``: of each run's checkpoints only those of the update its resume starts
+    from (``_resume_update``), except under ``whole``. Raises ``CheckpointError`` for a run whose seeds share none."""
+    files = [path for path in sorted(out.rglob("*")) if _packable(path, out)]
+    if not latest_only:
+        return files
+    resume_at: dict[Path, int | None] = {}  # checkpoints folder -> its run's resume update
+
+    def kept(path: Path) -> bool:
+        update = ckpt.update_of(path)
+        if update is None or any(path.is_relative_to(folder) for folder in whole):
+            return True
+        checkpoints = path.parent.parent
+        if checkpoints not in resume_at:
+            resume_at[checkpoints] = _resume_update(checkpoints)
+        return resume_at[checkpoints] in (None, update)
+
+    return [path for path in files if kept(path)]
+
+
+def _packable(path: Path, out: Path) -> bool:
+    """Whether ``path`` (under ``out``) goes into a pack: a plain file, not a picture, log or lock."""
+    if not path.is_file() or path.is_symlink():
+        return False
+    skipped_dir = _SKIPPED_DIRS & set(path.relative_to(out).parts[:-1])
+    return not skipped_dir and path.suffix not in _SKIPPED_SUFFIXES and path.name != LOCK_NAME
+
+
+def _resume_update(checkpoints: Path) -> int | None:
+    """The newest update every seed under ``checkpoints`` has (``resume_updates``): where a resume of the run starts
+    whatever shards its seeds are put in, so the one update a latest-only pack needs. Not each seed's newest: a
+    save cut short (a kill, a full disk, a stopped Ray actor) leaves some seeds one stop ahead, and a pack of those
+    newest files held no update every seed had, which resumed from update 0, pruning and cutting metrics.csv back.
+    The ahead seeds' newer files are left out: a resume trains those updates again, to the same numbers. None when
+    no seed is past update 0 (every checkpoint kept: they are the update-0 ones)."""
+    seeds = [int(name) for name in (d.name.removeprefix("seed_") for d in checkpoints.glob("seed_*")) if name.isdigit()]
+    common = resume_updates(checkpoints.parent, sorted(seeds))
+    return common[0] if common else None
 
 
 def snapshots_still_read(study: Study, state: StudyState, out: Path) -> tuple[Path, ...]:
@@ -77,21 +98,16 @@ def snapshots_still_read(study: Study, state: StudyState, out: Path) -> tuple[Pa
     return tuple(folders)
 
 
-def _newest_beside(path: Path) -> Path:
-    """The checkpoint of the highest update in ``path``'s seed folder."""
-    return max((p for p in path.parent.iterdir() if ckpt.update_of(p) is not None), key=ckpt.update_of)
-
-
 def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only: bool = False) -> dict:
     """Write ``out``'s resumable state into ``dest`` (created; must be empty): parts and ``pack.json``.
 
-    ``latest_only``: of each seed's checkpoints only the newest, which is all that resuming training needs (a
-    10-seed PPO-CNN checkpoint is about 13.5 MB), except where a step still to come reads older snapshots
-    (``snapshots_still_read``: over-training cross-play not done, FCP partners of an unfinished run), which are
-    packed whole -- for a study with 11 kept snapshots and over-training, about 150 MB per 10-seed CNN run, more
-    than a GPU window carries: run such a study where its pack need not travel. What no step reads is left behind
-    (``ocv2 export --checkpoint mid`` will not find it): publish the snapshots first (``ocv2 study publish``) if
-    they matter.
+    ``latest_only``: of each run's checkpoints only those of the newest update every seed has (``_resume_update``),
+    which is all that resuming training needs (a 10-seed PPO-CNN checkpoint is about 13.5 MB), except where a step
+    still to come reads older snapshots (``snapshots_still_read``: over-training cross-play not done, FCP partners
+    of an unfinished run), which are packed whole -- for a study with 11 kept snapshots and over-training, about
+    150 MB per 10-seed CNN run, more than a GPU window carries: run such a study where its pack need not travel.
+    What no step reads is left behind (``ocv2 export --checkpoint mid`` will not find it): publish the snapshots
+    first (``ocv2 study publish``) if they matter.
 
     Everything is checked before anything is written -- study.json field by field, every packed checkpoint's
     checksum (a pack is what a later session resumes from, so a damaged one must not replace a good one) -- and
@@ -115,7 +131,10 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
     if part_bytes < 1:
         raise StudyError(f"part size must be positive, got {part_bytes}")
     whole = snapshots_still_read(study, state, out) if latest_only else ()
-    files = _packed_files(out, latest_only, whole)
+    try:
+        files = _packed_files(out, latest_only, whole)
+    except ckpt.CheckpointError as error:  # a run whose seeds share no update: its pack could not resume
+        raise StudyError(f"{error}; nothing was packed") from None
     for path in files:
         try:
             if ckpt.update_of(path) is not None:
