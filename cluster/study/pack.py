@@ -21,9 +21,11 @@ import io
 import json
 import tarfile
 import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
-from cluster.runtime.rundir import LOCK_NAME, RunDir, RunDirError
+from cluster.runtime.rundir import LOCK_NAME, DirLock, RunDir, RunDirError
 from cluster.runtime.runstate import resume_updates
 from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state, run_finished
 from cluster.study.spec import RESERVED_NAMES, Study, StudyError, run_dir
@@ -111,9 +113,44 @@ def pack_study(out: Path, dest: Path, part_bytes: int = PART_BYTES, latest_only:
 
     Everything is checked before anything is written -- study.json field by field, every packed checkpoint's
     checksum (a pack is what a later session resumes from, so a damaged one must not replace a good one) -- and
-    the parts are written beside ``dest`` and moved in whole: a failure leaves ``dest`` as it was.
+    the parts are written beside ``dest`` and moved in whole: a failure leaves ``dest`` as it was. The study's lock
+    is held throughout: a study that another process is running is refused (``_study_locked``).
     """
     out, dest = Path(out), Path(dest).resolve()  # resolved: "." has no name to stage beside
+    if read_state(out) is None:
+        raise StudyError(f"{out}: not a study directory (no study.json)")
+    with _study_locked(out):
+        return _pack_locked(out, dest, part_bytes, latest_only)
+
+
+_RUNNING_ADVICE = (
+    "stop it first (Ctrl-C or SIGTERM stops it once its chunk in flight is saved; study_state/stop_and_pack.py stops "
+    "and packs), then pack again; nothing was packed"
+)
+
+
+@contextmanager
+def _study_locked(out: Path) -> Iterator[None]:
+    """Hold ``out``'s study lock (``DirLock``, as ``study run`` takes it) while packing: a running study prunes
+    checkpoints (a listed file gone before it is read) and saves its seeds one at a time (a latest-only pack could
+    catch them at different updates). A study directory this user cannot write (no lock file can be made) is
+    packed if no other process holds its lock."""
+    lock = DirLock(out)
+    try:
+        lock.acquire(advice=_RUNNING_ADVICE)
+    except RunDirError as error:
+        raise StudyError(str(error)) from None
+    except OSError:
+        if lock.held_elsewhere():
+            raise StudyError(f"{out}: in use by another ocv2 process; {_RUNNING_ADVICE}") from None
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+def _pack_locked(out: Path, dest: Path, part_bytes: int, latest_only: bool) -> dict:
+    """``pack_study`` with the study's lock held: study.json is read again, as no other process can change it now."""
     state = read_state(out)
     if state is None:
         raise StudyError(f"{out}: not a study directory (no study.json)")
