@@ -1139,28 +1139,6 @@ def test_pack_refuses_a_study_another_process_is_running(finished, tmp_path, cap
     assert main(["study", "pack", str(study), "--out", str(dest), "--latest-only"]) == 0
 
 
-def test_a_pack_into_an_empty_folder_stopped_between_moves_leaves_it_empty(finished, tmp_path, monkeypatch):
-    """An empty --out is filled in place, one move per file: pack.json went first, so a stop on the next move left
-    a folder holding only pack.json, read as a finished pack, which a rerun refused as not empty."""
-    dest = tmp_path / "pack"
-    dest.mkdir()
-    rename, asked = Path.rename, []
-
-    def stopped_on_the_second_move(self, target):
-        asked.append(self.name)
-        if len(asked) == 2:
-            raise KeyboardInterrupt  # SIGTERM, as the CLI sees it
-        return rename(self, target)
-
-    monkeypatch.setattr(Path, "rename", stopped_on_the_second_move)
-    with pytest.raises(KeyboardInterrupt):
-        pack_study(finished, dest)
-    monkeypatch.undo()
-    assert asked == ["study.tar.gz.000", "pack.json"] and list(dest.iterdir()) == []
-    assert main(["study", "pack", str(finished), "--out", str(dest)]) == 0
-    assert main(["study", "unpack", str(dest), "--out", str(tmp_path / "unpacked")]) == 0
-
-
 def kept_and_state(data: dict, out: Path) -> tuple:
     """The study a study.json mapping keeps, and its typed state: what ``snapshots_still_read`` reads."""
     state = StudyState.from_json(data, out / "study.json")
