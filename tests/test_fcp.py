@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from cluster.runtime import coordinator, runstate
-from cluster.runtime.extend import repoint_partners
+from cluster.runtime.extend import extend_run, repoint_partners
 from cluster.runtime.local import LocalWorkers
 from cluster.runtime.rundir import RunDir, RunDirError
 from cluster.runtime.shard import SeedShard
@@ -331,6 +331,65 @@ def test_a_run_whose_partners_moved_with_it_resumes_once_repointed(per_seed_run,
         )
         for x, y in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def _stopped_after_the_first_chunk(config, run) -> None:
+    def die(update, workers, _rows):
+        if update == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        coordinator.train(config, run, LocalWorkers, show_progress=False, evaluate=False, on_chunk=die)
+
+
+def _run_files(run) -> dict:
+    """What a refused resume must leave as it was."""
+    kept = [run / "metrics.csv", run / "manifest.json", *(run / "checkpoints").rglob("*")]
+    return {path: path.read_bytes() for path in kept if path.is_file()}
+
+
+def test_a_resume_refuses_partners_whose_parameters_changed_and_records_a_pool_older_runs_lack(per_seed_run, tmp_path):
+    """The pool came from the partner run's files as they were at each start: a half-trained FCP run resumed
+    against other partners without a word."""
+    reference, _ = per_seed_run
+    partners, run = tmp_path / "partners", tmp_path / "fcp"
+    shutil.copytree(reference / "partners", partners)
+    config = smoke(f"population.fcp.partners={partners}")
+    _stopped_after_the_first_chunk(config, run)
+    recorded = RunDir(run).read_manifest()
+    assert recorded["pool"] == [["seed0@2", "seed0@4"], ["seed1@2", "seed1@4"]]
+    assert sorted(recorded["pool_sha256"]) == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
+    final = ckpt.checkpoint_path(partners, 0, NUM_UPDATES)
+    shutil.copy(ckpt.checkpoint_path(partners, 1, NUM_UPDATES), final)  # same run and fingerprint: loads
+    before = _run_files(run)
+    with pytest.raises(RunDirError, match=r"population\.fcp\.partners: .*the parameters of partners seed0@4 \(sha256"):
+        coordinator.train(config, run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    assert _run_files(run) == before
+    shutil.copy(ckpt.checkpoint_path(reference / "partners", 0, NUM_UPDATES), final)  # put back
+    RunDir(run).write_manifest({k: v for k, v in recorded.items() if k != "pool_sha256"})  # as older versions wrote
+    coordinator.train(config, run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    finished = RunDir(run).read_manifest()
+    assert finished["status"] == "finished" and finished["pool_sha256"] == recorded["pool_sha256"]
+
+
+def test_a_resume_refuses_a_pool_that_an_extension_of_the_partner_run_moved(tmp_path):
+    """``ocv2 train --resume --extend`` on the partner run adds snapshots and re-stamps its files: its "mid" and
+    "final" became other updates, which the half-trained FCP run then trained against."""
+    schedule, partners, run = "ppo.schedule_timesteps=1024", tmp_path / "partners", tmp_path / "fcp"
+    first = load_config(SMOKE, [schedule, "ppo.total_timesteps=512"])
+    coordinator.train(first, partners, LocalWorkers, show_progress=False, evaluate=False)
+    config = smoke(f"population.fcp.partners={partners}")
+    _stopped_after_the_first_chunk(config, run)
+    later = load_config(SMOKE, [schedule, "ppo.total_timesteps=768"])
+    extend_run(partners, later)
+    coordinator.train(later, partners, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    before = _run_files(run)
+    with pytest.raises(
+        RunDirError,
+        match=r"population\.fcp\.partners: .*its pool has changed: seed0@2, seed1@2 then, seed0@6, seed1@6 now",
+    ):
+        coordinator.train(config, run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    assert _run_files(run) == before
 
 
 def test_a_shard_keeps_only_its_seeds_pools(per_seed_run, tmp_path):

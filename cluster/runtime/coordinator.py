@@ -19,6 +19,7 @@ training, cross-play is spread over the shards too (``cluster.runtime.evaluate``
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -292,10 +293,16 @@ def partner_stage(config: Config) -> Config:
     )
 
 
+def partner_run_of(config: Config, run: RunDir) -> Path:
+    """Where an FCP run's partners lie: ``population.fcp.partners``, or its own SP stage in RUN_DIR/partners."""
+    fcp = config.population.fcp
+    return Path(fcp.partners) if fcp.partners else run.path / "partners"
+
+
 def fcp_pool(config: Config, run: RunDir, factory: WorkersFactory, show_progress: bool):
     """The FCP pool(s): from ``population.fcp.partners``, or an SP stage trained into RUN_DIR/partners first."""
     fcp = config.population.fcp
-    partner_run = Path(fcp.partners) if fcp.partners else run.path / "partners"
+    partner_run = partner_run_of(config, run)
     if fcp.partners is None:
         stage = partner_stage(config)
         stage_dir = RunDir(partner_run)
@@ -311,6 +318,95 @@ def fcp_pool(config: Config, run: RunDir, factory: WorkersFactory, show_progress
                 label="FCP partner stage (SP)",
             )
     return load_pool(config, ppo.make_trainer(config), partner_run)
+
+
+def pool_digests(pool, labels: list) -> dict[str, str]:
+    """The sha256 of each partner's parameters in ``pool``, by label (``load_pool``'s pool and labels: [P, ...]
+    and a list, or per_seed [learners, P, ...] and a list per learner). Of the parameters, not the checkpoint
+    file: re-stamping a partner run (``--extend``, a moved study) rewrites its files, not its partners."""
+    leaves = [np.asarray(leaf) for leaf in jax.tree.leaves(pool)]
+    if labels and isinstance(labels[0], list):
+        places = {label: (i, j) for i, row in enumerate(labels) for j, label in enumerate(row)}
+    else:
+        places = {label: (j,) for j, label in enumerate(labels)}
+    return {label: _arrays_sha256([leaf[place] for leaf in leaves]) for label, place in places.items()}
+
+
+def _arrays_sha256(arrays) -> str:
+    digest = hashlib.sha256()
+    for array in arrays:
+        array = np.ascontiguousarray(array)
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+#: Manifest states of a run whose every update is trained: a resume then only evaluates it.
+TRAINED_STATES = ("trained", "finished")
+
+
+def pinned_pool(config: Config, run: RunDir, resuming: bool, labels: list, digests: dict) -> dict:
+    """The pool record the manifest keeps (``pool``: the labels, ``pool_sha256``: ``pool_digests``), checked on a
+    resume against the one the run was started with: where ``fcp_pool`` looks (the partner run's current
+    snapshots) can change under a half-trained run, e.g. ``ocv2 train --resume --extend`` on the partner run
+    moves its "final" and "mid" and re-stamps the files, which ``load_params`` then accepts. ``RunDirError``
+    naming ``population.fcp.partners`` and what changed, before anything trains. A run whose training is
+    complete is only evaluated (its pool is used no more): said, and the record of the pool it trained with kept."""
+    now = {"pool": labels, "pool_sha256": digests}
+    if not resuming:
+        return now
+    manifest = run.read_manifest()
+    then = {"pool": manifest.get("pool"), "pool_sha256": manifest.get("pool_sha256")}
+    change = pool_change(then, now)
+    if change is None:
+        return now
+    where = f"population.fcp.partners: {partner_run_of(config, run)}"
+    if manifest.get("status") in TRAINED_STATES:
+        log.warning(
+            f"{where}: {change} since this run trained against it; its training is complete, so only its "
+            "evaluation runs, and the manifest keeps the pool it trained with"
+        )
+        return {key: value for key, value in then.items() if value is not None}
+    raise RunDirError(
+        f"{where}: {change} since this run started, so its remaining updates would train against other partners "
+        "than the ones it trained with (an `ocv2 train --resume --extend` of the partner run moves its mid and "
+        "final snapshots). Put the partner run back as it was or start a new run; nothing was trained"
+    )
+
+
+def pool_change(then: dict, now: dict) -> str | None:
+    """What differs between two pool records (``pinned_pool``), or None. A manifest written before the pool's
+    sha256 were recorded has only the labels (compared), or, before training started, nothing at all: it is
+    taken as it is and the record written on this resume."""
+    if then["pool"] is None:
+        return None
+    if then["pool"] != now["pool"]:
+        gone = [label for label in _flat(then["pool"]) if label not in _flat(now["pool"])]
+        new = [label for label in _flat(now["pool"]) if label not in _flat(then["pool"])]
+        if not gone and not new:
+            return "its pool lists the same partners in another order"
+        return f"its pool has changed: {_listed(gone)} then, {_listed(new)} now"
+    if not then["pool_sha256"]:
+        return None
+    changed = [label for label, digest in now["pool_sha256"].items() if then["pool_sha256"].get(label) != digest]
+    if not changed:
+        return None
+    shown = ", ".join(
+        f"{label} (sha256 {str(then['pool_sha256'].get(label))[:12]} then, {now['pool_sha256'][label][:12]} now)"
+        for label in changed[:4]
+    )
+    more = f" and {len(changed) - 4} more" if len(changed) > 4 else ""
+    return f"the parameters of partners {shown}{more} have changed"
+
+
+def _flat(labels: list) -> list[str]:
+    """A pool's labels in one list (per_seed keeps one list per learner)."""
+    return [label for item in labels for label in (item if isinstance(item, list) else [item])]
+
+
+def _listed(labels: list[str]) -> str:
+    shown = ", ".join(labels[:6])
+    return shown + (f" and {len(labels) - 6} more" if len(labels) > 6 else "") if labels else "none"
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -364,9 +460,10 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
     if extra is not None:
         pin_archives(config, run, resuming)
     schedule = Schedule.of(config, run.path)
-    pool, pool_labels = (None, [])
+    pool, pool_record = None, {"pool": []}
     if config.population.traits.partner_pool:
-        pool, pool_labels = fcp_pool(config, run, factory, show_progress)
+        pool, labels = fcp_pool(config, run, factory, show_progress)
+        pool_record = pinned_pool(config, run, resuming, labels, pool_digests(pool, labels))
     workers = factory(config, run.path, pool)
     workers.events[:0] = past_events  # restarts of earlier drivers of this run stay on record
     try:
@@ -380,7 +477,7 @@ def _train_locked(config, run, resuming, factory, show_progress, evaluate, label
             num_updates=schedule.num_updates,
             update=update,
             snapshots=list(schedule.snapshots),
-            pool=pool_labels,
+            **pool_record,
             seeds=list(range(config.population.num_seeds)),
             shards=workers.shards,
             resumed_from=update if resuming else None,
