@@ -372,6 +372,21 @@ def test_a_resume_refuses_partners_whose_parameters_changed_and_records_a_pool_o
     assert finished["status"] == "finished" and finished["pool_sha256"] == recorded["pool_sha256"]
 
 
+def test_a_run_trained_to_the_end_is_evaluated_again_whatever_its_partners_became(per_seed_run, tmp_path, caplog):
+    """A finished run resumed to evaluate it again (a study whose cross-play result went stale) uses its pool no
+    more: a changed partner run is said, not refused, and the record of the pool it trained with stays."""
+    reference, _ = per_seed_run
+    run = tmp_path / "finished"
+    shutil.copytree(reference, run)
+    recorded = RunDir(run).read_manifest()
+    shutil.copy(ckpt.checkpoint_path(run / "partners", 1, NUM_UPDATES), ckpt.checkpoint_path(run / "partners", 0, 4))
+    with caplog.at_level("WARNING", logger="cluster.runtime.coordinator"):
+        coordinator.train(smoke(), run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
+    assert "the parameters of partners seed0@4" in caplog.text and "training is complete" in caplog.text
+    after = RunDir(run).read_manifest()
+    assert after["status"] == "finished" and after["pool_sha256"] == recorded["pool_sha256"]
+
+
 def test_a_resume_refuses_a_pool_that_an_extension_of_the_partner_run_moved(tmp_path):
     """``ocv2 train --resume --extend`` on the partner run adds snapshots and re-stamps its files: its "mid" and
     "final" became other updates, which the half-trained FCP run then trained against."""
