@@ -12,13 +12,14 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ocv2 import items as it
 from ocv2.config import EnvConfig, build_config
 from ocv2.dynamics import transition
 from ocv2.featurized import make_featurizer
 from ocv2.observations import default_observations, grid_obs_shape
-from ocv2.reset import buffer_reset_state, default_reset_state, state_from, validate_buffer
+from ocv2.reset import buffer_reset_state, default_reset_state, state_from, validate_buffer, validate_state
 from ocv2.spaces import Box, Discrete
 from ocv2.state import State
 
@@ -85,11 +86,13 @@ class OvercookedV2:
         return it.NUM_ACTIONS
 
     def action_space(self, agent_id: str = "") -> Discrete:
+        """The actions of ``agent_id`` (every agent has the same six; an unknown name is still an error)."""
+        self._agent_index(agent_id)
         return Discrete(it.NUM_ACTIONS)
 
     def observation_space(self, agent_id: str = "") -> Box:
         """The true observation space of ``agent_id`` (default: agent 0): dtype and value bounds."""
-        index = self.agents.index(agent_id) if agent_id else 0
+        index = self._agent_index(agent_id)
         kind = self.config.observation_types[index]
         shape = self._obs_shape_for(kind)
         if kind == "featurized":
@@ -126,7 +129,13 @@ class OvercookedV2:
 
     # ------------------------------------------------------------------ reset
     def reset_state(self, key: jax.Array, state_buffer: State | None = None) -> State:
-        """A fresh episode's state (no observation). ``state_buffer`` overrides the constructor's buffer."""
+        """A fresh episode's state (no observation). ``state_buffer`` overrides the constructor's buffer.
+
+        A buffer passed here is checked like the constructor's: shapes and dtypes always, contents when
+        it is concrete (not traced).
+        """
+        if state_buffer is not None and state_buffer is not self.initial_state_buffer:
+            validate_buffer(self.config, state_buffer, "state_buffer")
         buffer = self.initial_state_buffer if state_buffer is None else state_buffer
         if buffer is not None:
             return buffer_reset_state(self.config, key, buffer)
@@ -139,12 +148,14 @@ class OvercookedV2:
 
     def reset_from_state(self, key: jax.Array, state: State):
         """Start an episode from ``state`` (kitchen, agents, recipe kept; step/done/flags cleared)."""
+        validate_state(self.config, state, "state")
         state = state_from(self.config, key, state)
         return self.get_obs(state), state
 
     # ------------------------------------------------------------------ step
     def step_env(self, key: jax.Array, state: State, actions: dict):
         """One transition without auto-reset: ``(obs, state, rewards, dones, infos)``."""
+        validate_state(self.config, state, "state", contents=False)
         result = transition(self.config, key, state, self._action_array(actions))
         obs = self.get_obs(result.state)
         return (obs, result.state) + self._dicts(result.reward, result.shaped_reward, result.state.done)
@@ -175,7 +186,15 @@ class OvercookedV2:
         reset_state: State | None = None,
         state_buffer: State | None = None,
     ) -> StepArrays:
-        """Array form of ``step``: actions int32[N] in, ``StepArrays`` out."""
+        """Array form of ``step``: actions int32[N] in, ``StepArrays`` out.
+
+        ``state`` gets the static checks only (shapes, dtypes: free under ``jit``), as this is the training
+        hot path; a ``reset_state`` or ``state_buffer`` also gets its contents checked when concrete.
+        """
+        validate_state(self.config, state, "state", contents=False)
+        _check_actions(actions, (self.num_agents,), "actions")
+        if reset_state is not None:
+            validate_state(self.config, reset_state, "reset_state")
         k_step, k_reset = jax.random.split(key)
         result = transition(self.config, k_step, state, actions)
         if reset_state is None:
@@ -192,12 +211,27 @@ class OvercookedV2:
         return self.get_obs_arrays(state), state
 
     # ------------------------------------------------------------------ helpers
+    def _agent_index(self, agent_id: str) -> int:
+        """Index of agent ``agent_id``; "" (the reference's default) means agent 0."""
+        if agent_id == "":
+            return 0
+        if agent_id not in self.agents:
+            raise ValueError(f"unknown agent {agent_id!r}; this env's agents are {', '.join(self.agents)}")
+        return self.agents.index(agent_id)
+
     def _action_array(self, actions) -> jax.Array:
+        """Dict or array actions as int32[N], checked by ``_check_actions``."""
         if isinstance(actions, dict):
             missing = [a for a in self.agents if a not in actions]
             if missing:
                 raise KeyError(f"actions are missing agent(s) {missing}; expected keys {self.agents}")
+            unknown = [a for a in actions if a not in self.agents]
+            if unknown:
+                raise KeyError(f"actions name unknown agent(s) {unknown}; expected keys {self.agents}")
+            for name in self.agents:
+                _check_actions(actions[name], (), f"actions[{name!r}]")
             return jnp.stack([jnp.asarray(actions[a], dtype=jnp.int32) for a in self.agents])
+        _check_actions(actions, (self.num_agents,), "actions")
         return jnp.asarray(actions, dtype=jnp.int32)
 
     def _dicts(self, reward, shaped, done):
@@ -215,3 +249,28 @@ class OvercookedV2:
             if f.name != "layout" and getattr(self.config, f.name) != f.default
         }
         return f"OvercookedV2(layout={self.layout.name!r}, {changed})"
+
+
+def _check_actions(actions, shape: tuple, what: str) -> None:
+    """Actions must have ``shape`` and an integer dtype (static checks), and, when concrete, lie in 0..5.
+
+    Traced actions are not range-checked: that would cost every step. Out of range they act as STAY here,
+    while the reference wraps -6..-1 to 0..5 and moves any other out-of-range action RIGHT.
+    """
+    got = tuple(np.shape(actions))
+    if got != shape:
+        raise ValueError(f"{what} has shape {got}, expected {shape} (one action per agent)")
+    dtype = actions.dtype if hasattr(actions, "dtype") else np.asarray(actions).dtype
+    if not jnp.issubdtype(dtype, jnp.integer):
+        raise ValueError(f"{what} must be integers 0..{it.NUM_ACTIONS - 1}, got dtype {dtype}")
+    if isinstance(actions, jax.core.Tracer):
+        return
+    values = np.asarray(actions)
+    bad = np.argwhere((values < 0) | (values >= it.NUM_ACTIONS))
+    if len(bad):
+        index = tuple(int(i) for i in bad[0])
+        where = f"{what}[{index[0]}]" if index else what
+        raise ValueError(
+            f"{where} is {values[index]}, not an action; actions are 0..{it.NUM_ACTIONS - 1} "
+            f"({', '.join(f'{a.value} {a.name}' for a in it.Action)})"
+        )

@@ -186,54 +186,161 @@ def buffer_reset_state(config: EnvConfig, key: jax.Array, buffer: State) -> Stat
     return state_from(config, key, chosen)
 
 
-def validate_buffer(config: EnvConfig, buffer: State) -> None:
-    """Shape-check a reset buffer against the layout; raise ValueError naming the bad field."""
+def validate_buffer(config: EnvConfig, buffer: State, what: str = "initial_state_buffer") -> None:
+    """Check a reset buffer (states with a leading batch axis) against the layout; raise naming the field.
+
+    Shapes and dtypes are checked always (they are static, so this is free under ``jit``); the contents
+    (kitchen, agent cells and directions, recipe) only where the arrays are concrete, not traced.
+    """
     if not isinstance(buffer, State):
-        raise TypeError(
-            f"initial_state_buffer must be an ocv2.State with a leading batch axis, got {type(buffer).__name__}"
-        )
-    n_agents, n_ing = config.num_agents, config.num_ingredients
-    height, width = config.layout.height, config.layout.width
+        raise TypeError(f"{what} must be an ocv2.State with a leading batch axis, got {type(buffer).__name__}")
     size = np.shape(buffer.step)[0] if np.ndim(buffer.step) == 1 else None
     if size is None or size < 1:
         raise ValueError(
-            f"initial_state_buffer must have a leading batch axis of at least 1 state; step has shape {np.shape(buffer.step)}"
+            f"{what} must have a leading batch axis of at least 1 state; step has shape {np.shape(buffer.step)}"
         )
-    expected = {
-        "agents.x": (size, n_agents),
-        "agents.y": (size, n_agents),
-        "agents.dir": (size, n_agents),
-        "agents.inventory": (size, n_agents),
-        "grid": (size, height, width, 3),
-        "recipe": (size,),
-        "step": (size,),
-        "done": (size,),
-        "new_correct_delivery": (size,),
-        "ingredient_permutations": (size, n_agents, n_ing),
+    _check_fields(config, buffer, what, (size,), f" ({size} states)")
+    _check_contents(config, buffer, lambda i: f"{what} state {i}")
+
+
+def validate_state(config: EnvConfig, state: State, what: str = "state", contents: bool = True) -> None:
+    """Check one state against the layout: shapes and dtypes always; with ``contents``, when concrete, what
+    ``validate_buffer`` checks too. Raise naming the field."""
+    if not isinstance(state, State):
+        raise TypeError(f"{what} must be an ocv2.State, got {type(state).__name__}")
+    _check_fields(config, state, what, (), "")
+    if contents:
+        batched = jax.tree.map(lambda leaf: leaf if _is_traced(leaf) else np.asarray(leaf)[None], state)
+        _check_contents(config, batched, lambda _: what)
+
+
+def _state_fields(state: State) -> dict:
+    return {
+        "agents.x": state.agents.x,
+        "agents.y": state.agents.y,
+        "agents.dir": state.agents.dir,
+        "agents.inventory": state.agents.inventory,
+        "grid": state.grid,
+        "recipe": state.recipe,
+        "step": state.step,
+        "done": state.done,
+        "new_correct_delivery": state.new_correct_delivery,
+        "ingredient_permutations": state.ingredient_permutations,
     }
-    actual = {
-        "agents.x": buffer.agents.x,
-        "agents.y": buffer.agents.y,
-        "agents.dir": buffer.agents.dir,
-        "agents.inventory": buffer.agents.inventory,
-        "grid": buffer.grid,
-        "recipe": buffer.recipe,
-        "step": buffer.step,
-        "done": buffer.done,
-        "new_correct_delivery": buffer.new_correct_delivery,
-        "ingredient_permutations": buffer.ingredient_permutations,
+
+
+def _expected_fields(config: EnvConfig) -> dict:
+    """Per-state shape and dtype of every field (the dtypes ``State`` is built with)."""
+    n_agents, n_ing = config.num_agents, config.num_ingredients
+    height, width = config.layout.height, config.layout.width
+    int32, boolean = np.dtype(np.int32), np.dtype(bool)
+    return {
+        "agents.x": ((n_agents,), int32),
+        "agents.y": ((n_agents,), int32),
+        "agents.dir": ((n_agents,), int32),
+        "agents.inventory": ((n_agents,), int32),
+        "grid": ((height, width, 3), int32),
+        "recipe": ((), int32),
+        "step": ((), int32),
+        "done": ((), boolean),
+        "new_correct_delivery": ((), boolean),
+        "ingredient_permutations": ((n_agents, n_ing), int32),
     }
-    for name, shape in expected.items():
-        if tuple(np.shape(actual[name])) != shape:
+
+
+def _dtype(leaf) -> np.dtype:
+    """The dtype JAX computes with (a numpy int64 or a Python int enters as int32 unless x64 is on)."""
+    raw = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
+    return np.dtype(jax.dtypes.canonicalize_dtype(raw))
+
+
+def _check_fields(config: EnvConfig, state: State, what: str, batch: tuple, count: str) -> None:
+    actual = _state_fields(state)
+    for name, (shape, dtype) in _expected_fields(config).items():
+        got = tuple(np.shape(actual[name]))
+        if got != batch + shape:
             raise ValueError(
-                f"initial_state_buffer.{name} has shape {tuple(np.shape(actual[name]))}, expected {shape} "
-                f"for layout {config.layout.name!r} ({size} states)"
+                f"{what}.{name} has shape {got}, expected {batch + shape} for layout {config.layout.name!r}{count}"
             )
-    if not isinstance(buffer.grid, jax.core.Tracer):
-        static = np.asarray(buffer.grid)[..., 0]
-        if not (static == np.asarray(config.layout.static_objects)[None]).all():
-            bad = np.argwhere(static != np.asarray(config.layout.static_objects)[None])[0]
+        if _dtype(actual[name]) != dtype:
             raise ValueError(
-                f"initial_state_buffer state {bad[0]} has a different kitchen than layout {config.layout.name!r} "
-                f"(static cell at row {bad[1]}, column {bad[2]})"
+                f"{what}.{name} has dtype {_dtype(actual[name])}, expected {dtype} (as ocv2.State is built); "
+                f"cast it with .astype(jnp.{dtype.name})"
             )
+
+
+def _is_traced(leaf) -> bool:
+    return isinstance(leaf, jax.core.Tracer)
+
+
+def _check_contents(config: EnvConfig, batch: State, where) -> None:
+    """Value checks of a batch of states, each on the fields that are concrete; ``where(i)`` names state i."""
+    layout = config.layout
+    static = np.asarray(layout.static_objects)
+    if not _is_traced(batch.grid):
+        _check_kitchen(np.asarray(batch.grid)[..., 0], static, layout.name, where)
+    if not (_is_traced(batch.agents.x) or _is_traced(batch.agents.y)):
+        _check_agent_cells(np.asarray(batch.agents.x), np.asarray(batch.agents.y), static, where)
+    if not _is_traced(batch.agents.dir):
+        _check_directions(np.asarray(batch.agents.dir), where)
+    if not _is_traced(batch.recipe):
+        _check_recipes(np.asarray(batch.recipe), layout, where)
+
+
+def _check_kitchen(grid_static: np.ndarray, static: np.ndarray, name: str, where) -> None:
+    differs = grid_static != static[None]
+    if differs.any():
+        index, row, column = (int(v) for v in np.argwhere(differs)[0])
+        raise ValueError(
+            f"{where(index)} has a different kitchen than layout {name!r} (grid static cell at row {row}, "
+            f"column {column} is {grid_static[index, row, column]}, the layout's is {static[row, column]})"
+        )
+
+
+def _check_agent_cells(xs: np.ndarray, ys: np.ndarray, static: np.ndarray, where) -> None:
+    """Every agent on a floor cell of the map, no two on one cell."""
+    height, width = static.shape
+    inside = (xs >= 0) & (xs < width) & (ys >= 0) & (ys < height)
+    if not inside.all():
+        index, agent = (int(v) for v in np.argwhere(~inside)[0])
+        raise ValueError(
+            f"{where(index)}: agents.x/agents.y put agent {agent} at (x={xs[index, agent]}, y={ys[index, agent]}), "
+            f"outside the {height}x{width} map"
+        )
+    on_floor = static[ys, xs] == Static.FLOOR
+    if not on_floor.all():
+        index, agent = (int(v) for v in np.argwhere(~on_floor)[0])
+        raise ValueError(
+            f"{where(index)}: agents.x/agents.y put agent {agent} on a non-floor cell "
+            f"(row {ys[index, agent]}, column {xs[index, agent]})"
+        )
+    cells = ys * width + xs
+    for a in range(cells.shape[1]):
+        for b in range(a + 1, cells.shape[1]):
+            shared = np.flatnonzero(cells[:, a] == cells[:, b])
+            if len(shared):
+                index = int(shared[0])
+                raise ValueError(
+                    f"{where(index)}: agents.x/agents.y put agents {a} and {b} on the same cell "
+                    f"(row {ys[index, a]}, column {xs[index, a]})"
+                )
+
+
+def _check_directions(directions: np.ndarray, where) -> None:
+    bad = (directions < 0) | (directions >= len(it.Direction))
+    if bad.any():
+        index, agent = (int(v) for v in np.argwhere(bad)[0])
+        raise ValueError(
+            f"{where(index)}: agents.dir[{agent}] is {directions[index, agent]}, expected 0..3 (UP, DOWN, RIGHT, LEFT)"
+        )
+
+
+def _check_recipes(recipes: np.ndarray, layout, where) -> None:
+    possible = {it.recipe_encoding_np(r): list(r) for r in layout.possible_recipes}
+    bad = ~np.isin(recipes, list(possible))
+    if bad.any():
+        index = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"{where(index)}: recipe is {recipes[index]}, not the encoding of a possible recipe of layout "
+            f"{layout.name!r} ({', '.join(f'{code} = {r}' for code, r in possible.items())})"
+        )

@@ -245,3 +245,111 @@ def test_rooms_linked_by_a_shared_counter_or_pot_make_a_working_kitchen(grid):
     from ocv2.layouts import kitchen_problems
 
     assert kitchen_problems(ocv2.Layout.from_string(grid, [[0, 0, 0]])) == []
+
+
+def _buffer(layout, count=3):
+    env = ocv2.make(layout)
+    return ocv2.stack_states([env.reset_state(jax.random.PRNGKey(k)) for k in range(count)])
+
+
+def _agents(state, **fields):
+    return state.replace(agents=state.agents.replace(**fields))
+
+
+def test_a_buffer_passed_per_call_is_checked_like_the_constructors():
+    env, key = ocv2.make("coord_ring"), jax.random.PRNGKey(0)
+    with pytest.raises(ValueError, match=r"state_buffer state 0 has a different kitchen than layout 'coord_ring'"):
+        env.reset(key, state_buffer=_buffer("forced_coord"))  # same size, other kitchen
+    with pytest.raises(ValueError, match=r"state_buffer.grid has shape \(3, 4, 5, 3\), expected \(3, 5, 5, 3\)"):
+        env.reset(key, state_buffer=_buffer("cramped_room"))
+    # the shape check is static, so it holds under jit too
+    with pytest.raises(ValueError, match=r"state_buffer.grid has shape"):
+        jax.jit(lambda buffer: env.reset_arrays(key, buffer))(_buffer("cramped_room"))
+    with pytest.raises(ValueError, match=r"state_buffer.grid has shape"):
+        env.step_arrays(key, env.reset_state(key), jnp.zeros(2, jnp.int32), state_buffer=_buffer("cramped_room"))
+    obs, _ = jax.jit(lambda buffer: env.reset_arrays(key, buffer))(_buffer("coord_ring"))
+    assert obs.shape[1:] == env.obs_shape
+
+
+def test_a_state_passed_per_call_is_checked():
+    env, key = ocv2.make("cramped_room"), jax.random.PRNGKey(0)
+    state = env.reset_state(key)
+    other = ocv2.make("forced_coord").reset_state(key)
+    with pytest.raises(ValueError, match=r"state.grid has shape \(5, 5, 3\), expected \(4, 5, 3\)"):
+        env.reset_from_state(key, other)
+    with pytest.raises(ValueError, match=r"state: agents.dir\[1\] is 7"):
+        env.reset_from_state(key, _agents(state, dir=state.agents.dir.at[1].set(7)))
+    with pytest.raises(ValueError, match=r"reset_state: recipe is 999"):
+        env.step_arrays(key, state, jnp.zeros(2, jnp.int32), reset_state=state.replace(recipe=jnp.int32(999)))
+    with pytest.raises(ValueError, match=r"state.grid has shape \(5, 5, 3\)"):
+        env.step(key, other, {"agent_0": 0, "agent_1": 0})
+    with pytest.raises(ValueError, match=r"state.done has dtype int32, expected bool"):
+        jax.jit(env.step_arrays)(key, state.replace(done=jnp.int32(0)), jnp.zeros(2, jnp.int32))
+
+
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        (lambda b: b.replace(grid=b.grid.astype(jnp.float32)), r"grid has dtype float32, expected int32"),
+        (lambda b: _agents(b, x=b.agents.x.astype(jnp.float32)), r"agents.x has dtype float32, expected int32"),
+        (
+            lambda b: _agents(b, x=b.agents.x.at[1].set(0), y=b.agents.y.at[1].set(0)),
+            r"state 1: agents.x/agents.y put agent 0 on a non-floor cell \(row 0, column 0\)",
+        ),
+        (
+            lambda b: _agents(
+                b, x=b.agents.x.at[2, 1].set(b.agents.x[2, 0]), y=b.agents.y.at[2, 1].set(b.agents.y[2, 0])
+            ),
+            r"state 2: agents.x/agents.y put agents 0 and 1 on the same cell",
+        ),
+        (lambda b: _agents(b, x=b.agents.x.at[0, 1].set(9)), r"state 0: .* agent 1 at \(x=9, y=1\), outside the 4x5"),
+        (lambda b: _agents(b, dir=b.agents.dir.at[1, 0].set(7)), r"state 1: agents.dir\[0\] is 7, expected 0..3"),
+        (lambda b: _agents(b, dir=b.agents.dir.at[2, 1].set(-1)), r"state 2: agents.dir\[1\] is -1"),
+        (lambda b: b.replace(recipe=b.recipe.at[0].set(999)), r"state 0: recipe is 999, not the encoding .* \(12 = "),
+    ],
+)
+def test_a_buffer_state_that_no_episode_could_reach_is_refused(change, match):
+    with pytest.raises(ValueError, match=r"initial_state_buffer.*" + match):
+        ocv2.make("cramped_room", initial_state_buffer=change(_buffer("cramped_room")))
+
+
+@pytest.mark.parametrize(
+    "actions,error,match",
+    [
+        (jnp.array([0]), ValueError, r"actions has shape \(1,\), expected \(2,\)"),  # would broadcast
+        (jnp.array([0, 1, 2]), ValueError, r"actions has shape \(3,\), expected \(2,\)"),
+        (jnp.array([0, 6]), ValueError, r"actions\[1\] is 6, not an action; actions are 0..5"),
+        (jnp.array([0.0, 2.7]), ValueError, r"actions must be integers 0..5, got dtype float32"),
+        ({"agent_0": 9, "agent_1": 4}, ValueError, r"actions\['agent_0'\] is 9, not an action"),
+        ({"agent_0": 0, "agent_1": -3}, ValueError, r"actions\['agent_1'\] is -3, not an action"),
+        ({"agent_0": 2.7, "agent_1": 0}, ValueError, r"actions\['agent_0'\] must be integers 0..5, got dtype float"),
+        ({"agent_0": 0, "agent_1": 0, "agent_7": 3}, KeyError, r"unknown agent\(s\) \['agent_7'\]"),
+    ],
+)
+def test_bad_actions_are_refused_not_reinterpreted(actions, error, match):
+    env, key = ocv2.make("cramped_room"), jax.random.PRNGKey(0)
+    state = env.reset_state(key)
+    with pytest.raises(error, match=match):
+        if isinstance(actions, dict):
+            env.step(key, state, actions)
+        else:
+            env.step_arrays(key, state, actions)
+
+
+def test_traced_actions_get_the_static_checks():
+    env, key = ocv2.make("cramped_room"), jax.random.PRNGKey(0)
+    state = env.reset_state(key)
+    with pytest.raises(ValueError, match=r"actions has shape \(3,\)"):
+        jax.jit(env.step_arrays)(key, state, jnp.zeros(3, jnp.int32))
+    with pytest.raises(ValueError, match=r"got dtype float32"):
+        jax.jit(lambda a: env.step(key, state, {"agent_0": a, "agent_1": 0}))(jnp.float32(1))
+    # any integer dtype is an action (the reference's action space samples uint32)
+    jax.jit(env.step_arrays)(key, state, jnp.array([0, 5], jnp.uint32))
+
+
+def test_an_unknown_agent_name_is_refused_by_both_spaces():
+    env = ocv2.make("cramped_room")
+    for space in (env.observation_space, env.action_space):
+        with pytest.raises(ValueError, match=r"unknown agent 'agent_9'; this env's agents are agent_0, agent_1"):
+            space("agent_9")
+    assert env.action_space().n == env.action_space("agent_1").n == 6
