@@ -354,6 +354,32 @@ def check_frame_size(layout: Layout, tile_size: int, frames: int = 1) -> None:
         )
 
 
+def _check_grid_fits(grid, layout: Layout | None) -> None:
+    """The grid (any leading axes) must be of ``layout``: its shape always, its static layer when concrete.
+
+    Otherwise the layout's map would be drawn over another kitchen's items and agents.
+    """
+    if layout is None:
+        return
+    if tuple(grid.shape[-3:-1]) != (layout.height, layout.width):
+        raise ValueError(
+            f"state grid is {tuple(grid.shape[-3:-1])} (HxW) but layout {layout.name!r} is "
+            f"{layout.height}x{layout.width}"
+        )
+    if isinstance(grid, jax.core.Tracer):
+        return
+    static = np.asarray(grid)[..., 0]
+    differs = static != np.asarray(layout.static_objects)
+    if differs.any():
+        where = tuple(int(i) for i in np.argwhere(differs)[0])
+        frame = f"frame {', '.join(map(str, where[:-2]))} " if len(where) > 2 else ""
+        row, column = where[-2:]
+        raise ValueError(
+            f"state grid {frame}is not of layout {layout.name!r}: its static cell at row {row}, column {column} "
+            f"is {static[where]}, the layout's is {layout.static_objects[row, column]}"
+        )
+
+
 def _check_options(agent_view_size, tile_size, subdivs):
     if isinstance(tile_size, bool) or not isinstance(tile_size, (int, np.integer)) or tile_size < 1:
         raise ValueError(f"tile_size must be a positive integer (pixels per cell), got {tile_size!r}")
@@ -383,7 +409,8 @@ def render(
         state: one ``State`` (no leading axes; vmap for those).
         layout_or_none: optionally the state's layout (or its name). Its static map is then drawn as
             a constant instead of being read from ``state.grid`` (the two agree for every state of the
-            layout); the grid's shape is checked against it.
+            layout); the grid's shape is checked against it, and so is its static layer when the grid
+            is concrete (not traced).
         agent_view_size: view radius v; every cell within v (Chebyshev) of an agent is blended 30 %
             toward white. None draws no view window. Note 0 highlights the agents' own cells; the
             env's ``config.view_radius`` already maps the reference's "0 means whole map" to None.
@@ -395,11 +422,7 @@ def render(
     """
     _check_options(agent_view_size, tile_size, subdivs)
     layout = None if layout_or_none is None else get_layout(layout_or_none)
-    if layout is not None and tuple(state.grid.shape[-3:-1]) != (layout.height, layout.width):
-        raise ValueError(
-            f"state grid is {tuple(state.grid.shape[-3:-1])} (HxW) but layout {layout.name!r} is "
-            f"{layout.height}x{layout.width}"
-        )
+    _check_grid_fits(state.grid, layout)
     if state.grid.ndim != 3:
         raise ValueError(
             f"render draws one state (grid of rank 3), got grid shape {tuple(state.grid.shape)}; "
@@ -426,15 +449,11 @@ def render_frames(
             f"render_frames expects states with one leading (time) axis, got grid shape {tuple(states.grid.shape)}"
         )
     _check_options(agent_view_size, tile_size, DEFAULT_SUBDIVS)
-    return np.asarray(
-        _render_many(
-            states,
-            None if layout_or_none is None else get_layout(layout_or_none),
-            agent_view_size,
-            int(tile_size),
-            int(batch_size),
-        )
-    )
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer (frames drawn at once), got {batch_size!r}")
+    layout = None if layout_or_none is None else get_layout(layout_or_none)
+    _check_grid_fits(states.grid, layout)
+    return np.asarray(_render_many(states, layout, agent_view_size, int(tile_size), int(batch_size)))
 
 
 @functools.partial(jax.jit, static_argnames=("layout", "agent_view_size", "tile_size", "batch_size"))
@@ -446,7 +465,7 @@ def _render_many(states, layout, agent_view_size, tile_size, batch_size):
 def make_renderer(
     env, tile_size: int = 32, *, agent_view_size: int | None | str = "env"
 ) -> Callable[[State], jax.Array]:
-    """A jitted ``state -> image`` for ``env`` (an ``ocv2.make`` environment).
+    """A ``state -> image`` for ``env`` (an ``ocv2.make`` environment), jitted inside.
 
     The view window is the env's ``config.view_radius`` unless ``agent_view_size`` is given (None
     switches it off). States with leading batch/time axes are rendered frame by frame (vmapped),
@@ -458,11 +477,15 @@ def make_renderer(
     draw = functools.partial(render, layout_or_none=layout, agent_view_size=view, tile_size=int(tile_size))
 
     @jax.jit
-    def renderer(state: State) -> jax.Array:
+    def draw_all(state: State) -> jax.Array:
         fn = draw
         for _ in range(state.grid.ndim - 3):
             fn = jax.vmap(fn)
         return fn(state)
+
+    def renderer(state: State) -> jax.Array:
+        _check_grid_fits(state.grid, layout)  # before jit, where a concrete grid can still be compared
+        return draw_all(state)
 
     return renderer
 

@@ -77,6 +77,27 @@ def test_bad_options_and_mismatched_layout(cramped):
         render(jax.tree.map(lambda x: jnp.stack([x, x]), state))
 
 
+def test_a_grid_of_another_kitchen_of_the_same_size_is_refused(cramped):
+    """cramped_room_v2 has cramped_room's size: only the static layer tells them apart."""
+    _, state = cramped
+    frames = jax.tree.map(lambda x: jnp.stack([x, x]), state)
+    match = r"is not of layout 'cramped_room_v2': its static cell at row 1, column 4 is 10, the layout's is 11"
+    with pytest.raises(ValueError, match=r"state grid " + match):
+        render(state, "cramped_room_v2")
+    with pytest.raises(ValueError, match=r"state grid frame 0 " + match):
+        render_frames(frames, "cramped_room_v2", tile_size=8)
+    with pytest.raises(ValueError, match=r"state grid frame 0 " + match):
+        make_renderer(ocv2.make("cramped_room_v2"), tile_size=8)(frames)
+
+
+@pytest.mark.parametrize("batch_size", [0, -1, 2.5, True])
+def test_render_frames_needs_a_positive_integer_batch_size(cramped, batch_size):
+    _, state = cramped
+    frames = jax.tree.map(lambda x: jnp.stack([x, x]), state)
+    with pytest.raises(ValueError, match=r"batch_size must be a positive integer"):
+        render_frames(frames, tile_size=8, batch_size=batch_size)
+
+
 # --------------------------------------------------------------------------------------- look
 
 
