@@ -887,6 +887,10 @@ def test_a_run_summary_of_other_episodes_is_evaluated_again_not_trained_again(fi
     configs = plan_study(study, out, LOCAL).configs
     problem = result_problem(Step("train", "sp"), study, out, configs)
     assert problem is not None and "made with 1 episodes per pair of 2 policies" in problem, problem
+    # the report alone (no `study run`) shows the problem, not those numbers as the run's
+    assert main(["study", "report", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    assert "made with 1 episodes per pair of 2 policies" in report and "-1.0" not in report, report
     (run / "xp" / "summary.json").write_text(json.dumps({**summary, "num_policies": 3}))
     assert "of 3 policies, not the run's eval.episodes 2 of its 2 seeds" in result_problem(
         Step("train", "sp"), study, out, configs

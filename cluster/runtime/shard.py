@@ -23,7 +23,7 @@ import numpy as np
 
 from cluster.runtime.evaluate import play_rows
 from cluster.runtime.interrupt import ChunkWait
-from cluster.runtime.rundir import metric_rows
+from cluster.runtime.rundir import metric_rows, recipe_labels
 from cluster.runtime.runstate import Schedule, hidden_size, restore, save_checkpoints
 from population import ppo
 from population.config import Config
@@ -113,7 +113,7 @@ class SeedShard:
             jax.vmap(lambda s, k, b: ppo.restart_episodes(self.trainer, s, k, b), in_axes=(0, 0, None))
         )
         env = self.trainer.env
-        self._recipe_labels = ["+".join(map(str, r)) for r in env.layout.possible_recipes]
+        self._recipe_labels = recipe_labels(env.layout)  # the columns the run directory checks on resume
 
     def _own_pool(self, pool):
         """FCP per_seed: the pools of this shard's seeds (``pool`` holds one per learner of the run)."""

@@ -23,7 +23,7 @@ import numpy as np
 from cluster.runtime.crossplay import seat_pairs
 from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves, write_json
-from cluster.study.results import config_differences, read_result
+from cluster.study.results import config_differences, evaluation_problem, read_result
 from cluster.study.since import KEYS, since_extension
 from cluster.study.spec import PaperValue, Study, comparison_dir, run_dir
 from cluster.study.state import StepRecord, StudyState
@@ -145,6 +145,8 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
     summary_path = path / "xp" / "summary.json"
     if summary_path.is_file():
         xp, problem = read_result(summary_path, ("sp_mean", "xp_mean"))
+        if problem is None:  # e.g. redone by `ocv2 xp RUN --episodes N`: not the run's own numbers
+            problem = evaluation_problem(summary_path, xp, trained)
         if problem is not None:  # reported, and `ocv2 study run` evaluates the run again
             entry["problem"] = problem
             return entry

@@ -35,6 +35,22 @@ COMPARED_RUN_KEYS = ("run.precision", "run.deterministic", "eval.episodes")
 _NOT_COMPARED = ("population.fcp.partners",)
 
 
+def evaluation_problem(path: Path, summary: dict, config: Config) -> str | None:
+    """Why a run's cross-play ``summary`` (read from ``path``) is not the evaluation of the run's ``config``:
+    made with another number of episodes per pair (``ocv2 xp RUN_DIR --episodes N`` rewrites it in place) or of
+    another number of policies; None when it is. Every summary ocv2 has written carries both keys. Nothing else
+    varies: the in-run form plays every ordered pair (both seat orders) of the final policies at
+    ``run.precision``."""
+    made = (summary.get("episodes_per_pair"), summary.get("num_policies"))
+    asked = (config.eval.episodes, config.population.num_seeds)
+    if made == asked:
+        return None
+    return (
+        f"{path} was made with {made[0]} episodes per pair of {made[1]} policies, not the run's eval.episodes "
+        f"{asked[0]} of its {asked[1]} seeds (`ocv2 xp RUN_DIR --episodes N` rewrites it)"
+    )
+
+
 def compared_settings(config: Config) -> dict:
     """The dotted keys and values of ``config`` that ``config_differences`` compares."""
     every = config.flat()

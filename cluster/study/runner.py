@@ -35,7 +35,7 @@ from cluster.runtime.extend import extend_run, repoint_partners
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, extension_problem, write_json
 from cluster.study.report import write_report
-from cluster.study.results import compared_settings, config_differences, read_result
+from cluster.study.results import compared_settings, config_differences, evaluation_problem, read_result
 from cluster.study.spec import (
     Comparison,
     Study,
@@ -594,22 +594,6 @@ def run_problem(path: Path) -> str | None:
         return evaluation_problem(summary_path, summary, run.load_config())
     except RunDirError as error:
         return str(error)
-
-
-def evaluation_problem(path: Path, summary: dict, config: Config) -> str | None:
-    """Why a run's cross-play ``summary`` (read from ``path``) is not the evaluation of the run's ``config``:
-    made with another number of episodes per pair (``ocv2 xp RUN_DIR --episodes N`` rewrites it in place) or of
-    another number of policies; None when it is. Every summary ocv2 has written carries both keys. Nothing else
-    varies: the in-run form plays every ordered pair (both seat orders) of the final policies at
-    ``run.precision``."""
-    made = (summary.get("episodes_per_pair"), summary.get("num_policies"))
-    asked = (config.eval.episodes, config.population.num_seeds)
-    if made == asked:
-        return None
-    return (
-        f"{path} was made with {made[0]} episodes per pair of {made[1]} policies, not the run's eval.episodes "
-        f"{asked[0]} of its {asked[1]} seeds (`ocv2 xp RUN_DIR --episodes N` rewrites it)"
-    )
 
 
 def run_finished(path: Path) -> bool:
