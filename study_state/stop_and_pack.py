@@ -78,6 +78,11 @@ def stop(study: Path) -> None:
     for pid in running(study):
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
+    for _ in range(30):  # a killed process holds the study's lock until it is gone, and the pack would be refused
+        if not running(study):
+            return
+        time.sleep(1)
+    raise SystemExit(f"the study in {study} is still running after SIGKILL; nothing was packed")
 
 
 def check_before_stopping(study: Path, policies: Path | None, into: Path) -> tuple[str, Path]:
