@@ -516,7 +516,7 @@ def _pack_state(study_dir: Path, status: list[dict], returned: Path, studies: in
     state = returned / "state"
     if state.exists():
         return {study_dir.name: "not packed: another unfinished study took state/ (one per window)"}
-    # Only each seed's newest checkpoint (and the snapshots a later step of the study reads; the GPU studies have no
+    # Only the newest update every seed has (and the snapshots a later step of the study reads; the GPU studies have no
     # such step): the others travel as exported policies, and all of them would not fit (6 snapshots of 10 CNN seeds
     # are about 80 MB; 10 RNN seeds 42 MB each).
     record = pack_study(study_dir, state, latest_only=True)

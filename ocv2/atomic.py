@@ -142,7 +142,8 @@ def _staged_inside(path: Path, suffix: str, markers: Sequence[str]) -> Iterator[
             for item in group:
                 item.rename(path / item.name)
                 moved.append(path / item.name)
-            fsync_folder(path)  # the contents' entries on disk before any marker's: a power loss keeps that order
+            # The renames durable in this order; the files' bytes are not fsynced (a checksum, e.g. pack.json's, tells)
+            fsync_folder(path)
     except BaseException:  # Ctrl-C and SIGTERM too: the folder was empty, and must not look half filled
         for item in reversed(moved):  # the markers first
             _remove(item)

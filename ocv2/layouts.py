@@ -345,12 +345,20 @@ def _teams_beside(layout: Layout) -> list[list[frozenset[int]]]:
 
 
 def _is_integer(value) -> bool:
-    """A Python or numpy integer (not a bool, a float or a numeric string, which ``int()`` would coerce)."""
-    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+    """A Python or numpy integer, or a 0-d array of an integer dtype (a JAX scalar): not a bool, a float or a
+    numeric string, which ``int()`` would coerce."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, (int, np.integer)):
+        return True
+    return hasattr(value, "__array__") and np.ndim(value) == 0 and np.issubdtype(np.asarray(value).dtype, np.integer)
 
 
 def _is_sequence(value) -> bool:
-    return isinstance(value, (Sequence, np.ndarray)) and not isinstance(value, (str, bytes))
+    """A list, tuple or array (numpy's or JAX's) of at least one dimension; not a string."""
+    if isinstance(value, (str, bytes)):
+        return False
+    return isinstance(value, (Sequence, np.ndarray)) or (hasattr(value, "__array__") and np.ndim(value) >= 1)
 
 
 def _valid_cell_ids() -> str:

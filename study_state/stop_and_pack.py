@@ -26,6 +26,7 @@ import subprocess
 import time
 from pathlib import Path
 
+from cluster.runtime.rundir import DirLock
 from cluster.study.pack import pack_study
 from cluster.study.publish import publish_study, trained_runs
 from cluster.study.runner import check_folder
@@ -72,17 +73,23 @@ def stop(study: Path) -> None:
         with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
             os.kill(pid, signal.SIGTERM)
     for _ in range(600):
-        if not running(study):
+        if gone(study):
             return
         time.sleep(1)
     for pid in running(study):
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
-    for _ in range(30):  # a killed process holds the study's lock until it is gone, and the pack would be refused
-        if not running(study):
+    for _ in range(300):  # the pack is refused while the study's lock is held
+        if gone(study):
             return
-        time.sleep(1)
+        time.sleep(0.1)
     raise SystemExit(f"the study in {study} is still running after SIGKILL; nothing was packed")
+
+
+def gone(study: Path) -> bool:
+    """No process runs the study and none holds its lock: a killed process leaves /proc (its command line) a few
+    milliseconds before the kernel closes its files, which is what lets the lock go."""
+    return not running(study) and not DirLock(study).held_elsewhere()
 
 
 def check_before_stopping(study: Path, policies: Path | None, into: Path) -> tuple[str, Path]:
@@ -113,7 +120,7 @@ def main() -> None:
     except failures as error:
         raise SystemExit(f"{error}\nnothing was stopped, published or packed") from None
     stop(study)
-    # The pack first: it is what the next session continues from, and needs only each seed's newest checkpoint
+    # The pack first: it is what the next session continues from, and needs only the newest update every seed of a run has
     # (and the snapshots a later step reads, checked like it); a damaged older snapshot that no step reads must not
     # cost it (it stops only the publishing below).
     target, fresh, old = (args.into / f"{name}{suffix}" for suffix in ("", ".new", ".old"))

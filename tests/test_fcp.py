@@ -372,13 +372,18 @@ def test_a_resume_refuses_partners_whose_parameters_changed_and_records_a_pool_o
     assert finished["status"] == "finished" and finished["pool_sha256"] == recorded["pool_sha256"]
 
 
-def test_a_run_trained_to_the_end_is_evaluated_again_whatever_its_partners_became(per_seed_run, tmp_path, caplog):
+@pytest.mark.parametrize("status", ["finished", "training"])
+def test_a_run_trained_to_the_end_is_evaluated_again_whatever_its_partners_became(
+    per_seed_run, tmp_path, caplog, status
+):
     """A finished run resumed to evaluate it again (a study whose cross-play result went stale) uses its pool no
-    more: a changed partner run is said, not refused, and the record of the pool it trained with stays."""
+    more: a changed partner run is said, not refused, and the record of the pool it trained with stays. Also when
+    a kill left "training" at the last update (that evaluation sets it first)."""
     reference, _ = per_seed_run
     run = tmp_path / "finished"
     shutil.copytree(reference, run)
     recorded = RunDir(run).read_manifest()
+    RunDir(run).write_manifest({**recorded, "status": status})
     shutil.copy(ckpt.checkpoint_path(run / "partners", 1, NUM_UPDATES), ckpt.checkpoint_path(run / "partners", 0, 4))
     with caplog.at_level("WARNING", logger="cluster.runtime.coordinator"):
         coordinator.train(smoke(), run, LocalWorkers, resume=True, show_progress=False, evaluate=False)

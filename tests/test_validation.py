@@ -183,6 +183,16 @@ def test_a_layout_built_directly_is_checked_cell_by_cell(changes, error, match):
         ocv2.Layout(**_cramped(**changes))
 
 
+def test_a_layout_built_from_jax_integers_is_accepted_as_before():
+    """The checks refuse floats and strings, not array scalars and arrays of an integer dtype."""
+    import jax.numpy as jnp
+
+    layout = ocv2.Layout(**_cramped(agent_positions=jnp.array([[1, 1], [3, 1]]), num_ingredients=jnp.int32(1)))
+    assert layout.agent_positions == ((1, 1), (3, 1)) and layout.num_ingredients == 1
+    with pytest.raises(TypeError, match=r"num_ingredients must be an integer"):
+        ocv2.Layout(**_cramped(num_ingredients=jnp.float32(1)))
+
+
 def test_an_archived_layout_spec_is_checked_like_a_built_one():
     from cluster.archive.format import layout_from_spec, layout_spec
 

@@ -130,8 +130,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     pack.add_argument(
         "--latest-only",
         action="store_true",
-        help="each seed's newest checkpoint only (what resuming needs; publish the snapshots before with "
-        "`ocv2 study publish`)",
+        help="per run, only the newest update every seed has a checkpoint of (what resuming starts from; publish "
+        "the snapshots before with `ocv2 study publish`)",
     )
     unpack = commands.add_parser("unpack", help="a packed study back into a directory that `run` continues")
     unpack.add_argument("source", help="folder holding pack.json and its parts")

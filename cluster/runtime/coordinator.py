@@ -361,7 +361,10 @@ def pinned_pool(config: Config, run: RunDir, resuming: bool, labels: list, diges
     if change is None:
         return now
     where = f"population.fcp.partners: {partner_run_of(config, run)}"
-    if manifest.get("status") in TRAINED_STATES:
+    # Every update trained: also when a kill came between the last chunk and the "trained" status, or during a
+    # resume that only evaluates (which sets "training" first).
+    complete = manifest.get("status") in TRAINED_STATES or (manifest.get("update") or 0) >= config.ppo.num_updates
+    if complete:
         log.warning(
             f"{where}: {change} since this run trained against it; its training is complete, so only its "
             "evaluation runs, and the manifest keeps the pool it trained with"

@@ -128,9 +128,13 @@ class DirLock:
             except BaseException:
                 os.close(fd)
                 raise
-        os.ftruncate(fd, 0)
-        os.lseek(fd, 0, os.SEEK_SET)  # reading the holder's pid moved the offset
-        os.write(fd, f"{os.getpid()}\n".encode())
+        try:
+            os.ftruncate(fd, 0)
+            os.lseek(fd, 0, os.SEEK_SET)  # reading the holder's pid moved the offset
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except BaseException:  # e.g. a full disk: an open fd would keep the lock, and we would blame "another" process
+            os.close(fd)
+            raise
         self._fd = fd
 
     def release(self) -> None:
