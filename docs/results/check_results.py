@@ -55,6 +55,7 @@ from checks import (  # noqa: E402  (after the paths above)
     coord_ring_4_seeds,
     coord_ring_10_seeds,
     counter_circuit,
+    cramped_room,
     forced_coord,
     gpu_coord_ring,
     grounded_coord_simple,
@@ -78,6 +79,7 @@ CHECK_MODULES = (
     gpu_coord_ring,
     forced_coord,
     counter_circuit,
+    cramped_room,
     grounded_coord_simple,
     ten_seed_rows,
 )

@@ -8,7 +8,7 @@ import functools
 from pathlib import Path
 
 from .data import claim_row, paper, run, run_size, study_wall
-from .folders import CC10, CC10_6M, CC_SA10, CC_SA10_6M, FC10, FC_SA10, SA10, SP10
+from .folders import CC10, CC10_6M, CC_SA10, CC_SA10_6M, CRM10, FC10, FC_SA10, SA10, SP10
 from .registry import check
 from .ten_seed_studies import final_matrix, final_numbers, low_pair_numbers, low_pairs, paired_gap_difference
 
@@ -89,6 +89,7 @@ def register_run_rows() -> None:
         "cc_sa10": (CC_SA10, "sa"),
         "cc10_6m": (CC10_6M, "sp"),
         "cc_sa10_6m": (CC_SA10_6M, "sa"),
+        "crm10": (CRM10, "sp"),
     }
     for name, (study, method) in studies.items():
         check(f"run_{name}")(functools.partial(run_size, study, method))

@@ -1,0 +1,73 @@
+"""Checks of the 10-seed Cramped Room SP study at 3M (table1_cramped_room_sp10/): Table 1's control, a layout where
+the paper reports almost no gap."""
+
+from __future__ import annotations
+
+import csv
+import itertools
+
+import numpy as np
+
+from .data import both_seats, claim_row
+from .folders import CRM10
+from .registry import check
+from .ten_seed_studies import (
+    final_matrix,
+    final_numbers,
+    low_pair_numbers,
+    low_pairs,
+    paper_beside_intervals,
+    snapshot_env_steps,
+)
+
+
+@check("crm10_final")
+def _():
+    return final_numbers(CRM10, "sp")
+
+
+@check("crm10_within")
+def _():
+    return paper_beside_intervals(CRM10, "sp")
+
+
+@check("crm10_low_pairs")
+def _():
+    return low_pair_numbers(CRM10)
+
+
+def pair_ratios() -> list[tuple[int, int, float]]:
+    """Each pair's score (both seat orders) over the mean of its two seeds' self-play, lowest first."""
+    m = final_matrix(CRM10)
+    p = both_seats(m)
+    ratios = [(i, j, p[i, j] / ((m[i, i] + m[j, j]) / 2)) for i, j in itertools.combinations(range(len(m)), 2)]
+    return sorted(ratios, key=lambda r: r[2])
+
+
+@check("crm10_pairs")
+def _():
+    m = final_matrix(CRM10)
+    p = both_seats(m)
+    scores = [p[i, j] for i, j in itertools.combinations(range(len(m)), 2)]
+    lowest = pair_ratios()[0]
+    self_play = np.diag(m)
+    return [min(scores), max(scores), *lowest, float(self_play.min()), float(self_play.max())]
+
+
+@check("crm10_claim")
+def _():
+    return [*claim_row(CRM10, "sp"), len(low_pairs(CRM10)), 45]
+
+
+@check("crm10_curve")
+def _():
+    """The training return (sparse, mean over the 10 seeds) at the kept snapshots 122, 152 and 183, with their env
+    steps: still rising at the stop."""
+    with (CRM10 / "sp_metrics.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["sparse_return"]]
+    out = []
+    for update in (122, 152, 183):
+        returns = [float(r["sparse_return"]) for r in rows if int(r["update"]) == update]
+        assert len(returns) == 10, (update, len(returns))
+        out += [np.mean(returns), update, snapshot_env_steps(update, CRM10)]
+    return out
