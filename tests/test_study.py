@@ -628,6 +628,26 @@ def test_a_step_blocked_by_a_missing_human_proxy_exits_1_with_the_command_that_f
     assert state["steps"]["compare sp_vs_sa"]["status"] == "done"  # the other steps were not redone
 
 
+def test_a_comparison_against_a_human_proxy_trained_again_is_played_again(finished, tmp_path, monkeypatch):
+    """The result records which proxy it was played against; a proxy file holding another policy (``ocv2 human
+    proxy`` run again) makes it stale, as other runs or episodes do."""
+    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
+    proxy = tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy"
+    proxy.parent.mkdir(parents=True)
+    policy.export_checkpoint(finished / "runs" / "sp", proxy, seed=0, meta={"name": "human proxy"})
+    out = _copy(finished, tmp_path / "study")
+    data = {**STUDY, "comparisons": [{"name": "sp_vs_human", "runs": ["sp"], "human_proxy": True}]}
+    study = load_study(write_study(tmp_path / "tiny.yaml", data))
+    run_study(study, out, LOCAL, say=lambda line: None)
+    configs = plan_study(study, out, LOCAL).configs
+    step = Step("compare", "sp_vs_human")
+    assert result_problem(step, study, out, configs) is None
+    policy.export_checkpoint(finished / "runs" / "sp", proxy, seed=1, meta={"name": "human proxy"})
+    assert "played against another human proxy" in result_problem(step, study, out, configs)
+    proxy.unlink()  # gone: the result made against it stands (the step would be blocked, not redone)
+    assert result_problem(step, study, out, configs) is None
+
+
 def test_address_needs_the_ray_backend(tmp_path, capsys):
     path = write_study(tmp_path / "tiny.yaml", STUDY)
     command = [

@@ -524,6 +524,8 @@ def result_problem(step: Step, study: Study, out: Path, configs: dict) -> str | 
             kept = data.get("study_inputs")
             if kept is not None and kept != comparison_inputs(comparison, configs):
                 problem = f"{path} was made from other runs or episodes than the comparison has now"
+            elif comparison.human_proxy:
+                problem = _proxy_problem(path, data, configs[comparison.runs[0]])
         return problem
     if kind != "over_training":  # a new kind must say when its result counts as done, not pass as this one
         raise ValueError(f"result_problem: unknown study step kind {kind!r} (STEP_KINDS: {', '.join(STEP_KINDS)})")
@@ -546,6 +548,21 @@ def result_problem(step: Step, study: Study, out: Path, configs: dict) -> str | 
         if problem is not None:
             return problem
     return None
+
+
+def _proxy_problem(path: Path, data: dict, config: Config) -> str | None:
+    """Why a comparison's result against the human proxy is stale: the proxy file now holds another policy (it
+    was trained again). A result made before the proxy's id was recorded, or whose proxy is gone, stands."""
+    made = data.get("human_proxy_id")
+    if made is None:
+        return None
+    try:
+        now = crossplay.resolve_source(crossplay.HUMAN_PROXY + config.env_kwargs["layout"]).ids[0]
+    except crossplay.CrossPlayError:
+        return None
+    if now == made:
+        return None
+    return f"{path} was played against another human proxy than the one there now (it was trained again)"
 
 
 def comparison_inputs(comparison: Comparison, configs: dict) -> dict:
@@ -697,6 +714,8 @@ def _compare(plan: Plan, name: str, timer: StepTimer) -> dict:
     result = compare(groups, options, first.population.seed, first.eval.episodes, comparison.name, timer, precision)
     result.summary["study_inputs"] = comparison_inputs(comparison, configs)
     result.summary["precision"] = precision
+    if comparison.human_proxy:  # which proxy: retraining it (ocv2 human proxy) makes the result stale
+        result.summary["human_proxy_id"] = groups[-1].ids[0]
     folder = comparison_dir(out, comparison.name)
     crossplay.write_seat_fair_outputs(result.matrix, folder, result.summary, crossplay.policy_env(groups[0].env))
     return {}
