@@ -71,3 +71,23 @@ def _():
         assert len(returns) == 10, (update, len(returns))
         out += [np.mean(returns), update, snapshot_env_steps(update, CRM10)]
     return out
+
+
+@check("crm10_by_seed")
+def _():
+    """The seed all three lowest pairs (by score, both seat orders) hold, each pair's other seed and score, that
+    seed's self-play; how many seeds score more with themselves than with the others (each seed's gap: self-play
+    minus its mean with the 9 others, both seats), the largest such gap and its seed; seed 2's self-play beside its
+    mean with the others."""
+    m = final_matrix(CRM10)
+    p = both_seats(m)
+    lowest = sorted((p[i, j], i, j) for i, j in itertools.combinations(range(len(m)), 2))[:3]
+    (common,) = set.intersection(*({i, j} for _, i, j in lowest))
+    with_others = [np.mean([p[k, j] for j in range(len(m)) if j != k]) for k in range(len(m))]
+    gaps = [m[k, k] - with_others[k] for k in range(len(m))]
+    pairs = [x for score, i, j in lowest for x in (({i, j} - {common}).pop(), score)]
+    return [
+        common, *pairs, m[common, common],
+        sum(g > 0 for g in gaps), len(m), max(gaps), int(np.argmax(gaps)),
+        2, m[2, 2], with_others[2],
+    ]  # fmt: skip
