@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import both_seats, claim_row, interval, matrix, pairs, run, sp_xp
+from .data import both_seats, interval, matrix, pairs, run, sp_xp
 from .folders import SA10, SP10
 from .registry import check
 from .ten_seed_studies import (
     final_matrix,
-    final_numbers,
     low_pairs,
+    partner_means,
     roles_tables,
     snapshot_env_steps,
     sp_sa_low,
@@ -95,24 +95,9 @@ def seed_measures(update: int = 183, study: Path = SP10) -> dict:
     return {"cw": [r[0] for r in rows], "deliveries": [r[2][3][0] for r in rows], "pot": [r[3][0] for r in rows]}
 
 
-def partner_means(p: np.ndarray) -> list[float]:
-    """Per seed, its mean over every other seed of a both-seat-orders matrix ``p``."""
-    return [np.mean([p[k, j] for j in range(len(p)) if j != k]) for k in range(len(p))]
-
-
-@check("sp10_final")
-def _():
-    return final_numbers(SP10, "sp")
-
-
 @check("sp10_growth")
 def _():
     return [sp10_xp(92)[4], 92, sp10_xp(122)[4], 122, run(SP10, "sp")["xp"]["gap"], 183]
-
-
-@check("sp10_claim")
-def _():
-    return [*claim_row(SP10, "sp"), len(low_pairs()), 45]
 
 
 @check("sp10_cw183")

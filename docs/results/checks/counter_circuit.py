@@ -16,9 +16,7 @@ from .ten_seed_studies import (
     cell_count,
     failing_pairs,
     final_matrix,
-    final_numbers,
     gap_growth,
-    low_pair_numbers,
     low_pairs,
     pair_rows,
     paper_beside_intervals,
@@ -28,21 +26,6 @@ from .ten_seed_studies import (
 )
 
 # --- Table 1 Counter Circuit SP, 10 seeds at 3M env steps
-
-
-@check("cc10_final")
-def _():
-    return final_numbers(CC10, "sp")
-
-
-@check("cc10_within")
-def _():
-    return paper_beside_intervals(CC10, "sp")
-
-
-@check("cc10_low_pairs")
-def _():
-    return low_pair_numbers(CC10)
 
 
 def cc_roles(study: Path = CC10) -> tuple[list[list[str]], dict]:
@@ -173,11 +156,6 @@ def _():
     return out
 
 
-@check("cc10_claim")
-def _():
-    return [*claim_row(CC10, "sp"), len(low_pairs(CC10)), 45]
-
-
 @check("run_cc10_rate")
 def _():
     with (CC10 / "sp_metrics.csv").open() as f:
@@ -186,21 +164,6 @@ def _():
 
 
 # --- the same 10 SP seeds trained on to 6M (--extend), cross-played at 500 episodes per ordered pair
-
-
-@check("cc10_6m_final")
-def _():
-    return final_numbers(CC10_6M, "sp")
-
-
-@check("cc10_6m_within")
-def _():
-    return paper_beside_intervals(CC10_6M, "sp")
-
-
-@check("cc10_6m_low_pairs")
-def _():
-    return low_pair_numbers(CC10_6M)
 
 
 def since_3m(early: Path, late: Path, method: str) -> list:

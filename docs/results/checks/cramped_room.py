@@ -8,32 +8,10 @@ import itertools
 
 import numpy as np
 
-from .data import both_seats, claim_row
+from .data import both_seats
 from .folders import CRM10
 from .registry import check
-from .ten_seed_studies import (
-    final_matrix,
-    final_numbers,
-    low_pair_numbers,
-    low_pairs,
-    paper_beside_intervals,
-    snapshot_env_steps,
-)
-
-
-@check("crm10_final")
-def _():
-    return final_numbers(CRM10, "sp")
-
-
-@check("crm10_within")
-def _():
-    return paper_beside_intervals(CRM10, "sp")
-
-
-@check("crm10_low_pairs")
-def _():
-    return low_pair_numbers(CRM10)
+from .ten_seed_studies import final_matrix, partner_means, snapshot_env_steps
 
 
 def pair_ratios() -> list[tuple[int, int, float]]:
@@ -52,11 +30,6 @@ def _():
     lowest = pair_ratios()[0]
     self_play = np.diag(m)
     return [min(scores), max(scores), *lowest, float(self_play.min()), float(self_play.max())]
-
-
-@check("crm10_claim")
-def _():
-    return [*claim_row(CRM10, "sp"), len(low_pairs(CRM10)), 45]
 
 
 @check("crm10_curve")
@@ -83,7 +56,7 @@ def _():
     p = both_seats(m)
     lowest = sorted((p[i, j], i, j) for i, j in itertools.combinations(range(len(m)), 2))[:3]
     (common,) = set.intersection(*({i, j} for _, i, j in lowest))
-    with_others = [np.mean([p[k, j] for j in range(len(m)) if j != k]) for k in range(len(m))]
+    with_others = partner_means(p)
     gaps = [m[k, k] - with_others[k] for k in range(len(m))]
     pairs = [x for score, i, j in lowest for x in (({i, j} - {common}).pop(), score)]
     return [

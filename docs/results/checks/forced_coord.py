@@ -8,15 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import both_seats, claim_row, interval, md_tables, pairs, run, sp_xp
+from .data import both_seats, interval, md_tables, pairs, run, sp_xp
 from .folders import FC10, FC_SA10
 from .registry import L, check
 from .ten_seed_studies import (
     below_half,
     final_matrix,
-    final_numbers,
     gap_growth,
-    low_pair_numbers,
     low_pairs,
     sp_sa_low,
     sp_sa_mean,
@@ -49,16 +47,6 @@ def by_convention(m: np.ndarray, convention: list) -> tuple[list[float], list[fl
 def fc10_by_counter() -> tuple[list[float], list[float]]:
     """Both-seat-order scores of the 45 pairs: those whose seeds hand plates over on the same counter, the rest."""
     return by_convention(final_matrix(FC10), fc10_plate_counters())
-
-
-@check("fc10_final")
-def _():
-    return final_numbers(FC10, "sp")
-
-
-@check("fc10_low_pairs")
-def _():
-    return low_pair_numbers(FC10)
 
 
 @check("fc10_plates")
@@ -208,8 +196,3 @@ def _():
     on_21 = onions_on_21(FC_SA10)
     rest = [k for k in range(10) if k not in on_21]
     return [*on_21, len(rest), sp_xp(final_matrix(FC_SA10, "sa"), rest)[2], run(FC10, "sp")["xp"]["gap"]]
-
-
-@check("fc10_claim")
-def _():
-    return [*claim_row(FC10, "sp"), len(low_pairs(FC10)), 45]

@@ -1,4 +1,5 @@
-"""Checks that every 10-seed study has, registered by a loop rather than written out: each SA study's rows beside its
+"""Checks that every 10-seed study has, registered by a loop rather than written out: each SP study's headline rows
+(``<name>_final``, ``_within``, ``_low_pairs``, ``_claim``), each SA study's rows beside its
 SP seeds (``<name>_final``, ``_delta``, ``_paired``, ``_low_pairs``, ``_claim``) and the runs table's size and
 wall-time cells (``run_<name>``, ``run_<name>_wall``)."""
 
@@ -10,7 +11,14 @@ from pathlib import Path
 from .data import claim_row, paper, run, run_size, study_wall
 from .folders import CC10, CC10_6M, CC_SA10, CC_SA10_6M, CRM10, FC10, FC_SA10, SA10, SP10
 from .registry import check
-from .ten_seed_studies import final_matrix, final_numbers, low_pair_numbers, low_pairs, paired_gap_difference
+from .ten_seed_studies import (
+    final_matrix,
+    final_numbers,
+    low_pair_numbers,
+    low_pairs,
+    paired_gap_difference,
+    paper_beside_intervals,
+)
 
 # --- what every 10-seed SA study beside its 10 SP seeds at the same budget reports
 
@@ -75,6 +83,40 @@ def register_sa_beside_sp() -> None:
 
 
 register_sa_beside_sp()
+
+# --- what every 10-seed SP study reports at its stop
+
+
+def sp_claim(study: Path) -> list:
+    """The claims table's row: the headline (``claim_row``) and the failing pairs of 45."""
+    return [*claim_row(study, "sp"), len(low_pairs(study)), 45]
+
+
+SP_ROWS = {
+    "final": lambda study: final_numbers(study, "sp"),
+    "within": lambda study: paper_beside_intervals(study, "sp"),
+    "low_pairs": low_pair_numbers,
+    "claim": sp_claim,
+}
+
+
+def register_sp_rows() -> None:
+    """``<name>_final``, ``_within``, ``_low_pairs`` and ``_claim`` of each 10-seed SP study, those its sections
+    state (Coordination Ring's failing pairs are worded with their counts by convention: sp10_low_pairs; the 6M
+    Counter Circuit claim names both budgets: cc10_6m_claim)."""
+    studies = {
+        "sp10": (SP10, ("final", "claim")),
+        "fc10": (FC10, ("final", "low_pairs", "claim")),
+        "cc10": (CC10, tuple(SP_ROWS)),
+        "cc10_6m": (CC10_6M, ("final", "within", "low_pairs")),
+        "crm10": (CRM10, tuple(SP_ROWS)),
+    }
+    for name, (study, kinds) in studies.items():
+        for kind in kinds:
+            check(f"{name}_{kind}")(functools.partial(SP_ROWS[kind], study))
+
+
+register_sp_rows()
 
 
 def register_run_rows() -> None:

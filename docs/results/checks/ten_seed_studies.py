@@ -44,6 +44,11 @@ def final_matrix(study: Path = SP10, method: str = "sp") -> np.ndarray:
     return matrix(study / f"xp_{method}.csv")
 
 
+def partner_means(p: np.ndarray) -> list[float]:
+    """Per seed, its mean over every other seed of a both-seat-orders matrix ``p``."""
+    return [np.mean([p[k, j] for j in range(len(p)) if j != k]) for k in range(len(p))]
+
+
 def low_pairs(study: Path = SP10, method: str = "sp") -> list[tuple[int, int, float]]:
     """A study's final matrix's failing pairs (``failing_pairs``)."""
     return failing_pairs(final_matrix(study, method))
