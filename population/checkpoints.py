@@ -122,6 +122,12 @@ def list_updates(run_dir, seed: int) -> list[int]:
     return sorted(int(m.group(1)) for m in found if m)
 
 
+def list_seeds(run_dir) -> list[int]:
+    """Seed numbers that have a checkpoint folder (``seed_dir``), ascending."""
+    names = (folder.name.removeprefix("seed_") for folder in (Path(run_dir) / "checkpoints").glob("seed_*"))
+    return sorted(int(name) for name in names if name.isdigit())
+
+
 def update_of(path) -> int | None:
     """The update of checkpoint file ``path`` (``.../checkpoints/seed_<i>/update_<n>.msgpack``), else None."""
     path = Path(path)

@@ -124,7 +124,15 @@ def resume_updates(run_dir, seeds) -> list[int]:
     or pack missing some seeds' files) raise ``CheckpointError`` naming each seed's updates: starting again
     would prune their checkpoints and cut metrics.csv back, and no common update means none is safe to resume.
     """
-    found = {seed: ckpt.list_updates(run_dir, seed) for seed in seeds}
+    return _common_updates(run_dir, _seed_updates(run_dir, seeds))
+
+
+def _seed_updates(run_dir, seeds) -> dict[int, list[int]]:
+    return {seed: ckpt.list_updates(run_dir, seed) for seed in seeds}
+
+
+def _common_updates(run_dir, found: dict[int, list[int]]) -> list[int]:
+    """``resume_updates`` of the seeds' listed checkpoints ``found``."""
     common = set.intersection(*map(set, found.values())) if found else set()
     if not common and any(update > 0 for updates in found.values() for update in updates):
         listed = "; ".join(f"seed {seed}: {', '.join(map(str, updates)) or 'none'}" for seed, updates in found.items())
@@ -136,10 +144,10 @@ def resume_updates(run_dir, seeds) -> list[int]:
     return sorted(common, reverse=True)
 
 
-def _note_seeds_ahead(run_dir, seeds, update: int) -> None:
-    """Say so when some seeds have checkpoints past ``update``, the newest they all have (a save cut short)."""
-    ahead = {seed: ckpt.list_updates(run_dir, seed)[-1] for seed in seeds}
-    ahead = {seed: newest for seed, newest in ahead.items() if newest > update}
+def _note_seeds_ahead(run_dir, found: dict[int, list[int]], update: int) -> None:
+    """Say so when some seeds (``found``: their checkpoints' updates) have checkpoints past ``update``, the newest
+    they all have (a save cut short)."""
+    ahead = {seed: updates[-1] for seed, updates in found.items() if updates[-1] > update}
     if ahead:
         listed = ", ".join(f"seed {seed} at {newest}" for seed, newest in ahead.items())
         log.warning(
@@ -148,7 +156,7 @@ def _note_seeds_ahead(run_dir, seeds, update: int) -> None:
             Path(run_dir) / "checkpoints",
             listed,
             update,
-            list(seeds),
+            list(found),
         )
 
 
@@ -159,10 +167,11 @@ def restore(trainer: ppo.Trainer, run_dir, config: Config, seeds, pool_size: int
     A damaged checkpoint (truncated, checksum mismatch) falls back to the previous common update, with
     a message; the updates after it are trained again (same numbers: training is deterministic).
     """
-    common = resume_updates(run_dir, seeds)
+    found = _seed_updates(run_dir, seeds)
+    common = _common_updates(run_dir, found)
     if not common:
         return None
-    _note_seeds_ahead(run_dir, seeds, common[0])
+    _note_seeds_ahead(run_dir, found, common[0])
     template = state_template(trainer, pool_size)
 
     def at(update):

@@ -74,8 +74,7 @@ def _resume_update(checkpoints: Path) -> int | None:
     newest files held no update every seed had, which resumed from update 0, pruning and cutting metrics.csv back.
     The ahead seeds' newer files are left out: a resume trains those updates again, to the same numbers. None when
     no seed is past update 0 (every checkpoint kept: they are the update-0 ones)."""
-    seeds = [int(name) for name in (d.name.removeprefix("seed_") for d in checkpoints.glob("seed_*")) if name.isdigit()]
-    common = resume_updates(checkpoints.parent, sorted(seeds))
+    common = resume_updates(checkpoints.parent, ckpt.list_seeds(checkpoints.parent))
     return common[0] if common else None
 
 
