@@ -400,8 +400,7 @@ class RunDir:
                 f"before the last (ocv2 rewrites this file whole), and rows before the last chunk cannot be rebuilt "
                 f"from the checkpoints: {_RESTORE}"
             )
-        for number, why in found.torn:
-            _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped{why}")
+        self._warn_torn(found)
         return found
 
     def restart_metrics(self, fields: list[str], rows: list[dict]) -> None:
@@ -419,11 +418,14 @@ class RunDir:
     def read_metrics(self) -> list[dict]:
         """The complete rows of ``metrics.csv``; a torn or damaged row is skipped with a warning."""
         found = self._read_metrics()
-        for number, why in found.torn:
-            _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped{why}")
+        self._warn_torn(found)
         for number, text in found.damaged:
             _warn(f"{self.metrics_path}: the file is damaged: {_damaged_line(number, text)}; dropped")
         return found.rows
+
+    def _warn_torn(self, found: MetricsFile) -> None:
+        for number, why in found.torn:
+            _warn(f"{self.metrics_path}: line {number} is incomplete (an interrupted write); dropped{why}")
 
     def _read_metrics(self) -> MetricsFile:
         """``metrics.csv`` as it is, sorted into complete rows, a torn last row and damaged rows; says nothing.
