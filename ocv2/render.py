@@ -380,14 +380,17 @@ def _check_grid_fits(grid, layout: Layout | None) -> None:
         )
 
 
+def _whole(value, low: int) -> bool:
+    """A Python or numpy integer (not a bool) of at least ``low``."""
+    return not isinstance(value, bool) and isinstance(value, (int, np.integer)) and value >= low
+
+
 def _check_options(agent_view_size, tile_size, subdivs):
-    if isinstance(tile_size, bool) or not isinstance(tile_size, (int, np.integer)) or tile_size < 1:
+    if not _whole(tile_size, 1):
         raise ValueError(f"tile_size must be a positive integer (pixels per cell), got {tile_size!r}")
-    if isinstance(subdivs, bool) or not isinstance(subdivs, (int, np.integer)) or subdivs < 1:
+    if not _whole(subdivs, 1):
         raise ValueError(f"subdivs must be a positive integer (supersampling factor), got {subdivs!r}")
-    if agent_view_size is not None and (
-        isinstance(agent_view_size, bool) or not isinstance(agent_view_size, (int, np.integer)) or agent_view_size < 0
-    ):
+    if agent_view_size is not None and not _whole(agent_view_size, 0):
         raise ValueError(f"agent_view_size must be None or a non-negative integer, got {agent_view_size!r}")
 
 
@@ -449,7 +452,7 @@ def render_frames(
             f"render_frames expects states with one leading (time) axis, got grid shape {tuple(states.grid.shape)}"
         )
     _check_options(agent_view_size, tile_size, DEFAULT_SUBDIVS)
-    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+    if not _whole(batch_size, 1):
         raise ValueError(f"batch_size must be a positive integer (frames drawn at once), got {batch_size!r}")
     layout = None if layout_or_none is None else get_layout(layout_or_none)
     _check_grid_fits(states.grid, layout)
@@ -507,7 +510,7 @@ def rollout_states(env, key: jax.Array, steps: int, policy: Callable | None = No
         steps: number of transitions (>= 0).
         policy: ``policy(key, state) -> int32[N]`` actions; default uniformly random actions.
     """
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
+    if not _whole(steps, 0):
         raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
     num_agents = env.num_agents
 
