@@ -87,10 +87,13 @@ class RunSpec:
     #: Where each override came from, as errors name it ("set", "run 'sp'.set", "--set"); () for all "--set".
     sources: tuple[str, ...] = ()
 
+    def source_labels(self) -> tuple[str, ...]:
+        """Each override's source, in order (a RunSpec made without ``sources``: every one "--set")."""
+        return self.sources or ("--set",) * len(self.overrides)
+
     def override_sources(self) -> dict[str, str]:
         """Each override's source; an override given twice goes by the later one, which wins."""
-        sources = self.sources or ("--set",) * len(self.overrides)
-        return dict(zip(self.overrides, sources, strict=True))
+        return dict(zip(self.overrides, self.source_labels(), strict=True))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -332,7 +335,7 @@ def with_overrides(study: Study, overrides: Sequence[str]) -> Study:
         dataclasses.replace(
             r,
             overrides=(*r.overrides, *overrides),
-            sources=(*(r.sources or ("--set",) * len(r.overrides)), *("--set",) * len(overrides)),
+            sources=(*r.source_labels(), *("--set",) * len(overrides)),
         )
         for r in study.runs
     )
