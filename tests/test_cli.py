@@ -424,13 +424,17 @@ def test_train_and_study_start_ray_once_before_any_work(monkeypatch, tmp_path, c
 def test_a_dead_worker_in_a_study_says_to_rerun_the_study_not_ocv2_train(monkeypatch, tmp_path, capsys):
     """A study's run trains with the study's budget and overrides: `ocv2 train CONFIG --resume` would not match its
     fingerprint, so the study command names itself as the way to continue."""
+    import pickle
+
     import cluster.cli.study as study_cli
     from cluster.runtime.ray_backend import TRAIN_RESUME_HINT, RayBackendError
 
+    error = RayBackendError("worker for seeds [0] died and cannot be restarted. Its checkpoints ...", resumable=True)
+    assert str(error).endswith(f"; {TRAIN_RESUME_HINT}")  # what `ocv2 train` prints
+    assert str(pickle.loads(pickle.dumps(error))) == str(error)  # as Ray sends it between processes
+
     def dead_worker(*args, **kwargs):
-        raise RayBackendError(
-            f"worker for seeds [0] died and cannot be restarted. Its checkpoints ...; {TRAIN_RESUME_HINT}"
-        )
+        raise error
 
     monkeypatch.setattr(study_cli, "run_study", dead_worker)
     study = Path(__file__).resolve().parents[1] / "configs" / "studies" / "table1_coord_ring.yaml"

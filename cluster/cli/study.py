@@ -24,7 +24,7 @@ from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime import ray_backend
 from cluster.runtime.loggers import MissingExtraError
 from cluster.runtime.progress import duration
-from cluster.runtime.ray_backend import TRAIN_RESUME_HINT, RayBackendError
+from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
 from cluster.study.publish import publish_study
@@ -195,8 +195,10 @@ def _run(args) -> int:
         # One Ray for every run and comparison, started before the driver runs JAX (ray_backend.session)
         with ray_backend.session(args.backend, ClusterConfig(address=args.address)):
             state = run_study(study, out, options, say=say)
-    except (StudyError, RunDirError, CheckpointError, ArchiveError, RayBackendError, MissingExtraError) as error:
-        raise CLIError(str(error).replace(TRAIN_RESUME_HINT, STUDY_RESUME_HINT)) from None
+    except RayBackendError as error:
+        raise CLIError(error.with_hint(STUDY_RESUME_HINT)) from None
+    except (StudyError, RunDirError, CheckpointError, ArchiveError, MissingExtraError) as error:
+        raise CLIError(str(error)) from None
     blocked = {name: step for name, step in state.steps.items() if not step.done}
     print(f"report: {state.report['report']}")
     if blocked:

@@ -47,13 +47,28 @@ RESTART_TIMEOUT_S = 600.0  # how long a restarting actor may take to answer agai
 log = logging.getLogger(__name__)
 
 
-class RayBackendError(RuntimeError):
-    """Ray cannot run this population as asked (unreachable address, impossible resources, dead worker)."""
-
-
 #: How a run a dead worker stopped is continued; ``ocv2 study run`` says "the same study command" instead, since
 #: a study's runs train with its budget and overrides, which ``ocv2 train CONFIG`` alone would not match.
 TRAIN_RESUME_HINT = "continue with `ocv2 train CONFIG --out RUN_DIR --resume`"
+
+
+class RayBackendError(RuntimeError):
+    """Ray cannot run this population as asked (unreachable address, impossible resources, dead worker).
+
+    A run that stopped with its checkpoints saved carries ``resumable=True``: its message ends with how to continue
+    it (``TRAIN_RESUME_HINT``), and a caller that continues runs another way says so with ``with_hint``. The flag
+    is one of the exception's args, so it survives pickling (Ray sends exceptions between processes)."""
+
+    def __init__(self, message: str, resumable: bool = False):
+        super().__init__(message, resumable)
+        self.message, self.resumable = message, resumable
+
+    def with_hint(self, hint: str) -> str:
+        """The message, ending with ``hint`` in place of ``TRAIN_RESUME_HINT`` when the run can be continued."""
+        return f"{self.message}; {hint}" if self.resumable else self.message
+
+    def __str__(self) -> str:
+        return self.with_hint(TRAIN_RESUME_HINT)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -395,12 +410,14 @@ class RayWorkers:
                 raise RayBackendError(
                     f"worker for seeds {self.shards[shard]} died and cannot be restarted (cluster.max_restarts="
                     f"{self.config.cluster.max_restarts} used up, or no node can host it): {error}. Its checkpoints "
-                    f"are in the run directory; {TRAIN_RESUME_HINT}"
+                    f"are in the run directory",
+                    resumable=True,
                 ) from None
         raise RayBackendError(
             f"worker for seeds {self.shards[shard]} did not come back within "
             f"{RESTART_TIMEOUT_S:.0f} s after it died ({cause}). Its checkpoints are in the run "
-            f"directory; {TRAIN_RESUME_HINT}"
+            f"directory",
+            resumable=True,
         )
 
     def close(self) -> None:
