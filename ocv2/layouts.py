@@ -114,6 +114,15 @@ class Layout:
         object.__setattr__(self, "possible_recipes", _validate_recipes(recipes, grid, self.num_ingredients, self.name))
         self._validate_agents(grid, positions)
 
+    def first_difference(self, static_layers) -> tuple[int, ...] | None:
+        """Where concrete static layers ([..., H, W], any leading axes) first differ from this kitchen's map: the
+        index (leading indices, then row and column), or None when every layer is this kitchen's. Used to refuse a
+        state of another kitchen (reset's state buffers, the renderer) with the cell that tells them apart."""
+        differs = np.asarray(static_layers) != self.static_objects
+        if not differs.any():
+            return None
+        return tuple(int(i) for i in np.argwhere(differs)[0])
+
     def _validate_agents(self, grid: np.ndarray, positions):
         height, width = grid.shape
         if not positions:

@@ -369,9 +369,8 @@ def _check_grid_fits(grid, layout: Layout | None) -> None:
     if isinstance(grid, jax.core.Tracer):
         return
     static = np.asarray(grid)[..., 0]
-    differs = static != np.asarray(layout.static_objects)
-    if differs.any():
-        where = tuple(int(i) for i in np.argwhere(differs)[0])
+    where = layout.first_difference(static)
+    if where is not None:
         frame = f"frame {', '.join(map(str, where[:-2]))} " if len(where) > 2 else ""
         row, column = where[-2:]
         raise ValueError(

@@ -278,7 +278,7 @@ def _check_contents(config: EnvConfig, batch: State, where) -> None:
     layout = config.layout
     static = np.asarray(layout.static_objects)
     if not _is_traced(batch.grid):
-        _check_kitchen(np.asarray(batch.grid)[..., 0], static, layout.name, where)
+        _check_kitchen(np.asarray(batch.grid)[..., 0], layout, where)
     if not (_is_traced(batch.agents.x) or _is_traced(batch.agents.y)):
         _check_agent_cells(np.asarray(batch.agents.x), np.asarray(batch.agents.y), static, where)
     if not _is_traced(batch.agents.dir):
@@ -287,13 +287,13 @@ def _check_contents(config: EnvConfig, batch: State, where) -> None:
         _check_recipes(np.asarray(batch.recipe), layout, where)
 
 
-def _check_kitchen(grid_static: np.ndarray, static: np.ndarray, name: str, where) -> None:
-    differs = grid_static != static[None]
-    if differs.any():
-        index, row, column = (int(v) for v in np.argwhere(differs)[0])
+def _check_kitchen(grid_static: np.ndarray, layout, where) -> None:
+    difference = layout.first_difference(grid_static)
+    if difference is not None:
+        index, row, column = difference
         raise ValueError(
-            f"{where(index)} has a different kitchen than layout {name!r} (grid static cell at row {row}, "
-            f"column {column} is {grid_static[index, row, column]}, the layout's is {static[row, column]})"
+            f"{where(index)} has a different kitchen than layout {layout.name!r} (grid static cell at row {row}, "
+            f"column {column} is {grid_static[index, row, column]}, the layout's is {layout.static_objects[row, column]})"
         )
 
 
