@@ -40,6 +40,7 @@ from flax import serialization
 import ocv2
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
+from ocv2.config import build_config
 from population import checkpoints as ckpt
 from population.config import Config, ConfigError, ModelConfig, load_run_config, parse_config
 from population.networks import init_params, make_network
@@ -314,9 +315,32 @@ def _from_checkpoint(config: Config, path: Path, run_dir: Path, seed: int) -> Po
 # ---------------------------------------------------------------------------------------------------
 
 
+def env_settings(env: Mapping) -> dict:
+    """Every setting of the environment ``env`` (``ocv2.make`` kwargs) asks for, defaults written out: a run
+    config that leaves ``max_steps`` out and one that writes 400 ask for the same game, and compare equal here.
+    Settings ``ocv2.make`` would refuse are returned as given (they then differ from any valid ones)."""
+    try:
+        config = build_config(**dict(env))
+    except (TypeError, ValueError):
+        return dict(env)
+    settings = {"layout": config.layout.name}
+    for field in dataclasses.fields(config):
+        if field.name != "layout":
+            value = getattr(config, field.name)
+            settings[field.name] = list(value) if isinstance(value, tuple) else value
+    return settings
+
+
+def same_env(env: Mapping, reference: Mapping) -> bool:
+    """Whether two environment settings (``Policy.env``, ``Config.env_kwargs``) make the same game."""
+    return env_settings(env) == env_settings(reference)
+
+
 def env_difference(env: Mapping, reference: Mapping) -> str:
     """How two policies' environment settings (``Policy.env``) differ, for an error message: "differs in KEYS:
-    <env's value> vs <reference's value>" of the first differing key; "" when they are the same."""
+    <env's value> vs <reference's value>" of the first differing key, defaults written out; "" when they make the
+    same game."""
+    env, reference = env_settings(env), env_settings(reference)
     keys = sorted(k for k in set(env) | set(reference) if env.get(k) != reference.get(k))
     return f"differs in {', '.join(keys)}: {env.get(keys[0])!r} vs {reference.get(keys[0])!r}" if keys else ""
 

@@ -21,7 +21,7 @@ from pathlib import Path
 from ocv2.atomic import atomic_write
 from population import checkpoints as ckpt
 from population.config import load_run_config
-from population.policy import SUFFIX, Policy, PolicyError, env_difference, export_checkpoint, load
+from population.policy import SUFFIX, Policy, PolicyError, env_difference, export_checkpoint, load, same_env
 
 SUMS = "SHA256SUMS.json"
 #: Which checkpoints ``publish_run`` exports: the kept snapshots (run.num_checkpoints), only each seed's last
@@ -225,11 +225,11 @@ def load_population(folder, files: Iterable[str | Path], layout: str | None = No
             f"{folder / Path(files[0]).name}: plays layout {first.env.get('layout')!r}; this reads {layout} only"
         )
     for name, policy in zip(files, policies, strict=True):
-        for what, mine, theirs in (
-            ("environment", policy.env, first.env),
-            ("network", (policy.model, policy.activation), (first.model, first.activation)),
+        for what, same, mine, theirs in (
+            ("environment", same_env(policy.env, first.env), policy.env, first.env),
+            ("network", (policy.model, policy.activation) == (first.model, first.activation), None, None),
         ):
-            if mine != theirs:
+            if not same:
                 differ = f" ({env_difference(mine, theirs)})" if what == "environment" else ""
                 raise PolicyError(
                     f"{folder / Path(name).name}: plays another {what} than {Path(files[0]).name}{differ}"

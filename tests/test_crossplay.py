@@ -327,6 +327,24 @@ def test_sources_of_different_environments_are_refused(run, tmp_path):
     assert main(["xp", str(run), "--greedy", "--backend", "ray"]) == 2  # options of --rows are not ignored
 
 
+def test_settings_written_out_at_their_defaults_are_the_same_environment(run, tmp_path):
+    """A run config that leaves max_steps (or negative_rewards) out and one that writes the default ask for the
+    same game: cross-play, render and the published-folder check compare the settings with defaults written out."""
+    seed_0 = pol.load(run)
+    env = {k: v for k, v in seed_0.env.items() if k != "max_steps"}
+    written = {**env, "max_steps": 400, "negative_rewards": False}
+    assert pol.same_env(env, written) and pol.env_difference(env, written) == ""
+    assert pol.env_difference(env, {**written, "max_steps": 40}) == "differs in max_steps: 400 vs 40"
+    assert not pol.same_env(env, {**env, "layout": "coord_ring"})
+    left_out = pol.export(tmp_path / "left_out.ocv2policy", params=seed_0.params, model=seed_0.model, env=env)
+    spelled = pol.export(tmp_path / "spelled.ocv2policy", params=seed_0.params, model=seed_0.model, env=written)
+    groups = [crossplay.resolve_source(str(left_out)), crossplay.resolve_source(str(spelled))]
+    assert crossplay.check_same_env(groups) == env
+    gif = tmp_path / "pair.gif"
+    assert main(["render", "--seats", str(left_out), str(spelled), "--out", str(gif), "--steps", "3"]) == 0
+    assert gif.exists()
+
+
 def test_human_proxy_columns_resolve_through_population_human(run, tmp_path, monkeypatch):
     with pytest.raises(
         crossplay.CrossPlayError, match="human-proxy:overcookedv2_demo: layout 'overcookedv2_demo' has no human data"

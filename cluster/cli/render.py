@@ -113,7 +113,7 @@ def _load_seat(flag: str, source: str) -> policies.Policy:
 def _shared_env(seats: list, layout: str | None) -> ocv2.OvercookedV2:
     """The environment both seats were trained in; a CLIError when they differ or LAYOUT is another."""
     first, second = seats
-    if first.env != second.env:
+    if not policies.same_env(first.env, second.env):
         raise CLIError(
             f"--seats: {second.source} plays another environment than {first.source} "
             f"({policies.env_difference(second.env, first.env)})"

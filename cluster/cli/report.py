@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import json
 import math
 import sys
 from pathlib import Path
@@ -37,6 +38,7 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write, staged_folder
 from population.config import METHOD_TABLE, METHODS
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
+from population.policy import env_settings
 from population.xp import summary_difference
 
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
@@ -184,7 +186,9 @@ def report_rows(runs: list[dict]) -> list[dict]:
     """One row per run, grouped by environment (same layout and env section), SP first; deltas vs SP."""
     groups: dict = {}
     for run in runs:
-        groups.setdefault(run["config"].env, []).append(run)
+        # by the game each asks for, defaults written out (max_steps left out is max_steps: 400)
+        game = json.dumps(env_settings(run["config"].env_kwargs), sort_keys=True)
+        groups.setdefault(game, []).append(run)
     rows = []
     for members in groups.values():
         members = sorted(members, key=lambda r: METHODS.index(r["config"].population.method))

@@ -43,6 +43,7 @@ from population.config import shards as seed_shards
 from population.evaluation import stack_params
 from population.networks import same_function
 from population.numerics import matmul_precision
+from population.policy import same_env
 from population.published import sha256_of
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
 
@@ -178,7 +179,9 @@ def checked_partner_config(config: Config, partner_run) -> Config:
         partner_config = RunDir.existing(partner_run).load_config()
     except RunDirError as error:
         raise RunDirError(f"population.fcp.partners: {error}") from None
-    if partner_config.env != config.env or same_function(partner_config.model) != same_function(config.model):
+    if not same_env(partner_config.env_kwargs, config.env_kwargs) or same_function(
+        partner_config.model
+    ) != same_function(config.model):
         raise RunDirError(
             f"population.fcp.partners: {partner_run} was trained with a different env or model "
             "section; FCP partners must play the same game with the same network"

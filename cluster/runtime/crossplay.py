@@ -42,7 +42,7 @@ from population.keys import derive_key
 from population.networks import same_function
 from population.numerics import DEFAULT_PRECISION, matmul_precision
 from population.plots import xp_heatmap
-from population.policy import PolicyError, env_difference, hidden_size_of, load, network, policy_env
+from population.policy import PolicyError, env_difference, hidden_size_of, load, network, policy_env, same_env
 from population.xp import Side, block_summary, cross_play, recipe_names
 
 HUMAN_PROXY = "human-proxy:"
@@ -159,7 +159,7 @@ def check_same_env(groups) -> dict:
     """All policies must play the same environment; returns its ``ocv2.make`` kwargs."""
     first = groups[0]
     for group in groups[1:]:
-        if group.env != first.env:
+        if not same_env(group.env, first.env):
             raise CrossPlayError(
                 f"{group.label} plays another environment than {first.label} ({env_difference(group.env, first.env)})"
             )

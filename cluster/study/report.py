@@ -31,6 +31,7 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.config import METHOD_TABLE
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
+from population.policy import same_env
 from population.xp import summary_difference
 
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
@@ -180,9 +181,14 @@ def _against_sp(study: Study, out: Path, configs: dict, runs: list[dict]) -> lis
 
     out_entries = []
     for spec in filter(usable, study.runs):
-        env = configs[spec.name].env
+        env = configs[spec.name].env_kwargs
         base = next(
-            (r for r in study.runs if configs[r.name].population.method == "sp" and configs[r.name].env == env), None
+            (
+                r
+                for r in study.runs
+                if configs[r.name].population.method == "sp" and same_env(configs[r.name].env_kwargs, env)
+            ),
+            None,
         )
         if base is None or base is spec:
             continue
