@@ -26,6 +26,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import operator
+import os
 import re
 import warnings
 from collections.abc import Mapping
@@ -165,7 +167,10 @@ def load(source, *, seed: int | None = None, checkpoint: str | int = "final") ->
     ``seed`` (run directory only; default 0) and ``checkpoint`` ("final", "mid", "init", "latest" or an
     update number; run or seed directory) pick the checkpoint. Bad input raises ``PolicyError``.
     """
+    if not isinstance(source, str | os.PathLike):
+        raise PolicyError(f"source must be a path (a str or os.PathLike), got {type(source).__name__}")
     path = Path(source)
+    seed = _checked_seed(path, seed)
     if path.is_file():
         if seed is not None or str(checkpoint) != "final":
             raise PolicyError(f"{path}: is one policy; seed and checkpoint choices apply to a run or seed directory")
@@ -180,6 +185,19 @@ def load(source, *, seed: int | None = None, checkpoint: str | int = "final") ->
             return _load_from_run(path.parent.parent, int(match.group(1)), checkpoint)
         raise PolicyError(f"{path}: not a run directory (no config.yaml) nor a run's checkpoints/seed_<i> directory")
     raise PolicyError(f"{path}: no such file or directory")
+
+
+def _checked_seed(path: Path, seed) -> int | None:
+    """``seed`` as an int (None stays None); ``PolicyError`` for a bool, a float or a string, which would otherwise
+    look for checkpoints/seed_True or seed_1.5, or fail comparing a string with the run's seed count."""
+    if seed is None:
+        return None
+    try:
+        if isinstance(seed, bool):
+            raise TypeError
+        return operator.index(seed)
+    except TypeError:
+        raise PolicyError(f"{path}: seed {seed!r} must be an int, not a {type(seed).__name__}") from None
 
 
 def _load_file(path: Path) -> Policy:

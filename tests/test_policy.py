@@ -141,6 +141,20 @@ def test_bad_sources_are_one_line_errors(run, tmp_path):
     assert not (tmp_path / "x.ocv2policy").exists()
 
 
+@pytest.mark.parametrize("seed", ["1", True, 1.5])
+def test_a_seed_that_is_not_an_int_is_a_one_line_error(run, seed):
+    for source in (run, run / "checkpoints" / "seed_1"):
+        with pytest.raises(pol.PolicyError, match=f"seed {seed!r} must be an int, not a {type(seed).__name__}"):
+            pol.load(source, seed=seed)
+    assert pol.load(run, seed=np.int64(1)).meta["seed"] == 1  # any integer type is a seed
+
+
+@pytest.mark.parametrize("source", [None, b"run", 3])
+def test_a_source_that_is_not_a_path_is_a_one_line_error(source):
+    with pytest.raises(pol.PolicyError, match=f"source must be a path .*, got {type(source).__name__}$"):
+        pol.load(source)
+
+
 def test_the_environment_package_does_not_alias_the_policy_api():
     """``ocv2.policy`` was an alias reaching up into population/; it is gone, and its error says where to look."""
     import ocv2
