@@ -335,6 +335,25 @@ def test_report_names_a_matrix_of_the_wrong_size(runs, tmp_path, capsys):
     assert f"{matrix}: a 1 x 1 matrix, but the run has 2 seeds (2 x 2)" in capsys.readouterr().err
 
 
+def test_the_xp_and_report_commands_of_reproducing_md_are_accepted(tmp_path, capsys, monkeypatch):
+    """Each ``ocv2 xp`` / ``ocv2 report`` line of docs/REPRODUCING.md gets past its options: run in an empty
+    folder, it stops at the run directory that is not there, not at a flag the command refuses."""
+    lines = [
+        line.partition("#")[0].split()
+        for line in (ROOT / "docs" / "REPRODUCING.md").read_text().splitlines()
+        if line.startswith(("ocv2 xp ", "ocv2 report "))
+    ]
+    assert len(lines) >= 2
+    monkeypatch.chdir(tmp_path)
+    for words in lines:
+        assert main(words[1:]) == 2
+        err = capsys.readouterr().err
+        assert "runs/classic_" in err and ("not an ocv2 run directory" in err or "no such run directory" in err), (
+            words,
+            err,
+        )
+
+
 def test_report_out_must_be_a_folder(runs, tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("x")
