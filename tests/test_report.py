@@ -240,6 +240,18 @@ def test_a_delta_gap_without_its_interval_says_why(runs, tmp_path, capsys):
     assert f"no Δ gap interval: no {runs['ring_sa']}/xp/matrix.csv" in (out / "report.md").read_text()
 
 
+def test_a_matrix_with_a_blank_cell_still_shows_the_summary_numbers_its_note_speaks_of(runs, tmp_path, capsys):
+    matrix = runs["cr_sp"] / "xp" / "matrix.csv"
+    matrix.write_text(matrix.read_text().replace("257.0", "", 1))
+    out = tmp_path / "hole"
+    assert main(["report", str(runs["cr_sp"]), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    (row,) = read_csv(out / "report.csv")
+    assert row["note"].startswith(f"{matrix}: 1 cell(s) without a number") and "the SP and XP shown" in row["note"]
+    md = (out / "report.md").read_text()
+    assert "| 259.0 ± 1.0 | 257.0 ± 2.0 | 2.0 |" in md and "259.0 ± 1.0" in printed and "n/a" not in md
+
+
 def test_report_out_replaces_an_earlier_report_whole_and_refuses_any_other_folder(runs, tmp_path, capsys):
     out = tmp_path / "report"
     assert main(["report", str(runs["ring_sp"]), str(runs["ring_sa"]), "--out", str(out)]) == 0

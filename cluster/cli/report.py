@@ -294,10 +294,8 @@ def table_cells(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
             _steps(r["env_steps_per_seed"])
             + ("" if r["updates_done"] >= r["num_updates"] else f" ({r['updates_done']}/{r['num_updates']} updates)"),
         ]
-        if r["note"]:
-            line += ["n/a", "n/a", "n/a"]
-        else:
-            line += [fmt_pm(r["sp_mean"], r["sp_std"]), fmt_pm(r["xp_mean"], r["xp_std"]), fmt(r["gap"])]
+        # NaN where there are no numbers (no cross-play yet): a note on a matrix's blank cells keeps summary.json's
+        line += [fmt_pm(r["sp_mean"], r["sp_std"]), fmt_pm(r["xp_mean"], r["xp_std"]), fmt(r["gap"])]
         if deltas:
             line += [fmt(r["delta_sp"], True), fmt(r["delta_xp"], True), delta_gap_cell(r)]
         line.append(r["run_dir"] + (f" -- {r['note']}" if r["note"] else ""))
