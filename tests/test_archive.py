@@ -473,6 +473,27 @@ def test_a_file_without_a_header_is_no_archive_and_nothing_to_recover(tmp_path, 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.mcap", "garbage.mcap"]
 
 
+def test_a_file_with_no_complete_episode_is_refused_and_no_archive_is_written(tmp_path, archive, capsys):
+    """A file cut inside its first episode, or a finished one that holds none, has nothing to recover: an empty
+    "finished" archive would read as a result."""
+    cut = tmp_path / "cut.mcap.partial"
+    with open(archive, "rb") as source:
+        cut.write_bytes(source.read(400))  # the header and the channel records, then part of the first chunk
+    empty = tmp_path / "none.mcap"
+    with ArchiveWriter(str(empty)):
+        pass
+    for path in (cut, empty):
+        out = tmp_path / "fixed.mcap"
+        with pytest.raises(ArchiveError, match=rf"{path}': no complete episode to recover"):
+            recover(str(path), str(out))
+        assert main(["archive", "recover", str(path), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "no complete episode to recover" in err and len(err.splitlines()) == 1
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.mcap.partial", "none.mcap"]
+    assert main(["archive", "recover", str(cut)]) == 2  # the default --out, cut.mcap, is not written either
+    assert not (tmp_path / "cut.mcap").exists()
+
+
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
 def test_a_chunk_is_never_decompressed_past_the_size_its_header_claims(compression):
     """A frame may state its own (larger) content size, which mcap's reader believes: 1 MiB of zeros behind a

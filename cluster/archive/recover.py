@@ -18,7 +18,8 @@ def recover(src, dst, *, overwrite: bool = False) -> RecoveryReport:
     written as ``dst.recovering`` and renamed when done; on an error it is removed.
 
     Raises:
-        ArchiveError: ``src`` missing or not an archive; ``dst`` is ``src`` or exists (without overwrite).
+        ArchiveError: ``src`` missing or not an archive, or holding no complete episode (then nothing is written);
+            ``dst`` is ``src`` or exists (without overwrite).
     """
     src, dst = os.fspath(src), os.fspath(dst)
     check_file(src)
@@ -29,6 +30,10 @@ def recover(src, dst, *, overwrite: bool = False) -> RecoveryReport:
     first = next(groups, None)  # raises ArchiveError for a non-archive before dst is created
     if status.header is None:  # empty, or cut inside its header: no episode, and nothing that says it is ocv2's
         raise ArchiveError(f"{src!r}: nothing to recover ({status.tail_error or 'no header record'})")
+    if first is None:  # a copy would be a finished archive of no episode: it looks like a result and holds none
+        why = [f"{status.orphan_messages} message(s) of episodes never committed"] if status.orphan_messages else []
+        why += [status.tail_error] if status.tail_error else []
+        raise ArchiveError(f"{src!r}: no complete episode to recover" + (f" ({'; '.join(why)})" if why else ""))
     # Not dst.partial: that is usually the source itself.
     out = Output(dst, chunk_size=1 << 20, compression="zstd", overwrite=overwrite, fsync=False, suffix=".recovering")
     episodes = transitions = 0
