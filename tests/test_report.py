@@ -53,11 +53,12 @@ def make_run(
     metrics: list[list] | None = None,
     matrix: list[list[float]] | None = None,
     env: dict | None = None,
+    model: dict | None = None,
 ) -> Path:
     path.mkdir(parents=True)
     raw = {
         "env": {"layout": layout, "max_steps": 400, **(env or {})},
-        "model": {"kind": "cnn"},
+        "model": model or {"kind": "cnn"},
         "ppo": {"num_envs": 4, "num_steps": 25, "num_minibatches": 2, "total_timesteps": 300},
         "population": {"method": method, "num_seeds": 2, "sa": {"iterations": 2}},
     }
@@ -250,6 +251,62 @@ def test_a_matrix_with_a_blank_cell_still_shows_the_summary_numbers_its_note_spe
     assert row["note"].startswith(f"{matrix}: 1 cell(s) without a number") and "the SP and XP shown" in row["note"]
     md = (out / "report.md").read_text()
     assert "| 259.0 ± 1.0 | 257.0 ± 2.0 | 2.0 |" in md and "259.0 ± 1.0" in printed and "n/a" not in md
+
+
+def _network_runs(base: Path) -> dict[str, Path]:
+    """Cramped Room: a CNN SP run, a CNN SA run, an RNN SP run and an RNN SA run; RNN numbers differ."""
+    rnn = {"kind": "rnn"}
+    return {
+        "cnn_sp": make_run(base / "cnn_sp", "cramped_room", "sp", table1(259.0, 1.0, 257.0, 2.0, 2.0)),
+        "cnn_sa": make_run(base / "cnn_sa", "cramped_room", "sa", table1(259.0, 0.0, 255.0, 6.0, 4.0)),
+        "rnn_sp": make_run(base / "rnn_sp", "cramped_room", "sp", table1(200.0, 1.0, 150.0, 2.0, 50.0), model=rnn),
+        "rnn_sa": make_run(base / "rnn_sa", "cramped_room", "sa", table1(210.0, 1.0, 190.0, 2.0, 20.0), model=rnn),
+    }
+
+
+@pytest.mark.parametrize("order", [("rnn_sp", "cnn_sp", "cnn_sa", "rnn_sa"), ("cnn_sa", "rnn_sa", "cnn_sp", "rnn_sp")])
+def test_runs_are_compared_with_the_self_play_run_of_their_own_network_whatever_the_order(order, tmp_path, capsys):
+    runs = _network_runs(tmp_path / "runs")
+    out = tmp_path / "report"
+    assert main(["report", *(str(runs[name]) for name in order), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    rows = {Path(r["run_dir"]).name: r for r in read_csv(out / "report.csv")}
+    assert Path(rows["cnn_sa"]["baseline_run"]).name == "cnn_sp" and rows["cnn_sa"]["delta_xp"] == "-2.0"
+    assert Path(rows["rnn_sa"]["baseline_run"]).name == "rnn_sp" and rows["rnn_sa"]["delta_gap"] == "-30.0"
+    assert rows["cnn_sp"]["baseline_run"] == rows["rnn_sp"]["baseline_run"] == ""
+    # the table says whose network each row is, since two are reported
+    md = (out / "report.md").read_text()
+    assert "| Layout | Env | Method | Network | Seeds |" in md and "Network" in printed
+    assert "| cramped_room | full view | Self-Play | rnn | 2 |" in md and "State-Augmented │ cnn" in printed
+
+
+def test_several_self_play_runs_of_one_group_need_a_baseline_named(tmp_path, capsys):
+    runs = _network_runs(tmp_path / "runs")
+    again = make_run(tmp_path / "runs" / "cnn_sp2", "cramped_room", "sp", table1(250.0, 1.0, 240.0, 2.0, 10.0))
+    given = [str(runs["cnn_sp"]), str(runs["cnn_sa"]), str(again), str(runs["rnn_sp"])]
+    out = tmp_path / "report"
+    assert main(["report", *given, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{runs['cnn_sp']}, {again}: 2 self-play runs of the same game (cramped_room, full view) and network" in err
+    assert "--baseline RUN_DIR" in err and "Traceback" not in err and not out.exists()
+    assert main(["report", *given, "--baseline", str(again), "--out", str(out)]) == 0
+    capsys.readouterr()
+    names = [Path(r["run_dir"]).name for r in read_csv(out / "report.csv")]
+    rows = {Path(r["run_dir"]).name: r for r in read_csv(out / "report.csv")}
+    assert names[:3] == ["cnn_sp2", "cnn_sp", "cnn_sa"]  # the baseline first
+    assert Path(rows["cnn_sa"]["baseline_run"]).name == Path(rows["cnn_sp"]["baseline_run"]).name == "cnn_sp2"
+    assert (rows["cnn_sp"]["delta_sp"], rows["cnn_sa"]["delta_gap"]) == ("9.0", "-6.0")
+    assert rows["rnn_sp"]["baseline_run"] == ""
+    for baseline, words in [
+        (runs["cnn_sa"], "a sa run; the baseline is a self-play (sp) run"),
+        (runs["rnn_sa"], "not one of this report's RUN_DIRs"),
+    ]:
+        assert main(["report", *given, "--baseline", str(baseline), "--out", str(tmp_path / "r")]) == 2
+        assert f"--baseline {baseline}: {words}" in capsys.readouterr().err
+    both = ["--baseline", str(again), "--baseline", str(runs["cnn_sp"])]
+    assert main(["report", *given, *both, "--out", str(tmp_path / "r")]) == 2
+    assert "is the baseline of the same game and network already" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
 
 
 def test_report_out_replaces_an_earlier_report_whole_and_refuses_any_other_folder(runs, tmp_path, capsys):

@@ -1,16 +1,20 @@
 """``ocv2 report``: tabulate run directories after their runs (``ocv2 validate``, which checks configs
 before, is ``cluster/cli/validate.py``).
 
-    ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
+    ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR] [--baseline RUN_DIR ...]
 
 ``report`` reads run directories (``config.yaml``, ``xp/summary.json``, ``metrics.csv``, ``xp/matrix.csv``)
 and writes, into ``--out`` (default ``reports/``):
 
 * ``report.md`` / ``report.csv``: one row per run in the paper's Table 1 / Table 2 format -- layout,
-  method, SP mean +- std, XP mean +- std, gap. Runs of the same environment (identical ``env`` section)
-  are compared with that environment's self-play run: delta SP, delta XP and delta gap (the last is the
-  number in brackets in the paper's Table 1, "Gap (delta)"), the last with a 95 % interval by bootstrap over
-  each population's seeds (``population.xp.bootstrap_difference``).
+  method, SP mean +- std, XP mean +- std, gap. Runs of the same game (the same ``env`` settings, defaults
+  written out) and the same network (``model`` section up to its kernel choice, and ``ppo.activation``) are
+  compared with that group's self-play run: delta SP, delta XP and delta gap (the last is the number in
+  brackets in the paper's Table 1, "Gap (delta)"), the last with a 95 % interval by bootstrap over each
+  population's seeds (``population.xp.bootstrap_difference``). A group with several self-play runs is
+  refused unless ``--baseline`` names the one the others are compared with: which run the deltas are
+  against must be a choice, not an accident of the argument order. When the runs have more than one
+  network, the table says which each row's is (a Network column).
 * ``curves_<layout>.png``: sparse return (mean +- std across seeds) against env steps, one line per run.
 * ``heatmap_<run>.png``: the cross-play matrix of every evaluated run, redrawn from ``xp/matrix.csv``.
 
@@ -21,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -37,6 +42,7 @@ from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matri
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write, staged_folder
 from population.config import METHOD_TABLE, METHODS
+from population.networks import same_function
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
 from population.policy import env_settings
 from population.xp import summary_difference
@@ -182,17 +188,97 @@ def env_label(config) -> str:
     return ", ".join(parts)
 
 
-def report_rows(runs: list[dict]) -> list[dict]:
-    """One row per run, grouped by environment (same layout and env section), SP first; deltas vs SP."""
-    groups: dict = {}
+def network_settings(config) -> dict:
+    """The network a run trains, as plain data: two runs with equal settings train the same function (their
+    kernel choice aside, ``population.networks.same_function``), so their numbers compare."""
+    return {**dataclasses.asdict(same_function(config.model)), "activation": config.ppo.activation}
+
+
+def group_key(run: dict) -> str:
+    """What makes runs comparable: the game each asks for, defaults written out (max_steps left out is
+    max_steps: 400), and the network it trains."""
+    config = run["config"]
+    return json.dumps(
+        {"env": env_settings(config.env_kwargs), "network": network_settings(config)}, sort_keys=True, default=list
+    )
+
+
+def network_labels(runs: list[dict]) -> dict[str, str]:
+    """Run path -> a short name of its network (the kind, then the settings in which it differs from the other
+    networks of that kind), or {} when every run trains the same network."""
+    settings = {run["path"]: network_settings(run["config"]) for run in runs}
+    if len({json.dumps(s, sort_keys=True, default=list) for s in settings.values()}) < 2:
+        return {}
+    labels = {}
+    for path, mine in settings.items():
+        same_kind = [other for other in settings.values() if other["kind"] == mine["kind"]]
+        differ = sorted(k for k in mine if k != "kind" and any(other[k] != mine[k] for other in same_kind))
+        labels[path] = " ".join([mine["kind"], *(f"{k}={_plain(mine[k])}" for k in differ)])
+    return labels
+
+
+def _plain(value) -> str:
+    return ",".join(str(v) for v in value) if isinstance(value, list | tuple) else str(value)
+
+
+def run_groups(runs: list[dict]) -> dict[str, list[dict]]:
+    """``runs`` by ``group_key``, groups in the order of their first run."""
+    groups: dict[str, list[dict]] = {}
     for run in runs:
-        # by the game each asks for, defaults written out (max_steps left out is max_steps: 400)
-        game = json.dumps(env_settings(run["config"].env_kwargs), sort_keys=True)
-        groups.setdefault(game, []).append(run)
+        groups.setdefault(group_key(run), []).append(run)
+    return groups
+
+
+def pick_baselines(runs: list[dict], chosen: list[str] | None = None) -> dict[str, dict | None]:
+    """Group key -> the self-play run (with cross-play) the group's other runs are compared with, or None.
+    ``chosen``: the ``--baseline`` runs, one per group at most. ``CLIError`` for a ``--baseline`` that is not one
+    of ``runs``, not self-play or without cross-play, two for one group, and for a group with several self-play
+    runs none of which was chosen."""
+    groups = run_groups(runs)
+    by_path = {Path(run["path"]).resolve(): run for run in runs}
+    picked: dict[str, dict | None] = {}
+    for text in chosen or ():
+        run = by_path.get(Path(text).resolve())
+        if run is None:
+            raise CLIError(f"--baseline {text}: not one of this report's RUN_DIRs; give it as a RUN_DIR too")
+        method = run["config"].population.method
+        if method != "sp":
+            raise CLIError(f"--baseline {text}: a {method} run; the baseline is a self-play (sp) run")
+        if not run["summary"]:
+            raise CLIError(f"--baseline {text}: {NO_XP_NOTE.format(run=text)}")
+        key = group_key(run)
+        if picked.get(key, run) is not run:
+            raise CLIError(
+                f"--baseline {text}: {picked[key]['path']} is the baseline of the same game and network already; "
+                "give one --baseline per group"
+            )
+        picked[key] = run
+    labels = network_labels(runs)
+    for key, members in groups.items():
+        if key in picked:
+            continue
+        candidates = [r for r in members if r["config"].population.method == "sp" and r["summary"]]
+        if len(candidates) > 1:
+            config = candidates[0]["config"]
+            network = labels.get(candidates[0]["path"], config.model.kind)
+            raise CLIError(
+                f"{', '.join(r['path'] for r in candidates)}: {len(candidates)} self-play runs of the same game "
+                f"({config.env_kwargs['layout']}, {env_label(config)}) and network ({network}); name the one the "
+                "others are compared with: --baseline RUN_DIR"
+            )
+        picked[key] = candidates[0] if candidates else None
+    return picked
+
+
+def report_rows(runs: list[dict], baselines: dict[str, dict | None] | None = None) -> list[dict]:
+    """One row per run, grouped by game and network, the baseline first, then SP, then the other methods; deltas
+    vs the group's baseline (``pick_baselines``: computed here when not given, refusing a choice it cannot make)."""
+    baselines = pick_baselines(runs) if baselines is None else baselines
+    labels = network_labels(runs)
     rows = []
-    for members in groups.values():
-        members = sorted(members, key=lambda r: METHODS.index(r["config"].population.method))
-        baseline = next((r for r in members if r["config"].population.method == "sp" and r["summary"]), None)
+    for key, members in run_groups(runs).items():
+        baseline = baselines.get(key)
+        members = sorted(members, key=lambda r: (r is not baseline, METHODS.index(r["config"].population.method)))
         for run in members:
             config, summary = run["config"], run["summary"]
             updates = [
@@ -206,6 +292,7 @@ def report_rows(runs: list[dict]) -> list[dict]:
                 "layout": config.env_kwargs["layout"],
                 "method": config.population.method,
                 "env": env_label(config),
+                "network": labels.get(run["path"], ""),
                 "run_dir": run["path"],
                 "status": run["status"],
                 "num_seeds": config.population.num_seeds,
@@ -280,7 +367,18 @@ def delta_gap_cell(row: dict) -> str:
 def table_cells(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
     """Header and string cells shared by the rich and the Markdown tables."""
     deltas = any(not math.isnan(r["delta_gap"]) or not math.isnan(r["delta_xp"]) for r in rows)
-    header = ["Layout", "Env", "Method", "Seeds", "Env steps/seed", "SP", "XP", "Gap"]
+    networks = any(r["network"] for r in rows)  # the runs train more than one network: say which is whose
+    header = [
+        "Layout",
+        "Env",
+        "Method",
+        *(["Network"] if networks else []),
+        "Seeds",
+        "Env steps/seed",
+        "SP",
+        "XP",
+        "Gap",
+    ]
     if deltas:
         header += ["Δ SP", "Δ XP", "Δ Gap"]
     header.append("Run")
@@ -290,6 +388,7 @@ def table_cells(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
             r["layout"],
             r["env"],
             METHOD_NAMES.get(r["method"], r["method"]),
+            *([r["network"]] if networks else []),
             str(r["num_seeds"]),
             _steps(r["env_steps_per_seed"])
             + ("" if r["updates_done"] >= r["num_updates"] else f" ({r['updates_done']}/{r['num_updates']} updates)"),
@@ -402,7 +501,7 @@ def add_report(sub) -> argparse.ArgumentParser:
         "report",
         help="paper-style SP/XP tables, curves and heatmaps of run directories",
         description="Read run directories and write report.md, report.csv (one row per run: "
-        "SP, XP, gap and, against the same environment's self-play run, the "
+        "SP, XP, gap and, against the self-play run of the same environment and network, the "
         "deltas), curves_<layout>.png and heatmap_<run>.png into --out.",
     )
     parser.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
@@ -410,6 +509,13 @@ def add_report(sub) -> argparse.ArgumentParser:
         "--out",
         default="reports",
         help="folder to write into (default reports/): new, empty, or an earlier report's, which is replaced whole",
+    )
+    parser.add_argument(
+        "--baseline",
+        action="append",
+        metavar="RUN_DIR",
+        help="the self-play run (one of the RUN_DIRs) the other runs of its environment and network are compared "
+        "with; needed where several self-play runs share one, and may be given once per such group",
     )
     return parser
 
@@ -423,6 +529,7 @@ def run_report(args) -> int:
             raise CLIError(f"{path}: given twice (also as {seen[Path(path).resolve()]}); each run is one row")
         seen[Path(path).resolve()] = path
     runs = [load_run(path) for path in args.run_dirs]
+    baselines = pick_baselines(runs, args.baseline)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out: {out} exists and is not a folder")
@@ -435,10 +542,10 @@ def run_report(args) -> int:
         raise CLIError(f"--out: cannot create {out}: {error}", EXIT_FAILURE) from None
     # An OSError (a full disk) is main's one line, nothing left; the report's own files move in last, as written.
     with staged_folder(out, ".report", markers=["report.csv", "report.md"]) as staging:
-        written = write_report_files(runs, staging)
+        written = write_report_files(runs, staging, baselines)
     table = Table(title=f"{len(written.rows)} run(s)")
     for name in written.header:
-        table.add_column(name, justify="right" if name not in ("Layout", "Env", "Method", "Run") else "left")
+        table.add_column(name, justify="right" if name not in ("Layout", "Env", "Method", "Network", "Run") else "left")
     for line in written.cells:
         table.add_row(*line)
     stream = sys.stdout
@@ -491,9 +598,9 @@ class WrittenReport(NamedTuple):
     heatmaps: int
 
 
-def write_report_files(runs: list[dict], out: Path) -> WrittenReport:
-    """Write report.csv, report.md and the pictures into the folder ``out``."""
-    rows = report_rows(runs)
+def write_report_files(runs: list[dict], out: Path, baselines: dict | None = None) -> WrittenReport:
+    """Write report.csv, report.md and the pictures into the folder ``out``; ``baselines``: ``pick_baselines``'s."""
+    rows = report_rows(runs, baselines)
     header, cells = table_cells(rows)
     curves = write_curves(runs, out)
     heatmaps = write_heatmaps(runs, out)
@@ -509,8 +616,8 @@ def write_report_files(runs: list[dict], out: Path) -> WrittenReport:
         "",
         "SP: mean ± std over the self-play cells (diagonal) of the cross-play matrix; XP: mean ± std over the "
         "off-diagonal ordered pairs; Gap = SP - XP (the paper's Tables 1 and 2). Δ: this run minus the self-play "
-        "run of the same environment (Δ Gap is the paper's Table 1 bracket; in brackets after it, its 95 % "
-        "interval by bootstrap over each population's seeds, the two populations resampled independently).",
+        "run of the same environment and network (Δ Gap is the paper's Table 1 bracket; in brackets after it, its "
+        "95 % interval by bootstrap over each population's seeds, the two populations resampled independently).",
         "",
         markdown_table(header, cells),
         "",
