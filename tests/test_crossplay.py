@@ -212,6 +212,17 @@ def test_pool_errors_name_the_problem(run, tmp_path, capsys):
     assert "--pool: only with --rows" in capsys.readouterr().err
 
 
+def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(run, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "xp"
+    assert _xp(out, "--rows", str(run), "--cols", "human-proxy:cramped_room") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ocv2 xp: error: human-proxy:cramped_room: no human proxy for cramped_room")
+    assert str(tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy") in err
+    assert "make it with 'ocv2 human proxy cramped_room --source " in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
 def test_a_block_of_one_policy_with_itself_prints_its_self_play_only(capsys):
     nan = float("nan")
     own = {"rows": 1, "cols": 1, "sp_mean": 214.6, "xp_mean": nan, "xp_ci95_interval": [nan, nan], "gap": nan}

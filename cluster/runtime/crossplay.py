@@ -84,7 +84,14 @@ class PolicyGroup:
 def resolve_source(text: str, checkpoint="final") -> PolicyGroup:
     """A column/row spec -> its policies. Errors name the spec."""
     if text.startswith(HUMAN_PROXY):
-        group = _single(text, _human_proxy_path(text[len(HUMAN_PROXY) :]), "final")
+        layout = text[len(HUMAN_PROXY) :]
+        path = _human_proxy_path(layout)
+        if not path.exists():
+            raise CrossPlayError(
+                f"{text}: no human proxy for {layout} on this machine ({path} does not exist); make it with "
+                f"'ocv2 human proxy {layout} --source overcooked_ai-1.1.0.tar.gz' (docs/human.md)"
+            )
+        group = _single(text, path, "final")
         return dataclasses.replace(group, method=HUMAN_PROXY_METHOD)
     path = Path(text)
     if path.is_dir() and (path / "config.yaml").is_file():
