@@ -223,6 +223,40 @@ def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(ru
     assert not out.exists()
 
 
+def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(run, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "xp"
+    assert _xp(out, "--rows", str(run), "--cols", "human-proxy:cramped_room") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ocv2 xp: error: human-proxy:cramped_room: no human proxy for cramped_room")
+    assert str(tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy") in err
+    assert "make it with 'ocv2 human proxy cramped_room --source " in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+def test_one_policy_under_two_sources_is_refused_naming_both(run, tmp_path, capsys):
+    """A copy of an exported file, or a run and its own checkpoint file, is one policy: as two sources it would be
+    counted as two seeds (--pool) and its self-play cells as cross-play."""
+    exported = tmp_path / "e.ocv2policy"
+    assert main(["export", str(run), "--seed", "0", "--out", str(exported)]) == 0
+    copy = tmp_path / "copy.ocv2policy"
+    copy.write_bytes(exported.read_bytes())
+    own = run / "checkpoints" / "seed_1" / "update_0000004.msgpack"  # the run's final checkpoint of seed 1
+    capsys.readouterr()
+    for args, flag, first, second in (
+        (["--rows", str(exported), str(copy)], "--rows", exported, copy),
+        (["--rows", str(run), str(own), "--pool"], "--rows", run, own),
+        (["--rows", str(run), "--cols", str(copy), str(exported)], "--cols", copy, exported),
+    ):
+        out = tmp_path / "xp"
+        assert _xp(out, *args) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"ocv2 xp: error: {flag}: {second} (") and f"is the same policy as {first} (" in err
+        assert len(err.splitlines()) == 1 and not out.exists()
+    # The same policy as a row and as a column is a cross-play of a source with itself: still allowed.
+    assert _xp(tmp_path / "fine", "--rows", str(exported), "--cols", str(copy), "--seats", "0") == 0
+
+
 def test_a_block_of_one_policy_with_itself_prints_its_self_play_only(capsys):
     nan = float("nan")
     own = {"rows": 1, "cols": 1, "sp_mean": 214.6, "xp_mean": nan, "xp_ci95_interval": [nan, nan], "gap": nan}

@@ -189,6 +189,11 @@ def _cross_run(args) -> int:
                 env_kwargs = crossplay.check_same_env([*rows, *cols])
             except crossplay.CrossPlayError as error:
                 raise CLIError(str(error)) from None
+            for flag, groups in (("--rows", rows), ("--cols", cols if args.cols else [])):
+                try:  # by content: _refuse_repeats sees one policy under two paths as two sources
+                    crossplay.refuse_repeated_policies(groups)
+                except crossplay.CrossPlayError as error:
+                    raise CLIError(f"{flag}: {error}") from None
             try:
                 precision = crossplay.played_precision([*rows, *cols], args.precision)
             except crossplay.CrossPlayError as error:

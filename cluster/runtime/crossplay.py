@@ -162,6 +162,20 @@ def _load(text, path, checkpoint, seed=None):
         raise CrossPlayError(message if str(path) in message else f"{text}: {message}") from None
 
 
+def refuse_repeated_policies(groups) -> None:
+    """``CrossPlayError`` naming both sources when one policy (same network and parameters) is among ``groups``
+    twice: a copy of an exported file, or a run and its own checkpoint file, would be its own partner under two
+    names, its self-play cells counted as cross-play and the policy counted as two seeds."""
+    seen: dict[str, str] = {}
+    for group in groups:
+        for name, policy in zip(group.names, group.ids):
+            if policy in seen:
+                raise CrossPlayError(
+                    f"{group.label} ({name}) is the same policy as {seen[policy]}; give each policy once"
+                )
+            seen[policy] = f"{group.label} ({name})"
+
+
 def check_same_env(groups) -> dict:
     """All policies must play the same environment; returns its ``ocv2.make`` kwargs."""
     first = groups[0]
