@@ -700,11 +700,28 @@ def test_an_exported_policy_file_is_a_partner(rnn_run, tmp_path, capsys):
     assert code == 2 and "agent_view_size: the partner's run uses None" in err
 
 
+def test_an_exported_file_of_any_name_is_a_partner(rnn_run, tmp_path, capsys):
+    """``ocv2 export --out`` takes any name, and render, xp and population.policy.load read what it wrote."""
+    assert main(["export", str(rnn_run), "--checkpoint", "latest", "--out", str(tmp_path / "e7.bin")]) == 0
+    capsys.readouterr()
+    partner = load_policy_partner(tmp_path / "e7.bin")
+    original = load_policy_partner(rnn_run / "checkpoints" / "seed_0")
+    assert (partner.kind, partner.checkpoint, partner.run_dir) == ("policy", str(tmp_path / "e7.bin"), None)
+    for got, want in zip(jax.tree.leaves(partner.params), jax.tree.leaves(original.params)):
+        np.testing.assert_array_equal(got, want)
+    # a run's checkpoint copied out of its seed folder is not a policy of its own
+    stray = tmp_path / "update_0000002.msgpack"
+    stray.write_bytes(ckpt.checkpoint_path(rnn_run, 0, 2).read_bytes())
+    with pytest.raises(PartnerError, match="a checkpoint must lie in RUN_DIR/checkpoints/seed_<i>/"):
+        load_policy_partner(stray)
+
+
 def test_bad_partner_paths_are_clear_errors(rnn_run, tmp_path):
     cases = [
         (tmp_path / "missing", "does not exist"),
         (rnn_run, "pick a seed, e.g."),
-        (rnn_run / "config.yaml", "is not RUN_DIR/checkpoints/seed_<i>"),
+        (rnn_run / "config.yaml", "config.yaml: not an ocv2 policy or checkpoint file"),
+        (rnn_run / "checkpoints", "is not RUN_DIR/checkpoints/seed_<i>, a checkpoint file in one or an exported"),
     ]
     empty = tmp_path / "empty" / "checkpoints" / "seed_0"
     empty.mkdir(parents=True)

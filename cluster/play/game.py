@@ -131,8 +131,7 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
     if not path.exists():
         raise PartnerError(
             f"--partner: {str(path)!r} does not exist (expected RUN_DIR/checkpoints/seed_<i>, "
-            f"a checkpoint file in it, an exported *{policies.SUFFIX} file, 'human', 'stay' or "
-            "'random')"
+            "a checkpoint file in it, an exported policy file (ocv2 export), 'human', 'stay' or 'random')"
         )
     seed_folder = path if path.is_dir() else path.parent
     match = _SEED_DIR.match(seed_folder.name)
@@ -147,7 +146,7 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
             )
         raise PartnerError(
             f"--partner: {str(path)!r} is not RUN_DIR/checkpoints/seed_<i>, a checkpoint file "
-            f"in one or an exported *{policies.SUFFIX} file{hint}"
+            f"in one or an exported policy file (ocv2 export){hint}"
         )
     run_dir, seed = seed_folder.parent.parent, int(match.group(1))
     if path.is_dir():
@@ -159,9 +158,13 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
 
 
 def load_policy_partner(path) -> Partner:
-    """The policy of a checkpoint (or a seed's latest) or of an exported policy file (``population.policy``)."""
+    """The policy of a checkpoint (or a seed's latest) or of an exported policy file (``population.policy``).
+
+    A file that is not a run's checkpoint (``RUN_DIR/checkpoints/seed_<i>/update_<n>.msgpack``) is read as
+    ``population.policy.load`` reads it, whatever its name: ``ocv2 export --out FILE`` writes any name, and
+    ``render``, ``xp`` and ``population.policy.load`` take it."""
     path = Path(path)
-    exported = path.is_file() and path.suffix == policies.SUFFIX
+    exported = path.is_file() and (path.suffix == policies.SUFFIX or ckpt.update_of(path) is None)
     if not exported:
         run_dir, _, path = resolve_checkpoint(path)
         if not (run_dir / "config.yaml").is_file():
