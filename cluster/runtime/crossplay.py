@@ -595,7 +595,7 @@ def _block_row(order: str, b: dict) -> list:
 def write_outputs(result: Matrix, out, summary: dict, env) -> dict:
     """matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png (+ blocks.png) under ``out``: one order."""
     out = Path(out)
-    _write_order(result, out, env, "")
+    _write_order(result, out, env, "", policy_labels([*result.row_groups, *result.col_groups]))
     lines = [_block_row("rows_seat0", b) for b in summary["blocks"]]
     if "pooled" in summary:
         lines.append(_block_row("rows_seat0", summary["pooled"]))
@@ -615,11 +615,12 @@ def write_seat_fair_outputs(result: SeatFairMatrix, out, summary: dict, env) -> 
     if result.cols_seat0 is None:
         return write_outputs(result.rows_seat0, out, summary, env)
     out = Path(out)
-    _write_order(result.rows_seat0, out, env, "")
+    labels = policy_labels([*result.rows_seat0.row_groups, *result.rows_seat0.col_groups])
+    _write_order(result.rows_seat0, out, env, "", labels)
     if result.cols_seat0 is not result.rows_seat0:
-        _write_order(result.cols_seat0, out, env, "_cols_seat0")
+        _write_order(result.cols_seat0, out, env, "_cols_seat0", labels)
     mean = result.mean
-    rows, cols = _names(mean.row_groups), _names(mean.col_groups)
+    rows, cols = _names(mean.row_groups, labels), _names(mean.col_groups, labels)
     write_matrix_csv(out / "matrix_mean.csv", mean.matrix, rows, cols, corner="row\\col (mean of both seat orders)")
     xp_heatmap(
         mean.matrix,
@@ -648,13 +649,59 @@ def write_seat_fair_outputs(result: SeatFairMatrix, out, summary: dict, env) -> 
     return paths
 
 
-def _names(groups) -> list[str]:
-    return [n for g in groups for n in g.names]
+def policy_labels(groups) -> dict:
+    """The labels of every group's policies in matrix.csv, episodes.csv and the heatmaps, keyed by group: its
+    ``names``, except where different policies share a name (exported files of two runs both named ``sp``, two
+    runs named ``sp`` in different folders), which then get the part of their source's path that tells the
+    sources apart as a prefix: ``gpu_coord_ring_sp/sp/seed_0@122``. One policy of two sources (a copy) keeps its
+    name."""
+    entries = [(name, group.label, policy) for group in groups for name, policy in zip(group.names, group.ids)]
+    renamed = iter(_tell_apart(entries))
+    return {_key(group): tuple(next(renamed) for _ in group.names) for group in groups}
 
 
-def _write_order(result: Matrix, out: Path, env, suffix: str) -> None:
-    """matrix, episodes and heatmap of one order: rows in seat 0, columns in seat 1."""
-    rows, cols = _names(result.row_groups), _names(result.col_groups)
+def _key(group: PolicyGroup) -> tuple:
+    return group.label, group.ids
+
+
+def _tell_apart(entries: list[tuple]) -> list[str]:
+    """``(name, source, identity)`` -> one label each: the name, or ``TAG/name`` when the name stands for more
+    than one identity, TAG the part of the source's path that differs between the sources sharing that name (the
+    whole source where that part does not tell them apart)."""
+    identities: dict[str, set] = {}
+    for name, _, identity in entries:
+        identities.setdefault(name, set()).add(identity)
+    tags: dict[tuple[str, str], str] = {}
+    for name, seen in identities.items():
+        if len(seen) > 1:
+            sources = sorted({source for other, source, _ in entries if other == name})
+            tags.update({(name, source): tag for source, tag in zip(sources, _source_tags(sources))})
+    return [f"{tags[name, source]}/{name}" if (name, source) in tags else name for name, source, _ in entries]
+
+
+def _source_tags(sources: list[str]) -> list[str]:
+    """The first part of each source's path where the sources differ (``table1_coord_ring_sp10`` and
+    ``gpu_coord_ring_sp`` for ``docs/results/<that>/policies/sp_seed0_update122.ocv2policy``); the sources
+    themselves when those parts are not all different."""
+    parts = [
+        (source,) if source.startswith(HUMAN_PROXY) else Path(os.path.abspath(source.rstrip("/") or "/")).parts
+        for source in sources
+    ]
+    common = 0
+    while all(len(p) > common for p in parts) and len({p[common] for p in parts}) == 1:
+        common += 1
+    tags = [p[common] if len(p) > common else source for p, source in zip(parts, sources)]
+    return tags if len(set(tags)) == len(tags) else list(sources)
+
+
+def _names(groups, labels: dict) -> list[str]:
+    return [n for g in groups for n in labels[_key(g)]]
+
+
+def _write_order(result: Matrix, out: Path, env, suffix: str, labels: dict) -> None:
+    """matrix, episodes and heatmap of one order: rows in seat 0, columns in seat 1 (``labels``:
+    ``policy_labels`` of all the groups)."""
+    rows, cols = _names(result.row_groups, labels), _names(result.col_groups, labels)
     matrix = result.matrix
     names = recipe_names(env)
     write_matrix_csv(out / f"matrix{suffix}.csv", matrix, rows, cols)
@@ -679,13 +726,15 @@ def _write_order(result: Matrix, out: Path, env, suffix: str) -> None:
 
 def _write_blocks_png(result: Matrix, out: Path, blocks: list[dict], title: str) -> None:
     if len(result.row_groups) > 1 or len(result.col_groups) > 1:
+        groups = [*result.row_groups, *result.col_groups]
+        shorts = _tell_apart([(_short(g), g.label, g.label) for g in groups])
         block_means = np.asarray([b["xp_mean"] for b in blocks], np.float64)  # row-source major
         block_means = block_means.reshape(len(result.row_groups), len(result.col_groups))
         xp_heatmap(
             block_means,
             out / "blocks.png",
-            labels=[_short(g) for g in result.row_groups],
-            col_labels=[_short(g) for g in result.col_groups],
+            labels=shorts[: len(result.row_groups)],
+            col_labels=shorts[len(result.row_groups) :],
             title=title,
             row_title="row source",
             col_title="column source",
