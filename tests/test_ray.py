@@ -350,7 +350,8 @@ def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ra
 
 def test_starting_ray_after_jax_says_one_line_of_its_own_and_no_alarms(tmp_path):
     # A driver where JAX already runs (a notebook, `ocv2 xp` after loading policies) starting Ray with
-    # the auth mode unset: no JAX fork warning for Ray's process launches, no Ray token-auth notice.
+    # the auth mode unset: no JAX fork warning for Ray's process launches, no Ray token-auth notice; and the
+    # command line's SIGTERM handler is still in place after Ray started.
     code = (
         "import logging, jax, ray\n"
         "jax.numpy.zeros(1).block_until_ready()\n"
@@ -358,7 +359,11 @@ def test_starting_ray_after_jax_says_one_line_of_its_own_and_no_alarms(tmp_path)
         "logging.getLogger('cluster').setLevel(logging.INFO)\n"
         "from cluster.runtime.ray_backend import connect\n"
         "from population.config import ClusterConfig\n"
+        "import signal\n"
+        "signal.signal(signal.SIGTERM, signal.default_int_handler)\n"  # as the command line sets it
         "assert connect(ClusterConfig(local_cpus=1))\n"
+        # SIGTERM still stops the command as Ctrl-C does (its chunk saved), not through Ray's sys.exit(15)
+        "assert signal.getsignal(signal.SIGTERM) is signal.default_int_handler, signal.getsignal(signal.SIGTERM)\n"
         "ray.shutdown()\n"
     )
     env = {k: v for k, v in os.environ.items() if k not in ("RAY_AUTH_MODE", "RAY_ADDRESS")}

@@ -21,7 +21,9 @@ import functools
 import logging
 import math
 import os
+import signal
 import socket
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -82,6 +84,26 @@ def connect(cluster: ClusterConfig) -> bool:
         raise RayBackendError("Ray is not installed: pip install 'ocv2[ray]', or use --backend local")
     if ray.is_initialized():  # e.g. a test session or a notebook that already connected
         return False
+    with _sigterm_kept():
+        return _connect(cluster)
+
+
+@contextlib.contextmanager
+def _sigterm_kept():
+    """Keep the process's SIGTERM handler through ``ray.init``, which installs its own (``sys.exit(15)``, with
+    a native stack dump): the CLI makes SIGTERM stop a command as Ctrl-C does (``cluster.cli.main``), so that a
+    study or training run stopped by a script saves its chunk in flight, on the Ray backend as on the local one.
+    A process that left SIGTERM at its default (a library caller) gets Ray's, which shuts Ray down on the way out."""
+    main = threading.current_thread() is threading.main_thread()
+    before = signal.getsignal(signal.SIGTERM) if main else None
+    try:
+        yield
+    finally:
+        if before not in (None, signal.SIG_DFL) and signal.getsignal(signal.SIGTERM) is not before:
+            signal.signal(signal.SIGTERM, before)
+
+
+def _connect(cluster: ClusterConfig) -> bool:
     address = cluster.address
     if address is None:
         start_local(num_cpus=cluster.local_cpus or None)
