@@ -178,6 +178,13 @@ def _cross_run(args) -> int:
     if backend == "local" and (args.address or args.workers):
         raise CLIError("--address and --workers need --backend ray")
     checkpoint = checkpoint_choice(args.checkpoint or "final", CHECKPOINT_CHOICES)
+    sources = [*args.rows, *(args.cols or [])]
+    directories = [s for s in sources if not s.startswith(crossplay.HUMAN_PROXY) and Path(s).is_dir()]
+    if args.checkpoint is not None and not directories:  # a file is one fixed policy: it would be ignored
+        raise CLIError(
+            f"--checkpoint {args.checkpoint}: picks the checkpoint of a run or seed directory, and no source is "
+            f"one ({', '.join(dict.fromkeys(sources))}: each one fixed policy); leave it out"
+        )
     out = args.out or os.path.join("runs", f"xp_{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     check_new_folder("--out", out)
     try:
@@ -221,7 +228,8 @@ def _cross_run(args) -> int:
         {
             "rows": list(args.rows),
             "cols": list(args.cols or args.rows),
-            "checkpoint": str(checkpoint),
+            "checkpoint": str(checkpoint) if directories else None,  # it picks nothing from a file
+            "updates": {g.label: list(g.updates) for g in [*rows, *cols] if any(u is not None for u in g.updates)},
             "greedy": bool(args.greedy),
             "seed": seed,
             "precision": precision,

@@ -69,6 +69,7 @@ class PolicyGroup:
     method: str | None = None  # the run's population method, when known
     seed: int | None = None  # the run's population seed, when known
     precision: str | None = None  # the run's run.precision, when known
+    updates: tuple = ()  # the checkpoint update of each policy, None where unknown (empty: none known)
 
     @property
     def spec(self) -> tuple:
@@ -124,6 +125,7 @@ def _run_group(text: str, path: Path, checkpoint) -> PolicyGroup:
         config.population.method,
         config.population.seed,
         config.run.precision,
+        tuple(_update(p) for p in policies),
     )
 
 
@@ -143,7 +145,14 @@ def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
         stack_params([jax.tree.map(np.asarray, policy.params)]),
         meta.get("method"),
         precision=precision,
+        updates=(_update(policy),),
     )
+
+
+def _update(policy) -> int | None:
+    """The checkpoint update a policy was saved at: a checkpoint's, or a file exported from one (its meta)."""
+    update = policy.meta.get("update")
+    return update if isinstance(update, int) and not isinstance(update, bool) and update >= 0 else None
 
 
 def policy_id(policy) -> str:
