@@ -212,124 +212,6 @@ def test_pool_errors_name_the_problem(run, tmp_path, capsys):
     assert "--pool: only with --rows" in capsys.readouterr().err
 
 
-def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(run, tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
-    out = tmp_path / "xp"
-    assert _xp(out, "--rows", str(run), "--cols", "human-proxy:cramped_room") == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("ocv2 xp: error: human-proxy:cramped_room: no human proxy for cramped_room")
-    assert str(tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy") in err
-    assert "make it with 'ocv2 human proxy cramped_room --source " in err and len(err.splitlines()) == 1
-    assert not out.exists()
-
-
-def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(run, tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
-    out = tmp_path / "xp"
-    assert _xp(out, "--rows", str(run), "--cols", "human-proxy:cramped_room") == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("ocv2 xp: error: human-proxy:cramped_room: no human proxy for cramped_room")
-    assert str(tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy") in err
-    assert "make it with 'ocv2 human proxy cramped_room --source " in err and len(err.splitlines()) == 1
-    assert not out.exists()
-
-
-def test_one_policy_under_two_sources_is_refused_naming_both(run, tmp_path, capsys):
-    """A copy of an exported file, or a run and its own checkpoint file, is one policy: as two sources it would be
-    counted as two seeds (--pool) and its self-play cells as cross-play."""
-    exported = tmp_path / "e.ocv2policy"
-    assert main(["export", str(run), "--seed", "0", "--out", str(exported)]) == 0
-    copy = tmp_path / "copy.ocv2policy"
-    copy.write_bytes(exported.read_bytes())
-    own = run / "checkpoints" / "seed_1" / "update_0000004.msgpack"  # the run's final checkpoint of seed 1
-    capsys.readouterr()
-    for args, flag, first, second in (
-        (["--rows", str(exported), str(copy)], "--rows", exported, copy),
-        (["--rows", str(run), str(own), "--pool"], "--rows", run, own),
-        (["--rows", str(run), "--cols", str(copy), str(exported)], "--cols", copy, exported),
-    ):
-        out = tmp_path / "xp"
-        assert _xp(out, *args) == 2
-        err = capsys.readouterr().err.strip()
-        assert err.startswith(f"ocv2 xp: error: {flag}: {second} (") and f"is the same policy as {first} (" in err
-        assert len(err.splitlines()) == 1 and not out.exists()
-    # The same policy as a row and as a column is a cross-play of a source with itself: still allowed.
-    assert _xp(tmp_path / "fine", "--rows", str(exported), "--cols", str(copy), "--seats", "0") == 0
-
-
-def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(run, tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
-    out = tmp_path / "xp"
-    assert _xp(out, "--rows", str(run), "--cols", "human-proxy:cramped_room") == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("ocv2 xp: error: human-proxy:cramped_room: no human proxy for cramped_room")
-    assert str(tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy") in err
-    assert "make it with 'ocv2 human proxy cramped_room --source " in err and len(err.splitlines()) == 1
-    assert not out.exists()
-
-
-def test_one_policy_under_two_sources_is_refused_naming_both(run, tmp_path, capsys):
-    """A copy of an exported file, or a run and its own checkpoint file, is one policy: as two sources it would be
-    counted as two seeds (--pool) and its self-play cells as cross-play."""
-    exported = tmp_path / "e.ocv2policy"
-    assert main(["export", str(run), "--seed", "0", "--out", str(exported)]) == 0
-    copy = tmp_path / "copy.ocv2policy"
-    copy.write_bytes(exported.read_bytes())
-    own = run / "checkpoints" / "seed_1" / "update_0000004.msgpack"  # the run's final checkpoint of seed 1
-    capsys.readouterr()
-    for args, flag, first, second in (
-        (["--rows", str(exported), str(copy)], "--rows", exported, copy),
-        (["--rows", str(run), str(own), "--pool"], "--rows", run, own),
-        (["--rows", str(run), "--cols", str(copy), str(exported)], "--cols", copy, exported),
-    ):
-        out = tmp_path / "xp"
-        assert _xp(out, *args) == 2
-        err = capsys.readouterr().err.strip()
-        assert err.startswith(f"ocv2 xp: error: {flag}: {second} (") and f"is the same policy as {first} (" in err
-        assert len(err.splitlines()) == 1 and not out.exists()
-    # The same policy as a row and as a column is a cross-play of a source with itself: still allowed.
-    assert _xp(tmp_path / "fine", "--rows", str(exported), "--cols", str(copy), "--seats", "0") == 0
-
-
-def test_different_policies_of_one_name_get_the_part_of_their_path_that_tells_them_apart(run, tmp_path):
-    """Two exported files of runs both named ``sp`` (or two runs named ``sp`` in two folders) name their policies
-    alike; matrix.csv and episodes.csv must not hold two rows of one label. Labels that do not clash stay as
-    they were."""
-    first, second = tmp_path / "study_a" / "p.ocv2policy", tmp_path / "study_b" / "p.ocv2policy"
-    for seed, path in enumerate((first, second)):
-        path.parent.mkdir()
-        pol.export_checkpoint(run, path, seed=seed, meta={"name": "sp/seed_0@4"})
-    out = tmp_path / "xp"
-    assert _xp(out, "--rows", str(first), str(second), "--seats", "0") == 0
-    labels = ["study_a/sp/seed_0@4", "study_b/sp/seed_0@4"]
-    matrix = read_matrix_csv(out / "matrix.csv")
-    assert matrix.rows == labels and matrix.cols == labels
-    with open(out / "episodes.csv", newline="") as handle:
-        assert {(r["seat0"], r["seat1"]) for r in csv.DictReader(handle)} == {(a, b) for a in labels for b in labels}
-    # two runs named sp in different folders; a copy of one policy keeps its one name; other names stay
-    a, b = _group("studies/a/runs/sp", ["x0", "x1"], "sp"), _group("studies/b/runs/sp", ["y0", "y1"], "sp")
-    a, b = (dataclasses.replace(g, names=("sp/seed_0", "sp/seed_1")) for g in (a, b))
-    copy = dataclasses.replace(a, label="elsewhere/sp")
-    other = _group("runs/op", ["z0"], "op")
-    assert list(crossplay.policy_labels([a, b, other]).values()) == [
-        ("a/sp/seed_0", "a/sp/seed_1"),
-        ("b/sp/seed_0", "b/sp/seed_1"),
-        ("runs/op/z0",),
-    ]
-    assert list(crossplay.policy_labels([a, copy, other]).values()) == [a.names, a.names, other.names]
-
-
-def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(run, tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
-    out = tmp_path / "xp"
-    assert _xp(out, "--rows", str(run), "--cols", "human-proxy:cramped_room") == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("ocv2 xp: error: human-proxy:cramped_room: no human proxy for cramped_room")
-    assert str(tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy") in err
-    assert "make it with 'ocv2 human proxy cramped_room --source " in err and len(err.splitlines()) == 1
-    assert not out.exists()
-
-
 def test_one_policy_under_two_sources_is_refused_naming_both(run, tmp_path, capsys):
     """A copy of an exported file, or a run and its own checkpoint file, is one policy: as two sources it would be
     counted as two seeds (--pool) and its self-play cells as cross-play."""
@@ -405,6 +287,17 @@ def test_checkpoint_is_refused_without_a_run_or_seed_directory_and_each_source_s
     assert _xp(mixed, "--rows", str(checkpoint), "--cols", str(run), "--checkpoint", "init", "--seats", "0") == 0
     summary = json.loads((mixed / "summary.json").read_text())
     assert summary["checkpoint"] == "init" and summary["updates"] == {str(checkpoint): [2], str(run): [0, 0]}
+
+
+def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(run, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "xp"
+    assert _xp(out, "--rows", str(run), "--cols", "human-proxy:cramped_room") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ocv2 xp: error: human-proxy:cramped_room: no human proxy for cramped_room")
+    assert str(tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy") in err
+    assert "make it with 'ocv2 human proxy cramped_room --source " in err and len(err.splitlines()) == 1
+    assert not out.exists()
 
 
 def test_a_block_of_one_policy_with_itself_prints_its_self_play_only(capsys):
