@@ -628,6 +628,63 @@ def test_a_step_blocked_by_a_missing_human_proxy_exits_1_with_the_command_that_f
     assert state["steps"]["compare sp_vs_sa"]["status"] == "done"  # the other steps were not redone
 
 
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            ["env.layout=coord_ring"],
+            "comparison 'sp_vs_sa': run 'sa' plays another game than run 'sp' (differs in layout: 'coord_ring' vs "
+            "'cramped_room')",
+        ),
+        (
+            ["env.max_steps=50"],
+            "comparison 'sp_vs_sa': run 'sa' plays another game than run 'sp' (differs in max_steps",
+        ),
+        (
+            ["run.precision=bf16"],
+            "comparison 'sp_vs_sa': its runs train at different run.precision (sp: float32, sa: bf16); give the "
+            "compared runs one run.precision (set:)",
+        ),
+    ],
+    ids=["layout", "max_steps", "precision"],
+)
+def test_a_comparison_that_cannot_be_played_is_refused_before_anything_trains(tmp_path, capsys, change, message):
+    data = copy.deepcopy(STUDY)
+    data["runs"][1]["set"] += change
+    path = write_study(tmp_path / "mixed.yaml", data)
+    with pytest.raises(StudyError) as error:
+        plan_study(load_study(path), tmp_path / "out", LOCAL)
+    assert str(error.value).startswith(f"{path}: ") and message in str(error.value)
+    if "precision" not in change[0]:  # another game is no matter of precision
+        assert "precision" not in str(error.value)
+    assert main(["study", "run", str(path), "--backend", "local", "--out", str(tmp_path / "out")]) == 2
+    assert message in _one_line(capsys)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_step_that_fails_is_recorded_blocked_with_its_reason_and_the_report_still_written(
+    finished, tmp_path, capsys, monkeypatch
+):
+    """A comparison refused while it ran stayed "running" in study.json (status: interrupted) with no report."""
+    out = _copy(finished, tmp_path / "study")
+    (out / "comparisons" / "sp_vs_sa" / "summary.json").unlink()  # so the comparison runs again
+    (out / "report.md").unlink()
+
+    def other_game(groups):
+        raise crossplay.CrossPlayError("sa plays another environment than sp (differs in layout: 'a' vs 'b')")
+
+    monkeypatch.setattr(crossplay, "check_same_env", other_game)
+    path = write_study(tmp_path / "tiny.yaml", STUDY)
+    assert main(["study", "run", str(path), "--out", str(out), "--backend", "local", "--quiet"]) == 1
+    printed = capsys.readouterr()
+    reason = "comparison 'sp_vs_sa': sa plays another environment than sp (differs in layout: 'a' vs 'b')"
+    assert f"not done: compare sp_vs_sa: {reason}" in printed.out and "precision" not in printed.out
+    step = json.loads((out / "study.json").read_text())["steps"]["compare sp_vs_sa"]
+    assert step["status"] == "blocked" and step["reason"] == reason
+    assert f"- compare sp_vs_sa: blocked ({reason})" in (out / "report.md").read_text()
+    assert {e["step"]: e["status"] for e in study_status(out)}["compare sp_vs_sa"] == "blocked"
+
+
 def test_a_comparison_against_a_human_proxy_trained_again_is_played_again(finished, tmp_path, monkeypatch):
     """The result records which proxy it was played against; a proxy file holding another policy (``ocv2 human
     proxy`` run again) makes it stale, as other runs or episodes do."""

@@ -53,6 +53,7 @@ from population.config import Config, ConfigError
 from population.config.paper import PACKAGED_CONFIGS
 from population.memory import check_fits
 from population.numerics import DEFAULT_PRECISION
+from population.policy import env_difference, same_env
 from population.xp import block_summary
 
 log = logging.getLogger(__name__)
@@ -309,6 +310,7 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
             check_fits(config, place)
         except ConfigError as error:
             raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
+    check_comparisons(study, configs)
     _check_retrain(study, out, retrain)
     differs = {run.name: trained_differences(run_dir(out, run.name), configs[run.name]) for run in study.runs}
     retrain = _still_to_retrain(study, differs, retrain)
@@ -330,6 +332,30 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
             "again (the trained run and its cross-play move to replaced/)"
         )
     return Plan(study, out, state, options, configs, retrain, tuple(extend))
+
+
+def check_comparisons(study: Study, configs: dict) -> None:
+    """Refuse, before anything trains, a comparison that cannot be played: runs of different games (layout or
+    env settings) or runs trained at different ``run.precision``. ``configs``: every run's config (``run_config``). The ``StudyError`` names the study file and the
+    comparison."""
+    for comparison in study.comparisons:
+        where = f"{study.origin}: comparison {comparison.name!r}"
+        first = comparison.runs[0]
+        env = configs[first].env_kwargs
+        for name in comparison.runs[1:]:
+            other = configs[name].env_kwargs
+            if not same_env(other, env):
+                raise StudyError(
+                    f"{where}: run {name!r} plays another game than run {first!r} ({env_difference(other, env)}); "
+                    "cross-play needs one game: compare runs of the same layout and env settings"
+                )
+        precisions = {name: configs[name].run.precision for name in comparison.runs}
+        if len(set(precisions.values())) > 1:
+            shown = ", ".join(f"{name}: {precision}" for name, precision in precisions.items())
+            raise StudyError(
+                f"{where}: its runs train at different run.precision ({shown}); give the compared runs one "
+                "run.precision (set:)"
+            )
 
 
 def _still_to_retrain(study: Study, differs: dict, asked: tuple[str, ...]) -> tuple[str, ...]:
@@ -424,7 +450,7 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
             state.mark(name, status="running", started=timer.last, ticked=timer.last)
             try:
                 result = _RUN_STEP[step.kind](plan, step.target, timer)
-            except StudyBlocked as blocked:
+            except (StudyBlocked, StudyError) as blocked:  # recorded, not left "running"; the other steps go on
                 timer.tick(status="blocked", reason=str(blocked))
                 say(f"study {study.name}: {name} blocked: {blocked}")
                 continue
@@ -706,6 +732,9 @@ def _compare(plan: Plan, name: str, timer: StepTimer) -> dict:
         groups.append(_source(crossplay.HUMAN_PROXY + first.env_kwargs["layout"]))
     try:
         crossplay.check_same_env(groups)
+    except crossplay.CrossPlayError as error:  # runs of two games are refused by plan_study; a proxy may differ
+        raise StudyError(f"comparison {comparison.name!r}: {error}") from None
+    try:
         precision = crossplay.played_precision(groups)
     except crossplay.CrossPlayError as error:
         raise StudyError(
