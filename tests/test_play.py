@@ -716,6 +716,42 @@ def test_an_exported_file_of_any_name_is_a_partner(rnn_run, tmp_path, capsys):
         load_policy_partner(stray)
 
 
+def test_the_game_is_traced_at_the_precision_the_partner_trained_with(rnn_run, tmp_path, monkeypatch):
+    """As cross-play and render: on a GPU JAX's own default would be TF32 for a partner trained at float32."""
+    from cluster.play import game as game_module
+
+    seen, original = [], game_module.game_step
+
+    def recording_game_step(*args, **kwargs):
+        seen.append(jax.config.jax_default_matmul_precision)  # what the step is traced under
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(game_module, "game_step", recording_game_step)
+    policy = policies.load(rnn_run, checkpoint="latest")
+    files = {
+        precision: policies.export(
+            tmp_path / f"{precision}.bin",
+            params=policy.params,
+            model=policy.model,
+            env=policy.env,
+            meta={"precision": precision},
+        )
+        for precision in ("bf16", "fp16")
+    }
+    stay = np.full((2,), STAY, np.int32)
+    for partner, expected in [
+        (load_policy_partner(rnn_run / "checkpoints" / "seed_0"), "float32"),  # its run's run.precision
+        (load_policy_partner(files["bf16"]), "bfloat16"),
+        (scripted_partner("random"), "float32"),
+    ]:
+        game = make_game(ocv2.make(**policy.env), partner, [0], tile_size=8)
+        game.step(partner.params, game.reset(jax.random.PRNGKey(0)), stay, jax.random.PRNGKey(1))
+        assert seen[-1] == expected
+    assert jax.config.jax_default_matmul_precision is None  # only while the game is called
+    with pytest.raises(PartnerError, match="fp16.bin: meta precision 'fp16' is not one of float32, tf32, bf16"):
+        load_policy_partner(files["fp16"])
+
+
 def test_bad_partner_paths_are_clear_errors(rnn_run, tmp_path):
     cases = [
         (tmp_path / "missing", "does not exist"),

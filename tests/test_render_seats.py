@@ -12,13 +12,14 @@ import pytest
 from PIL import Image
 
 from cluster.cli import main
+from cluster.cli import render as render_cli
 from cluster.runtime.rundir import RunDir
 from population import checkpoints as ckpt
 from population import ppo
 from population.config import load_config
 from population.evaluation import episode_states, play_seats
 from population.networks import init_params
-from population.policy import load
+from population.policy import export, load
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 RING = RESULTS / "table1_coord_ring_sp10" / "policies"
@@ -75,6 +76,51 @@ def test_render_seats_plays_a_recurrent_policy_from_its_run_directory(rnn_run, t
     assert "13 frames (12 steps of cramped_room" in capsys.readouterr().out  # the whole episode by default
     with Image.open(out) as im:
         assert im.n_frames == 13
+
+
+def test_render_seats_plays_at_the_precision_the_policies_trained_with(rnn_run, tmp_path, monkeypatch, capsys):
+    """As cross-play: on a GPU JAX's own default would be TF32 for policies trained at float32."""
+    seen = []
+
+    def recording_episode_states(*args, **kwargs):
+        seen.append(jax.config.jax_default_matmul_precision)  # what the episode is traced under
+        return episode_states(*args, **kwargs)
+
+    monkeypatch.setattr(render_cli, "episode_states", recording_episode_states)
+    policy = load(rnn_run)
+    files = {}
+    for precision in ("bf16", "fp16"):
+        files[precision] = str(
+            export(
+                tmp_path / f"{precision}.bin",
+                params=policy.params,
+                model=policy.model,
+                env=policy.env,
+                meta={"precision": precision},
+            )
+        )
+    run = str(rnn_run)  # its config says run.precision float32
+    base = ["render", "--tile-size", "8", "--steps", "2", "--out"]
+    for seats, extra, expected in [
+        ((run, run), [], "float32"),
+        ((files["bf16"], files["bf16"]), [], "bfloat16"),
+        ((run, files["bf16"]), ["--precision", "tf32"], "tensorfloat32"),
+    ]:
+        assert main([*base, str(tmp_path / f"{expected}.gif"), "--seats", *seats, *extra]) == 0
+        assert seen[-1] == expected
+    assert jax.config.jax_default_matmul_precision is None  # only while the episode is traced
+    capsys.readouterr()
+    for seats, extra, message in [
+        ((run, files["bf16"]), [], f"--seats: the sources trained at different run.precision ({run}"),
+        ((run, files["bf16"]), [], "bf16); choose one with --precision"),
+        ((files["fp16"], run), [], "--seats SEAT0: " + files["fp16"] + ": meta precision 'fp16' is not one of"),
+        ((), ["cramped_room", "--precision", "tf32"], "--precision applies to --seats"),
+    ]:
+        seat_args = ["--seats", *seats] if seats else []
+        assert main([*base, str(tmp_path / "refused.gif"), *seat_args, *extra]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+    assert not (tmp_path / "refused.gif").exists() and len(seen) == 3
 
 
 @pytest.mark.parametrize(

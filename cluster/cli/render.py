@@ -1,19 +1,23 @@
 """``ocv2 render``: one episode to a looping GIF, of random actions or of two trained policies.
 
     ocv2 render LAYOUT --out FILE.gif [--steps N] [--seed S] [--fps F] [--view-radius V] [--tile-size T]
-    ocv2 render --seats SEAT0 SEAT1 --out FILE.gif [--steps N] [--seed S] [--greedy] [...]
+    ocv2 render --seats SEAT0 SEAT1 --out FILE.gif [--steps N] [--seed S] [--greedy] [--precision P] [...]
 
 With ``--seats`` the two policies (``ocv2 export`` files, run directories or checkpoint files, as
 ``population.policy.load`` reads them) play one episode of the environment they were trained in, seat 0
 first, sampled unless ``--greedy``: the published policies of a study become a picture of what a pair
 does, e.g. two seeds on different conventions failing together. The episode's return is printed, so a
-GIF can be set beside the cross-play matrix cell it is one episode of.
+GIF can be set beside the cross-play matrix cell it is one episode of. The episode is traced at the matmul
+precision the policies trained with (``run.precision``, from a checkpoint's run or an exported file's meta;
+float32 where nothing says), as cross-play plays them (``cluster.runtime.crossplay.played_precision``): seats
+that trained at different precisions are refused unless ``--precision`` chooses one.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+from types import SimpleNamespace
 
 import jax
 
@@ -22,7 +26,9 @@ from cluster.cli.args import add_gif_options, check_new_file, layout_or_error, n
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from ocv2.render import check_frame_size, render_frames, rollout_states, write_gif
 from population import policy as policies
+from population.config import PRECISIONS
 from population.evaluation import episode_states
+from population.numerics import matmul_precision
 
 HELP = "render an episode to a GIF: random actions, or two trained policies (--seats)"
 RANDOM_STEPS = 50  # random actions: a short clip unless --steps says otherwise
@@ -52,6 +58,12 @@ def add_render(sub) -> argparse.ArgumentParser:
         help=f"transitions to show (default {RANDOM_STEPS}; with --seats the whole episode)",
     )
     parser.add_argument("--greedy", action="store_true", help="with --seats: argmax actions instead of sampled")
+    parser.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        help="with --seats: matmul precision the episode is played at (default: the run.precision the policies "
+        "trained with, as cross-play plays them; a choice is required when they trained at different ones)",
+    )
     parser.add_argument("--seed", type=seed, default=0, help="PRNG seed (default 0)")
     add_gif_options(parser)
     return parser
@@ -66,6 +78,7 @@ def run_render(args) -> int:
     if args.seats:
         seats = [_load_seat(flag, source) for flag, source in zip(("SEAT0", "SEAT1"), args.seats)]
         env = _shared_env(seats, args.layout)
+        precision = _played_precision(seats, args.precision)
         steps = env.max_steps if args.steps is None else args.steps
         if steps > env.max_steps:
             raise CLIError(f"--steps {steps}: an episode of {env.layout.name} has {env.max_steps} steps")
@@ -74,6 +87,8 @@ def run_render(args) -> int:
             raise CLIError("give a LAYOUT to render random actions on, or two policies with --seats")
         if args.greedy:
             raise CLIError("--greedy applies to --seats: random actions have no argmax")
+        if args.precision is not None:
+            raise CLIError("--precision applies to --seats: random actions use no network")
         env = ocv2.make(layout_or_error(args.layout))
         steps = RANDOM_STEPS if args.steps is None else args.steps
     layout = env.layout
@@ -85,7 +100,7 @@ def run_render(args) -> int:
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)  # create what is missing
     key = jax.random.PRNGKey(args.seed)
     if args.seats:
-        states, episode_return = _seats_episode(seats, env, key, args.greedy)
+        states, episode_return = _seats_episode(seats, env, key, args.greedy, precision)
         states = jax.tree.map(lambda x: x[: steps + 1], states)
         what = f"{steps} steps of {layout.name}, {seats[0].name} and {seats[1].name}"
     else:
@@ -124,9 +139,31 @@ def _shared_env(seats: list, layout: str | None) -> ocv2.OvercookedV2:
     return env
 
 
-def _seats_episode(seats: list, env, key: jax.Array, greedy: bool):
+def _played_precision(seats: list, chosen: str | None) -> str:
+    """The ``run.precision`` the seats' episode is traced at: ``chosen``, else the one they trained with (the
+    default where neither says), as cross-play decides it; a CLIError for a precision that is not one, or for
+    seats of different precisions when nothing was chosen."""
+    from cluster.runtime import crossplay  # Ray and the workers: only when there are seats to play
+
+    known = []
+    for flag, seat in zip(("SEAT0", "SEAT1"), seats):
+        precision = seat.meta.get("precision")  # a checkpoint's run.precision, or a file's exported with it
+        if precision is not None and precision not in PRECISIONS:
+            raise CLIError(
+                f"--seats {flag}: {seat.source}: meta precision {precision!r} is not one of {', '.join(PRECISIONS)}"
+            )
+        known.append(SimpleNamespace(label=seat.source, precision=precision))
+    try:
+        return crossplay.played_precision(known, chosen)
+    except crossplay.CrossPlayError as error:
+        raise CLIError(f"--seats: {error}; choose one with --precision") from None
+
+
+def _seats_episode(seats: list, env, key: jax.Array, greedy: bool, precision: str):
     """One whole episode of the two seats: every state (the reset one, then one per step) and its team sparse
-    return. Jitted: un-jitted, each of the episode's steps would dispatch its ops one by one."""
+    return, traced at ``precision`` (a ``run.precision`` name). Jitted: un-jitted, each of the episode's steps
+    would dispatch its ops one by one."""
     play = jax.jit(lambda k: episode_states([s.seat for s in seats], env, k, greedy))
-    states, episode_return = play(key)
+    with matmul_precision(precision):
+        states, episode_return = play(key)
     return states, float(episode_return)

@@ -3,7 +3,9 @@
 Everything here is a pure function of explicit arguments (state, parameters, PRNG keys); the
 session in ``cluster/play/session.py`` owns time, seats and recording. ``make_game`` jits the step
 (partner policies + environment) and the view renderer once per session, so a tick costs two
-compiled calls whatever the layout.
+compiled calls whatever the layout. They are traced at the matmul precision the partner trained with
+(``run.precision``, from its run or an exported file's meta; float32 where nothing says), as cross-play
+and ``ocv2 render --seats`` play it: on a GPU, JAX's own default would be TF32.
 
 A partner follows the network calling convention of ``population.evaluation``
 (``apply(params, hidden[B, H], obs[1, B, ...], reset[1, B]) -> (hidden, logits[1, B, A], value)``),
@@ -30,7 +32,8 @@ from ocv2.render import INGREDIENT_COLORS, check_frame_size, render
 from ocv2.state import State
 from population import checkpoints as ckpt
 from population import policy as policies
-from population.config import ConfigError, load_run_config
+from population.config import PRECISIONS, ConfigError, load_run_config
+from population.numerics import DEFAULT_PRECISION, matmul_precision
 
 #: Cells outside a human's view window are painted this colour: the human sees what their agent sees.
 HIDDEN_RGB = (24, 24, 24)
@@ -53,6 +56,7 @@ class Partner(NamedTuple):
     run_dir: str | None = None  # the run a checkpoint belongs to (None for an exported file)
     env_kwargs: dict | None = None  # the ``ocv2.make`` arguments of the env a policy plays (its run's eval env)
     config_fingerprint: str | None = None  # the run config's fingerprint (None for an exported file)
+    precision: str = DEFAULT_PRECISION  # the run.precision a policy trained with: what the game is traced at
 
 
 class GameCarry(NamedTuple):
@@ -173,9 +177,19 @@ def load_policy_partner(path) -> Partner:
         policy = policies.load(path)
     except policies.PolicyError as error:
         raise PartnerError(f"--partner: {error}") from None
+    precision = policy.meta.get("precision", DEFAULT_PRECISION)  # a checkpoint's run, or a file's exported with it
+    if precision not in PRECISIONS:
+        raise PartnerError(f"--partner: {path}: meta precision {precision!r} is not one of {', '.join(PRECISIONS)}")
     if exported:
         return Partner(
-            "policy", policy.name, policy.apply, policy.params, policy.hidden_size, str(path), env_kwargs=policy.env
+            "policy",
+            policy.name,
+            policy.apply,
+            policy.params,
+            policy.hidden_size,
+            str(path),
+            env_kwargs=policy.env,
+            precision=precision,
         )
     try:
         fingerprint = load_run_config(run_dir).fingerprint()  # policy.load read the same file
@@ -192,6 +206,7 @@ def load_policy_partner(path) -> Partner:
         str(run_dir),
         policy.env,
         fingerprint,
+        precision,
     )
 
 
@@ -260,7 +275,8 @@ def seat_views(env, seats: tuple[int, ...], tile_size: int, state: State) -> Vie
 
 
 def make_game(env, partner: Partner, human_seats, tile_size: int = 48) -> Game:
-    """Jit the reset, the step and the views for this env, partner and set of human seats.
+    """Jit the reset, the step and the views for this env, partner and set of human seats, each traced (and
+    called) at the partner's ``precision``.
 
     Raises:
         ValueError: a ``tile_size`` whose frames are too big (``ocv2.render.check_frame_size``).
@@ -272,10 +288,21 @@ def make_game(env, partner: Partner, human_seats, tile_size: int = 48) -> Game:
         env,
         partner,
         seats,
-        reset=jax.jit(functools.partial(reset_game, env, partner.hidden_size)),
-        step=jax.jit(step),
-        views=jax.jit(functools.partial(seat_views, env, seats, int(tile_size))),
+        reset=_at(partner.precision, jax.jit(functools.partial(reset_game, env, partner.hidden_size))),
+        step=_at(partner.precision, jax.jit(step)),
+        views=_at(partner.precision, jax.jit(functools.partial(seat_views, env, seats, int(tile_size)))),
     )
+
+
+def _at(precision: str, function: Callable) -> Callable:
+    """``function`` called under ``precision``'s matmul precision: a jitted function is traced (and looked up
+    in its cache) under the setting in force at the call."""
+
+    def call(*args):
+        with matmul_precision(precision):
+            return function(*args)
+
+    return call
 
 
 def warm_up(game: Game) -> None:
