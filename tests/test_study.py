@@ -662,6 +662,25 @@ def test_a_comparison_that_cannot_be_played_is_refused_before_anything_trains(tm
     assert not (tmp_path / "out").exists()
 
 
+def test_human_proxy_on_a_layout_without_human_data_is_refused_before_anything_trains(tmp_path, capsys):
+    data = copy.deepcopy(STUDY)
+    data["set"].append("env.layout=grounded_coord_simple")
+    data["comparisons"].append({"name": "sp_vs_human", "runs": ["sp"], "human_proxy": True})
+    path = write_study(tmp_path / "v2.yaml", data)
+    with pytest.raises(StudyError) as error:
+        plan_study(load_study(path), tmp_path / "out", LOCAL)
+    assert str(error.value) == (
+        f"{path}: comparison 'sp_vs_human': human_proxy: true, but layout 'grounded_coord_simple' has no human data "
+        "(a BC human proxy exists only for cramped_room, asymm_advantages, coord_ring, forced_coord, counter_circuit); "
+        "set human_proxy: false or compare runs of one of those"
+    )
+    assert main(["study", "run", str(path), "--backend", "local", "--out", str(tmp_path / "out")]) == 2
+    assert "has no human data" in _one_line(capsys)
+    assert not (tmp_path / "out").exists()
+    data["comparisons"].pop()  # without the proxy the same runs are a study
+    plan_study(load_study(write_study(tmp_path / "v2.yaml", data)), tmp_path / "out", LOCAL)
+
+
 def test_a_step_that_fails_is_recorded_blocked_with_its_reason_and_the_report_still_written(
     finished, tmp_path, capsys, monkeypatch
 ):
@@ -683,6 +702,25 @@ def test_a_step_that_fails_is_recorded_blocked_with_its_reason_and_the_report_st
     assert step["status"] == "blocked" and step["reason"] == reason
     assert f"- compare sp_vs_sa: blocked ({reason})" in (out / "report.md").read_text()
     assert {e["step"]: e["status"] for e in study_status(out)}["compare sp_vs_sa"] == "blocked"
+
+
+def test_a_damaged_human_proxy_blocks_its_comparison_without_advice_to_train_a_missing_one(
+    finished, tmp_path, capsys, monkeypatch
+):
+    monkeypatch.setenv("OCV2_CACHE", str(tmp_path / "cache"))
+    proxy = tmp_path / "cache" / "human_proxy" / "cramped_room.ocv2policy"
+    proxy.parent.mkdir(parents=True)
+    proxy.write_bytes(b"not a policy")
+    out = _copy(finished, tmp_path / "study")
+    data = {
+        **STUDY,
+        "comparisons": [*STUDY["comparisons"], {"name": "sp_vs_human", "runs": ["sp"], "human_proxy": True}],
+    }
+    path = write_study(tmp_path / "tiny.yaml", data)
+    assert main(["study", "run", str(path), "--out", str(out), "--backend", "local", "--quiet"]) == 1
+    printed = capsys.readouterr().out
+    assert "not done: compare sp_vs_human: " in printed and str(proxy) in printed, printed
+    assert "ocv2 human proxy" not in printed  # the file is there: training one is not the fix
 
 
 def test_a_comparison_against_a_human_proxy_trained_again_is_played_again(finished, tmp_path, monkeypatch):

@@ -51,9 +51,10 @@ from ocv2 import boundedjson
 from population import checkpoints as ckpt
 from population.config import Config, ConfigError
 from population.config.paper import PACKAGED_CONFIGS
+from population.human import LAYOUT_MAP, proxy_path
 from population.memory import check_fits
 from population.numerics import DEFAULT_PRECISION
-from population.policy import env_difference, same_env
+from population.policy import env_difference, env_settings, same_env
 from population.xp import block_summary
 
 log = logging.getLogger(__name__)
@@ -334,9 +335,14 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     return Plan(study, out, state, options, configs, retrain, tuple(extend))
 
 
+#: The layouts the 2019 human data covers, and with it a BC human proxy (``population.human``).
+HUMAN_LAYOUTS = tuple(LAYOUT_MAP.values())
+
+
 def check_comparisons(study: Study, configs: dict) -> None:
     """Refuse, before anything trains, a comparison that cannot be played: runs of different games (layout or
-    env settings) or runs trained at different ``run.precision``. ``configs``: every run's config (``run_config``). The ``StudyError`` names the study file and the
+    env settings), runs trained at different ``run.precision``, or ``human_proxy: true`` on a layout with no human
+    data. ``configs``: every run's config (``run_config``). The ``StudyError`` names the study file and the
     comparison."""
     for comparison in study.comparisons:
         where = f"{study.origin}: comparison {comparison.name!r}"
@@ -355,6 +361,12 @@ def check_comparisons(study: Study, configs: dict) -> None:
             raise StudyError(
                 f"{where}: its runs train at different run.precision ({shown}); give the compared runs one "
                 "run.precision (set:)"
+            )
+        layout = env_settings(env).get("layout")
+        if comparison.human_proxy and layout not in HUMAN_LAYOUTS:
+            raise StudyError(
+                f"{where}: human_proxy: true, but layout {layout!r} has no human data (a BC human proxy exists "
+                f"only for {', '.join(HUMAN_LAYOUTS)}); set human_proxy: false or compare runs of one of those"
             )
 
 
@@ -763,12 +775,15 @@ def _source(text: str, checkpoint: str = "final") -> crossplay.PolicyGroup:
     try:
         return crossplay.resolve_source(text, checkpoint)
     except crossplay.CrossPlayError as error:
-        if text.startswith(crossplay.HUMAN_PROXY):
-            layout = text[len(crossplay.HUMAN_PROXY) :]
-            raise StudyBlocked(
-                f"{error} (train it with: ocv2 human proxy {layout} --source overcooked_ai-1.1.0.tar.gz; docs/human.md)"
-            ) from None
-        raise StudyError(str(error)) from None
+        if not text.startswith(crossplay.HUMAN_PROXY):
+            raise StudyError(str(error)) from None
+        layout = text[len(crossplay.HUMAN_PROXY) :]
+        try:
+            missing = not proxy_path(layout).exists()
+        except (ValueError, LookupError, OSError):  # no human data for the layout: plan_study refuses it first
+            missing = False
+        hint = f" (train it with: ocv2 human proxy {layout} --source overcooked_ai-1.1.0.tar.gz; docs/human.md)"
+        raise StudyBlocked(f"{error}{hint if missing else ''}") from None
 
 
 def _play(options: StudyOptions, rows, cols, seed: int, episodes: int, label: str, precision: str) -> crossplay.Matrix:
