@@ -300,6 +300,39 @@ def test_a_missing_human_proxy_names_the_source_and_the_command_that_makes_it(ru
     assert not out.exists()
 
 
+def test_an_interrupted_in_run_cross_play_says_which_unfinished_archives_it_left(run, tmp_path, monkeypatch, caplog):
+    """The writers keep the episodes an interrupted evaluation wrote (docs/archive.md: recoverable); the command
+    must say where they are and what to do with them, not only 'interrupted'."""
+    pytest.importorskip("mcap", reason="the in-run cross-play archives its episodes: needs mcap (pip install mcap)")
+    import shutil
+
+    from cluster.runtime import evaluate
+
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    real, calls = evaluate.record_episodes, []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:  # seed 0 in seat 0 has written its episodes with seed 0, seed 1 none yet
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(evaluate, "record_episodes", interrupted)
+    caplog.set_level("WARNING", logger="cluster.runtime.evaluate")
+    with pytest.raises(KeyboardInterrupt):
+        evaluate.evaluate_run(copy, episodes=2, show_progress=False)
+    left = copy / "archive" / "xp" / "seat0_seed_0.mcap.partial"
+    assert left.is_file() and not (copy / "archive" / "xp" / "seat0_seed_1.mcap.partial").exists()
+    (message,) = [r.getMessage() for r in caplog.records if r.name == evaluate.__name__]
+    assert f"left 1 unfinished archive(s) of the episodes it played: {left};" in message
+    assert f"'ocv2 xp {copy}' plays them again" in message and "'ocv2 archive recover FILE --out" in message
+    monkeypatch.setattr(evaluate, "record_episodes", real)
+    caplog.clear()
+    evaluate.evaluate_run(copy, episodes=2, show_progress=False)  # the rerun replaces it
+    assert not left.exists() and not [r for r in caplog.records if r.name == evaluate.__name__]
+
+
 def test_a_block_of_one_policy_with_itself_prints_its_self_play_only(capsys):
     nan = float("nan")
     own = {"rows": 1, "cols": 1, "sp_mean": 214.6, "xp_mean": nan, "xp_ci95_interval": [nan, nan], "gap": nan}

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cluster.archive import ArchiveWriter, record_episodes
+from cluster.archive import PARTIAL_SUFFIX, ArchiveWriter, record_episodes
 from cluster.runtime.jobs import in_waves
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import RunDir, RunDirError, seed_curves, write_csv, write_json, write_matrix_csv
@@ -100,6 +100,13 @@ def xp_archive_path(archive_dir, row: int) -> Path:
     return Path(archive_dir) / f"seat0_seed_{row}.mcap"
 
 
+def unfinished_xp_archives(archive_dir, num: int) -> list[str]:
+    """The ``.partial`` cross-play archives of rows 0..num-1 under ``archive_dir``: an evaluation stopped while it
+    wrote them (each holds the episodes written before; ``ocv2 archive recover`` makes a file of them)."""
+    paths = (str(xp_archive_path(archive_dir, row)) + PARTIAL_SUFFIX for row in range(num))
+    return [path for path in paths if Path(path).is_file()]
+
+
 def _cross_play_spread(workers, params, key, episodes: int, archive_dir, on_progress=None) -> CrossPlay:
     """Cross-play of every seat-0 row on the workers, in waves of one row per shard, so that ``on_progress(done,
     total)`` (rows) moves while it plays: a local run has one shard, and one job of all rows said nothing for the
@@ -134,15 +141,26 @@ def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = Tru
     archive_dir = run.subdir("archive", "xp") if config.archive.xp else None
     num = config.population.num_seeds
     label = f"cross-play {num}x{num}, {episodes} episodes/pair"
-    if workers is None:
-        with (
-            Bar(label, enabled=show_progress, unit="blocks") as bar,
-            matmul_precision(config.run.precision),  # as the run trained (Ray actors set it themselves)
-        ):
-            result = play_rows(config, trainer, params, range(num), key, episodes, archive_dir, on_progress=bar)
-    else:
-        with Bar(label, enabled=show_progress, unit="seat-0 rows") as bar:
-            result = _cross_play_spread(workers, params, key, episodes, archive_dir, on_progress=bar)
+    try:
+        if workers is None:
+            with (
+                Bar(label, enabled=show_progress, unit="blocks") as bar,
+                matmul_precision(config.run.precision),  # as the run trained (Ray actors set it themselves)
+            ):
+                result = play_rows(config, trainer, params, range(num), key, episodes, archive_dir, on_progress=bar)
+        else:
+            with Bar(label, enabled=show_progress, unit="seat-0 rows") as bar:
+                result = _cross_play_spread(workers, params, key, episodes, archive_dir, on_progress=bar)
+    except BaseException:  # Ctrl-C, a failure: the writers keep what they wrote (docs/archive.md), and say where
+        left = unfinished_xp_archives(archive_dir, num) if archive_dir is not None else []
+        if left:
+            log.warning(
+                f"the cross-play stopped before its matrix was written and left {len(left)} unfinished "
+                f"archive(s) of the episodes it played: {', '.join(left)}; 'ocv2 xp {run_dir}' plays them again "
+                "and replaces them, 'ocv2 archive recover FILE --out OTHER.mcap' keeps these episodes, "
+                "or delete them"
+            )
+        raise
     summary = summarize(result, recipe_names(env))
     summary["wall_s"] = round(time.perf_counter() - started, 2)
     if archive_dir is not None:
