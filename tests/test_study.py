@@ -29,6 +29,7 @@ from cluster.cli import main
 from cluster.runtime import crossplay
 from cluster.runtime.rundir import RunDir, read_matrix_csv
 from cluster.runtime.runstate import Schedule
+from cluster.study import report
 from cluster.study.pack import pack_study, snapshots_still_read
 from cluster.study.publish import publish_study
 from cluster.study.runner import (
@@ -160,9 +161,58 @@ def normalized_report(out: Path, study_folder: Path, root: Path = ROOT) -> dict[
     return texts
 
 
+#: The golden report's header before it told a study that changes its configs from the paper's experiment.
+GOLDEN_HEADER = (
+    "the configs' env steps (the paper's experiment)",
+    "the configs' env steps (**reduced or changed: not the paper's experiment**; the study changes its configs: "
+    "`eval.episodes=2`, `population.method=sa (sa)`, `ppo.total_timesteps=1024 (sa)`)",
+)
+
+
 def test_the_report_is_byte_for_byte_what_the_code_wrote_before_its_refactor(finished):
-    for name, text in normalized_report(finished, finished.parent).items():
+    texts = normalized_report(finished, finished.parent)
+    assert GOLDEN_HEADER[1] in texts["report.md"]  # the one line written since: the tiny study is no paper's
+    texts["report.md"] = texts["report.md"].replace(GOLDEN_HEADER[1], GOLDEN_HEADER[0])
+    for name, text in texts.items():
         assert text == (GOLDEN / name).read_text(), name
+
+
+def _header(study, state) -> str:
+    """report.md's budget line for ``study`` and the directory ``state`` (nothing trained)."""
+    summary = {"budget": state.budget, "budget_mode": state.budget_mode, "seeds": state.seeds, "backend": "local"}
+    summary |= {"wall_s": 0, "set": list(state.overrides), "ci_method": "-", "written": "-", "pictures": []}
+    summary |= {"runs": [], "comparisons": [], "over_training": []}
+    experiment = report.as_written(study, Path("studies") / study.name, state)
+    text = report.markdown(study, summary, state, experiment=experiment)
+    return next(line for line in text.splitlines() if line.startswith("- study file:"))
+
+
+def test_the_report_calls_a_study_the_papers_experiment_only_when_it_runs_the_paper_configs_as_written(tmp_path):
+    """Every study at budget 1 was "the paper's experiment", though its file, --set or --seeds had cut the
+    steps, the network, the episodes or the seeds."""
+    gpu = load_study(ROOT / "configs" / "studies" / "gpu_coord_ring_sp.yaml")
+    state = StudyState(study=gpu.name, spec={}, budget=1.0, budget_mode="truncate")
+    assert _header(gpu, state).endswith("(the paper's experiment)")
+    # run.* cadence, archive and cluster keys, and --seeds of the config's own count, change no experiment
+    same = with_overrides(gpu, ["run.checkpoint_every=3", "run.deterministic=false", "archive.xp=true"])
+    assert _header(same, dataclasses.replace(state, seeds=10)).endswith("(the paper's experiment)")
+    for overrides, seeds, change in (
+        ([], 2, "`population.num_seeds=2`"),
+        (["eval.episodes=8"], None, "`eval.episodes=8`"),
+        (["ppo.total_timesteps=4000000"], None, "`ppo.total_timesteps=4000000`"),
+        (["model.conv_features=[8,8,8]"], None, "`model.conv_features=[8, 8, 8]`"),
+    ):
+        line = _header(with_overrides(gpu, overrides), dataclasses.replace(state, seeds=seeds))
+        assert line.endswith(
+            f"(**reduced or changed: not the paper's experiment**; the study changes its configs: {change})"
+        ), line
+    # A reduced budget says so as before, and what else the study changed.
+    line = _header(with_overrides(gpu, ["eval.episodes=8"]), dataclasses.replace(state, budget=0.3))
+    assert "(**reduced: not the paper's experiment**; each config's schedule as written, stopped after" in line
+    assert line.endswith("; the study changes its configs: `eval.episodes=8`)")
+    # A config of one's own, as written, is not the paper's either.
+    own = {"study": "own", "runs": [{"name": "sp", "config": str(SMOKE)}]}
+    assert _header(load_study(write_study(tmp_path / "own.yaml", own)), state).endswith("(the configs as written)")
 
 
 def test_the_report_puts_the_paper_numbers_beside_ours(finished):
@@ -173,7 +223,10 @@ def test_the_report_puts_the_paper_numbers_beside_ours(finished):
     assert "| 2 x 512 |" in report and "| 2 x 1,024 |" in report  # small step counts exactly, not "0.00M"
     assert "| 256 | " in report  # the over-training snapshot at update 2
     summary = json.loads((finished / "summary.json").read_text())
-    assert summary["budget_mode"] == "truncate" and "budget: **1 x** the configs' env steps (the paper's" in report
+    assert (
+        summary["budget_mode"] == "truncate"
+        and "budget: **1 x** the configs' env steps (**reduced or changed" in report
+    )
     sp = summary["runs"][0]
     assert sp["paper"]["sp"] == {"mean": 123.0, "std": 4.0} and sp["paper"]["xp"] == {"mean": 56.0, "std": None}
     assert sp["xp"]["sp_ci95_interval"] and sp["xp"]["num_policies"] == 2

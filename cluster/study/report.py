@@ -15,6 +15,7 @@ paper's mean lies inside our interval: a plain check, not a test of the paper's 
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import math
 from pathlib import Path
 
@@ -23,13 +24,14 @@ import numpy as np
 from cluster.runtime.crossplay import seat_pairs
 from cluster.runtime.progress import duration
 from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves, write_json
-from cluster.study.results import config_differences, evaluation_problem, read_result
+from cluster.study.results import compared_settings, config_differences, evaluation_problem, read_result
 from cluster.study.since import KEYS, since_extension
-from cluster.study.spec import PaperValue, Study, comparison_dir, run_dir
+from cluster.study.spec import PaperValue, Study, StudyError, comparison_dir, run_config, run_dir
 from cluster.study.state import StepRecord, StudyState
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
-from population.config import METHOD_TABLE
+from population.config import METHOD_TABLE, ConfigError, load_config
+from population.config.paper import PAPER_CONFIGS
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
 from population.policy import same_env
 from population.xp import summary_difference
@@ -72,7 +74,7 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
     )
     summary["pictures"] = [Path(p).name for p in pictures]
     write_json(dest / "summary.json", summary)  # strict JSON: NaN as null
-    atomic_write(dest / "report.md", markdown(study, summary, state))
+    atomic_write(dest / "report.md", markdown(study, summary, state, experiment=as_written(study, out, state)))
     return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}
 
 
@@ -87,6 +89,71 @@ def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
 # ---------------------------------------------------------------------------------------------------
 # collecting
 # ---------------------------------------------------------------------------------------------------
+
+
+#: Compared settings a study may change and still run its configs' experiment: they make GPU ops reproducible,
+#: not other numbers. Neither are the cluster, archive and checkpoint-cadence keys (``compared_settings``).
+_NOT_AN_EXPERIMENT_CHANGE = ("run.deterministic",)
+
+
+def as_written(study: Study, out: Path, state: StudyState) -> tuple[bool, str]:
+    """Whether every run trains its config file's experiment as written (its training settings, seeds and
+    evaluation episodes; the budget aside, which report.md names itself), and each change the study file's ``set``,
+    ``--set``, ``--seeds`` or ``partners_from`` makes to them, in brief, for report.md ("the study changes its
+    configs: `eval.episodes=2`, `ppo.lr (sa)`": a key set to one value in every run, or the runs that change it).
+    (False, why) when a config no longer loads."""
+    changed: dict[str, dict[str, object]] = {}
+    for run in study.runs:
+        try:
+            written = compared_settings(load_config(run.config))
+            planned = compared_settings(run_config(study, run, out, 1.0, state.seeds, state.budget_mode))
+        except (ConfigError, StudyError):  # it loaded at the study's budget: hardly ever
+            return False, f"run {run.name}'s config does not load as written"
+        for key in sorted(set(written) | set(planned)):
+            if key not in _NOT_AN_EXPERIMENT_CHANGE and written.get(key) != planned.get(key):
+                changed.setdefault(key, {})[run.name] = planned.get(key)
+    if not changed:
+        return True, ""
+    items = [f"`{item}`" for item in _brief_changes(changed, [run.name for run in study.runs])]
+    return False, "the study changes its configs: " + ", ".join(items[:6]) + (
+        f" and {len(items) - 6} more" if len(items) > 6 else ""
+    )
+
+
+def _brief_changes(changed: dict[str, dict[str, object]], runs: list[str]) -> list[str]:
+    """``changed`` (key -> run -> value) as a few items: a key whose siblings changed too as ``parent.*`` (an FCP
+    run's partner_ppo section), a key of one value as ``key=value``, the runs it concerns when not all."""
+    parents: dict[str, list[str]] = {}
+    for key in changed:
+        parents.setdefault(key.rpartition(".")[0], []).append(key)
+    items, seen = [], set()
+    for key, values in changed.items():
+        parent = key.rpartition(".")[0]
+        if len(parents[parent]) > 3:
+            if parent in seen:
+                continue
+            seen.add(parent)
+            names = sorted({run for sibling in parents[parent] for run in changed[sibling]}, key=runs.index)
+            text = f"{parent}.*"
+        else:
+            names = list(values)
+            shown = {repr(v) for v in values.values()}
+            value = next(iter(values.values()))
+            text = f"{key}={_plain(value)}" if len(shown) == 1 else key
+        items.append(text + ("" if len(names) == len(runs) else f" ({', '.join(names)})"))
+    return items
+
+
+def _plain(value) -> str:
+    """A value as an override writes it (``true``, ``[8, 8]``)."""
+    text = value if isinstance(value, str) else json.dumps(value, default=str)
+    return text if len(text) <= 30 else text[:27] + "..."
+
+
+def _paper_configs(study: Study) -> bool:
+    """Whether every run's config file is one of the paper's (``configs/paper/``)."""
+    paper = Path(str(PAPER_CONFIGS)).resolve()
+    return all(Path(run.config).resolve().parent == paper for run in study.runs)
 
 
 def _described(config) -> dict:
@@ -489,10 +556,11 @@ def _over_training_plots(dest: Path, over: list[dict]) -> list[str]:
 # ---------------------------------------------------------------------------------------------------
 
 
-def markdown(study: Study, summary: dict, state: StudyState) -> str:
+def markdown(study: Study, summary: dict, state: StudyState, experiment: tuple[bool, str] = (True, "")) -> str:
     """report.md's text: the header, our numbers beside the paper's per run, each comparison's seat
-    orders, the over-training tables and the pictures, from ``summary`` (``write_report``'s) and the
-    study directory's ``state``."""
+    orders, the over-training tables and the pictures, from ``summary`` (``write_report``'s), the
+    study directory's ``state`` and ``experiment`` (``as_written``: whether the runs train their configs as
+    written, and what the study changes)."""
     left = [
         f"- {name}: {step.status}" + (f" ({step.reason})" if step.reason else "")
         for name, step in state.steps.items()
@@ -506,9 +574,15 @@ def markdown(study: Study, summary: dict, state: StudyState) -> str:
         "truncate": "each config's schedule as written, stopped after that share of its steps (truncated)",
         "compress": "each config's whole schedule squeezed into that share of its steps (compressed)",
     }[mode]
+    unchanged, changed = experiment
+    if budget != 1:
+        what = f" (**reduced: not the paper's experiment**; {how}" + (f"; {changed})" if changed else ")")
+    elif not unchanged:
+        what = f" (**reduced or changed: not the paper's experiment**; {changed})"
+    else:
+        what = " (the paper's experiment)" if _paper_configs(study) else " (the configs as written)"
     lines += [
-        f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps"
-        + (" (the paper's experiment)" if budget == 1 else f" (**reduced: not the paper's experiment**; {how})"),
+        f"- study file: `{study.path.name}`; budget: **{budget:g} x** the configs' env steps{what}",
         *[
             f"- extended (`--extend`): trained first to budget {e['from']:g}, then on along the same schedules to "
             f"{e['to']:g}; the report and cross-play at {e['from']:g} are in `extended/budget_{e['from']:g}/`"
