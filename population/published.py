@@ -18,6 +18,9 @@ import json
 from collections.abc import Iterable
 from pathlib import Path
 
+import jax
+import numpy as np
+
 from ocv2.atomic import atomic_write
 from population import checkpoints as ckpt
 from population.config import load_run_config
@@ -143,12 +146,15 @@ def publish_runs(run_dirs, folder, which: str = "snapshots") -> dict[str, list[P
     plan = {}
     for run_dir in run_dirs:
         config = load_run_config(run_dir)
-        plan[run_dir] = [
+        selected = [
             (seed, update)
             for seed in range(config.population.num_seeds)
             for update in updates_to_publish(run_dir, seed, which)
-            if policy_name(run_dir.name, seed, update) not in known
         ]
+        for seed, update in selected:
+            if policy_name(run_dir.name, seed, update) in known:
+                check_same_as_listed(folder, run_dir, seed, update)
+        plan[run_dir] = [(s, u) for s, u in selected if policy_name(run_dir.name, s, u) not in known]
     targets: dict[Path, Path] = {}  # file to write -> the run it comes from
     for run_dir, wanted in plan.items():
         for seed, update in wanted:
@@ -181,6 +187,30 @@ def publish_runs(run_dirs, folder, which: str = "snapshots") -> dict[str, list[P
             folder.rmdir()
         raise
     return added
+
+
+def check_same_as_listed(folder, run_dir, seed: int, update: int) -> None:
+    """The file ``folder`` lists under the name of ``run_dir``'s seed ``seed`` at ``update`` must be that
+    checkpoint: files are named by the run directory's name, seed and update only, so a run trained again
+    (``--retrain``) or another study's run of the same name would otherwise be taken as published already, and the
+    folder would keep the other training's policies without a word. ``PolicyError`` naming the file otherwise."""
+    path = Path(folder) / policy_name(Path(run_dir).name, seed, update)
+    listed, fresh = load(path), load(run_dir, seed=seed, checkpoint=update)
+    same = (listed.model, listed.activation) == (fresh.model, fresh.activation) and _same_arrays(
+        listed.params, fresh.params
+    )
+    if not same:
+        raise PolicyError(
+            f"{path}: published from another training than {run_dir} seed {seed} at update {update} (its parameters "
+            "differ: a run trained again, or another study's run of the same name); publish into a new folder"
+        )
+
+
+def _same_arrays(first, second) -> bool:
+    a, b = jax.tree.leaves(first), jax.tree.leaves(second)
+    return jax.tree.structure(first) == jax.tree.structure(second) and all(
+        np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(a, b, strict=True)
+    )
 
 
 def checked_listing(folder) -> list[PublishedPolicy]:
