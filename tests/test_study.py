@@ -444,6 +444,52 @@ def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
     assert open_state(load_study(study), old, None, None, "local").budget == 1.0
 
 
+def test_another_study_file_of_the_same_name_may_add_to_a_directory_but_not_drop_or_swap_its_runs(tmp_path, capsys):
+    """A second file with the same ``study:`` took the directory over: the first file's runs and comparisons
+    dropped out of the report, their pictures left stale, and study.json's spec and source were replaced."""
+    out = tmp_path / "out"
+    first = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    StateFile(out, open_state(first, out, None, None, "local")).save()
+    before = (out / "study.json").read_bytes()
+    (tmp_path / "other").mkdir()
+
+    def refused(data: dict, *message: str, retrain: tuple = ()) -> None:
+        path = write_study(tmp_path / "other" / "tiny.yaml", data)
+        with pytest.raises(StudyError) as error:
+            plan_study(load_study(path), out, dataclasses.replace(LOCAL, retrain=retrain))
+        assert str(error.value).startswith(f"{path}: ") and all(m in str(error.value) for m in message), error.value
+        assert f"{out} holds study 'tiny' run from {tmp_path / 'tiny.yaml'}" in str(error.value)
+        command = ["study", "run", str(path), "--backend", "local", "--out", str(out)]
+        assert main([*command, *(f"--retrain={name}" for name in retrain)]) == 2
+        err = _one_line(capsys)
+        assert all(m in err for m in message), err
+        assert (out / "study.json").read_bytes() == before  # nothing taken over
+
+    dropped = {**STUDY, "runs": STUDY["runs"][:1], "comparisons": []}
+    refused(dropped, "has no run 'sa', comparison 'sp_vs_sa', which ", "add runs and comparisons, not drop them")
+    refused({**STUDY, "comparisons": []}, "has no comparison 'sp_vs_sa', which ")
+    other = tmp_path / "other" / "smoke.yaml"
+    shutil.copy(SMOKE, other)
+    swapped = copy.deepcopy(STUDY)
+    swapped["runs"][1]["config"] = str(other)
+    refused(swapped, f"run 'sa' takes config {other}, but ", f"gives it {SMOKE.resolve()}; ", "--retrain sa")
+    plan_study(load_study(write_study(tmp_path / "other" / "tiny.yaml", swapped)), out, replace_retrain("sa"))
+    # More runs and comparisons, the same configs from another study file: accepted.
+    more = copy.deepcopy(STUDY)
+    more["runs"].append({"name": "sa2", "config": str(SMOKE), "set": ["population.method=sa"]})
+    more["comparisons"].append({"name": "sp_vs_sa2", "runs": ["sp", "sa2"]})
+    plan_study(load_study(write_study(tmp_path / "other" / "tiny.yaml", more)), out, LOCAL)
+    # The file it was run from is gone (a directory unpacked elsewhere): configs of the same name are the same.
+    (tmp_path / "tiny.yaml").unlink()
+    moved = copy.deepcopy(STUDY)
+    moved["runs"][1]["config"] = "smoke.yaml"
+    plan_study(load_study(write_study(tmp_path / "other" / "tiny.yaml", moved)), out, LOCAL)
+
+
+def replace_retrain(*names: str) -> StudyOptions:
+    return dataclasses.replace(LOCAL, retrain=names)
+
+
 def test_set_overrides_every_run_after_the_study_file_and_the_directory_keeps_it(tmp_path, capsys):
     study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
     out = tmp_path / "out"
@@ -784,7 +830,10 @@ def test_a_comparison_against_a_human_proxy_trained_again_is_played_again(finish
     proxy.parent.mkdir(parents=True)
     policy.export_checkpoint(finished / "runs" / "sp", proxy, seed=0, meta={"name": "human proxy"})
     out = _copy(finished, tmp_path / "study")
-    data = {**STUDY, "comparisons": [{"name": "sp_vs_human", "runs": ["sp"], "human_proxy": True}]}
+    data = {
+        **STUDY,
+        "comparisons": [*STUDY["comparisons"], {"name": "sp_vs_human", "runs": ["sp"], "human_proxy": True}],
+    }
     study = load_study(write_study(tmp_path / "tiny.yaml", data))
     run_study(study, out, LOCAL, say=lambda line: None)
     configs = plan_study(study, out, LOCAL).configs

@@ -135,10 +135,13 @@ def open_state(
     overrides: Sequence[str] = (),
     mode: str | None = None,
     extend: bool = False,
+    retrain: Sequence[str] = (),
 ) -> StudyState:
     """The study directory's state, created or checked: a directory keeps the budget, its mode, the seed
     count and ``--set`` overrides it was started with (options left out on a later run take those values);
-    with ``extend``, a larger budget of a truncating directory is taken and recorded (``extensions``)."""
+    with ``extend``, a larger budget of a truncating directory is taken and recorded (``extensions``). The study
+    may add runs and comparisons to the ones the directory records, not drop them or give a run another config
+    file (``check_same_study``; a run in ``retrain`` may take another)."""
     state = read_state(out)
     given_overrides = tuple(overrides) or None
     if extend and budget is None:
@@ -146,6 +149,7 @@ def open_state(
     if state is not None:
         if state.study != study.name:
             raise StudyError(f"{out}: holds study {state.study!r}, not {study.name!r}; choose another --out")
+        check_same_study(study, out, state, retrain)
         if extend and budget != state.budget:
             _extend_budget(state, out, budget)
         kept_options = (
@@ -183,6 +187,47 @@ def open_state(
         )
     state.source, state.spec, state.backend = str(study.path), study.raw, backend
     return state
+
+
+def check_same_study(study: Study, out: Path, state: StudyState, retrain: Sequence[str] = ()) -> None:
+    """Refuse ``study`` for directory ``out`` (whose study.json is ``state``) when it is another study file of the
+    same name: one that lacks a run or comparison the directory records (its results would drop out of the report,
+    their pictures left stale) or gives a recorded run another config file (a run in ``retrain`` may take one).
+    Config files are compared by where they lie when the file the directory was run from is still there, else by
+    name (a directory unpacked from another machine)."""
+    kept_runs = _named(state.spec.get("runs"))
+    kept_comparisons = _named(state.spec.get("comparisons"))
+    lost = [f"run {name!r}" for name in kept_runs if name not in {r.name for r in study.runs}]
+    lost += [f"comparison {name!r}" for name in kept_comparisons if name not in {c.name for c in study.comparisons}]
+    recorded = f"{out} holds study {state.study!r} run from {state.source or 'a study file'}"
+    advice = (
+        "run it with that study file (a study file may add runs and comparisons, not drop them), "
+        "or choose another --out"
+    )
+    if lost:
+        raise StudyError(f"{study.origin}: has no {', '.join(lost)}, which {recorded} records; {advice}")
+    source = Path(state.source) if state.source else None
+    for run in study.runs:
+        config = kept_runs.get(run.name)
+        if not isinstance(config, str) or run.name in retrain:
+            continue
+        if source is not None and source.is_file():
+            same = (source.parent / config).resolve() == Path(run.config).resolve()
+            kept = str((source.parent / config).resolve())
+        else:
+            same, kept = Path(config).name == Path(run.config).name, config
+        if not same:
+            raise StudyError(
+                f"{study.origin}: run {run.name!r} takes config {run.config}, but {recorded} gives it {kept}; "
+                f"{advice}, or pass --retrain {run.name} to train it again from the new config"
+            )
+
+
+def _named(entries) -> dict:
+    """A kept spec's ``runs`` or ``comparisons``: name -> its config (None for a comparison), in order."""
+    if not isinstance(entries, list):
+        return {}
+    return {e["name"]: e.get("config") for e in entries if isinstance(e, dict) and isinstance(e.get("name"), str)}
 
 
 def _extend_budget(state: StudyState, out: Path, budget: float) -> None:
@@ -289,7 +334,15 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     out = Path(out).resolve()
     backend, address = options.backend, options.address
     state = open_state(
-        study, out, options.budget, options.seeds, backend, options.overrides, options.budget_mode, options.extend
+        study,
+        out,
+        options.budget,
+        options.seeds,
+        backend,
+        options.overrides,
+        options.budget_mode,
+        options.extend,
+        options.retrain,
     )
     study = with_overrides(study, list(state.overrides))
     retrain = tuple(dict.fromkeys(options.retrain))
