@@ -490,6 +490,36 @@ def replace_retrain(*names: str) -> StudyOptions:
     return dataclasses.replace(LOCAL, retrain=names)
 
 
+def test_a_study_directory_given_for_a_study_file_says_how_to_continue_it(tmp_path, capsys):
+    """``study run DIR`` said "is a directory, not a config file"; ``study run DIR/study.json`` "unknown key 'budget'"."""
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    out = tmp_path / "out dir"
+    StateFile(out, open_state(study, out, 0.5, 2, "local", ["eval.episodes=3"])).save()
+    command = (
+        f"ocv2 study run {tmp_path / 'tiny.yaml'} --out '{out}' --budget 0.5 --budget-mode truncate --seeds 2 "
+        "--set eval.episodes=3 --backend local"
+    )
+    for given, what in ((out, "a study directory"), (out / "study.json", f"the study.json of study directory {out}")):
+        assert main(["study", "run", str(given)]) == 2
+        assert _one_line(capsys).endswith(
+            f"error: {given}: is {what} (study 'tiny'), not a study file; continue it with: {command}"
+        )
+    # the command continues it: the options it names are the ones the directory keeps
+    options = StudyOptions(budget=0.5, budget_mode="truncate", seeds=2, overrides=("eval.episodes=3",), backend="local")
+    plan_study(study, out, options)
+    # the study file it was run from is gone: where it lay is named
+    (tmp_path / "tiny.yaml").unlink()
+    with pytest.raises(StudyError, match=r"--backend local \(the study file it was run from, .*tiny.yaml, is gone"):
+        load_study(out)
+    # what the study command reads is a study file, in its errors too
+    for given, message in (
+        (tmp_path, "is a directory, not a study file"),
+        (tmp_path / "no.yaml", "no such study file"),
+    ):
+        assert main(["study", "run", str(given)]) == 2
+        assert _one_line(capsys).endswith(f"{given}: {message}")
+
+
 def test_set_overrides_every_run_after_the_study_file_and_the_directory_keeps_it(tmp_path, capsys):
     study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
     out = tmp_path / "out"

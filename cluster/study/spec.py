@@ -34,12 +34,15 @@ import dataclasses
 import difflib
 import math
 import re
+import shlex
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from ocv2 import boundedjson
 from population.config import Config, ConfigError, load_config, read_yaml
 from population.config.errors import SET_PREFIX
+from population.config.paper import PACKAGED_CONFIGS
 
 STUDY_KEYS = ("study", "description", "set", "runs", "over_training", "comparisons")
 RUN_KEYS = ("name", "config", "set", "partners_from", "paper")
@@ -136,13 +139,48 @@ class Study:
 
 
 def load_study(path) -> Study:
-    """Read and check a study file (every config it names is loaded once, so a typo fails here)."""
+    """Read and check a study file (every config it names is loaded once, so a typo fails here). A study
+    directory, or its study.json, is refused with the command that continues it."""
     path = Path(path).resolve()
+    state_file = path / STATE_FILE if path.is_dir() else path
+    if state_file.name == STATE_FILE and state_file.is_file():
+        raise StudyError(_continue_hint(path, state_file))
     try:
         raw = read_yaml(str(path))
-    except ConfigError as error:
-        raise StudyError(str(error)) from None
+    except ConfigError as error:  # read_yaml names what it reads a config file
+        raise StudyError(str(error).replace("config file", "study file")) from None
     return check_runs(parse_study(raw, path))
+
+
+#: The file a study directory keeps its state in (``cluster.study.runner``).
+STATE_FILE = "study.json"
+
+
+def _continue_hint(where: Path, state_file: Path) -> str:
+    """What ``ocv2 study run`` says when given a study directory or its study.json (``where``) for a study file:
+    the command that continues it, from the source file and options ``state_file`` records."""
+    from cluster.study.state import StudyState  # it imports this module
+
+    out = state_file.parent
+    try:
+        state = StudyState.from_json(boundedjson.loads(state_file.read_text()), state_file)
+    except (OSError, ValueError) as error:  # StudyError is a ValueError
+        return f"{where}: is a study directory, not a study file (and its {STATE_FILE} is unreadable: {error})"
+    source = Path(state.source) if state.source else None
+    shipped = Path(str(PACKAGED_CONFIGS / "studies")) / source.name if source is not None else None
+    if source is None or (not source.is_file() and shipped is not None and shipped.is_file()):
+        source = shipped
+    words = ["ocv2", "study", "run", str(source) if source is not None else "STUDY.yaml", "--out", str(out)]
+    words += ["--budget", str(state.budget), "--budget-mode", state.budget_mode]  # str: exactly the kept number
+    words += ["--seeds", str(state.seeds)] if state.seeds is not None else []
+    words += [word for override in state.overrides for word in ("--set", override)]
+    words += ["--backend", state.backend] if state.backend in ("ray", "local") else []
+    gone = (
+        "" if source is None or source.is_file() else f" (the study file it was run from, {source}, is gone: give it)"
+    )
+    gone = " (give the study file it was run from)" if source is None else gone
+    what = f"the {STATE_FILE} of study directory {out}" if where == state_file else "a study directory"
+    return f"{where}: is {what} (study {state.study!r}), not a study file; continue it with: {shlex.join(words)}{gone}"
 
 
 def default_out(study: Study) -> Path:
