@@ -416,6 +416,33 @@ def test_a_packed_study_is_checked_before_anything_is_unpacked(finished, tmp_pat
     assert "no pack.json" in capsys.readouterr().err and not (tmp_path / "u2").exists()
 
 
+def _small_pack(tmp_path: Path) -> Path:
+    """A pack of a tiny study directory that has trained nothing yet (study.json alone): quick to make."""
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    StateFile(tmp_path / "study", open_state(study, tmp_path / "study", None, None, "local")).save()
+    pack_study(tmp_path / "study", tmp_path / "packed")
+    return tmp_path / "packed"
+
+
+def test_unpack_checks_the_study_and_file_count_pack_json_gives_against_what_is_packed(tmp_path, capsys):
+    """A pack.json saying "study": "someother", "files": 999 unpacked as "study 'someother' (999 files)", exit 0."""
+    packed = _small_pack(tmp_path)
+    record = json.loads((packed / "pack.json").read_text())
+    out = tmp_path / "new" / "u"
+    for change, said in (
+        ({"study": "someother"}, "pack.json: names study 'someother', its packed study.json study 'tiny'"),
+        ({"files": 999}, "pack.json: says 999 files, its parts hold 1"),
+    ):
+        (packed / "pack.json").write_text(json.dumps({**record, **change}))
+        assert main(["study", "unpack", str(packed), "--out", str(out)]) == 2
+        assert _one_line(capsys).endswith(f"{packed / said}; nothing was written")
+        assert not (tmp_path / "new").exists()  # nothing written, not even the folder above
+    (packed / "pack.json").write_text(json.dumps(record))
+    assert main(["study", "unpack", str(packed), "--out", str(out)]) == 0
+    assert f"unpacked study 'tiny' (1 files) into {out}" in capsys.readouterr().out
+    assert read_state(out).study == "tiny"
+
+
 def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
     study = write_study(tmp_path / "tiny.yaml", STUDY)
     with pytest.raises(StudyError, match="--budget 1.0"):

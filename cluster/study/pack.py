@@ -30,6 +30,7 @@ from cluster.runtime.runstate import resume_updates
 from cluster.study.runner import Step, check_folder, kept_study, missing_runs, read_state, run_finished
 from cluster.study.spec import RESERVED_NAMES, Study, StudyError, run_dir
 from cluster.study.state import StepRecord, StudyState
+from ocv2 import boundedjson
 from ocv2.atomic import staged_folder
 from population import checkpoints as ckpt
 
@@ -251,12 +252,40 @@ def _check_record(record: dict, where: Path) -> None:
         raise StudyError(f"{where}: part {repeated[0]!r} is listed more than once")
 
 
+def _check_contents(source: Path, record: dict, data: bytes) -> None:
+    """The packed tar against pack.json's ``record``, before anything is written: as many files as it says, and a
+    study.json of the study it names (a pack.json edited or put beside another pack's parts is refused)."""
+    where = source / PACK_NAME
+    try:
+        with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
+            members = tar.getmembers()
+            packed = next((m for m in members if m.name == "study.json" and m.isfile()), None)
+            text = tar.extractfile(packed).read() if packed is not None else None
+    except (tarfile.TarError, OSError, EOFError, zlib.error) as error:
+        raise StudyError(f"{source}: cannot unpack ({error}); nothing was written") from None
+    if len(members) != record["files"]:
+        raise StudyError(f"{where}: says {record['files']} files, its parts hold {len(members)}; nothing was written")
+    if text is None:
+        raise StudyError(f"{source}: the pack holds no study.json; nothing was written")
+    try:
+        state = StudyState.from_json(boundedjson.loads(text.decode()), source / "study.json (packed)")
+    except (ValueError, UnicodeDecodeError) as error:  # StudyError is a ValueError
+        raise StudyError(f"{source}: its packed study.json is unreadable ({error}); nothing was written") from None
+    if state.study != record["study"]:
+        raise StudyError(
+            f"{where}: names study {record['study']!r}, its packed study.json study {state.study!r}; "
+            "nothing was written"
+        )
+
+
 def unpack_study(source: Path, out: Path) -> dict:
-    """Unpack the packed study in ``source`` into ``out`` (which must not exist). Returns pack.json's record."""
+    """Unpack the packed study in ``source`` into ``out`` (which must not exist). Returns pack.json's record, once
+    the packed files are checked against it (``_check_contents``)."""
     out = Path(out)
     if out.exists():
         raise StudyError(f"{out}: exists; unpack into a new directory (nothing was written)")
     record, data = read_pack(source)
+    _check_contents(Path(source), record, data)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as error:
