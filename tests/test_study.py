@@ -443,6 +443,20 @@ def test_unpack_checks_the_study_and_file_count_pack_json_gives_against_what_is_
     assert read_state(out).study == "tiny"
 
 
+def test_unpack_out_a_file_or_under_one_is_refused_as_the_other_commands_refuse_it(tmp_path, capsys):
+    """``--out FILE/x`` said "cannot unpack here (File exists)"."""
+    packed = _small_pack(tmp_path)
+    (tmp_path / "a_file").write_text("mine")
+    for out, said in (
+        (tmp_path / "a_file" / "x", f"{tmp_path / 'a_file' / 'x'}: cannot be a study directory: {tmp_path / 'a_file'} "
+         "is a file, not a directory"),
+        (tmp_path / "a_file", f"{tmp_path / 'a_file'}: is a file, not a study directory"),
+    ):  # fmt: skip
+        assert main(["study", "unpack", str(packed), "--out", str(out)]) == 2
+        assert _one_line(capsys).endswith(said)
+    assert (tmp_path / "a_file").read_text() == "mine"
+
+
 def test_a_study_directory_keeps_its_budget_and_seeds(finished, tmp_path):
     study = write_study(tmp_path / "tiny.yaml", STUDY)
     with pytest.raises(StudyError, match="--budget 1.0"):

@@ -282,6 +282,7 @@ def unpack_study(source: Path, out: Path) -> dict:
     """Unpack the packed study in ``source`` into ``out`` (which must not exist). Returns pack.json's record, once
     the packed files are checked against it (``_check_contents``)."""
     out = Path(out)
+    check_folder(out)  # not a file, nor under one
     if out.exists():
         raise StudyError(f"{out}: exists; unpack into a new directory (nothing was written)")
     record, data = read_pack(source)
