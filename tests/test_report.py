@@ -465,6 +465,31 @@ def test_validate_reports_every_bad_file_and_exits_1(tmp_path, capsys):
     assert "3 of 4 config(s) invalid" in captured.err
 
 
+def test_validate_checks_a_study_file_as_study_run_reads_it(tmp_path, capsys):
+    """A study file was refused as a config ("study: unknown section"): it is now read as `ocv2 study run` reads it,
+    one OK line per run; a run's bad override and a comparison of two games are named by study file and entry."""
+    studies = sorted(str(path) for path in (ROOT / "configs" / "studies").glob("*.yaml"))
+    assert main(["validate", *studies]) == 0  # every shipped study
+    out = capsys.readouterr().out
+    assert all(f"OK   {study}: run " in out for study in studies)
+    assert "table1_cramped_room_sa10.yaml: run 'sa': sa on cramped_room (full view, cnn), 10 seeds x 610 updates" in out
+    paper = ROOT / "configs" / "paper"
+    bad = tmp_path / "bad_study.yaml"
+    bad.write_text(
+        f"study: bad\nruns:\n- name: sp\n  config: {paper / 'classic_cramped_room_sp.yaml'}\n  set: [ppo.lrr=1]\n"
+    )
+    mixed = tmp_path / "mixed_study.yaml"
+    mixed.write_text(
+        f"study: mixed\nruns:\n- name: sp\n  config: {paper / 'classic_cramped_room_sp.yaml'}\n"
+        f"- name: ring\n  config: {paper / 'classic_coord_ring_sp.yaml'}\n"
+        "comparisons:\n- name: both\n  runs: [sp, ring]\n"
+    )
+    assert main(["validate", str(bad), str(mixed)]) == 1
+    err = capsys.readouterr().err
+    assert f"FAIL {bad}: run 'sp'" in err and "ppo.lrr" in err, err
+    assert f"FAIL {mixed}: comparison 'both': run 'ring' plays another game than run 'sp'" in err, err
+
+
 def test_validate_and_train_refuse_the_same_missing_inputs_and_train_leaves_no_run_directory(tmp_path, capsys):
     """validate said OK to SA archives that train refused, and train refused a bad FCP partner run only after
     making the run directory, which then blocked the corrected command as "a run of a different config"."""

@@ -4,7 +4,8 @@
 
 Parses every config as ``ocv2 train`` would (same overrides): one OK line per file with what it would
 train and the memory it needs here, or the file and key at fault; every file is checked, and any bad
-one makes the exit code 1.
+one makes the exit code 1. A study file (``configs/studies/``) is checked as ``ocv2 study run`` reads it at
+``--budget 1``: every run's config with the study's overrides, and every comparison; one OK line per run.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from cluster.cli.args import add_set_option
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.coordinator import check_inputs
 from cluster.runtime.rundir import RunDirError
+from cluster.study.runner import check_comparisons
+from cluster.study.spec import StudyError, default_out, load_study, run_config, with_overrides
 from population.config import ConfigError, is_ray_launcher_config, parse_config, read_config_file
 from population.config.parse import blame_overrides
 from population.memory import check_fits, estimate
@@ -31,7 +34,12 @@ def add_validate(sub) -> argparse.ArgumentParser:
         "same --set overrides) and print what it would train. Exit 1 if any "
         "config is invalid (every file is checked).",
     )
-    parser.add_argument("configs", nargs="+", metavar="CONFIG", help="YAML config(s), e.g. configs/paper/*.yaml")
+    parser.add_argument(
+        "configs",
+        nargs="+",
+        metavar="CONFIG",
+        help="YAML config(s), e.g. configs/paper/*.yaml, or study files (configs/studies/*.yaml)",
+    )
     add_set_option(
         parser,
         "override a config value in every file (repeatable)",
@@ -65,12 +73,40 @@ def describe_config(config) -> str:
     return text
 
 
+def is_study_file(raw) -> bool:
+    """A study file names its study and lists its runs; an experiment config has neither section."""
+    return isinstance(raw, dict) and "study" in raw and "runs" in raw
+
+
+def check_study_file(path: str, overrides) -> tuple[str, object]:
+    """("ok", {run name: Config}) for a study file as ``ocv2 study run`` reads it at budget 1 (each run's config
+    with the study's and ``overrides``' settings, each fitting this machine, every comparison playable), or
+    ("fail", [the problem])."""
+    try:
+        study = with_overrides(load_study(path), list(overrides))
+        out = default_out(study)  # where FCP partners would be: only their path enters a config
+        configs = {run.name: run_config(study, run, out, 1.0, None) for run in study.runs}
+        for name, config in configs.items():
+            try:
+                check_fits(config, "cluster")
+            except ConfigError as error:
+                raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
+        check_comparisons(study, configs)
+    except StudyError as error:
+        return "fail", [str(error)]
+    return "ok", configs
+
+
 def check_config_file(path: str, overrides) -> tuple[str, object]:
-    """("ok", Config), ("skip", reason) for a Ray launcher YAML, or ("fail", [every problem])."""
+    """("ok", Config), ("study", {run: Config}) for a study file, ("skip", reason) for a Ray launcher YAML, or
+    ("fail", [every problem])."""
     try:
         raw = read_config_file(path)
         if is_ray_launcher_config(raw):
             return "skip", "a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config"
+        if is_study_file(raw):
+            status, result = check_study_file(path, overrides)
+            return ("study" if status == "ok" else status), result
         config = parse_config(raw, overrides)
         # What a run needs on this machine at the least (training on a cluster, this machine the
         # driver) must fit; what it needs when it trains here is shown.
@@ -97,6 +133,9 @@ def run_validate(args) -> int:
         status, result = check_config_file(path, args.overrides)
         if status == "skip":
             print(f"SKIP {path}: {result}")
+        elif status == "study":
+            for name, config in result.items():
+                print(f"OK   {path}: run {name!r}: {describe_config(config)} (at --budget 1)")
         elif status == "fail":
             for problem in result:
                 print(f"FAIL {problem}", file=sys.stderr)
