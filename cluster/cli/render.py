@@ -24,6 +24,7 @@ import jax
 import ocv2
 from cluster.cli.args import add_gif_options, check_new_file, layout_or_error, non_negative_int, seed
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
+from cluster.runtime import crossplay
 from ocv2.render import check_frame_size, render_frames, rollout_states, write_gif
 from population import policy as policies
 from population.config import PRECISIONS
@@ -143,7 +144,6 @@ def _played_precision(seats: list, chosen: str | None) -> str:
     """The ``run.precision`` the seats' episode is traced at: ``chosen``, else the one they trained with (the
     default where neither says), as cross-play decides it; a CLIError for a precision that is not one, or for
     seats of different precisions when nothing was chosen."""
-    from cluster.runtime import crossplay  # Ray and the workers: only when there are seats to play
 
     known = []
     for flag, seat in zip(("SEAT0", "SEAT1"), seats):
