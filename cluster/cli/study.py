@@ -29,7 +29,15 @@ from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
 from cluster.study.publish import publish_study
 from cluster.study.report import write_report
-from cluster.study.runner import StudyOptions, kept_study, plan_study, read_state, run_study, study_status
+from cluster.study.runner import (
+    StudyOptions,
+    continue_hint,
+    kept_study,
+    plan_study,
+    read_state,
+    run_study,
+    study_status,
+)
 from cluster.study.spec import BUDGET_MODES, StudyError, default_out, load_study, run_config
 from ocv2.atomic import staged_folder
 from population.checkpoints import CheckpointError
@@ -160,6 +168,9 @@ def _run(args) -> int:
         raise CLIError("--address needs --backend ray")
     try:
         require_backend(args.backend)
+        hint = continue_hint(args.study)  # a study directory given for the study file
+        if hint is not None:
+            raise CLIError(hint)
         study = load_study(args.study)
     except (StudyError, MissingExtraError) as error:
         raise CLIError(str(error)) from None

@@ -25,6 +25,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import shlex
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -37,10 +38,12 @@ from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, 
 from cluster.study.report import write_report
 from cluster.study.results import compared_settings, config_differences, evaluation_problem, read_result
 from cluster.study.spec import (
+    STATE_NAME,
     Comparison,
     Study,
     StudyError,
     comparison_dir,
+    is_study_directory,
     parse_study,
     run_config,
     run_dir,
@@ -58,8 +61,6 @@ from population.policy import env_difference, env_settings, same_env
 from population.xp import block_summary
 
 log = logging.getLogger(__name__)
-
-STATE_NAME = "study.json"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -243,12 +244,41 @@ def _extend_budget(state: StudyState, out: Path, budget: float) -> None:
     state.budget = budget
 
 
-def kept_study(state: StudyState, out: Path) -> Study:
-    """The study a study directory runs: the file's data it keeps, with the ``--set`` overrides it was started with."""
+def study_source(state: StudyState, out: Path) -> Path:
+    """The study file a directory was run from, or the shipped study of that name when it is gone (run from
+    another checkout, unpacked elsewhere); the recorded path (or ``out/study.yaml``) when neither is there."""
     source = Path(state.source or Path(out) / "study.yaml")
-    if not source.is_file():  # run from another checkout (unpacked elsewhere): its configs resolve as shipped
+    if not source.is_file():
         shipped = Path(str(PACKAGED_CONFIGS / "studies")) / source.name
         source = shipped if shipped.is_file() else source
+    return source
+
+
+def continue_hint(path) -> str | None:
+    """What ``ocv2 study run`` says when given a study directory or its study.json for a study file: the command
+    that continues it, from the study file and options its study.json records; None for anything else."""
+    path = Path(path).resolve()
+    if not is_study_directory(path):
+        return None
+    out = path if path.is_dir() else path.parent
+    what = f"the {STATE_NAME} of study directory {out}" if path.is_file() else "a study directory"
+    try:
+        state = read_state(out)
+    except StudyError as error:
+        return f"{path}: is {what}, not a study file (and {error})"
+    source = study_source(state, out)
+    words = ["ocv2", "study", "run", str(source), "--out", str(out)]
+    words += ["--budget", str(state.budget), "--budget-mode", state.budget_mode]  # str: exactly the kept number
+    words += ["--seeds", str(state.seeds)] if state.seeds is not None else []
+    words += [word for override in state.overrides for word in ("--set", override)]
+    words += ["--backend", state.backend] if state.backend in ("ray", "local") else []
+    gone = "" if source.is_file() else f" (the study file it was run from, {source}, is gone: give it)"
+    return f"{path}: is {what} (study {state.study!r}), not a study file; continue it with: {shlex.join(words)}{gone}"
+
+
+def kept_study(state: StudyState, out: Path) -> Study:
+    """The study a study directory runs: the file's data it keeps, with the ``--set`` overrides it was started with."""
+    source = study_source(state, out)
     try:
         study = parse_study(state.spec, source)
     except StudyError as error:

@@ -34,15 +34,12 @@ import dataclasses
 import difflib
 import math
 import re
-import shlex
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from ocv2 import boundedjson
 from population.config import Config, ConfigError, load_config, read_yaml
 from population.config.errors import SET_PREFIX
-from population.config.paper import PACKAGED_CONFIGS
 
 STUDY_KEYS = ("study", "description", "set", "runs", "over_training", "comparisons")
 RUN_KEYS = ("name", "config", "set", "partners_from", "paper")
@@ -140,11 +137,10 @@ class Study:
 
 def load_study(path) -> Study:
     """Read and check a study file (every config it names is loaded once, so a typo fails here). A study
-    directory, or its study.json, is refused with the command that continues it."""
+    directory, or its study.json, is refused (``cluster.study.runner.continue_hint`` says how to continue one)."""
     path = Path(path).resolve()
-    state_file = path / STATE_FILE if path.is_dir() else path
-    if state_file.name == STATE_FILE and state_file.is_file():
-        raise StudyError(_continue_hint(path, state_file))
+    if is_study_directory(path):
+        raise StudyError(f"{path}: is a study directory (or its study.json), not a study file")
     try:
         raw = read_yaml(str(path))
     except ConfigError as error:  # read_yaml names what it reads a config file
@@ -152,55 +148,14 @@ def load_study(path) -> Study:
     return check_runs(parse_study(raw, path))
 
 
-#: The file a study directory keeps its state in (``cluster.study.runner``).
-STATE_FILE = "study.json"
+#: The file a study directory keeps its state in (``cluster.study.state.StudyState``).
+STATE_NAME = "study.json"
 
 
-def _continue_hint(where: Path, state_file: Path) -> str:
-    """What ``ocv2 study run`` says when given a study directory or its study.json (``where``) for a study file:
-    the command that continues it, from the source file and options ``state_file`` records."""
-    out = state_file.parent
-    try:
-        state = _options_kept(boundedjson.loads(state_file.read_text()))
-    except (OSError, ValueError) as error:
-        return f"{where}: is a study directory, not a study file (and its {STATE_FILE} is unreadable: {error})"
-    source = Path(state["source"]) if state["source"] else None
-    shipped = Path(str(PACKAGED_CONFIGS / "studies")) / source.name if source is not None else None
-    if source is None or (not source.is_file() and shipped is not None and shipped.is_file()):
-        source = shipped
-    words = ["ocv2", "study", "run", str(source) if source is not None else "STUDY.yaml", "--out", str(out)]
-    words += ["--budget", str(state["budget"]), "--budget-mode", state["budget_mode"]]  # str: the kept number
-    words += ["--seeds", str(state["seeds"])] if state["seeds"] is not None else []
-    words += [word for override in state["set"] for word in ("--set", override)]
-    words += ["--backend", state["backend"]] if state["backend"] in ("ray", "local") else []
-    gone = (
-        "" if source is None or source.is_file() else f" (the study file it was run from, {source}, is gone: give it)"
-    )
-    gone = " (give the study file it was run from)" if source is None else gone
-    what = f"the {STATE_FILE} of study directory {out}" if where == state_file else "a study directory"
-    return (
-        f"{where}: is {what} (study {state['study']!r}), not a study file; continue it with: {shlex.join(words)}{gone}"
-    )
-
-
-def _options_kept(data) -> dict:
-    """The fields of a parsed study.json that say how to continue it (``cluster.study.state.StudyState`` reads the
-    whole file; this module cannot import it, which imports this one). ValueError for one of the wrong type."""
-    if not isinstance(data, dict):
-        raise ValueError(f"a JSON {type(data).__name__}, not an object")
-    kinds = {"study": str, "source": (str, type(None)), "budget": (int, float), "budget_mode": str}
-    kinds |= {"seeds": (int, type(None)), "set": list, "backend": (str, type(None))}
-    defaults = {"source": None, "budget_mode": "compress", "seeds": None, "set": [], "backend": None}
-    state = {key: data.get(key, defaults.get(key)) for key in kinds}
-    for key, kind in kinds.items():
-        value = state[key]
-        if (
-            not isinstance(value, kind)
-            or isinstance(value, bool)
-            or (key == "set" and not all(isinstance(v, str) for v in value))
-        ):
-            raise ValueError(f"its {key!r} is {value!r}")
-    return state
+def is_study_directory(path: Path) -> bool:
+    """Whether ``path`` is a study directory or its study.json: given where a study file belongs."""
+    state_file = path / STATE_NAME if path.is_dir() else path
+    return state_file.name == STATE_NAME and state_file.is_file()
 
 
 def default_out(study: Study) -> Path:
