@@ -783,7 +783,8 @@ def test_a_step_blocked_by_a_missing_human_proxy_exits_1_with_the_command_that_f
     assert main(["study", "run", str(path), "--out", str(out), "--backend", "local", "--quiet"]) == 1
     printed = capsys.readouterr()
     assert "not done: compare sp_vs_human:" in printed.out
-    assert "train it with: ocv2 human proxy cramped_room --source overcooked_ai-1.1.0.tar.gz" in printed.out
+    hint = "make it with 'ocv2 human proxy cramped_room --source overcooked_ai-1.1.0.tar.gz'"
+    assert printed.out.count(hint) == 1, printed.out  # said once (the study added its own copy)
     assert "1 step(s) could not run" in printed.err
     state = json.loads((out / "study.json").read_text())
     assert state["steps"]["compare sp_vs_human"]["status"] == "blocked"
