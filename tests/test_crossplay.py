@@ -280,6 +280,10 @@ def test_checkpoint_is_refused_without_a_run_or_seed_directory_and_each_source_s
         in err
     )
     assert f"{exported}: each one fixed policy); leave it out" in err and not out.exists()
+    typo = tmp_path / "runs" / "typo_sp"  # a mistyped run directory: named as missing, --checkpoint not blamed
+    assert _xp(out, "--rows", str(typo), "--checkpoint", "mid") == 2
+    err = capsys.readouterr().err
+    assert str(typo) in err and "--checkpoint mid" not in err, err
     assert _xp(out, "--rows", str(checkpoint), str(exported), "--seats", "0") == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["checkpoint"] is None and summary["updates"] == {str(checkpoint): [2], str(exported): [4]}

@@ -180,7 +180,10 @@ def _cross_run(args) -> int:
     checkpoint = checkpoint_choice(args.checkpoint or "final", CHECKPOINT_CHOICES)
     sources = [*args.rows, *(args.cols or [])]
     directories = [s for s in sources if not s.startswith(crossplay.HUMAN_PROXY) and Path(s).is_dir()]
-    if args.checkpoint is not None and not directories:  # a file is one fixed policy: it would be ignored
+    # A file is one fixed policy: --checkpoint would be ignored. A source that does not exist is left to
+    # resolve_source, which names it (a mistyped run directory is not a reason to blame --checkpoint).
+    everything_there = all(s.startswith(crossplay.HUMAN_PROXY) or Path(s).exists() for s in sources)
+    if args.checkpoint is not None and not directories and everything_there:
         raise CLIError(
             f"--checkpoint {args.checkpoint}: picks the checkpoint of a run or seed directory, and no source is "
             f"one ({', '.join(dict.fromkeys(sources))}: each one fixed policy); leave it out"
