@@ -482,8 +482,14 @@ def test_another_study_file_of_the_same_name_may_add_to_a_directory_but_not_drop
     out = tmp_path / "out"
     first = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
     StateFile(out, open_state(first, out, None, None, "local")).save()
-    before = (out / "study.json").read_bytes()
     (tmp_path / "other").mkdir()
+    # A comparison not yet played may be dropped (one its runs cannot play would otherwise lock the directory)
+    unplayed = {**STUDY, "comparisons": []}
+    plan_study(load_study(write_study(tmp_path / "other" / "tiny.yaml", unplayed)), out, LOCAL)
+    state = json.loads((out / "study.json").read_text())
+    state["steps"]["compare sp_vs_sa"] = {"status": "done"}  # ... a played one may not
+    (out / "study.json").write_text(json.dumps(state))
+    before = (out / "study.json").read_bytes()
 
     def refused(data: dict, *message: str, retrain: tuple = ()) -> None:
         path = write_study(tmp_path / "other" / "tiny.yaml", data)
@@ -501,9 +507,11 @@ def test_another_study_file_of_the_same_name_may_add_to_a_directory_but_not_drop
     refused(dropped, "has no run 'sa', comparison 'sp_vs_sa', which ", "add runs and comparisons, not drop them")
     refused({**STUDY, "comparisons": []}, "has no comparison 'sp_vs_sa', which ")
     other = tmp_path / "other" / "smoke.yaml"
-    shutil.copy(SMOKE, other)
+    shutil.copy(SMOKE, other)  # the same file elsewhere (another checkout): the same config
     swapped = copy.deepcopy(STUDY)
     swapped["runs"][1]["config"] = str(other)
+    plan_study(load_study(write_study(tmp_path / "other" / "tiny.yaml", swapped)), out, LOCAL)
+    other.write_text(SMOKE.read_text() + "\n# another config file\n")
     refused(swapped, f"run 'sa' takes config {other}, but ", f"gives it {SMOKE.resolve()}; ", "--retrain sa")
     plan_study(load_study(write_study(tmp_path / "other" / "tiny.yaml", swapped)), out, replace_retrain("sa"))
     # More runs and comparisons, the same configs from another study file: accepted.

@@ -192,14 +192,20 @@ def open_state(
 
 def check_same_study(study: Study, out: Path, state: StudyState, retrain: Sequence[str] = ()) -> None:
     """Refuse ``study`` for directory ``out`` (whose study.json is ``state``) when it is another study file of the
-    same name: one that lacks a run or comparison the directory records (its results would drop out of the report,
-    their pictures left stale) or gives a recorded run another config file (a run in ``retrain`` may take one).
-    Config files are compared by where they lie when the file the directory was run from is still there, else by
-    name (a directory unpacked from another machine)."""
+    same name: one that lacks a run or a played comparison the directory records (its results would drop out of the
+    report, their pictures left stale) or gives a recorded run another config file (a run in ``retrain`` may take
+    one). Config files are compared by where they lie, or else their bytes, when the file the directory was run from
+    is still there, else by name (a directory unpacked from another machine)."""
     kept_runs = _named(state.spec.get("runs"))
-    kept_comparisons = _named(state.spec.get("comparisons"))
+    # A comparison not yet played may go (e.g. one its runs cannot play, which check_comparisons refuses): only a
+    # played one has results the report would drop.
+    played = [
+        name
+        for name in _named(state.spec.get("comparisons"))
+        if getattr(state.steps.get(f"compare {name}"), "status", None) == "done"
+    ]
     lost = [f"run {name!r}" for name in kept_runs if name not in {r.name for r in study.runs}]
-    lost += [f"comparison {name!r}" for name in kept_comparisons if name not in {c.name for c in study.comparisons}]
+    lost += [f"comparison {name!r}" for name in played if name not in {c.name for c in study.comparisons}]
     recorded = f"{out} holds study {state.study!r} run from {state.source or 'a study file'}"
     advice = (
         "run it with that study file (a study file may add runs and comparisons, not drop them), "
@@ -213,8 +219,9 @@ def check_same_study(study: Study, out: Path, state: StudyState, retrain: Sequen
         if not isinstance(config, str) or run.name in retrain:
             continue
         if source is not None and source.is_file():
-            same = (source.parent / config).resolve() == Path(run.config).resolve()
-            kept = str((source.parent / config).resolve())
+            kept_path, given = (source.parent / config).resolve(), Path(run.config).resolve()
+            same = kept_path == given or _same_bytes(kept_path, given)  # e.g. the same file in another checkout
+            kept = str(kept_path)
         else:
             same, kept = Path(config).name == Path(run.config).name, config
         if not same:
@@ -222,6 +229,13 @@ def check_same_study(study: Study, out: Path, state: StudyState, retrain: Sequen
                 f"{study.origin}: run {run.name!r} takes config {run.config}, but {recorded} gives it {kept}; "
                 f"{advice}, or pass --retrain {run.name} to train it again from the new config"
             )
+
+
+def _same_bytes(first: Path, second: Path) -> bool:
+    try:
+        return first.read_bytes() == second.read_bytes()
+    except OSError:
+        return False
 
 
 def _named(entries) -> dict:
