@@ -295,8 +295,6 @@ def unpack_study(source: Path, out: Path) -> dict:
         with staged_folder(out, ".unpacking") as staging:  # whole or not at all
             with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
                 tar.extractall(staging, filter="data")  # no absolute paths, links out or devices
-            if not (staging / "study.json").is_file():
-                raise StudyError(f"{source}: the pack holds no study.json")
     except (tarfile.TarError, OSError, EOFError, zlib.error) as error:  # EOFError, zlib: a cut or bad gzip stream
         raise StudyError(f"{source}: cannot unpack ({error}); nothing was written") from None
     return record
