@@ -45,7 +45,7 @@ from ocv2.atomic import atomic_write
 from ocv2.config import build_config
 from population import checkpoints as ckpt
 from population.config import Config, ConfigError, ModelConfig, load_run_config, parse_config
-from population.networks import init_params, make_network
+from population.networks import init_params, make_network, same_function
 from population.sealed import SealError, is_sealed, seal, unseal
 
 FORMAT_NAME = "ocv2-policy"
@@ -347,6 +347,20 @@ def env_settings(env: Mapping) -> dict:
             value = getattr(config, field.name)
             settings[field.name] = list(value) if isinstance(value, tuple) else value
     return settings
+
+
+def network_settings(config: Config) -> dict:
+    """The network a run trains, as plain data: two runs with equal settings train the same function (their
+    kernel choice aside, ``population.networks.same_function``), so their numbers compare."""
+    return {**dataclasses.asdict(same_function(config.model)), "activation": config.ppo.activation}
+
+
+def comparable_key(config: Config) -> str:
+    """What makes two runs' numbers comparable, as one string: the game each asks for, defaults written out
+    (``env_settings``), and the network it trains (``network_settings``). Reports compare a method with the
+    self-play run of the same key."""
+    settings = {"env": env_settings(config.env_kwargs), "network": network_settings(config)}
+    return json.dumps(settings, sort_keys=True, default=list)
 
 
 def same_env(env: Mapping, reference: Mapping) -> bool:

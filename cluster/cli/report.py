@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import io
 import json
 import math
@@ -42,9 +41,8 @@ from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matri
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write, staged_folder
 from population.config import METHOD_TABLE, METHODS
-from population.networks import same_function
 from population.plots import PlotsUnavailable, across_seeds, pyplot, save_figure, skipped, xp_heatmap
-from population.policy import env_settings
+from population.policy import comparable_key, network_settings
 from population.xp import summary_difference
 
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
@@ -188,19 +186,9 @@ def env_label(config) -> str:
     return ", ".join(parts)
 
 
-def network_settings(config) -> dict:
-    """The network a run trains, as plain data: two runs with equal settings train the same function (their
-    kernel choice aside, ``population.networks.same_function``), so their numbers compare."""
-    return {**dataclasses.asdict(same_function(config.model)), "activation": config.ppo.activation}
-
-
 def group_key(run: dict) -> str:
-    """What makes runs comparable: the game each asks for, defaults written out (max_steps left out is
-    max_steps: 400), and the network it trains."""
-    config = run["config"]
-    return json.dumps(
-        {"env": env_settings(config.env_kwargs), "network": network_settings(config)}, sort_keys=True, default=list
-    )
+    """What makes runs comparable (``population.policy.comparable_key``): the same game and the same network."""
+    return comparable_key(run["config"])
 
 
 def network_labels(runs: list[dict]) -> dict[str, str]:

@@ -33,7 +33,7 @@ from ocv2.atomic import atomic_write
 from population.config import METHOD_TABLE, ConfigError, load_config
 from population.config.paper import PAPER_CONFIGS
 from population.plots import PlotsUnavailable, pyplot, save_figure, skipped, xp_heatmap
-from population.policy import same_env
+from population.policy import comparable_key
 from population.xp import summary_difference
 
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
@@ -237,8 +237,8 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
 
 
 def _against_sp(study: Study, out: Path, configs: dict, runs: list[dict]) -> list[dict]:
-    """Each other evaluated run minus the first self-play run of the same environment (identical env
-    section): Δ SP, Δ XP, Δ gap with the gap's 95 % interval from both runs' matrices, and the paper's Δ gap
+    """Each other evaluated run minus the first self-play run of the same game and network (``comparable_key``, as
+    ``ocv2 report`` groups runs): Δ SP, Δ XP, Δ gap with the gap's 95 % interval from both runs' matrices, and the paper's Δ gap
     where both runs carry the paper's gap. A run whose self-play run has no usable cross-play yet gets an
     entry that says so, rather than no entry."""
     entries = {entry["name"]: entry for entry in runs}
@@ -248,12 +248,12 @@ def _against_sp(study: Study, out: Path, configs: dict, runs: list[dict]) -> lis
 
     out_entries = []
     for spec in filter(usable, study.runs):
-        env = configs[spec.name].env_kwargs
+        key = comparable_key(configs[spec.name])
         base = next(
             (
                 r
                 for r in study.runs
-                if configs[r.name].population.method == "sp" and same_env(configs[r.name].env_kwargs, env)
+                if configs[r.name].population.method == "sp" and comparable_key(configs[r.name]) == key
             ),
             None,
         )
