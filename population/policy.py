@@ -44,7 +44,7 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from ocv2.config import build_config
 from population import checkpoints as ckpt
-from population.config import Config, ConfigError, ModelConfig, load_run_config, parse_config
+from population.config import PRECISIONS, Config, ConfigError, ModelConfig, load_run_config, parse_config
 from population.networks import init_params, make_network, same_function
 from population.sealed import SealError, is_sealed, seal, unseal
 
@@ -331,6 +331,16 @@ def _from_checkpoint(config: Config, path: Path, run_dir: Path, seed: int) -> Po
 # ---------------------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------------------
+
+
+def trained_precision(policy: Policy) -> str | None:
+    """The ``run.precision`` ``policy`` trained at: a checkpoint's run's, or the meta of a file exported from one;
+    None where nothing says. ``PolicyError`` for a name that is not one of ``PRECISIONS`` (the caller names the
+    source): cross-play, render and play trace a policy at it."""
+    precision = policy.meta.get("precision")
+    if precision is not None and precision not in PRECISIONS:
+        raise PolicyError(f"meta precision {precision!r} is not one of {', '.join(PRECISIONS)}")
+    return precision
 
 
 def env_settings(env: Mapping) -> dict:

@@ -147,11 +147,10 @@ def _played_precision(seats: list, chosen: str | None) -> str:
 
     known = []
     for flag, seat in zip(("SEAT0", "SEAT1"), seats):
-        precision = seat.meta.get("precision")  # a checkpoint's run.precision, or a file's exported with it
-        if precision is not None and precision not in PRECISIONS:
-            raise CLIError(
-                f"--seats {flag}: {seat.source}: meta precision {precision!r} is not one of {', '.join(PRECISIONS)}"
-            )
+        try:
+            precision = policies.trained_precision(seat)
+        except policies.PolicyError as error:
+            raise CLIError(f"--seats {flag}: {seat.source}: {error}") from None
         known.append(SimpleNamespace(label=seat.source, precision=precision))
     try:
         return crossplay.played_precision(known, chosen)

@@ -32,7 +32,7 @@ from ocv2.render import INGREDIENT_COLORS, check_frame_size, render
 from ocv2.state import State
 from population import checkpoints as ckpt
 from population import policy as policies
-from population.config import PRECISIONS, ConfigError, load_run_config
+from population.config import ConfigError, load_run_config
 from population.numerics import DEFAULT_PRECISION, matmul_precision
 
 #: Cells outside a human's view window are painted this colour: the human sees what their agent sees.
@@ -177,9 +177,10 @@ def load_policy_partner(path) -> Partner:
         policy = policies.load(path)
     except policies.PolicyError as error:
         raise PartnerError(f"--partner: {error}") from None
-    precision = policy.meta.get("precision", DEFAULT_PRECISION)  # a checkpoint's run, or a file's exported with it
-    if precision not in PRECISIONS:
-        raise PartnerError(f"--partner: {path}: meta precision {precision!r} is not one of {', '.join(PRECISIONS)}")
+    try:
+        precision = policies.trained_precision(policy) or DEFAULT_PRECISION
+    except policies.PolicyError as error:
+        raise PartnerError(f"--partner: {path}: {error}") from None
     if exported:
         return Partner(
             "policy",

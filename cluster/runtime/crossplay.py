@@ -35,14 +35,23 @@ import numpy as np
 from cluster.runtime.jobs import InProcessWorkers, in_waves
 from cluster.runtime.ray_backend import RayWorkers, actor_env, ray, session
 from cluster.runtime.rundir import write_csv, write_json, write_matrix_csv
-from population.config import PRECISIONS, ClusterConfig, Config, ConfigError, ModelConfig, load_run_config
+from population.config import ClusterConfig, Config, ConfigError, ModelConfig, load_run_config
 from population.evaluation import stack_params
 from population.human import proxy_path
 from population.keys import derive_key
 from population.networks import same_function
 from population.numerics import DEFAULT_PRECISION, matmul_precision
 from population.plots import xp_heatmap
-from population.policy import PolicyError, env_difference, hidden_size_of, load, network, policy_env, same_env
+from population.policy import (
+    PolicyError,
+    env_difference,
+    hidden_size_of,
+    load,
+    network,
+    policy_env,
+    same_env,
+    trained_precision,
+)
 from population.xp import Side, block_summary, cross_play, recipe_names
 
 HUMAN_PROXY = "human-proxy:"
@@ -132,9 +141,10 @@ def _run_group(text: str, path: Path, checkpoint) -> PolicyGroup:
 def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
     policy = _load(text, path, checkpoint)
     meta = policy.meta
-    precision = meta.get("precision")  # a checkpoint's, or a file exported from one
-    if precision is not None and precision not in PRECISIONS:
-        raise CrossPlayError(f"{text}: meta precision {precision!r} is not one of {', '.join(PRECISIONS)}")
+    try:
+        precision = trained_precision(policy)
+    except PolicyError as error:
+        raise CrossPlayError(f"{text}: {error}") from None
     return PolicyGroup(
         text,
         (policy.name,),
