@@ -255,13 +255,11 @@ def load_population(folder, files: Iterable[str | Path], layout: str | None = No
             f"{folder / Path(files[0]).name}: plays layout {first.env.get('layout')!r}; this reads {layout} only"
         )
     for name, policy in zip(files, policies, strict=True):
-        for what, same, mine, theirs in (
-            ("environment", same_env(policy.env, first.env), policy.env, first.env),
-            ("network", (policy.model, policy.activation) == (first.model, first.activation), None, None),
-        ):
-            if not same:
-                differ = f" ({env_difference(mine, theirs)})" if what == "environment" else ""
-                raise PolicyError(
-                    f"{folder / Path(name).name}: plays another {what} than {Path(files[0]).name}{differ}"
-                )
+        where, reference = folder / Path(name).name, Path(files[0]).name
+        if not same_env(policy.env, first.env):
+            raise PolicyError(
+                f"{where}: plays another environment than {reference} ({env_difference(policy.env, first.env)})"
+            )
+        if (policy.model, policy.activation) != (first.model, first.activation):
+            raise PolicyError(f"{where}: plays another network than {reference}")
     return policies

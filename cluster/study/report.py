@@ -246,17 +246,11 @@ def _against_sp(study: Study, out: Path, configs: dict, runs: list[dict]) -> lis
     def usable(spec) -> bool:
         return entries[spec.name]["xp"] is not None and not entries[spec.name].get("problem")
 
+    keys = {run.name: comparable_key(configs[run.name]) for run in study.runs}
     out_entries = []
     for spec in filter(usable, study.runs):
-        key = comparable_key(configs[spec.name])
-        base = next(
-            (
-                r
-                for r in study.runs
-                if configs[r.name].population.method == "sp" and comparable_key(configs[r.name]) == key
-            ),
-            None,
-        )
+        sp_runs = (r for r in study.runs if configs[r.name].population.method == "sp")
+        base = next((r for r in sp_runs if keys[r.name] == keys[spec.name]), None)
         if base is None or base is spec:
             continue
         if not usable(base):
