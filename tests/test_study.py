@@ -3,6 +3,7 @@ mid-run and resumed; both must report the same numbers, and a finished run is ne
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import csv
 import dataclasses
@@ -45,6 +46,7 @@ from cluster.study.runner import (
     read_state,
     result_problem,
     run_study,
+    steps_to_run,
     study_status,
 )
 from cluster.study.spec import StudyError, budget_overrides, load_study, run_config, with_overrides
@@ -1040,10 +1042,10 @@ def test_a_trained_run_whose_config_changed_is_refused_and_study_json_kept(finis
     out = _copy(finished, tmp_path / "study")
     before = (out / "study.json").read_bytes()
     for extra, difference in (
-        ("ppo.lr=0.01", "ppo.lr: 0.001 in the run, 0.01 now"),
-        ("eval.episodes=3", "eval.episodes: 2 in the run, 3 now"),
+        (["ppo.lr=0.01"], "ppo.lr: 0.001 in the run, 0.01 now"),
+        (["eval.episodes=3", "ppo.lr=0.01"], "ppo.lr: 0.001 in the run, 0.01 now"),  # evaluation alone would do
     ):
-        path = _changed_study(tmp_path, 0, extra)
+        path = _changed_study(tmp_path, 0, *extra)
         assert main(["study", "run", str(path), "--backend", "local", "--out", str(out), "--quiet"]) == 2
         err = _one_line(capsys)
         assert "run 'sp': " in err and difference in err and "--retrain sp" in err, err
@@ -1051,6 +1053,62 @@ def test_a_trained_run_whose_config_changed_is_refused_and_study_json_kept(finis
     assert main(["study", "run", str(path), "--out", str(out), "--retrain", "nope"]) == 2
     assert "--retrain nope: the study has no run named 'nope'" in _one_line(capsys)
     assert numbers(out) == numbers(finished)
+
+
+def test_a_changed_eval_episodes_evaluates_the_trained_run_again_without_training_it(finished, tmp_path, capsys):
+    """Changing a study's eval.episodes asked for --retrain, though episodes per pair change only the cross-play:
+    the run is now evaluated again, its checkpoints untouched and the old evaluation kept."""
+    out = _copy(finished, tmp_path / "study")
+    checkpoints = {p: p.read_bytes() for p in (out / "runs" / "sp" / "checkpoints").rglob("*") if p.is_file()}
+    path = _changed_study(tmp_path, 0, "eval.episodes=3")
+    plan = plan_study(load_study(path), out, LOCAL)
+    assert (plan.reevaluate, plan.retrain, plan.extend) == (("sp",), (), ())
+    assert steps_to_run(plan)  # Ray would be started for it
+    assert main(["study", "run", str(path), "--backend", "local", "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "run sp: evaluated again with eval.episodes 3 (was 2;" in said, said
+    after = {p: p.read_bytes() for p in (out / "runs" / "sp" / "checkpoints").rglob("*") if p.is_file()}
+    assert after == checkpoints  # not trained again
+    run = out / "runs" / "sp"
+    assert load_config(run / "config.yaml").eval.episodes == 3
+    assert json.loads((run / "xp" / "summary.json").read_text())["episodes_per_pair"] == 3
+    kept = json.loads((run / "reevaluated" / "episodes_2" / "xp" / "summary.json").read_text())
+    assert kept == json.loads((finished / "runs" / "sp" / "xp" / "summary.json").read_text())
+    assert {e["status"] for e in study_status(out)} == {"done"}
+    assert not steps_to_run(plan_study(load_study(path), out, LOCAL))  # a rerun now has nothing to do
+
+
+def test_a_rerun_with_nothing_to_do_starts_no_ray_and_keeps_the_backend_that_ran_the_steps(
+    finished, tmp_path, monkeypatch, capsys
+):
+    """A no-op rerun of a finished study with --backend ray started Ray and rewrote the report's backend,
+    though every step had run on the local backend."""
+    out = _copy(finished, tmp_path / "study")
+    study = write_study(tmp_path / "tiny.yaml", STUDY)
+    started = []
+
+    @contextlib.contextmanager
+    def session(backend, cluster):
+        started.append(backend)
+        yield
+
+    monkeypatch.setattr("cluster.cli.study.ray_backend.session", session)
+    assert main(["study", "run", str(study), "--backend", "ray", "--out", str(out), "--quiet"]) == 0, (
+        capsys.readouterr()
+    )
+    assert started == ["local"]  # no Ray: nothing ran
+    assert json.loads((out / "summary.json").read_text())["backend"] == "local"
+    assert "; backend: local;" in (out / "report.md").read_text()
+    # A step that runs again runs on the backend asked for, and the report names each backend with its steps.
+    (out / "comparisons" / "sp_vs_sa" / "summary.json").unlink()
+    assert steps_to_run(plan_study(load_study(study), out, LOCAL)) == ["compare sp_vs_sa"]
+    run_study(load_study(study), out, LOCAL, say=lambda _: None)
+    data = json.loads((out / "study.json").read_text())
+    assert data["steps"]["compare sp_vs_sa"]["backend"] == "local"
+    data["steps"]["train sa"]["backend"] = "ray"  # as if trained by an earlier `study run --backend ray`
+    del data["steps"]["over_training sp"]["backend"]  # a step recorded before steps named their backend
+    (out / "study.json").write_text(json.dumps(data))
+    assert report.backends(read_state(out)) == "local (train sp, over_training sp, compare sp_vs_sa), ray (train sa)"
 
 
 def test_the_report_describes_runs_as_they_were_trained(finished, tmp_path, capsys):
@@ -1828,9 +1886,9 @@ def test_an_extended_study_reports_what_the_larger_budget_trained_at_once_gives(
     assert entry["delta_gap"] == since["sp"]["delta_gap"] and "delta_gap_ci95_interval" not in entry
     assert entry["problem"].startswith(f"no interval: {cut}: a 1 x 2 matrix")
     assert ckpt.list_updates(out / "runs" / "sp", 0) == [0, 1, 2, 4]  # 0.5's snapshot at update 1 stays
-    # An extended study still refuses a run whose other settings changed (here the episodes its cross-play used).
-    changed = load_study(write_study(tmp_path / "more.yaml", {**STUDY, "set": ["eval.episodes=3", *STUDY["set"][1:]]}))
-    with pytest.raises(StudyError, match=r"run 'sp': .* was trained with another config \(eval.episodes: 2 in the run"):
+    # An extended study still refuses a run whose other settings changed (here its learning rate).
+    changed = load_study(write_study(tmp_path / "more.yaml", {**STUDY, "set": [*STUDY["set"], "ppo.lr=0.01"]}))
+    with pytest.raises(StudyError, match=r"run 'sp': .* was trained with another config \(ppo.lr: 0.001 in the run"):
         plan_study(changed, out, dataclasses.replace(HALF, budget=1.0))
     # Once extended, the same command (or none of the options) continues it as any study.
     assert run_study(study, out, dataclasses.replace(HALF, budget=1.0, extend=True), say=lambda _: None).budget == 1.0

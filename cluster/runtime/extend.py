@@ -105,6 +105,34 @@ def repoint_partners(path, config: Config) -> bool:
         run.close()
 
 
+def take_eval_episodes(path, config: Config) -> int | None:
+    """Give the run in ``path`` ``config``'s ``eval.episodes`` (a study that now asks for more or fewer cross-play
+    episodes per pair): training is untouched (``eval`` is outside the fingerprint), the evaluation made with the
+    old count moves to ``reevaluated/episodes_<old>/`` (nothing is deleted) and ``config.yaml`` is written last,
+    so the next resume of the finished run evaluates it again. Returns the old count, or None when it is already
+    ``config``'s. Raises ``RunDirError`` when another process holds the run."""
+    run = RunDir.existing(path)
+    run.lock(advice="wait for it to finish or stop it before evaluating it again")
+    try:
+        before = run.load_config()
+        old, new = before.eval.episodes, config.eval.episodes
+        if old == new:
+            return None
+        kept = run.path / "reevaluated" / f"episodes_{old}"
+        if kept.exists():  # evaluated at this count before, then at another: the newer set-aside gets its own name
+            kept = kept.with_name(f"{kept.name}_{time.strftime('%Y%m%d-%H%M%S')}")
+        for name in EVALUATION_DIRS:
+            source = run.path / name
+            if source.exists():
+                (kept / name).parent.mkdir(parents=True, exist_ok=True)
+                source.rename(kept / name)
+        after = dataclasses.replace(before, eval=dataclasses.replace(before.eval, episodes=new))
+        dump_config(after, run.config_path)  # last: until here the run keeps its old evaluation settings
+        return old
+    finally:
+        run.close()
+
+
 def restamp_run(run_dir: Path, old: str, new: str) -> None:
     """Re-stamp every sealed file of the run with fingerprint ``new``; every file is checked (``check_stamp``) before
     any is written, so a refusal leaves the run as it was."""

@@ -39,6 +39,20 @@ from population.xp import summary_difference
 METHOD_NAMES = {method.name: method.long_name for method in METHOD_TABLE}
 
 
+def backends(state: StudyState) -> str | None:
+    """The backend the study's steps ran on ("local"), or each with its steps when they ran on several
+    ("ray (train sp), local (train sa, compare sp_vs_sa)"); steps recorded before steps named their backend
+    count as ``state.backend``'s."""
+    ran: dict[str, list[str]] = {}
+    for name, step in state.steps.items():
+        backend = step.backend or state.backend
+        if backend is not None and step.status != "left":
+            ran.setdefault(backend, []).append(name)
+    if len(ran) <= 1:
+        return state.backend
+    return ", ".join(f"{backend} ({', '.join(names)})" for backend, names in ran.items())
+
+
 def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest: Path | None = None) -> dict:
     """The report of study directory ``out``, written into ``dest`` (default ``out``). Into another
     folder it comes with copies of the cross-play matrices (``xp_<run>.csv``, ``xp_<comparison>.csv``),
@@ -57,7 +71,7 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
         "budget_mode": state.budget_mode,
         "seeds": state.seeds,
         "set": list(state.overrides),
-        "backend": state.backend,
+        "backend": backends(state),
         "written": _now(),
         "runs": runs,
         "comparisons": comparisons,

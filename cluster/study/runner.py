@@ -32,7 +32,7 @@ from pathlib import Path
 
 from cluster.api import train_population
 from cluster.runtime import crossplay
-from cluster.runtime.extend import extend_run, repoint_partners
+from cluster.runtime.extend import extend_run, repoint_partners, take_eval_episodes
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, extension_problem, write_json
 from cluster.study.report import write_report
@@ -185,8 +185,10 @@ def open_state(
             seeds=seeds,
             overrides=given_overrides or (),
             created=time.time(),
+            backend=backend,
         )
-    state.source, state.spec, state.backend = str(study.path), study.raw, backend
+    # The backend stays the one that last ran a step (run_study sets it): a rerun that runs nothing keeps it.
+    state.source, state.spec = str(study.path), study.raw
     return state
 
 
@@ -364,6 +366,7 @@ class Plan:
     configs: dict
     retrain: tuple[str, ...] = ()
     extend: tuple[str, ...] = ()
+    reevaluate: tuple[str, ...] = ()  # runs whose eval.episodes the study changed: evaluated again, not retrained
 
 
 def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Plan:
@@ -412,10 +415,16 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
     _check_retrain(study, out, retrain)
     differs = {run.name: trained_differences(run_dir(out, run.name), configs[run.name]) for run in study.runs}
     retrain = _still_to_retrain(study, differs, retrain)
-    extend = []
+    extend, reevaluate = [], []
     for run in study.runs:
         differences = differs[run.name]
-        if not differences or run.name in retrain:
+        if run.name in retrain:
+            continue
+        # Episodes per pair change the evaluation only (eval is outside the fingerprint): evaluated again.
+        if any(d.split(":")[0] in REEVALUATED_KEYS for d in differences):
+            reevaluate.append(run.name)
+            differences = [d for d in differences if d.split(":")[0] not in REEVALUATED_KEYS]
+        if not differences:
             continue
         problem = extension_problem(RunDir(run_dir(out, run.name)).load_config(), configs[run.name])
         longer = all(d.split(":")[0] in EXTENDED_KEYS for d in differences) and problem is None
@@ -429,7 +438,27 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
             f"({'; '.join(differences[:2])}{more}){why}; undo the change, or pass --retrain {run.name} to train it "
             "again (the trained run and its cross-play move to replaced/)"
         )
-    return Plan(study, out, state, options, configs, retrain, tuple(extend))
+    return Plan(study, out, state, options, configs, retrain, tuple(extend), tuple(reevaluate))
+
+
+#: Compared run settings that a study may change in a trained run without training it again: its evaluation
+#: is made again (``take_eval_episodes``).
+REEVALUATED_KEYS = ("eval.episodes",)
+
+
+def steps_to_run(plan: Plan) -> list[str]:
+    """The steps ``run_study`` would run for ``plan``: those not done or whose result no longer counts
+    (``result_problem``), every step when a run is retrained, extended or evaluated again. Empty: a rerun
+    only writes the report again (``ocv2 study run`` then starts no Ray)."""
+    steps = study_steps(plan.study)
+    kept = read_state(plan.out)
+    if plan.retrain or plan.extend or plan.reevaluate or (kept is not None and kept.budget != plan.state.budget):
+        return [step.name for step in steps]
+    return [
+        step.name
+        for step in steps
+        if not plan.state.step(step.name).done or result_problem(step, plan.study, plan.out, plan.configs) is not None
+    ]
 
 
 #: The layouts the 2019 human data covers, and with it a BC human proxy (``population.human``).
@@ -538,6 +567,14 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         if kept is not None and kept.budget != plan.state.budget:  # --extend, now: the old results step aside
             _set_aside_results(study, out, kept.budget, state, say)
         state.save()
+        for name in plan.reevaluate:
+            old = take_eval_episodes(run_dir(out, name), configs[name])
+            if old is not None:
+                say(
+                    f"study {study.name}: run {name}: evaluated again with eval.episodes "
+                    f"{configs[name].eval.episodes} (was {old}; that evaluation kept in "
+                    f"{run_dir(out, name) / 'reevaluated'})"
+                )
         for name in plan.extend:
             path = run_dir(out, name)
             if (record := extend_run(path, configs[name])) is not None:
@@ -556,7 +593,9 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
             say(f"study {study.name}: [{number}/{len(steps)}] {name}")
             timer = state.timer(name)
             state.step(name).reason = None  # a step blocked before may run now
-            state.mark(name, status="running", started=timer.last, ticked=timer.last)
+            # The backend that ran the step: the report names each one when a study's steps ran on several.
+            state.state.backend = plan.options.backend
+            state.mark(name, status="running", started=timer.last, ticked=timer.last, backend=plan.options.backend)
             try:
                 result = _RUN_STEP[step.kind](plan, step.target, timer)
             except (StudyBlocked, StudyError) as blocked:  # recorded, not left "running"; the other steps go on

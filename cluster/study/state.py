@@ -20,6 +20,8 @@ STEP_STATES = ("left", "running", "done", "blocked")
 _RESTORE = "restore it from a backup or a pack of this study (ocv2 study pack)"
 #: Optional step fields that are times or durations (seconds).
 _STEP_NUMBERS = ("started", "ticked", "finished")
+#: Optional step fields that are text.
+_STEP_TEXTS = ("reason", "backend")
 #: What a finished step records of its result (``update``: a training step's last update; ``snapshots``: how many
 #: snapshots an over-training step played).
 _STEP_RESULTS = ("update", "snapshots")
@@ -35,6 +37,7 @@ class StepRecord:
     ticked: float | None = None  # ... when its wall time was last added to (lets a status add the time since)
     finished: float | None = None
     reason: str | None = None  # why the step is blocked
+    backend: str | None = None  # the backend that last ran it (steps recorded before it was kept have none)
     results: dict = dataclasses.field(default_factory=dict)  # what the step returned (_STEP_RESULTS)
 
     @property
@@ -59,7 +62,7 @@ class StepRecord:
     def to_json(self) -> dict:
         """The step's entry in study.json: status and wall time always, the rest when set."""
         data = {"status": self.status, "wall_s": self.wall_s}
-        data.update({k: getattr(self, k) for k in (*_STEP_NUMBERS, "reason") if getattr(self, k) is not None})
+        data.update({k: getattr(self, k) for k in (*_STEP_NUMBERS, *_STEP_TEXTS) if getattr(self, k) is not None})
         return {**data, **self.results}
 
     @classmethod
@@ -73,12 +76,13 @@ class StepRecord:
         for key in ("wall_s", *_STEP_NUMBERS):
             if key in data and not is_number(data[key]):
                 raise _bad(path, f"{field}.{key}", "a number", data[key])
-        if "reason" in data and not isinstance(data["reason"], str):
-            raise _bad(path, f"{field}.reason", "text", data["reason"])
+        for key in _STEP_TEXTS:
+            if key in data and not isinstance(data[key], str):
+                raise _bad(path, f"{field}.{key}", "text", data[key])
         return cls(
             status=status,
             wall_s=float(data.get("wall_s", 0.0)),
-            **{key: data.get(key) for key in (*_STEP_NUMBERS, "reason")},
+            **{key: data.get(key) for key in (*_STEP_NUMBERS, *_STEP_TEXTS)},
             results={k: v for k, v in data.items() if k not in _FIELDS},  # kept as they were: nothing is lost
         )
 
