@@ -220,6 +220,7 @@ class Layout:
             )
         _check_padding_closed(static, agents, [len(row) for row in rows], name)
         layout = Layout(static, tuple(agents), num_ingredients, possible_recipes, name=name)
+        _warn_unreached_edge_floor(layout)
         problems, some_served = _kitchen_report(layout)
         if problems:  # a legal map (the reference builds it too), but one where some or all orders never pay
             what = "some orders can never be delivered" if some_served else "no soup can be delivered"
@@ -246,6 +247,29 @@ def _check_padding_closed(static: np.ndarray, agents, row_lengths: list[int], na
 
 class LayoutWarning(UserWarning):
     """A map that builds, but where the cooks can never earn the delivery reward of some or all orders."""
+
+
+class LayoutEdgeWarning(UserWarning):
+    """A map with floor on its edge that no cook can reach: most often an indented map or trailing spaces, which
+    widen the map, and with it every observation, by columns of floor nobody uses (the reference builds it too)."""
+
+
+def _warn_unreached_edge_floor(layout: Layout) -> None:
+    grid = layout.static_objects
+    rooms = _room_labels(grid == Static.FLOOR)
+    used = [rooms[y, x] for x, y in layout.agent_positions]
+    edge = np.zeros(grid.shape, dtype=bool)
+    edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
+    unreached = np.argwhere(edge & (grid == Static.FLOOR) & ~np.isin(rooms, used))
+    if len(unreached):
+        row, column = (int(v) for v in unreached[0])
+        warnings.warn(
+            f"layout {layout.name!r}: floor that no cook can reach on the map's edge (the first at row {row}, column "
+            f"{column}, counted from 0): an indented map, trailing spaces or a short row? They make the map {layout.height} x "
+            f"{layout.width} and every observation that wide; remove them, or put counters ('W') there",
+            LayoutEdgeWarning,
+            3,
+        )
 
 
 def kitchen_problems(layout: Layout) -> list[str]:

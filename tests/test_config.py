@@ -173,6 +173,13 @@ def test_unknown_key():
         ({"population": 5}, "population"),  # was a TypeError
         ({"population": ["ab"]}, "population"),
         ({"population": {"fcp": "x"}}, "population.fcp"),
+        # A falsy non-mapping section was read as an empty one: the defaults, without a word.
+        ({"env": False}, "env"),
+        ({"env": []}, "env"),
+        ({"env": 0}, "env"),
+        ({"population": []}, "population"),
+        ({"population": False}, "population"),
+        ({"population": ""}, "population"),
     ],
 )
 def test_wrong_type(raw, key):
@@ -199,6 +206,36 @@ def test_impossible_values_name_the_key():
     assert "population.sa.iterations" in _error(
         {"ppo": SMALL_PPO, "population": {"method": "sa", "sa": {"iterations": 11}}}
     )
+
+
+def test_values_that_crashed_or_failed_late_are_refused_naming_the_key():
+    """Each was a traceback (a zero divided by), or a run directory written before training failed."""
+    for key in ("num_envs", "num_steps"):  # ZeroDivisionError in schedule_updates
+        assert _error({"ppo": {key: 0}}).startswith(f"ppo.{key}: must be > 0, got 0")
+        partner = {"method": "fcp", "fcp": {"partner_ppo": {key: 0}}}
+        assert f"population.fcp.partner_ppo.{key}: must be > 0" in _error({"population": partner})
+    # An empty partners path: the partner stage was skipped, then the run failed reading RUN/partners.
+    message = _error({"population": {"method": "fcp", "fcp": {"partners": ""}}})
+    assert message.startswith("population.fcp.partners: empty; give an SP run directory")
+    # Featurized observations passed, then the network's init failed on a vector after the run directory existed.
+    for kind in ("featurized", ["default", "featurized"]):
+        assert _error({"env": {"observation_type": kind}}).startswith("env.observation_type: ocv2's networks train")
+
+
+def test_a_study_file_given_as_a_config_says_so():
+    """`ocv2 train STUDY.yaml` said "runs: unknown section; did you mean run?"."""
+    study = {"study": "s", "runs": [{"name": "sp", "config": "configs/smoke.yaml"}]}
+    for raw in (study, {"runs": study["runs"]}, {"study": "s"}):
+        assert "a study file (it names a study or lists runs), not an experiment config" in _error(raw)
+    assert "runs: unknown section; did you mean run?" in _error({"runs": {"checkpoint_every": 3}})  # a config's typo
+
+
+def test_a_problem_an_override_caused_across_keys_is_blamed_on_it():
+    """A check across keys (num_envs x num_steps) was blamed on the file, which the override had changed."""
+    raw = {"ppo": dict(SMALL_PPO, num_minibatches=4)}
+    assert _error(raw, ["ppo.num_envs=3"]).startswith("--set ppo.num_envs=3: ppo.num_minibatches: ")
+    assert _error(raw, ["ppo.num_steps=256"]).startswith("--set ppo.num_steps=256: ppo.total_timesteps: ")
+    assert _error({"ppo": dict(SMALL_PPO, total_timesteps=63)}).startswith("ppo.total_timesteps")  # the file's own
 
 
 def test_bad_method():

@@ -681,6 +681,33 @@ def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
 
 
 @pytest.mark.parametrize(
+    "extra, message",
+    [
+        (
+            "env.layout=coord_ring",
+            "run 'fcp'.partners_from: run 'sp' plays another game than run 'fcp' (differs in layout: 'cramped_room' vs ",
+        ),
+        ("model.fc_dim=32", "run 'fcp'.partners_from: run 'sp' trains another network"),
+        ("population.fcp.checkpoints=[3]", "run 'fcp'.partners_from: population.fcp.checkpoints: "),
+    ],
+)
+def test_an_fcp_run_whose_partner_run_cannot_give_its_pool_is_refused_before_anything_trains(tmp_path, extra, message):
+    """Found only when the FCP run started, after its partner run had trained its whole budget."""
+    data = {
+        "study": "fcp",
+        "runs": [
+            {"name": "sp", "config": str(SMOKE)},
+            {"name": "fcp", "config": str(SMOKE), "set": ["population.method=fcp", extra], "partners_from": "sp"},
+        ],
+    }
+    study = load_study(write_study(tmp_path / "s.yaml", data))
+    with pytest.raises(StudyError, match=re.escape(message)) as refused:
+        plan_study(study, tmp_path / "out", LOCAL)
+    assert str(tmp_path / "s.yaml") in str(refused.value)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
     "change, message",
     [
         (lambda d: d["runs"][0].update(config="nowhere.yaml"), "run 'sp'.config: no such config file nowhere.yaml"),
@@ -708,6 +735,11 @@ def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
         (lambda d: d["comparisons"][0].update(name="c\n"), "comparisons[0].name: expected a name"),
         (lambda d: d["runs"][1].update(name="plots"), "runs[1].name: 'plots' names the folders a pack leaves out"),
         (lambda d: d["runs"][0]["paper"].update(sp=10**400), "not valid YAML: an integer of 401 digits (at most 100)"),
+        # A key that is not a list was a traceback (comparisons: 5) or read as empty (comparisons: false).
+        (lambda d: d.update(comparisons=5), "comparisons: expected a list of comparisons, got int"),
+        (lambda d: d.update(comparisons=False), "comparisons: expected a list of comparisons, got bool"),
+        (lambda d: d.update(over_training={}), "over_training: expected a list of run names"),
+        (lambda d: d.update(description=[]), "description: expected text"),
     ],
     ids=lambda v: None if callable(v) else v[:40],
 )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import pytest
@@ -33,6 +35,22 @@ GOOD = "WWPWW\n0A AX\nW   R\nWBWWW"
 def test_bad_layouts(grid, kwargs, match):
     with pytest.raises(ValueError, match=match):
         ocv2.Layout.from_string(grid, **kwargs)
+
+
+@pytest.mark.parametrize(
+    "grid, where, size",
+    [
+        ("\n    WWPWW\n    0A AX\n    W   R\n    WBWWW\n", "row 0, column 0", "4 x 9"),  # an indented map
+        ("WWPWW  \n0A AX\nW   R\nWBWWW", "row 0, column 5", "4 x 7"),  # trailing spaces
+    ],
+)
+def test_floor_no_cook_reaches_on_the_map_edge_warns_with_the_cell_and_the_size(grid, where, size):
+    """An indented map built 4 extra columns of floor, and observations 4 columns wider, without a word."""
+    with pytest.warns(ocv2.layouts.LayoutEdgeWarning, match=rf"{where}, counted from 0\).* map {size} "):
+        ocv2.Layout.from_string(grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ocv2.Layout.from_string(GOOD)  # a closed map says nothing
 
 
 def test_a_layout_built_without_piles_says_so():
@@ -209,7 +227,8 @@ def test_a_short_row_that_opens_the_border_is_named_by_its_length():
     with pytest.raises(ValueError, match=r"row 1 has 4 characters, the map is 5 wide.*the border is open"):
         ocv2.Layout.from_string("WWWWW\nW0A \nWPXBW\nWRWWW")
     # a short row the cooks cannot reach leaves a floor hole in the border, which the reference accepts too
-    layout = ocv2.Layout.from_string("WWPWW\n0A AX\nW   R\nWBWW")
+    with pytest.warns(ocv2.layouts.LayoutEdgeWarning, match=r"row 3, column 4, counted from 0"):
+        layout = ocv2.Layout.from_string("WWPWW\n0A AX\nW   R\nWBWW")
     assert layout.static_objects[3, 4] == ocv2.layouts.Static.FLOOR
 
 

@@ -20,7 +20,7 @@ from cluster.runtime.coordinator import check_inputs
 from cluster.runtime.rundir import RunDirError
 from cluster.study.runner import check_comparisons
 from cluster.study.spec import StudyError, default_out, load_study, run_config, with_overrides
-from population.config import ConfigError, is_ray_launcher_config, parse_config, read_config_file
+from population.config import ConfigError, is_ray_launcher_config, is_study_data, parse_config, read_config_file
 from population.config.parse import blame_overrides
 from population.memory import check_fits, estimate
 
@@ -74,8 +74,9 @@ def describe_config(config) -> str:
 
 
 def is_study_file(raw) -> bool:
-    """A study file names its study and lists its runs; an experiment config has neither section."""
-    return isinstance(raw, dict) and "study" in raw and "runs" in raw
+    """A study file names its study or lists its runs (``is_study_data``); an experiment config has neither, so a
+    study file with one of the two misspelled is still checked as a study, and its error names the key."""
+    return is_study_data(raw)
 
 
 def check_study_file(path: str, overrides) -> tuple[str, object]:

@@ -56,6 +56,7 @@ from population.config import Config, ConfigError
 from population.config.paper import PACKAGED_CONFIGS
 from population.human import LAYOUT_MAP
 from population.memory import check_fits
+from population.networks import same_function
 from population.numerics import DEFAULT_PRECISION
 from population.policy import env_difference, env_settings, same_env
 from population.xp import block_summary
@@ -412,6 +413,7 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
         except ConfigError as error:
             raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
     check_comparisons(study, configs)
+    check_partners_from(study, configs, out)
     _check_retrain(study, out, retrain)
     differs = {run.name: trained_differences(run_dir(out, run.name), configs[run.name]) for run in study.runs}
     retrain = _still_to_retrain(study, differs, retrain)
@@ -463,6 +465,37 @@ def steps_to_run(plan: Plan) -> list[str]:
 
 #: The layouts the 2019 human data covers, and with it a BC human proxy (``population.human``).
 HUMAN_LAYOUTS = tuple(LAYOUT_MAP.values())
+
+
+def check_partners_from(study: Study, configs: dict, out: Path) -> None:
+    """Refuse, before anything trains, an FCP run whose ``partners_from`` run cannot give its pool: a run of another
+    game or network, or ``population.fcp.checkpoints`` naming an update the partner run keeps no snapshot of. The FCP
+    run's own start refused these too, but only once the partner run had trained its whole budget."""
+    for run in study.runs:
+        if run.partners_from is None:
+            continue
+        where = f"{study.origin}: run {run.name!r}.partners_from"
+        learner, partner = configs[run.name], configs[run.partners_from]
+        if not same_env(partner.env_kwargs, learner.env_kwargs):
+            raise StudyError(
+                f"{where}: run {run.partners_from!r} plays another game than run {run.name!r} "
+                f"({env_difference(partner.env_kwargs, learner.env_kwargs)}); FCP partners play the learner's game"
+            )
+        if same_function(partner.model) != same_function(learner.model):
+            raise StudyError(
+                f"{where}: run {run.partners_from!r} trains another network (its model section differs); FCP partners "
+                "need the learner's network"
+            )
+        snapshots = ckpt.run_snapshots(
+            run_dir(out, run.partners_from), partner.ppo.num_updates, partner.run.num_checkpoints
+        )
+        try:
+            ckpt.pool_updates(learner.population.fcp.checkpoints, snapshots)
+        except ckpt.CheckpointError as error:
+            raise StudyError(
+                f"{where}: population.fcp.checkpoints: {error} (run {run.partners_from!r} keeps the snapshots of "
+                f"updates {', '.join(map(str, snapshots))})"
+            ) from None
 
 
 def check_comparisons(study: Study, configs: dict) -> None:

@@ -189,7 +189,8 @@ def parse_study(raw: Any, path: Path) -> Study:
     for index, entry in enumerate(runs_raw):
         runs.append(_parse_run(where, index, entry, path.parent, shared, [r.name for r in runs]))
     names = [r.name for r in runs]
-    over = raw.get("over_training") or []
+    # A key left empty (``comparisons:``) is none; any other value that is not a list is refused, not read as empty.
+    over = [] if raw.get("over_training") is None else raw["over_training"]
     if not isinstance(over, list) or not all(isinstance(n, str) for n in over):
         raise StudyError(f"{where}: over_training: expected a list of run names")
     for index, name_ in enumerate(over):
@@ -197,9 +198,12 @@ def parse_study(raw: Any, path: Path) -> Study:
         if name_ in over[:index]:
             raise StudyError(f"{where}: over_training: names run {name_!r} twice")
     comparisons: list[Comparison] = []
-    for index, entry in enumerate(raw.get("comparisons") or []):
+    listed = [] if raw.get("comparisons") is None else raw["comparisons"]
+    if not isinstance(listed, list):
+        raise StudyError(f"{where}: comparisons: expected a list of comparisons, got {type(listed).__name__}")
+    for index, entry in enumerate(listed):
         comparisons.append(_parse_comparison(where, index, entry, names, [c.name for c in comparisons]))
-    description = raw.get("description") or ""
+    description = "" if raw.get("description") is None else raw["description"]
     if not isinstance(description, str):
         raise StudyError(f"{where}: description: expected text")
     return Study(name, path, description.strip(), tuple(runs), tuple(comparisons), tuple(over), raw)

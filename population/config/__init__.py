@@ -20,6 +20,7 @@ from population.config.paper import (
 from population.config.parse import (
     RAY_LAUNCHER_KEYS,
     is_ray_launcher_config,
+    is_study_data,
     load_config,
     load_run_config,
     parse_config,
@@ -97,6 +98,7 @@ __all__ = [
     "check_plain_data",
     "dump_config",
     "is_ray_launcher_config",
+    "is_study_data",
     "load_config",
     "load_run_config",
     "load_yaml_text",

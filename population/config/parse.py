@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 from ocv2.config import EnvConfig, build_config
@@ -76,7 +76,12 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     check_plain_data(raw)
     if is_ray_launcher_config(raw):
         raise ConfigError("a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config")
-    raw = apply_overrides(raw, overrides)
+    if is_study_data(raw):
+        raise ConfigError(
+            "a study file (it names a study or lists runs), not an experiment config: run it with `ocv2 study run "
+            "FILE`; `ocv2 validate FILE` checks it"
+        )
+    original, raw = raw, apply_overrides(raw, overrides)
     problems = [
         f"{name}: unknown section{nearest(name, SECTIONS)} (sections: {', '.join(SECTIONS)})"
         for name in sorted(set(raw) - set(SECTIONS), key=str)
@@ -89,12 +94,14 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
             problems.extend(error.problems)
             return default if error.partial is None else error.partial
 
-    env = parsed(_parse_env, raw.get("env") or {}, default=Config().env)
+    # A section left empty (``env:``) is its defaults; any other non-mapping (``env: false``) is refused by name.
+    env_raw = raw.get("env")
+    env = parsed(_parse_env, {} if env_raw is None else env_raw, default=Config().env)
     model = _resolve_model(
         parsed(parse_section, "model", ModelConfig, raw.get("model"), default=ModelConfig()), problems
     )
     ppo = parsed(parse_section, "ppo", PPOConfig, raw.get("ppo"), default=PPOConfig())
-    pop_raw = raw.get("population") or {}
+    pop_raw = {} if raw.get("population") is None else raw["population"]
     if not isinstance(pop_raw, Mapping):
         problems.append(f"population: expected a mapping of keys, got {type(pop_raw).__name__}")
         pop_raw = {}
@@ -131,8 +138,17 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     reported = {problem.split(":", 1)[0] for problem in problems}
     problems += [p for p in validate(config) if not _about_reported(p, reported)]
     if problems:
-        raise ConfigError(blame_overrides(problems, overrides))
+        raise ConfigError(blame_overrides(problems, overrides, _own_problems(original) if overrides else ()))
     return config
+
+
+def _own_problems(raw: Mapping) -> set[str]:
+    """The problems of the config without its overrides: those the file has itself (an override did not cause)."""
+    try:
+        parse_config(raw)
+    except ConfigError as error:
+        return set(error.problems)
+    return set()
 
 
 def _about_reported(problem: str, reported: set[str]) -> bool:
@@ -149,9 +165,10 @@ def _about_reported(problem: str, reported: set[str]) -> bool:
     )
 
 
-def blame_overrides(problems: Sequence[str], overrides: Sequence[str]) -> list[str]:
-    """Each problem at, inside or just above a key an override set, named after that override
-    (``--set ppo.lr=1e308: ppo.lr: ...``): the file did not cause it."""
+def blame_overrides(problems: Sequence[str], overrides: Sequence[str], own: Collection[str] = ()) -> list[str]:
+    """Each problem at, inside or just above a key an override set, named after that override (``--set
+    ppo.lr=1e308: ppo.lr: ...``): the file did not cause it. So is a problem the file alone does not have (not in
+    ``own``) that a check across keys of the override's section raised, naming it (``num_envs x num_steps``)."""
     dotted = [(item.split("=", 1)[0].strip(), item) for item in overrides]
     blamed = []
     for problem in problems:
@@ -159,7 +176,9 @@ def blame_overrides(problems: Sequence[str], overrides: Sequence[str]) -> list[s
         hits = [
             item
             for name, item in dotted
-            if name == key or key.startswith((f"{name}.", f"{name}[")) or name.startswith(f"{key}.")
+            if key.startswith((f"{name}.", f"{name}["))
+            or name.startswith(f"{key}.")
+            or (problem not in own and _about_reported(problem, {name}))
         ]
         blamed.append(f"{SET_PREFIX}{hits[-1]}: {problem}" if hits else problem)
     return blamed
@@ -171,6 +190,12 @@ RAY_LAUNCHER_KEYS = frozenset({"cluster_name", "provider"})
 
 def is_ray_launcher_config(raw) -> bool:
     return isinstance(raw, Mapping) and RAY_LAUNCHER_KEYS <= set(raw) and not set(raw) & set(SECTIONS[:-1])
+
+
+def is_study_data(raw) -> bool:
+    """A study file's data (``ocv2 study run``), not an experiment config: it names its study or lists its runs (a
+    config's misspelled ``runs:`` for ``run:`` is a mapping, and stays a config's unknown section)."""
+    return isinstance(raw, Mapping) and ("study" in raw or isinstance(raw.get("runs"), list))
 
 
 def _parse_env(raw) -> tuple[tuple[str, Any], ...]:

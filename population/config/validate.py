@@ -70,7 +70,8 @@ def ppo_problems(prefix: str, ppo: PPOConfig) -> list[str]:
             f"{prefix}.num_envs: num_envs x num_steps = {ppo.steps_per_update:,} env steps per update "
             f"exceed the int32 step counter ({high:,})"
         )
-    optimiser_steps = ppo.schedule_updates * ppo.update_epochs * ppo.num_minibatches
+    # Updates are env steps over num_envs x num_steps: a zero of either is named above, not divided by here.
+    optimiser_steps = ppo.schedule_updates * ppo.update_epochs * ppo.num_minibatches if ppo.steps_per_update > 0 else 0
     if optimiser_steps > high:
         problems.append(
             f"{prefix}.total_timesteps: {ppo.schedule_updates:,} updates x {ppo.update_epochs} epochs x "
@@ -82,6 +83,10 @@ def ppo_problems(prefix: str, ppo: PPOConfig) -> list[str]:
 
 def _validate_fcp(fcp: FCPConfig, num_agents: int) -> list[str]:
     problems = _positive("population.fcp.partner_seeds", fcp.partner_seeds)
+    if fcp.partners is not None and not str(fcp.partners).strip():
+        problems.append(
+            "population.fcp.partners: empty; give an SP run directory, or leave it out (null) to train the partners first"
+        )
     if fcp.pool not in FCP_POOLS:
         problems.append(f"population.fcp.pool: expected one of {', '.join(FCP_POOLS)}, got {fcp.pool!r}")
     if not fcp.checkpoints:
@@ -134,6 +139,12 @@ def validate(config: Config) -> list[str]:
     problems += ppo_problems("ppo", ppo)
     sizes_ok = ppo.num_envs > 0 and ppo.num_steps > 0 and ppo.num_minibatches > 0
     env = build_config(**config.env_kwargs)
+    # The networks read grids: the environment's featurized vectors are for other learners (docs/environment.md).
+    if any(kind != "default" for kind in env.observation_types):
+        problems.append(
+            f"env.observation_type: ocv2's networks train on grid observations ('default'), got "
+            f"{config.env_kwargs.get('observation_type')!r}"
+        )
     one_seat = pop.method in METHODS and pop.traits.one_learner_seat  # (an unknown name is reported below)
     learner_actors = ppo.num_envs if one_seat else ppo.num_envs * env.num_agents
     if sizes_ok and learner_actors % ppo.num_minibatches:
