@@ -12,6 +12,7 @@ that config load them (the FCP and quickstart runs compile their own).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import os
 import shutil
@@ -29,12 +30,13 @@ import pytest
 from cluster.archive import ArchiveReader
 from cluster.cli import main
 from cluster.runtime import coordinator, evaluate, ray_backend, runstate
+from cluster.runtime.interrupt import ChunkAbandoned
 from cluster.runtime.local import LocalWorkers
-from cluster.runtime.rundir import RunDir
-from cluster.runtime.shard import SeedShard
+from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.shard import AdvanceResult, SeedShard
 from population import checkpoints as ckpt
 from population import ppo
-from population.config import load_config
+from population.config import dump_config, load_config
 from population.config import shards as seed_shards
 from population.keys import derive_key
 from population.sa import collect_buffer
@@ -265,6 +267,82 @@ def test_a_worker_whose_checkpoints_cannot_load_reports_that(tmp_path, reference
     errors = [line for line in err.splitlines() if line.startswith("ocv2 train: error:")]
     assert len(errors) == 1 and "not a readable ocv2 checkpoint" in errors[0] and "no older checkpoint" in errors[0]
     assert "max_restarts" not in err
+
+
+def test_a_worker_that_cannot_start_says_why_without_resume_advice(tmp_path, reference, ray_session):
+    """An actor whose constructor raised (here an FCP per_seed pool of the wrong size) died for good, and the driver
+    said the worker had used up cluster.max_restarts and advised a resume that fails the same way every time."""
+    config = load_config(SMOKE, [*LONGER, "population.method=fcp", f"population.fcp.partners={reference}"])
+    config = dataclasses.replace(
+        config,
+        population=dataclasses.replace(
+            config.population, fcp=dataclasses.replace(config.population.fcp, pool="per_seed", partner_seeds=1)
+        ),
+    )
+    run = tmp_path / "run"
+    run.mkdir()
+    dump_config(config, run / "config.yaml")  # as RunDir.open writes it before the workers start
+    workers = ray_backend.RayWorkers(config, run, pool={"w": np.zeros((3, 1, 4), np.float32)})
+    try:
+        with pytest.raises(ray_backend.RayBackendError) as raised:
+            workers.call("position", [(0, ())])
+    finally:
+        workers.close()
+    message = str(raised.value)
+    assert message.startswith("the worker for seeds [0] could not start: ValueError: FCP per_seed pool has 3 learner")
+    assert not raised.value.resumable and "max_restarts" not in message
+
+
+def test_a_run_directory_the_workers_cannot_see_is_refused_by_name(tmp_path, ray_session):
+    """An actor on a node without the run directory made an empty one on its own disk and trained there; the driver
+    found no checkpoint only after all the training."""
+    config = load_config(SMOKE, LONGER)
+    absent = tmp_path / "not_shared" / "run"
+    workers = ray_backend.RayWorkers(config, absent)
+    try:
+        with pytest.raises(RunDirError, match="the run directory is not visible on the worker's node .*shares"):
+            workers.call("position", [(0, ())])
+    finally:
+        workers.close()
+    assert not (tmp_path / "not_shared").exists()  # nothing made on the worker's disk
+
+
+@ray_backend.ray.remote(num_cpus=0) if ray_backend.ray is not None else (lambda cls: cls)
+class _SlowShard:
+    """A shard whose chunk takes a second: long enough for a signal to land while the driver waits for it."""
+
+    def advance(self, stop, _buffer, update):
+        time.sleep(1.0)
+        return AdvanceResult(stop, [], stop - update, 1.0)
+
+
+@pytest.mark.parametrize("signals", [1, 2])
+def test_sigterm_while_ray_actors_train_saves_their_chunk_or_at_a_second_stops_at_once(ray_session, signals):
+    """On the Ray backend SIGTERM (the command line makes it a Ctrl-C) raised a KeyboardInterrupt out of the driver's
+    ray.wait, and the actors were killed with the chunk in flight; a first signal now lets the chunk finish (the
+    coordinator records it, then stops), a second stops at once."""
+    workers = object.__new__(ray_backend.RayWorkers)
+    workers.config, workers.shards, workers.events = load_config(SMOKE), [[0], [1]], []
+    workers.actors = [_SlowShard.remote(), _SlowShard.remote()]
+    jobs = [(shard, (4, None, 2)) for shard in (0, 1)]
+    ray_backend.ray.get([a.advance.remote(2, None, 2) for a in workers.actors])  # both started: no start-up in the wait
+    before = signal.signal(signal.SIGTERM, signal.default_int_handler)  # as the command line sets it
+    timers = [threading.Timer(0.3 * (k + 1), os.kill, (os.getpid(), signal.SIGTERM)) for k in range(signals)]
+    try:
+        for timer in timers:
+            timer.start()
+        if signals == 2:
+            with pytest.raises(ChunkAbandoned):
+                workers.call("advance", jobs)
+        else:
+            results = workers.call("advance", jobs)
+            assert [(r.update, r.stop_requested) for r in results] == [(4, True), (4, True)]
+    finally:
+        for timer in timers:
+            timer.join()
+        signal.signal(signal.SIGTERM, before)
+        for actor in workers.actors:
+            ray_backend.ray.kill(actor)
 
 
 def test_bad_cluster_input_fails_before_any_work(tmp_path, capsys, ray_session):

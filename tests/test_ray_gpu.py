@@ -10,6 +10,7 @@ next test that asks for ``ray_session`` starts it again. Ray hands the actors GP
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -42,6 +43,21 @@ def test_auto_shares_the_gpus_ray_reports_among_the_actors(monkeypatch, nodes, a
     assert ray_backend.gpus_per_actor(ClusterConfig(), actors) == expected
     assert ray_backend.gpus_per_actor(ClusterConfig(num_gpus=2), actors) == 2.0  # a number is taken as it is
     assert ray_backend.gpus_per_actor(ClusterConfig(num_gpus=0), actors) == 0.0
+
+
+def test_a_memory_fraction_above_an_actors_share_of_a_gpu_is_refused_naming_the_key(monkeypatch):
+    """gpu-node.yaml's actors share one GPU (0.5 each); a gpu_memory_fraction of 0.9 made each preallocate 90 % of it,
+    so the second actor could not start, and the run died with a misleading worker-death message."""
+    monkeypatch.setattr(ray_backend, "_node_resources", lambda: [{"CPU": 4.0, "GPU": 1.0}])
+    monkeypatch.setattr(ray_backend.ray, "cluster_resources", lambda: {"CPU": 4.0, "GPU": 1.0})
+    config = load_config(SMOKE)  # 2 seeds, one actor each
+    shared = lambda fraction: dataclasses.replace(  # noqa: E731
+        config, cluster=dataclasses.replace(config.cluster, gpu_memory_fraction=fraction)
+    )
+    with pytest.raises(ray_backend.RayBackendError, match=r"cluster.gpu_memory_fraction: .*0.9 .*at most 0.5"):
+        ray_backend.check_resources(shared(0.9), 2)
+    ray_backend.check_resources(shared(0.5), 2)  # within its share
+    ray_backend.check_resources(shared(0.9), 1)  # one actor has the whole GPU
 
 
 def test_only_an_actor_without_a_gpu_is_pinned_to_the_cpu(monkeypatch):

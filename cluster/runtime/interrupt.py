@@ -1,5 +1,5 @@
-"""Ctrl-C (or SIGTERM, under the command line) while a jitted training chunk runs in this process (the local
-backend).
+"""Ctrl-C (or SIGTERM, under the command line) while a training chunk runs: jitted in this process (the local
+backend), or in Ray actors the driver waits for (``RayWorkers.call``, the same answers).
 
 Python runs a signal handler only between bytecodes of the main thread, so a main thread blocked in
 XLA (``np.asarray`` of a chunk's results) hears Ctrl-C only when the chunk ends: up to tens of minutes.
@@ -28,6 +28,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import jax
 
@@ -78,7 +79,13 @@ class ChunkWait:
         self._first = signal.SIGINT  # the signal that asked for the stop
 
     def until_ready(self, tree):
-        """Return ``tree`` once every array in it is computed, answering Ctrl-C meanwhile (see module doc).
+        """Return ``tree`` once every array in it is computed, answering Ctrl-C meanwhile (see module doc)."""
+        self.until(lambda: _ready(tree))
+        return tree
+
+    def until(self, done: Callable[[], bool]) -> None:
+        """Return once ``done()`` (polled every ``POLL_S``) is true, answering Ctrl-C meanwhile: a jitted chunk
+        in this process (``until_ready``) or the chunks of Ray actors the driver waits for (``RayWorkers.call``).
 
         SIGINT and SIGTERM are taken over only where Python's own handler (``KeyboardInterrupt``) is in place:
         a job started in the background ignores SIGINT, SIGTERM ends a process unless the command line made it
@@ -97,7 +104,7 @@ class ChunkWait:
         previous = {signum: signal.signal(signum, self._pressed) for signum in taken}
         try:
             warned = False
-            while not _ready(tree):
+            while not done():
                 if self.stop_requested and not warned:
                     warned = True
                     name = _signal_name(self._first)
@@ -114,7 +121,6 @@ class ChunkWait:
         finally:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
-        return tree
 
     def _pressed(self, signum, frame) -> None:
         if self.stop_requested:

@@ -36,6 +36,7 @@ except ModuleNotFoundError:  # Ray is the optional ocv2[ray] extra: --backend lo
 
 from cluster.runtime import coordinator
 from cluster.runtime.environment import process_record
+from cluster.runtime.interrupt import ChunkWait
 from cluster.runtime.rundir import RunDirError
 from cluster.runtime.shard import SeedShard
 from population import numerics
@@ -242,6 +243,13 @@ def check_resources(config: Config, num_actors: int) -> None:
     cluster = config.cluster
     per_node = _node_resources()
     total = ray.cluster_resources()
+    share = gpus_per_actor(cluster, num_actors)
+    if 0 < share < 1 and cluster.gpu_memory_fraction > share + 1e-9:  # actors that share a GPU preallocate
+        raise RayBackendError(
+            f"cluster.gpu_memory_fraction: each worker actor preallocates {cluster.gpu_memory_fraction:g} of its GPU's "
+            f"memory, but the actors share GPUs ({share:g} of one each), so a later one could not start; give "
+            f"cluster.gpu_memory_fraction at most {share:g}, or 0 to allocate on demand"
+        )
     for name, want in (("GPU", gpus_per_actor(cluster, num_actors)), ("CPU", cluster.num_cpus)):
         if want <= 0:
             continue
@@ -302,21 +310,32 @@ class _ShardActor(SeedShard):
     """The actor: a SeedShard that can also say where it runs.
 
     An exception in an actor's constructor reaches the driver only as "the actor died" (and Ray does
-    not restart it), which reads like a crash. A shard that cannot restore keeps its error instead and
-    raises it from ``position``, the first call the coordinator and every restart check make.
+    not restart it), which read like a worker that had used up its restarts, with advice to resume that could
+    not help. A shard that cannot start keeps its error instead and raises it from ``position``, the first call
+    the coordinator and every restart check make: its own errors (a checkpoint that cannot load, a full disk)
+    as themselves, any other as a ``RayBackendError`` naming the seeds and the error (the traceback is logged
+    by the actor; Ray forwards it to the driver's output). A run directory the actor's node cannot see (not on
+    storage every node shares) is refused before the shard would make one of its own there.
 
     The actor's process serves this one shard of one run, so ``run.precision`` is made its default before
     anything is traced: every program it compiles (training, SA collection, cross-play, recorded episodes)
     uses it, as the driver's ``numerics.matmul_precision`` context does for in-process shards.
     """
 
-    def __init__(self, *args):
+    def __init__(self, config, run_dir, seeds, pool=None):
         self._load_error = None
-        numerics.set_process_precision(args[0].run.precision)
         try:
-            super().__init__(*args)
+            numerics.set_process_precision(config.run.precision)
+            visible_run_dir(run_dir)
+            super().__init__(config, run_dir, seeds, pool)
         except SHARD_ERRORS as error:
             self._load_error = error
+        except Exception as error:
+            log.exception(f"worker for seeds {seeds}: could not start")
+            self._load_error = RayBackendError(
+                f"the worker for seeds {seeds} could not start: {type(error).__name__}: {error} (its traceback is "
+                "above)"
+            )
 
     def position(self) -> int:
         if self._load_error is not None:
@@ -336,6 +355,17 @@ class _ShardActor(SeedShard):
             "num_gpus": context.get_assigned_resources().get("GPU", 0.0),
             "gpu_ids": [str(i) for i in ray.get_gpu_ids()],
         }
+
+
+def visible_run_dir(run_dir) -> None:
+    """Refuse a run directory this process cannot see: the driver writes config.yaml before any actor starts, so
+    an actor on a node where the path is missing (the directory is not on storage every node shares) would
+    otherwise make an empty one on its own disk, train there, and the driver would find no checkpoint at the end."""
+    if not (Path(run_dir) / "config.yaml").is_file():
+        raise RunDirError(
+            f"{run_dir}: the run directory is not visible on the worker's node ({ray.util.get_node_ip_address()}); "
+            "put it on storage every node of the cluster shares (docs/cluster.md)"
+        )
 
 
 @functools.lru_cache(maxsize=1)
@@ -393,11 +423,12 @@ class RayWorkers:
         submit = lambda i: getattr(self.actors[jobs[i][0]], method).remote(*jobs[i][1])
         pending = {submit(i): i for i in range(len(jobs))}
         failures = [0] * len(jobs)
+        wait = _chunk_wait(jobs) if method == "advance" else None
         while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
-            index = pending.pop(ready[0])
+            ref = _next_ready(list(pending), wait)
+            index = pending.pop(ref)
             try:
-                results[index] = _get(ready[0])
+                results[index] = _get(ref)
             except RayActorError as error:
                 shard = jobs[index][0]
                 failures[index] += 1
@@ -417,6 +448,8 @@ class RayWorkers:
                     }
                 )
                 pending[submit(index)] = index
+        if wait is not None and wait.stop_requested:  # Ctrl-C or SIGTERM: the coordinator records the chunk, then stops
+            results = [result._replace(stop_requested=True) for result in results]
         return results
 
     def _wait_until_back(self, shard: int, cause) -> int:
@@ -448,13 +481,35 @@ class RayWorkers:
         self.actors = []
 
 
+def _chunk_wait(jobs) -> ChunkWait:
+    """The wait for a chunk of ``advance`` jobs ``(shard, (stop, buffer, update))``: a first Ctrl-C or SIGTERM lets
+    the actors finish it so it is saved, a second stops at once (``cluster.runtime.interrupt``)."""
+    stop, _, update = jobs[0][1]
+    return ChunkWait(f"updates {update + 1}-{stop}", f"resuming continues from update {update}")
+
+
+def _next_ready(refs: list, wait: ChunkWait | None):
+    """The first of ``refs`` to finish; with ``wait``, polled so a signal is answered meanwhile (a driver blocked
+    in ``ray.wait`` got a plain KeyboardInterrupt, and the actors were killed with the chunk in flight)."""
+    if wait is None:
+        return ray.wait(refs, num_returns=1)[0][0]
+    ready: list = []
+
+    def finished() -> bool:
+        ready.extend(ray.wait(refs, num_returns=1, timeout=0)[0])
+        return bool(ready)
+
+    wait.until(finished)
+    return ready[0]
+
+
 def _get(ref, timeout: float | None = None):
-    """``ray.get``, raising a shard's own error as itself (its message names the file; Ray's wrapper
-    would add a remote traceback and hide the type from the CLI's error handling)."""
+    """``ray.get``, raising a shard's own error (or a worker's that could not start) as itself (its message names
+    the file; Ray's wrapper would add a remote traceback and hide the type from the CLI's error handling)."""
     try:
         return ray.get(ref, timeout=timeout)
     except RayTaskError as error:
-        if isinstance(error.cause, SHARD_ERRORS):
+        if isinstance(error.cause, (*SHARD_ERRORS, RayBackendError)):
             raise error.cause from None
         raise
 

@@ -45,7 +45,7 @@ class AdvanceResult(NamedTuple):
     rows: list  # metrics.csv rows of updates in (since, update]
     trained_updates: int  # updates actually computed by this call (0 if it only reported)
     wall_s: float
-    stop_requested: bool = False  # Ctrl-C during the chunk (local backend): stop once it is recorded
+    stop_requested: bool = False  # Ctrl-C or SIGTERM during the chunk: stop once it is recorded
 
 
 class CollectResult(NamedTuple):
