@@ -685,9 +685,9 @@ def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
     [
         (
             "env.layout=coord_ring",
-            "run 'fcp'.partners_from: run 'sp' plays another game than run 'fcp' (differs in layout: 'cramped_room' vs ",
+            "run 'fcp'.partners_from: run 'sp' trains another game or network than run 'fcp' (differs in layout: ",
         ),
-        ("model.fc_dim=32", "run 'fcp'.partners_from: run 'sp' trains another network"),
+        ("model.fc_dim=32", "than run 'fcp' (its model section differs)"),
         ("population.fcp.checkpoints=[3]", "run 'fcp'.partners_from: population.fcp.checkpoints: "),
     ],
 )

@@ -170,6 +170,13 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
     return jax.tree.map(lambda *xs: np.stack(xs), *[p for p, _ in pools]), [labels for _, labels in pools]
 
 
+def same_game_and_network(partner: Config, learner: Config) -> bool:
+    """Whether a run of ``partner`` can be an FCP partner of ``learner``: the same game and the same network."""
+    return same_env(partner.env_kwargs, learner.env_kwargs) and same_function(partner.model) == same_function(
+        learner.model
+    )
+
+
 def checked_partner_config(config: Config, partner_run) -> Config:
     """The partner run's config, checked for what ``load_pool`` will read, without loading a parameter: an ocv2
     run of the same game and network, with enough seeds and each pool checkpoint on disk. ``RunDirError`` naming
@@ -179,9 +186,7 @@ def checked_partner_config(config: Config, partner_run) -> Config:
         partner_config = RunDir.existing(partner_run).load_config()
     except RunDirError as error:
         raise RunDirError(f"population.fcp.partners: {error}") from None
-    if not same_env(partner_config.env_kwargs, config.env_kwargs) or same_function(
-        partner_config.model
-    ) != same_function(config.model):
+    if not same_game_and_network(partner_config, config):
         raise RunDirError(
             f"population.fcp.partners: {partner_run} was trained with a different env or model "
             "section; FCP partners must play the same game with the same network"

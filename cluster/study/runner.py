@@ -32,6 +32,7 @@ from pathlib import Path
 
 from cluster.api import train_population
 from cluster.runtime import crossplay
+from cluster.runtime.coordinator import pool_updates, same_game_and_network
 from cluster.runtime.extend import extend_run, repoint_partners, take_eval_episodes
 from cluster.runtime.progress import Bar
 from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, extension_problem, write_json
@@ -56,7 +57,6 @@ from population.config import Config, ConfigError
 from population.config.paper import PACKAGED_CONFIGS
 from population.human import LAYOUT_MAP
 from population.memory import check_fits
-from population.networks import same_function
 from population.numerics import DEFAULT_PRECISION
 from population.policy import env_difference, env_settings, same_env
 from population.xp import block_summary
@@ -476,26 +476,16 @@ def check_partners_from(study: Study, configs: dict, out: Path) -> None:
             continue
         where = f"{study.origin}: run {run.name!r}.partners_from"
         learner, partner = configs[run.name], configs[run.partners_from]
-        if not same_env(partner.env_kwargs, learner.env_kwargs):
+        if not same_game_and_network(partner, learner):
+            difference = env_difference(partner.env_kwargs, learner.env_kwargs) or "its model section differs"
             raise StudyError(
-                f"{where}: run {run.partners_from!r} plays another game than run {run.name!r} "
-                f"({env_difference(partner.env_kwargs, learner.env_kwargs)}); FCP partners play the learner's game"
+                f"{where}: run {run.partners_from!r} trains another game or network than run {run.name!r} "
+                f"({difference}); FCP partners play the learner's game with its network"
             )
-        if same_function(partner.model) != same_function(learner.model):
-            raise StudyError(
-                f"{where}: run {run.partners_from!r} trains another network (its model section differs); FCP partners "
-                "need the learner's network"
-            )
-        snapshots = ckpt.run_snapshots(
-            run_dir(out, run.partners_from), partner.ppo.num_updates, partner.run.num_checkpoints
-        )
-        try:
-            ckpt.pool_updates(learner.population.fcp.checkpoints, snapshots)
-        except ckpt.CheckpointError as error:
-            raise StudyError(
-                f"{where}: population.fcp.checkpoints: {error} (run {run.partners_from!r} keeps the snapshots of "
-                f"updates {', '.join(map(str, snapshots))})"
-            ) from None
+        try:  # the snapshots the partner run will keep (an extended one's earlier stops' too)
+            pool_updates(learner, partner, run_dir(out, run.partners_from))
+        except (RunDirError, ckpt.CheckpointError) as error:  # a damaged manifest.json of the partner run, too
+            raise StudyError(f"{where}: {error}") from None
 
 
 def check_comparisons(study: Study, configs: dict) -> None:
