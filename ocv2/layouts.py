@@ -265,8 +265,8 @@ def _warn_unreached_edge_floor(layout: Layout) -> None:
         row, column = (int(v) for v in unreached[0])
         warnings.warn(
             f"layout {layout.name!r}: floor that no cook can reach on the map's edge (the first at row {row}, column "
-            f"{column}, counted from 0): an indented map, trailing spaces or a short row? They make the map {layout.height} x "
-            f"{layout.width} and every observation that wide; remove them, or put counters ('W') there",
+            f"{column}, counted from 0): an indented map, trailing spaces or a short row? The map is {layout.height} x "
+            f"{layout.width}, and every observation that size; remove them, or put counters ('W') there",
             LayoutEdgeWarning,
             3,
         )

@@ -236,6 +236,10 @@ def test_a_problem_an_override_caused_across_keys_is_blamed_on_it():
     assert _error(raw, ["ppo.num_envs=3"]).startswith("--set ppo.num_envs=3: ppo.num_minibatches: ")
     assert _error(raw, ["ppo.num_steps=256"]).startswith("--set ppo.num_steps=256: ppo.total_timesteps: ")
     assert _error({"ppo": dict(SMALL_PPO, total_timesteps=63)}).startswith("ppo.total_timesteps")  # the file's own
+    # A problem the file has too, at the key the override sets, is still the override's; one the file has elsewhere
+    # is the file's, though it names the override's key as a word ("did you mean ppo.lr?").
+    assert _error({"ppo": {"lr": 0}}, ["ppo.lr=0"]).startswith("--set ppo.lr=0: ppo.lr: must be > 0")
+    assert _error({"ppo": {"lrr": 1}}, ["ppo.lr=0.1"]).startswith("ppo.lrr: unknown key; did you mean ppo.lr?")
 
 
 def test_bad_method():

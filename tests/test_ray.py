@@ -309,11 +309,14 @@ def test_a_run_directory_the_workers_cannot_see_is_refused_by_name(tmp_path, ray
 
 @ray_backend.ray.remote(num_cpus=0) if ray_backend.ray is not None else (lambda cls: cls)
 class _SlowShard:
-    """A shard whose chunk takes a second: long enough for a signal to land while the driver waits for it."""
+    """A shard whose chunk takes ``seconds``: long enough for a signal to land while the driver waits for it."""
+
+    def __init__(self, seconds: float):
+        self.seconds = seconds
 
     def advance(self, stop, _buffer, update):
-        time.sleep(1.0)
-        return AdvanceResult(stop, [], stop - update, 1.0)
+        time.sleep(self.seconds)
+        return AdvanceResult(stop, [], stop - update, self.seconds)
 
 
 @pytest.mark.parametrize("signals", [1, 2])
@@ -323,11 +326,12 @@ def test_sigterm_while_ray_actors_train_saves_their_chunk_or_at_a_second_stops_a
     coordinator records it, then stops), a second stops at once."""
     workers = object.__new__(ray_backend.RayWorkers)
     workers.config, workers.shards, workers.events = load_config(SMOKE), [[0], [1]], []
-    workers.actors = [_SlowShard.remote(), _SlowShard.remote()]
+    workers.actors = [_SlowShard.remote(0.4), _SlowShard.remote(1.6)]  # one result returns before the signals
     jobs = [(shard, (4, None, 2)) for shard in (0, 1)]
     ray_backend.ray.get([a.advance.remote(2, None, 2) for a in workers.actors])  # both started: no start-up in the wait
     before = signal.signal(signal.SIGTERM, signal.default_int_handler)  # as the command line sets it
-    timers = [threading.Timer(0.3 * (k + 1), os.kill, (os.getpid(), signal.SIGTERM)) for k in range(signals)]
+    # Both land after the first actor's result, while the driver waits for the second (or between the two waits).
+    timers = [threading.Timer(0.8 + 0.3 * k, os.kill, (os.getpid(), signal.SIGTERM)) for k in range(signals)]
     try:
         for timer in timers:
             timer.start()

@@ -705,6 +705,7 @@ def test_an_fcp_run_whose_partner_run_cannot_give_its_pool_is_refused_before_any
         plan_study(study, tmp_path / "out", LOCAL)
     assert str(tmp_path / "s.yaml") in str(refused.value)
     assert not (tmp_path / "out").exists()
+    assert main(["validate", str(tmp_path / "s.yaml")]) == 1  # ocv2 validate refuses it as study run does
 
 
 @pytest.mark.parametrize(
@@ -1099,6 +1100,10 @@ def test_a_changed_eval_episodes_evaluates_the_trained_run_again_without_trainin
     assert main(["study", "run", str(path), "--backend", "local", "--out", str(out)]) == 0
     said = capsys.readouterr().out
     assert "run sp: evaluated again with eval.episodes 3 (was 2;" in said, said
+    # The study's cross-play of the run made with 2 episodes per pair is kept too, and played again with 3.
+    aside = next((out / "reevaluated").iterdir())
+    for kept_result in ("over_training/sp/done.json", "comparisons/sp_vs_sa/summary.json"):
+        assert (aside / kept_result).read_bytes() == (finished / kept_result).read_bytes()
     after = {p: p.read_bytes() for p in (out / "runs" / "sp" / "checkpoints").rglob("*") if p.is_file()}
     assert after == checkpoints  # not trained again
     run = out / "runs" / "sp"
@@ -1141,6 +1146,16 @@ def test_a_rerun_with_nothing_to_do_starts_no_ray_and_keeps_the_backend_that_ran
     del data["steps"]["over_training sp"]["backend"]  # a step recorded before steps named their backend
     (out / "study.json").write_text(json.dumps(data))
     assert report.backends(read_state(out)) == "local (train sp, over_training sp, compare sp_vs_sa), ray (train sa)"
+    assert main(["study", "report", str(out), "--out", str(tmp_path / "report")]) == 0
+    assert (
+        "; backend: local (train sp, over_training sp, compare sp_vs_sa), ray (train sa);"
+        in (tmp_path / "report" / "report.md").read_text()
+    )
+    # Only steps that made the reported results count: a blocked step on another backend does not.
+    data["steps"]["train sa"]["backend"] = "local"
+    data["steps"]["compare sp_vs_sa"].update(status="blocked", backend="ray")
+    (out / "study.json").write_text(json.dumps(data))
+    assert report.backends(read_state(out)) == "local"
 
 
 def test_the_report_describes_runs_as_they_were_trained(finished, tmp_path, capsys):

@@ -46,7 +46,7 @@ def test_bad_layouts(grid, kwargs, match):
 )
 def test_floor_no_cook_reaches_on_the_map_edge_warns_with_the_cell_and_the_size(grid, where, size):
     """An indented map built 4 extra columns of floor, and observations 4 columns wider, without a word."""
-    with pytest.warns(ocv2.layouts.LayoutEdgeWarning, match=rf"{where}, counted from 0\).* map {size} "):
+    with pytest.warns(ocv2.layouts.LayoutEdgeWarning, match=rf"{where}, counted from 0\).* map is {size},"):
         ocv2.Layout.from_string(grid)
     with warnings.catch_warnings():
         warnings.simplefilter("error")

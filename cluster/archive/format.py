@@ -9,13 +9,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import warnings
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
-from ocv2.layouts import LAYOUTS, Layout
+from ocv2.layouts import LAYOUTS, Layout, LayoutEdgeWarning
 from ocv2.state import Agents, State
 
 PROFILE = "ocv2-archive"  # MCAP header profile: marks an ocv2 archive
@@ -194,7 +195,9 @@ def layout_from_spec(spec: dict) -> Layout:
     builtin = LAYOUTS.get(spec["name"])
     if builtin is not None and layout_spec(builtin) == spec:
         return builtin
-    static = Layout.from_string(spec["map"], spec["possible_recipes"], name=spec["name"]).static_objects
+    with warnings.catch_warnings():  # the map was warned about when it was made; reading it back says nothing new
+        warnings.simplefilter("ignore", LayoutEdgeWarning)
+        static = Layout.from_string(spec["map"], spec["possible_recipes"], name=spec["name"]).static_objects
     return Layout(
         static_objects=static,
         agent_positions=tuple(tuple(p) for p in spec["agent_positions"]),

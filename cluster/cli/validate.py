@@ -18,7 +18,7 @@ from cluster.cli.args import add_set_option
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.coordinator import check_inputs
 from cluster.runtime.rundir import RunDirError
-from cluster.study.runner import check_comparisons
+from cluster.study.runner import check_comparisons, check_partners_from
 from cluster.study.spec import StudyError, default_out, load_study, run_config, with_overrides
 from population.config import ConfigError, is_ray_launcher_config, is_study_data, parse_config, read_config_file
 from population.config.parse import blame_overrides
@@ -93,6 +93,7 @@ def check_study_file(path: str, overrides) -> tuple[str, object]:
             except ConfigError as error:
                 raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
         check_comparisons(study, configs)
+        check_partners_from(study, configs, out)
     except StudyError as error:
         return "fail", [str(error)]
     return "ok", configs

@@ -578,6 +578,8 @@ def resume_metrics(config: Config, run: RunDir, workers: Workers, update: int) -
         ]
     check_metrics_cover(run, kept | {(int(r["seed"]), int(r["update"])) for r in caught_up_rows}, update, config)
     run.restart_metrics(fields, kept_rows + caught_up_rows)
+    if since < update and any(r.stop_requested for r in caught_up):
+        raise StoppedAfterChunk  # a Ctrl-C or SIGTERM during the catch-up: its rows are recorded, now stop
     return caught_up_rows
 
 

@@ -22,6 +22,7 @@ interpreter shutting down under running XLA threads can abort ("pure virtual met
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -77,6 +78,8 @@ class ChunkWait:
         self.what, self.resume_hint = what, resume_hint
         self.stop_requested = False  # a first Ctrl-C arrived: save this chunk, then stop
         self._first = signal.SIGINT  # the signal that asked for the stop
+        self._started = time.monotonic()  # when the chunk's wait began (the warning says how long it has run)
+        self._warned = False
 
     def until_ready(self, tree):
         """Return ``tree`` once every array in it is computed, answering Ctrl-C meanwhile (see module doc)."""
@@ -84,14 +87,21 @@ class ChunkWait:
         return tree
 
     def until(self, done: Callable[[], bool]) -> None:
-        """Return once ``done()`` (polled every ``POLL_S``) is true, answering Ctrl-C meanwhile: a jitted chunk
-        in this process (``until_ready``) or the chunks of Ray actors the driver waits for (``RayWorkers.call``).
+        """Return once ``done()`` (polled every ``POLL_S``) is true, answering Ctrl-C meanwhile (``answering``)."""
+        with self.answering():
+            while not done():
+                self.poll()
+
+    @contextlib.contextmanager
+    def answering(self):
+        """Answer Ctrl-C (and SIGTERM) as the module doc says for as long as the block runs: a jitted chunk in this
+        process (``until``), or every result of a chunk of Ray actors, restarts included (``RayWorkers.call``), so
+        a signal that lands between two results is answered the same way.
 
         SIGINT and SIGTERM are taken over only where Python's own handler (``KeyboardInterrupt``) is in place:
         a job started in the background ignores SIGINT, SIGTERM ends a process unless the command line made it
         a Ctrl-C, and a host process (a Ray worker) may have its own.
         """
-        started = time.monotonic()
         main_thread = threading.current_thread() is threading.main_thread()  # only it can set a handler
         taken = [
             signum
@@ -103,24 +113,26 @@ class ChunkWait:
         # exit then waits for the chunk.
         previous = {signum: signal.signal(signum, self._pressed) for signum in taken}
         try:
-            warned = False
-            while not done():
-                if self.stop_requested and not warned:
-                    warned = True
-                    name = _signal_name(self._first)
-                    log.warning(
-                        "%s: letting %s finish (running for %s) so it is saved, then stopping; "
-                        "%s again to stop now and lose it (%s)",
-                        name,
-                        self.what,
-                        duration(time.monotonic() - started),
-                        "press Ctrl-C" if name == "Ctrl-C" else f"send {name} or press Ctrl-C",
-                        self.resume_hint,
-                    )
-                time.sleep(POLL_S)
+            yield self
         finally:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
+
+    def poll(self) -> None:
+        """One wait of ``POLL_S`` inside ``answering``; says once, after a first signal, what it lets finish."""
+        if self.stop_requested and not self._warned:
+            self._warned = True
+            name = _signal_name(self._first)
+            log.warning(
+                "%s: letting %s finish (running for %s) so it is saved, then stopping; "
+                "%s again to stop now and lose it (%s)",
+                name,
+                self.what,
+                duration(time.monotonic() - self._started),
+                "press Ctrl-C" if name == "Ctrl-C" else f"send {name} or press Ctrl-C",
+                self.resume_hint,
+            )
+        time.sleep(POLL_S)
 
     def _pressed(self, signum, frame) -> None:
         if self.stop_requested:

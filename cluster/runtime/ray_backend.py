@@ -243,14 +243,14 @@ def check_resources(config: Config, num_actors: int) -> None:
     cluster = config.cluster
     per_node = _node_resources()
     total = ray.cluster_resources()
-    share = gpus_per_actor(cluster, num_actors)
+    share = gpus_per_actor(cluster, num_actors)  # what each actor asks Ray for
     if 0 < share < 1 and cluster.gpu_memory_fraction > share + 1e-9:  # actors that share a GPU preallocate
         raise RayBackendError(
             f"cluster.gpu_memory_fraction: each worker actor preallocates {cluster.gpu_memory_fraction:g} of its GPU's "
             f"memory, but the actors share GPUs ({share:g} of one each), so a later one could not start; give "
             f"cluster.gpu_memory_fraction at most {share:g}, or 0 to allocate on demand"
         )
-    for name, want in (("GPU", gpus_per_actor(cluster, num_actors)), ("CPU", cluster.num_cpus)):
+    for name, want in (("GPU", share), ("CPU", cluster.num_cpus)):
         if want <= 0:
             continue
         key = "num_gpus" if name == "GPU" else "num_cpus"
@@ -418,12 +418,23 @@ class RayWorkers:
         return len(self.events)
 
     def call(self, method: str, jobs):
+        if method != "advance":
+            return self._call(method, list(jobs), None)
+        # A training chunk: Ctrl-C or SIGTERM lets it finish and be recorded, as on the local backend; the handlers
+        # hold for the whole call, restarts included, so a signal between two results is answered the same way.
         jobs = list(jobs)
+        wait = _chunk_wait(jobs)
+        with wait.answering():
+            results = self._call(method, jobs, wait)
+        if wait.stop_requested:  # the coordinator records the chunk, then stops
+            results = [result._replace(stop_requested=True) for result in results]
+        return results
+
+    def _call(self, method: str, jobs: list, wait: ChunkWait | None) -> list:
         results = [None] * len(jobs)
         submit = lambda i: getattr(self.actors[jobs[i][0]], method).remote(*jobs[i][1])
         pending = {submit(i): i for i in range(len(jobs))}
         failures = [0] * len(jobs)
-        wait = _chunk_wait(jobs) if method == "advance" else None
         while pending:
             ref = _next_ready(list(pending), wait)
             index = pending.pop(ref)
@@ -431,6 +442,12 @@ class RayWorkers:
                 results[index] = _get(ref)
             except RayActorError as error:
                 shard = jobs[index][0]
+                if wait is not None and wait.stop_requested:  # asked to stop: the chunk is not trained again
+                    raise RayBackendError(
+                        f"worker for seeds {self.shards[shard]} died during {method} after the stop was asked for: "
+                        f"its chunk is lost, {wait.resume_hint}",
+                        resumable=True,
+                    ) from None
                 failures[index] += 1
                 if failures[index] > self.config.cluster.max_restarts + 1:
                     raise RayBackendError(
@@ -448,8 +465,6 @@ class RayWorkers:
                     }
                 )
                 pending[submit(index)] = index
-        if wait is not None and wait.stop_requested:  # Ctrl-C or SIGTERM: the coordinator records the chunk, then stops
-            results = [result._replace(stop_requested=True) for result in results]
         return results
 
     def _wait_until_back(self, shard: int, cause) -> int:
@@ -461,6 +476,10 @@ class RayWorkers:
                 return _get(self.actors[shard].position.remote(), timeout=30)
             except (ActorUnavailableError, GetTimeoutError):
                 time.sleep(0.5)
+            except RayBackendError as error:  # the restarted actor could not start (out of memory on its new node?)
+                raise RayBackendError(
+                    f"{error.message}; its checkpoints are in the run directory", resumable=True
+                ) from None
             except ActorDiedError as error:
                 raise RayBackendError(
                     f"worker for seeds {self.shards[shard]} died and cannot be restarted (cluster.max_restarts="
@@ -493,14 +512,11 @@ def _next_ready(refs: list, wait: ChunkWait | None):
     in ``ray.wait`` got a plain KeyboardInterrupt, and the actors were killed with the chunk in flight)."""
     if wait is None:
         return ray.wait(refs, num_returns=1)[0][0]
-    ready: list = []
-
-    def finished() -> bool:
-        ready.extend(ray.wait(refs, num_returns=1, timeout=0)[0])
-        return bool(ready)
-
-    wait.until(finished)
-    return ready[0]
+    while True:
+        ready, _ = ray.wait(refs, num_returns=1, timeout=0)
+        if ready:
+            return ready[0]
+        wait.poll()
 
 
 def _get(ref, timeout: float | None = None):

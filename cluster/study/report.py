@@ -46,10 +46,10 @@ def backends(state: StudyState) -> str | None:
     ran: dict[str, list[str]] = {}
     for name, step in state.steps.items():
         backend = step.backend or state.backend
-        if backend is not None and step.status != "left":
+        if backend is not None and step.done:  # what made the reported results
             ran.setdefault(backend, []).append(name)
     if len(ran) <= 1:
-        return state.backend
+        return next(iter(ran), state.backend)
     return ", ".join(f"{backend} ({', '.join(names)})" for backend, names in ran.items())
 
 

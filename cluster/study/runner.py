@@ -413,7 +413,6 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
         except ConfigError as error:
             raise StudyError(f"{study.origin}: run {name!r}: {error}") from None
     check_comparisons(study, configs)
-    check_partners_from(study, configs, out)
     _check_retrain(study, out, retrain)
     differs = {run.name: trained_differences(run_dir(out, run.name), configs[run.name]) for run in study.runs}
     retrain = _still_to_retrain(study, differs, retrain)
@@ -440,6 +439,7 @@ def plan_study(study: Study, out, options: StudyOptions = StudyOptions()) -> Pla
             f"({'; '.join(differences[:2])}{more}){why}; undo the change, or pass --retrain {run.name} to train it "
             "again (the trained run and its cross-play move to replaced/)"
         )
+    check_partners_from(study, configs, out, changing=(*retrain, *extend))
     return Plan(study, out, state, options, configs, retrain, tuple(extend), tuple(reevaluate))
 
 
@@ -459,7 +459,8 @@ def steps_to_run(plan: Plan) -> list[str]:
     return [
         step.name
         for step in steps
-        if not plan.state.step(step.name).done or result_problem(step, plan.study, plan.out, plan.configs) is not None
+        if not plan.state.steps.get(step.name, StepRecord()).done
+        or result_problem(step, plan.study, plan.out, plan.configs) is not None
     ]
 
 
@@ -467,10 +468,11 @@ def steps_to_run(plan: Plan) -> list[str]:
 HUMAN_LAYOUTS = tuple(LAYOUT_MAP.values())
 
 
-def check_partners_from(study: Study, configs: dict, out: Path) -> None:
+def check_partners_from(study: Study, configs: dict, out: Path, changing: Sequence[str] = ()) -> None:
     """Refuse, before anything trains, an FCP run whose ``partners_from`` run cannot give its pool: a run of another
     game or network, or ``population.fcp.checkpoints`` naming an update the partner run keeps no snapshot of. The FCP
-    run's own start refused these too, but only once the partner run had trained its whole budget."""
+    run's own start refused these too, but only once the partner run had trained its whole budget. The snapshots
+    of a partner run in ``changing`` (retrained or extended now) are not those on disk: its own start checks them."""
     for run in study.runs:
         if run.partners_from is None:
             continue
@@ -482,6 +484,8 @@ def check_partners_from(study: Study, configs: dict, out: Path) -> None:
                 f"{where}: run {run.partners_from!r} trains another game or network than run {run.name!r} "
                 f"({difference}); FCP partners play the learner's game with its network"
             )
+        if run.partners_from in changing:
+            continue
         try:  # the snapshots the partner run will keep (an extended one's earlier stops' too)
             pool_updates(learner, partner, run_dir(out, run.partners_from))
         except (RunDirError, ckpt.CheckpointError) as error:  # a damaged manifest.json of the partner run, too
@@ -590,21 +594,22 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         if kept is not None and kept.budget != plan.state.budget:  # --extend, now: the old results step aside
             _set_aside_results(study, out, kept.budget, state, say)
         state.save()
-        for name in plan.reevaluate:
-            old = take_eval_episodes(run_dir(out, name), configs[name])
-            if old is not None:
-                say(
-                    f"study {study.name}: run {name}: evaluated again with eval.episodes "
-                    f"{configs[name].eval.episodes} (was {old}; that evaluation kept in "
-                    f"{run_dir(out, name) / 'reevaluated'})"
-                )
-        for name in plan.extend:
+        for name in plan.extend:  # first: the extension keeps the old stop's evaluation under extended/
             path = run_dir(out, name)
             if (record := extend_run(path, configs[name])) is not None:
                 say(
                     f"study {study.name}: run {name}: extended from update {record['from_updates']} to "
                     f"{record['to_updates']} (its evaluation there kept in {path / 'extended'})"
                 )
+        for name in plan.reevaluate:
+            old = take_eval_episodes(run_dir(out, name), configs[name])
+            if old is not None:
+                say(
+                    f"study {study.name}: run {name}: evaluated again with eval.episodes "
+                    f"{configs[name].eval.episodes} (was {old}; what was evaluated with it is kept in "
+                    f"{run_dir(out, name) / 'reevaluated'})"
+                )
+                _set_aside(study, out, name, state, say, out / "reevaluated" / time.strftime("%Y%m%d-%H%M%S"), False)
         steps = study_steps(study)
         for number, step in enumerate(steps, start=1):
             name = step.name
@@ -633,11 +638,21 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         lock.release()
 
 
-def _set_aside(study: Study, out: Path, name: str, state: StateFile, say: Callable[[str], None]) -> None:
-    """Move run ``name``, its over-training cross-play and the comparisons that play it to
-    ``out/replaced/<time>/`` (nothing is deleted) and mark their steps left."""
-    target = out / "replaced" / time.strftime("%Y%m%d-%H%M%S")
-    moves = [(run_dir(out, name), Step("train", name)), (out / "over_training" / name, Step("over_training", name))]
+def _set_aside(
+    study: Study,
+    out: Path,
+    name: str,
+    state: StateFile,
+    say: Callable[[str], None],
+    target: Path | None = None,
+    with_run: bool = True,
+) -> None:
+    """Move run ``name`` (unless not ``with_run``), its over-training cross-play and the comparisons that play it to
+    ``target`` (default ``out/replaced/<time>/``; nothing is deleted) and mark their steps left: ``--retrain``, and
+    the study-level results of a run evaluated again with other episodes per pair (``reevaluated/<time>/``)."""
+    target = out / "replaced" / time.strftime("%Y%m%d-%H%M%S") if target is None else target
+    moves = [(run_dir(out, name), Step("train", name))] if with_run else []
+    moves.append((out / "over_training" / name, Step("over_training", name)))
     moves += [(comparison_dir(out, c.name), Step("compare", c.name)) for c in study.comparisons if name in c.runs]
     for source, step in moves:
         state.state.steps.pop(step.name, None)
@@ -645,7 +660,7 @@ def _set_aside(study: Study, out: Path, name: str, state: StateFile, say: Callab
             destination = target / source.relative_to(out)
             destination.parent.mkdir(parents=True, exist_ok=True)
             source.rename(destination)
-            say(f"study {study.name}: --retrain {name}: moved {source} to {destination}")
+            say(f"study {study.name}: {'--retrain ' if with_run else ''}{name}: moved {source} to {destination}")
     state.save()
 
 

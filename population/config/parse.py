@@ -138,7 +138,7 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     reported = {problem.split(":", 1)[0] for problem in problems}
     problems += [p for p in validate(config) if not _about_reported(p, reported)]
     if problems:
-        raise ConfigError(blame_overrides(problems, overrides, _own_problems(original) if overrides else ()))
+        raise ConfigError(blame_overrides(problems, overrides, _own_problems(original) if overrides else None))
     return config
 
 
@@ -165,10 +165,11 @@ def _about_reported(problem: str, reported: set[str]) -> bool:
     )
 
 
-def blame_overrides(problems: Sequence[str], overrides: Sequence[str], own: Collection[str] = ()) -> list[str]:
+def blame_overrides(problems: Sequence[str], overrides: Sequence[str], own: Collection[str] | None = None) -> list[str]:
     """Each problem at, inside or just above a key an override set, named after that override (``--set
-    ppo.lr=1e308: ppo.lr: ...``): the file did not cause it. So is a problem the file alone does not have (not in
-    ``own``) that a check across keys of the override's section raised, naming it (``num_envs x num_steps``)."""
+    ppo.lr=1e308: ppo.lr: ...``): the file did not cause it. Given ``own``, the problems of the file alone, so is a
+    problem not among them that a check across keys of the override's section raised, naming it (``num_envs x
+    num_steps``)."""
     dotted = [(item.split("=", 1)[0].strip(), item) for item in overrides]
     blamed = []
     for problem in problems:
@@ -176,9 +177,10 @@ def blame_overrides(problems: Sequence[str], overrides: Sequence[str], own: Coll
         hits = [
             item
             for name, item in dotted
-            if key.startswith((f"{name}.", f"{name}["))
+            if name == key
+            or key.startswith((f"{name}.", f"{name}["))
             or name.startswith(f"{key}.")
-            or (problem not in own and _about_reported(problem, {name}))
+            or (own is not None and problem not in own and _about_reported(problem, {name}))
         ]
         blamed.append(f"{SET_PREFIX}{hits[-1]}: {problem}" if hits else problem)
     return blamed
