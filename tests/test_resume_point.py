@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 
 from cluster.cli import main
-from cluster.runtime import runstate
+from cluster.runtime import coordinator, runstate
+from cluster.runtime.interrupt import StoppedAfterChunk
+from cluster.runtime.local import LocalWorkers
 from cluster.runtime.rundir import RunDir
 from population import checkpoints as ckpt
 
@@ -121,3 +123,32 @@ def test_resume_updates_are_those_every_seed_has_or_an_error_naming_each_seed(tm
     else:
         with pytest.raises(ckpt.CheckpointError, match=f"share no checkpoint update \\({expected}\\)"):
             runstate.resume_updates(tmp_path, list(found))
+
+
+class _SignalDuringCatchUp(LocalWorkers):
+    """Local workers whose first ``advance`` (a resume's catch-up pass) reports a Ctrl-C or SIGTERM, as
+    ``ChunkWait`` does when one lands while the chunk runs."""
+
+    def call(self, method, jobs):
+        results = super().call(method, jobs)
+        if method == "advance" and not getattr(self, "signalled", False):
+            self.signalled = True
+            results = [result._replace(stop_requested=True) for result in results]
+        return results
+
+
+def test_a_signal_during_the_catch_up_pass_stops_once_its_rows_are_recorded(sp_run, tmp_path):
+    """A resume whose metrics.csv lacks the last chunk's rows first catches them up from the checkpoints; a signal
+    then was said ("... so it is saved, then stopping") and ignored: training went on to the end."""
+    run = tmp_path / "catch_up"
+    shutil.copytree(sp_run, run)
+    for seed in range(NUM_SEEDS):
+        ckpt.checkpoint_path(run, seed, NUM_UPDATES).unlink()
+    RunDir(run).update_manifest(status="training", update=2)
+    header = (run / "metrics.csv").read_text().splitlines(keepends=True)[0]
+    (run / "metrics.csv").write_text(header)  # updates 1-2 never merged: the catch-up takes them from update 2
+    config = RunDir(run).load_config()
+    with pytest.raises(StoppedAfterChunk):
+        coordinator.train(config, run, _SignalDuringCatchUp, resume=True, show_progress=False, evaluate=False)
+    assert sorted({int(row["update"]) for row in _metrics(run)}) == [1, 2]  # the caught-up rows are recorded
+    assert ckpt.list_updates(run, 0) == [0, 2]  # and nothing was trained past them
