@@ -28,6 +28,7 @@ import yaml
 import ocv2.atomic
 from cluster.cli import main
 from cluster.runtime import crossplay
+from cluster.runtime.extend import EVALUATION_DIRS, take_eval_episodes
 from cluster.runtime.rundir import RunDir, read_matrix_csv
 from cluster.runtime.runstate import Schedule
 from cluster.study import report
@@ -1113,6 +1114,20 @@ def test_a_changed_eval_episodes_evaluates_the_trained_run_again_without_trainin
     assert kept == json.loads((finished / "runs" / "sp" / "xp" / "summary.json").read_text())
     assert {e["status"] for e in study_status(out)} == {"done"}
     assert not steps_to_run(plan_study(load_study(path), out, LOCAL))  # a rerun now has nothing to do
+
+
+def test_a_run_not_evaluated_yet_takes_the_new_episodes_with_nothing_to_set_aside(finished, tmp_path):
+    """Re-evaluating a run still training (no xp/ yet): its config takes the count, nothing is moved, a second call
+    finds nothing to do."""
+    run = tmp_path / "sp"
+    shutil.copytree(finished / "runs" / "sp", run)
+    for name in EVALUATION_DIRS:
+        shutil.rmtree(run / name, ignore_errors=True)
+    config = load_config(run / "config.yaml")
+    more = dataclasses.replace(config, eval=dataclasses.replace(config.eval, episodes=5))
+    assert take_eval_episodes(run, more) == 2
+    assert load_config(run / "config.yaml") == more and not (run / "reevaluated").exists()
+    assert take_eval_episodes(run, more) is None
 
 
 def test_a_rerun_with_nothing_to_do_starts_no_ray_and_keeps_the_backend_that_ran_the_steps(
