@@ -13,12 +13,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import threading
 from pathlib import Path
 
 import pytest
 
 from cluster.cli import main
 from cluster.runtime import ray_backend
+from cluster.runtime.rundir import RunDirError
 from population import numerics
 from population.config import ClusterConfig, load_config
 
@@ -119,3 +121,12 @@ def test_explicit_gpus_beyond_the_declared_ones_fail_naming_the_key(tmp_path, ca
     with pytest.raises(ray_backend.RayBackendError, match="cluster.num_gpus"):
         ray_backend.check_resources(config, 2)
     ray_backend.check_resources(load_config(SMOKE, ["cluster.num_gpus=0.5"]), 2)  # fits
+
+
+def test_a_run_directory_a_network_file_system_shows_late_is_waited_for_then_refused(tmp_path, monkeypatch):
+    """One look refused a run directory whose config.yaml an NFS client's negative-lookup cache still hid."""
+    threading.Timer(0.7, (tmp_path / "config.yaml").write_text, ("{}\n",)).start()  # shows up after 0.7 s
+    ray_backend.visible_run_dir(tmp_path)
+    monkeypatch.setattr(ray_backend, "VISIBLE_TRIES", 2)
+    with pytest.raises(RunDirError, match="not visible on the worker's node"):
+        ray_backend.visible_run_dir(tmp_path / "absent")

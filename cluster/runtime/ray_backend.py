@@ -357,11 +357,24 @@ class _ShardActor(SeedShard):
         }
 
 
+#: How often an actor looks for the run directory's config.yaml before it refuses the directory (``visible_run_dir``).
+VISIBLE_TRIES = 5
+
+
 def visible_run_dir(run_dir) -> None:
     """Refuse a run directory this process cannot see: the driver writes config.yaml before any actor starts, so
     an actor on a node where the path is missing (the directory is not on storage every node shares) would
-    otherwise make an empty one on its own disk, train there, and the driver would find no checkpoint at the end."""
-    if not (Path(run_dir) / "config.yaml").is_file():
+    otherwise make an empty one on its own disk, train there, and the driver would find no checkpoint at the end.
+    Looked for a few times over about two seconds: a network file system may answer from a cache that predates the
+    file (an NFS negative lookup), and listing the folder makes it look again."""
+    config = Path(run_dir) / "config.yaml"
+    for _ in range(VISIBLE_TRIES - 1):
+        if config.is_file():
+            return
+        with contextlib.suppress(OSError):
+            os.listdir(run_dir)
+        time.sleep(0.5)
+    if not config.is_file():
         raise RunDirError(
             f"{run_dir}: the run directory is not visible on the worker's node ({ray.util.get_node_ip_address()}); "
             "put it on storage every node of the cluster shares (docs/cluster.md)"
