@@ -47,6 +47,13 @@ def default_recipes(num_ingredients: int) -> tuple[tuple[int, int, int], ...]:
     return tuple(tuple(int(i) for i in recipe) for recipe in unique)
 
 
+def _edge_cells(shape: tuple[int, int]) -> np.ndarray:
+    """A bool (H, W) mask of the map's outermost rows and columns."""
+    edge = np.zeros(shape, dtype=bool)
+    edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
+    return edge
+
+
 def _room_labels(walkable: np.ndarray) -> np.ndarray:
     """Label 4-connected floor regions; id = largest row-major index in the region, -1 elsewhere.
 
@@ -140,9 +147,7 @@ class Layout:
                     f"layout {self.name!r}: agent {index} starts on a non-floor cell (row {y}, column {x})"
                 )
             room = rooms == rooms[y, x]
-            edge = np.zeros_like(room)
-            edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
-            leaks = np.argwhere(room & edge)
+            leaks = np.argwhere(room & _edge_cells(grid.shape))
             if len(leaks):
                 ry, rx = (int(v) for v in leaks[0])
                 raise ValueError(
@@ -258,9 +263,7 @@ def _warn_unreached_edge_floor(layout: Layout) -> None:
     grid = layout.static_objects
     rooms = _room_labels(grid == Static.FLOOR)
     used = [rooms[y, x] for x, y in layout.agent_positions]
-    edge = np.zeros(grid.shape, dtype=bool)
-    edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
-    unreached = np.argwhere(edge & (grid == Static.FLOOR) & ~np.isin(rooms, used))
+    unreached = np.argwhere(_edge_cells(grid.shape) & (grid == Static.FLOOR) & ~np.isin(rooms, used))
     if len(unreached):
         row, column = (int(v) for v in unreached[0])
         warnings.warn(

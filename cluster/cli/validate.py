@@ -73,12 +73,6 @@ def describe_config(config) -> str:
     return text
 
 
-def is_study_file(raw) -> bool:
-    """A study file names its study or lists its runs (``is_study_data``); an experiment config has neither, so a
-    study file with one of the two misspelled is still checked as a study, and its error names the key."""
-    return is_study_data(raw)
-
-
 def check_study_file(path: str, overrides) -> tuple[str, object]:
     """("ok", {run name: Config}) for a study file as ``ocv2 study run`` reads it at budget 1 (each run's config
     with the study's and ``overrides``' settings, each fitting this machine, every comparison playable), or
@@ -106,7 +100,7 @@ def check_config_file(path: str, overrides) -> tuple[str, object]:
         raw = read_config_file(path)
         if is_ray_launcher_config(raw):
             return "skip", "a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config"
-        if is_study_file(raw):
+        if is_study_data(raw):  # with one of study:/runs: misspelled still a study, its error naming the key
             status, result = check_study_file(path, overrides)
             return ("study" if status == "ok" else status), result
         config = parse_config(raw, overrides)

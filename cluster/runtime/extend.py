@@ -64,12 +64,7 @@ def extend_run(path, config: Config) -> dict | None:
             "at": time.time(),
         }
         restamp_run(run.path, old_print, after.fingerprint())
-        kept = run.path / "extended" / f"update_{old:07d}"
-        for name in EVALUATION_DIRS:
-            source = run.path / name
-            if source.exists():
-                (kept / name).parent.mkdir(parents=True, exist_ok=True)
-                source.rename(kept / name)
+        _set_evaluation_aside(run.path, run.path / "extended" / f"update_{old:07d}")
         earlier = [r for r in manifest.get("extensions", []) if r.get("fingerprint") != old_print]  # a rerun's
         run.write_manifest({**manifest, "status": "extending", "extensions": [*earlier, record]})
         dump_config(after, run.config_path)  # last: until here the run is still the old one
@@ -121,16 +116,22 @@ def take_eval_episodes(path, config: Config) -> int | None:
         kept = run.path / "reevaluated" / f"episodes_{old}"
         if kept.exists():  # evaluated at this count before, then at another: the newer set-aside gets its own name
             kept = kept.with_name(f"{kept.name}_{time.strftime('%Y%m%d-%H%M%S')}")
-        for name in EVALUATION_DIRS:
-            source = run.path / name
-            if source.exists():
-                (kept / name).parent.mkdir(parents=True, exist_ok=True)
-                source.rename(kept / name)
+        _set_evaluation_aside(run.path, kept)
         after = dataclasses.replace(before, eval=dataclasses.replace(before.eval, episodes=new))
         dump_config(after, run.config_path)  # last: until here the run keeps its old evaluation settings
         return old
     finally:
         run.close()
+
+
+def _set_evaluation_aside(run_dir: Path, kept: Path) -> None:
+    """Move what the run's evaluation wrote (``EVALUATION_DIRS``, those that exist) under ``kept``, where the next
+    evaluation does not write over it."""
+    for name in EVALUATION_DIRS:
+        source = run_dir / name
+        if source.exists():
+            (kept / name).parent.mkdir(parents=True, exist_ok=True)
+            source.rename(kept / name)
 
 
 def restamp_run(run_dir: Path, old: str, new: str) -> None:
