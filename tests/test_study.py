@@ -1982,6 +1982,30 @@ def test_extend_with_retrain_sets_the_old_results_aside_too(finished, tmp_path):
     assert numbers(out) == numbers(finished)
 
 
+def test_extend_with_changed_eval_episodes_extends_first_then_evaluates_with_the_new_count(finished, tmp_path):
+    """--extend and a changed eval.episodes in one command: the runs train on (the old stop's cross-play kept
+    under extended/ with its 2 episodes per pair), then every cross-play is made with 3; no run is retrained."""
+    study, out, before = study_at_half(tmp_path, "extended_more_episodes")
+    more = load_study(write_study(tmp_path / "more.yaml", {**STUDY, "set": [*STUDY["set"], "eval.episodes=3"]}))
+    plan = plan_study(more, out, dataclasses.replace(HALF, budget=1.0, extend=True))
+    assert plan.retrain == () and set(plan.extend) == set(plan.reevaluate) == {"sp", "sa"}
+    lines = []
+    state = run_study(more, out, dataclasses.replace(HALF, budget=1.0, extend=True), say=lines.append)
+    assert all(step.done for step in state.steps.values()) and state.budget == 1.0
+    extended = [i for i, line in enumerate(lines) if "extended from update" in line]
+    evaluated = [i for i, line in enumerate(lines) if "evaluated again with eval.episodes 3 (was 2" in line]
+    assert len(extended) == len(evaluated) == 2 and max(extended) < min(evaluated), lines
+    assert_same_runs(out, finished)  # trained on to budget 1 as a study at 1 from the start
+    assert json.loads((out / "extended" / "budget_0.5" / "summary.json").read_text()) == before
+    for name, stop in (("sp", 2), ("sa", 4)):
+        run = out / "runs" / name
+        old = json.loads((run / "extended" / f"update_{stop:07d}" / "xp" / "summary.json").read_text())
+        assert old["episodes_per_pair"] == 2  # the old stop's evaluation, as it was made
+        assert json.loads((run / "xp" / "summary.json").read_text())["episodes_per_pair"] == 3
+        assert load_config(run / "config.yaml").eval.episodes == 3
+    assert not steps_to_run(plan_study(more, out, dataclasses.replace(HALF, budget=1.0)))  # nothing left to do
+
+
 def test_extend_is_refused_where_a_larger_budget_is_another_schedule(tmp_path):
     study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
     squeezed = tmp_path / "squeezed"

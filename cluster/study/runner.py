@@ -457,11 +457,16 @@ def steps_to_run(plan: Plan) -> list[str]:
     if plan.retrain or plan.extend or plan.reevaluate or (kept is not None and kept.budget != plan.state.budget):
         return [step.name for step in steps]
     return [
-        step.name
-        for step in steps
-        if not plan.state.steps.get(step.name, StepRecord()).done
-        or result_problem(step, plan.study, plan.out, plan.configs) is not None
+        step.name for step in steps if _why_run(step, plan.state.steps.get(step.name, StepRecord()), plan) is not None
     ]
+
+
+def _why_run(step: Step, record: StepRecord, plan: Plan) -> str | None:
+    """Why ``run_study`` runs ``step`` (recorded as ``record``): "not done", or the ``result_problem`` of a done
+    step whose result no longer counts. None: done and kept. ``steps_to_run`` asks the same question before Ray."""
+    if not record.done:
+        return "not done"
+    return result_problem(step, plan.study, plan.out, plan.configs)
 
 
 #: The layouts the 2019 human data covers, and with it a BC human proxy (``population.human``).
@@ -613,11 +618,11 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         steps = study_steps(study)
         for number, step in enumerate(steps, start=1):
             name = step.name
-            if state.step(name).done:
-                problem = result_problem(step, study, out, configs)
-                if problem is None:
-                    continue
-                say(f"study {study.name}: {name}: {problem}; doing the step again")
+            record = state.step(name)
+            if (why := _why_run(step, record, plan)) is None:
+                continue
+            if record.done:
+                say(f"study {study.name}: {name}: {why}; doing the step again")
             say(f"study {study.name}: [{number}/{len(steps)}] {name}")
             timer = state.timer(name)
             state.step(name).reason = None  # a step blocked before may run now
