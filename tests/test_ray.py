@@ -44,6 +44,7 @@ from population.sa import collect_buffer
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = str(ROOT / "configs" / "smoke.yaml")
 LONGER = ["ppo.total_timesteps=1024", "run.checkpoint_every=2"]  # 8 updates, a checkpoint every 2
+SA = [*LONGER, "population.method=sa"]  # two SA iterations: the state buffer is gathered after update 4
 TIMING = {"steps_per_s", "wall_s"}
 
 
@@ -218,6 +219,98 @@ def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_number
     assert events and all(event["restored_update"] >= 2 for event in events)
     assert_same_tree(final_params(run), final_params(reference))
     assert metrics_without_timing(run) == metrics_without_timing(reference)
+
+
+@pytest.fixture(scope="module")
+def sa_reference(tmp_path_factory):
+    """``reference`` with state augmentation: the coordinator gathers a state buffer after update 4 and every
+    actor trains against it; what an SA run whose actor was killed must reproduce."""
+    run = tmp_path_factory.mktemp("ray") / "sa_reference"
+    coordinator.train(load_config(SMOKE, SA), run, ShardsHere, show_progress=False, evaluate=False)
+    return run
+
+
+def kill_actor_in_chunk(after_update: int, shard: int = 0):
+    """An ``on_chunk`` hook that SIGKILLs shard ``shard``'s actor while it trains the chunk after ``after_update``."""
+    killed = {}
+
+    def hook(update, workers, _rows):
+        if update == after_update and not killed:
+            killed["pid"] = pid = workers.pids()[shard]
+            threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
+
+    return hook, killed
+
+
+def test_an_sa_actor_killed_after_the_buffer_restarts_and_finishes_with_the_same_numbers(
+    tmp_path, sa_reference, ray_session
+):
+    """The restarted actor comes back from its checkpoint at update 4 and is sent the chunk again with the state
+    buffer the coordinator gathered there: the run ends as the uninterrupted one, bit for bit."""
+    run = tmp_path / "sa_killed"
+    hook, killed = kill_actor_in_chunk(4)
+    summary = ray_backend.train_population(
+        load_config(SMOKE, SA), run, show_progress=False, evaluate=False, on_chunk=hook
+    )
+    assert killed and summary["restarts"] >= 1
+    assert all(event["restored_update"] >= 4 for event in RunDir(run).read_manifest()["restart_events"])
+    assert_same_tree(final_params(run), final_params(sa_reference))
+    assert metrics_without_timing(run) == metrics_without_timing(sa_reference)
+
+
+def test_a_worker_with_no_restarts_left_stops_resumably_and_the_resume_ends_as_uninterrupted(
+    tmp_path, reference, ray_session
+):
+    """cluster.max_restarts=0: a killed actor is not restarted. The driver says which worker, that its restarts
+    are used up and that its checkpoints are kept; the run stays "training" and a resume (with restarts) gives
+    the uninterrupted run's numbers."""
+    config = load_config(SMOKE, [*LONGER, "cluster.max_restarts=0"])
+    run = tmp_path / "no_restarts"
+    hook, killed = kill_actor_in_chunk(2)
+    with pytest.raises(ray_backend.RayBackendError) as raised:
+        ray_backend.train_population(config, run, show_progress=False, evaluate=False, on_chunk=hook)
+    assert killed
+    message = str(raised.value)
+    assert message.startswith("worker for seeds [0] died and cannot be restarted (cluster.max_restarts=0 used up")
+    assert "checkpoints are in the run directory" in message and raised.value.resumable
+    assert RunDir(run).read_manifest()["status"] == "training"
+    assert train(run, *LONGER, extra=["--no-eval", "--resume"]) == 0
+    assert RunDir(run).read_manifest()["resumed_from"] >= 2
+    assert_same_tree(final_params(run), final_params(reference))
+    assert metrics_without_timing(run) == metrics_without_timing(reference)
+
+
+def test_a_worker_killed_during_cross_play_is_restarted_and_the_matrix_is_unchanged(tmp_path, reference, ray_session):
+    """The pair job of a killed cross-play worker is sent again to the restarted actor: the same matrix, the same
+    episodes, and each archived episode once (the dead worker's half-written archive is replaced)."""
+    run = tmp_path / "xp_killed"
+    shutil.copytree(reference, run, ignore=shutil.ignore_patterns("xp", "archive", "plots", "gifs"))
+    here = evaluate.evaluate_run(run, episodes=3, show_progress=False)
+    here_csv, here_archive = (run / "xp" / "episodes.csv").read_text(), xp_archive(run)
+
+    class KilledOnce(ray_backend.RayWorkers):
+        killed: list = []
+
+        def call(self, method, jobs):
+            if method == "cross_play" and not self.killed:  # SIGKILL worker 0 while it plays its row
+                self.killed.append(pid := self.pids()[0])
+                threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
+            return super().call(method, jobs)
+
+    workers = KilledOnce(RunDir(run).load_config(), run)
+    try:
+        spread = evaluate.evaluate_run(run, episodes=3, show_progress=False, workers=workers)
+        assert workers.restarts() >= 1
+    finally:
+        workers.close()
+    assert {k: v for k, v in here.items() if k != "wall_s"} == {k: v for k, v in spread.items() if k != "wall_s"}
+    assert (run / "xp" / "episodes.csv").read_text() == here_csv
+    archive = xp_archive(run)
+    assert sorted(archive) == sorted(here_archive)
+    for key, (ret, actions) in archive.items():
+        assert ret == here_archive[key][0]
+        np.testing.assert_array_equal(actions, here_archive[key][1])
+    assert not list((run / "archive" / "xp").glob("*.partial"))
 
 
 def test_a_killed_driver_resumes_from_the_run_directory(tmp_path, reference, ray_session, capsys):
