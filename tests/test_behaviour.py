@@ -89,6 +89,7 @@ def test_forced_coord_roles_row_reads_the_handover(handover_states):
         ("table1_forced_coord_sp10", "forced_coord", "table1_coord_ring_sp10", "coord_ring"),
         ("table1_counter_circuit_sp10", "counter_circuit", "table1_forced_coord_sp10", "forced_coord"),
         ("table1_coord_ring_sp10", "coord_ring", "table1_forced_coord_sp10", "forced_coord"),
+        ("table1_asymm_advantages_sp10", "asymm_advantages", "table1_cramped_room_sp10", "cramped_room"),
     ],
 )
 def test_roles_scripts_refuse_another_layouts_policies(study, layout, other, other_layout):
@@ -154,6 +155,27 @@ def test_counter_circuit_roles_row_reads_the_island_pass():
     roles, _ = _results_script("docs/results/table1_counter_circuit_sp10/roles.py")
     row = roles.seed_row(5, played, np.array([0.0]))
     assert row == "| 5 | 0.00 of 1 | none | none | none | 1.00, 1.00 | 1.00 (1.00) | no soup | none in, 1.00 | 0.0 |"
+    assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2
+
+
+# Asymm. Advantages: seat 1 starts at (5, 3) in the right room, below its onion pile (5, 1) and right of the pots (4, 2)
+# and (4, 3); seat 0 at (2, 3) in the left room, beside its plates (3, 4) and window (3, 1). Seat 1 fills the top pot
+# with three onions; seat 0 takes a plate, waits by the top pot while the soup cooks, plates it and serves it.
+TOP_POT_SOUP = [
+    (S, U), *[(S, I), (S, L), (S, I), (S, U)] * 2, (S, I), (S, L), (S, I),  # seat 1: three onions, top pot
+    (R, S), (D, S), (I, S), (U, S), (R, S),  # seat 0: to (3, 3), a plate, up to (3, 2), face the top pot
+    *[(S, S)] * 20, (I, S), (U, S), (I, S),  # it cooks; seat 0 plates it, faces the window, serves
+]  # fmt: skip
+
+
+def test_asymm_advantages_roles_row_reads_who_fills_and_who_serves_which_pot():
+    """The Asymm. Advantages study's roles.py: seat 1 put all three onions into the top pot, seat 0 took the plate,
+    plated the top pot's soup and delivered it."""
+    played = scripted_play("asymm_advantages", TOP_POT_SOUP)
+    assert np.asarray(played.agents.inventory[0, -1]).tolist() == [0, 0]  # the script did what it says
+    roles, _ = _results_script("docs/results/table1_asymm_advantages_sp10/roles.py")
+    row = roles.seed_row(2, played, np.array([20.0]))
+    assert row == "| 2 | 0.00 of 3 | 1.00 of 1 | 1.00 of 1 | 1.00 of 1 | none, 1.00 | 1.00, none | 20.0 |"
     assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2
 
 

@@ -52,6 +52,7 @@ sys.path.insert(0, str(HERE))  # this folder, for checks/ where the script is lo
 # docs/results/ that git ignores.
 dont_write_bytecode, sys.dont_write_bytecode = sys.dont_write_bytecode, True
 from checks import (  # noqa: E402  (after the paths above)
+    asymm_advantages,
     coord_ring_4_seeds,
     coord_ring_10_seeds,
     counter_circuit,
@@ -80,6 +81,7 @@ CHECK_MODULES = (
     forced_coord,
     counter_circuit,
     cramped_room,
+    asymm_advantages,
     grounded_coord_simple,
     ten_seed_rows,
 )

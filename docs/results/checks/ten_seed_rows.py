@@ -9,7 +9,7 @@ import functools
 from pathlib import Path
 
 from .data import claim_row, paper, run, run_size, study_wall
-from .folders import CC10, CC10_6M, CC_SA10, CC_SA10_6M, CRM10, FC10, FC_SA10, SA10, SP10
+from .folders import AA10, CC10, CC10_6M, CC_SA10, CC_SA10_6M, CRM10, FC10, FC_SA10, SA10, SP10
 from .registry import check
 from .ten_seed_studies import (
     final_matrix,
@@ -110,6 +110,7 @@ def register_sp_rows() -> None:
         "cc10": (CC10, tuple(SP_ROWS)),
         "cc10_6m": (CC10_6M, ("final", "within", "low_pairs")),
         "crm10": (CRM10, tuple(SP_ROWS)),
+        "aa10": (AA10, tuple(SP_ROWS)),
     }
     for name, (study, kinds) in studies.items():
         for kind in kinds:
@@ -132,6 +133,7 @@ def register_run_rows() -> None:
         "cc10_6m": (CC10_6M, "sp"),
         "cc_sa10_6m": (CC_SA10_6M, "sa"),
         "crm10": (CRM10, "sp"),
+        "aa10": (AA10, "sp"),
     }
     for name, (study, method) in studies.items():
         check(f"run_{name}")(functools.partial(run_size, study, method))

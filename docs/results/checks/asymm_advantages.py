@@ -1,0 +1,171 @@
+"""Checks of the 10-seed Asymm. Advantages SP study at 3M (table1_asymm_advantages_sp10/): Table 1's other control, a
+layout where the paper reports no gap, and where our seeds split over how many pots they use (roles.md)."""
+
+from __future__ import annotations
+
+import csv
+import functools
+import itertools
+import math
+
+import numpy as np
+
+from .data import both_seats, md_tables
+from .folders import AA10
+from .registry import check
+from .ten_seed_studies import final_matrix, low_pairs, pair_rows, snapshot_env_steps
+
+#: roles.md's tables: the seeds at update 183, the cross-play pairs there, then the seeds at these earlier updates.
+EARLIER = (152, 122, 92)
+TWO_POTS = 0.9  # a seed "uses both pots" when its seat 1 puts less than this share of its onions into the top pot
+FAILING_SERVER = 150  # the score below which a one-pot seed's seat 0 is said to fail with a two-pot seat 1
+
+
+def shares(cell: str) -> tuple[float, float]:
+    """A roles table's "<seat 0>, <seat 1>" cell ("none": that seat did not do it)."""
+    return tuple(math.nan if v.strip() == "none" else float(v) for v in cell.split(","))
+
+
+def seed_tables() -> dict[int, list[list[str]]]:
+    """roles.md's per-seed tables, by update."""
+    tables = md_tables(AA10 / "roles.md")
+    return {183: tables[0], **dict(zip(EARLIER, tables[2:], strict=True))}
+
+
+def top_pot_share(row: list[str]) -> float:
+    """Seat 1's share of its onions that went into the top pot (the onions are seat 1's in every seed: aa10_roles)."""
+    return shares(row[5])[1]
+
+
+def two_pot_seeds(update: int = 183) -> list[int]:
+    return [int(row[0]) for row in seed_tables()[update] if top_pot_share(row) < TWO_POTS]
+
+
+def groups() -> tuple[list[int], list[int]]:
+    """(seeds using the top pot only, seeds using both) at update 183."""
+    both = two_pot_seeds()
+    return [k for k in range(10) if k not in both], both
+
+
+def pair_scores(m: np.ndarray, a: list[int], b: list[int]) -> list[float]:
+    """Both-seat-orders scores of the pairs with one seed from ``a`` and one from ``b`` (``a`` == ``b``: within)."""
+    p = both_seats(m)
+    if a == b:
+        return [p[i, j] for i, j in itertools.combinations(a, 2)]
+    return [p[i, j] for i in a for j in b]
+
+
+@check("aa10_pairs")
+def _():
+    """Every pair's score (both seat orders): lowest and highest; the lowest pair and its share of its two seeds'
+    self-play; the seeds' self-play, lowest and highest."""
+    m = final_matrix(AA10)
+    p = both_seats(m)
+    pairs = sorted((p[i, j], i, j) for i, j in itertools.combinations(range(len(m)), 2))
+    score, i, j = pairs[0]
+    return [
+        score,
+        pairs[-1][0],
+        i,
+        j,
+        score / ((m[i, i] + m[j, j]) / 2),
+        float(np.diag(m).min()),
+        float(np.diag(m).max()),
+    ]
+
+
+@check("aa10_roles")
+def _():
+    """At update 183, in every seed's self-play: seat 0's largest share of the onions potted, its smallest share of the
+    deliveries; the seeds whose seat 1 fills both pots, its top-pot share (lowest, highest), and the others' lowest;
+    every seed's seat 0 plates from the pots its seat 1 fills (largest gap between the two shares)."""
+    rows = seed_tables()[183]
+    onions = [float(row[1].split(" of ")[0]) for row in rows]
+    delivered = [float(row[4].split(" of ")[0]) for row in rows]
+    both = two_pot_seeds()
+    top = {int(row[0]): top_pot_share(row) for row in rows}
+    plated = {int(row[0]): shares(row[6])[0] for row in rows}
+    return [
+        max(onions), min(delivered),
+        *both, min(top[k] for k in both), max(top[k] for k in both), min(top[k] for k in top if k not in both),
+        max(abs(plated[k] - top[k]) for k in top),
+    ]  # fmt: skip
+
+
+@check("aa10_groups")
+def _():
+    """The self-play (500 episodes) of the seeds using the top pot only and of those using both, lowest and highest;
+    the mean pair score within each group and across them; the failing pairs of 45 and how many join the groups."""
+    m = final_matrix(AA10)
+    one, both = groups()
+    self_play = np.diag(m)
+    low = low_pairs(AA10)
+    across = sum((i in both) != (j in both) for i, j, _ in low)
+    return [
+        min(self_play[one]), max(self_play[one]), min(self_play[both]), max(self_play[both]),
+        np.mean(pair_scores(m, one, one)), np.mean(pair_scores(m, both, both)), np.mean(pair_scores(m, one, both)),
+        len(low), 45, across,
+    ]  # fmt: skip
+
+
+@check("aa10_seats")
+def _():
+    """The cross-group pairs by seat order (row = seat 0): a top-pot-only seed's seat 0 with a two-pot seed's seat 1,
+    lowest and highest, and the reverse order, lowest and highest; the top-pot-only seeds whose seat 0 scores below
+    150 with every two-pot seed's seat 1, and the highest of those scores."""
+    m = final_matrix(AA10)
+    one, both = groups()
+    plater_one = m[np.ix_(one, both)]
+    plater_both = m[np.ix_(both, one)]
+    failing = [k for k in one if m[k, both].max() < FAILING_SERVER]
+    return [
+        plater_one.min(), plater_one.max(), plater_both.min(), plater_both.max(),
+        *failing, FAILING_SERVER, max(m[k, both].max() for k in failing),
+    ]  # fmt: skip
+
+
+def pair_roles(seat0: int, seat1: int, full: bool) -> list:
+    """roles.md's cross-play pair ``seat0 × seat1`` (32 episodes): its return and seat 0's share of the soups it plated
+    from the top pot; ``full``: also the onions potted, seat 1's share of them into the top pot and the deliveries, in
+    the order the page states them."""
+    row = pair_rows(md_tables(AA10 / "roles.md")[1])[(seat0, seat1)]
+    plated_top = shares(row[6])[0]
+    if not full:
+        return [float(row[7]), plated_top]
+    return [float(row[7]), int(row[1].split(" of ")[1]), shares(row[5])[1], plated_top, int(row[4].split(" of ")[1])]
+
+
+for _pair, _full in (((1, 2), True), ((1, 6), True), ((0, 2), False), ((3, 6), False)):
+    check(f"aa10_pair_{_pair[0]}{_pair[1]}")(functools.partial(pair_roles, *_pair, _full))
+
+
+@check("aa10_emerge")
+def _():
+    """The two-pot seeds' seat-1 top-pot share at updates 92, 122 and 152 (each seed's, in seed order), each update
+    followed by its env steps in millions."""
+    tables = seed_tables()
+    out = []
+    for update in (92, 122, 152):
+        rows = {int(row[0]): row for row in tables[update]}
+        out += [*(top_pot_share(rows[k]) for k in two_pot_seeds()), snapshot_env_steps(update, AA10)]
+    return out
+
+
+@check("aa10_two_pot_counts")
+def _():
+    """The share below which a seed counts as using both pots, then how many do at updates 92, 122, 152 and 183."""
+    return [TWO_POTS, *(len(two_pot_seeds(u)) for u in (92, 122, 152, 183))]
+
+
+@check("aa10_curve")
+def _():
+    """The training return (sparse, mean over the 10 seeds) at the kept snapshots 122, 152 and 183, with their env
+    steps."""
+    with (AA10 / "sp_metrics.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["sparse_return"]]
+    out = []
+    for update in (122, 152, 183):
+        returns = [float(r["sparse_return"]) for r in rows if int(r["update"]) == update]
+        assert len(returns) == 10, (update, len(returns))
+        out += [np.mean(returns), update, snapshot_env_steps(update, AA10)]
+    return out
