@@ -5,9 +5,10 @@
 
 Asymm. Advantages is two rooms with a wall between them, x = 0 to 8: the two pots (4, 2) and (4, 3) sit in that wall,
 and each cook reaches both from its own room; nothing else joins the rooms. Seat 0 starts in the left room (2, 3),
-whose onion pile (0, 1) is far from the pots and whose serving window (3, 1) is beside them; seat 1 starts in the right
-room (5, 3), whose onion pile (5, 1) is beside the pots and whose serving window (8, 1) is far. Each room has its own
-plates, (3, 4) and (5, 4). A cook serves only at its own room's window, so its deliveries say where a soup went out.
+whose onion pile (0, 1) is far from both pots and whose serving window (3, 1) is beside the top one; seat 1 starts in
+the right room (5, 3), whose onion pile (5, 1) is beside the top pot and whose serving window (8, 1) is far. Each
+room's plates, (3, 4) and (5, 4), are beside the bottom pot. A cook serves only at its own room's window, so its
+deliveries say where a soup went out.
 
 Reads the published policies (``<policies>/<method>_seed<i>_update<U>.ocv2policy``, by default this folder's
 ``policies/``, checked against the folder's SHA256SUMS.json) and plays each seed with itself for N episodes (sampled
