@@ -170,12 +170,12 @@ TOP_POT_SOUP = [
 
 def test_asymm_advantages_roles_row_reads_who_fills_and_who_serves_which_pot():
     """The Asymm. Advantages study's roles.py: seat 1 put all three onions into the top pot, seat 0 took the plate,
-    plated the top pot's soup and delivered it."""
+    plated the top pot's soup and delivered it; the cooked soup waited in the top pot for 7 of the 41 states (0.17)."""
     played = scripted_play("asymm_advantages", TOP_POT_SOUP)
     assert np.asarray(played.agents.inventory[0, -1]).tolist() == [0, 0]  # the script did what it says
     roles, _ = _results_script("docs/results/table1_asymm_advantages_sp10/roles.py")
     row = roles.seed_row(2, played, np.array([20.0]))
-    assert row == "| 2 | 0.00 of 3 | 1.00 of 1 | 1.00 of 1 | 1.00 of 1 | none, 1.00 | 1.00, none | 20.0 |"
+    assert row == "| 2 | 0.00 of 3 | 1.00 of 1 | 1.00 of 1 | 1.00 of 1 | none, 1.00 | 1.00, none | 0.17, 0.00 | 20.0 |"
     assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2
 
 

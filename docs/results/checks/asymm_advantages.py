@@ -17,6 +17,7 @@ from .ten_seed_studies import final_matrix, low_pairs, pair_rows, snapshot_env_s
 
 #: roles.md's tables: the seeds at update 183, the cross-play pairs there, then the seeds at these earlier updates.
 EARLIER = (152, 122, 92)
+RETURN = 8  # the return's column in roles.md's tables (after the seed, four jobs, two pot columns and soup waiting)
 TWO_POTS = 0.9  # a seed "uses both pots" when its seat 1 puts less than this share of its onions into the top pot
 FAILING_SERVER = 150  # the score below which a one-pot seed's seat 0 is said to fail with a two-pot seat 1
 
@@ -78,7 +79,8 @@ def _():
 def _():
     """At update 183, in every seed's self-play: seat 0's largest share of the onions potted, its smallest share of the
     deliveries; the seeds whose seat 1 fills both pots, its top-pot share (lowest, highest), and the others' lowest;
-    every seed's seat 0 plates from the pots its seat 1 fills (largest gap between the two shares)."""
+    every seed's seat 0 plates from the pots its seat 1 fills (largest gap between the two shares); the largest share
+    of steps a cooked soup waits in either pot."""
     rows = seed_tables()[183]
     onions = [float(row[1].split(" of ")[0]) for row in rows]
     delivered = [float(row[4].split(" of ")[0]) for row in rows]
@@ -88,7 +90,7 @@ def _():
     return [
         max(onions), min(delivered),
         *both, min(top[k] for k in both), max(top[k] for k in both), min(top[k] for k in top if k not in both),
-        max(abs(plated[k] - top[k]) for k in top),
+        max(abs(plated[k] - top[k]) for k in top), max(max(shares(row[7])) for row in rows),
     ]  # fmt: skip
 
 
@@ -127,15 +129,12 @@ def _():
 def pair_roles(seat0: int, seat1: int) -> list:
     """roles.md's cross-play pair ``seat0 × seat1`` (32 episodes), in the order the page states it: the return, the
     onions potted, seat 1's share of them into the top pot, seat 0's share of its plated soups from the top pot, the
-    soups delivered."""
+    soups delivered, the share of steps a cooked soup waits in the top pot and in the bottom pot."""
     row = pair_rows(md_tables(AA10 / "roles.md")[1])[(seat0, seat1)]
     return [
-        float(row[7]),
-        int(row[1].split(" of ")[1]),
-        shares(row[5])[1],
-        shares(row[6])[0],
-        int(row[4].split(" of ")[1]),
-    ]
+        float(row[RETURN]), int(row[1].split(" of ")[1]), shares(row[5])[1], shares(row[6])[0],
+        int(row[4].split(" of ")[1]), *shares(row[7]),
+    ]  # fmt: skip
 
 
 for _pair in ((1, 2), (1, 6)):
@@ -151,11 +150,18 @@ OTHER_SERVERS = ((0, 2), (3, 6), (5, 6), (7, 2))
 def _():
     """Seeds 4 and 8 serving with a two-pot filler beside seeds 0, 3, 5 and 7 doing the same (roles.md's pairs): the
     share of seat 0's plated soups from the top pot (lowest, highest, each group; the other servers' seeds before
-    theirs), the soups delivered in 32 episodes (lowest, highest, each group), the return (lowest, highest, each
-    group)."""
+    theirs), the soups delivered in 32 episodes, the return, the share of steps a cooked soup waits in the top pot and
+    in the bottom pot (each: lowest, highest, each group)."""
     pairs = pair_rows(md_tables(AA10 / "roles.md")[1])
     out = []
-    for column in (lambda row: shares(row[6])[0], lambda row: int(row[4].split(" of ")[1]), lambda row: float(row[7])):
+    columns = (
+        lambda row: shares(row[6])[0],
+        lambda row: int(row[4].split(" of ")[1]),
+        lambda row: float(row[RETURN]),
+        lambda row: shares(row[7])[0],
+        lambda row: shares(row[7])[1],
+    )
+    for column in columns:
         for group in (SLOW_SERVERS, OTHER_SERVERS):
             values = [column(pairs[key]) for key in group]
             out += [min(values), max(values)]

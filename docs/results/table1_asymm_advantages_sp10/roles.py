@@ -19,6 +19,7 @@ actions, a fixed key), keeping every state; ``population.behaviour`` reads the e
   total, the count beside it);
 - each seat's share of its onions that went into the top pot (4, 2) rather than the bottom one (4, 3);
 - each seat's share of the soups it plated that came from the top pot;
+- the share of the steps in which a cooked soup waits in the top pot, and in the bottom pot, to be plated;
 - the mean return.
 """
 
@@ -34,6 +35,7 @@ from population.behaviour import ROLES, pot_use, role_counts, transitions
 
 HERE = Path(__file__).resolve().parent
 TOP_POT = (4, 2)
+BOTTOM_POT = (4, 3)
 
 
 def plated_from_top(states) -> np.ndarray:
@@ -45,11 +47,24 @@ def plated_from_top(states) -> np.ndarray:
         return top.sum(axis=(0, 1)) / plated.sum(axis=(0, 1))
 
 
+def soup_waiting(states) -> list[float]:
+    """The share of the recorded states in which a cooked soup sits in the top pot, and in the bottom pot, waiting to be
+    plated (the pot holds a cooked soup and its timer has run out)."""
+    grid = np.asarray(states.grid)  # [E, T+1, H, W, layer]: layer 1 the pot's contents, layer 2 its cooking timer
+    waiting = []
+    for x, y in (TOP_POT, BOTTOM_POT):
+        contents, timer = grid[:, :, y, x, 1], grid[:, :, y, x, 2]
+        waiting.append(float((((contents & COOKED) != 0) & (timer == 0)).mean()))
+    return waiting
+
+
 def table_header() -> str:
     jobs = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
     return (
         f"| seed | {jobs} | onions into the top pot (seat 0, seat 1) | soups plated from the top pot (seat 0, seat 1) "
-        "| return |\n|---:|" + "---:|" * len(ROLES) + "---|---|---:|"
+        "| steps a cooked soup waits (top pot, bottom pot) | return |\n|---:|"
+        + "---:|" * len(ROLES)
+        + "---|---|---|---:|"
     )
 
 
@@ -66,6 +81,7 @@ def seed_row(label, states, returns) -> str:
         *(f"{c[0] / c.sum():.2f} of {int(c.sum())}" if c.sum() else "none" for c in counts),
         shares(use.shares()[top]),
         shares(plated_from_top(states)),
+        ", ".join(f"{v:.2f}" for v in soup_waiting(states)),
         f"{float(np.mean(returns)):.1f}",
     ]
     return f"| {label} | " + " | ".join(cells) + " |"
