@@ -258,6 +258,24 @@ def test_an_sa_actor_killed_after_the_buffer_restarts_and_finishes_with_the_same
     assert metrics_without_timing(run) == metrics_without_timing(sa_reference)
 
 
+def test_an_fcp_actor_killed_mid_training_restarts_with_its_pool_and_finishes_with_the_same_numbers(
+    tmp_path, reference, ray_session
+):
+    """The restarted FCP actor is built again with the pool (ray.put once, held by the driver) and its learner's
+    checkpoint: the run ends as the uninterrupted one trained in this process, bit for bit."""
+    config = load_config(SMOKE, [*LONGER, "population.method=fcp", f"population.fcp.partners={reference}"])
+    here = tmp_path / "fcp_reference"
+    coordinator.train(config, here, ShardsHere, show_progress=False, evaluate=False)
+    run = tmp_path / "fcp_killed"
+    hook, killed = kill_actor_in_chunk(2, shard=1)
+    summary = ray_backend.train_population(config, run, show_progress=False, evaluate=False, on_chunk=hook)
+    assert killed and summary["restarts"] >= 1
+    assert all(event["restored_update"] >= 2 for event in RunDir(run).read_manifest()["restart_events"])
+    assert RunDir(run).read_manifest()["pool"] == RunDir(here).read_manifest()["pool"]
+    assert_same_tree(final_params(run), final_params(here))
+    assert metrics_without_timing(run) == metrics_without_timing(here)
+
+
 def test_a_worker_with_no_restarts_left_stops_resumably_and_the_resume_ends_as_uninterrupted(
     tmp_path, reference, ray_session
 ):
