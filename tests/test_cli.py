@@ -411,7 +411,13 @@ def test_train_and_study_start_ray_once_before_any_work(monkeypatch, tmp_path, c
     from cluster.study.state import StudyState
 
     done = StudyState(study="s", spec={}, report={"report": "r"})
-    monkeypatch.setattr(study_cli, "run_study", lambda *a, **k: events.append("work") or done)
+
+    def run_study(*args, session, **kwargs):
+        with session(True):  # as run_study enters it under the directory's lock, before any step runs
+            events.append("work")
+        return done
+
+    monkeypatch.setattr(study_cli, "run_study", run_study)
     root = Path(__file__).resolve().parents[1] / "configs"
     argv = {
         "train": ["train", str(root / "quickstart.yaml")],

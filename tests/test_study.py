@@ -29,7 +29,7 @@ import ocv2.atomic
 from cluster.cli import main
 from cluster.runtime import crossplay
 from cluster.runtime.extend import EVALUATION_DIRS, take_eval_episodes
-from cluster.runtime.rundir import RunDir, read_matrix_csv
+from cluster.runtime.rundir import DirLock, RunDir, read_matrix_csv
 from cluster.runtime.runstate import Schedule
 from cluster.study import report
 from cluster.study.pack import pack_study, snapshots_still_read
@@ -1128,6 +1128,33 @@ def test_a_run_not_evaluated_yet_takes_the_new_episodes_with_nothing_to_set_asid
     assert take_eval_episodes(run, more) == 2
     assert load_config(run / "config.yaml") == more and not (run / "reevaluated").exists()
     assert take_eval_episodes(run, more) is None
+
+
+def test_whether_the_steps_need_ray_is_decided_under_the_directory_lock(finished, tmp_path, monkeypatch):
+    """`study run` chose "no Ray" from a plan made before it took the lock: for a result another driver removed in
+    between, the step then started Ray itself, after JAX was running in the driver (Ray's fork after JAX's threads).
+    run_study now asks ``session(needed)`` under the lock."""
+    out = _copy(finished, tmp_path / "study")
+    study = load_study(write_study(tmp_path / "tiny.yaml", STUDY))
+    asked = []
+
+    @contextlib.contextmanager
+    def session(needed):
+        asked.append(needed)
+        yield
+
+    run_study(study, out, LOCAL, say=lambda _: None, session=session)
+    assert asked == [False]  # every step done: a rerun needs no Ray
+    assert not steps_to_run(plan_study(study, out, LOCAL))  # a look before the lock: still nothing to do
+    acquire = DirLock.acquire
+
+    def acquire_after_a_change(self, *args, **kwargs):  # another driver removes a result just before the lock
+        (out / "comparisons" / "sp_vs_sa" / "summary.json").unlink(missing_ok=True)
+        return acquire(self, *args, **kwargs)
+
+    monkeypatch.setattr(DirLock, "acquire", acquire_after_a_change)
+    state = run_study(study, out, LOCAL, say=lambda _: None, session=session)
+    assert asked == [False, True] and state.steps["compare sp_vs_sa"].done
 
 
 def test_a_rerun_with_nothing_to_do_starts_no_ray_and_keeps_the_backend_that_ran_the_steps(

@@ -36,7 +36,6 @@ from cluster.study.runner import (
     plan_study,
     read_state,
     run_study,
-    steps_to_run,
     study_status,
 )
 from cluster.study.spec import BUDGET_MODES, StudyError, default_out, load_study, run_config
@@ -203,12 +202,14 @@ def _run(args) -> int:
     if any(config.run.deterministic for config in plan.configs.values()):
         applied, message = enable_deterministic_ops()
         log.log(logging.DEBUG if applied else logging.INFO, message)
+
     # One Ray for every run and comparison, started before the driver runs JAX (ray_backend.session); none when
-    # every step is done and a rerun only writes the report again.
-    backend = args.backend if steps_to_run(plan) else "local"
+    # every step is done and a rerun only writes the report again: run_study decides that under the directory's lock.
+    def session(needed: bool):
+        return ray_backend.session(args.backend if needed else "local", ClusterConfig(address=args.address))
+
     try:
-        with ray_backend.session(backend, ClusterConfig(address=args.address)):
-            state = run_study(study, out, options, say=say)
+        state = run_study(study, out, options, say=say, session=session)
     except RayBackendError as error:
         raise CLIError(error.with_hint(STUDY_RESUME_HINT)) from None
     except (StudyError, RunDirError, CheckpointError, ArchiveError, MissingExtraError) as error:

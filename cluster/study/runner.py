@@ -28,6 +28,7 @@ import logging
 import shlex
 import time
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, ExitStack
 from pathlib import Path
 
 from cluster.api import train_population
@@ -568,9 +569,18 @@ def trained_differences(path: Path, planned: Config) -> list[str]:
     return config_differences(trained, planned)
 
 
-def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Callable[[str], None] = log.info) -> dict:
+def run_study(
+    study: Study,
+    out,
+    options: StudyOptions = StudyOptions(),
+    say: Callable[[str], None] = log.info,
+    session: Callable[[bool], AbstractContextManager] | None = None,
+) -> dict:
     """Train every unfinished run, run the cross-play steps, write the report; ``say`` gets one line per
-    step. ``options``: as ``plan_study``, whose checks come first.
+    step. ``options``: as ``plan_study``, whose checks come first. ``session(needed)``: a context the steps run in,
+    entered under the directory's lock with whether any step will run (``steps_to_run``); the CLI starts Ray there
+    only when one will, so a rerun with nothing to do starts none, decided on what the lock lets no other driver
+    change.
 
     Returns the state (``steps``: name -> status "done" or "blocked" with a reason, ``report``: the
     paths written). Raises ``StudyError`` for what ``plan_study`` refuses and for a directory another
@@ -584,8 +594,11 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         lock.acquire(advice="wait for it to finish or stop it before running the study again")
     except RunDirError as error:
         raise StudyError(str(error)) from None
-    try:
+    with ExitStack() as held:  # the session closes first, then the lock is released
+        held.callback(lock.release)
         plan = plan_study(*arguments)  # again under the lock: what another driver did before it is seen
+        if session is not None:
+            held.enter_context(session(bool(steps_to_run(plan))))
         study, configs = plan.study, plan.configs
         kept = read_state(out)  # before _set_aside saves the plan's state
         state = StateFile(out, plan.state)
@@ -639,8 +652,6 @@ def run_study(study: Study, out, options: StudyOptions = StudyOptions(), say: Ca
         state.state.report = write_report(study, out, state.state, configs)
         state.save()
         return state.state
-    finally:
-        lock.release()
 
 
 def _set_aside(
