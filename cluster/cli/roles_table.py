@@ -44,3 +44,8 @@ def print_roles_table(
         for label, seat0, seat1 in plays:
             played = play((policies[seat0].params, policies[seat1].params), jax.random.PRNGKey(ROLLOUT_KEY))
             print(row(label, played.states, played.returns), flush=True)
+
+
+def table_row(label, cells) -> str:
+    """One markdown table row: ``label`` (a seed, or a pair "i × j") then ``cells``."""
+    return f"| {label} | " + " | ".join(cells) + " |"

@@ -3,7 +3,6 @@ layout where the paper reports no gap, and where our seeds split over how many p
 
 from __future__ import annotations
 
-import csv
 import functools
 import itertools
 import math
@@ -13,7 +12,7 @@ import numpy as np
 from .data import both_seats, md_tables
 from .folders import AA10
 from .registry import check
-from .ten_seed_studies import final_matrix, low_pairs, pair_rows, snapshot_env_steps
+from .ten_seed_studies import final_matrix, low_pairs, pair_rows, snapshot_env_steps, training_curve
 
 #: roles.md's tables: the seeds at update 183, the cross-play pairs there, then the seeds at these earlier updates.
 EARLIER = (152, 122, 92)
@@ -199,11 +198,4 @@ def _():
 def _():
     """The training return (sparse, mean over the 10 seeds) at the kept snapshots 122, 152 and 183, with their env
     steps."""
-    with (AA10 / "sp_metrics.csv").open() as f:
-        rows = [r for r in csv.DictReader(f) if r["sparse_return"]]
-    out = []
-    for update in (122, 152, 183):
-        returns = [float(r["sparse_return"]) for r in rows if int(r["update"]) == update]
-        assert len(returns) == 10, (update, len(returns))
-        out += [np.mean(returns), update, snapshot_env_steps(update, AA10)]
-    return out
+    return training_curve(AA10)

@@ -3,7 +3,6 @@ the paper reports almost no gap."""
 
 from __future__ import annotations
 
-import csv
 import itertools
 
 import numpy as np
@@ -11,7 +10,7 @@ import numpy as np
 from .data import both_seats
 from .folders import CRM10
 from .registry import check
-from .ten_seed_studies import final_matrix, partner_means, snapshot_env_steps
+from .ten_seed_studies import final_matrix, partner_means, training_curve
 
 
 def pair_ratios() -> list[tuple[int, int, float]]:
@@ -36,14 +35,7 @@ def _():
 def _():
     """The training return (sparse, mean over the 10 seeds) at the kept snapshots 122, 152 and 183, with their env
     steps: still rising at the stop."""
-    with (CRM10 / "sp_metrics.csv").open() as f:
-        rows = [r for r in csv.DictReader(f) if r["sparse_return"]]
-    out = []
-    for update in (122, 152, 183):
-        returns = [float(r["sparse_return"]) for r in rows if int(r["update"]) == update]
-        assert len(returns) == 10, (update, len(returns))
-        out += [np.mean(returns), update, snapshot_env_steps(update, CRM10)]
-    return out
+    return training_curve(CRM10)
 
 
 @check("crm10_by_seed")

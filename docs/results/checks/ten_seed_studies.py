@@ -4,6 +4,7 @@ snapshots, the gap difference with the seeds paired, and the cells of the roles 
 
 from __future__ import annotations
 
+import csv
 import functools
 import itertools
 import json
@@ -142,3 +143,16 @@ def paper_beside_intervals(study: Path, name: str) -> list[float]:
     xp = run(study, name)["xp"]
     sp, cross, gap = paper(study, name)
     return [sp, *interval(xp, "sp"), cross, *interval(xp, "xp"), gap, *interval(xp, "gap")]
+
+
+def training_curve(study: Path, updates: tuple[int, ...] = (122, 152, 183), method: str = "sp") -> list:
+    """The training return (sparse, mean over the 10 seeds) at each of ``updates``, each followed by the update and
+    its env steps in millions: ``<method>_metrics.csv`` of a 10-seed study."""
+    with (study / f"{method}_metrics.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["sparse_return"]]
+    out = []
+    for update in updates:
+        returns = [float(r["sparse_return"]) for r in rows if int(r["update"]) == update]
+        assert len(returns) == 10, (study, update, len(returns))
+        out += [np.mean(returns), update, snapshot_env_steps(update, study)]
+    return out

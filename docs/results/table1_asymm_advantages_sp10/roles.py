@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cluster.cli.roles_table import print_roles_table
+from cluster.cli.roles_table import print_roles_table, table_row
 from ocv2.items import COOKED, PLATE, Static
 from population.behaviour import ROLES, pot_use, role_counts, transitions
 
@@ -84,7 +84,7 @@ def seed_row(label, states, returns) -> str:
         ", ".join(f"{v:.2f}" for v in soup_waiting(states)),
         f"{float(np.mean(returns)):.1f}",
     ]
-    return f"| {label} | " + " | ".join(cells) + " |"
+    return table_row(label, cells)
 
 
 def main() -> None:

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cluster.cli.roles_table import print_roles_table
+from cluster.cli.roles_table import print_roles_table, table_row
 from population.behaviour import ITEM_KINDS, ROLES, clockwise_moves, counter_use, pot_use, role_counts
 
 HERE = Path(__file__).resolve().parent
@@ -85,7 +85,7 @@ def seed_row(label, states, returns) -> str:
         ", ".join("none in" if np.isnan(v) else f"{v:.2f}" for v in left),
         f"{float(np.mean(returns)):.1f}",
     ]
-    return f"| {label} | " + " | ".join(cells) + " |"
+    return table_row(label, cells)
 
 
 def main() -> None:
