@@ -168,14 +168,39 @@ TOP_POT_SOUP = [
 ]  # fmt: skip
 
 
-def test_asymm_advantages_roles_row_reads_who_fills_and_who_serves_which_pot():
-    """The Asymm. Advantages study's roles.py: seat 1 put all three onions into the top pot, seat 0 took the plate,
-    plated the top pot's soup and delivered it; the cooked soup waited in the top pot for 7 of the 41 states (0.17)."""
-    played = scripted_play("asymm_advantages", TOP_POT_SOUP)
+# The same soup through the bottom pot (4, 3): seat 1 carries each onion down to (5, 3) beside it; seat 0 takes a plate,
+# faces the bottom pot from (3, 3), plates the soup, walks up to (3, 2) and serves.
+BOTTOM_POT_SOUP = [
+    *[(S, U), (S, U), (S, I), (S, D), (S, L), (S, I)] * 3,  # seat 1: up, take an onion, down, face the pot, put it in
+    (R, S), (D, S), (I, S), (R, S),  # seat 0: to (3, 3), a plate, face the bottom pot
+    *[(S, S)] * 20, (I, S), (U, S), (U, S), (I, S),  # it cooks; seat 0 plates it, up to (3, 2), faces the window, serves
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "script, expected",
+    [
+        # the cooked soup waited in the top pot for 7 of the 41 states (0.17)
+        (
+            TOP_POT_SOUP,
+            "| 2 | 0.00 of 3 | 1.00 of 1 | 1.00 of 1 | 1.00 of 1 | none, 1.00 | 1.00, none | 0.17, 0.00 | 20.0 |",
+        ),
+        # and in the bottom pot for 6 of the 47 (0.13)
+        (
+            BOTTOM_POT_SOUP,
+            "| 2 | 0.00 of 3 | 1.00 of 1 | 1.00 of 1 | 1.00 of 1 | none, 0.00 | 0.00, none | 0.00, 0.13 | 20.0 |",
+        ),
+    ],
+    ids=["top pot", "bottom pot"],
+)
+def test_asymm_advantages_roles_row_reads_who_fills_and_who_serves_which_pot(script, expected):
+    """The Asymm. Advantages study's roles.py: seat 1 put all three onions into one pot, seat 0 took the plate, plated
+    that pot's soup and delivered it; the row names the pot and how long its cooked soup waited."""
+    played = scripted_play("asymm_advantages", script)
     assert np.asarray(played.agents.inventory[0, -1]).tolist() == [0, 0]  # the script did what it says
     roles, _ = _results_script("docs/results/table1_asymm_advantages_sp10/roles.py")
     row = roles.seed_row(2, played, np.array([20.0]))
-    assert row == "| 2 | 0.00 of 3 | 1.00 of 1 | 1.00 of 1 | 1.00 of 1 | none, 1.00 | 1.00, none | 0.17, 0.00 | 20.0 |"
+    assert row == expected
     assert [line.count("|") for line in roles.table_header().splitlines()] == [row.count("|")] * 2
 
 

@@ -11,6 +11,7 @@ that config load them (the FCP and quickstart runs compile their own).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
@@ -201,18 +202,38 @@ def test_a_shard_ahead_of_the_others_gives_each_metrics_row_once(tmp_path, refer
     assert by_row(metrics_without_timing(run)) == by_row(metrics_without_timing(reference))  # chunked otherwise
 
 
+def kill_later(pid: int, delay_s: float = 0.05) -> threading.Timer:
+    """SIGKILL ``pid`` in ``delay_s`` (while the call just submitted to it runs); join the timer to know it fired.
+    A process already gone is no error."""
+
+    def kill():
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+
+    timer = threading.Timer(delay_s, kill)
+    timer.start()
+    return timer
+
+
+def kill_actor_in_chunk(after_update: int, shard: int = 0):
+    """An ``on_chunk`` hook that SIGKILLs shard ``shard``'s actor while it trains the chunk after ``after_update``;
+    the list it returns gets the kill's timer."""
+    killed = []
+
+    def hook(update, workers, _rows):
+        if update == after_update and not killed:
+            killed.append(kill_later(workers.pids()[shard]))
+
+    return hook, killed
+
+
 def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_numbers(tmp_path, reference, ray_session):
     config = load_config(SMOKE, LONGER)
     run = tmp_path / "killed"
-    killed = {}
-
-    def kill_worker_0(update, workers, _rows):
-        if update == 2 and not killed:  # SIGKILL the process while it trains the next chunk
-            killed["pid"] = pid = workers.pids()[0]
-            threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
-
-    summary = ray_backend.train_population(config, run, show_progress=False, evaluate=False, on_chunk=kill_worker_0)
-    assert killed and summary["restarts"] >= 1
+    hook, killed = kill_actor_in_chunk(2)
+    summary = ray_backend.train_population(config, run, show_progress=False, evaluate=False, on_chunk=hook)
+    killed.pop().join()
+    assert summary["restarts"] >= 1
     assert RunDir(run).read_manifest()["restarts"] >= 1
     # At most one checkpoint interval was lost: the restarted actor came back at update >= 2.
     events = RunDir(run).read_manifest()["restart_events"]
@@ -230,30 +251,29 @@ def sa_reference(tmp_path_factory):
     return run
 
 
-def kill_actor_in_chunk(after_update: int, shard: int = 0):
-    """An ``on_chunk`` hook that SIGKILLs shard ``shard``'s actor while it trains the chunk after ``after_update``."""
-    killed = {}
-
-    def hook(update, workers, _rows):
-        if update == after_update and not killed:
-            killed["pid"] = pid = workers.pids()[shard]
-            threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
-
-    return hook, killed
-
-
 def test_an_sa_actor_killed_after_the_buffer_restarts_and_finishes_with_the_same_numbers(
     tmp_path, sa_reference, ray_session
 ):
-    """The restarted actor comes back from its checkpoint at update 4 and is sent the chunk again with the state
-    buffer the coordinator gathered there: the run ends as the uninterrupted one, bit for bit."""
+    """Killed while it trains the chunk from update 4 with the state buffer of SA's second iteration (gathered at
+    update 4), the restarted actor comes back from its checkpoint there and is sent that chunk again with that buffer:
+    the run ends as the uninterrupted one, bit for bit."""
     run = tmp_path / "sa_killed"
-    hook, killed = kill_actor_in_chunk(4)
-    summary = ray_backend.train_population(
-        load_config(SMOKE, SA), run, show_progress=False, evaluate=False, on_chunk=hook
+    killed = []
+
+    class KilledWithTheSecondBuffer(ray_backend.RayWorkers):
+        def call(self, method, jobs):
+            jobs = list(jobs)
+            if method == "advance" and jobs[0][1][2] == 4 and not killed:  # (stop, buffer, update): from update 4
+                killed.append(kill_later(self.pids()[0]))
+            return super().call(method, jobs)
+
+    summary = coordinator.train(
+        load_config(SMOKE, SA), run, KilledWithTheSecondBuffer, show_progress=False, evaluate=False
     )
-    assert killed and summary["restarts"] >= 1
-    assert all(event["restored_update"] >= 4 for event in RunDir(run).read_manifest()["restart_events"])
+    killed.pop().join()
+    assert summary["restarts"] >= 1
+    events = RunDir(run).read_manifest()["restart_events"]
+    assert events and all(e["method"] == "advance" and e["restored_update"] == 4 for e in events)
     assert_same_tree(final_params(run), final_params(sa_reference))
     assert metrics_without_timing(run) == metrics_without_timing(sa_reference)
 
@@ -269,7 +289,8 @@ def test_an_fcp_actor_killed_mid_training_restarts_with_its_pool_and_finishes_wi
     run = tmp_path / "fcp_killed"
     hook, killed = kill_actor_in_chunk(2, shard=1)
     summary = ray_backend.train_population(config, run, show_progress=False, evaluate=False, on_chunk=hook)
-    assert killed and summary["restarts"] >= 1
+    killed.pop().join()
+    assert summary["restarts"] >= 1
     assert all(event["restored_update"] >= 2 for event in RunDir(run).read_manifest()["restart_events"])
     assert RunDir(run).read_manifest()["pool"] == RunDir(here).read_manifest()["pool"]
     assert_same_tree(final_params(run), final_params(here))
@@ -287,7 +308,7 @@ def test_a_worker_with_no_restarts_left_stops_resumably_and_the_resume_ends_as_u
     hook, killed = kill_actor_in_chunk(2)
     with pytest.raises(ray_backend.RayBackendError) as raised:
         ray_backend.train_population(config, run, show_progress=False, evaluate=False, on_chunk=hook)
-    assert killed
+    killed.pop().join()
     message = str(raised.value)
     assert message.startswith("worker for seeds [0] died and cannot be restarted (cluster.max_restarts=0 used up")
     assert "checkpoints are in the run directory" in message and raised.value.resumable
@@ -306,18 +327,18 @@ def test_a_worker_killed_during_cross_play_is_restarted_and_the_matrix_is_unchan
     here = evaluate.evaluate_run(run, episodes=3, show_progress=False)
     here_csv, here_archive = (run / "xp" / "episodes.csv").read_text(), xp_archive(run)
 
-    class KilledOnce(ray_backend.RayWorkers):
-        killed: list = []
+    killed = []
 
+    class KilledOnce(ray_backend.RayWorkers):
         def call(self, method, jobs):
-            if method == "cross_play" and not self.killed:  # SIGKILL worker 0 while it plays its row
-                self.killed.append(pid := self.pids()[0])
-                threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
+            if method == "cross_play" and not killed:  # SIGKILL worker 0 while it plays its row
+                killed.append(kill_later(self.pids()[0]))
             return super().call(method, jobs)
 
     workers = KilledOnce(RunDir(run).load_config(), run)
     try:
         spread = evaluate.evaluate_run(run, episodes=3, show_progress=False, workers=workers)
+        killed.pop().join()
         assert workers.restarts() >= 1
     finally:
         workers.close()
@@ -477,6 +498,11 @@ def test_an_unreachable_address_is_a_clear_error(tmp_path, capsys, monkeypatch):
     assert "127.0.0.1:1" in err and "cannot reach the Ray head" in err
     assert main(["train", SMOKE, "--address", "nonsense", "--quiet"]) == 2
     assert "--address" in capsys.readouterr().err
+    # A study is refused the same way, and leaves no empty study directory behind (Ray starts under its lock).
+    study = ROOT / "configs" / "studies" / "table1_coord_ring.yaml"
+    out = tmp_path / "study"
+    assert main(["study", "run", str(study), "--address", "127.0.0.1:1", "--out", str(out), "--quiet"]) == 2
+    assert "cannot reach the Ray head" in capsys.readouterr().err and not out.exists()
 
 
 def test_quickstart_completes_end_to_end_on_ray_with_tiny_overrides(tmp_path, ray_session):

@@ -1149,12 +1149,15 @@ def test_whether_the_steps_need_ray_is_decided_under_the_directory_lock(finished
     acquire = DirLock.acquire
 
     def acquire_after_a_change(self, *args, **kwargs):  # another driver removes a result just before the lock
-        (out / "comparisons" / "sp_vs_sa" / "summary.json").unlink(missing_ok=True)
+        if self.path == out:  # the study's lock, not a run directory's
+            (out / "comparisons" / "sp_vs_sa" / "summary.json").unlink(missing_ok=True)
         return acquire(self, *args, **kwargs)
 
     monkeypatch.setattr(DirLock, "acquire", acquire_after_a_change)
-    state = run_study(study, out, LOCAL, say=lambda _: None, session=session)
-    assert asked == [False, True] and state.steps["compare sp_vs_sa"].done
+    state = run_study(study, out, LOCAL, say=asked.append, session=session)
+    assert state.steps["compare sp_vs_sa"].done
+    assert asked[:2] == [False, True]  # asked under the lock, before the step ran (its line comes after)
+    assert any("compare sp_vs_sa" in str(line) for line in asked[2:])
 
 
 def test_a_rerun_with_nothing_to_do_starts_no_ray_and_keeps_the_backend_that_ran_the_steps(

@@ -36,7 +36,15 @@ from cluster.runtime import crossplay
 from cluster.runtime.coordinator import pool_updates, same_game_and_network
 from cluster.runtime.extend import extend_run, repoint_partners, take_eval_episodes
 from cluster.runtime.progress import Bar
-from cluster.runtime.rundir import EXTENDED_KEYS, DirLock, RunDir, RunDirError, extension_problem, write_json
+from cluster.runtime.rundir import (
+    EXTENDED_KEYS,
+    LOCK_NAME,
+    DirLock,
+    RunDir,
+    RunDirError,
+    extension_problem,
+    write_json,
+)
 from cluster.study.report import write_report
 from cluster.study.results import compared_settings, config_differences, evaluation_problem, read_result
 from cluster.study.spec import (
@@ -588,13 +596,16 @@ def run_study(
     ``RayBackendError``, ...) pass through."""
     arguments = (study, out, options)
     out = plan_study(*arguments).out  # refused here, nothing is written
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     lock = DirLock(out)
     try:
         lock.acquire(advice="wait for it to finish or stop it before running the study again")
     except RunDirError as error:
         raise StudyError(str(error)) from None
-    with ExitStack() as held:  # the session closes first, then the lock is released
+    with ExitStack() as held:  # the session closes first, then the lock is released, then an unused new folder goes
+        if created:
+            held.callback(_remove_if_unused, out)
         held.callback(lock.release)
         plan = plan_study(*arguments)  # again under the lock: what another driver did before it is seen
         if session is not None:
@@ -652,6 +663,14 @@ def run_study(
         state.state.report = write_report(study, out, state.state, configs)
         state.save()
         return state.state
+
+
+def _remove_if_unused(out: Path) -> None:
+    """Remove the study directory this call made when it holds nothing but its lock file: the session could not
+    start (Ray unreachable), and a failed command leaves no empty study behind (as ``RunDir.open`` does for a run)."""
+    if {p.name for p in out.iterdir()} <= {LOCK_NAME}:
+        (out / LOCK_NAME).unlink(missing_ok=True)
+        out.rmdir()
 
 
 def _set_aside(

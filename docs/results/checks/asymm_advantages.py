@@ -105,7 +105,7 @@ def _():
     return [
         min(self_play[one]), max(self_play[one]), min(self_play[both]), max(self_play[both]),
         np.mean(pair_scores(m, one, one)), np.mean(pair_scores(m, both, both)), np.mean(pair_scores(m, one, both)),
-        len(low), 45, across,
+        len(low), math.comb(len(m), 2), across,
     ]  # fmt: skip
 
 
@@ -151,6 +151,11 @@ def _():
     share of seat 0's plated soups from the top pot (lowest, highest, each group; the other servers' seeds before
     theirs), the soups delivered in 32 episodes, the return, the share of steps a cooked soup waits in the top pot and
     in the bottom pot (each: lowest, highest, each group)."""
+    one, both = groups()
+    failing = [k for k in one if final_matrix(AA10)[k, both].max() < FAILING_SERVER]  # as aa10_seats names them
+    assert {seat0 for seat0, _ in SLOW_SERVERS} <= set(failing), failing  # seed 1, the third, has its own pairs
+    assert {seat0 for seat0, _ in OTHER_SERVERS} == set(one) - set(failing)  # every other one-pot seed serves once
+    assert {seat1 for _, seat1 in (*SLOW_SERVERS, *OTHER_SERVERS)} <= set(both)  # every filler fills both pots
     pairs = pair_rows(md_tables(AA10 / "roles.md")[1])
     out = []
     columns = (
