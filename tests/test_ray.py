@@ -141,18 +141,6 @@ def test_cross_play_spread_over_ray_workers_equals_the_local_backend(reference, 
         np.testing.assert_array_equal(actions, here_archive[key][1])
 
 
-def test_fcp_on_ray_trains_against_a_pool_from_an_sp_run(tmp_path, reference, ray_session):
-    """FCP learners on two actors against the snapshots of an SP run (the pool is ray.put once and
-    reaches every actor's constructor). The SP-stage path (no partners given) is the same coordinator
-    code, tested in tests/test_train_cli.py."""
-    run = tmp_path / "fcp"
-    assert train(run, "population.method=fcp", f"population.fcp.partners={reference}", extra=["--no-eval"]) == 0
-    manifest = RunDir(run).read_manifest()
-    assert manifest["status"] == "finished" and manifest["shards"] == [[0], [1]]
-    assert manifest["pool"] == ["seed0@4", "seed0@8", "seed1@4", "seed1@8"]  # mid and final snapshots
-    assert jax.tree.leaves(final_params(run))[0].shape[0] == 2  # both learners finished
-
-
 class Died(Exception):
     pass
 
@@ -281,8 +269,10 @@ def test_an_sa_actor_killed_after_the_buffer_restarts_and_finishes_with_the_same
 def test_an_fcp_actor_killed_mid_training_restarts_with_its_pool_and_finishes_with_the_same_numbers(
     tmp_path, reference, ray_session
 ):
-    """The restarted FCP actor is built again with the pool (ray.put once, held by the driver) and its learner's
-    checkpoint: the run ends as the uninterrupted one trained in this process, bit for bit."""
+    """FCP learners on two actors against the snapshots of an SP run: the pool is ray.put once and reaches every
+    actor's constructor, and a restarted actor is built again with it and its learner's checkpoint; the run ends as
+    the uninterrupted one trained in this process, bit for bit. (The SP-stage path, no partners given, is the same
+    coordinator code, tested in tests/test_train_cli.py.)"""
     config = load_config(SMOKE, [*LONGER, "population.method=fcp", f"population.fcp.partners={reference}"])
     here = tmp_path / "fcp_reference"
     coordinator.train(config, here, ShardsHere, show_progress=False, evaluate=False)
@@ -292,7 +282,9 @@ def test_an_fcp_actor_killed_mid_training_restarts_with_its_pool_and_finishes_wi
     killed.pop().join()
     assert summary["restarts"] >= 1
     assert all(event["restored_update"] >= 2 for event in RunDir(run).read_manifest()["restart_events"])
-    assert RunDir(run).read_manifest()["pool"] == RunDir(here).read_manifest()["pool"]
+    manifest = RunDir(run).read_manifest()
+    assert manifest["status"] == "finished" and manifest["shards"] == [[0], [1]]
+    assert manifest["pool"] == RunDir(here).read_manifest()["pool"] == ["seed0@4", "seed0@8", "seed1@4", "seed1@8"]
     assert_same_tree(final_params(run), final_params(here))
     assert metrics_without_timing(run) == metrics_without_timing(here)
 
