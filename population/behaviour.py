@@ -56,6 +56,11 @@ class Transitions(NamedTuple):
         """A raw ingredient leaves the hand while facing a pot (not onto a counter)."""
         return np.asarray(is_raw_ingredient(self.held)) & (self.later == EMPTY) & (self.faced == Static.POT)
 
+    @property
+    def soup_plated(self) -> np.ndarray:
+        """An empty plate becomes a cooked dish while facing a pot."""
+        return (self.held == PLATE) & ((self.later & COOKED) != 0) & (self.faced == Static.POT)
+
 
 class PotUse(NamedTuple):
     """Which pot each seat's ingredients go into."""
@@ -110,7 +115,7 @@ def role_counts(states) -> np.ndarray:
     counts = [
         t.onion_into_pot,
         (t.held == EMPTY) & (t.later == PLATE),
-        (t.held == PLATE) & ((t.later & COOKED) != 0) & (t.faced == Static.POT),
+        t.soup_plated,
         ((t.held & COOKED) != 0) & (t.later == EMPTY) & (t.faced == Static.GOAL),
     ]
     return np.stack([c.sum(axis=(0, 1)) for c in counts])

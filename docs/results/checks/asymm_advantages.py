@@ -6,17 +6,23 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+import re
 
 import numpy as np
 
-from .data import both_seats, md_tables
+from .data import both_seats
 from .folders import AA10
 from .registry import check
-from .ten_seed_studies import final_matrix, low_pairs, pair_rows, snapshot_env_steps, training_curve
+from .ten_seed_studies import cell_count, final_matrix, low_pairs, snapshot_env_steps, training_curve
 
-#: roles.md's tables: the seeds at update 183, the cross-play pairs there, then the seeds at these earlier updates.
-EARLIER = (152, 122, 92)
-RETURN = 8  # the return's column in roles.md's tables (after the seed, four jobs, two pot columns and soup waiting)
+#: roles.md's columns, by the headers roles.py writes (``table_header``): a column added or moved there changes nothing
+#: here, a renamed one fails with its name.
+SEED, RETURN = "seed", "return"
+ONIONS, DELIVERIES = "onions to pot (seat 0 share)", "deliveries (seat 0 share)"
+TOP_FILLED = "onions into the top pot (seat 0, seat 1)"
+TOP_PLATED = "soups plated from the top pot (seat 0, seat 1)"
+WAITING = "steps a cooked soup waits (top pot, bottom pot)"
+PAIRS_HEADING = "Cross-play pairs at update 183"
 TWO_POTS = 0.9  # a seed "uses both pots" when its seat 1 puts less than this share of its onions into the top pot
 FAILING_SERVER = 150  # the score below which a one-pot seed's seat 0 is said to fail with a two-pot seat 1
 
@@ -26,19 +32,45 @@ def shares(cell: str) -> tuple[float, float]:
     return tuple(math.nan if v.strip() == "none" else float(v) for v in cell.split(","))
 
 
-def seed_tables() -> dict[int, list[list[str]]]:
-    """roles.md's per-seed tables, by update."""
-    tables = md_tables(AA10 / "roles.md")
-    return {183: tables[0], **dict(zip(EARLIER, tables[2:], strict=True))}
+@functools.cache
+def roles_md() -> dict[str, list[dict[str, str]]]:
+    """roles.md's tables by the ``##`` heading above each, every row as {column header: cell}."""
+    tables, heading, header = {}, None, None
+    for line in (AA10 / "roles.md").read_text().split("\n"):
+        if line.startswith("## "):
+            heading = line[3:].strip()
+        elif line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if heading not in tables:
+                tables[heading], header = [], cells
+            elif not all(re.fullmatch(r":?-+:?", c) for c in cells):
+                tables[heading].append(dict(zip(header, cells, strict=True)))
+    return tables
 
 
-def top_pot_share(row: list[str]) -> float:
+def seed_rows(update: int) -> list[dict[str, str]]:
+    """roles.md's table of every seed's self-play at ``update`` (under "## Update <update> ...")."""
+    (rows,) = [rows for heading, rows in roles_md().items() if re.fullmatch(rf"Update {update}\b.*", heading)]
+    return rows
+
+
+def pair_table() -> dict[tuple[int, int], dict[str, str]]:
+    """roles.md's cross-play pairs at update 183, by (seat-0 seed, seat-1 seed)."""
+    return {tuple(int(k) for k in row[SEED].split(" × ")): row for row in roles_md()[PAIRS_HEADING]}
+
+
+def share_of(cell: str) -> float:
+    """The share of a "<share> of <count>" cell."""
+    return float(cell.split(" of ")[0])
+
+
+def top_pot_share(row: dict[str, str]) -> float:
     """Seat 1's share of its onions that went into the top pot (the onions are seat 1's in every seed: aa10_roles)."""
-    return shares(row[5])[1]
+    return shares(row[TOP_FILLED])[1]
 
 
 def two_pot_seeds(update: int = 183) -> list[int]:
-    return [int(row[0]) for row in seed_tables()[update] if top_pot_share(row) < TWO_POTS]
+    return [int(row[SEED]) for row in seed_rows(update) if top_pot_share(row) < TWO_POTS]
 
 
 def groups() -> tuple[list[int], list[int]]:
@@ -80,16 +112,16 @@ def _():
     deliveries; the seeds whose seat 1 fills both pots, its top-pot share (lowest, highest), and the others' lowest;
     every seed's seat 0 plates from the pots its seat 1 fills (largest gap between the two shares); the largest share
     of steps a cooked soup waits in either pot."""
-    rows = seed_tables()[183]
-    onions = [float(row[1].split(" of ")[0]) for row in rows]
-    delivered = [float(row[4].split(" of ")[0]) for row in rows]
+    rows = seed_rows(183)
+    onions = [share_of(row[ONIONS]) for row in rows]
+    delivered = [share_of(row[DELIVERIES]) for row in rows]
     both = two_pot_seeds()
-    top = {int(row[0]): top_pot_share(row) for row in rows}
-    plated = {int(row[0]): shares(row[6])[0] for row in rows}
+    top = {int(row[SEED]): top_pot_share(row) for row in rows}
+    plated = {int(row[SEED]): shares(row[TOP_PLATED])[0] for row in rows}
     return [
         max(onions), min(delivered),
         *both, min(top[k] for k in both), max(top[k] for k in both), min(top[k] for k in top if k not in both),
-        max(abs(plated[k] - top[k]) for k in top), max(max(shares(row[7])) for row in rows),
+        max(abs(plated[k] - top[k]) for k in top), max(max(shares(row[WAITING])) for row in rows),
     ]  # fmt: skip
 
 
@@ -129,10 +161,10 @@ def pair_roles(seat0: int, seat1: int) -> list:
     """roles.md's cross-play pair ``seat0 × seat1`` (32 episodes), in the order the page states it: the return, the
     onions potted, seat 1's share of them into the top pot, seat 0's share of its plated soups from the top pot, the
     soups delivered, the share of steps a cooked soup waits in the top pot and in the bottom pot."""
-    row = pair_rows(md_tables(AA10 / "roles.md")[1])[(seat0, seat1)]
+    row = pair_table()[(seat0, seat1)]
     return [
-        float(row[RETURN]), int(row[1].split(" of ")[1]), shares(row[5])[1], shares(row[6])[0],
-        int(row[4].split(" of ")[1]), *shares(row[7]),
+        float(row[RETURN]), cell_count(row[ONIONS]), shares(row[TOP_FILLED])[1], shares(row[TOP_PLATED])[0],
+        cell_count(row[DELIVERIES]), *shares(row[WAITING]),
     ]  # fmt: skip
 
 
@@ -156,14 +188,14 @@ def _():
     assert {seat0 for seat0, _ in SLOW_SERVERS} <= set(failing), failing  # seed 1, the third, has its own pairs
     assert {seat0 for seat0, _ in OTHER_SERVERS} == set(one) - set(failing)  # every other one-pot seed serves once
     assert {seat1 for _, seat1 in (*SLOW_SERVERS, *OTHER_SERVERS)} <= set(both)  # every filler fills both pots
-    pairs = pair_rows(md_tables(AA10 / "roles.md")[1])
+    pairs = pair_table()
     out = []
     columns = (
-        lambda row: shares(row[6])[0],
-        lambda row: int(row[4].split(" of ")[1]),
+        lambda row: shares(row[TOP_PLATED])[0],
+        lambda row: cell_count(row[DELIVERIES]),
         lambda row: float(row[RETURN]),
-        lambda row: shares(row[7])[0],
-        lambda row: shares(row[7])[1],
+        lambda row: shares(row[WAITING])[0],
+        lambda row: shares(row[WAITING])[1],
     )
     for column in columns:
         for group in (SLOW_SERVERS, OTHER_SERVERS):
@@ -176,19 +208,17 @@ def _():
 def _():
     """The other seat order in roles.md (a two-pot seed serving, a one-pot seed filling: 2 × 1, 6 × 1, 9 × 4): the
     filler's lowest top-pot share and the server's lowest share of its plated soups from the top pot."""
-    pairs = pair_rows(md_tables(AA10 / "roles.md")[1])
-    rows = [pairs[key] for key in ((2, 1), (6, 1), (9, 4))]
-    return [min(shares(row[5])[1] for row in rows), min(shares(row[6])[0] for row in rows)]
+    rows = [pair_table()[key] for key in ((2, 1), (6, 1), (9, 4))]
+    return [min(shares(row[TOP_FILLED])[1] for row in rows), min(shares(row[TOP_PLATED])[0] for row in rows)]
 
 
 @check("aa10_emerge")
 def _():
     """The two-pot seeds' seat-1 top-pot share at updates 92, 122 and 152 (each seed's, in seed order), each update
     followed by its env steps in millions."""
-    tables = seed_tables()
     out = []
     for update in (92, 122, 152):
-        rows = {int(row[0]): row for row in tables[update]}
+        rows = {int(row[SEED]): row for row in seed_rows(update)}
         out += [*(top_pot_share(rows[k]) for k in two_pot_seeds()), snapshot_env_steps(update, AA10)]
     return out
 

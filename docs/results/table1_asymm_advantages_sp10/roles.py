@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from cluster.cli.roles_table import print_roles_table, table_row
-from ocv2.items import COOKED, PLATE, Static
+from ocv2.items import COOKED
 from population.behaviour import ROLES, pot_use, role_counts, transitions
 
 HERE = Path(__file__).resolve().parent
@@ -41,7 +41,7 @@ BOTTOM_POT = (4, 3)
 def plated_from_top(states) -> np.ndarray:
     """float[seat]: the share of each seat's plated soups taken from the top pot (NaN: it plated none)."""
     t = transitions(states)
-    plated = (t.held == PLATE) & ((t.later & COOKED) != 0) & (t.faced == Static.POT)
+    plated = t.soup_plated
     top = plated & (t.faced_x == TOP_POT[0]) & (t.faced_y == TOP_POT[1])
     with np.errstate(invalid="ignore"):
         return top.sum(axis=(0, 1)) / plated.sum(axis=(0, 1))
