@@ -10,10 +10,18 @@ import re
 
 import numpy as np
 
-from .data import both_seats
+from .data import both_seats, md_tables_by_heading
 from .folders import AA10
 from .registry import check
-from .ten_seed_studies import cell_count, final_matrix, low_pairs, snapshot_env_steps, training_curve
+from .ten_seed_studies import (
+    cell_count,
+    cell_share,
+    final_matrix,
+    low_pairs,
+    seat_shares,
+    snapshot_env_steps,
+    training_curve,
+)
 
 #: roles.md's columns, by the headers roles.py writes (``table_header``): a column added or moved there changes nothing
 #: here, a renamed one fails with its name.
@@ -27,25 +35,10 @@ TWO_POTS = 0.9  # a seed "uses both pots" when its seat 1 puts less than this sh
 FAILING_SERVER = 150  # the score below which a one-pot seed's seat 0 is said to fail with a two-pot seat 1
 
 
-def shares(cell: str) -> tuple[float, float]:
-    """A roles table's "<seat 0>, <seat 1>" cell ("none": that seat did not do it)."""
-    return tuple(math.nan if v.strip() == "none" else float(v) for v in cell.split(","))
-
-
 @functools.cache
 def roles_md() -> dict[str, list[dict[str, str]]]:
     """roles.md's tables by the ``##`` heading above each, every row as {column header: cell}."""
-    tables, heading, header = {}, None, None
-    for line in (AA10 / "roles.md").read_text().split("\n"):
-        if line.startswith("## "):
-            heading = line[3:].strip()
-        elif line.startswith("|"):
-            cells = [c.strip() for c in line.strip().strip("|").split("|")]
-            if heading not in tables:
-                tables[heading], header = [], cells
-            elif not all(re.fullmatch(r":?-+:?", c) for c in cells):
-                tables[heading].append(dict(zip(header, cells, strict=True)))
-    return tables
+    return md_tables_by_heading(AA10 / "roles.md")
 
 
 def seed_rows(update: int) -> list[dict[str, str]]:
@@ -59,14 +52,9 @@ def pair_table() -> dict[tuple[int, int], dict[str, str]]:
     return {tuple(int(k) for k in row[SEED].split(" × ")): row for row in roles_md()[PAIRS_HEADING]}
 
 
-def share_of(cell: str) -> float:
-    """The share of a "<share> of <count>" cell."""
-    return float(cell.split(" of ")[0])
-
-
 def top_pot_share(row: dict[str, str]) -> float:
     """Seat 1's share of its onions that went into the top pot (the onions are seat 1's in every seed: aa10_roles)."""
-    return shares(row[TOP_FILLED])[1]
+    return seat_shares(row[TOP_FILLED])[1]
 
 
 def two_pot_seeds(update: int = 183) -> list[int]:
@@ -77,6 +65,11 @@ def groups() -> tuple[list[int], list[int]]:
     """(seeds using the top pot only, seeds using both) at update 183."""
     both = two_pot_seeds()
     return [k for k in range(10) if k not in both], both
+
+
+def failing_servers(m: np.ndarray, one: list[int], both: list[int]) -> list[int]:
+    """The top-pot-only seeds whose seat 0 scores below ``FAILING_SERVER`` with every two-pot seed's seat 1."""
+    return [k for k in one if m[k, both].max() < FAILING_SERVER]
 
 
 def pair_scores(m: np.ndarray, a: list[int], b: list[int]) -> list[float]:
@@ -113,15 +106,15 @@ def _():
     every seed's seat 0 plates from the pots its seat 1 fills (largest gap between the two shares); the largest share
     of steps a cooked soup waits in either pot."""
     rows = seed_rows(183)
-    onions = [share_of(row[ONIONS]) for row in rows]
-    delivered = [share_of(row[DELIVERIES]) for row in rows]
+    onions = [cell_share(row[ONIONS]) for row in rows]
+    delivered = [cell_share(row[DELIVERIES]) for row in rows]
     both = two_pot_seeds()
     top = {int(row[SEED]): top_pot_share(row) for row in rows}
-    plated = {int(row[SEED]): shares(row[TOP_PLATED])[0] for row in rows}
+    plated = {int(row[SEED]): seat_shares(row[TOP_PLATED])[0] for row in rows}
     return [
         max(onions), min(delivered),
         *both, min(top[k] for k in both), max(top[k] for k in both), min(top[k] for k in top if k not in both),
-        max(abs(plated[k] - top[k]) for k in top), max(max(shares(row[WAITING])) for row in rows),
+        max(abs(plated[k] - top[k]) for k in top), max(max(seat_shares(row[WAITING])) for row in rows),
     ]  # fmt: skip
 
 
@@ -150,7 +143,7 @@ def _():
     one, both = groups()
     plater_one = m[np.ix_(one, both)]
     plater_both = m[np.ix_(both, one)]
-    failing = [k for k in one if m[k, both].max() < FAILING_SERVER]
+    failing = failing_servers(m, one, both)
     return [
         plater_one.min(), plater_one.max(), plater_both.min(), plater_both.max(),
         *failing, FAILING_SERVER, max(m[k, both].max() for k in failing),
@@ -163,8 +156,8 @@ def pair_roles(seat0: int, seat1: int) -> list:
     soups delivered, the share of steps a cooked soup waits in the top pot and in the bottom pot."""
     row = pair_table()[(seat0, seat1)]
     return [
-        float(row[RETURN]), cell_count(row[ONIONS]), shares(row[TOP_FILLED])[1], shares(row[TOP_PLATED])[0],
-        cell_count(row[DELIVERIES]), *shares(row[WAITING]),
+        float(row[RETURN]), cell_count(row[ONIONS]), seat_shares(row[TOP_FILLED])[1], seat_shares(row[TOP_PLATED])[0],
+        cell_count(row[DELIVERIES]), *seat_shares(row[WAITING]),
     ]  # fmt: skip
 
 
@@ -184,18 +177,18 @@ def _():
     theirs), the soups delivered in 32 episodes, the return, the share of steps a cooked soup waits in the top pot and
     in the bottom pot (each: lowest, highest, each group)."""
     one, both = groups()
-    failing = [k for k in one if final_matrix(AA10)[k, both].max() < FAILING_SERVER]  # as aa10_seats names them
+    failing = failing_servers(final_matrix(AA10), one, both)  # as aa10_seats names them
     assert {seat0 for seat0, _ in SLOW_SERVERS} <= set(failing), failing  # seed 1, the third, has its own pairs
     assert {seat0 for seat0, _ in OTHER_SERVERS} == set(one) - set(failing)  # every other one-pot seed serves once
     assert {seat1 for _, seat1 in (*SLOW_SERVERS, *OTHER_SERVERS)} <= set(both)  # every filler fills both pots
     pairs = pair_table()
     out = []
     columns = (
-        lambda row: shares(row[TOP_PLATED])[0],
+        lambda row: seat_shares(row[TOP_PLATED])[0],
         lambda row: cell_count(row[DELIVERIES]),
         lambda row: float(row[RETURN]),
-        lambda row: shares(row[WAITING])[0],
-        lambda row: shares(row[WAITING])[1],
+        lambda row: seat_shares(row[WAITING])[0],
+        lambda row: seat_shares(row[WAITING])[1],
     )
     for column in columns:
         for group in (SLOW_SERVERS, OTHER_SERVERS):
@@ -209,7 +202,7 @@ def _():
     """The other seat order in roles.md (a two-pot seed serving, a one-pot seed filling: 2 × 1, 6 × 1, 9 × 4): the
     filler's lowest top-pot share and the server's lowest share of its plated soups from the top pot."""
     rows = [pair_table()[key] for key in ((2, 1), (6, 1), (9, 4))]
-    return [min(shares(row[TOP_FILLED])[1] for row in rows), min(shares(row[TOP_PLATED])[0] for row in rows)]
+    return [min(seat_shares(row[TOP_FILLED])[1] for row in rows), min(seat_shares(row[TOP_PLATED])[0] for row in rows)]
 
 
 @check("aa10_emerge")

@@ -20,6 +20,7 @@ from .ten_seed_studies import (
     low_pairs,
     pair_rows,
     paper_beside_intervals,
+    seat_shares,
     snapshot_env_steps,
     sp_sa_low,
     sp_sa_mean,
@@ -35,18 +36,12 @@ def cc_roles(study: Path = CC10) -> tuple[list[list[str]], dict]:
     return seeds, pair_rows(pairs)
 
 
-def two_shares(cell: str) -> tuple[float, float]:
-    """A roles table's "<seat 0>, <seat 1>" cell."""
-    first, second = cell.split(",")
-    return float(first), float(second)
-
-
 def cc_conventions(study: Path = CC10) -> list[tuple[str, str]]:
     """Per seed, (pot, direction) of its self-play: "left" where seat 0 puts most of its onions into the left pot,
     "cw" where more than half of seat 0's moves round the island go clockwise."""
     seeds, _ = cc_roles(study)
     return [
-        ("left" if two_shares(row[8])[0] >= 0.5 else "right", "cw" if two_shares(row[5])[0] > 0.5 else "ccw")
+        ("left" if seat_shares(row[8])[0] >= 0.5 else "right", "cw" if seat_shares(row[5])[0] > 0.5 else "ccw")
         for row in seeds
     ]
 
@@ -74,8 +69,8 @@ def _():
     right = [k for k, c in enumerate(conv) if c[0] == "right"]
     ccw = [k for k, c in enumerate(conv) if c[1] == "ccw"]
     cw = [k for k, c in enumerate(conv) if c[1] == "cw"]
-    left_share = [two_shares(row[8]) for row in seeds]
-    clockwise = [two_shares(row[5])[0] for row in seeds]
+    left_share = [seat_shares(row[8]) for row in seeds]
+    clockwise = [seat_shares(row[5])[0] for row in seeds]
     island = [float(row[6].split()[0]) for row in seeds]
     crossing = [k for k in range(10) if island[k] > 0.2]
     return [
@@ -224,12 +219,12 @@ def _():
     tables = md_tables(CC10 / "roles.md")
     at = {183: tables[0], 244: tables[2], 305: tables[3], 366: tables[4]}
     conv = cc_conventions()
-    pots = sum(("left" if two_shares(row[8])[0] >= 0.5 else "right") == c[0] for row, c in zip(at[366], conv))
-    ways = sum(("cw" if two_shares(row[5])[0] > 0.5 else "ccw") == c[1] for row, c in zip(at[366], conv))
+    pots = sum(("left" if seat_shares(row[8])[0] >= 0.5 else "right") == c[0] for row, c in zip(at[366], conv))
+    ways = sum(("cw" if seat_shares(row[5])[0] > 0.5 else "ccw") == c[1] for row, c in zip(at[366], conv))
     island = {u: float(at[u][4][6].split()[0]) for u in (244, 366)}
     dishes = {u: float(at[u][8][2].split()[0]) for u in (305, 366)}
-    return [pots, millions(CC10, "sp"), ways, L, two_shares(at[183][9][5])[0], two_shares(at[366][9][5])[0],
-            L, two_shares(at[366][4][5])[0], island[366], island[244], snapshot_env_steps(244, CC10),
+    return [pots, millions(CC10, "sp"), ways, L, seat_shares(at[183][9][5])[0], seat_shares(at[366][9][5])[0],
+            L, seat_shares(at[366][4][5])[0], island[366], island[244], snapshot_env_steps(244, CC10),
             L, dishes[366], dishes[305], snapshot_env_steps(305, CC10), L, float(at[366][9][2].split()[0])]  # fmt: skip
 
 
@@ -264,8 +259,8 @@ def _():
 def _():
     """The SA seeds' direction round the island and pot use (roles.md's first table, the seeds at update 183)."""
     seeds, _ = cc_roles(CC_SA10)
-    clockwise = [two_shares(row[5])[0] for row in seeds]
-    left = [two_shares(row[8]) for row in seeds]
+    clockwise = [seat_shares(row[5])[0] for row in seeds]
+    left = [seat_shares(row[8]) for row in seeds]
     ccw = [k for k in range(10) if clockwise[k] < 0.5]
     cw = [k for k in range(10) if k not in ccw]
     one_pot = [k for k in range(10) if min(left[k]) >= 0.9]
@@ -295,10 +290,10 @@ def _():
         seat = 0 if i == odd else 1
         delivered = seat_count(row[4])[0]
         partner.append(1 - delivered if seat == 0 else delivered)
-        cw.append(two_shares(row[5])[seat])
+        cw.append(seat_shares(row[5])[seat])
         onions.append(seat_count(row[1])[1] / np.mean([seat_count(seeds[k][1])[1] for k in (i, j)]))
     return [
-        len(pairs), len(low_pairs(CC_SA10, "sa")), odd, two_shares(seeds[odd][5])[0], min(cw), max(cw),
+        len(pairs), len(low_pairs(CC_SA10, "sa")), odd, seat_shares(seeds[odd][5])[0], min(cw), max(cw),
         min(onions), max(onions), 0.65, sum(p >= 0.65 for p in partner), len(pairs),
     ]  # fmt: skip
 
@@ -417,12 +412,12 @@ def _():
     tables = md_tables(CC_SA10 / "roles.md")
     at = {183: tables[0], 366: tables[2]}
     (odd,) = set.intersection(*({i, j} for i, j, _ in low_pairs(CC_SA10, "sa")))
-    others = [two_shares(row[5])[0] for k, row in enumerate(at[366]) if k != odd]
+    others = [seat_shares(row[5])[0] for k, row in enumerate(at[366]) if k != odd]
     steps = millions(CC_SA10_6M, "sa"), millions(CC_SA10, "sa")
     return [
-        two_shares(at[366][odd][5])[0],
+        seat_shares(at[366][odd][5])[0],
         steps[0],
-        two_shares(at[183][odd][5])[0],
+        seat_shares(at[183][odd][5])[0],
         steps[1],
         min(others),
         max(others),

@@ -134,19 +134,33 @@ def pair_se(name: str, a: int, b: int) -> float:
 
 def md_tables(path: Path) -> list[list[list[str]]]:
     """Every markdown table of a file: its body rows as lists of cell strings."""
-    tables, current = [], None
+    return [rows for _, _, rows in _md_table_blocks(path)]
+
+
+def md_tables_by_heading(path: Path) -> dict[str, list[dict[str, str]]]:
+    """Every markdown table of a file by the ``##`` heading above it (one table per heading), each body row as
+    {column header: cell}: a reader that names its columns is not shifted by a column added before them."""
+    return {
+        heading: [dict(zip(header, row, strict=True)) for row in rows]
+        for heading, header, rows in _md_table_blocks(path)
+    }
+
+
+def _md_table_blocks(path: Path) -> list[tuple[str | None, list[str], list[list[str]]]]:
+    """(the ``##`` heading above it, its header cells, its body rows) of every markdown table of a file."""
+    tables, current, heading = [], None, None
     for line in path.read_text().split("\n"):
         if line.startswith("|"):
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
             if current is None:
                 current = []
-                tables.append(current)
-                continue  # header
-            if all(re.fullmatch(r":?-+:?", c) for c in cells):
-                continue
-            current.append(cells)
+                tables.append((heading, cells, current))
+            elif not all(re.fullmatch(r":?-+:?", c) for c in cells):
+                current.append(cells)
         else:
             current = None
+            if line.startswith("## "):
+                heading = line[3:].strip()
     return tables
 
 

@@ -8,6 +8,7 @@ import csv
 import functools
 import itertools
 import json
+import math
 import re
 from pathlib import Path
 
@@ -131,6 +132,17 @@ def paired_gap_difference(base: np.ndarray, other: np.ndarray) -> list[float]:
 def pair_rows(table: list[list[str]]) -> dict:
     """A roles table of ordered cross-play pairs as {(seat-0 seed, seat-1 seed): the row's cells}."""
     return {tuple(int(k) for k in row[0].split(" × ")): row for row in table}
+
+
+def seat_shares(cell: str) -> tuple[float, float]:
+    """A roles table's "<seat 0>, <seat 1>" cell ("none": that seat did not do it, NaN)."""
+    first, second = (math.nan if v.strip() == "none" else float(v) for v in cell.split(","))
+    return first, second
+
+
+def cell_share(cell: str) -> float:
+    """The share of a roles table's "<share> of <count>" cell."""
+    return float(cell.split(" of ")[0])
 
 
 def cell_count(cell: str) -> float:
