@@ -12,6 +12,7 @@ from pathlib import Path
 import jax
 
 from cluster.cli.args import add_published_population, published_files, published_pairs
+from population.behaviour import ROLES
 from population.numerics import DEFAULT_PRECISION, matmul_precision
 from population.policy import PolicyError, policy_env
 from population.published import load_population
@@ -49,3 +50,13 @@ def print_roles_table(
 def table_row(label, cells) -> str:
     """One markdown table row: ``label`` (a seed, or a pair "i × j") then ``cells``."""
     return f"| {label} | " + " | ".join(cells) + " |"
+
+
+#: The header cells of the four jobs (``population.behaviour.ROLES``), each as seat 0's share.
+JOB_HEADERS = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
+
+
+def job_cells(counts) -> list[str]:
+    """Seat 0's share of each job (``role_counts``: int[len(ROLES), seat]) and the pair's count ("none" for a job
+    nobody did)."""
+    return [f"{c[0] / c.sum():.2f} of {int(c.sum())}" if c.sum() else "none" for c in counts]

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cluster.cli.roles_table import print_roles_table, table_row
+from cluster.cli.roles_table import JOB_HEADERS, job_cells, print_roles_table, table_row
 from ocv2.items import COOKED
 from population.behaviour import ROLES, pot_use, role_counts, transitions
 
@@ -59,9 +59,8 @@ def soup_waiting(states) -> list[float]:
 
 
 def table_header() -> str:
-    jobs = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
     return (
-        f"| seed | {jobs} | onions into the top pot (seat 0, seat 1) | soups plated from the top pot (seat 0, seat 1) "
+        f"| seed | {JOB_HEADERS} | onions into the top pot (seat 0, seat 1) | soups plated from the top pot (seat 0, seat 1) "
         "| steps a cooked soup waits (top pot, bottom pot) | return |\n|---:|"
         + "---:|" * len(ROLES)
         + "---|---|---|---:|"
@@ -74,11 +73,10 @@ def shares(values) -> str:
 
 def seed_row(label, states, returns) -> str:
     """One table row for a recorded play (states [E, T+1, ...], returns [E]) of a seed or a pair (``label``)."""
-    counts = role_counts(states)
     use = pot_use(states)
     top = [tuple(cell) for cell in use.cells.tolist()].index(TOP_POT)
     cells = [
-        *(f"{c[0] / c.sum():.2f} of {int(c.sum())}" if c.sum() else "none" for c in counts),
+        *job_cells(role_counts(states)),
         shares(use.shares()[top]),
         shares(plated_from_top(states)),
         ", ".join(f"{v:.2f}" for v in soup_waiting(states)),

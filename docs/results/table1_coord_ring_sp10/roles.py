@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cluster.cli.roles_table import print_roles_table
+from cluster.cli.roles_table import JOB_HEADERS, print_roles_table
 from population.behaviour import ROLES, clockwise_moves, pot_use, role_counts
 
 HERE = Path(__file__).resolve().parent
@@ -41,9 +41,8 @@ def first_pot_share(states) -> np.ndarray:
 
 
 def table_header() -> str:
-    jobs = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
     return (
-        f"| seed | clockwise share (seat 0, seat 1) | {jobs} | onions into the first pot (seat 0, seat 1) | return |\n"
+        f"| seed | clockwise share (seat 0, seat 1) | {JOB_HEADERS} | onions into the first pot (seat 0, seat 1) | return |\n"
         "|---:|---|" + "---:|" * len(ROLES) + "---|---:|"
     )
 

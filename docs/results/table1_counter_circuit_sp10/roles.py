@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cluster.cli.roles_table import print_roles_table, table_row
+from cluster.cli.roles_table import JOB_HEADERS, job_cells, print_roles_table, table_row
 from population.behaviour import ITEM_KINDS, ROLES, clockwise_moves, counter_use, pot_use, role_counts
 
 HERE = Path(__file__).resolve().parent
@@ -57,9 +57,8 @@ def clockwise_share(x, y) -> np.ndarray:
 
 
 def table_header() -> str:
-    jobs = " | ".join(f"{role} (seat 0 share)" for role in ROLES)
     return (
-        f"| seed | {jobs} | clockwise share (seat 0, seat 1) | onions over the island per onion potted (seat 0 share) "
+        f"| seed | {JOB_HEADERS} | clockwise share (seat 0, seat 1) | onions over the island per onion potted (seat 0 share) "
         "| plates over the island per soup (seat 0 share) | onions into the left pot (seat 0, seat 1) | return |\n"
         "|---:|" + "---:|" * len(ROLES) + "---|---|---:|---|---:|"
     )
@@ -68,7 +67,7 @@ def table_header() -> str:
 def seed_row(label, states, returns) -> str:
     """One table row for a recorded play (states [E, T+1, ...], returns [E]) of a seed or a pair (``label``)."""
     counts = role_counts(states)
-    jobs = [f"{c[0] / c.sum():.2f} of {int(c.sum())}" if c.sum() else "none" for c in counts]
+    jobs = job_cells(counts)
     turn = clockwise_share(states.agents.x, states.agents.y)
     onions, plates = island_put_downs(states, "ingredient"), island_put_downs(states, "plate")
     potted, delivered = int(counts[0].sum()), int(counts[3].sum())
