@@ -45,7 +45,7 @@ from population.sa import collect_buffer
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = str(ROOT / "configs" / "smoke.yaml")
 LONGER = ["ppo.total_timesteps=1024", "run.checkpoint_every=2"]  # 8 updates, a checkpoint every 2
-SA = [*LONGER, "population.method=sa"]  # two SA iterations: the state buffer is gathered after update 4
+SA = [*LONGER, "population.method=sa"]  # two SA iterations: state buffers gathered at updates 0 and 4
 TIMING = {"steps_per_s", "wall_s"}
 
 
@@ -232,8 +232,8 @@ def test_a_worker_killed_mid_training_restarts_and_finishes_with_the_same_number
 
 @pytest.fixture(scope="module")
 def sa_reference(tmp_path_factory):
-    """``reference`` with state augmentation: the coordinator gathers a state buffer after update 4 and every
-    actor trains against it; what an SA run whose actor was killed must reproduce."""
+    """``reference`` with state augmentation: the coordinator gathers a state buffer at updates 0 and 4 and every
+    actor trains against the newest; what an SA run whose actor was killed must reproduce."""
     run = tmp_path_factory.mktemp("ray") / "sa_reference"
     coordinator.train(load_config(SMOKE, SA), run, ShardsHere, show_progress=False, evaluate=False)
     return run
@@ -281,8 +281,8 @@ def test_an_fcp_actor_killed_mid_training_restarts_with_its_pool_and_finishes_wi
     summary = ray_backend.train_population(config, run, show_progress=False, evaluate=False, on_chunk=hook)
     killed.pop().join()
     assert summary["restarts"] >= 1
-    assert all(event["restored_update"] >= 2 for event in RunDir(run).read_manifest()["restart_events"])
     manifest = RunDir(run).read_manifest()
+    assert all(event["restored_update"] >= 2 for event in manifest["restart_events"])
     assert manifest["status"] == "finished" and manifest["shards"] == [[0], [1]]
     assert manifest["pool"] == RunDir(here).read_manifest()["pool"] == ["seed0@4", "seed0@8", "seed1@4", "seed1@8"]
     assert_same_tree(final_params(run), final_params(here))
