@@ -158,30 +158,24 @@ def test_command_help_in_the_table_matches_each_command_parser():
     assert {action.dest: action.help for action in sub._choices_actions} == {c.name: c.help for c in COMMANDS}
 
 
+def _python(code: str) -> subprocess.CompletedProcess:
+    """``code`` run by a fresh interpreter that imports this checkout (its output captured; a failure raises)."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+
+
 def test_layouts_does_not_import_the_trainer():
     code = (
         "import sys; from cluster.cli import main; main(['layouts']); "
         "print(sorted(m for m in ('cluster.api', 'cluster.runtime.coordinator', 'optax', 'ray', 'population.ppo') if m in sys.modules))"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        check=True,
-        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
-    ).stdout
+    out = _python(code).stdout
     assert out.strip().splitlines()[-1] == "[]"
 
 
 def test_import_ocv2_loads_no_learning_code():
     code = "import sys, ocv2; print(sorted(m for m in ('optax', 'population') if m in sys.modules))"
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        check=True,
-        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
-    ).stdout
+    out = _python(code).stdout
     assert out.strip().splitlines()[-1] == "[]"
 
 
@@ -342,13 +336,7 @@ def test_each_log_line_is_written_once_even_after_a_library_configures_logging()
         "logging.getLogger('some.library').info('library detail')\n"
         "logging.getLogger('some.library').warning('library warning')\n"
     )
-    err = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        check=True,
-        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
-    ).stderr
+    err = _python(code).stderr
     assert err.splitlines() == ["progress line", "warning: library warning"]
 
 
