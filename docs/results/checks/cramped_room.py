@@ -1,34 +1,55 @@
-"""Checks of the 10-seed Cramped Room SP study at 3M (table1_cramped_room_sp10/): Table 1's control, a layout where
-the paper reports almost no gap."""
+"""Checks of the 10-seed Cramped Room studies at 3M: Table 1's control, a layout where the paper reports almost no
+gap with either method. SP (table1_cramped_room_sp10/) and its SA half at the same budget (table1_cramped_room_sa10/)."""
 
 from __future__ import annotations
 
+import functools
 import itertools
+from pathlib import Path
 
 import numpy as np
 
-from .data import both_seats
-from .folders import CRM10
+from .data import both_seats, run
+from .folders import CRM10, CRM_SA10
 from .registry import check
-from .ten_seed_studies import final_matrix, partner_means, training_curve
+from .ten_seed_studies import (
+    final_matrix,
+    paper_beside_intervals,
+    partner_means,
+    sp_sa_low,
+    sp_sa_mean,
+    training_curve,
+)
 
 
-def pair_ratios() -> list[tuple[int, int, float]]:
+def pair_ratios(study: Path = CRM10, method: str = "sp") -> list[tuple[int, int, float]]:
     """Each pair's score (both seat orders) over the mean of its two seeds' self-play, lowest first."""
-    m = final_matrix(CRM10)
+    m = final_matrix(study, method)
     p = both_seats(m)
     ratios = [(i, j, p[i, j] / ((m[i, i] + m[j, j]) / 2)) for i, j in itertools.combinations(range(len(m)), 2)]
     return sorted(ratios, key=lambda r: r[2])
 
 
-@check("crm10_pairs")
-def _():
-    m = final_matrix(CRM10)
+def pair_range(study: Path, method: str) -> list:
+    """The lowest and highest pair score (both seat orders), the pair lowest beside its seeds' self-play (its seeds
+    and share), and the lowest and highest self-play."""
+    m = final_matrix(study, method)
     p = both_seats(m)
     scores = [p[i, j] for i, j in itertools.combinations(range(len(m)), 2)]
-    lowest = pair_ratios()[0]
     self_play = np.diag(m)
-    return [min(scores), max(scores), *lowest, float(self_play.min()), float(self_play.max())]
+    return [min(scores), max(scores), *pair_ratios(study, method)[0], float(self_play.min()), float(self_play.max())]
+
+
+def seed_gaps(study: Path, method: str) -> list[float]:
+    """Per seed: its self-play minus its mean with the 9 others (both seat orders)."""
+    m = final_matrix(study, method)
+    with_others = partner_means(both_seats(m))
+    return [m[k, k] - with_others[k] for k in range(len(m))]
+
+
+check("crm10_pairs")(functools.partial(pair_range, CRM10, "sp"))
+check("crm_sa10_pairs")(functools.partial(pair_range, CRM_SA10, "sa"))
+check("crm_sa10_within")(functools.partial(paper_beside_intervals, CRM_SA10, "sa"))
 
 
 @check("crm10_curve")
@@ -49,10 +70,44 @@ def _():
     lowest = sorted((p[i, j], i, j) for i, j in itertools.combinations(range(len(m)), 2))[:3]
     (common,) = set.intersection(*({i, j} for _, i, j in lowest))
     with_others = partner_means(p)
-    gaps = [m[k, k] - with_others[k] for k in range(len(m))]
+    gaps = seed_gaps(CRM10, "sp")
     pairs = [x for score, i, j in lowest for x in (({i, j} - {common}).pop(), score)]
     return [
         common, *pairs, m[common, common],
         sum(g > 0 for g in gaps), len(m), max(gaps), int(np.argmax(gaps)),
         2, m[2, 2], with_others[2],
+    ]  # fmt: skip
+
+
+@check("crm_sa10_by_seed")
+def _():
+    """How many SA seeds score more with themselves than with the others (``seed_gaps``), the largest such gap and
+    its seed, the smallest and its seed; then the same count for the SP seeds."""
+    gaps = seed_gaps(CRM_SA10, "sa")
+    sp_gaps = seed_gaps(CRM10, "sp")
+    return [
+        sum(g > 0 for g in gaps), len(gaps), max(gaps), int(np.argmax(gaps)), min(gaps), int(np.argmin(gaps)),
+        sum(g > 0 for g in sp_gaps),
+    ]  # fmt: skip
+
+
+@check("crm_sa10_curve")
+def _():
+    """SA's training return (sparse, mean over the 10 seeds) at the kept snapshots 122, 152 and 183, with their env
+    steps (its episodes start from the state buffer's states too, so it is not SP's measure)."""
+    return training_curve(CRM_SA10, method="sa")
+
+
+@check("crm_sa10_sp_sa")
+def _():
+    """SP x SA (both seat orders): the 100 pairs' mean beside SP's and SA's cross-play, how many fall below half
+    their seeds' self-play, the lowest and highest pair, and the pair lowest beside its two seeds' self-play (its
+    share, SP seed, SA seed)."""
+    m, low = sp_sa_mean(CRM_SA10), sp_sa_low(CRM10, CRM_SA10)  # row = SP seed, column = SA seed
+    sp_self, sa_self = np.diag(final_matrix(CRM10)), np.diag(final_matrix(CRM_SA10, "sa"))
+    share = m / ((sp_self[:, None] + sa_self[None, :]) / 2)
+    sp_seed, sa_seed = np.unravel_index(int(share.argmin()), share.shape)
+    return [
+        m.size, m.mean(), run(CRM10, "sp")["xp"]["xp_mean"], run(CRM_SA10, "sa")["xp"]["xp_mean"], int(low.sum()), m.size,
+        m.min(), m.max(), share.min(), int(sp_seed), int(sa_seed),
     ]  # fmt: skip

@@ -19,4 +19,5 @@ CC_SA10 = RESULTS / "table1_counter_circuit_sa10"  # its SA half at the same bud
 CC10_6M = RESULTS / "table1_counter_circuit_sp10_6m"  # the same SP seeds trained on to 6M (--extend)
 CC_SA10_6M = RESULTS / "table1_counter_circuit_sa10_6m"  # the same SA seeds trained on to 6M (--extend)
 CRM10 = RESULTS / "table1_cramped_room_sp10"  # Table 1 Cramped Room SP (the control), 10 seeds, truncated at 3M
+CRM_SA10 = RESULTS / "table1_cramped_room_sa10"  # its SA half at the same budget
 AA10 = RESULTS / "table1_asymm_advantages_sp10"  # Table 1 Asymm. Advantages SP (the other control), 10 seeds, at 3M

@@ -9,7 +9,7 @@ import functools
 from pathlib import Path
 
 from .data import claim_row, paper, run, run_size, study_wall
-from .folders import AA10, CC10, CC10_6M, CC_SA10, CC_SA10_6M, CRM10, FC10, FC_SA10, SA10, SP10
+from .folders import AA10, CC10, CC10_6M, CC_SA10, CC_SA10_6M, CRM10, CRM_SA10, FC10, FC_SA10, SA10, SP10
 from .registry import check
 from .ten_seed_studies import (
     final_matrix,
@@ -76,6 +76,7 @@ def register_sa_beside_sp() -> None:
         "fc_sa10": (FC10, FC_SA10, tuple(SA_BESIDE_SP)),
         "cc_sa10": (CC10, CC_SA10, tuple(SA_BESIDE_SP)),
         "cc_sa10_6m": (CC10_6M, CC_SA10_6M, tuple(SA_BESIDE_SP)),
+        "crm_sa10": (CRM10, CRM_SA10, tuple(SA_BESIDE_SP)),
     }
     for name, (sp, sa, kinds) in studies.items():
         for kind in kinds:
@@ -133,6 +134,7 @@ def register_run_rows() -> None:
         "cc10_6m": (CC10_6M, "sp"),
         "cc_sa10_6m": (CC_SA10_6M, "sa"),
         "crm10": (CRM10, "sp"),
+        "crm_sa10": (CRM_SA10, "sa"),
         "aa10": (AA10, "sp"),
     }
     for name, (study, method) in studies.items():
