@@ -82,11 +82,12 @@ def _():
 @check("crm_sa10_by_seed")
 def _():
     """How many SA seeds score more with themselves than with the others (``seed_gaps``), the largest such gap and
-    its seed, the smallest and its seed; then the same count for the SP seeds."""
+    its seed; the seeds that score more with the others, then by how much each; the same count for the SP seeds."""
     gaps = seed_gaps(CRM_SA10, "sa")
     sp_gaps = seed_gaps(CRM10, "sp")
+    below = [k for k, g in enumerate(gaps) if g < 0]
     return [
-        sum(g > 0 for g in gaps), len(gaps), max(gaps), int(np.argmax(gaps)), min(gaps), int(np.argmin(gaps)),
+        sum(g > 0 for g in gaps), len(gaps), max(gaps), int(np.argmax(gaps)), *below, *(-gaps[k] for k in below),
         sum(g > 0 for g in sp_gaps),
     ]  # fmt: skip
 
