@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import importlib
 import json
 from pathlib import Path
 from types import SimpleNamespace
@@ -163,6 +164,78 @@ def test_cross_run_xp_of_a_run_with_itself_equals_its_in_run_xp(run, tmp_path, c
 
 def _xp(out, *args) -> int:
     return main(["xp", *args, "--episodes", "8", "--backend", "local", "--out", str(out), "--quiet"])
+
+
+_PLAY = crossplay.CrossPlayPlayer.play
+
+
+def _stopped_at(monkeypatch, call: int) -> list:
+    """Cross-play jobs stop with a Ctrl-C at the ``call``-th (the command line then ends the process: not here);
+    returns the list each played job's position is appended to."""
+    real, played = _PLAY, []  # the real one, whatever an earlier call of this patched in
+
+    def play(self, *args):
+        if len(played) + 1 == call:
+            raise KeyboardInterrupt
+        played.append(args[-1])
+        return real(self, *args)
+
+    monkeypatch.setattr(crossplay.CrossPlayPlayer, "play", play)
+    monkeypatch.setattr(importlib.import_module("cluster.cli.main"), "exit_now", lambda code: None)
+    return played
+
+
+def _two_orders(run) -> list[str]:
+    """The run's 2 policies against each seed directory: 4 jobs with the rows in seat 0, 2 with the columns."""
+    return ["--rows", str(run), "--cols", *(str(run / "checkpoints" / f"seed_{i}") for i in (0, 1))]
+
+
+def test_a_stopped_cross_play_continues_where_it_stopped_and_ends_as_an_uninterrupted_one(
+    run, tmp_path, monkeypatch, caplog
+):
+    """Each finished job is kept in OUT.unfinished; the same command plays only the others, and the results are
+    the uninterrupted command's, file for file."""
+    whole, out = tmp_path / "whole", tmp_path / "stopped"
+    assert _xp(whole, *_two_orders(run)) == 0
+    _stopped_at(monkeypatch, call=4)
+    caplog.set_level("WARNING", logger="cluster.cli.xp")
+    assert _xp(out, *_two_orders(run)) == 130
+    kept = tmp_path / "stopped.unfinished"
+    assert not out.exists() and len(list(kept.glob("*.npz"))) == 3
+    assert f"3 of the 6 jobs played so far are kept in {kept}: the same command with --out {out} continues" in caplog.text
+    caplog.clear()
+    played = _stopped_at(monkeypatch, call=0)  # no stop: counts the jobs played
+    assert _xp(out, *_two_orders(run)) == 0
+    assert len(played) == 3 and not kept.exists()
+    assert f"continuing a stopped cross-play: 3 of its 6 jobs were played before ({kept})" in caplog.text
+    names = sorted(p.name for p in whole.iterdir())
+    assert names == sorted(p.name for p in out.iterdir()) and "matrix_cols_seat0.csv" in names
+    for name in ("matrix.csv", "matrix_cols_seat0.csv", "matrix_mean.csv", "episodes.csv", "blocks.csv"):
+        assert (out / name).read_bytes() == (whole / name).read_bytes(), name
+    drop_wall = lambda path: {k: v for k, v in json.loads(path.read_text()).items() if k != "wall_s"}  # noqa: E731
+    assert drop_wall(out / "summary.json") == drop_wall(whole / "summary.json")
+
+
+def test_a_stopped_cross_play_is_not_continued_with_other_settings_or_left_behind_with_nothing_played(
+    run, tmp_path, monkeypatch, capsys
+):
+    out = tmp_path / "stopped"
+    kept = tmp_path / "stopped.unfinished"
+    _stopped_at(monkeypatch, call=1)  # stopped before any job finished: nothing to keep
+    assert _xp(out, *_two_orders(run)) == 130
+    assert not kept.exists() and not out.exists()
+    _stopped_at(monkeypatch, call=2)
+    assert _xp(out, *_two_orders(run)) == 130
+    before = sorted(p.name for p in kept.iterdir())
+    assert len(before) == 2  # request.json and one job
+    capsys.readouterr()
+    code = main(["xp", *_two_orders(run), "--episodes", "4", "--backend", "local", "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith(f"ocv2 xp: error: --out {out}: {kept} holds the jobs of an unfinished")
+    assert "differs in: episodes (8 there, 4 now)" in err and "remove that folder to start again" in err
+    swapped = ["--rows", str(run / "checkpoints" / "seed_1"), *_two_orders(run)[2:]]  # other policies, same count
+    assert _xp(out, *swapped) == 2 and "differs in: rows" in capsys.readouterr().err
+    assert sorted(p.name for p in kept.iterdir()) == before and not out.exists()
 
 
 def test_pooled_sources_read_as_one_population(run, tmp_path, capsys):

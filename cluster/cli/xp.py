@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import logging
 import os
 import time
 from pathlib import Path
@@ -25,10 +26,13 @@ from cluster.runtime.evaluate import evaluate_run
 from cluster.runtime.progress import Bar
 from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDir, RunDirError
+from cluster.runtime.xp_journal import JournalMismatch, XPJournal
 from ocv2.atomic import staged_folder
 from population.checkpoints import CheckpointError
 from population.config import PRECISIONS, ClusterConfig
 from population.policy import CHECKPOINT_CHOICES
+
+log = logging.getLogger(__name__)
 
 
 def add_xp(sub) -> argparse.ArgumentParser:
@@ -42,7 +46,9 @@ def add_xp(sub) -> argparse.ArgumentParser:
         "--rows/--cols: every row policy with every column policy across runs (SP vs SA vs OP vs FCP), "
         "exported files or human-proxy:LAYOUT, in both seat orders (--seats 0: rows in seat 0 only), "
         "written to --out (matrix.csv, episodes.csv, blocks.csv, summary.json, heatmap.png, blocks.png; "
-        "with both orders also *_cols_seat0 and *_mean files). Confidence intervals: bootstrap over seeds.",
+        "with both orders also *_cols_seat0 and *_mean files). Each finished job is kept in OUT.unfinished until "
+        "the files are written: after a stop, the same command continues from there. Confidence intervals: "
+        "bootstrap over seeds.",
     )
     parser.add_argument("run_dir", nargs="?", help="a run directory: its own cross-play (in-run form)")
     parser.add_argument(
@@ -213,15 +219,22 @@ def _cross_run(args) -> int:
             episodes = args.episodes or 500
             seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
             jobs = sum(len(g.names) for g in rows) * len(cols)
+            seats = args.seats or "both"
+            request = {"episodes": episodes, "seed": seed, "greedy": bool(args.greedy), "seats": seats}
+            journal = _open_journal(out, rows, cols, {**request, "precision": precision, "env": env_kwargs})
             started = time.perf_counter()
             label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
-            with (
-                crossplay.players(backend, jobs, args.address, args.workers, precision) as workers,
-                Bar(label, enabled=not args.quiet) as bar,
-            ):
-                result = crossplay.play_seat_fair(
-                    rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar, seats=args.seats or "both"
-                )
+            try:
+                with (
+                    crossplay.players(backend, jobs, args.address, args.workers, precision) as workers,
+                    Bar(label, enabled=not args.quiet) as bar,
+                ):
+                    result = crossplay.play_seat_fair(
+                        rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar, seats, journal
+                    )
+            except BaseException:
+                _say_what_is_kept(journal, out, crossplay.seat_fair_job_count(rows, cols, seats))
+                raise
     except RayBackendError as error:
         raise CLIError(str(error)) from None
     summary = crossplay.summarize_seat_fair(result)
@@ -244,10 +257,43 @@ def _cross_run(args) -> int:
     # Whole or not at all: a rerun after a failure finds no half folder; summary.json, read as the result, moves last.
     with staged_folder(out, ".xp", markers=["summary.json"]) as staging:
         crossplay.write_seat_fair_outputs(result, staging, summary, crossplay.policy_env(env_kwargs))
+    journal.remove()  # the results are in: nothing left to continue
     if not args.quiet:
         _print_blocks(summary)
     print(f"wrote {out}/: {', '.join(sorted(p.name for p in Path(out).iterdir()))}")
     return EXIT_OK
+
+
+def _open_journal(out: str, rows, cols, settings: dict) -> XPJournal:
+    """The jobs kept for this cross-play (``cluster.runtime.xp_journal``): new, or those of a stopped run of the same
+    request, which are then not played again. The request is the policies by content (a source given by another
+    path is the same) and ``settings``."""
+    request = {"rows": [list(g.ids) for g in rows], "cols": [list(g.ids) for g in cols], **settings}
+    try:
+        journal = XPJournal.open(out, request)
+    except JournalMismatch as error:
+        raise CLIError(f"--out {out}: {error}") from None
+    total = crossplay.seat_fair_job_count(rows, cols, settings["seats"])
+    if kept := journal.count():
+        log.warning(
+            "continuing a stopped cross-play: %d of its %d jobs were played before (%s)", kept, total, journal.folder
+        )
+    return journal
+
+
+def _say_what_is_kept(journal: XPJournal, out: str, total: int) -> None:
+    """After a stop or failure: where the played jobs are and how to continue, or nothing left behind if none were."""
+    kept = journal.count()
+    if not kept:
+        journal.remove()
+        return
+    log.warning(
+        "%d of the %d jobs played so far are kept in %s: the same command with --out %s continues from there",
+        kept,
+        total,
+        journal.folder,
+        out,
+    )
 
 
 def _check_poolable(args, rows) -> None:

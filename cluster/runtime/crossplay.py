@@ -352,12 +352,15 @@ def xp_key(seed: int) -> jax.Array:
     return derive_key(seed, "xp")
 
 
-def play_matrix(row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None) -> Matrix:
+def play_matrix(
+    row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None, journal=None
+) -> Matrix:
     """Every row policy against every column policy, ``episodes`` each, spread over ``workers``.
 
     Jobs (one seat-0 policy x one column group) are handed out in waves of one per worker, so the
     progress bar moves as jobs finish; every job's result is stored by its (group, row) position, so
-    a job that ran twice after a worker restart changes nothing.
+    a job that ran twice after a worker restart changes nothing. ``journal`` (an ``xp_journal.OrderJournal``)
+    supplies the jobs played before a stop, which are not played again, and saves each new one as it finishes.
     """
     check_same_env([*row_groups, *col_groups])
     row_offsets, col_offsets = _offsets(row_groups), _offsets(col_groups)
@@ -384,14 +387,21 @@ def play_matrix(row_groups, col_groups, workers, key, episodes: int, greedy: boo
             (r, c, i),
         )
 
+    played = journal.played() if journal is not None else {}
+    for (r, c, i), (saved_returns, saved_recipes) in played.items():
+        cols = slice(col_offsets[c], col_offsets[c + 1])
+        returns[row_offsets[r] + i, cols], recipes[row_offsets[r] + i, cols] = saved_returns, saved_recipes
+    items = [item for item in items if item not in played]
     if progress is not None:
         progress(0, len(items))
     for wave in in_waves(workers, items):  # at most one job per worker, then the bar moves
         for part in workers.call("play", [(shard, job(*item)) for shard, item in wave]):
-            r, c, i = part.job
+            r, c, i = (int(k) for k in part.job)
             row = row_offsets[r] + i
             cols = slice(col_offsets[c], col_offsets[c + 1])
             returns[row, cols], recipes[row, cols] = part.returns[0], part.start_recipe[0]
+            if journal is not None:
+                journal.record((r, c, i), part.returns[0], part.start_recipe[0])
         if progress is not None:
             progress(len(wave), len(items))
     if np.isnan(returns).any():
@@ -441,24 +451,44 @@ def same_groups(row_groups, col_groups) -> bool:
 
 
 def play_seat_fair(
-    row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None, seats: str = "both"
+    row_groups,
+    col_groups,
+    workers,
+    key,
+    episodes: int,
+    greedy: bool = False,
+    progress=None,
+    seats: str = "both",
+    journal=None,
 ) -> SeatFairMatrix:
     """``play_matrix`` in both seat orders (``seats="both"``) or with the rows in seat 0 only ("0").
 
     Both orders use the same episode keys. When the columns are the row groups, the one matrix already
     holds both orders (cell (i, j) and (j, i)) and is played once. ``progress(done, total)`` counts the
-    jobs of both orders together.
+    jobs of both orders together (those ``journal``, an ``xp_journal.XPJournal``, holds from before a stop
+    left out).
     """
     if seats not in SEATS:
         raise ValueError(f"seats: expected one of {', '.join(SEATS)}, got {seats!r}")
     one_matrix = seats == "0" or same_groups(row_groups, col_groups)
-    total = _job_count(row_groups, col_groups) + (0 if one_matrix else _job_count(col_groups, row_groups))
+    journals = {order: None if journal is None else journal.order(order) for order in ORDERS}
+    total = seat_fair_job_count(row_groups, col_groups, seats) - (0 if journal is None else journal.count())
     bar = None if progress is None else (lambda done, _: progress(done, total))
-    first = play_matrix(row_groups, col_groups, workers, key, episodes, greedy, bar)
+    first = play_matrix(row_groups, col_groups, workers, key, episodes, greedy, bar, journals[ORDERS[0]])
     if seats == "0":
         return SeatFairMatrix(first)
-    second = first if one_matrix else play_matrix(col_groups, row_groups, workers, key, episodes, greedy, bar)
+    second = (
+        first
+        if one_matrix
+        else play_matrix(col_groups, row_groups, workers, key, episodes, greedy, bar, journals[ORDERS[1]])
+    )
     return SeatFairMatrix(first, second)
+
+
+def seat_fair_job_count(row_groups, col_groups, seats: str = "both") -> int:
+    """How many jobs ``play_seat_fair`` plays: one per seat-0 policy and column group, in each order it plays."""
+    one_matrix = seats == "0" or same_groups(row_groups, col_groups)
+    return _job_count(row_groups, col_groups) + (0 if one_matrix else _job_count(col_groups, row_groups))
 
 
 def _job_count(row_groups, col_groups) -> int:

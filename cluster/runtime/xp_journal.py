@@ -1,0 +1,111 @@
+"""The jobs a cross-play between sources (``ocv2 xp --rows``) has played so far, kept on disk so that a stopped
+command continues where it stopped.
+
+A matrix of 10 x 10 policies in both seat orders at 500 episodes a pair is 200 jobs and an hour or more on a laptop;
+Ctrl-C, a closed terminal or a killed machine used to lose all of it, because the results are written whole at the
+end. Each finished job (one seat-0 policy against one column source, in one seat order) is now saved at once into
+``<OUT>.unfinished/`` beside the output folder, with ``request.json``: everything that decides the numbers (each
+policy's content hash, episodes, episode key, greedy, seats, precision, environment). The same command finds the
+folder, checks the request is the same, plays only the jobs not there, and removes the folder once the results are
+written. A job's numbers depend on nothing but its own inputs, so a continued matrix is the uninterrupted one, bit
+for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ocv2.atomic import atomic_path, atomic_write
+
+REQUEST = "request.json"
+FORMAT = 1
+
+
+class JournalMismatch(ValueError):
+    """The unfinished folder holds another request's jobs: continuing would mix two cross-plays."""
+
+
+def journal_folder(out: str | Path) -> Path:
+    """``<OUT>.unfinished`` beside the output folder (``--out .`` included: it names the folder by its full path)."""
+    out = Path(out).resolve()
+    return out.with_name(f"{out.name}.unfinished")
+
+
+def _normalised(request: dict) -> dict:
+    """``request`` as it reads back from JSON (tuples as lists), so a saved request compares equal to a new one."""
+    return json.loads(json.dumps(request, sort_keys=True, default=str))
+
+
+class OrderJournal:
+    """The jobs of one seat order: ``played()`` as {(group, column group, row in group): (returns, start recipes)},
+    and ``record`` for each job as it finishes."""
+
+    def __init__(self, folder: Path, order: str):
+        self.folder, self.order = folder, order
+
+    def _path(self, job: tuple[int, int, int]) -> Path:
+        return self.folder / f"{self.order}_{job[0]}_{job[1]}_{job[2]}.npz"
+
+    def played(self) -> dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]]:
+        done = {}
+        for path in sorted(self.folder.glob(f"{self.order}_*.npz")):
+            job = tuple(int(part) for part in path.stem[len(self.order) + 1 :].split("_"))
+            with np.load(path) as saved:
+                done[job] = (saved["returns"], saved["start_recipe"])
+        return done
+
+    def record(self, job: tuple[int, int, int], returns: np.ndarray, start_recipe: np.ndarray) -> None:
+        with atomic_path(self._path(job)) as tmp, open(tmp, "wb") as handle:
+            np.savez(handle, returns=returns, start_recipe=start_recipe)
+
+
+class XPJournal:
+    """``<OUT>.unfinished/``: opened (and made) for one request; ``order(name)`` gives each seat order's jobs."""
+
+    def __init__(self, folder: Path, request: dict):
+        self.folder, self.request = folder, _normalised({"format": FORMAT, **request})
+
+    @classmethod
+    def open(cls, out: str | Path, request: dict) -> XPJournal:
+        """The journal of ``request`` for ``out``: a new one, or the unfinished one of the same request.
+        ``JournalMismatch`` names what differs when the unfinished one is of another request."""
+        journal = cls(journal_folder(out), request)
+        saved_path = journal.folder / REQUEST
+        if saved_path.is_file():
+            saved = json.loads(saved_path.read_text())
+            if saved != journal.request:
+                raise JournalMismatch(
+                    f"{journal.folder} holds the jobs of an unfinished cross-play with other settings (differs in: "
+                    f"{_differences(saved, journal.request)}); give the same arguments to continue it, or remove "
+                    "that folder to start again"
+                )
+        elif journal.folder.exists() and any(journal.folder.iterdir()):
+            raise JournalMismatch(f"{journal.folder} exists and is no unfinished cross-play ({REQUEST} missing)")
+        else:
+            atomic_write(saved_path, json.dumps(journal.request, indent=1, sort_keys=True) + "\n")
+        return journal
+
+    def order(self, name: str) -> OrderJournal:
+        return OrderJournal(self.folder, name)
+
+    def count(self) -> int:
+        """How many jobs are saved (both seat orders)."""
+        return sum(1 for _ in self.folder.glob("*.npz"))
+
+    def remove(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _differences(saved: dict, new: dict) -> str:
+    """The top-level keys whose values differ, each with the saved and the new value when short."""
+    parts = []
+    for key in sorted(set(saved) | set(new)):
+        before, after = saved.get(key), new.get(key)
+        if before != after:
+            shown = f"{before!r} there, {after!r} now"
+            parts.append(f"{key} ({shown})" if len(shown) <= 80 else key)
+    return ", ".join(parts)
