@@ -204,6 +204,7 @@ def test_a_stopped_cross_play_continues_where_it_stopped_and_ends_as_an_uninterr
     assert not out.exists() and len(list(kept.glob("*.npz"))) == 3
     assert f"3 of the 6 jobs played so far are kept in {kept}: the same command with --out {out} continues" in caplog.text
     caplog.clear()
+    (kept / ".rows_seat0_1_1_0.tmp-1-ab12.npz").write_bytes(b"half")  # what a write killed part-way leaves
     played = _stopped_at(monkeypatch, call=0)  # no stop: counts the jobs played
     assert _xp(out, *_two_orders(run)) == 0
     assert len(played) == 3 and not kept.exists()

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cluster.runtime.crossplay import ORDERS
 from ocv2.atomic import atomic_path, atomic_write
 
 REQUEST = "request.json"
@@ -50,9 +51,13 @@ class OrderJournal:
     def _path(self, job: tuple[int, int, int]) -> Path:
         return self.folder / f"{self.order}_{job[0]}_{job[1]}_{job[2]}.npz"
 
+    def saved(self) -> list[Path]:
+        """The files of this order's finished jobs."""
+        return sorted(self.folder.glob(f"{self.order}_*.npz"))
+
     def played(self) -> dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]]:
         done = {}
-        for path in sorted(self.folder.glob(f"{self.order}_*.npz")):
+        for path in self.saved():
             job = tuple(int(part) for part in path.stem[len(self.order) + 1 :].split("_"))
             with np.load(path) as saved:
                 done[job] = (saved["returns"], saved["start_recipe"])
@@ -93,8 +98,8 @@ class XPJournal:
         return OrderJournal(self.folder, name)
 
     def count(self) -> int:
-        """How many jobs are saved (both seat orders)."""
-        return sum(1 for _ in self.folder.glob("*.npz"))
+        """How many jobs are saved (both seat orders; not a temporary a killed write left, which is hidden)."""
+        return sum(len(self.order(name).saved()) for name in ORDERS)
 
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
