@@ -194,27 +194,29 @@ def test_a_stopped_cross_play_continues_where_it_stopped_and_ends_as_an_uninterr
     run, tmp_path, monkeypatch, caplog
 ):
     """Each finished job is kept in OUT.unfinished; the same command plays only the others, and the results are
-    the uninterrupted command's, file for file."""
+    the uninterrupted command's, file for file. Stopped in the second seat order, so both orders' jobs are read."""
     whole, out = tmp_path / "whole", tmp_path / "stopped"
     assert _xp(whole, *_two_orders(run)) == 0
-    _stopped_at(monkeypatch, call=4)
+    _stopped_at(monkeypatch, call=6)
     caplog.set_level("WARNING", logger="cluster.cli.xp")
     assert _xp(out, *_two_orders(run)) == 130
     kept = tmp_path / "stopped.unfinished"
-    assert not out.exists() and len(list(kept.glob("*.npz"))) == 3
-    assert f"3 of the 6 jobs played so far are kept in {kept}: the same command with --out {out} continues" in caplog.text
+    assert not out.exists() and len(list(kept.glob("rows_seat0_*.npz"))) == 4 and len(list(kept.glob("cols*"))) == 1
+    assert f"5 of the 6 jobs are played and kept in {kept}: the same command with --out {out} continues" in caplog.text
     caplog.clear()
     (kept / ".rows_seat0_1_1_0.tmp-1-ab12.npz").write_bytes(b"half")  # what a write killed part-way leaves
     played = _stopped_at(monkeypatch, call=0)  # no stop: counts the jobs played
     assert _xp(out, *_two_orders(run)) == 0
-    assert len(played) == 3 and not kept.exists()
-    assert f"continuing a stopped cross-play: 3 of its 6 jobs were played before ({kept})" in caplog.text
+    assert len(played) == 1 and not kept.exists()
+    assert f"continuing a stopped cross-play: 5 of its 6 jobs were played before ({kept})" in caplog.text
     names = sorted(p.name for p in whole.iterdir())
     assert names == sorted(p.name for p in out.iterdir()) and "matrix_cols_seat0.csv" in names
     for name in ("matrix.csv", "matrix_cols_seat0.csv", "matrix_mean.csv", "episodes.csv", "blocks.csv"):
         assert (out / name).read_bytes() == (whole / name).read_bytes(), name
-    drop_wall = lambda path: {k: v for k, v in json.loads(path.read_text()).items() if k != "wall_s"}  # noqa: E731
-    assert drop_wall(out / "summary.json") == drop_wall(whole / "summary.json")
+    ours, theirs = (json.loads((folder / "summary.json").read_text()) for folder in (out, whole))
+    assert (ours.pop("jobs_continued"), theirs.pop("jobs_continued")) == (5, 0)
+    ours.pop("wall_s"), theirs.pop("wall_s")
+    assert ours == theirs
 
 
 def test_a_stopped_cross_play_is_not_continued_with_other_settings_or_left_behind_with_nothing_played(
@@ -234,9 +236,53 @@ def test_a_stopped_cross_play_is_not_continued_with_other_settings_or_left_behin
     err = capsys.readouterr().err.strip()
     assert code == 2 and err.startswith(f"ocv2 xp: error: --out {out}: {kept} holds the jobs of an unfinished")
     assert "differs in: episodes (8 there, 4 now)" in err and "remove that folder to start again" in err
-    swapped = ["--rows", str(run / "checkpoints" / "seed_1"), *_two_orders(run)[2:]]  # other policies, same count
+    swapped = ["--rows", str(run / "checkpoints" / "seed_1"), *_two_orders(run)[2:]]  # other row policies
     assert _xp(out, *swapped) == 2 and "differs in: rows" in capsys.readouterr().err
     assert sorted(p.name for p in kept.iterdir()) == before and not out.exists()
+
+
+def test_a_stopped_cross_play_of_one_matrix_continues_too(run, tmp_path, monkeypatch):
+    """Rows that are the columns: one matrix holds both seat orders and is played once, and continued as such."""
+    whole, out = tmp_path / "whole", tmp_path / "stopped"
+    assert _xp(whole, "--rows", str(run)) == 0
+    _stopped_at(monkeypatch, call=2)
+    assert _xp(out, "--rows", str(run)) == 130
+    played = _stopped_at(monkeypatch, call=0)
+    assert _xp(out, "--rows", str(run)) == 0 and len(played) == 1
+    for name in ("matrix.csv", "episodes.csv", "blocks.csv"):
+        assert (out / name).read_bytes() == (whole / name).read_bytes(), name
+
+
+def test_the_journal_reads_past_a_killed_write_and_refuses_a_folder_it_did_not_make(tmp_path):
+    from cluster.runtime.xp_journal import JournalMismatch, XPJournal, journal_folder
+
+    folder = journal_folder(tmp_path / "out")
+    folder.mkdir()
+    (folder / ".request.tmp-1-ab12.json").write_text('{"epis')  # request.json's write, killed part-way
+    journal = XPJournal.open(tmp_path / "out", {"episodes": 8, "seats": "both"})
+    assert journal.folder == folder and journal.count() == 0
+    with pytest.raises(JournalMismatch, match=r"differs in: episodes \(8 there, 4 now\)"):
+        XPJournal.open(tmp_path / "out", {"episodes": 4, "seats": "both"})
+    other = journal_folder(tmp_path / "elsewhere")
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(JournalMismatch, match="exists and is no unfinished cross-play"):
+        XPJournal.open(tmp_path / "elsewhere", {"episodes": 8})
+    assert (other / "notes.txt").read_text() == "mine"
+
+
+def test_where_nothing_can_be_kept_beside_out_the_cross_play_still_runs_and_says_so(run, tmp_path, monkeypatch, caplog):
+    """An empty mount point given as --out has a parent no one may write to: no journal, a warning, the results."""
+    from cluster.runtime import xp_journal
+
+    def refused(cls, out, request):
+        raise PermissionError(13, "Permission denied", str(xp_journal.journal_folder(out)))
+
+    monkeypatch.setattr(xp_journal.XPJournal, "open", classmethod(refused))
+    caplog.set_level("WARNING", logger="cluster.cli.xp")
+    out = tmp_path / "xp"
+    assert _xp(out, "--rows", str(run)) == 0 and (out / "matrix.csv").is_file()
+    assert "cannot keep the jobs beside --out" in caplog.text and "a stop will lose those played" in caplog.text
 
 
 def test_pooled_sources_read_as_one_population(run, tmp_path, capsys):

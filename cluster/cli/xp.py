@@ -12,6 +12,7 @@ checkpoint file, a file written by ``ocv2 export`` (``cluster/cli/export.py``), 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as _dt
 import logging
 import os
@@ -21,7 +22,8 @@ from pathlib import Path
 from cluster.archive import ArchiveError
 from cluster.cli.args import check_new_folder, checkpoint_choice, seed
 from cluster.cli.errors import EXIT_OK, CLIError
-from cluster.runtime import crossplay, ray_backend
+from cluster.runtime import crossplay, ray_backend, xp_journal
+from cluster.runtime.environment import describe_devices
 from cluster.runtime.evaluate import evaluate_run
 from cluster.runtime.progress import Bar
 from cluster.runtime.ray_backend import RayBackendError
@@ -220,80 +222,89 @@ def _cross_run(args) -> int:
             seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
             jobs = sum(len(g.names) for g in rows) * len(cols)
             seats = args.seats or "both"
-            request = {"episodes": episodes, "seed": seed, "greedy": bool(args.greedy), "seats": seats}
-            journal = _open_journal(out, rows, cols, {**request, "precision": precision, "env": env_kwargs})
+            settings = {"episodes": episodes, "seed": seed, "greedy": bool(args.greedy), "seats": seats,
+                        "precision": precision, "env": env_kwargs}  # fmt: skip
+            # Ray's workers play on CPUs (crossplay.players); the local backend on whatever JAX found here.
+            device = "cpu" if backend == "ray" else describe_devices()
+            journal = _open_journal(out, xp_journal.request_of(rows, cols, settings, device))
+            continued = journal.count() if journal is not None else 0
+            total = crossplay.seat_fair_job_count(rows, cols, seats)
+            if continued:
+                log.warning("continuing a stopped cross-play: %d of its %d jobs were played before (%s)",
+                            continued, total, journal.folder)  # fmt: skip
             started = time.perf_counter()
             label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
-            try:
-                with (
-                    crossplay.players(backend, jobs, args.address, args.workers, precision) as workers,
-                    Bar(label, enabled=not args.quiet) as bar,
-                ):
-                    result = crossplay.play_seat_fair(
-                        rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar, seats, journal
-                    )
-            except BaseException:
-                _say_what_is_kept(journal, out, crossplay.seat_fair_job_count(rows, cols, seats))
-                raise
+            with (
+                _kept_on_failure(journal, out, total),
+                crossplay.players(backend, jobs, args.address, args.workers, precision) as workers,
+                Bar(label, enabled=not args.quiet) as bar,
+            ):
+                result = crossplay.play_seat_fair(
+                    rows, cols, workers, crossplay.xp_key(seed), episodes, args.greedy, bar, seats, journal
+                )
     except RayBackendError as error:
         raise CLIError(str(error)) from None
-    summary = crossplay.summarize_seat_fair(result)
-    if args.pool:
-        crossplay.add_pooled(summary, result)
-    summary.update(
-        {
-            "rows": list(args.rows),
-            "cols": list(args.cols or args.rows),
-            "checkpoint": str(checkpoint) if directories else None,  # it picks nothing from a file
-            "updates": {g.label: list(g.updates) for g in [*rows, *cols] if any(u is not None for u in g.updates)},
-            "greedy": bool(args.greedy),
-            "seed": seed,
-            "precision": precision,
-            "env": env_kwargs,
-            "backend": backend,
-            "wall_s": round(time.perf_counter() - started, 2),
-        }
-    )
-    # Whole or not at all: a rerun after a failure finds no half folder; summary.json, read as the result, moves last.
-    with staged_folder(out, ".xp", markers=["summary.json"]) as staging:
-        crossplay.write_seat_fair_outputs(result, staging, summary, crossplay.policy_env(env_kwargs))
-    journal.remove()  # the results are in: nothing left to continue
+    with _kept_on_failure(journal, out, total):  # a failure from here on (a full disk) keeps what was played too
+        summary = crossplay.summarize_seat_fair(result)
+        if args.pool:
+            crossplay.add_pooled(summary, result)
+        summary.update(
+            {
+                "rows": list(args.rows),
+                "cols": list(args.cols or args.rows),
+                "checkpoint": str(checkpoint) if directories else None,  # it picks nothing from a file
+                "updates": {g.label: list(g.updates) for g in [*rows, *cols] if any(u is not None for u in g.updates)},
+                "greedy": bool(args.greedy),
+                "seed": seed,
+                "precision": precision,
+                "env": env_kwargs,
+                "backend": backend,
+                "wall_s": round(time.perf_counter() - started, 2),  # of this command: after a stop, the rest only
+                "jobs_continued": continued,  # of the jobs, played before a stop (kept in OUT.unfinished)
+            }
+        )
+        # Whole or not at all: a rerun after a failure finds no half folder; summary.json, read as the result, moves
+        # last.
+        with staged_folder(out, ".xp", markers=["summary.json"]) as staging:
+            crossplay.write_seat_fair_outputs(result, staging, summary, crossplay.policy_env(env_kwargs))
+    if journal is not None:
+        journal.remove()  # the results are in: nothing left to continue
     if not args.quiet:
         _print_blocks(summary)
     print(f"wrote {out}/: {', '.join(sorted(p.name for p in Path(out).iterdir()))}")
     return EXIT_OK
 
 
-def _open_journal(out: str, rows, cols, settings: dict) -> XPJournal:
+def _open_journal(out: str, request: dict) -> XPJournal | None:
     """The jobs kept for this cross-play (``cluster.runtime.xp_journal``): new, or those of a stopped run of the same
-    request, which are then not played again. The request is the policies by content (a source given by another
-    path is the same) and ``settings``."""
-    request = {"rows": [list(g.ids) for g in rows], "cols": [list(g.ids) for g in cols], **settings}
+    ``request``, which are then not played again. None, with a warning, where no folder can be made beside --out
+    (its parent is not writable, as with an empty mount point given as --out): the command still runs, but a stop
+    loses what it played."""
     try:
-        journal = XPJournal.open(out, request)
+        return XPJournal.open(out, request)
     except JournalMismatch as error:
         raise CLIError(f"--out {out}: {error}") from None
-    total = crossplay.seat_fair_job_count(rows, cols, settings["seats"])
-    if kept := journal.count():
-        log.warning(
-            "continuing a stopped cross-play: %d of its %d jobs were played before (%s)", kept, total, journal.folder
-        )
-    return journal
+    except OSError as error:
+        log.warning("cannot keep the jobs beside --out (%s): a stop will lose those played", error)
+        return None
 
 
-def _say_what_is_kept(journal: XPJournal, out: str, total: int) -> None:
-    """After a stop or failure: where the played jobs are and how to continue, or nothing left behind if none were."""
-    kept = journal.count()
-    if not kept:
-        journal.remove()
-        return
-    log.warning(
-        "%d of the %d jobs played so far are kept in %s: the same command with --out %s continues from there",
-        kept,
-        total,
-        journal.folder,
-        out,
-    )
+@contextlib.contextmanager
+def _kept_on_failure(journal: XPJournal | None, out: str, total: int):
+    """On any failure or stop in the block: say where the jobs played so far are kept and how to continue, or leave
+    nothing behind if none were."""
+    try:
+        yield
+    except BaseException:
+        if journal is not None:
+            if kept := journal.count():
+                log.warning(
+                    "%d of the %d jobs are played and kept in %s: the same command with --out %s continues from there",
+                    kept, total, journal.folder, out,
+                )  # fmt: skip
+            else:
+                journal.remove()
+        raise
 
 
 def _check_poolable(args, rows) -> None:

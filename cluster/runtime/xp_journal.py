@@ -4,11 +4,12 @@ command continues where it stopped.
 A matrix of 10 x 10 policies in both seat orders at 500 episodes a pair is 200 jobs and an hour or more on a laptop;
 Ctrl-C, a closed terminal or a killed machine used to lose all of it, because the results are written whole at the
 end. Each finished job (one seat-0 policy against one column source, in one seat order) is now saved at once into
-``<OUT>.unfinished/`` beside the output folder, with ``request.json``: everything that decides the numbers (each
-policy's content hash, episodes, episode key, greedy, seats, precision, environment). The same command finds the
-folder, checks the request is the same, plays only the jobs not there, and removes the folder once the results are
-written. A job's numbers depend on nothing but its own inputs, so a continued matrix is the uninterrupted one, bit
-for bit.
+``<OUT>.unfinished/`` beside the output folder (on Ray, as each wave of one job per worker returns), with
+``request.json``: everything that decides the numbers (each policy's content hash, episodes, episode key, greedy,
+seats, precision, environment, the device, the code's commit and the numeric packages' versions). The same command
+finds the folder, checks the request is the same, plays only the jobs not there, and removes the folder once the
+results are written. A job's numbers depend on nothing but its own inputs, so a continued matrix is the
+uninterrupted one, bit for bit.
 """
 
 from __future__ import annotations
@@ -20,10 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from cluster.runtime.crossplay import ORDERS
-from ocv2.atomic import atomic_path, atomic_write
+from cluster.runtime.environment import git_state, package_versions
+from ocv2.atomic import atomic_path, atomic_write, is_temporary
+from population.policy import env_settings
 
 REQUEST = "request.json"
 FORMAT = 1
+NUMERIC_PACKAGES = ("python", "ocv2", "jax", "jaxlib", "numpy")  # those whose upgrade may change a job's numbers
 
 
 class JournalMismatch(ValueError):
@@ -34,6 +38,22 @@ def journal_folder(out: str | Path) -> Path:
     """``<OUT>.unfinished`` beside the output folder (``--out .`` included: it names the folder by its full path)."""
     out = Path(out).resolve()
     return out.with_name(f"{out.name}.unfinished")
+
+
+def request_of(rows, cols, settings: dict, device: str) -> dict:
+    """What decides a cross-play's numbers: the policies of ``rows`` and ``cols`` (``PolicyGroup``s) by content, in
+    order (a source given by another path is the same), ``settings`` (episodes, seed, greedy, seats, precision and
+    ``env``, compared by what it asks for), the ``device`` that plays, and the code that plays it."""
+    versions = package_versions()
+    return {
+        "rows": [list(g.ids) for g in rows],
+        "cols": [list(g.ids) for g in cols],
+        **settings,
+        "env": env_settings(settings["env"]),
+        "device": device,
+        "code": git_state(),
+        "versions": {name: versions.get(name) for name in NUMERIC_PACKAGES},
+    }
 
 
 def _normalised(request: dict) -> dict:
@@ -88,7 +108,7 @@ class XPJournal:
                     f"{_differences(saved, journal.request)}); give the same arguments to continue it, or remove "
                     "that folder to start again"
                 )
-        elif journal.folder.exists() and any(journal.folder.iterdir()):
+        elif journal.folder.exists() and any(not is_temporary(p) for p in journal.folder.iterdir()):
             raise JournalMismatch(f"{journal.folder} exists and is no unfinished cross-play ({REQUEST} missing)")
         else:
             atomic_write(saved_path, json.dumps(journal.request, indent=1, sort_keys=True) + "\n")
