@@ -121,6 +121,7 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.path.name in _SPREAD_FILES)
 
 
+@pytest.hookimpl(trylast=True)  # after the session's own teardown (with -x it runs late), still before xdist's report
 def pytest_sessionfinish(session, exitstatus):
     ray = sys.modules.get("ray")
     if ray is not None and ray.is_initialized():

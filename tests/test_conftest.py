@@ -22,6 +22,7 @@ class _Cycle:
 def test_a_worker_s_heap_is_collected_then_frozen_so_pytest_s_last_collections_skip_it():
     """An xdist worker's teardown (settle_heap) frees the garbage its tests left, then leaves the survivors to
     gc.freeze, so that pytest's five collections after the worker's report do not walk them again."""
+    _Cycle.freed.clear()
     gc.disable()  # no automatic collection before settle_heap's
     try:
         kept = _Cycle("kept")

@@ -271,6 +271,25 @@ def test_the_journal_reads_past_a_killed_write_and_refuses_a_folder_it_did_not_m
     assert (other / "notes.txt").read_text() == "mine"
 
 
+def test_the_code_digest_changes_with_a_source_edit_and_not_with_anything_else(tmp_path, monkeypatch):
+    from cluster.runtime import xp_journal
+
+    for package in ("ocv2", "population", "cluster"):
+        (tmp_path / package / "sub").mkdir(parents=True)
+        (tmp_path / package / "__init__.py").write_text("")
+        (tmp_path / package / "sub" / "rules.py").write_text("X = 1\n")
+    fake = {
+        name: SimpleNamespace(__file__=str(tmp_path / name / "__init__.py"))
+        for name in ("ocv2", "population", "cluster")
+    }
+    monkeypatch.setattr(xp_journal.importlib, "import_module", fake.__getitem__)
+    before = xp_journal.source_digest()
+    (tmp_path / "ocv2" / "README.md").write_text("docs")  # not a source
+    assert xp_journal.source_digest() == before
+    (tmp_path / "population" / "sub" / "rules.py").write_text("X = 2\n")
+    assert xp_journal.source_digest() != before
+
+
 def test_where_nothing_can_be_kept_beside_out_the_cross_play_still_runs_and_says_so(run, tmp_path, monkeypatch, caplog):
     """An empty mount point given as --out has a parent no one may write to: no journal, a warning, the results."""
     from cluster.runtime import xp_journal

@@ -224,14 +224,9 @@ def _cross_run(args) -> int:
             seats = args.seats or "both"
             settings = {"episodes": episodes, "seed": seed, "greedy": bool(args.greedy), "seats": seats,
                         "precision": precision, "env": env_kwargs}  # fmt: skip
-            # Ray's workers play on CPUs (crossplay.players); the local backend on whatever JAX found here.
-            device = "cpu" if backend == "ray" else describe_devices()
-            journal = _open_journal(out, xp_journal.request_of(rows, cols, settings, device))
-            continued = journal.count() if journal is not None else 0
             total = crossplay.seat_fair_job_count(rows, cols, seats)
-            if continued:
-                log.warning("continuing a stopped cross-play: %d of its %d jobs were played before (%s)",
-                            continued, total, journal.folder)  # fmt: skip
+            journal = _open_journal(out, xp_journal.request_of(rows, cols, settings, _device(backend)), total)
+            continued = journal.count() if journal is not None else 0
             started = time.perf_counter()
             label = f"cross-play {sum(len(g.names) for g in rows)}x{sum(len(g.names) for g in cols)}"
             with (
@@ -275,18 +270,28 @@ def _cross_run(args) -> int:
     return EXIT_OK
 
 
-def _open_journal(out: str, request: dict) -> XPJournal | None:
-    """The jobs kept for this cross-play (``cluster.runtime.xp_journal``): new, or those of a stopped run of the same
-    ``request``, which are then not played again. None, with a warning, where no folder can be made beside --out
-    (its parent is not writable, as with an empty mount point given as --out): the command still runs, but a stop
-    loses what it played."""
+def _device(backend: str) -> str:
+    """What plays the jobs: Ray's workers play on CPUs (``crossplay.players``), the local backend on what JAX found."""
+    return "cpu" if backend == "ray" else describe_devices()
+
+
+def _open_journal(out: str, request: dict, total: int) -> XPJournal | None:
+    """The jobs kept for this cross-play (``cluster.runtime.xp_journal``) of ``total``: new, or those of a stopped
+    run of the same ``request``, which are then not played again (said). None, with a warning, where no folder can be
+    made beside --out (its parent is not writable, as with an empty mount point given as --out): the command still
+    runs, but a stop loses what it played."""
     try:
-        return XPJournal.open(out, request)
+        journal = XPJournal.open(out, request)
     except JournalMismatch as error:
         raise CLIError(f"--out {out}: {error}") from None
     except OSError as error:
         log.warning("cannot keep the jobs beside --out (%s): a stop will lose those played", error)
         return None
+    if kept := journal.count():
+        log.warning(
+            "continuing a stopped cross-play: %d of its %d jobs were played before (%s)", kept, total, journal.folder
+        )
+    return journal
 
 
 @contextlib.contextmanager

@@ -6,7 +6,7 @@ Ctrl-C, a closed terminal or a killed machine used to lose all of it, because th
 end. Each finished job (one seat-0 policy against one column source, in one seat order) is now saved at once into
 ``<OUT>.unfinished/`` beside the output folder (on Ray, as each wave of one job per worker returns), with
 ``request.json``: everything that decides the numbers (each policy's content hash, episodes, episode key, greedy,
-seats, precision, environment, the device, the code's commit and the numeric packages' versions). The same command
+seats, precision, environment, the device, a digest of the code and the numeric packages' versions). The same command
 finds the folder, checks the request is the same, plays only the jobs not there, and removes the folder once the
 results are written. A job's numbers depend on nothing but its own inputs, so a continued matrix is the
 uninterrupted one, bit for bit.
@@ -14,6 +14,8 @@ uninterrupted one, bit for bit.
 
 from __future__ import annotations
 
+import hashlib
+import importlib
 import json
 import shutil
 from pathlib import Path
@@ -21,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from cluster.runtime.crossplay import ORDERS
-from cluster.runtime.environment import git_state, package_versions
+from cluster.runtime.environment import package_versions
 from ocv2.atomic import atomic_path, atomic_write, is_temporary
 from population.policy import env_settings
 
@@ -51,9 +53,21 @@ def request_of(rows, cols, settings: dict, device: str) -> dict:
         **settings,
         "env": env_settings(settings["env"]),
         "device": device,
-        "code": git_state(),
+        "code": source_digest(),
         "versions": {name: versions.get(name) for name in NUMERIC_PACKAGES},
     }
+
+
+def source_digest() -> str:
+    """A hash of every Python source of the three packages that play a job (the environment, the learning code and
+    this one): an edit to any of them, committed or not, changes it; a commit of docs alone does not. Read from the
+    files themselves, so an installed wheel has one too."""
+    digest = hashlib.sha256()
+    for package in ("ocv2", "population", "cluster"):
+        root = Path(importlib.import_module(package).__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            digest.update(str(path.relative_to(root.parent)).encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def _normalised(request: dict) -> dict:

@@ -22,7 +22,7 @@ from .ten_seed_studies import (
 )
 
 
-def pair_ratios(study: Path = CRM10, method: str = "sp") -> list[tuple[int, int, float]]:
+def pair_ratios(study: Path, method: str) -> list[tuple[int, int, float]]:
     """Each pair's score (both seat orders) over the mean of its two seeds' self-play, lowest first."""
     m = final_matrix(study, method)
     p = both_seats(m)
