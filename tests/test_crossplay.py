@@ -291,7 +291,8 @@ def test_the_code_digest_changes_with_a_source_edit_and_not_with_anything_else(t
 
 
 def test_where_nothing_can_be_kept_beside_out_the_cross_play_still_runs_and_says_so(run, tmp_path, monkeypatch, caplog):
-    """An empty mount point given as --out has a parent no one may write to: no journal, a warning, the results."""
+    """An empty mount point given as --out has a parent no one may write to: no journal, a warning, the results.
+    Where --out is not such a folder the same refusal is the command's error (a full disk is tested in test_study)."""
     from cluster.runtime import xp_journal
 
     def refused(cls, out, request):
@@ -299,7 +300,9 @@ def test_where_nothing_can_be_kept_beside_out_the_cross_play_still_runs_and_says
 
     monkeypatch.setattr(xp_journal.XPJournal, "open", classmethod(refused))
     caplog.set_level("WARNING", logger="cluster.cli.xp")
-    out = tmp_path / "xp"
+    assert _xp(tmp_path / "new", "--rows", str(run)) == 1 and not (tmp_path / "new").exists()
+    out = tmp_path / "mount"
+    out.mkdir()
     assert _xp(out, "--rows", str(run)) == 0 and (out / "matrix.csv").is_file()
     assert "cannot keep the jobs beside --out" in caplog.text and "a stop will lose those played" in caplog.text
 

@@ -1497,10 +1497,12 @@ def test_a_full_disk_or_read_only_folder_is_one_line_in_every_command(finished, 
         err = _one_line(capsys)
         assert err.startswith(f"ocv2 {command[0]}: error: {text} (") and "run the" in err, err
     assert not (tmp_path / "p.ocv2policy").exists()
-    monkeypatch.setattr(crossplay, "play_seat_fair", lambda *a, **k: fails(tmp_path / "x" / "matrix.csv"))
+    # ocv2 xp fails at its first write, the jobs it keeps (OUT.unfinished), before it plays anything
+    monkeypatch.setattr(crossplay, "play_seat_fair", lambda *a, **k: pytest.fail("played on a full disk"))
     command = ["xp", "--rows", str(finished / "runs" / "sp"), "--backend", "local", "--out", str(tmp_path / "x")]
     assert main(command) == 1
-    assert _one_line(capsys).startswith(f"ocv2 xp: error: {text} ({tmp_path / 'x' / 'matrix.csv'}); fix the cause")
+    assert _one_line(capsys).startswith(f"ocv2 xp: error: {text} ({tmp_path / 'x.unfinished'}/.request.tmp-")
+    assert not (tmp_path / "x.unfinished").exists() and not (tmp_path / "x").exists()
 
 
 def test_a_pack_of_the_latest_checkpoints_only_still_resumes(finished, tmp_path):

@@ -277,14 +277,17 @@ def _device(backend: str) -> str:
 
 def _open_journal(out: str, request: dict, total: int) -> XPJournal | None:
     """The jobs kept for this cross-play (``cluster.runtime.xp_journal``) of ``total``: new, or those of a stopped
-    run of the same ``request``, which are then not played again (said). None, with a warning, where no folder can be
-    made beside --out (its parent is not writable, as with an empty mount point given as --out): the command still
-    runs, but a stop loses what it played."""
+    run of the same ``request``, which are then not played again (said). None, with a warning, where --out is an
+    empty folder this process may write into but no folder may be made beside it (an empty mount point): the command
+    still runs, but a stop loses what it played. Any other failure to write (a full disk, a read-only file system) is
+    the command's error now, not after the whole matrix was played only to fail at its own write."""
     try:
         journal = XPJournal.open(out, request)
     except JournalMismatch as error:
         raise CLIError(f"--out {out}: {error}") from None
-    except OSError as error:
+    except PermissionError as error:
+        if not (os.path.isdir(out) and os.access(out, os.W_OK)):
+            raise
         log.warning("cannot keep the jobs beside --out (%s): a stop will lose those played", error)
         return None
     if kept := journal.count():

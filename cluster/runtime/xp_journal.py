@@ -125,7 +125,13 @@ class XPJournal:
         elif journal.folder.exists() and any(not is_temporary(p) for p in journal.folder.iterdir()):
             raise JournalMismatch(f"{journal.folder} exists and is no unfinished cross-play ({REQUEST} missing)")
         else:
-            atomic_write(saved_path, json.dumps(journal.request, indent=1, sort_keys=True) + "\n")
+            made = not journal.folder.exists()
+            try:
+                atomic_write(saved_path, json.dumps(journal.request, indent=1, sort_keys=True) + "\n")
+            except BaseException:
+                if made:  # a full disk, say: leave no empty folder behind
+                    shutil.rmtree(journal.folder, ignore_errors=True)
+                raise
         return journal
 
     def order(self, name: str) -> OrderJournal:
