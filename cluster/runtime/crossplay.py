@@ -470,7 +470,7 @@ def play_seat_fair(
     """
     if seats not in SEATS:
         raise ValueError(f"seats: expected one of {', '.join(SEATS)}, got {seats!r}")
-    one_matrix = seats == "0" or same_groups(row_groups, col_groups)
+    one_matrix = _one_matrix(row_groups, col_groups, seats)
     journals = {order: None if journal is None else journal.order(order) for order in ORDERS}
     total = seat_fair_job_count(row_groups, col_groups, seats) - (0 if journal is None else journal.count())
     bar = None if progress is None else (lambda done, _: progress(done, total))
@@ -487,8 +487,13 @@ def play_seat_fair(
 
 def seat_fair_job_count(row_groups, col_groups, seats: str = "both") -> int:
     """How many jobs ``play_seat_fair`` plays: one per seat-0 policy and column group, in each order it plays."""
-    one_matrix = seats == "0" or same_groups(row_groups, col_groups)
-    return _job_count(row_groups, col_groups) + (0 if one_matrix else _job_count(col_groups, row_groups))
+    second = 0 if _one_matrix(row_groups, col_groups, seats) else _job_count(col_groups, row_groups)
+    return _job_count(row_groups, col_groups) + second
+
+
+def _one_matrix(row_groups, col_groups, seats: str) -> bool:
+    """Whether one matrix is played: the rows in seat 0 only, or columns that are the rows (both orders in it)."""
+    return seats == "0" or same_groups(row_groups, col_groups)
 
 
 def _job_count(row_groups, col_groups) -> int:
