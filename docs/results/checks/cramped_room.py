@@ -40,9 +40,8 @@ def pair_range(study: Path, method: str) -> list:
     return [min(scores), max(scores), *pair_ratios(study, method)[0], float(self_play.min()), float(self_play.max())]
 
 
-def seed_gaps(study: Path, method: str) -> list[float]:
-    """Per seed: its self-play minus its mean with the 9 others (both seat orders)."""
-    m = final_matrix(study, method)
+def seed_gaps(m: np.ndarray) -> list[float]:
+    """Per seed of a final matrix ``m``: its self-play minus its mean with the others (both seat orders)."""
     with_others = partner_means(both_seats(m))
     return [m[k, k] - with_others[k] for k in range(len(m))]
 
@@ -70,7 +69,7 @@ def _():
     lowest = sorted((p[i, j], i, j) for i, j in itertools.combinations(range(len(m)), 2))[:3]
     (common,) = set.intersection(*({i, j} for _, i, j in lowest))
     with_others = partner_means(p)
-    gaps = seed_gaps(CRM10, "sp")
+    gaps = seed_gaps(m)
     pairs = [x for score, i, j in lowest for x in (({i, j} - {common}).pop(), score)]
     return [
         common, *pairs, m[common, common],
@@ -83,8 +82,8 @@ def _():
 def _():
     """How many SA seeds score more with themselves than with the others (``seed_gaps``), the largest such gap and
     its seed; the seeds that score more with the others, then by how much each; the same count for the SP seeds."""
-    gaps = seed_gaps(CRM_SA10, "sa")
-    sp_gaps = seed_gaps(CRM10, "sp")
+    gaps = seed_gaps(final_matrix(CRM_SA10, "sa"))
+    sp_gaps = seed_gaps(final_matrix(CRM10))
     below = [k for k, g in enumerate(gaps) if g < 0]
     return [
         sum(g > 0 for g in gaps), len(gaps), max(gaps), int(np.argmax(gaps)), *below, *(-gaps[k] for k in below),
