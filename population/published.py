@@ -2,6 +2,7 @@
 
     entries = publish_run("runs/sp", "docs/results/my_study/policies", which="snapshots")
     verify("docs/results/my_study/policies", ["sp_seed0_update183.ocv2policy"])   # PolicyError if changed
+    listing, problems = folder_problems("docs/results/my_study/policies")        # what ``ocv2 verify`` prints
 
 A study's results carry its populations as ``ocv2 export`` files named ``<run>_seed<i>_update<U>.ocv2policy``,
 so a reader can play and cross-play them without the run directory. SHA256SUMS.json lists every file with its
@@ -235,10 +236,61 @@ def verify(folder, files: Iterable[str | Path]) -> None:
         path = folder / Path(name).name
         if path.name not in listed:
             raise PolicyError(f"{path}: not listed in {folder / SUMS}")
-        if not path.is_file():
-            raise PolicyError(f"{path}: listed in {SUMS} but missing")
-        if sha256_of(path) != listed[path.name]:
-            raise PolicyError(f"{path}: not the published file (its sha256 is not the one in {SUMS})")
+        if problem := _listed_file_problem(path, listed[path.name]):
+            raise PolicyError(problem)
+
+
+def _listed_file_problem(path: Path, sha256: str) -> str | None:
+    """What is wrong with a listed file (missing, or other bytes than the listed ``sha256``), or None."""
+    if not path.is_file():
+        return f"{path}: listed in {SUMS} but missing"
+    if sha256_of(path) != sha256:
+        return f"{path}: not the published file (its sha256 is not the one in {SUMS})"
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class FileCheck:
+    """What ``check_file`` found for one policy file: the sha256 of its bytes, and the SHA256SUMS.json beside it
+    (None where its folder has none) that lists it (``listed``) or not."""
+
+    sha256: str
+    listing: Path | None
+    listed: bool
+
+
+def check_file(path) -> FileCheck:
+    """The sha256 of a policy file, checked against the SHA256SUMS.json of its folder when there is one: a file
+    that the listing names with other bytes (a copy renamed, a file changed since it was published) is refused with
+    ``PolicyError`` naming it, so no number is computed from a file that only looks like a published one."""
+    path = Path(path)
+    digest = sha256_of(path)
+    listing_path = path.parent / SUMS
+    if not listing_path.exists():
+        return FileCheck(digest, None, False)
+    listed = {e.file: e.sha256 for e in read_listing(path.parent)}
+    if path.name in listed and listed[path.name] != digest:
+        raise PolicyError(
+            f"{path}: not the published file (its sha256 {digest[:12]}... is not the {listed[path.name][:12]}... "
+            f"that {listing_path} lists for it)"
+        )
+    return FileCheck(digest, listing_path, path.name in listed)
+
+
+def folder_problems(folder) -> tuple[list[PublishedPolicy], list[str]]:
+    """Every problem of a published policies folder, not only the first (what ``ocv2 verify`` reports): listed
+    files missing or with other bytes, and policy files the listing does not name (publishing never leaves one).
+    Returns the listing and the problems, one line each; ``PolicyError`` where there is no readable listing."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise PolicyError(f"{folder}: not a folder")
+    if not (folder / SUMS).is_file():
+        raise PolicyError(f"{folder}: no {SUMS} (not a published policies folder)")
+    listing = read_listing(folder)
+    problems = [p for e in listing if (p := _listed_file_problem(folder / e.file, e.sha256))]
+    known = {e.file for e in listing}
+    problems += [f"{p}: not listed in {SUMS}" for p in sorted(folder.glob(f"*{SUFFIX}")) if p.name not in known]
+    return listing, problems
 
 
 def load_population(folder, files: Iterable[str | Path], layout: str | None = None) -> list[Policy]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import json
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +23,7 @@ import numpy as np
 import pytest
 
 from cluster.cli import main
+from cluster.runtime import crossplay
 from cluster.runtime.rundir import read_matrix_csv
 from population.policy import load, policy_env
 from population.record import play_recorded
@@ -74,6 +76,13 @@ def test_a_committed_cross_play_cell_is_played_again_from_the_committed_policies
         )
         == 0
     )
+    summary = json.loads((out / "summary.json").read_text())
+    for path in files:  # the bytes played, checked against the listing beside them
+        assert summary["files"][path] == {
+            "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+            "listing": str(POLICIES / "SHA256SUMS.json"),
+            "listed": True,
+        }
     again = read_matrix_csv(out / "matrix.csv").values
     committed = read_matrix_csv(RESULTS / "xp_check_update30.csv").values
     np.testing.assert_allclose(again, committed, atol=5.0)
@@ -158,3 +167,58 @@ def test_a_population_is_one_game_and_one_network_or_the_file_that_differs_is_na
     assert [p.env for p in loaded] == [first.env, first.env]
     with pytest.raises(PolicyError, match="max_steps: 50 vs 400"):
         published.load_population(tmp_path / "game", names)
+
+
+def _copy_listed_folder(tmp_path) -> Path:
+    """A copy of a small published folder (the Asymm. Advantages SA update-30 snapshot: 10 files)."""
+    source = RESULTS.parent / "table1_asymm_advantages_sa10" / "policies"
+    listing = json.loads((source / "SHA256SUMS.json").read_text())
+    folder = tmp_path / "policies"
+    folder.mkdir()
+    for name in ["SHA256SUMS.json", *(entry["file"] for entry in listing)]:
+        (folder / name).write_bytes((source / name).read_bytes())
+    return folder
+
+
+def test_ocv2_verify_passes_a_whole_folder_and_names_every_problem_of_a_changed_one(tmp_path, capsys):
+    folder = _copy_listed_folder(tmp_path)
+    assert main(["verify", str(folder)]) == 0
+    assert f"{folder}: all 10 files match SHA256SUMS.json" in capsys.readouterr().out
+    # A copy under another seed's name, a listed file gone, a file nobody listed: each named, all of them.
+    (folder / "sa_seed8_update30.ocv2policy").write_bytes((folder / "sa_seed0_update30.ocv2policy").read_bytes())
+    (folder / "sa_seed9_update30.ocv2policy").unlink()
+    (folder / "mine.ocv2policy").write_bytes((folder / "sa_seed1_update30.ocv2policy").read_bytes())
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["verify", str(folder), str(empty)]) == 1
+    captured = capsys.readouterr()
+    assert "all 10 files" not in captured.out
+    for line in (
+        f"{folder / 'sa_seed8_update30.ocv2policy'}: not the published file",
+        f"{folder / 'sa_seed9_update30.ocv2policy'}: listed in SHA256SUMS.json but missing",
+        f"{folder / 'mine.ocv2policy'}: not listed in SHA256SUMS.json",
+        f"{empty}: no SHA256SUMS.json (not a published policies folder)",
+        f"2 of 2 folders failed: {folder}, {empty}",
+    ):
+        assert line in captured.err, line
+
+
+def test_xp_refuses_a_file_its_listing_names_with_other_bytes_and_records_what_it_played(tmp_path, caplog):
+    """A renamed copy beside a SHA256SUMS.json once played as the seed it was named after; now it is refused before
+    anything plays, an unlisted file beside a listing is played with a warning, and each file's sha256 is kept."""
+    folder = _copy_listed_folder(tmp_path)
+    renamed = folder / "sa_seed8_update30.ocv2policy"
+    renamed.write_bytes((folder / "sa_seed0_update30.ocv2policy").read_bytes())
+    with pytest.raises(crossplay.CrossPlayError, match=f"{renamed}: not the published file"):
+        crossplay.resolve_source(str(renamed))
+    listed = crossplay.resolve_source(str(folder / "sa_seed1_update30.ocv2policy"))
+    expected = hashlib.sha256((folder / "sa_seed1_update30.ocv2policy").read_bytes()).hexdigest()
+    assert (listed.file.sha256, listed.file.listing, listed.file.listed) == (expected, folder / "SHA256SUMS.json", True)
+    stray = folder / "mine.ocv2policy"
+    stray.write_bytes((folder / "sa_seed1_update30.ocv2policy").read_bytes())
+    with caplog.at_level(logging.WARNING):
+        assert crossplay.resolve_source(str(stray)).file.listed is False
+    assert f"{stray}: not listed in {folder / 'SHA256SUMS.json'} beside it" in caplog.text
+    alone = tmp_path / "alone.ocv2policy"
+    alone.write_bytes(stray.read_bytes())
+    assert crossplay.resolve_source(str(alone)).file.listing is None

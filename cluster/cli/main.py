@@ -8,6 +8,7 @@
     ocv2 xp RUN_DIR [--episodes N]      cross-play of one run
     ocv2 xp --rows SRC ... [--cols SRC ...] [--checkpoint C] [--greedy] [--out DIR]   across runs (docs/evaluation.md)
     ocv2 export SRC --out FILE [--force] [--seed I] [--checkpoint C]   one policy to one file (never into a run)
+    ocv2 verify FOLDER [FOLDER ...]      published policies against their SHA256SUMS.json
     ocv2 study run STUDY.yaml [--budget F] [--seeds N] [--out DIR] | status DIR | report DIR   studies
     ocv2 validate CONFIG [CONFIG ...] [--set section.key=value ...]
     ocv2 report RUN_DIR [RUN_DIR ...] [--out DIR]
@@ -237,6 +238,12 @@ COMMANDS: list[Command] = [
         "write one policy (params + network + env settings) to a file",
         "cluster.cli.export:add_export",
         "cluster.cli.export:run_export",
+    ),
+    Command(
+        "verify",
+        "check published policies folders against their SHA256SUMS.json",
+        "cluster.cli.verify:add_verify",
+        "cluster.cli.verify:run_verify",
     ),
     Command(
         "study",

@@ -249,6 +249,7 @@ def _cross_run(args) -> int:
                 "cols": list(args.cols or args.rows),
                 "checkpoint": str(checkpoint) if directories else None,  # it picks nothing from a file
                 "updates": {g.label: list(g.updates) for g in [*rows, *cols] if any(u is not None for u in g.updates)},
+                "files": _file_records([*rows, *cols]),
                 "greedy": bool(args.greedy),
                 "seed": seed,
                 "precision": precision,
@@ -268,6 +269,20 @@ def _cross_run(args) -> int:
         _print_blocks(summary)
     print(f"wrote {out}/: {', '.join(sorted(p.name for p in Path(out).iterdir()))}")
     return EXIT_OK
+
+
+def _file_records(groups) -> dict:
+    """Per policy-file source: the sha256 of the bytes played, the SHA256SUMS.json beside it (None where its folder
+    has none) and whether that lists it (then with these bytes: checked), so a result can be traced to its files."""
+    return {
+        g.label: {
+            "sha256": g.file.sha256,
+            "listing": None if g.file.listing is None else str(g.file.listing),
+            "listed": g.file.listed,
+        }
+        for g in dict.fromkeys([*groups])  # the rows are the columns when --cols is left out
+        if g.file is not None
+    }
 
 
 def _device(backend: str) -> str:

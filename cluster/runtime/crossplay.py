@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
 import math
 import os
 from contextlib import contextmanager
@@ -52,7 +53,10 @@ from population.policy import (
     same_env,
     trained_precision,
 )
+from population.published import FileCheck, check_file
 from population.xp import Side, block_summary, cross_play, recipe_names
+
+log = logging.getLogger(__name__)
 
 HUMAN_PROXY = "human-proxy:"
 HUMAN_PROXY_METHOD = "human-proxy"  # the method named for a human-proxy source
@@ -79,6 +83,7 @@ class PolicyGroup:
     seed: int | None = None  # the run's population seed, when known
     precision: str | None = None  # the run's run.precision, when known
     updates: tuple = ()  # the checkpoint update of each policy, None where unknown (empty: none known)
+    file: FileCheck | None = None  # a policy file's sha256 and the SHA256SUMS.json beside it, if any (not a run)
 
     @property
     def spec(self) -> tuple:
@@ -141,6 +146,7 @@ def _run_group(text: str, path: Path, checkpoint) -> PolicyGroup:
 def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
     policy = _load(text, path, checkpoint)
     meta = policy.meta
+    file = _checked_file(text, path) if path.is_file() else None
     try:
         precision = trained_precision(policy)
     except PolicyError as error:
@@ -156,7 +162,20 @@ def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
         meta.get("method"),
         precision=precision,
         updates=(_update(policy),),
+        file=file,
     )
+
+
+def _checked_file(text: str, path: Path) -> FileCheck:
+    """``published.check_file``: a file its folder's SHA256SUMS.json lists with other bytes is refused; one that a
+    listing beside it does not name is played, with a warning (a published folder lists every file it holds)."""
+    try:
+        check = check_file(path)
+    except PolicyError as error:
+        raise CrossPlayError(f"{text}: {error}") from None
+    if check.listing is not None and not check.listed:
+        log.warning("%s: not listed in %s beside it, so not a published file; playing it as it is", text, check.listing)
+    return check
 
 
 def _update(policy) -> int | None:
