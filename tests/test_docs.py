@@ -66,3 +66,23 @@ def test_results_index_names_every_results_folder():
     folders = sorted(p.name for p in (ROOT / "docs" / "results").iterdir() if p.is_dir() and p.name != "__pycache__")
     missing = [name for name in folders if f"[{name}/]({name}/" not in index]
     assert not missing, f"docs/results/README.md does not list {missing}"
+
+
+def test_every_test_the_docs_name_exists():
+    """docs/extending.md once told readers to copy a test that had been renamed: a named test must be in its file."""
+    named = {
+        (match[1], match[2])
+        for page in [ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]
+        for match in re.finditer(r"tests/(test_\w+\.py)::(\w+)", page.read_text())
+    }
+    assert len(named) > 10  # the pattern still finds what the docs name
+    missing = [
+        f"tests/{file}::{name}"
+        for file, name in sorted(named)
+        if not re.search(rf"^(?:async )?(?:def|class) {name}\b", _text(ROOT / "tests" / file), re.MULTILINE)
+    ]
+    assert not missing, f"the docs name tests that do not exist: {missing}"
+
+
+def _text(path: Path) -> str:
+    return path.read_text() if path.is_file() else ""
