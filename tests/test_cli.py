@@ -435,3 +435,26 @@ def test_a_dead_worker_in_a_study_says_to_rerun_the_study_not_ocv2_train(monkeyp
     assert main(["study", "run", str(study), "--backend", "local", "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "continue with the same `ocv2 study run` command" in err and "ocv2 train" not in err, err
+
+
+def test_the_eta_is_measured_after_the_first_chunk_which_compiled(caplog, monkeypatch):
+    """The first chunk of a resumed SA run (compiling, collecting states) took three times a later one's time, and
+    the ETA it gave (12 h for 4 h) counted it; the ETA now starts at the end of that chunk."""
+    import logging
+
+    from cluster.runtime import progress
+
+    clock = iter([0.0, 1000.0, 1100.0, 1200.0])  # a 1,000 s first chunk, then 100 s chunks
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(clock))
+    rows = [{"seed": 0, "sparse_return": "10.0", "shaped_return": "2.0"}]
+    caplog.set_level(logging.INFO, logger="cluster")
+    with progress.PopulationProgress("SA asymm", num_seeds=1, total_updates=40, steps_per_update=100) as bar:
+        bar.advance_to(10, None)  # where a resume starts
+        for update, steps_per_s in ((20, 1.0), (30, 10.0), (40, 10.0)):
+            bar.advance_to(update, rows, steps_per_s)
+    assert caplog.messages[1:] == [
+        "  update 20/40  1 env steps/s (with compiling)  return 10.0+-0.0  shaped 2.0+-0.0  ETA after the next chunk "
+        "(this one compiled)",
+        "  update 30/40  10 env steps/s  return 10.0+-0.0  shaped 2.0+-0.0  ETA 1m40s",
+        "  update 40/40  10 env steps/s  return 10.0+-0.0  shaped 2.0+-0.0  ETA 0m00s",
+    ]

@@ -44,8 +44,7 @@ class PopulationProgress:
         self.details = list(details)
         self.steps_per_update = steps_per_update
         self.enabled = enabled
-        self.started = time.perf_counter()
-        self.first_update = None
+        self.steady: tuple[int, float] | None = None  # (update, time) at the end of the first chunk
         self._bar = None
         self._task = None
 
@@ -78,24 +77,32 @@ class PopulationProgress:
             log.info(f"  {text}")
 
     def advance_to(self, update: int, rows, steps_per_s: float | None = None, restarts: int = 0) -> None:
-        """``rows``: the metrics.csv rows of the chunk that ended at ``update`` (None: just move the bar)."""
-        if self.first_update is None:
-            self.first_update, self.started = update, time.perf_counter()
+        """``rows``: the metrics.csv rows of the chunk that ended at ``update`` (None: just move the bar).
+
+        The first chunk of a process compiles its programs (and an SA run collects its states first), so its time
+        says little of the rest's: on a 2-core CPU an SA resume's first chunk ran at a third of the later rate. The
+        ETA is measured from the end of that chunk on; the first chunk's line says so instead of guessing."""
+        now = time.perf_counter()
         if rows is None:
             if self._bar is not None:
                 self._bar.update(self._task, completed=update)
             return
         sparse, shaped = _latest(rows, "sparse_return"), _latest(rows, "shaped_return")
-        elapsed = time.perf_counter() - self.started
-        done = update - self.first_update
-        eta = elapsed / done * (self.total - update) if done else math.nan
-        info = f"{steps_per_s or 0:,.0f} env steps/s  return {_fmt(sparse)}  shaped {_fmt(shaped)}"
+        first = self.steady is None
+        rate = f"{steps_per_s or 0:,.0f} env steps/s" + (" (with compiling)" if first else "")
+        info = f"{rate}  return {_fmt(sparse)}  shaped {_fmt(shaped)}"
         if restarts:
             info += f"  worker restarts {restarts}"
+        if first:
+            self.steady = (update, now)
+            eta = "after the next chunk (this one compiled)" if update < self.total else duration(0)
+        else:
+            done, elapsed = update - self.steady[0], now - self.steady[1]
+            eta = duration(elapsed / done * (self.total - update) if done else math.nan)
         if self._bar is not None:
             self._bar.update(self._task, completed=update, info=info)
         elif self.enabled:
-            log.info(f"  update {update}/{self.total}  {info}  ETA {duration(eta)}")
+            log.info(f"  update {update}/{self.total}  {info}  ETA {eta}")
 
 
 class Bar:
