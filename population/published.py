@@ -49,7 +49,7 @@ class PublishedPolicy:
     @classmethod
     def from_json(cls, entry: dict, where: str = SUMS) -> PublishedPolicy:
         try:
-            return cls(
+            policy = cls(
                 file=str(entry["file"]),
                 seed=int(entry["seed"]),
                 update=int(entry["update"]),
@@ -58,6 +58,10 @@ class PublishedPolicy:
             )
         except (KeyError, TypeError, ValueError) as error:
             raise PolicyError(f"{where}: entry {entry!r} is not a published policy ({error})") from None
+        if Path(policy.file).name != policy.file or policy.file in ("", ".", ".."):
+            # A path would check a file outside the folder, which the folder's own files are then never compared to.
+            raise PolicyError(f"{where}: entry file {policy.file!r} is not a file name in the listing's folder")
+        return policy
 
 
 def policy_name(run: str, seed: int, update: int) -> str:
@@ -241,10 +245,14 @@ def verify(folder, files: Iterable[str | Path]) -> None:
 
 
 def _listed_file_problem(path: Path, sha256: str) -> str | None:
-    """What is wrong with a listed file (missing, or other bytes than the listed ``sha256``), or None."""
+    """What is wrong with a listed file (missing, unreadable, or other bytes than the listed ``sha256``), or None."""
     if not path.is_file():
         return f"{path}: listed in {SUMS} but missing"
-    if sha256_of(path) != sha256:
+    try:
+        digest = sha256_of(path)
+    except OSError as error:
+        return f"{path}: cannot be read ({error.strerror or error})"
+    if digest != sha256:
         return f"{path}: not the published file (its sha256 is not the one in {SUMS})"
     return None
 
@@ -260,15 +268,27 @@ class FileCheck:
 
 
 def check_file(path) -> FileCheck:
-    """The sha256 of a policy file, checked against the SHA256SUMS.json of its folder when there is one: a file
-    that the listing names with other bytes (a copy renamed, a file changed since it was published) is refused with
-    ``PolicyError`` naming it, so no number is computed from a file that only looks like a published one."""
+    """The sha256 of a policy file, checked against the SHA256SUMS.json of its folder when there is one (and, for a
+    symbolic link, of its target's folder too): a file that a listing names with other bytes (a copy renamed, a file
+    changed since it was published) is refused with ``PolicyError`` naming it, so no number is computed from a file
+    that only looks like a published one. A listing that cannot be read is refused too, naming it."""
     path = Path(path)
     digest = sha256_of(path)
+    checks = [_against_listing(path, digest)]
+    if path.is_symlink():
+        checks.append(_against_listing(path.resolve(), digest))
+    # What to record: a listing that lists the file, else one beside it, else none.
+    return max(checks, key=lambda check: (check.listed, check.listing is not None))
+
+
+def _against_listing(path: Path, digest: str) -> FileCheck:
     listing_path = path.parent / SUMS
     if not listing_path.exists():
         return FileCheck(digest, None, False)
-    listed = {e.file: e.sha256 for e in read_listing(path.parent)}
+    try:
+        listed = {e.file: e.sha256 for e in read_listing(path.parent)}
+    except PolicyError as error:
+        raise PolicyError(f"{error}; repair it, or move {path.name} out of {path.parent}") from None
     if path.name in listed and listed[path.name] != digest:
         raise PolicyError(
             f"{path}: not the published file (its sha256 {digest[:12]}... is not the {listed[path.name][:12]}... "
@@ -284,10 +304,12 @@ def folder_problems(folder) -> tuple[list[PublishedPolicy], list[str]]:
     folder = Path(folder)
     if not folder.is_dir():
         raise PolicyError(f"{folder}: not a folder")
-    if not (folder / SUMS).is_file():
+    if not (folder / SUMS).exists():
         raise PolicyError(f"{folder}: no {SUMS} (not a published policies folder)")
     listing = read_listing(folder)
     problems = [p for e in listing if (p := _listed_file_problem(folder / e.file, e.sha256))]
+    if not listing:  # publishing writes no listing until it has a file to list
+        problems.append(f"{folder / SUMS}: lists no policies")
     known = {e.file for e in listing}
     problems += [f"{p}: not listed in {SUMS}" for p in sorted(folder.glob(f"*{SUFFIX}")) if p.name not in known]
     return listing, problems

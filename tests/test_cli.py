@@ -441,11 +441,13 @@ def test_the_eta_is_measured_after_the_first_chunk_which_compiled(caplog, monkey
     """The first chunk of a resumed SA run (compiling, collecting states) took three times a later one's time, and
     the ETA it gave (12 h for 4 h) counted it; the ETA now starts at the end of that chunk."""
     import logging
+    from types import SimpleNamespace
 
     from cluster.runtime import progress
 
     clock = iter([0.0, 1000.0, 1100.0, 1200.0])  # a 1,000 s first chunk, then 100 s chunks
-    monkeypatch.setattr(progress.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(progress, "time", SimpleNamespace(perf_counter=lambda: next(clock)))
+    monkeypatch.setattr(progress, "_bar", lambda *columns: None)  # the log lines, even on a terminal (pytest -s)
     rows = [{"seed": 0, "sparse_return": "10.0", "shaped_return": "2.0"}]
     caplog.set_level(logging.INFO, logger="cluster")
     with progress.PopulationProgress("SA asymm", num_seeds=1, total_updates=40, steps_per_update=100) as bar:

@@ -79,7 +79,7 @@ def test_every_test_the_docs_name_exists():
     missing = [
         f"tests/{file}::{name}"
         for file, name in sorted(named)
-        if not re.search(rf"^(?:async )?(?:def|class) {name}\b", _text(ROOT / "tests" / file), re.MULTILINE)
+        if not re.search(rf"^\s*(?:async )?(?:def|class) {name}\b", _text(ROOT / "tests" / file), re.MULTILINE)
     ]
     assert not missing, f"the docs name tests that do not exist: {missing}"
 

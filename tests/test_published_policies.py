@@ -209,8 +209,13 @@ def test_xp_refuses_a_file_its_listing_names_with_other_bytes_and_records_what_i
     folder = _copy_listed_folder(tmp_path)
     renamed = folder / "sa_seed8_update30.ocv2policy"
     renamed.write_bytes((folder / "sa_seed0_update30.ocv2policy").read_bytes())
-    with pytest.raises(crossplay.CrossPlayError, match=f"{renamed}: not the published file"):
+    with pytest.raises(crossplay.CrossPlayError) as refused:
         crossplay.resolve_source(str(renamed))
+    assert str(refused.value).startswith(f"{renamed}: not the published file (its sha256 ")  # named once
+    linked = tmp_path / "seed8.ocv2policy"  # a link elsewhere to the renamed copy: checked where it points
+    linked.symlink_to(renamed)
+    with pytest.raises(crossplay.CrossPlayError, match="not the published file"):
+        crossplay.resolve_source(str(linked))
     listed = crossplay.resolve_source(str(folder / "sa_seed1_update30.ocv2policy"))
     expected = hashlib.sha256((folder / "sa_seed1_update30.ocv2policy").read_bytes()).hexdigest()
     assert (listed.file.sha256, listed.file.listing, listed.file.listed) == (expected, folder / "SHA256SUMS.json", True)
@@ -222,3 +227,27 @@ def test_xp_refuses_a_file_its_listing_names_with_other_bytes_and_records_what_i
     alone = tmp_path / "alone.ocv2policy"
     alone.write_bytes(stray.read_bytes())
     assert crossplay.resolve_source(str(alone)).file.listing is None
+
+
+def test_a_listing_that_names_a_path_an_empty_one_or_a_folder_is_a_problem_named(tmp_path, capsys):
+    """A listing entry "../x" or "/etc/x" would compare a file outside the folder; ocv2 verify once passed it."""
+    folder = _copy_listed_folder(tmp_path)
+    listing = json.loads((folder / "SHA256SUMS.json").read_text())
+    outside = tmp_path / "outside.ocv2policy"
+    outside.write_bytes((folder / listing[0]["file"]).read_bytes())
+    listing[0]["file"] = "../outside.ocv2policy"
+    (folder / "SHA256SUMS.json").write_text(json.dumps(listing))
+    assert main(["verify", str(folder)]) == 1
+    assert "entry file '../outside.ocv2policy' is not a file name in the listing's folder" in capsys.readouterr().err
+    # ocv2 xp, given a file beside that listing, says which listing and what to do
+    with pytest.raises(crossplay.CrossPlayError, match="not a file name in the listing's folder; repair it, or move"):
+        crossplay.resolve_source(str(folder / listing[1]["file"]))
+    (folder / "SHA256SUMS.json").write_text("[]")
+    for path in folder.glob("*.ocv2policy"):
+        path.unlink()
+    assert main(["verify", str(folder)]) == 1
+    assert f"{folder / 'SHA256SUMS.json'}: lists no policies" in capsys.readouterr().err
+    (folder / "SHA256SUMS.json").unlink()
+    (folder / "SHA256SUMS.json").mkdir()
+    assert main(["verify", str(folder)]) == 1
+    assert "SHA256SUMS.json: a folder, not the listing file" in capsys.readouterr().err

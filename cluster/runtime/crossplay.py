@@ -144,9 +144,9 @@ def _run_group(text: str, path: Path, checkpoint) -> PolicyGroup:
 
 
 def _single(text: str, path: Path, checkpoint) -> PolicyGroup:
+    file = _checked_file(text, path) if path.is_file() else None  # before loading: a changed file is named as such
     policy = _load(text, path, checkpoint)
     meta = policy.meta
-    file = _checked_file(text, path) if path.is_file() else None
     try:
         precision = trained_precision(policy)
     except PolicyError as error:
@@ -172,7 +172,7 @@ def _checked_file(text: str, path: Path) -> FileCheck:
     try:
         check = check_file(path)
     except PolicyError as error:
-        raise CrossPlayError(f"{text}: {error}") from None
+        raise _source_error(text, path, error) from None
     if check.listing is not None and not check.listed:
         log.warning("%s: not listed in %s beside it, so not a published file; playing it as it is", text, check.listing)
     return check
@@ -196,8 +196,13 @@ def _load(text, path, checkpoint, seed=None):
     try:
         return load(path, seed=seed, checkpoint=checkpoint)
     except PolicyError as error:
-        message = str(error)
-        raise CrossPlayError(message if str(path) in message else f"{text}: {message}") from None
+        raise _source_error(text, path, error) from None
+
+
+def _source_error(text: str, path: Path, error: PolicyError) -> CrossPlayError:
+    """``error`` about source ``text``, which names it once: prefixed with it unless it already names ``path``."""
+    message = str(error)
+    return CrossPlayError(message if str(path) in message else f"{text}: {message}")
 
 
 def refuse_repeated_policies(groups) -> None:
