@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from cluster.cli import main
+from cluster.runtime.environment import cpu_record
 from cluster.study.state import StudyState
 from population import numerics
 from population.config import PRECISIONS
@@ -91,6 +92,7 @@ def test_the_local_backend_records_its_device_precision_and_flags(tmp_path, caps
     assert record["run"] == {"precision": "tf32", "deterministic": True}
     (worker,) = record["workers"]
     assert worker["worker"] == "this process" and worker["seeds"] == [0, 1] and worker["num_gpus"] is None
+    assert worker["cpu"]["cores"] == os.cpu_count() and worker["cpu"]["model"]  # a rate is read beside its CPU
     assert worker["device"] == numerics_device() and worker["matmul_precision"] == "tensorfloat32"
     assert worker["computes"] == ("float32" if jax.default_backend() == "cpu" else "tf32")
     err = capsys.readouterr().err
@@ -125,3 +127,19 @@ def test_the_study_command_sets_the_flag_like_the_train_command(tmp_path, monkey
     off = ["--set", "run.deterministic=false"]
     assert main(["study", "run", str(study), "--backend", "local", "--out", str(tmp_path / "o2"), *off]) == 0
     assert "run.deterministic" not in capsys.readouterr().err
+
+
+def test_the_cpu_record_names_the_model_cores_and_vector_units(tmp_path):
+    """Two 2-core machines trained the same run three times apart: environment.json says which CPU each was."""
+    x86 = tmp_path / "x86"
+    x86.write_text(
+        "processor\t: 0\nmodel name\t: AMD EPYC 9654\nflags\t\t: fpu sse4_2 avx avx2 fma avx512f\n\n"
+        "processor\t: 1\nmodel name\t: other\nflags\t\t: fpu\n"
+    )
+    record = cpu_record(x86)
+    assert record["model"] == "AMD EPYC 9654" and record["vector_flags"] == ["sse4_2", "avx", "avx2", "fma", "avx512f"]
+    assert record["cores"] == os.cpu_count() and 1 <= record["usable_cores"] <= os.cpu_count()
+    arm = tmp_path / "arm"
+    arm.write_text("processor\t: 0\nFeatures\t: fp asimd sve\n")
+    assert cpu_record(arm)["vector_flags"] == ["asimd", "sve"] and cpu_record(arm)["model"]
+    assert cpu_record(tmp_path / "absent")["vector_flags"] is None

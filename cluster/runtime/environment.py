@@ -64,6 +64,38 @@ def environment_record() -> dict:
     }
 
 
+#: The CPU features XLA:CPU's kernels use when they are there: a training rate measured on one CPU says little of
+#: another without them (2026-11-30: the same resumed SA run trained at 505 s per 5 updates on one 2-core machine,
+#: about three times as long on the next).
+VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx512_vnni", "amx_tile", "asimd", "sve")
+
+
+def cpu_record(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict:
+    """The CPU this process runs on: its model (``/proc/cpuinfo``'s first "model name", else what ``platform``
+    says), the cores there are and the cores this process may use, and which of ``VECTOR_FLAGS`` it has (None where
+    ``cpuinfo`` cannot be read: not Linux)."""
+    model, flags = None, None
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        text = None
+    if text is not None:
+        fields = {}
+        for line in text.splitlines():
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())  # the first processor's
+        model = fields.get("model name")
+        present = set(fields.get("flags", fields.get("Features", "")).split())
+        flags = [flag for flag in VECTOR_FLAGS if flag in present]
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    return {
+        "model": model or platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "usable_cores": usable,
+        "vector_flags": flags,
+    }
+
+
 def describe_devices(devices=None) -> str:
     """What JAX computes on, in words: ``cpu``, ``gpu: NVIDIA H100 80GB HBM3`` or ``gpu: 2 x NVIDIA H100 ...``
     (the platform, and the device kind unless it is the CPU)."""
@@ -76,12 +108,13 @@ def describe_devices(devices=None) -> str:
 
 
 def process_record() -> dict:
-    """This process as a worker: the device JAX trains on, the matmul precision and XLA flags in force
+    """This process as a worker: its CPU (``cpu_record``), the device JAX trains on, the matmul precision and XLA flags in force
     (``jax.default_matmul_precision`` here and now; None is the backend's default), and the variables that
     decide which devices it sees."""
     xla_flags = os.environ.get("XLA_FLAGS", "")
     return {
         "pid": os.getpid(),
+        "cpu": cpu_record(),
         "device": describe_devices(),
         "devices": [str(device) for device in jax.devices()],
         "matmul_precision": jax.config.jax_default_matmul_precision,
