@@ -6,8 +6,10 @@ pack its resumable state here.
 0. What could make the steps below fail is checked first, while the study still trains (study.json, the runs'
    configs, the policies folder's listing, the pack's folder); any problem stops the script before step 1.
 1. SIGTERM to the ``ocv2 study run`` of STUDY_DIR (the process whose command line's --out is STUDY_DIR, read from
-   /proc): like Ctrl-C, it finishes the chunk in flight, saves and exits (SIGKILL after 10 minutes; a kill loses
-   at most that chunk). Not SIGINT: a run started in the background (``nohup ... &``) ignores it.
+   /proc): like Ctrl-C, it finishes the chunk in flight, saves and exits (SIGKILL after ``--wait`` minutes, 10 by
+   default; a kill loses at most that chunk). Not SIGINT: a run started in the background (``nohup ... &``) ignores
+   it. A chunk's time depends on the CPU (5 Asymm. Advantages SA updates: 8 minutes on one 2-core machine, 27 on
+   another): give ``--wait`` the log's last chunk time, or start the script just before a chunk ends.
 2. ``ocv2 study pack --latest-only`` into study_state/<study name>/ (written beside it first, then swapped in; a
    damaged checkpoint stops it and the earlier pack stays). First, because the next session continues from it.
 3. Every kept snapshot of every run's seeds not published yet is exported into ``--policies`` (default
@@ -65,17 +67,19 @@ def running(study: Path) -> list[int]:
     return [pid for pid in pids if out_folder(pid) == study.resolve()]
 
 
-def stop(study: Path) -> None:
+def stop(study: Path, wait_s: float = 600.0) -> None:
+    """SIGTERM to the study's processes; SIGKILL to those still running after ``wait_s`` seconds."""
     pids = running(study)
     if not pids:
         print(f"no `ocv2 study run ... --out {study}` is running")
     for pid in pids:
         with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
             os.kill(pid, signal.SIGTERM)
-    for _ in range(600):
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
         if gone(study):
             return
-        time.sleep(1)
+        time.sleep(min(1.0, wait_s))
     for pid in running(study):
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
@@ -112,6 +116,12 @@ def main() -> None:
     parser.add_argument(
         "--into", type=Path, default=HERE, help="where the pack goes, as <study>/ (default study_state/)"
     )
+    parser.add_argument(
+        "--wait",
+        type=float,
+        default=10.0,
+        help="minutes to let the chunk in flight finish before SIGKILL, which loses it (default 10)",
+    )
     args = parser.parse_args()
     study = args.study.resolve()
     failures = (StudyError, ConfigError, PolicyError, CheckpointError, OSError)
@@ -119,7 +129,9 @@ def main() -> None:
         name, dest = check_before_stopping(study, args.policies, args.into)
     except failures as error:
         raise SystemExit(f"{error}\nnothing was stopped, published or packed") from None
-    stop(study)
+    if not args.wait > 0:
+        parser.error(f"--wait {args.wait:g}: minutes, more than 0")
+    stop(study, args.wait * 60)
     # The pack first: it is what the next session continues from, and needs only the newest update every seed of a run has
     # (and the snapshots a later step reads, checked like it); a damaged older snapshot that no step reads must not
     # cost it (it stops only the publishing below).

@@ -1786,9 +1786,11 @@ def _stop_and_pack():
     return module
 
 
-def _sleeper(out, cwd=None) -> subprocess.Popen:
-    """A stand-in for `ocv2 study run ... --out OUT` started in the background: SIGINT ignored, SIGTERM ends it."""
-    code = "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); time.sleep(60)"
+def _sleeper(out, cwd=None, ignore=("SIGINT",)) -> subprocess.Popen:
+    """A stand-in for `ocv2 study run ... --out OUT` started in the background: SIGINT ignored, SIGTERM ends it
+    (unless ``ignore`` names it too: a chunk in flight that takes longer than the wait)."""
+    ignored = "".join(f"signal.signal(signal.{name}, signal.SIG_IGN); " for name in ignore)
+    code = f"import signal, time; {ignored}time.sleep(60)"
     argv = [sys.executable, "-c", code, "--out", str(out)]
     return subprocess.Popen(argv, cwd=cwd, stderr=subprocess.DEVNULL)
 
@@ -1809,6 +1811,22 @@ def test_stop_and_pack_interrupts_the_study_run_of_its_out_folder_and_no_other(t
     finally:
         sibling.kill()
         relative.kill()
+
+
+def test_stop_and_pack_kills_a_study_whose_chunk_outlasts_the_wait(tmp_path):
+    """On a slower CPU a chunk took 27 minutes, and the wait before SIGKILL was a fixed 10: it is --wait now."""
+    module = _stop_and_pack()
+    out = tmp_path / "study"
+    out.mkdir()
+    busy = _sleeper(out, ignore=("SIGINT", "SIGTERM"))
+    try:
+        time.sleep(1)  # its signal handlers are set
+        started = time.monotonic()
+        module.stop(out, wait_s=2)
+        assert busy.wait(timeout=10) == -signal.SIGKILL
+        assert 2 <= time.monotonic() - started < 20
+    finally:
+        busy.kill()
 
 
 def test_stop_and_pack_packs_then_publishes_and_packs_again_over_its_last_pack(finished, tmp_path):
