@@ -252,9 +252,15 @@ def _listed_file_problem(path: Path, sha256: str) -> str | None:
         digest = sha256_of(path)
     except OSError as error:
         return f"{path}: cannot be read ({error.strerror or error})"
-    if digest != sha256:
-        return f"{path}: not the published file (its sha256 is not the one in {SUMS})"
-    return None
+    return None if digest == sha256 else _not_published(path, digest, sha256)
+
+
+def _not_published(path: Path, digest: str, listed: str) -> str:
+    """The problem of a file whose bytes (sha256 ``digest``) are not those its folder's listing gives (``listed``)."""
+    return (
+        f"{path}: not the published file (its sha256 {digest[:12]}... is not the {listed[:12]}... that "
+        f"{path.parent / SUMS} lists for it)"
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -290,10 +296,7 @@ def _against_listing(path: Path, digest: str) -> FileCheck:
     except PolicyError as error:
         raise PolicyError(f"{error}; repair it, or move {path.name} out of {path.parent}") from None
     if path.name in listed and listed[path.name] != digest:
-        raise PolicyError(
-            f"{path}: not the published file (its sha256 {digest[:12]}... is not the {listed[path.name][:12]}... "
-            f"that {listing_path} lists for it)"
-        )
+        raise PolicyError(_not_published(path, digest, listed[path.name]))
     return FileCheck(digest, listing_path, path.name in listed)
 
 

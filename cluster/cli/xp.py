@@ -280,7 +280,7 @@ def _file_records(groups) -> dict:
             "listing": None if g.file.listing is None else str(g.file.listing),
             "listed": g.file.listed,
         }
-        for g in dict.fromkeys([*groups])  # the rows are the columns when --cols is left out
+        for g in dict.fromkeys(groups)  # the rows are the columns when --cols is left out
         if g.file is not None
     }
 
