@@ -175,7 +175,13 @@ def shaping_coef(config: Config, env_steps) -> jax.Array:
     return jnp.clip(1.0 - jnp.asarray(env_steps, jnp.float32) / horizon, 0.0, 1.0)
 
 
+# Cached, and so are the programs built from a Trainer below (each keyed by the Trainer's identity): a
+# process that trains or evaluates a config again (a resumed run, a study's next step, a rerun to compare)
+# reuses the traced and compiled programs instead of tracing, lowering and compiling them anew. JAX's
+# persistent cache only skips the last of the three; tracing and lowering a PPO update took seconds each.
+@functools.lru_cache(maxsize=16)
 def make_trainer(config: Config) -> Trainer:
+    """The static context of a run of ``config``: one object per equal config in a process."""
     env = train_env(config)
     schedule = lr_schedule(config)
     optimizer = optax.chain(optax.clip_by_global_norm(config.ppo.max_grad_norm), optax.adam(schedule, eps=1e-5))
@@ -576,9 +582,20 @@ def init_population(trainer: Trainer, seeds, buffer: State | None = None, pool_s
     """TrainStates of the given seed indices stacked on a leading axis (S)."""
     # One jitted init per seed, then stacked: XLA:CPU (jax 0.10.2) deadlocks running a vmapped flax
     # init of these networks, and per-seed init makes "alone == in a batch" hold by construction.
-    init = jax.jit(lambda k, b: init_train_state(trainer, k, b, pool_size))
+    init = _init_program(trainer, pool_size)
     states = [init(seed_key(trainer.config, int(i)), buffer) for i in seeds]
     return jax.tree.map(lambda *xs: jnp.stack(xs), *states)
+
+
+@functools.lru_cache(maxsize=16)
+def _init_program(trainer: Trainer, pool_size: int):
+    return jax.jit(lambda k, b: init_train_state(trainer, k, b, pool_size))
+
+
+@functools.lru_cache(maxsize=16)
+def make_restart_population(trainer: Trainer):
+    """A jitted ``(states [S], keys [S], buffer) -> states``: ``restart_episodes`` of every seed."""
+    return jax.jit(jax.vmap(lambda s, k, b: restart_episodes(trainer, s, k, b), in_axes=(0, 0, None)))
 
 
 def make_advance_population(trainer: Trainer, num_updates: int, pool_per_seed: bool = False):
@@ -594,6 +611,7 @@ def make_advance_population(trainer: Trainer, num_updates: int, pool_per_seed: b
     return jax.jit(jax.vmap(run, in_axes=(0, None, 0 if pool_per_seed else None)), donate_argnums=(0,))
 
 
+@functools.lru_cache(maxsize=16)
 def make_advance_chunks(trainer: Trainer, max_updates: int, pool_per_seed: bool = False):
     """A jitted ``(states [S], buffer, pool, count) -> (states, metrics [S, max_updates])``: ``count``
     updates of every seed (``advance_upto``), one compiled program for every ``count <= max_updates``.
@@ -613,6 +631,13 @@ def make_advance_chunks(trainer: Trainer, max_updates: int, pool_per_seed: bool 
     return jax.jit(jax.vmap(run, in_axes=(0, None, 0 if pool_per_seed else None, None)), donate_argnums=(0,))
 
 
+def clear_program_caches() -> None:
+    """Forget the cached trainers and the programs built from them, so the next use traces afresh (what a
+    test that counts traces, or swaps a function the programs call, needs)."""
+    for cached in (make_trainer, _init_program, make_restart_population, make_advance_chunks):
+        cached.cache_clear()
+
+
 def take_seed(tree, index: int):
     """One seed's slice of a population pytree."""
     return jax.tree.map(lambda x: x[index], tree)
@@ -629,6 +654,7 @@ __all__ = [
     "UpdateMetrics",
     "advance",
     "advance_upto",
+    "clear_program_caches",
     "compute_gae",
     "eval_env",
     "init_population",
@@ -637,6 +663,7 @@ __all__ = [
     "lr_schedule",
     "make_advance_chunks",
     "make_advance_population",
+    "make_restart_population",
     "make_trainer",
     "partner_actions",
     "ppo_loss",

@@ -106,6 +106,18 @@ def ray_session():
     yield ensure_ray()
 
 
+@pytest.fixture
+def fresh_programs():
+    """No cached trainer or training program (population.ppo keeps them per config for the process): for a
+    test that counts traces or swaps a function the programs call, which a program an earlier test of the
+    same worker built would skip."""
+    from population import ppo
+
+    ppo.clear_program_caches()
+    yield
+    ppo.clear_program_caches()  # nor one built with the swapped function for the tests after
+
+
 # Files whose tests share nothing and are many: spread test by test over the xdist workers.
 _SPREAD_FILES = {"test_conformance.py"}
 

@@ -70,7 +70,7 @@ def _chunk_lowering(config, seeds: int = 2):
     return program.lower(states, buffer, pool, jax.ShapeDtypeStruct((), jnp.int32))
 
 
-def test_the_check_finds_a_print_in_the_training_step(monkeypatch):
+def test_the_check_finds_a_print_in_the_training_step(monkeypatch, fresh_programs):
     update_step = ppo.update_step
 
     def printing(trainer, pool_params, buffer, state, unused):

@@ -295,7 +295,7 @@ def test_save_restore_continues_bit_for_bit(run2, inits, four_updates, two_updat
     assert _leaves_equal(metrics, jax.tree.map(lambda x: x[:, 2:], metrics4))
 
 
-def test_traced_count_chunks_equal_the_scan(trainer, inits, four_updates, monkeypatch):
+def test_traced_count_chunks_equal_the_scan(trainer, inits, four_updates, monkeypatch, fresh_programs):
     """``make_advance_chunks`` (one program, the count traced) gives the scan's numbers for any cut.
 
     Chunks of 3 then 1 update and of 1 then 3, all through one program of at most 3 updates, equal the

@@ -801,12 +801,14 @@ def test_schedule_stops_at_snapshots_checkpoints_and_sa_iterations():
     assert dataclasses.replace(schedule, iteration_starts=()).next_stop(0) == 2
 
 
-def test_one_training_program_per_run(tmp_path, monkeypatch):
+def test_one_training_program_per_run(tmp_path, monkeypatch, fresh_programs):
     """Chunks of 3, 1 and 2 updates (an SA run of 6 updates: iteration start 3, snapshot 3, checkpoint 4)
     all run one compiled program: the chunk length is an argument of it (``ppo.make_advance_chunks``).
 
     Traces are counted with a Python side effect in the traced function, which runs once per program
-    JAX builds (a compile-cache hit still traces, so this counts programs, not cache misses).
+    JAX builds (a compile-cache hit still traces, so this counts programs, not cache misses). A second
+    run of the same config in the process traces nothing (``ppo.make_trainer`` and the programs built
+    from it are cached per config) and gives the same numbers.
     """
     overrides = ["population.method=sa", "ppo.total_timesteps=768", "run.checkpoint_every=4"]
     schedule = runstate.Schedule.of(load_config(SMOKE, overrides))
@@ -826,6 +828,11 @@ def test_one_training_program_per_run(tmp_path, monkeypatch):
     run = tmp_path / "sa"
     assert train(run, *overrides, extra=["--no-eval"]) == 0
     assert traces == [4]
+    again = tmp_path / "again"
+    assert train(again, *overrides, extra=["--no-eval"]) == 0
+    assert traces == [4]
+    untimed = lambda path: [{k: v for k, v in r.items() if k not in ("steps_per_s", "wall_s")} for r in read_csv(path)]
+    assert untimed(again / "metrics.csv") == untimed(run / "metrics.csv")
     rows = read_csv(run / "metrics.csv")
     assert sorted(seed_keys(rows)) == [(s, u) for s in range(NUM_SEEDS) for u in range(1, 7)]
     assert all(float(r["entropy"]) > 0 for r in rows)  # no padding row (all zeros) slipped into the metrics

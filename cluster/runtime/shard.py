@@ -109,9 +109,7 @@ class SeedShard:
         # traced count, but the grid of those stops is their greatest common divisor (often 1 update): a
         # host round trip per update, or checkpoints and SA iterations moved off the config's updates.
         self._advance = None
-        self._restart = jax.jit(
-            jax.vmap(lambda s, k, b: ppo.restart_episodes(self.trainer, s, k, b), in_axes=(0, 0, None))
-        )
+        self._restart = ppo.make_restart_population(self.trainer)
         env = self.trainer.env
         self._recipe_labels = recipe_labels(env.layout)  # the columns the run directory checks on resume
 
