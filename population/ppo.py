@@ -175,13 +175,19 @@ def shaping_coef(config: Config, env_steps) -> jax.Array:
     return jnp.clip(1.0 - jnp.asarray(env_steps, jnp.float32) / horizon, 0.0, 1.0)
 
 
-# Cached, and so are the programs built from a Trainer below (each keyed by the Trainer's identity): a
-# process that trains or evaluates a config again (a resumed run, a study's next step, a rerun to compare)
-# reuses the traced and compiled programs instead of tracing, lowering and compiling them anew. JAX's
-# persistent cache only skips the last of the three; tracing and lowering a PPO update took seconds each.
-@functools.lru_cache(maxsize=16)
+# Cached, and so are the run drivers' programs built from a Trainer below (init, SA's restart, the training
+# chunk; each keyed by the Trainer's identity): a process that trains a config again (a study's retrain, a
+# test that trains twice to compare) reuses the traced and compiled programs instead of tracing, lowering
+# and compiling them anew. JAX's persistent cache skips only the last of the three; tracing and lowering
+# a PPO chunk take seconds on a CPU. Few entries: each holds compiled programs, and a process rarely
+# trains more than a couple of configs in turn. (Cross-play and SA's collection were cached already, per
+# env and network.)
+_PROGRAMS_KEPT = 8
+
+
+@functools.lru_cache(maxsize=_PROGRAMS_KEPT)
 def make_trainer(config: Config) -> Trainer:
-    """The static context of a run of ``config``: one object per equal config in a process."""
+    """The static context of a run of ``config`` (the same object for an equal config while it is cached)."""
     env = train_env(config)
     schedule = lr_schedule(config)
     optimizer = optax.chain(optax.clip_by_global_norm(config.ppo.max_grad_norm), optax.adam(schedule, eps=1e-5))
@@ -587,12 +593,12 @@ def init_population(trainer: Trainer, seeds, buffer: State | None = None, pool_s
     return jax.tree.map(lambda *xs: jnp.stack(xs), *states)
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=_PROGRAMS_KEPT)
 def _init_program(trainer: Trainer, pool_size: int):
     return jax.jit(lambda k, b: init_train_state(trainer, k, b, pool_size))
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=_PROGRAMS_KEPT)
 def make_restart_population(trainer: Trainer):
     """A jitted ``(states [S], keys [S], buffer) -> states``: ``restart_episodes`` of every seed."""
     return jax.jit(jax.vmap(lambda s, k, b: restart_episodes(trainer, s, k, b), in_axes=(0, 0, None)))
@@ -611,7 +617,6 @@ def make_advance_population(trainer: Trainer, num_updates: int, pool_per_seed: b
     return jax.jit(jax.vmap(run, in_axes=(0, None, 0 if pool_per_seed else None)), donate_argnums=(0,))
 
 
-@functools.lru_cache(maxsize=16)
 def make_advance_chunks(trainer: Trainer, max_updates: int, pool_per_seed: bool = False):
     """A jitted ``(states [S], buffer, pool, count) -> (states, metrics [S, max_updates])``: ``count``
     updates of every seed (``advance_upto``), one compiled program for every ``count <= max_updates``.
@@ -624,7 +629,11 @@ def make_advance_chunks(trainer: Trainer, max_updates: int, pool_per_seed: bool 
     """
     if max_updates < 1:
         raise ValueError(f"max_updates must be at least 1, got {max_updates}")
+    return _advance_chunks_program(trainer, int(max_updates), bool(pool_per_seed))  # one key however it is called
 
+
+@functools.lru_cache(maxsize=_PROGRAMS_KEPT)
+def _advance_chunks_program(trainer: Trainer, max_updates: int, pool_per_seed: bool):
     def run(states, buffer, pool_params, count):
         return advance_upto(trainer, states, count, max_updates, buffer, pool_params)
 
@@ -634,8 +643,12 @@ def make_advance_chunks(trainer: Trainer, max_updates: int, pool_per_seed: bool 
 def clear_program_caches() -> None:
     """Forget the cached trainers and the programs built from them, so the next use traces afresh (what a
     test that counts traces, or swaps a function the programs call, needs)."""
-    for cached in (make_trainer, _init_program, make_restart_population, make_advance_chunks):
+    for cached in _CACHED:
         cached.cache_clear()
+
+
+# The cached functions themselves, not looked up by name when cleared: a test may have swapped a name.
+_CACHED = (make_trainer, _init_program, make_restart_population, _advance_chunks_program)
 
 
 def take_seed(tree, index: int):

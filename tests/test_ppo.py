@@ -78,7 +78,7 @@ def trainer():
 
 @pytest.fixture(scope="module")
 def inits(trainer):
-    """Initial states: seed 3 alone and seeds [1, 3, 5] together (``init_population`` compiles per call)."""
+    """Initial states: seed 3 alone and seeds [1, 3, 5] together (``init_population`` compiles once per trainer)."""
     return ppo.init_population(trainer, [3]), ppo.init_population(trainer, [1, 3, 5])
 
 

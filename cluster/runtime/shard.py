@@ -102,12 +102,13 @@ class SeedShard:
         self.restored_update = self.update
         self._restarted_iteration = None  # SA: the iteration whose episode restart self.states has had
         self._buffer = None  # SA: (iteration, jnp State) converted once per iteration
-        # One training program per shard, built at the first chunk. Chunks end at checkpoints, snapshots
-        # and SA iteration starts, so their lengths vary (1 to 50 updates in a Coordination Ring SA run);
-        # the length is a traced argument of the program (``ppo.make_advance_chunks``), not a constant
-        # compiled into it, so every chunk reuses one executable. Stops on a common grid would need no
-        # traced count, but the grid of those stops is their greatest common divisor (often 1 update): a
-        # host round trip per update, or checkpoints and SA iterations moved off the config's updates.
+        # One training program per shard (per config in a process: ppo caches it), built at the first chunk.
+        # Chunks end at checkpoints, snapshots and SA iteration starts, so their lengths vary (1 to 50 updates
+        # in a Coordination Ring SA run); the length is a traced argument of the program
+        # (``ppo.make_advance_chunks``), not a constant compiled into it, so every chunk reuses one executable.
+        # Stops on a common grid would need no traced count, but the grid of those stops is their greatest
+        # common divisor (often 1 update): a host round trip per update, or checkpoints and SA iterations
+        # moved off the config's updates.
         self._advance = None
         self._restart = ppo.make_restart_population(self.trainer)
         env = self.trainer.env
