@@ -831,8 +831,8 @@ def test_one_training_program_per_run(tmp_path, monkeypatch, fresh_programs):
     again = tmp_path / "again"
     assert train(again, *overrides, extra=["--no-eval"]) == 0
     assert traces == [4]
-    untimed = lambda path: [{k: v for k, v in r.items() if k not in ("steps_per_s", "wall_s")} for r in read_csv(path)]
-    assert untimed(again / "metrics.csv") == untimed(run / "metrics.csv")
-    rows = read_csv(run / "metrics.csv")
+    rows, rows_again = read_csv(run / "metrics.csv"), read_csv(again / "metrics.csv")
+    _assert_same_metrics(rows_again, rows)
+    assert seed_keys(rows_again) == seed_keys(rows)  # in the same order too
     assert sorted(seed_keys(rows)) == [(s, u) for s in range(NUM_SEEDS) for u in range(1, 7)]
     assert all(float(r["entropy"]) > 0 for r in rows)  # no padding row (all zeros) slipped into the metrics
