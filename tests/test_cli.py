@@ -455,8 +455,8 @@ def test_the_eta_is_measured_after_the_first_chunk_which_compiled(caplog, monkey
         for update, steps_per_s in ((20, 1.0), (30, 10.0), (40, 10.0)):
             bar.advance_to(update, rows, steps_per_s)
     assert caplog.messages[1:] == [
-        "  update 20/40  1 env steps/s (with compiling)  return 10.0+-0.0  shaped 2.0+-0.0  ETA after the next chunk "
-        "(this one compiled)",
+        "  update 20/40  1 env steps/s (first chunk, with start-up)  return 10.0+-0.0  shaped 2.0+-0.0  ETA after the "
+        "next chunk (this one started up)",
         "  update 30/40  10 env steps/s  return 10.0+-0.0  shaped 2.0+-0.0  ETA 1m40s",
         "  update 40/40  10 env steps/s  return 10.0+-0.0  shaped 2.0+-0.0  ETA 0m00s",
     ]

@@ -79,9 +79,10 @@ class PopulationProgress:
     def advance_to(self, update: int, rows, steps_per_s: float | None = None, restarts: int = 0) -> None:
         """``rows``: the metrics.csv rows of the chunk that ended at ``update`` (None: just move the bar).
 
-        The first chunk of a process compiles its programs (and an SA run collects its states first), so its time
-        says little of the rest's: on a 2-core CPU an SA resume's first chunk ran at a third of the later rate. The
-        ETA is measured from the end of that chunk on; the first chunk's line says so instead of guessing."""
+        The first chunk of a process starts up: it compiles its programs, or traces them and loads them from a cache
+        (a second run of an equal config in one process only looks them up), and an SA run collects its states first.
+        So its time says little of the rest's: on a 2-core CPU an SA resume's first chunk ran at a third of the later
+        rate. The ETA is measured from the end of that chunk on; the first chunk's line says so instead of guessing."""
         now = time.perf_counter()
         if rows is None:
             if self._bar is not None:
@@ -89,13 +90,13 @@ class PopulationProgress:
             return
         sparse, shaped = _latest(rows, "sparse_return"), _latest(rows, "shaped_return")
         first = self.steady is None
-        rate = f"{steps_per_s or 0:,.0f} env steps/s" + (" (with compiling)" if first else "")
+        rate = f"{steps_per_s or 0:,.0f} env steps/s" + (" (first chunk, with start-up)" if first else "")
         info = f"{rate}  return {_fmt(sparse)}  shaped {_fmt(shaped)}"
         if restarts:
             info += f"  worker restarts {restarts}"
         if first:
             self.steady = (update, now)
-            eta = "after the next chunk (this one compiled)" if update < self.total else duration(0)
+            eta = "after the next chunk (this one started up)" if update < self.total else duration(0)
         else:
             done, elapsed = update - self.steady[0], now - self.steady[1]
             eta = duration(elapsed / done * (self.total - update) if done else math.nan)
