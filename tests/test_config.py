@@ -208,6 +208,31 @@ def test_impossible_values_name_the_key():
     )
 
 
+def test_an_fcp_partner_stage_trains_with_the_learners_activation():
+    """The learner's network plays the partners' parameters, so the stage takes ``ppo.activation`` unless told
+    otherwise, and another one given outright is refused (it used to train relu partners, played as tanh)."""
+    fcp = {"method": "fcp"}
+    config = parse_config({"env": {"layout": "cramped_room"}, "ppo": {"activation": "tanh"}, "population": fcp})
+    assert (config.ppo.activation, config.population.fcp.partner_ppo.activation) == ("tanh", "tanh")
+    assert (
+        parse_config({"env": {"layout": "cramped_room"}, "population": fcp}).population.fcp.partner_ppo.activation
+        == "relu"
+    )
+    message = _error(
+        {
+            "env": {"layout": "cramped_room"},
+            "ppo": {"activation": "tanh"},
+            "population": {**fcp, "fcp": {"partner_ppo": {"activation": "relu"}}},
+        }
+    )
+    assert "population.fcp.partner_ppo.activation: 'relu', but ppo.activation is 'tanh'" in message
+    # Partners from a finished run: their own config says how they were trained (checked when the run starts).
+    given = {**fcp, "fcp": {"partners": "runs/sp", "partner_ppo": {"activation": "relu"}}}
+    assert parse_config(
+        {"env": {"layout": "cramped_room"}, "ppo": {"activation": "tanh"}, "population": given}
+    ).population
+
+
 def test_values_that_crashed_or_failed_late_are_refused_naming_the_key():
     """Each was a traceback (a zero divided by), or a run directory written before training failed."""
     for key in ("num_envs", "num_steps"):  # ZeroDivisionError in schedule_updates

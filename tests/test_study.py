@@ -689,6 +689,7 @@ def test_fcp_partners_from_an_earlier_run_of_the_study(tmp_path):
             "run 'fcp'.partners_from: run 'sp' trains another game or network than run 'fcp' (differs in layout: ",
         ),
         ("model.fc_dim=32", "than run 'fcp' (its model section differs)"),
+        ("ppo.activation=tanh", "than run 'fcp' (its ppo.activation is 'relu', not 'tanh')"),
         ("population.fcp.checkpoints=[3]", "run 'fcp'.partners_from: population.fcp.checkpoints: "),
     ],
 )

@@ -273,9 +273,12 @@ def test_fcp_reuses_a_given_partner_run(sp_run, tmp_path):
         _assert_trees_equal(member, jax.tree.map(lambda t, x: np.asarray(x), member, stored))
 
 
-def test_fcp_partner_run_of_another_model_is_a_clear_error(tmp_path, capsys):
+# The activation too: the learner's network plays the partners' parameters, so partners of another activation
+# would load (the same shapes) and be played as a function they never were.
+@pytest.mark.parametrize("difference", ["model.fc_dim=32", "ppo.activation=tanh"])
+def test_fcp_partner_run_of_another_model_is_a_clear_error(tmp_path, capsys, difference):
     other = tmp_path / "other"
-    RunDir(other).create(load_config(SMOKE, ["model.fc_dim=32"]))
+    RunDir(other).create(load_config(SMOKE, [difference]))
     assert (
         train(tmp_path / "fcp", "population.method=fcp", f"population.fcp.partners={other}", extra=["--no-eval"]) == 2
     )

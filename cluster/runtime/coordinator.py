@@ -41,9 +41,8 @@ from population import ppo
 from population.config import Config
 from population.config import shards as seed_shards
 from population.evaluation import stack_params
-from population.networks import same_function
 from population.numerics import matmul_precision
-from population.policy import same_env
+from population.policy import network_settings, same_env
 from population.published import sha256_of
 from population.sa import PairStates, all_pairs, extend_buffer, merge_buffers
 
@@ -171,10 +170,10 @@ def load_pool(config: Config, trainer: ppo.Trainer, partner_run) -> tuple[object
 
 
 def same_game_and_network(partner: Config, learner: Config) -> bool:
-    """Whether a run of ``partner`` can be an FCP partner of ``learner``: the same game and the same network."""
-    return same_env(partner.env_kwargs, learner.env_kwargs) and same_function(partner.model) == same_function(
-        learner.model
-    )
+    """Whether a run of ``partner`` can be an FCP partner of ``learner``: the same game and the same network, its
+    activation included (``network_settings``): the learner's network plays the partners' parameters, so a
+    partner trained with another activation would be played as a function it never was."""
+    return same_env(partner.env_kwargs, learner.env_kwargs) and network_settings(partner) == network_settings(learner)
 
 
 def checked_partner_config(config: Config, partner_run) -> Config:
@@ -189,7 +188,7 @@ def checked_partner_config(config: Config, partner_run) -> Config:
     if not same_game_and_network(partner_config, config):
         raise RunDirError(
             f"population.fcp.partners: {partner_run} was trained with a different env or model "
-            "section; FCP partners must play the same game with the same network"
+            "section or ppo.activation; FCP partners must play the same game with the same network"
         )
     needed = fcp.stage_seeds(config.population.num_seeds)
     if partner_config.population.num_seeds < needed:

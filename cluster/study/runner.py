@@ -66,6 +66,7 @@ from population.config import Config, ConfigError
 from population.config.paper import PACKAGED_CONFIGS
 from population.human import LAYOUT_MAP
 from population.memory import check_fits
+from population.networks import same_function
 from population.numerics import DEFAULT_PRECISION
 from population.policy import env_difference, env_settings, same_env
 from population.xp import block_summary
@@ -493,7 +494,11 @@ def check_partners_from(study: Study, configs: dict, out: Path, changing: Sequen
         where = f"{study.origin}: run {run.name!r}.partners_from"
         learner, partner = configs[run.name], configs[run.partners_from]
         if not same_game_and_network(partner, learner):
-            difference = env_difference(partner.env_kwargs, learner.env_kwargs) or "its model section differs"
+            difference = env_difference(partner.env_kwargs, learner.env_kwargs) or (
+                "its model section differs"
+                if same_function(partner.model) != same_function(learner.model)
+                else f"its ppo.activation is {partner.ppo.activation!r}, not {learner.ppo.activation!r}"
+            )
             raise StudyError(
                 f"{where}: run {run.partners_from!r} trains another game or network than run {run.name!r} "
                 f"({difference}); FCP partners play the learner's game with its network"

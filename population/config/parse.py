@@ -120,7 +120,7 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     population = dataclasses.replace(
         parsed(parse_section, "population", PopulationConfig, pop_raw, default=PopulationConfig()), **subs
     )
-    partner_ppo = parsed(_partner_ppo, partner_raw, env, model, population, default=None)
+    partner_ppo = parsed(_partner_ppo, partner_raw, env, model, population, ppo, default=None)
     population = dataclasses.replace(population, fcp=dataclasses.replace(population.fcp, partner_ppo=partner_ppo))
     config = Config(
         env=env,
@@ -283,8 +283,10 @@ def _resolve_model(model: ModelConfig, problems: list[str]) -> ModelConfig:
     return dataclasses.replace(model, **fill)
 
 
-def _partner_ppo(raw, env, model: ModelConfig, population: PopulationConfig) -> PPOConfig | None:
-    """The FCP partner stage's ppo section: ``raw`` keys over the paper's self-play section for this layout."""
+def _partner_ppo(raw, env, model: ModelConfig, population: PopulationConfig, ppo: PPOConfig) -> PPOConfig | None:
+    """The FCP partner stage's ppo section: ``raw`` keys over the paper's self-play section for this layout, with
+    the learner's ``activation`` unless ``raw`` names one: the learner plays the partners with its own network,
+    activation included, so partners trained with another would be played as a function they never were."""
     key = "population.fcp.partner_ppo"
     if raw is not None and not isinstance(raw, Mapping):
         raise ConfigError(f"{key}: expected a mapping of ppo keys, got {type(raw).__name__}")
@@ -307,5 +309,6 @@ def _partner_ppo(raw, env, model: ModelConfig, population: PopulationConfig) -> 
             "to take the partner stage's hyperparameters from; set it (a ppo mapping)"
         )
     values = dataclasses.asdict(base) if base is not None else {}
+    values["activation"] = ppo.activation
     values.update(raw or {})
     return parse_section(key, PPOConfig, values)

@@ -164,7 +164,9 @@ class FCPConfig:
     update number). ``pool``: "shared" (every learner plays partner seeds [0, k)) or "per_seed" (the
     paper: learner i plays its own partner seeds [i*k, (i+1)*k), so the SP stage trains num_seeds x k
     seeds). ``partner_ppo``: the SP stage's ppo section; unset, the paper's self-play hyperparameters
-    for this layout and model kind (``configs/paper``); keys given replace single values of that.
+    for this layout and model kind (``configs/paper``); keys given replace single values of that. Its
+    ``activation`` is the learner's ``ppo.activation`` unless given (and must equal it): the learner's
+    network plays the partners.
     """
 
     partners: str | None = None

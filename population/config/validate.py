@@ -81,7 +81,8 @@ def ppo_problems(prefix: str, ppo: PPOConfig) -> list[str]:
     return problems
 
 
-def _validate_fcp(fcp: FCPConfig, num_agents: int) -> list[str]:
+def _validate_fcp(fcp: FCPConfig, num_agents: int, activation: str) -> list[str]:
+    """``activation``: the learner's (``ppo.activation``), the one its network plays the partners with."""
     problems = _positive("population.fcp.partner_seeds", fcp.partner_seeds)
     if fcp.partners is not None and not str(fcp.partners).strip():
         problems.append(
@@ -102,8 +103,13 @@ def _validate_fcp(fcp: FCPConfig, num_agents: int) -> list[str]:
     key = "population.fcp.partner_ppo"
     partner_problems = ppo_problems(key, partner)
     problems += partner_problems
-    if partner_problems or fcp.partners:  # the check below divides by these sizes, and is of a stage that trains
+    if partner_problems or fcp.partners:  # the checks below divide by these sizes, and are of a stage that trains
         return problems
+    if partner.activation != activation:
+        problems.append(
+            f"{key}.activation: {partner.activation!r}, but ppo.activation is {activation!r}: the learner plays its "
+            "partners with its own network, so they must train with the same activation (leave it out to inherit it)"
+        )
     if (partner.num_envs * num_agents) % partner.num_minibatches:
         problems.append(
             f"{key}.num_minibatches: {partner.num_minibatches} does not divide the "
@@ -182,7 +188,7 @@ def validate(config: Config) -> list[str]:
                 "(evaluation must run without permutations)"
             )
     if pop.method == "fcp":
-        problems += _validate_fcp(pop.fcp, env.num_agents)
+        problems += _validate_fcp(pop.fcp, env.num_agents, ppo.activation)
     problems += _positive("eval.episodes", config.eval.episodes)
     problems += _positive("eval.gifs", config.eval.gifs, allow_zero=True)
     problems += _positive("run.checkpoint_every", config.run.checkpoint_every)
