@@ -346,13 +346,33 @@ def travel_check(state: Path, root: Path = ROOT) -> str:
         f"{tree / 2**20:.1f} (published policies {policies / 2**20:.1f} and study_state/ packs {packed / 2**20:.1f} "
         f"of it), .whl {wheels / 2**20:.1f}, state {carried / 2**20:.1f}"
     )
-    if total - policies - packed > TRAVEL_BYTES:
-        line += " -- TOO MUCH even without the published policies and study packs: remove large results first"
-    elif total > TRAVEL_BYTES:
+    if total - policies - packed - wheels > TRAVEL_BYTES:
+        line += " -- TOO MUCH even without the published policies, study packs and .whl: remove large results first"
+    elif total - policies - packed > TRAVEL_BYTES:  # the wheels serve the JaxMARL measurement only (gpu_run.sh)
         line += (
-            " -- run `bash bench/gpu_slim.sh` before the call (and `git checkout -- docs/results study_state` after it)"
+            " -- run `bash bench/gpu_slim.sh` before the call (and `bash bench/gpu_slim.sh --restore` after it), and"
+            " carry nothing: without .whl it fits (training needs neither mcap nor jaxmarl)"
         )
+    elif total > TRAVEL_BYTES:
+        line += " -- run `bash bench/gpu_slim.sh` before the call (and `bash bench/gpu_slim.sh --restore` after it)"
     return line
+
+
+def refuse_slimmed(root: Path = ROOT) -> None:
+    """SystemExit while bench/gpu_slim.sh has the published policies or study packs out (deleted from the work tree
+    or the index): filing a window reads earlier windows' policies, and a commit then would take the deletions."""
+    slimmed = [
+        subprocess.run(command, cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+        for command in (
+            ["git", "ls-files", "--deleted", "--", "docs/results", "study_state"],
+            ["git", "diff", "--cached", "--name-only", "--diff-filter=D", "--", "docs/results", "study_state"],
+        )
+    ]
+    if any(slimmed):
+        count = len(set("\n".join(slimmed).split()))
+        raise SystemExit(
+            f"gpu_report: {count} files of docs/results or study_state are out: bash bench/gpu_slim.sh --restore first"
+        )
 
 
 def index_lists(folder: Path) -> bool:
@@ -368,7 +388,14 @@ def main(argv=None) -> int:
     parser.add_argument("--results", default=str(ROOT / "docs" / "results"), help="'' skips the unpacking")
     parser.add_argument("--history", default=str(HISTORY), help="every window's record, appended ('' skips)")
     args = parser.parse_args(argv)
-    bench = json.loads((args.files / "gpu_run.json").read_text())
+    refuse_slimmed()
+    record = args.files / "gpu_run.json"
+    if not record.is_file():  # gpu_run.sh stopped before gpu_run.py began (its log says why: no wheels to install)
+        log_file = args.files / "gpu_run.log"
+        why = log_file.read_text().strip().splitlines()[-1:] if log_file.is_file() else ["no gpu_run.log either"]
+        raise SystemExit(f"gpu_report: no gpu_run.json in {args.files}: nothing was measured or trained ({why[0]})")
+    bench = json.loads(record.read_text())
+    bench.setdefault("results", {})  # a window cut off while measuring: what it reached is still filed
     history = json.loads(Path(args.history).read_text()) if args.history and Path(args.history).is_file() else []
     earlier = [window for window in history if window["environment"] != bench["environment"]]
     publish(benchmark_block(bench, earlier, study_rates(args.files)), args.out, START, END)
@@ -387,6 +414,11 @@ def main(argv=None) -> int:
         )
     if (args.files / "state").is_dir():
         print(travel_check(args.files / "state"))
+    elif bench.get("plan") and "packed" not in bench:
+        print(
+            "warning: this window planned training but its record ends before packing (the command was cut off?): "
+            "what it trained came back only if a state/ or results_*.tar.gz is here"
+        )
     print(state_advice(args.files, Path(args.results) if args.results else None))
     return 0
 

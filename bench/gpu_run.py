@@ -22,7 +22,7 @@ it can also run by itself (``python bench/gpu_run.py --out DIR``).
 4. **train**: ``ocv2 study run --backend local`` in a child process; at the deadline it gets SIGTERM, which
    stops training after the chunk in flight (saved), so what it has is packed and a later window resumes it.
 5. **pack**: first the resumable state of a study left unfinished at the deadline -> state/ (``ocv2 study
-   pack``: pack.json and parts of at most 16 MiB), then each study's report folder (``ocv2 study report --out``),
+   pack``: pack.json and parts of at most 15 MiB), then each study's report folder (``ocv2 study report --out``),
    every seed's exported policy (its latest checkpoint, then kept snapshots while 12 MiB allow) with sha256
    sums, metrics.csv and gpu_run.json -> results_<study>.tar.gz. Commit state/ as gpu_state/ and the next window's
    ``bench/gpu_run.sh`` continues that study (``--continue-from``) instead of planning a new one.
@@ -130,11 +130,13 @@ def matmul_rate(size: int, dtype, precision: str, repeats: int = 10) -> dict:
     }
 
 
-def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -> dict:
+def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str], chunk: int | None = None) -> dict:
     """Env steps/s of ``seeds`` seeds trained together (one vmapped program, as the local backend does):
     ``updates`` updates timed once after a compile-and-run call of the same program, traced under the config's
     ``run.precision`` as a run's shard traces it. (The first window measured without it, at JAX's default: TF32
-    on an H100, 2.8x the rate its float32 study then trained at.)"""
+    on an H100, 2.8x the rate its float32 study then trained at.) ``chunk``: the program's longest chunk
+    (default ``updates``); the study's own (``study_chunk``) makes it the program the study then compiles, which
+    the window's compilation cache hands over instead of compiling it again (tens of seconds of the window)."""
     from train_throughput import flops_per_env_step
 
     from population.numerics import matmul_precision
@@ -143,7 +145,7 @@ def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -
     with matmul_precision(config.run.precision):
         trainer = ppo.make_trainer(config)
         states = ppo.init_population(trainer, list(range(seeds)))
-        advance = ppo.make_advance_chunks(trainer, updates)  # the program a run's shard trains with
+        advance = ppo.make_advance_chunks(trainer, chunk or updates)  # the program a run's shard trains with
         count = jnp.int32(updates)
         started = time.perf_counter()
         states, _ = jax.block_until_ready(advance(states, None, None, count))
@@ -162,6 +164,7 @@ def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -
         "precision": config.run.precision,
         "seeds": seeds,
         "updates": updates,
+        "chunk": chunk or updates,
         "steps_per_update": config.ppo.steps_per_update,
         "compile_plus_first_s": round(compile_s, 2),
         "timed_s": round(seconds, 3),
@@ -169,6 +172,17 @@ def trainer_rate(config_path: Path, seeds: int, updates: int, sets: list[str]) -
         "model_tflops": flops / seconds / 1e12,
         "finite": bool(jnp.isfinite(metrics.loss.total).all()) if hasattr(metrics.loss, "total") else None,
     }
+
+
+def study_chunk(study: str) -> int:
+    """The longest chunk of the one run of ``configs/studies/<study>.yaml`` at its whole budget with 10 seeds: the
+    limit of the training program that study compiles (``ppo.make_advance_chunks``)."""
+    from cluster.runtime.runstate import Schedule
+    from cluster.study.spec import load_study, run_config
+
+    spec = load_study(STUDIES / f"{study}.yaml")
+    (run,) = spec.runs
+    return Schedule.of(run_config(spec, run, ROOT / "unused", budget=1.0, seeds=10)).longest_chunk
 
 
 def env_rate(impl: str, batch: int, steps: int) -> dict:
@@ -187,6 +201,8 @@ def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object
     ``rnn_first``: the 10-seed RNN variants first (the Table 2 plan trains with the fastest of them)."""
     sets = SMOKE_SETS if smoke else []
     cnn_updates, rnn_updates = (2, 2) if smoke else (10, 3)  # 10: the GPU study's chunk, so its compile is reused
+    # Table 2's program has room for its chunk of 5 updates; 3 of them are timed (a GPU RNN update takes seconds).
+    rnn_chunk = None if smoke else study_chunk(TABLE2)
     size = 512 if smoke else 8192
     plan_seeds, many = (2, 2) if smoke else (10, 10)
 
@@ -199,7 +215,7 @@ def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object
         variant = kernels + ("" if backward == "auto" else f"_{backward}") + ("" if unroll == 1 else f"_unroll{unroll}")
         sets_k = [*sets, *rnn_sets(kernels, backward, unroll), *precision_sets(precision)]
         name = f"rnn_sp_{seeds}_{variant}{precision_suffix(precision)}"
-        return name, lambda: trainer_rate(GCS_SP, seeds, rnn_updates, sets_k)
+        return name, lambda: trainer_rate(GCS_SP, seeds, rnn_updates, sets_k, rnn_chunk)
 
     batch, steps = (64, 16) if smoke else (16384, 400)
     plan_case = f"cnn_sp_{plan_seeds}"
@@ -220,11 +236,13 @@ def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object
         # The CNN's matmul-only form (model.kernels=cpu: banded rows, written for XLA:CPU) on the GPU: float32
         # matmuls are not convolutions to cuDNN, and the study's float32 rate (150k) is far below its FLOP share.
         cnn(plan_seeds, kernels="cpu"),
-        rnn(many, "xla"),
         # An RNN update is 2 x 256 sequential GRU steps per minibatch: latency-bound on a GPU. Unrolling the
         # time loop and the hand-written backward pass (a shorter step) are the candidates; the Table 2 plan
-        # trains with whichever 10-seed float32 variant measured fastest (best_rnn_sets).
+        # trains with whichever 10-seed float32 variant measured fastest (best_rnn_sets), for the whole schedule.
+        # The first window's fastest first (163k against 111k env steps/s for the plain form, at TF32): if the
+        # measuring time holds one variant only, the study still trains the best known way.
         rnn(many, "xla", "hand", 8),
+        rnn(many, "xla"),
         rnn(many, "cpu"),
         rnn(many, "xla", "autodiff", 8),
         rnn(many, "xla", "hand"),
@@ -235,8 +253,11 @@ def measurements(smoke: bool, rnn_first: bool = False) -> list[tuple[str, object
         rnn(1, "cpu"),
         *([] if smoke else [cnn(4), rnn(20, "xla"), rnn(20, "xla", "hand", 8)]),  # growth with seeds in one program
     ]
-    if rnn_first:  # a stable sort: the RNN cases of the plan's seed count, in their order, then the rest in theirs
-        ordered.sort(key=lambda case: not case[0].startswith(f"rnn_sp_{many}_"))
+    if rnn_first:  # a stable sort: the float32 matmul rate (a second; the RNN rates' FLOP share is of it), the RNN
+        # cases of the plan's seed count, in their order, then the rest in theirs
+        ordered.sort(
+            key=lambda case: 0 if case[0] == "matmul_f32" else 1 if case[0].startswith(f"rnn_sp_{many}_") else 2
+        )
     return ordered
 
 
@@ -555,7 +576,7 @@ def results_name(study_dir: Path) -> str:
 
 def pack(out: Path, returned: Path, only: Path | None = None) -> dict:
     """Every study of this window not packed yet (or ``only`` that one): first each unfinished study's resumable
-    state as ``returned/state/`` (``ocv2 study pack``: pack.json and parts of at most 16 MiB), then one
+    state as ``returned/state/`` (``ocv2 study pack``: pack.json and parts of at most 15 MiB), then one
     ``results_<study>.tar.gz`` per study (report, policies, metrics, gpu_run.json; each under the 16 MiB a returned
     file may have), written under a temporary name and renamed whole, so that a command cut off while packing
     returns no half archive."""
@@ -643,6 +664,12 @@ def main(argv=None) -> int:
     parser.add_argument("--measure-s", type=float, default=120.0, help="seconds for measuring")
     parser.add_argument("--continue-from", type=Path, help="an earlier window's state/ folder: go on with it")
     parser.add_argument(
+        "--started-at",
+        type=float,
+        help="when the command began, in epoch seconds (gpu_run.sh: before it installs the wheels): the deadline and "
+        "the measuring time count from it (default: this script's start)",
+    )
+    parser.add_argument(
         "--plan",
         choices=("auto", "table1", "table2"),
         default="auto",
@@ -654,7 +681,7 @@ def main(argv=None) -> int:
     if args.measure_one:
         print(json.dumps(dict(measurements(args.smoke))[args.measure_one]()))
         return 0
-    start = time.time()
+    start = args.started_at or time.time()
     out = Path(args.out)
     returned = Path(args.returned or out)
     for folder in (out, returned):

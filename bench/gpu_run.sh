@@ -8,10 +8,12 @@
 # What comes back, in $OUT (the device tool's folder; ./out/gpu_run elsewhere), at most 8 files: gpu_run.log,
 # gpu_run.json (environment, measurements, plan, what trained), results_<study>.tar.gz (its report, exported policies
 # with sha256 sums, metrics) and, when a study is left unfinished at the deadline, state/ (its resumable state:
-# pack.json and parts of at most 16 MiB). bench/gpu_report.py files them into the repository; commit state/ as
+# pack.json and parts of at most 15 MiB). bench/gpu_report.py files them into the repository; commit state/ as
 # gpu_state/ and the next window continues that study instead of planning a new one.
-# GPU_RUN_DEADLINE_S (default 480; 140 smoke) is when training is told to stop, counted from the start of
-# bench/gpu_run.py; the export and packing after it take about a minute, inside a 600 s command.
+# GPU_RUN_DEADLINE_S (default 480; 140 smoke) is when training is told to stop, counted from the start of this
+# command (the wheels' install and the flag check below included); the export and packing after it take about a
+# minute, inside a 600 s command.
+started=$(date +%s.%N)
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${OUT:-$PWD/out/gpu_run}
@@ -24,16 +26,19 @@ export PYTHONUNBUFFERED=1
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 # The carried wheels, without network or build isolation, into a folder of their own (the machine's own
-# packages stay as they are); only what the interpreter does not have already.
+# packages stay as they are); only what the interpreter does not have already. Training needs neither mcap nor
+# jaxmarl (studies write no trajectory archive), only the JaxMARL env measurement does, so a window that carried
+# no .whl/ (a continued Table 2 window, short of the 64 MiB) still runs, and says what it goes without.
 if ! "$python" -c "import mcap" 2>/dev/null || ! "$python" -c "import jaxmarl" 2>/dev/null; then
     if ! ls .whl/*.whl >/dev/null 2>&1; then
-        echo "gpu_run: mcap or jaxmarl is missing and there is no .whl/ to install them from: run bench/gpu_wheels.sh" \
-            "here and carry .whl" | tee "$out/gpu_run.log" >&2
-        exit 2
+        echo "gpu_run: mcap or jaxmarl is missing and no .whl/ came along (bench/gpu_wheels.sh, carry .whl): going on" \
+            "without them (no JaxMARL measurement, no trajectory archive)" >&2
+    elif "$python" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$work/site" \
+        .whl/*.whl; then
+        export PYTHONPATH="$PYTHONPATH:$work/site"  # before site-packages too; no carried wheel is one the machine has
+    else
+        echo "gpu_run: installing .whl/ failed: going on without its wheels" >&2
     fi
-    "$python" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$work/site" .whl/*.whl \
-        || { echo "gpu_run: installing .whl/ failed" >&2; exit 2; }
-    export PYTHONPATH="$PYTHONPATH:$work/site"  # after the checkout and the machine's own site-packages
 fi
 # XLA's deterministic GPU ops, as the run's own process sets them (run.deterministic, on by default), so that
 # what is measured is what trains; bench/gpu_run.py measures the plan's case once without them too.
@@ -55,7 +60,7 @@ if [ "$smoke" != 1 ] && [ -f gpu_state/pack.json ]; then
     measure=75
 fi
 "$python" bench/gpu_run.py --out "$work/run" --returned "$out" --deadline-s "$deadline" --measure-s "$measure" \
-    "${continue_from[@]}" 2>&1 | tee "$out/gpu_run.log"
+    --started-at "$started" "${continue_from[@]}" 2>&1 | tee "$out/gpu_run.log"
 rc=${PIPESTATUS[0]}
 ls -lR "$out" | tee -a "$out/gpu_run.log"
 rm -rf "$work"

@@ -184,8 +184,10 @@ def test_once_table1_has_finished_table2_trains_its_whole_schedule_the_fastest_m
 
 
 def test_the_rnn_variants_are_measured_first_when_table2_is_next():
-    first = [name for name, _ in gpu_run.measurements(smoke=False, rnn_first=True)][:6]
-    assert all(name.startswith("rnn_sp_10_") for name in first) and first[0] == "rnn_sp_10_xla"
+    first = [name for name, _ in gpu_run.measurements(smoke=False, rnn_first=True)][:7]
+    # the float32 matmul rate (a second), then the best known variant: the plan trains the fastest one measured
+    assert first[:2] == ["matmul_f32", "rnn_sp_10_xla_hand_unroll8"]
+    assert all(name.startswith("rnn_sp_10_") for name in first[1:])
     assert [name for name, _ in gpu_run.measurements(smoke=False)][:2] == ["matmul_f32", "cnn_sp_10"]
 
 
@@ -226,9 +228,14 @@ def test_a_window_that_fits_without_the_published_policies_is_told_to_slim(tmp_p
     assert "published policies 1.0 and study_state/ packs 2.0" in line
     (state / "more").write_bytes(b"\0" * (3 << 20))  # more than the policies and the pack together
     assert "TOO MUCH" in gpu_report.travel_check(state, root)
+    (state / "more").unlink()
+    (root / ".whl").mkdir()  # 4 MiB of wheels: slimmed, the window fits only if it carries none (training needs none)
+    (root / ".whl" / "mcap-1.whl").write_bytes(b"w" * (4 << 20))
+    line = gpu_report.travel_check(state, root)
+    assert "TOO MUCH" not in line and "bash bench/gpu_slim.sh" in line and "without .whl it fits" in line
 
 
-def test_gpu_slim_takes_committed_policies_and_packs_out_of_the_work_tree_and_git_brings_them_back(tmp_path):
+def test_gpu_slim_takes_committed_policies_and_packs_out_of_the_work_tree_and_index_and_restores_them(tmp_path):
     root = tmp_path / "repo"
     policy = _repo_with_a_policy(root)
     pack = root / "study_state" / "study" / "study.tar.gz.000"
@@ -242,8 +249,19 @@ def test_gpu_slim_takes_committed_policies_and_packs_out_of_the_work_tree_and_gi
     assert not policy.exists() and "1 published policies (1 MiB)" in done.stdout
     assert not pack.exists() and "1 study_state/ pack files (2 MiB)" in done.stdout
     assert (root / "study_state" / "README.md").is_file()  # only the packs leave
-    subprocess.run(["git", "checkout", "--", "docs/results", "study_state"], cwd=root, check=True)
+    # Out of git's index too (a staged deletion): what travels is the same whether sized from the tree or the index.
+    tracked = subprocess.run(["git", "ls-files"], cwd=root, capture_output=True, text=True, check=True).stdout.split()
+    assert sorted(tracked) == ["bench/gpu_slim.sh", "study_state/README.md"]
+    again = subprocess.run(["bash", "bench/gpu_slim.sh"], cwd=root, capture_output=True, text=True)
+    assert again.returncode == 1 and "slimmed already" in again.stderr  # slimmed twice: refused, saying so
+    # bench/gpu_report.py refuses to file a window while the tree is slimmed (it reads earlier windows' policies).
+    with pytest.raises(SystemExit, match="bash bench/gpu_slim.sh --restore"):
+        gpu_report.refuse_slimmed(root)
+    subprocess.run(["bash", "bench/gpu_slim.sh", "--restore"], cwd=root, check=True, capture_output=True)
     assert policy.read_bytes() == b"p" * (1 << 20) and pack.read_bytes() == b"s" * (2 << 20)
+    status = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True, check=True)
+    assert status.stdout == ""  # nothing left staged for a later commit to take
+    gpu_report.refuse_slimmed(root)
 
 
 def test_earlier_windows_measurements_stay_in_the_block_until_measured_again(tmp_path):
@@ -580,6 +598,24 @@ def test_a_later_window_keeps_the_snapshot_policies_of_earlier_ones(tmp_path):
     with pytest.raises(SystemExit, match="nothing was written"):
         gpu_report.unpack_results(files, tmp_path / "docs")
     assert (written / "policies" / "sp_seed0_update410.ocv2policy").is_file()
+
+
+def test_the_rnn_rates_are_measured_with_the_program_table2_then_trains_with(monkeypatch):
+    """The measured program is the Table 2 study's own (the same sections, the chunk limit of its schedule), so the
+    window's compilation cache hands the study the program it measured instead of compiling it again."""
+    from cluster.runtime.runstate import Schedule
+    from cluster.study.spec import load_study, run_config
+
+    spec = load_study(ROOT / "configs" / "studies" / "gpu_grounded_coord_simple_sp.yaml")
+    config = run_config(spec, spec.runs[0], ROOT / "unused", budget=1.0, seeds=10)
+    calls = []
+    monkeypatch.setattr(gpu_run, "trainer_rate", lambda *args: calls.append(args))
+    dict(gpu_run.measurements(smoke=False))["rnn_sp_10_xla_hand_unroll8"]()
+    ((path, seeds, updates, sets, chunk),) = calls
+    assert chunk == Schedule.of(config).longest_chunk == 5 and updates <= chunk
+    measured = gpu_run.load_config(path, [*sets, f"population.num_seeds={seeds}"])
+    # (the model section differs by the --set of the variant, which the plan gives the study too)
+    assert (config.env, config.ppo, config.population) == (measured.env, measured.ppo, measured.population)
 
 
 def test_a_trainer_rate_is_traced_under_the_precision_of_its_config(monkeypatch):

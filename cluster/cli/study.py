@@ -132,7 +132,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         default="snapshots",
         help="the kept snapshots (default), each seed's final checkpoint only, or every checkpoint on disk",
     )
-    pack = commands.add_parser("pack", help="DIR's resumable state as parts of at most 16 MiB (cluster.study.pack)")
+    pack = commands.add_parser("pack", help="DIR's resumable state as parts of at most 15 MiB (cluster.study.pack)")
     pack.add_argument("dir", help="study directory")
     pack.add_argument("--out", required=True, help="new or empty folder for pack.json and the parts")
     pack.add_argument(
