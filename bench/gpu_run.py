@@ -484,8 +484,24 @@ def train(step: Step, out: Path, deadline: float, smoke: bool) -> dict:
             child.send_signal(signum)
             interrupted = True
         time.sleep(0.2)
-    return {"step": dataclasses.asdict(step), "rc": child.returncode, "wall_s": round(time.time() - started, 1),
-            "stopped_at_deadline": interrupted}  # fmt: skip
+    record = {"step": dataclasses.asdict(step), "rc": child.returncode, "wall_s": round(time.time() - started, 1),
+              "stopped_at_deadline": interrupted}  # fmt: skip
+    if interrupted and child.returncode not in (0, 1, 130):
+        # The signal can land after the study has finished (its report written, the process not gone yet): a
+        # rehearsal on a loaded CPU saw rc -15 so. Its directory says whether anything was lost.
+        record["finished"] = _done_here(out / f"study_{step.study}")
+    return record
+
+
+def _done_here(study_dir: Path) -> bool:
+    """Whether ``study_dir`` says every step of its study is done (False if it cannot be read)."""
+    from cluster.study.runner import study_status
+
+    try:
+        return study_done(study_status(study_dir))
+    except Exception as error:  # an unreadable study is not finished
+        log(f"{study_dir}: cannot read its status ({type(error).__name__}: {error})")
+        return False
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -633,15 +649,11 @@ GO_ON_MIN_S = 150.0  # a new study after a finished one: an RNN compile (~35 s) 
 def finished(trained: dict, study_dir: Path) -> bool:
     """Whether a ``train`` record's study ran to its end (not stopped at the deadline, not failed) and its
     directory says every step is done."""
-    from cluster.study.runner import study_status
-
+    if trained.get("finished"):  # signalled at the deadline after it had finished (``train``)
+        return True
     if trained.get("rc") != 0 or trained.get("stopped_at_deadline"):
         return False
-    try:
-        return study_done(study_status(study_dir))
-    except Exception as error:  # an unreadable study is not finished
-        log(f"{study_dir}: cannot read its status ({type(error).__name__}: {error})")
-        return False
+    return _done_here(study_dir)
 
 
 def train_in_turn(steps: list[Step], out: Path, deadline: float, smoke: bool, record: dict, save) -> None:
@@ -666,8 +678,8 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--started-at",
         type=float,
-        help="when the command began, in epoch seconds (gpu_run.sh: before it installs the wheels): the deadline and "
-        "the measuring time count from it (default: this script's start)",
+        help="when the command began, in epoch seconds (gpu_run.sh: before it installs the wheels): the deadline counts "
+        "from it (default: this script's start; the measuring time always counts from this script's start)",
     )
     parser.add_argument(
         "--plan",
@@ -681,7 +693,7 @@ def main(argv=None) -> int:
     if args.measure_one:
         print(json.dumps(dict(measurements(args.smoke))[args.measure_one]()))
         return 0
-    start = args.started_at or time.time()
+    start = time.time()  # the measuring time counts from here, the deadline from the command's start
     out = Path(args.out)
     returned = Path(args.returned or out)
     for folder in (out, returned):
@@ -709,7 +721,7 @@ def main(argv=None) -> int:
         log(f"measured in earlier windows, not again: {', '.join(known)}")
     record["results"] = measure(start + args.measure_s, args.smoke, rnn_first, frozenset(known))
     save()
-    deadline = start + args.deadline_s
+    deadline = (args.started_at or start) + args.deadline_s
     if continue_from:
         steps = [continued_step(continue_from, out)]
     else:
@@ -733,7 +745,7 @@ def main(argv=None) -> int:
     save()
     log(f"trained: {json.dumps(record['trained'])}; packed: {record['packed']}; wall {time.time() - start:.0f} s")
     # A study's rc 1 (a step blocked) or 130 (stopped at the deadline) leaves a resumable directory.
-    return 0 if all(d.get("rc", 0) in (0, 1, 130) for d in record["trained"]) else 1
+    return 0 if all(d.get("rc", 0) in (0, 1, 130) or d.get("finished") for d in record["trained"]) else 1
 
 
 if __name__ == "__main__":
