@@ -41,8 +41,7 @@ report() {  # $1: what, then the files; removes them from the work tree and the 
     for f in "$@"; do
         if [[ -f "$f" ]]; then bytes=$((bytes + $(stat -c %s "$f"))); count=$((count + 1)); fi
     done
-    if (($# > 0)); then printf '%s\0' "$@" | xargs -0 git rm -q --cached --ignore-unmatch --; fi
-    if (($# > 0)); then printf '%s\0' "$@" | xargs -0 rm -f --; fi
+    if (($# > 0)); then printf '%s\0' "$@" | xargs -0 git rm -q --ignore-unmatch --; fi  # index and work tree
     echo "gpu_slim: ${count} ${what} ($((bytes / 1048576)) MiB) left the work tree and the index"
 }
 mapfile -t policies < <(git ls-files -- "${kinds[0]}")
