@@ -22,7 +22,7 @@ A study file is YAML::
         human_proxy: true               # also the BC human proxy of the layout, in both seats
 
 ``load_study`` reads and checks it; every error is one line naming the file and the entry at fault.
-``resolve_runs`` turns the runs into ``population.config.Config`` objects at a budget fraction and seed
+``run_config`` turns a run into the ``population.config.Config`` it trains with at a budget fraction and seed
 count; the budget stops every run after that fraction of its schedule (truncate, the default) or scales
 ``total_timesteps`` and ``rew_shaping_horizon`` (compress; the LR schedule follows the
 number of updates by itself), of the FCP partner stage too.
