@@ -239,6 +239,12 @@ def test_a_stopped_cross_play_is_not_continued_with_other_settings_or_left_behin
     swapped = ["--rows", str(run / "checkpoints" / "seed_1"), *_two_orders(run)[2:]]  # other row policies
     assert _xp(out, *swapped) == 2 and "differs in: rows" in capsys.readouterr().err
     assert sorted(p.name for p in kept.iterdir()) == before and not out.exists()
+    (job,) = kept.glob("*.npz")
+    job.write_bytes(job.read_bytes()[:100])  # cut short by a full disk, say
+    assert _xp(out, *_two_orders(run)) == 2
+    damaged = f"{job}: damaged (BadZipFile: File is not a zip file); remove {kept} to start the cross-play again"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == f"ocv2 xp: error: --out {out}: {damaged}"
+    assert sorted(p.name for p in kept.iterdir()) == before and not out.exists()
 
 
 def test_a_stopped_cross_play_of_one_matrix_continues_too(run, tmp_path, monkeypatch):
@@ -269,6 +275,49 @@ def test_the_journal_reads_past_a_killed_write_and_refuses_a_folder_it_did_not_m
     with pytest.raises(JournalMismatch, match="exists and is no unfinished cross-play"):
         XPJournal.open(tmp_path / "elsewhere", {"episodes": 8})
     assert (other / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        "truncated job",
+        "job of another name",
+        "job out of range",
+        "job of another shape",
+        "request not JSON",
+        "request a list",
+    ],
+)
+def test_a_damaged_journal_is_refused_naming_the_file_and_kept(tmp_path, damage):
+    """A journal a full disk or a hand cut short is refused in one line naming the file and saying how to start
+    again (the command line turns ``JournalMismatch`` into a usage error), never read as a matrix with holes."""
+    from cluster.runtime.xp_journal import JournalMismatch, XPJournal
+
+    request = {"episodes": 3, "seats": "both"}
+    journal = XPJournal.open(tmp_path / "out", request)
+    order = journal.order("rows_seat0")
+    shapes = {(r, 0, 0): (2, 3) for r in range(2)}
+    order.record((0, 0, 0), np.zeros((2, 3), np.float32), np.zeros((2, 3), np.int32))
+    assert list(order.played(shapes)) == [(0, 0, 0)]
+    saved = journal.folder / "rows_seat0_0_0_0.npz"
+    if damage == "truncated job":
+        saved.write_bytes(saved.read_bytes()[:100])
+    elif damage == "job of another name":
+        saved.rename(journal.folder / "rows_seat0_a_0_0.npz")
+    elif damage == "job out of range":
+        saved.rename(journal.folder / "rows_seat0_7_0_0.npz")
+    elif damage == "job of another shape":
+        order.record((0, 0, 0), np.zeros((2, 4), np.float32), np.zeros((2, 4), np.int32))
+    else:
+        (journal.folder / "request.json").write_text("{" if damage == "request not JSON" else "[]")
+    before = {p.name: p.read_bytes() for p in journal.folder.iterdir()}
+    with pytest.raises(JournalMismatch) as refused:
+        XPJournal.open(tmp_path / "out", request).order("rows_seat0").played(shapes)
+    message = str(refused.value)
+    assert "damaged" in message and f"remove {journal.folder} to start the cross-play again" in message
+    named = "request.json" if damage.startswith("request") else "rows_seat0_"
+    assert message.startswith(str(journal.folder / named)) and "\n" not in message
+    assert {p.name: p.read_bytes() for p in journal.folder.iterdir()} == before
 
 
 def test_the_code_digest_changes_with_a_source_edit_and_not_with_anything_else(tmp_path, monkeypatch):

@@ -239,6 +239,8 @@ def _cross_run(args) -> int:
                 )
     except RayBackendError as error:
         raise CLIError(str(error)) from None
+    except JournalMismatch as error:  # a kept job that does not read: said before anything is played over it
+        raise CLIError(f"--out {out}: {error}") from None
     with _kept_on_failure(journal, out, total):  # a failure from here on (a full disk) keeps what was played too
         summary = crossplay.summarize_seat_fair(result)
         if args.pool:
@@ -318,6 +320,8 @@ def _kept_on_failure(journal: XPJournal | None, out: str, total: int):
     nothing behind if none were."""
     try:
         yield
+    except JournalMismatch:
+        raise  # the kept jobs are what is wrong, and its message says what to do with them
     except BaseException:
         if journal is not None:
             if kept := journal.count():

@@ -411,7 +411,8 @@ def play_matrix(
             (r, c, i),
         )
 
-    played = journal.played() if journal is not None else {}
+    shapes = {(r, c, i): (col_offsets[c + 1] - col_offsets[c], episodes) for r, c, i in items}
+    played = journal.played(shapes) if journal is not None else {}
     for (r, c, i), (saved_returns, saved_recipes) in played.items():
         cols = slice(col_offsets[c], col_offsets[c + 1])
         returns[row_offsets[r] + i, cols], recipes[row_offsets[r] + i, cols] = saved_returns, saved_recipes

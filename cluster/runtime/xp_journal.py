@@ -17,13 +17,16 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
+import re
 import shutil
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from cluster.runtime.crossplay import ORDERS
 from cluster.runtime.environment import package_versions
+from ocv2 import boundedjson
 from ocv2.atomic import atomic_path, atomic_write, is_temporary
 from population.policy import env_settings
 
@@ -33,7 +36,11 @@ NUMERIC_PACKAGES = ("python", "ocv2", "jax", "jaxlib", "numpy")  # those whose u
 
 
 class JournalMismatch(ValueError):
-    """The unfinished folder holds another request's jobs: continuing would mix two cross-plays."""
+    """The unfinished folder holds another request's jobs, or damaged ones: continuing would mix two cross-plays."""
+
+
+def _damaged(folder: Path, path: Path, why: str) -> JournalMismatch:
+    return JournalMismatch(f"{path}: damaged ({why}); remove {folder} to start the cross-play again")
 
 
 def journal_folder(out: str | Path) -> Path:
@@ -89,12 +96,29 @@ class OrderJournal:
         """The files of this order's finished jobs."""
         return sorted(self.folder.glob(f"{self.order}_*.npz"))
 
-    def played(self) -> dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]]:
+    def played(
+        self, shapes: dict[tuple[int, int, int], tuple[int, ...]]
+    ) -> dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]]:
+        """The saved jobs; ``shapes`` gives every job of this cross-play and the shape of its returns. A file of
+        another job, of another shape or that does not read (a disk that filled, an edit by hand) raises
+        ``JournalMismatch`` naming it, instead of a traceback or a matrix with holes."""
         done = {}
+        name = re.compile(rf"{re.escape(self.order)}_(\d+)_(\d+)_(\d+)\.npz")
         for path in self.saved():
-            job = tuple(int(part) for part in path.stem[len(self.order) + 1 :].split("_"))
-            with np.load(path) as saved:
-                done[job] = (saved["returns"], saved["start_recipe"])
+            match = name.fullmatch(path.name)
+            job = tuple(int(part) for part in match.groups()) if match else None
+            if job not in shapes:
+                raise _damaged(self.folder, path, "not the file of one of this cross-play's jobs")
+            try:
+                with np.load(path) as saved:
+                    returns, recipes = saved["returns"], saved["start_recipe"]
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
+                raise _damaged(self.folder, path, f"{type(error).__name__}: {error}") from None
+            if returns.shape != shapes[job] or recipes.shape != shapes[job]:
+                raise _damaged(
+                    self.folder, path, f"returns of shape {returns.shape} and {recipes.shape}, not {shapes[job]}"
+                )
+            done[job] = (returns, recipes)
         return done
 
     def record(self, job: tuple[int, int, int], returns: np.ndarray, start_recipe: np.ndarray) -> None:
@@ -115,7 +139,12 @@ class XPJournal:
         journal = cls(journal_folder(out), request)
         saved_path = journal.folder / REQUEST
         if saved_path.is_file():
-            saved = json.loads(saved_path.read_text())
+            try:
+                saved = boundedjson.loads(saved_path.read_bytes())
+            except (OSError, ValueError) as error:
+                raise _damaged(journal.folder, saved_path, f"{type(error).__name__}: {error}") from None
+            if not isinstance(saved, dict):
+                raise _damaged(journal.folder, saved_path, f"a JSON {type(saved).__name__}, not an object")
             if saved != journal.request:
                 raise JournalMismatch(
                     f"{journal.folder} holds the jobs of an unfinished cross-play with other settings (differs in: "
