@@ -74,6 +74,7 @@ def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:
     meta, state = payload["meta"], payload["state"]
     if not isinstance(meta, dict):
         raise CorruptCheckpointError(f"{path}: not an ocv2 checkpoint (its meta is a {type(meta).__name__})")
+    check_place(path, meta)
     if fingerprint is not None and meta.get("fingerprint") != fingerprint:
         raise CheckpointError(
             f"{path}: checkpoint was written by a different config (fingerprint {meta.get('fingerprint')}, "
@@ -87,6 +88,25 @@ def read(path, fingerprint: str | None = None) -> tuple[dict, dict]:
         except Exception as error:
             raise CorruptCheckpointError(f"{path}: not a readable ocv2 checkpoint ({error})") from None
     return meta, state
+
+
+def check_place(path: Path, meta: dict) -> None:
+    """Refuse a checkpoint whose seed or update is not the one its place names (``seed_<i>/update_<n>.msgpack``):
+    one copied or renamed by hand would otherwise be exported, cross-played or resumed as that other seed or
+    update without a word. A file elsewhere, or one whose metadata does not say, is not checked."""
+    named = _NAME.match(path.name)
+    seed = path.parent.name.removeprefix("seed_")
+    placed = {"seed": int(seed) if seed.isdigit() else None, "update": int(named.group(1)) if named else None}
+    wrong = [
+        f"{key} {meta[key]} (its place names {where})"
+        for key, where in placed.items()
+        if where is not None and isinstance(meta.get(key), int) and meta[key] != where
+    ]
+    if wrong:
+        raise CheckpointError(
+            f"{path}: holds {' and '.join(wrong)}: a file copied or renamed by hand? Put it back where it was "
+            "written, or remove it"
+        )
 
 
 def load(path, template, fingerprint: str | None = None):

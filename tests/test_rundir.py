@@ -8,6 +8,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -242,6 +243,25 @@ def test_a_damaged_checkpoint_fails_its_checksum(tmp_path):
     path.write_bytes(bytes(data[: len(data) // 2]))
     with pytest.raises(ckpt.CorruptCheckpointError, match="not a readable ocv2 checkpoint"):
         ckpt.read(path, "fp")
+
+
+def test_a_checkpoint_moved_to_another_seed_or_update_is_refused_naming_both(tmp_path):
+    """Its metadata says which seed and update it holds: a copy under another seed's folder or a renamed update would
+    otherwise be exported, cross-played or resumed as that one without a word."""
+    state = {"w": np.arange(4, dtype=np.float32)}
+    written = ckpt.save(ckpt.checkpoint_path(tmp_path, 1, 4), state, "fp", seed=1, update=4)
+    assert ckpt.read(written, "fp")[0]["seed"] == 1
+    for seed, update, wrong in [(0, 4, "seed 1 (its place names 0)"), (1, 2, "update 4 (its place names 2)"),
+                                (0, 2, "seed 1 (its place names 0) and update 4 (its place names 2)")]:  # fmt: skip
+        moved = ckpt.checkpoint_path(tmp_path, seed, update)
+        moved.parent.mkdir(parents=True, exist_ok=True)
+        moved.write_bytes(written.read_bytes())
+        with pytest.raises(ckpt.CheckpointError, match=re.escape(f"{moved}: holds {wrong}: a file copied")) as refused:
+            ckpt.load(moved, state, "fp")
+        assert type(refused.value) is ckpt.CheckpointError  # not damage, for which a resume takes an older one
+        moved.unlink()
+    elsewhere = ckpt.save(tmp_path / "kept.msgpack", state, "fp", seed=1, update=4)  # no place to compare with
+    assert ckpt.read(elsewhere, "fp")[0]["update"] == 4
 
 
 def test_every_run_dir_records_versions_commit_devices_and_argv(tmp_path, config):
