@@ -1477,6 +1477,31 @@ def test_export_never_writes_over_a_file_unless_forced_nor_into_a_run(finished, 
     assert policy.load(mine).name
 
 
+def test_export_never_writes_into_a_study_a_published_folder_or_a_pack(finished, tmp_path, capsys):
+    """--force let ocv2 export replace a study's study.json (its only state), a published policy that
+    SHA256SUMS.json lists, or a pack's pack.json; without it, a new file in a published folder failed ocv2 verify."""
+    study = _copy(finished, tmp_path / "study")
+    run = study / "runs" / "sp"
+    published, packed = tmp_path / "published", tmp_path / "packed"
+    assert main(["study", "publish", str(study), "--out", str(published)]) == 0
+    assert main(["study", "pack", str(study), "--out", str(packed)]) == 0
+    capsys.readouterr()
+    listed = next(published.glob("*.ocv2policy"))
+    folders = (study, published, packed)
+    before = {p: p.read_bytes() for folder in folders for p in folder.rglob("*") if p.is_file()}
+    for out, message in (
+        (study / "study.json", f"lies inside the study directory {study}"),
+        (study / "plots" / "p.ocv2policy", f"lies inside the study directory {study}"),
+        (listed, f"{published} is a published policies folder ('ocv2 study publish' writes it) (SHA256SUMS.json)"),
+        (published / "new.ocv2policy", f"{published} is a published policies folder"),
+        (packed / "pack.json", f"{packed} is a packed study (pack.json)"),
+    ):
+        assert main(["export", str(run), "--out", str(out), "--force"]) == 2
+        assert f"--out {out}: {message}" in _one_line(capsys)
+    assert {p: p.read_bytes() for folder in folders for p in folder.rglob("*") if p.is_file()} == before
+    assert main(["verify", str(published)]) == 0
+
+
 @pytest.mark.parametrize("errno_", [errno.ENOSPC, errno.EROFS])
 def test_a_full_disk_or_read_only_folder_is_one_line_in_every_command(finished, tmp_path, capsys, monkeypatch, errno_):
     """study run, study report, export and xp --out ended in OSError tracebacks; ocv2 train alone had a

@@ -11,11 +11,15 @@ written inside a run directory, nor over a file without ``--force``.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from cluster.cli.args import check_new_file, checkpoint_choice, non_negative_int
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime.rundir import enclosing_run
+from cluster.study.pack import PACK_NAME
+from cluster.study.spec import STATE_NAME
 from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
+from population.published import SUMS
 
 
 def add_export(sub) -> argparse.ArgumentParser:
@@ -49,9 +53,24 @@ def run_export(args) -> int:
     run = enclosing_run(args.out)
     if run is not None:  # its config.yaml, checkpoints or results would be replaced by a policy file
         raise CLIError(f"--out {args.out}: lies inside the run directory {run}; write the policy outside it")
+    check_outside_kept_folders(args.out)
     try:
         path = export_checkpoint(args.source, args.out, seed=args.seed, checkpoint=checkpoint)
     except PolicyError as error:
         raise CLIError(str(error)) from None
     print(f"wrote {path}")
     return EXIT_OK
+
+
+def check_outside_kept_folders(out: str) -> None:
+    """Refuse an ``--out`` inside a study directory (its study.json is its only state), a published policies folder
+    (a file there that SHA256SUMS.json does not list fails ``ocv2 verify``; one it lists would get other bytes) or a
+    pack (its parts are checked against pack.json): each is written whole by its own command."""
+    parent = Path(out).resolve().parent
+    for folder in (parent, *parent.parents):
+        if (folder / STATE_NAME).is_file():
+            raise CLIError(f"--out {out}: lies inside the study directory {folder}; write the policy outside it")
+    kept = {SUMS: "a published policies folder ('ocv2 study publish' writes it)", PACK_NAME: "a packed study"}
+    for name, what in kept.items():
+        if (parent / name).is_file():
+            raise CLIError(f"--out {out}: {parent} is {what} ({name}); write the policy outside it")
