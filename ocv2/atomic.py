@@ -98,13 +98,16 @@ def staged_folder(path: str | os.PathLike, suffix: str = ".staging", markers: Se
             staging.rename(path)
             return
         aside = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-        path.rename(aside / path.name)
         try:
+            path.rename(aside / path.name)
             staging.rename(path)
-        except OSError:
-            (aside / path.name).rename(path)  # the earlier folder back where it was
+        except BaseException:  # a full disk, or Ctrl-C between the two renames
+            if not path.exists() and (aside / path.name).exists():
+                (aside / path.name).rename(path)  # the earlier folder back where it was
             raise
-        shutil.rmtree(aside, ignore_errors=True)
+        finally:
+            if path.exists():  # the new folder or the earlier one is in place: what is aside (if anything) may go
+                shutil.rmtree(aside, ignore_errors=True)
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # gone already unless something failed
 

@@ -58,6 +58,28 @@ def test_staged_folder_replaces_whole_or_leaves_everything_as_it_was(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == [".out.keep", "out"]
 
 
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, OSError])
+def test_a_stop_between_the_two_renames_puts_the_earlier_folder_back(tmp_path, monkeypatch, stop):
+    """Replacing an earlier output is two renames (it aside, the new one in); Ctrl-C between them used to leave the
+    earlier folder hidden beside --out and nothing at --out."""
+    out = tmp_path / "out"
+    with staged_folder(out) as staging:
+        (staging / "a.txt").write_text("first")
+    rename = Path.rename
+
+    def stopped_moving_in(self, target):
+        if Path(target) == out and self.name != out.name:  # the new folder moving in, not the earlier one back
+            raise stop()
+        return rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", stopped_moving_in)
+    with pytest.raises(stop), staged_folder(out) as staging:
+        (staging / "b.txt").write_text("second")
+    monkeypatch.undo()
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]  # the earlier folder as it was
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging or aside folder left
+
+
 def test_staged_folder_fills_an_empty_folder_in_place_even_the_current_directory(tmp_path, monkeypatch):
     """`ocv2 xp --out .` in an empty directory: '.' cannot be renamed, so it is filled in place, whole or not at all;
     a new folder gets mkdir's permissions, not mkdtemp's 0700."""
