@@ -714,6 +714,11 @@ def test_an_fcp_run_whose_partner_run_cannot_give_its_pool_is_refused_before_any
     "change, message",
     [
         (lambda d: d["runs"][0].update(config="nowhere.yaml"), "run 'sp'.config: no such config file nowhere.yaml"),
+        (lambda d: d["runs"][0].update(config="."), "run 'sp'.config: . is a folder (at "),
+        (
+            lambda d: (d.clear(), d.update(env={"layout": "cramped_room"}, ppo={"lr": 0.001})),
+            "is an experiment config, not a study file (no 'study' key); run it with `ocv2 train`",
+        ),
         (lambda d: d["runs"][1].update(sett=["a=b"]), "run 'sa': unknown key 'sett'; did you mean 'set'?"),
         (lambda d: d.update(comparsons=[]), "unknown key 'comparsons'; did you mean 'comparisons'?"),
         (lambda d: d["runs"][1].update(name="sp"), "run 'sp': duplicate run name (runs[0] has it too)"),
@@ -1294,19 +1299,32 @@ def test_report_out_never_writes_over_what_is_there(finished, tmp_path, capsys):
     ]
 
 
-def test_a_damaged_result_is_reported_and_its_step_redone(finished, tmp_path, capsys):
+def test_a_damaged_result_is_reported_and_its_step_redone(finished, tmp_path, capsys, caplog):
     """An unparsable or foreign result counted as done: every report crashed on it (JSONDecodeError) and
-    study run never redid the step."""
+    study run never redid the step. Then the report said it only inside report.md, and status said "done"."""
     out = _copy(finished, tmp_path / "study")
     (out / "comparisons" / "sp_vs_sa" / "summary.json").write_text("{not json")
     (out / "runs" / "sp" / "xp" / "summary.json").write_text(json.dumps({"study": "tiny", "runs": []}))
     snapshot = sorted((out / "over_training" / "sp").glob("update_*.json"))[1]
     snapshot.write_text("[" * 100_000)
+    caplog.set_level("WARNING", logger="cluster.cli.study")
     assert main(["study", "report", str(out)]) == 0
     report = (out / "report.md").read_text()
     assert "n/a (" in report and "xp/summary.json is not a result of this step (no sp_mean" in report
     assert "comparisons/sp_vs_sa/summary.json is unreadable (" in report
     assert f"over_training sp: {snapshot} is unreadable (JSON nested deeper than" in report
+    warned = [record.getMessage() for record in caplog.records]
+    assert [line.split(":")[0] for line in warned] == ["train sp", "over_training sp", "compare sp_vs_sa"], warned
+    assert all(line.endswith("; its cells say n/a, and `ocv2 study run` redoes the step") for line in warned)
+    status = {entry["step"]: (entry["status"], entry["detail"]) for entry in study_status(out)}
+    assert status["train sa"] == ("done", "")
+    for step, why in [
+        ("train sp", "xp/summary.json is not a result of this step (no sp_mean"),
+        ("over_training sp", f"{snapshot} is unreadable (JSON nested deeper than"),
+        ("compare sp_vs_sa", "comparisons/sp_vs_sa/summary.json is unreadable ("),
+    ]:
+        assert status[step][0] == "to redo" and why in status[step][1], status[step]
+        assert status[step][1].endswith("; `ocv2 study run` does it again")
     said = []
     run_study(load_study(write_study(tmp_path / "tiny.yaml", STUDY)), out, LOCAL, say=said.append)
     again = [line for line in said if "doing the step again" in line]

@@ -13,6 +13,7 @@ stopped. ``status`` lists every step with its progress and an ETA from the throu
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 from pathlib import Path
@@ -28,7 +29,7 @@ from cluster.runtime.ray_backend import RayBackendError
 from cluster.runtime.rundir import RunDirError
 from cluster.study.pack import pack_study, unpack_study
 from cluster.study.publish import publish_study
-from cluster.study.report import write_report
+from cluster.study.report import damaged, write_report
 from cluster.study.runner import (
     StudyOptions,
     continue_hint,
@@ -267,7 +268,7 @@ def _status(directory: str) -> int:
     width = max(len(e["step"]) for e in entries)
     eta_total, unknown = 0.0, False
     for entry in entries:
-        detail = entry.get("progress") or entry.get("detail") or ""
+        detail = "; ".join(filter(None, (entry.get("progress"), entry.get("detail"))))
         eta = entry.get("eta_s")
         if entry["status"] != "done" and entry["step"].startswith("train "):
             if eta is None:
@@ -306,6 +307,8 @@ def _report(directory: str, dest: str | None) -> int:
             paths = _report_elsewhere(study, out, state, configs, Path(dest))
     except (StudyError, RunDirError) as error:
         raise CLIError(str(error)) from None
+    for problem in damaged(json.loads(Path(paths["summary"]).read_text())):
+        log.warning("%s; its cells say n/a, and `ocv2 study run` redoes the step", problem)
     print(f"wrote {paths['report']}")
     return EXIT_OK
 

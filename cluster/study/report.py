@@ -92,6 +92,16 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
     return {"report": str(dest / "report.md"), "summary": str(dest / "summary.json")}
 
 
+def damaged(summary: dict) -> list[str]:
+    """The steps whose results the report (its ``summary``) could not use (a cross-play summary missing or
+    unreadable, a run directory gone): ``ocv2 study report`` says them, not only report.md's "Not finished"."""
+    found = [f"train {run['name']}: {run['problem']}" for run in summary["runs"] if run.get("problem")]
+    found += [
+        f"over_training {e['run']}: {problem}" for e in summary["over_training"] for problem in e.get("damaged", [])
+    ]
+    return found + [f"compare {c['name']}: {c['reason']}" for c in summary["comparisons"] if c["status"] == "damaged"]
+
+
 def _copy_matrices(study: Study, out: Path, dest: Path) -> None:
     sources = [(run_dir(out, r.name) / "xp" / "matrix.csv", f"xp_{r.name}.csv") for r in study.runs]
     sources += [(comparison_dir(out, c.name) / "matrix.csv", f"xp_{c.name}.csv") for c in study.comparisons]

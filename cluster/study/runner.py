@@ -1054,8 +1054,8 @@ def missing_runs(study: Study, out: Path, state: StudyState) -> list[str]:
 
 
 def study_status(out) -> list[dict]:
-    """One entry per step: name, status (done / running / partial / blocked / left), progress, ETA in seconds
-    for training steps (from the throughput this study measured, per model kind; None when unknown)."""
+    """One entry per step: name, status (done / running / partial / blocked / left / to redo), progress, ETA in
+    seconds for training steps (from the throughput this study measured, per model kind; None when unknown)."""
     out = Path(out).resolve()
     state = read_state(out)
     if state is None:
@@ -1081,6 +1081,10 @@ def study_status(out) -> list[dict]:
                 entry["status"] = "done"
             if one.target in unplanned and entry["status"] != "done":
                 entry["progress"] = f"{entry['progress']}; cannot go on: {unplanned[one.target]}"
+        if status == "done" and entry["status"] == "done" and (problem := _redo_problem(one, study, out, configs)):
+            # its result went missing or was damaged since it was done: `study run` does it again (a run is
+            # evaluated again, training nothing)
+            entry.update(status="to redo", detail=f"{problem}; `ocv2 study run` does it again")
         if status == "running":
             if not DirLock(out).held_elsewhere():
                 entry["status"] = "interrupted"
@@ -1091,6 +1095,15 @@ def study_status(out) -> list[dict]:
             entry.pop("progress", None)
         entries.append(entry)
     return entries
+
+
+def _redo_problem(step: Step, study: Study, out: Path, configs: dict) -> str | None:
+    """``result_problem`` of a step study.json records as done, where ``configs`` plans every run it compares
+    (a run that cannot be planned is shown as such beside its train step)."""
+    compared = next((c.runs for c in study.comparisons if c.name == step.target), ()) if step.kind == "compare" else ()
+    if any(name not in configs for name in compared):
+        return None
+    return result_problem(step, study, out, configs)
 
 
 def _rates(study: Study, out: Path, state: StudyState) -> dict:

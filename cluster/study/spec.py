@@ -177,6 +177,10 @@ def parse_study(raw: Any, path: Path) -> Study:
     where = str(path)
     if not isinstance(raw, Mapping):
         raise StudyError(f"{where}: a study file is a mapping with keys {', '.join(STUDY_KEYS)}")
+    if "study" not in raw and {"env", "ppo", "model", "population"} & set(raw):
+        raise StudyError(
+            f"{where}: is an experiment config, not a study file (no 'study' key); run it with `ocv2 train`"
+        )
     _unknown(where, "", raw, STUDY_KEYS)
     name = raw.get("study")
     if not isinstance(name, str) or not NAME.fullmatch(name):
@@ -215,6 +219,8 @@ def _parse_run(where: str, index: int, entry, base: Path, shared: tuple[str, ...
     if not isinstance(config, str) or not config:
         raise StudyError(f"{where}: {label}.config: expected a config file path")
     config_path = (base / config).resolve()
+    if config_path.is_dir():
+        raise StudyError(f"{where}: {label}.config: {config} is a folder (at {config_path}); name a config file")
     if not config_path.is_file():
         raise StudyError(f"{where}: {label}.config: no such config file {config} (looked for {config_path})")
     partners = entry.get("partners_from")
