@@ -94,8 +94,8 @@ def check_place(path: Path, meta: dict) -> None:
     """Refuse a checkpoint whose seed or update is not the one its place names (``seed_<i>/update_<n>.msgpack``):
     one copied or renamed by hand would otherwise be exported, cross-played or resumed as that other seed or
     update without a word. A file elsewhere, or one whose metadata does not say, is not checked."""
-    named = _NAME.match(path.name)
-    seed = path.parent.name.removeprefix("seed_")
+    named, folder = _NAME.match(path.name), path.parent.name
+    seed = folder.removeprefix("seed_") if folder.startswith("seed_") else ""
     placed = {"seed": int(seed) if seed.isdigit() else None, "update": int(named.group(1)) if named else None}
     wrong = [
         f"{key} {meta[key]} (its place names {where})"

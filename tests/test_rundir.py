@@ -262,6 +262,8 @@ def test_a_checkpoint_moved_to_another_seed_or_update_is_refused_naming_both(tmp
         moved.unlink()
     elsewhere = ckpt.save(tmp_path / "kept.msgpack", state, "fp", seed=1, update=4)  # no place to compare with
     assert ckpt.read(elsewhere, "fp")[0]["update"] == 4
+    (tmp_path / "7").mkdir()  # a folder that is no seed's: only the update is compared
+    assert ckpt.read(ckpt.save(tmp_path / "7" / "update_0000004.msgpack", state, "fp", seed=1, update=4))[0]
 
 
 def test_every_run_dir_records_versions_commit_devices_and_argv(tmp_path, config):
