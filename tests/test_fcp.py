@@ -348,6 +348,14 @@ def _run_files(run) -> dict:
     return {path: path.read_bytes() for path in kept if path.is_file()}
 
 
+def _give_seed_0_the_parameters_of_seed_1(partners) -> None:
+    """Seed 1's final parameters in seed 0's final checkpoint, which still says it is seed 0's (a file moved as it
+    is is refused by its recorded seed): the same run and fingerprint, so it loads, with other parameters."""
+    meta, state = ckpt.read(ckpt.checkpoint_path(partners, 1, NUM_UPDATES))
+    extra = {k: v for k, v in meta.items() if k not in ("version", "fingerprint", "seed")}
+    ckpt.save(ckpt.checkpoint_path(partners, 0, NUM_UPDATES), state, meta["fingerprint"], seed=0, **extra)
+
+
 def test_a_resume_refuses_partners_whose_parameters_changed_and_records_a_pool_older_runs_lack(per_seed_run, tmp_path):
     """The pool came from the partner run's files as they were at each start: a half-trained FCP run resumed
     against other partners without a word."""
@@ -360,7 +368,7 @@ def test_a_resume_refuses_partners_whose_parameters_changed_and_records_a_pool_o
     assert recorded["pool"] == [["seed0@2", "seed0@4"], ["seed1@2", "seed1@4"]]
     assert sorted(recorded["pool_sha256"]) == ["seed0@2", "seed0@4", "seed1@2", "seed1@4"]
     final = ckpt.checkpoint_path(partners, 0, NUM_UPDATES)
-    shutil.copy(ckpt.checkpoint_path(partners, 1, NUM_UPDATES), final)  # same run and fingerprint: loads
+    _give_seed_0_the_parameters_of_seed_1(partners)
     before = _run_files(run)
     with pytest.raises(RunDirError, match=r"population\.fcp\.partners: .*the parameters of partners seed0@4 \(sha256"):
         coordinator.train(config, run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
@@ -384,7 +392,7 @@ def test_a_run_trained_to_the_end_is_evaluated_again_whatever_its_partners_becam
     shutil.copytree(reference, run)
     recorded = RunDir(run).read_manifest()
     RunDir(run).write_manifest({**recorded, "status": status})
-    shutil.copy(ckpt.checkpoint_path(run / "partners", 1, NUM_UPDATES), ckpt.checkpoint_path(run / "partners", 0, 4))
+    _give_seed_0_the_parameters_of_seed_1(run / "partners")
     with caplog.at_level("WARNING", logger="cluster.runtime.coordinator"):
         coordinator.train(smoke(), run, LocalWorkers, resume=True, show_progress=False, evaluate=False)
     assert "the parameters of partners seed0@4" in caplog.text and "training is complete" in caplog.text
