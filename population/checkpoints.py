@@ -28,6 +28,7 @@ from population.sealed import SealError, is_sealed, seal, unseal
 FORMAT_NAME = "ocv2-checkpoint"
 FORMAT_VERSION = 3
 _NAME = re.compile(r"^update_(\d+)\.msgpack$")
+_SEED_DIR = re.compile(r"^seed_([0-9]+)$")
 
 
 class CheckpointError(ValueError):
@@ -94,9 +95,8 @@ def check_place(path: Path, meta: dict) -> None:
     """Refuse a checkpoint whose seed or update is not the one its place names (``seed_<i>/update_<n>.msgpack``):
     one copied or renamed by hand would otherwise be exported, cross-played or resumed as that other seed or
     update without a word. A file elsewhere, or one whose metadata does not say, is not checked."""
-    named, folder = _NAME.match(path.name), path.parent.name
-    seed = folder.removeprefix("seed_") if folder.startswith("seed_") else ""
-    placed = {"seed": int(seed) if seed.isdigit() else None, "update": int(named.group(1)) if named else None}
+    named, seed = _NAME.match(path.name), _SEED_DIR.match(path.parent.name)
+    placed = {"seed": int(seed.group(1)) if seed else None, "update": int(named.group(1)) if named else None}
     wrong = [
         f"{key} {meta[key]} (its place names {where})"
         for key, where in placed.items()
@@ -144,8 +144,8 @@ def list_updates(run_dir, seed: int) -> list[int]:
 
 def list_seeds(run_dir) -> list[int]:
     """Seed numbers that have a checkpoint folder (``seed_dir``), ascending."""
-    names = (folder.name.removeprefix("seed_") for folder in (Path(run_dir) / "checkpoints").glob("seed_*"))
-    return sorted(int(name) for name in names if name.isdigit())
+    found = (_SEED_DIR.match(folder.name) for folder in (Path(run_dir) / "checkpoints").glob("seed_*"))
+    return sorted(int(m.group(1)) for m in found if m)
 
 
 def update_of(path) -> int | None:

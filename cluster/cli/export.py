@@ -17,7 +17,7 @@ from cluster.cli.args import check_new_file, checkpoint_choice, non_negative_int
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime.rundir import enclosing_run
 from cluster.study.pack import PACK_NAME
-from cluster.study.spec import STATE_NAME
+from cluster.study.spec import is_study_directory
 from population.policy import CHECKPOINT_CHOICES, PolicyError, export_checkpoint
 from population.published import SUMS
 
@@ -68,7 +68,7 @@ def check_outside_kept_folders(out: str) -> None:
     pack (its parts are checked against pack.json): each is written whole by its own command."""
     parent = Path(out).resolve().parent
     for folder in (parent, *parent.parents):
-        if (folder / STATE_NAME).is_file():
+        if is_study_directory(folder):
             raise CLIError(f"--out {out}: lies inside the study directory {folder}; write the policy outside it")
     kept = {SUMS: "a published policies folder ('ocv2 study publish' writes it)", PACK_NAME: "a packed study"}
     for name, what in kept.items():

@@ -94,7 +94,8 @@ def write_report(study: Study, out: Path, state: StudyState, configs: dict, dest
 
 def damaged(summary: dict) -> list[str]:
     """The steps whose results the report (its ``summary``) could not use (a cross-play summary missing or
-    unreadable, a run directory gone): ``ocv2 study report`` says them, not only report.md's "Not finished"."""
+    unreadable, a run directory gone): report.md lists them under "Not finished" and ``ocv2 study report`` says
+    them on stderr."""
     found = [f"train {run['name']}: {run['problem']}" for run in summary["runs"] if run.get("problem")]
     found += [
         f"over_training {e['run']}: {problem}" for e in summary["over_training"] for problem in e.get("damaged", [])
@@ -689,7 +690,6 @@ def markdown(study: Study, summary: dict, state: StudyState, experiment: tuple[b
             )
     lines += since_extension_lines(summary.get("since_extension", []))
     for entry in summary["over_training"]:
-        left += [f"- over_training {entry['run']}: {problem}" for problem in entry.get("damaged", [])]
         if not entry["points"]:
             continue
         lines += [
@@ -707,7 +707,7 @@ def markdown(study: Study, summary: dict, state: StudyState, experiment: tuple[b
             )
     if summary["pictures"]:
         lines += ["", "## Pictures", ""] + [f"![{name}]({name})" for name in summary["pictures"]]
-    left += [f"- train {run['name']}: {run['problem']}" for run in summary["runs"] if run.get("problem")]
+    left += [f"- {line}" for line in damaged(summary)]
     left += [
         f"- train {run['name']}: its numbers are of the config it was trained with, not of the one the study asks "
         f"for now ({'; '.join(run['config_changed'])}); `ocv2 study run` refuses it until the change is undone or "
@@ -715,7 +715,6 @@ def markdown(study: Study, summary: dict, state: StudyState, experiment: tuple[b
         for run in summary["runs"]
         if run.get("config_changed")
     ]
-    left += [f"- compare {c['name']}: {c['reason']}" for c in summary["comparisons"] if c["status"] == "damaged"]
     if left:
         lines += ["", "## Not finished", ""] + left
     return "\n".join(lines) + "\n"
