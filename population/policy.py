@@ -324,6 +324,9 @@ def _from_checkpoint(config: Config, path: Path, run_dir: Path, seed: int) -> Po
             "update": update,
             "method": config.population.method,
             "precision": config.run.precision,  # the matmul precision its run trained and cross-played at
+            # the run's config fingerprint, so that an exported file names the training config it came from
+            # (a study's report.md lists it per run; ``load_run_config(run).fingerprint()`` computes it)
+            "fingerprint": config.fingerprint(),
         },
     )
 

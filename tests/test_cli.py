@@ -348,6 +348,20 @@ def test_global_q_turns_the_command_quiet_on_and_contradicting_flags_are_refused
     assert "contradict" in capsys.readouterr().err
 
 
+def test_durations_round_as_the_results_page_writes_them():
+    """report.md said 14h58m for 53,930 s (14 h 58.8 min), where docs/RESULTS.md says 14 h 59 min."""
+    from cluster.runtime.progress import duration
+
+    assert [duration(s) for s in (53_930, 3_599.6, 7_199.9, 247.5, 59.4)] == [
+        "14h59m",
+        "1h00m",
+        "2h00m",
+        "4m08s",
+        "0m59s",
+    ]
+    assert duration(None) == duration(float("nan")) == "?"
+
+
 def test_the_progress_header_counts_env_steps_per_seed(caplog):
     import logging
 

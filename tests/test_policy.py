@@ -16,6 +16,7 @@ from cluster.cli import main
 from population import checkpoints as ckpt
 from population import policy as pol
 from population import sealed
+from population.config import load_run_config
 
 
 @pytest.fixture(scope="module")
@@ -54,6 +55,8 @@ def test_load_accepts_run_seed_dir_and_checkpoint(run):
     for other in (by_seed_dir, by_file):
         _assert_trees_equal(by_run.params, other.params)
     assert by_run.meta["update"] == 4 and by_run.hidden_size == 0 and by_run.model.kind == "cnn"
+    # the training config it came from, which an exported file keeps (below)
+    assert by_run.meta["fingerprint"] == load_run_config(run).fingerprint()
     assert by_run.env == {"layout": "overcookedv2_demo", "max_steps": 100}
     assert pol.load(run, seed=1, checkpoint="mid").meta["update"] == 2
     assert pol.load(run, checkpoint="init").meta["update"] == 0
@@ -99,6 +102,7 @@ def test_export_load_round_trip_gives_identical_actions(run, tmp_path):
     header = json.loads(content["header"])
     assert header["format"] == pol.FORMAT_NAME and header["version"] == pol.FORMAT_VERSION
     assert set(header) == {"format", "version", "model", "activation", "env", "meta"}
+    assert header["meta"]["fingerprint"] == load_run_config(run).fingerprint()  # the config it was trained with
 
 
 def test_bad_sources_are_one_line_errors(run, tmp_path):

@@ -283,6 +283,35 @@ def test_every_run_dir_records_versions_commit_devices_and_argv(tmp_path, config
     assert git_state(tmp_path) is None  # not a checkout (nor the root of one)
 
 
+def test_git_state_names_the_changed_files_so_a_reader_can_tell_edited_code_from_edited_docs(tmp_path):
+    """ "+dirty" alone said a run's checkout had uncommitted changes, not whether they touched the training code."""
+    import subprocess
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+
+    git("init", "-q")
+    git("config", "user.email", "t@example.org")
+    git("config", "user.name", "t")
+    for name in ("a.py", "b c.md", "old.txt"):
+        (tmp_path / name).write_text("1\n")
+    git("add", ".")
+    git("commit", "-q", "-m", "first")
+    assert git_state(tmp_path) == {
+        "commit": git_state(tmp_path)["commit"],
+        "dirty": False,
+        "changed": [],
+        "changed_count": 0,
+    }
+    (tmp_path / "b c.md").write_text("2\n")  # unstaged, a space in its name
+    (tmp_path / "a.py").write_text("2\n")
+    git("add", "a.py")  # staged
+    git("mv", "old.txt", "new.txt")  # a rename: the new name only
+    (tmp_path / "untracked.py").write_text("")  # not tracked: not a change of the checkout's code
+    state = git_state(tmp_path)
+    assert state["dirty"] and state["changed"] == ["a.py", "b c.md", "new.txt"] and state["changed_count"] == 3
+
+
 def test_every_key_is_the_derivation_results_were_made_with():
     """Stored runs and published numbers depend on these exact keys: the one function must keep them."""
     fold, root = jax.random.fold_in, jax.random.PRNGKey(7)

@@ -9,6 +9,7 @@ import csv
 import dataclasses
 import errno
 import hashlib
+import importlib.metadata
 import importlib.util
 import json
 import os
@@ -28,6 +29,7 @@ import yaml
 import ocv2.atomic
 from cluster.cli import main
 from cluster.runtime import crossplay
+from cluster.runtime.environment import CHANGED_NAMED
 from cluster.runtime.extend import EVALUATION_DIRS, take_eval_episodes
 from cluster.runtime.rundir import DirLock, RunDir, read_matrix_csv
 from cluster.runtime.runstate import Schedule
@@ -137,7 +139,8 @@ def assert_same_runs(out: Path, reference: Path) -> None:
 #: The tiny study's report.md and summary.json as the code wrote them before the study runner was
 #: rewritten in plain steps (``normalized_report``): a refactor must not change a byte of either.
 GOLDEN = Path(__file__).parent / "data" / "study_golden"
-_UNSTABLE_KEYS = ("written", "wall_s", "commits")  # the time, wall times and the commits of whoever ran it
+# the time, wall times, and the commits and versions of whoever ran it
+_UNSTABLE_KEYS = ("written", "wall_s", "commits", "versions")
 
 
 def normalized_report(out: Path, study_folder: Path, root: Path = ROOT) -> dict[str, str]:
@@ -169,6 +172,19 @@ def test_the_report_is_byte_for_byte_what_the_code_wrote_before_its_refactor(fin
     texts = normalized_report(finished, finished.parent)
     for name, text in texts.items():
         assert text == (GOLDEN / name).read_text(), name
+
+
+def test_the_report_names_the_versions_and_changed_files_each_run_was_trained_with(finished):
+    """A reader of a published report could not tell which jax made its numbers, nor what "+dirty" covered."""
+    runs = json.loads((finished / "summary.json").read_text())["runs"]
+    for run in runs:
+        assert [v["jax"] for v in run["versions"]] == [jax.__version__]
+        assert run["versions"][0]["jaxlib"] == importlib.metadata.version("jaxlib")
+        driver = json.loads((finished / "runs" / run["name"] / "environment.json").read_text())["drivers"][0]
+        if driver["git"] is not None:  # a checkout: its changed files are named, not only "+dirty"
+            assert len(driver["git"]["changed"]) == min(driver["git"]["changed_count"], CHANGED_NAMED)
+    lines = [line for line in (finished / "report.md").read_text().splitlines() if line.startswith("- `")]
+    assert len(lines) == 2 and all(line.endswith(f"; jax {jax.__version__}") for line in lines), lines
 
 
 def _header(study, state) -> str:

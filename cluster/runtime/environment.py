@@ -35,21 +35,45 @@ def package_versions(extra: tuple[str, ...] = ()) -> dict[str, str | None]:
     return versions
 
 
+#: At most this many changed files are named in ``git_state``'s ``changed`` (the count is always there).
+CHANGED_NAMED = 50
+
+
 def git_state(directory: Path = _CHECKOUT) -> dict | None:
-    """``{"commit", "dirty"}`` of the checkout ocv2 runs from; None when it is not a git checkout."""
+    """``{"commit", "dirty", "changed", "changed_count"}`` of the checkout ocv2 runs from; None when it is not a git
+    checkout. ``changed``: the tracked files that differ from the commit (the first ``CHANGED_NAMED``, sorted), so
+    that a reader can tell a run made beside edited docs or tests from one made with edited training code."""
     if not (directory / ".git").exists():  # e.g. installed into a virtualenv that lives inside another repo
         return None
     try:
         commit = _git(directory, "rev-parse", "HEAD")
-        dirty = bool(_git(directory, "status", "--porcelain", "--untracked-files=no"))
+        # -z: names as they are (no quoting of odd characters); staged and unstaged changes alike
+        status = _git(directory, "status", "--porcelain", "-z", "--untracked-files=no", strip=False)
     except (OSError, subprocess.SubprocessError):  # no git, not a checkout (an installed wheel)
         return None
-    return {"commit": commit, "dirty": dirty}
+    changed = sorted(_changed_paths(status))
+    return {"commit": commit, "dirty": bool(changed), "changed": changed[:CHANGED_NAMED], "changed_count": len(changed)}
 
 
-def _git(directory: Path, *args: str) -> str:
+def _changed_paths(status: str) -> list[str]:
+    """The paths ``git status --porcelain -z`` names: ``XY path``, a rename's or copy's old path as an entry of its
+    own after it (skipped: the new name is the file there now)."""
+    entries, paths = status.split("\0"), []
+    i = 0
+    while i < len(entries):
+        entry = entries[i]
+        i += 1
+        if len(entry) < 4:
+            continue
+        paths.append(entry[3:])
+        if entry[0] in "RC":  # the old name follows
+            i += 1
+    return paths
+
+
+def _git(directory: Path, *args: str, strip: bool = True) -> str:
     done = subprocess.run(["git", "-C", str(directory), *args], capture_output=True, text=True, timeout=10, check=True)
-    return done.stdout.strip()
+    return done.stdout.strip() if strip else done.stdout  # porcelain lines start with a status that may be a space
 
 
 def environment_record() -> dict:

@@ -165,10 +165,12 @@ def _fmt(values: np.ndarray) -> str:
 
 
 def duration(seconds: float | None) -> str:
-    """``1h05m`` or ``4m07s``; ``?`` for an unknown (None or NaN) time."""
+    """``1h05m`` or ``4m07s``, rounded to the nearest minute or second (as docs/RESULTS.md writes the same times); ``?``
+    for an unknown (None or NaN) time."""
     if seconds is None or math.isnan(seconds):
         return "?"
-    seconds = int(seconds)
-    return (
-        f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
-    )
+    seconds = round(seconds)
+    if seconds < 3600:
+        return f"{seconds // 60}m{seconds % 60:02d}s"
+    minutes = round(seconds / 60)
+    return f"{minutes // 60}h{minutes % 60:02d}m"

@@ -204,6 +204,7 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
         "status": "not started",
         "wall_s": step.wall_s if f"train {spec.name}" in state.steps else None,
         "commits": [],
+        "versions": [],
         "xp": None,
         "paper": None
         if spec.paper is None
@@ -234,7 +235,9 @@ def _run_entry(study: Study, spec, out: Path, config, state: StudyState) -> dict
         entry["config_changed"] = changed
     entry["status"] = manifest.get("status", "created")
     entry["update"] = manifest.get("update")
-    entry["commits"] = _commits(path)
+    drivers = _drivers(path)
+    entry["commits"] = _commits(drivers)
+    entry["versions"] = _versions(drivers)
     summary_path = path / "xp" / "summary.json"
     if summary_path.is_file():
         xp, problem = read_result(summary_path, ("sp_mean", "xp_mean"))
@@ -316,20 +319,48 @@ def _paper(value: PaperValue | None) -> dict | None:
     return None if value is None else {"mean": value.mean, "std": value.std}
 
 
-def _commits(path: Path) -> list[str]:
-    """The commits of every driver that trained the run (``environment.json``), marked when dirty."""
+def _jax_versions(versions: list[dict]) -> str:
+    """``; jax 0.10.2`` (each distinct version, in order) for report.md's line of a run; "" when none is known."""
+    jax_versions = list(dict.fromkeys(str(v["jax"]) for v in versions if v.get("jax")))
+    return f"; jax {', '.join(jax_versions)}" if jax_versions else ""
+
+
+def _drivers(path: Path) -> list[dict]:
+    """The records of every driver that trained the run (``environment.json``); [] when it cannot be read."""
     try:
         drivers = boundedjson.loads((path / "environment.json").read_text()).get("drivers", [])
     except (OSError, ValueError, AttributeError):
         return []
+    return [driver for driver in drivers if isinstance(driver, dict)] if isinstance(drivers, list) else []
+
+
+def _commits(drivers: list[dict]) -> list[str]:
+    """The drivers' commits, marked when their checkout had uncommitted changes (``environment.json`` names the
+    changed files of the runs made since it records them)."""
     commits = []
-    for driver in drivers if isinstance(drivers, list) else []:
-        git = (driver.get("git") if isinstance(driver, dict) else None) or {}
+    for driver in drivers:
+        git = driver.get("git") or {}
         commit = git.get("commit") if isinstance(git, dict) else None
         label = (commit if isinstance(commit, str) else "unknown")[:10] + ("+dirty" if git.get("dirty") else "")
         if label not in commits:
             commits.append(label)
     return commits
+
+
+#: The versions a run's summary entry records, of those ``environment.json`` holds: what decides its numbers.
+VERSIONS = ("python", "jax", "jaxlib", "flax", "optax", "numpy")
+
+
+def _versions(drivers: list[dict]) -> list[dict]:
+    """The distinct ``VERSIONS`` the drivers ran with, in the order they first appear."""
+    distinct = []
+    for driver in drivers:
+        versions = driver.get("versions")
+        if isinstance(versions, dict):
+            entry = {name: versions.get(name) for name in VERSIONS if name in versions}
+            if entry and entry not in distinct:
+                distinct.append(entry)
+    return distinct
 
 
 def _comparison_entry(name: str, out: Path, state: StudyState) -> dict:
@@ -644,6 +675,7 @@ def markdown(study: Study, summary: dict, state: StudyState, experiment: tuple[b
             f"`{Path(run['config']).name}`"
             + (f" with `{' '.join(run['overrides'])}`" if run["overrides"] else "")
             + f", fingerprint `{run['fingerprint']}`, commits {', '.join(run['commits']) or 'n/a'}"
+            + _jax_versions(run.get("versions") or [])
         )
     if summary["comparisons"]:
         lines += [
