@@ -14,6 +14,7 @@ import hashlib
 import importlib.util
 import json
 import logging
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -252,3 +253,13 @@ def test_a_listing_that_names_a_path_an_empty_one_or_a_folder_is_a_problem_named
     (folder / "SHA256SUMS.json").mkdir()
     assert main(["verify", str(folder)]) == 1
     assert "SHA256SUMS.json: a folder, not the listing file" in capsys.readouterr().err
+
+
+def test_the_python_snippet_of_the_results_index_runs_as_pasted(capsys, monkeypatch):
+    """docs/results/README.md shows how to load two published files and play them; it must keep working."""
+    monkeypatch.chdir(RESULTS.parents[2])  # the repository root, where a reader runs it
+    text = (RESULTS.parent / "README.md").read_text()
+    (snippet,) = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    exec(compile(snippet, "docs/results/README.md", "exec"), {})
+    seed, update, mean = capsys.readouterr().out.split()
+    assert (seed, update) == ("1", "183") and 0 <= float(mean) <= 400

@@ -70,9 +70,9 @@ SA_BESIDE_SP = {"final": sa_final, "delta": sa_delta, "paired": sa_paired, "low_
 
 def register_sa_beside_sp() -> None:
     """``<name>_final``, ``_delta``, ``_paired``, ``_low_pairs`` and ``_claim`` of each SA study beside its SP seeds
-    (the Coordination Ring section, written first, states its failing pairs and no paired interval: sa10_pairs)."""
+    (the Coordination Ring section, written first, states its failing pairs in a check of its own: sa10_pairs)."""
     studies = {
-        "sa10": (SP10, SA10, ("final", "delta", "claim")),
+        "sa10": (SP10, SA10, ("final", "delta", "paired", "claim")),
         "fc_sa10": (FC10, FC_SA10, tuple(SA_BESIDE_SP)),
         "cc_sa10": (CC10, CC_SA10, tuple(SA_BESIDE_SP)),
         "cc_sa10_6m": (CC10_6M, CC_SA10_6M, tuple(SA_BESIDE_SP)),
