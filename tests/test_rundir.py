@@ -293,23 +293,25 @@ def test_git_state_names_the_changed_files_so_a_reader_can_tell_edited_code_from
     git("init", "-q")
     git("config", "user.email", "t@example.org")
     git("config", "user.name", "t")
-    for name in ("a.py", "b c.md", "old.txt"):
+    not_utf8 = os.fsdecode(b"bad\xff.txt")
+    for name in ("a.py", "b c.md", "old.txt", "README.md", "moved.py", not_utf8):
         (tmp_path / name).write_text("1\n")
     git("add", ".")
     git("commit", "-q", "-m", "first")
-    assert git_state(tmp_path) == {
-        "commit": git_state(tmp_path)["commit"],
-        "dirty": False,
-        "changed": [],
-        "changed_count": 0,
-    }
+    clean = git_state(tmp_path)
+    assert (clean["dirty"], clean["changed"], clean["changed_count"]) == (False, [], 0)
     (tmp_path / "b c.md").write_text("2\n")  # unstaged, a space in its name
     (tmp_path / "a.py").write_text("2\n")
     git("add", "a.py")  # staged
-    git("mv", "old.txt", "new.txt")  # a rename: the new name only
+    git("mv", "old.txt", "new.txt")  # a staged rename: the new name only
+    (tmp_path / "README.md").rename(tmp_path / "READ_ME.md")  # a rename in the work tree only, its old name
+    git("add", "-N", "READ_ME.md")  # starting with R, as a status letter does
+    (tmp_path / "moved.py").write_text("2\n")
+    (tmp_path / not_utf8).write_text("2\n")  # a name that is not UTF-8: named with an escape, not an error
     (tmp_path / "untracked.py").write_text("")  # not tracked: not a change of the checkout's code
     state = git_state(tmp_path)
-    assert state["dirty"] and state["changed"] == ["a.py", "b c.md", "new.txt"] and state["changed_count"] == 3
+    assert state["changed"] == ["READ_ME.md", "a.py", "b c.md", "bad\\xff.txt", "moved.py", "new.txt"], state
+    assert state["dirty"] and state["changed_count"] == 6
 
 
 def test_every_key_is_the_derivation_results_were_made_with():

@@ -66,13 +66,21 @@ def _changed_paths(status: str) -> list[str]:
         if len(entry) < 4:
             continue
         paths.append(entry[3:])
-        if entry[0] in "RC":  # the old name follows
+        if "R" in entry[:2] or "C" in entry[:2]:  # the old name follows (a rename staged, or only in the work tree)
             i += 1
     return paths
 
 
 def _git(directory: Path, *args: str, strip: bool = True) -> str:
-    done = subprocess.run(["git", "-C", str(directory), *args], capture_output=True, text=True, timeout=10, check=True)
+    # backslashreplace: a file name that is not UTF-8 (-z leaves it unquoted) is named with escapes, not an error
+    done = subprocess.run(
+        ["git", "-C", str(directory), *args],
+        capture_output=True,
+        text=True,
+        errors="backslashreplace",
+        timeout=10,
+        check=True,
+    )
     return done.stdout.strip() if strip else done.stdout  # porcelain lines start with a status that may be a space
 
 

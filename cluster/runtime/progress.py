@@ -169,8 +169,9 @@ def duration(seconds: float | None) -> str:
     for an unknown (None or NaN) time."""
     if seconds is None or math.isnan(seconds):
         return "?"
-    seconds = round(seconds)
-    if seconds < 3600:
-        return f"{seconds // 60}m{seconds % 60:02d}s"
-    minutes = round(seconds / 60)
+    # half up, each from the time itself (round() would take halves to the even number, and rounding twice drifts)
+    if math.floor(seconds + 0.5) < 3600:
+        whole = math.floor(seconds + 0.5)
+        return f"{whole // 60}m{whole % 60:02d}s"
+    minutes = math.floor(seconds / 60 + 0.5)
     return f"{minutes // 60}h{minutes % 60:02d}m"

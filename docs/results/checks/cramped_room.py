@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import both_seats, matrix, run
+from .data import both_seats, matrix, run, summary
 from .folders import CRM10, CRM_SA10
 from .registry import check
 from .ten_seed_studies import (
@@ -56,6 +56,12 @@ def _():
     mean of 500 returns, multiples of 20, so two decimals are exact), of how many, and the largest difference."""
     study, again = final_matrix(CRM10), matrix(CRM10 / "replay_from_policies" / "matrix.csv")
     return [int((again == study).sum()), study.size, float(np.abs(again - study).max())]
+
+
+@check("crm10_replay_wall")
+def _():
+    """The replay's wall time in minutes (its summary.json's ``wall_s``)."""
+    return [round(summary(CRM10 / "replay_from_policies")["wall_s"] / 60)]
 check("crm_sa10_pairs")(functools.partial(pair_range, CRM_SA10, "sa"))
 check("crm_sa10_within")(functools.partial(paper_beside_intervals, CRM_SA10, "sa"))
 
