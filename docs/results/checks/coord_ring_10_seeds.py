@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import both_seats, interval, matrix, pairs, run, sp_xp
+from .data import both_seats, interval, matrix, pairs, run, sp_xp, summary
 from .folders import SA10, SP10
 from .registry import check
 from .ten_seed_studies import (
@@ -274,3 +274,13 @@ def _():
         6,
         m.min(),
     ]
+
+
+@check("sp10_replay")
+def _():
+    """The 10 x 10 matrix played again from the published update-183 files (replay_from_policies/): how many cells
+    equal the study's own, of how many, the largest difference (a mean of 500 returns in steps of 20: 0.04 per
+    delivery), and the replay's wall time in minutes."""
+    study, again = matrix(SP10 / "xp_sp.csv"), matrix(SP10 / "replay_from_policies" / "matrix.csv")
+    wall = summary(SP10 / "replay_from_policies")["wall_s"]
+    return [int((again == study).sum()), study.size, float(np.abs(again - study).max()), round(wall / 60)]
