@@ -95,8 +95,8 @@ def check_place(path: Path, meta: dict) -> None:
     """Refuse a checkpoint whose seed or update is not the one its place names (``seed_<i>/update_<n>.msgpack``):
     one copied or renamed by hand would otherwise be exported, cross-played or resumed as that other seed or
     update without a word. A file elsewhere, or one whose metadata does not say, is not checked."""
-    named, seed = _NAME.match(path.name), _SEED_DIR.match(path.parent.name)
-    placed = {"seed": int(seed.group(1)) if seed else None, "update": int(named.group(1)) if named else None}
+    named = _NAME.match(path.name)
+    placed = {"seed": seed_of_folder(path.parent.name), "update": int(named.group(1)) if named else None}
     wrong = [
         f"{key} {meta[key]} (its place names {where})"
         for key, where in placed.items()
@@ -144,8 +144,14 @@ def list_updates(run_dir, seed: int) -> list[int]:
 
 def list_seeds(run_dir) -> list[int]:
     """Seed numbers that have a checkpoint folder (``seed_dir``), ascending."""
-    found = (_SEED_DIR.match(folder.name) for folder in (Path(run_dir) / "checkpoints").glob("seed_*"))
-    return sorted(int(m.group(1)) for m in found if m)
+    found = (seed_of_folder(folder.name) for folder in (Path(run_dir) / "checkpoints").glob("seed_*"))
+    return sorted(seed for seed in found if seed is not None)
+
+
+def seed_of_folder(name: str) -> int | None:
+    """The seed a checkpoint folder's name gives (``seed_<i>``, as ``seed_dir`` makes it); None for any other name."""
+    match = _SEED_DIR.match(name)
+    return int(match.group(1)) if match else None
 
 
 def update_of(path) -> int | None:

@@ -28,7 +28,6 @@ import functools
 import json
 import operator
 import os
-import re
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -54,7 +53,6 @@ FORMAT_VERSION = 2
 UNSEALED_VERSION = 1
 SUFFIX = ".ocv2policy"
 CHECKPOINT_CHOICES = ("init", "mid", "final", "latest")
-_SEED_DIR = re.compile(r"^seed_(\d+)$")
 
 
 class PolicyError(ValueError):
@@ -178,11 +176,15 @@ def load(source, *, seed: int | None = None, checkpoint: str | int = "final") ->
     if path.is_dir():
         if (path / "config.yaml").is_file():
             return _load_from_run(path, 0 if seed is None else seed, checkpoint)
-        match = _SEED_DIR.match(path.name)
-        if match and path.parent.name == "checkpoints" and (path.parent.parent / "config.yaml").is_file():
-            if seed is not None and seed != int(match.group(1)):
-                raise PolicyError(f"{path}: is seed {match.group(1)}'s directory, but seed={seed} was asked")
-            return _load_from_run(path.parent.parent, int(match.group(1)), checkpoint)
+        folder_seed = ckpt.seed_of_folder(path.name)
+        if (
+            folder_seed is not None
+            and path.parent.name == "checkpoints"
+            and (path.parent.parent / "config.yaml").is_file()
+        ):
+            if seed is not None and seed != folder_seed:
+                raise PolicyError(f"{path}: is seed {folder_seed}'s directory, but seed={seed} was asked")
+            return _load_from_run(path.parent.parent, folder_seed, checkpoint)
         raise PolicyError(f"{path}: not a run directory (no config.yaml) nor a run's checkpoints/seed_<i> directory")
     raise PolicyError(f"{path}: no such file or directory")
 
@@ -255,15 +257,15 @@ def _load_exported(path: Path, payload: dict, version: int) -> Policy:
 
 def _load_checkpoint_file(path: Path) -> Policy:
     seed_dir = path.parent
-    match = _SEED_DIR.match(seed_dir.name)
+    seed = ckpt.seed_of_folder(seed_dir.name)
     run_dir = seed_dir.parent.parent
-    if not match or seed_dir.parent.name != "checkpoints" or not (run_dir / "config.yaml").is_file():
+    if seed is None or seed_dir.parent.name != "checkpoints" or not (run_dir / "config.yaml").is_file():
         raise PolicyError(
             f"{path}: a checkpoint must lie in RUN_DIR/checkpoints/seed_<i>/ next to its run's "
             "config.yaml (or export it with 'ocv2 export')"
         )
     config = _run_config(run_dir)
-    return _from_checkpoint(config, path, run_dir, int(match.group(1)))
+    return _from_checkpoint(config, path, run_dir, seed)
 
 
 def _load_from_run(run_dir: Path, seed: int, checkpoint) -> Policy:

@@ -16,7 +16,6 @@ same code path. Seats played by humans take their action from the browser instea
 from __future__ import annotations
 
 import functools
-import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -123,9 +122,6 @@ def human_partner() -> Partner:
     return Partner("human", "human", _scripted_apply("stay"), None, 0)
 
 
-_SEED_DIR = re.compile(r"^seed_(\d+)$")
-
-
 def resolve_checkpoint(path) -> tuple[Path, int, Path]:
     """(run directory, seed, checkpoint file) for ``RUN_DIR/checkpoints/seed_<i>[/update_<n>.msgpack]``.
 
@@ -138,11 +134,11 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
             "a checkpoint file in it, an exported policy file (ocv2 export), 'human', 'stay' or 'random')"
         )
     seed_folder = path if path.is_dir() else path.parent
-    match = _SEED_DIR.match(seed_folder.name)
-    if match is None or seed_folder.parent.name != "checkpoints":
+    seed = ckpt.seed_of_folder(seed_folder.name)
+    if seed is None or seed_folder.parent.name != "checkpoints":
         hint = ""
         if path.is_dir() and (path / "checkpoints").is_dir():
-            seeds = sorted(p.name for p in (path / "checkpoints").iterdir() if _SEED_DIR.match(p.name))
+            seeds = sorted(p.name for p in (path / "checkpoints").iterdir() if ckpt.seed_of_folder(p.name) is not None)
             hint = (
                 f"; this looks like a run directory: pick a seed, e.g. {path / 'checkpoints' / seeds[0]}"
                 if seeds
@@ -152,7 +148,7 @@ def resolve_checkpoint(path) -> tuple[Path, int, Path]:
             f"--partner: {str(path)!r} is not RUN_DIR/checkpoints/seed_<i>, a checkpoint file "
             f"in one or an exported policy file (ocv2 export){hint}"
         )
-    run_dir, seed = seed_folder.parent.parent, int(match.group(1))
+    run_dir = seed_folder.parent.parent
     if path.is_dir():
         latest = ckpt.latest(run_dir, seed)
         if latest is None:

@@ -8,13 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import both_seats, interval, matrix, pairs, run, sp_xp, summary
+from .data import both_seats, interval, matrix, pairs, run, sp_xp
 from .folders import SA10, SP10
 from .registry import check
 from .ten_seed_studies import (
     final_matrix,
     low_pairs,
     partner_means,
+    replay_minutes,
+    replayed_cells,
     roles_tables,
     snapshot_env_steps,
     sp_sa_low,
@@ -278,9 +280,6 @@ def _():
 
 @check("sp10_replay")
 def _():
-    """The 10 x 10 matrix played again from the published update-183 files (replay_from_policies/): how many cells
-    equal the study's own, of how many, the largest difference (a mean of 500 returns in steps of 20: 0.04 per
-    delivery), and the replay's wall time in minutes."""
-    study, again = matrix(SP10 / "xp_sp.csv"), matrix(SP10 / "replay_from_policies" / "matrix.csv")
-    wall = summary(SP10 / "replay_from_policies")["wall_s"]
-    return [int((again == study).sum()), study.size, float(np.abs(again - study).max()), round(wall / 60)]
+    """The 10 x 10 matrix played again from the published update-183 files (``replayed_cells``) and the replay's
+    minutes."""
+    return [*replayed_cells(SP10), replay_minutes(SP10)]

@@ -9,13 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import both_seats, matrix, run, summary
+from .data import both_seats, run
 from .folders import CRM10, CRM_SA10
 from .registry import check
 from .ten_seed_studies import (
     final_matrix,
     paper_beside_intervals,
     partner_means,
+    replay_minutes,
+    replayed_cells,
     sp_sa_low,
     sp_sa_mean,
     training_curve,
@@ -49,19 +51,8 @@ def seed_gaps(m: np.ndarray) -> list[float]:
 check("crm10_pairs")(functools.partial(pair_range, CRM10, "sp"))
 
 
-@check("crm10_replay")
-def _():
-    """The 10 x 10 matrix played again from the published update-183 files (``ocv2 xp --rows <the 10 files>
-    --episodes 500 --seed 0``, replay_from_policies/): how many of its cells equal the study's own (every one is a
-    mean of 500 returns, multiples of 20, so two decimals are exact), of how many, and the largest difference."""
-    study, again = final_matrix(CRM10), matrix(CRM10 / "replay_from_policies" / "matrix.csv")
-    return [int((again == study).sum()), study.size, float(np.abs(again - study).max())]
-
-
-@check("crm10_replay_wall")
-def _():
-    """The replay's wall time in minutes (its summary.json's ``wall_s``)."""
-    return [round(summary(CRM10 / "replay_from_policies")["wall_s"] / 60)]
+check("crm10_replay")(functools.partial(replayed_cells, CRM10, "sp"))
+check("crm10_replay_wall")(lambda: [replay_minutes(CRM10)])
 check("crm_sa10_pairs")(functools.partial(pair_range, CRM_SA10, "sa"))
 check("crm_sa10_within")(functools.partial(paper_beside_intervals, CRM_SA10, "sa"))
 

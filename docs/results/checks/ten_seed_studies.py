@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import both_seats, interval, matrix, md_tables, millions, paper, run, sp_xp
+from .data import both_seats, interval, matrix, md_tables, millions, paper, run, sp_xp, summary
 from .folders import SA10, SP10
 
 
@@ -44,6 +44,23 @@ def roles_tables(study: Path = SP10) -> dict:
 
 def final_matrix(study: Path = SP10, method: str = "sp") -> np.ndarray:
     return matrix(study / f"xp_{method}.csv")
+
+
+#: Where a study's final cross-play, played again from its published files alone, is kept.
+REPLAY = "replay_from_policies"
+
+
+def replayed_cells(study: Path, method: str = "sp") -> list:
+    """The final matrix played again from the published files (``ocv2 xp --rows <the 10 files> --episodes 500
+    --seed 0``, in ``REPLAY``/): how many of its cells equal the study's own, of how many, and the largest difference
+    (each cell a mean of 500 returns in steps of 20, so its two decimals are exact: 0.04 per delivery)."""
+    study_matrix, again = final_matrix(study, method), matrix(study / REPLAY / "matrix.csv")
+    return [int((again == study_matrix).sum()), study_matrix.size, float(np.abs(again - study_matrix).max())]
+
+
+def replay_minutes(study: Path) -> int:
+    """The replay's wall time in minutes (its summary.json's ``wall_s``)."""
+    return round(summary(study / REPLAY)["wall_s"] / 60)
 
 
 def partner_means(p: np.ndarray) -> list[float]:
