@@ -1,7 +1,8 @@
 """Checks that every 10-seed study has, registered by a loop rather than written out: each SP study's headline rows
 (``<name>_final``, ``_within``, ``_low_pairs``, ``_claim``), each SA study's rows beside its
 SP seeds (``<name>_final``, ``_delta``, ``_paired``, ``_low_pairs``, ``_claim``) and the runs table's size and
-wall-time cells (``run_<name>``, ``run_<name>_wall``)."""
+wall-time cells (``run_<name>``, ``run_<name>_wall``), and the table of every 10-seed verdict's matrix played again from
+its published files (``replays``)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,21 @@ import functools
 from pathlib import Path
 
 from .data import claim_row, paper, run, run_size, study_wall
-from .folders import AA10, CC10, CC10_6M, CC_SA10, CC_SA10_6M, CRM10, CRM_SA10, FC10, FC_SA10, SA10, SP10
+from .folders import (
+    AA10,
+    CC10,
+    CC10_6M,
+    CC_SA10,
+    CC_SA10_6M,
+    CRM10,
+    CRM_SA10,
+    FC10,
+    FC_SA10,
+    GPU410,
+    GPU_CR,
+    SA10,
+    SP10,
+)
 from .registry import check
 from .ten_seed_studies import (
     final_matrix,
@@ -18,6 +33,7 @@ from .ten_seed_studies import (
     low_pairs,
     paired_gap_difference,
     paper_beside_intervals,
+    replay_row,
 )
 
 # --- what every 10-seed SA study beside its 10 SP seeds at the same budget reports
@@ -143,3 +159,36 @@ def register_run_rows() -> None:
 
 
 register_run_rows()
+
+
+#: Every 10-seed verdict's matrix, in the order of the page's sections: (study folder, method, the matrix file
+#: when it is not the folder's xp_<method>.csv).
+VERDICT_MATRICES = (
+    (SP10, "sp", None),
+    (GPU410, "sp", GPU410 / "matrix.csv"),
+    (GPU_CR, "sp", None),
+    (SA10, "sa", None),
+    (FC10, "sp", None),
+    (FC_SA10, "sa", None),
+    (CC10, "sp", None),
+    (CC10_6M, "sp", None),
+    (CC_SA10, "sa", None),
+    (CC_SA10_6M, "sa", None),
+    (CRM10, "sp", None),
+    (CRM_SA10, "sa", None),
+    (AA10, "sp", None),
+)
+
+
+@check("replays")
+def replays() -> list:
+    """Per verdict, its matrix played again from the published files (``replay_row``)."""
+    return [number for study, method, verdict in VERDICT_MATRICES for number in replay_row(study, method, verdict)]
+
+
+@check("replays_total")
+def replays_total() -> list:
+    """All the replays together: the cells played again, how many equal the study's, how many differ."""
+    rows = [replay_row(study, method, verdict) for study, method, verdict in VERDICT_MATRICES]
+    cells, equal = sum(row[2] for row in rows), sum(row[3] for row in rows)
+    return [cells, equal, cells - equal]

@@ -50,17 +50,39 @@ def final_matrix(study: Path = SP10, method: str = "sp") -> np.ndarray:
 REPLAY = "replay_from_policies"
 
 
-def replayed_cells(study: Path, method: str = "sp") -> list:
-    """The final matrix played again from the published files (``ocv2 xp --rows <the 10 files> --episodes 500
-    --seed 0``, in ``REPLAY``/): how many of its cells equal the study's own, of how many, and the largest difference
-    (each cell a mean of 500 returns in steps of 20, so its two decimals are exact: 0.04 per delivery)."""
-    study_matrix, again = final_matrix(study, method), matrix(study / REPLAY / "matrix.csv")
-    return [int((again == study_matrix).sum()), study_matrix.size, float(np.abs(again - study_matrix).max())]
+def replayed_matrix(study: Path) -> tuple[np.ndarray, list[int], int]:
+    """The replay in ``study``/``REPLAY``/matrix.csv: its cells, the seeds of its rows (its labels, such as
+    ``sp/seed_0@183``, name the files played) and the update they were published at."""
+    with (study / REPLAY / "matrix.csv").open() as f:
+        labels = [row[0] for row in list(csv.reader(f))[1:]]
+    seeds = [int(re.search(r"seed_(\d+)@", label).group(1)) for label in labels]
+    (update,) = {int(label.rsplit("@", 1)[1]) for label in labels}
+    return matrix(study / REPLAY / "matrix.csv"), seeds, update
+
+
+def replayed_cells(study: Path, method: str = "sp", verdict: Path | None = None) -> list:
+    """The study's final matrix (``verdict``: another file of it) played again from the published files, whole
+    (``ocv2 xp --rows <the 10 files> --episodes 500 --seed 0``) or one seed's row (``--rows <its file> --cols
+    <the 10 files> --seats 0``), in ``REPLAY``/: how many of the cells played equal the study's own, of how many,
+    and the largest difference (each cell a mean of 500 returns in steps of 20, so its two decimals are exact: 0.04
+    per delivery)."""
+    again, seeds, _ = replayed_matrix(study)
+    study_matrix = matrix(verdict) if verdict is not None else final_matrix(study, method)
+    own = study_matrix[seeds]
+    return [int((again == own).sum()), own.size, float(np.abs(again - own).max())]
 
 
 def replay_minutes(study: Path) -> int:
     """The replay's wall time in minutes (its summary.json's ``wall_s``)."""
     return round(summary(study / REPLAY)["wall_s"] / 60)
+
+
+def replay_row(study: Path, method: str = "sp", verdict: Path | None = None) -> list:
+    """A row of the table of replays: the update played, the rows played, the cells, how many equal the study's,
+    the largest difference and the minutes."""
+    again, seeds, update = replayed_matrix(study)
+    equal, cells, largest = replayed_cells(study, method, verdict)
+    return [update, len(seeds), cells, equal, largest, replay_minutes(study)]
 
 
 def partner_means(p: np.ndarray) -> list[float]:
