@@ -10,7 +10,7 @@ import re
 
 import numpy as np
 
-from .data import both_seats, md_tables_by_heading
+from .data import both_seats, matrix, md_tables_by_heading
 from .folders import AA10
 from .registry import check
 from .ten_seed_studies import (
@@ -227,3 +227,13 @@ def _():
     """The training return (sparse, mean over the 10 seeds) at the kept snapshots 122, 152 and 183, with their env
     steps."""
     return training_curve(AA10)
+
+
+@check("aa10_replay_cause")
+def replay_cause() -> list:
+    """Seed 0 with seed 6, the one cell of the row replay that differs from the study's: in the study's matrix, in the
+    replay (``ocv2 xp``, one file against one), and in seed 0's row played with the ten files stacked, as the study
+    plays it, without and with recording (as_the_study_played.py's csv)."""
+    replayed = AA10 / "replay_from_policies"
+    batched = matrix(replayed / "as_the_study_played.csv")
+    return [final_matrix(AA10)[0, 6], matrix(replayed / "matrix.csv")[0, 6], batched[0, 6], batched[1, 6]]

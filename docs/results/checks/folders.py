@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parents[1]  # docs/results/
-LAYOUTS = RESULTS.parents[1] / "ocv2" / "layouts.py"
+REPOSITORY = RESULTS.parents[1]  # what the paths in a cross-play's summary.json are relative to
+LAYOUTS = REPOSITORY / "ocv2" / "layouts.py"
 CR = RESULTS / "table1_coord_ring"
 GCS = RESULTS / "reduced_gcs"
 SP10 = RESULTS / "table1_coord_ring_sp10"

@@ -1,8 +1,8 @@
-"""Checks that every 10-seed study has, registered by a loop rather than written out: each SP study's headline rows
+"""Checks that every 10-seed study has, most registered by a loop rather than written out: each SP study's headline rows
 (``<name>_final``, ``_within``, ``_low_pairs``, ``_claim``), each SA study's rows beside its
 SP seeds (``<name>_final``, ``_delta``, ``_paired``, ``_low_pairs``, ``_claim``) and the runs table's size and
 wall-time cells (``run_<name>``, ``run_<name>_wall``), and the table of every 10-seed verdict's matrix played again from
-its published files (``replays``)."""
+its published files (``replays``, with their sum: ``replays_total``)."""
 
 from __future__ import annotations
 
@@ -161,8 +161,8 @@ def register_run_rows() -> None:
 register_run_rows()
 
 
-#: Every 10-seed verdict's matrix, in the order of the page's sections: (study folder, method, the matrix file
-#: when it is not the folder's xp_<method>.csv).
+#: Every 10-seed verdict's matrix, in the order of the page's sections: (study folder, method, the verdict's
+#: matrix file when it is not the folder's xp_<method>.csv).
 VERDICT_MATRICES = (
     (SP10, "sp", None),
     (GPU410, "sp", GPU410 / "matrix.csv"),
@@ -183,12 +183,16 @@ VERDICT_MATRICES = (
 @check("replays")
 def replays() -> list:
     """Per verdict, its matrix played again from the published files (``replay_row``)."""
-    return [number for study, method, verdict in VERDICT_MATRICES for number in replay_row(study, method, verdict)]
+    return [number for row in replay_rows() for number in row]
 
 
 @check("replays_total")
 def replays_total() -> list:
     """All the replays together: the cells played again, how many equal the study's, how many differ."""
-    rows = [replay_row(study, method, verdict) for study, method, verdict in VERDICT_MATRICES]
-    cells, equal = sum(row[2] for row in rows), sum(row[3] for row in rows)
+    cells, equal = sum(row[2] for row in replay_rows()), sum(row[3] for row in replay_rows())
     return [cells, equal, cells - equal]
+
+
+@functools.cache
+def replay_rows() -> tuple[list, ...]:
+    return tuple(replay_row(study, method, verdict_csv) for study, method, verdict_csv in VERDICT_MATRICES)

@@ -11,11 +11,12 @@ import json
 import math
 import re
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from .data import both_seats, interval, matrix, md_tables, millions, paper, run, sp_xp, summary
-from .folders import SA10, SP10
+from .folders import REPOSITORY, SA10, SP10
 
 
 def snapshot_env_steps(update: int, study: Path = SP10) -> float:
@@ -48,41 +49,89 @@ def final_matrix(study: Path = SP10, method: str = "sp") -> np.ndarray:
 
 #: Where a study's final cross-play, played again from its published files alone, is kept.
 REPLAY = "replay_from_policies"
+#: What every 10-seed study's cross-play played: episodes per ordered pair and the episode key (``population.seed``).
+STUDY_EPISODES, STUDY_KEY = 500, 0
 
 
-def replayed_matrix(study: Path) -> tuple[np.ndarray, list[int], int]:
-    """The replay in ``study``/``REPLAY``/matrix.csv: its cells, the seeds of its rows (its labels, such as
-    ``sp/seed_0@183``, name the files played) and the update they were published at."""
-    with (study / REPLAY / "matrix.csv").open() as f:
-        labels = [row[0] for row in list(csv.reader(f))[1:]]
-    seeds = [int(re.search(r"seed_(\d+)@", label).group(1)) for label in labels]
-    (update,) = {int(label.rsplit("@", 1)[1]) for label in labels}
-    return matrix(study / REPLAY / "matrix.csv"), seeds, update
+class Replay(NamedTuple):
+    cells: np.ndarray  # [rows, cols], row = seat 0
+    rows: list[int]  # the seed of each row's file
+    cols: list[int]  # the seed of each column's file
+    update: int  # the snapshot every file played is
+    files: tuple[str, ...]  # the files played (paths from the repository)
+    minutes: int  # the replay's wall time (its summary.json's ``wall_s``)
 
 
-def replayed_cells(study: Path, method: str = "sp", verdict: Path | None = None) -> list:
-    """The study's final matrix (``verdict``: another file of it) played again from the published files, whole
-    (``ocv2 xp --rows <the 10 files> --episodes 500 --seed 0``) or one seed's row (``--rows <its file> --cols
-    <the 10 files> --seats 0``), in ``REPLAY``/: how many of the cells played equal the study's own, of how many,
-    and the largest difference (each cell a mean of 500 returns in steps of 20, so its two decimals are exact: 0.04
-    per delivery)."""
-    again, seeds, _ = replayed_matrix(study)
-    study_matrix = matrix(verdict) if verdict is not None else final_matrix(study, method)
-    own = study_matrix[seeds]
-    return [int((again == own).sum()), own.size, float(np.abs(again - own).max())]
+@functools.cache
+def replay(study: Path) -> Replay:
+    """``study``/``REPLAY``/: an ``ocv2 xp --rows ... [--cols ...]`` of published files. Which seeds and update each
+    file is comes from the listing beside it (``SHA256SUMS.json``), and the sha256 the replay recorded for each file
+    must be the listing's, so the cells are those of the published bytes; the episodes and key must be the
+    study's."""
+    record = summary(study / REPLAY)
+    if (record["episodes_per_pair"], record["seed"]) != (STUDY_EPISODES, STUDY_KEY):
+        raise ValueError(
+            f"{study.name}: the replay played {record['episodes_per_pair']} episodes with key "
+            f"{record['seed']}, not the study's {STUDY_EPISODES} with key {STUDY_KEY}"
+        )
+    listed = {}
+    for path, played in record["files"].items():
+        file = REPOSITORY / path
+        listing = json.loads((file.parent / "SHA256SUMS.json").read_text())
+        entry = next((e for e in listing if e["file"] == file.name), None)
+        if entry is None or entry["sha256"] != played["sha256"]:
+            raise ValueError(f"{study.name}: the replay played {path} with bytes its folder's listing does not")
+        listed[path] = entry
+    (update,) = {entry["update"] for entry in listed.values()}
+    return Replay(
+        matrix(study / REPLAY / "matrix.csv"),
+        [listed[path]["seed"] for path in record["rows"]],
+        [listed[path]["seed"] for path in record["cols"]],
+        update,
+        tuple(listed),
+        round(record["wall_s"] / 60),
+    )
+
+
+def replayed_cells(study: Path, method: str = "sp", verdict_csv: Path | None = None) -> list:
+    """The study's final matrix (``verdict_csv``: the verdict's matrix file when it is not the folder's
+    xp_<method>.csv) played again from the published files (``replay``), whole (``ocv2 xp --rows <the 10 files>
+    --episodes 500 --seed 0``) or one seed's row (``--rows <its file> --cols <the 10 files> --seats 0``): how many of
+    the cells played equal the study's own, of how many, and the largest difference (each cell a mean of 500 returns in
+    steps of 20, so its two decimals are exact: 0.04 per delivery)."""
+    again = replay(study)
+    own = (matrix(verdict_csv) if verdict_csv is not None else final_matrix(study, method))[
+        np.ix_(again.rows, again.cols)
+    ]
+    return [int((again.cells == own).sum()), own.size, float(np.abs(again.cells - own).max())]
 
 
 def replay_minutes(study: Path) -> int:
-    """The replay's wall time in minutes (its summary.json's ``wall_s``)."""
-    return round(summary(study / REPLAY)["wall_s"] / 60)
+    """The replay's wall time in minutes."""
+    return replay(study).minutes
 
 
-def replay_row(study: Path, method: str = "sp", verdict: Path | None = None) -> list:
-    """A row of the table of replays: the update played, the rows played, the cells, how many equal the study's,
-    the largest difference and the minutes."""
-    again, seeds, update = replayed_matrix(study)
-    equal, cells, largest = replayed_cells(study, method, verdict)
-    return [update, len(seeds), cells, equal, largest, replay_minutes(study)]
+def replay_row(study: Path, method: str = "sp", verdict_csv: Path | None = None) -> list:
+    """A row of the table of replays: the update played (checked: the verdict's, and files of its method), the rows
+    played, the cells, how many equal the study's, the largest difference and the minutes."""
+    again = replay(study)
+    final = verdict_update(study, method, verdict_csv)
+    if again.update != final:
+        raise ValueError(f"{study.name}: the replay played update {again.update}, the verdict is at {final}")
+    if not all(Path(path).name.startswith(f"{method}_seed") for path in again.files):
+        raise ValueError(f"{study.name}: the replay played files of another method than {method}: {again.files}")
+    equal, cells, largest = replayed_cells(study, method, verdict_csv)
+    return [again.update, len(again.rows), cells, equal, largest, again.minutes]
+
+
+def verdict_update(study: Path, method: str, verdict_csv: Path | None) -> int:
+    """The update a verdict's matrix was played at: its labels' (``sp/seed_0@410``) when it is an ``ocv2 xp`` file,
+    else the study's final update."""
+    if verdict_csv is None:
+        return run(study, method)["update"]
+    with verdict_csv.open() as f:
+        (update,) = {int(label.rsplit("@", 1)[1]) for label in next(csv.reader(f))[1:]}
+    return update
 
 
 def partner_means(p: np.ndarray) -> list[float]:
