@@ -1,5 +1,5 @@
-"""Checks that every 10-seed study has, most registered by a loop rather than written out: each SP study's headline rows
-(``<name>_final``, ``_within``, ``_low_pairs``, ``_claim``), each SA study's rows beside its
+"""Checks that every 10-seed study has, most registered by a loop rather than written out: each SP study's headline
+rows (``<name>_final``, ``_within``, ``_low_pairs``, ``_claim``), each SA study's rows beside its
 SP seeds (``<name>_final``, ``_delta``, ``_paired``, ``_low_pairs``, ``_claim``) and the runs table's size and
 wall-time cells (``run_<name>``, ``run_<name>_wall``), and the table of every 10-seed verdict's matrix played again from
 its published files (``replays``, with their sum: ``replays_total``)."""
