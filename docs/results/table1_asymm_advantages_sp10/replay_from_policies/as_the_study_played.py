@@ -16,11 +16,10 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from population import policy
+from population.evaluation import stack_params
 from population.keys import derive_key
 from population.xp import cross_play
 
@@ -32,7 +31,7 @@ SEEDS, EPISODES, KEY = range(10), 500, derive_key(0, "xp")  # the study's seeds,
 def main() -> None:
     policies = [policy.load(POLICIES / f"sp_seed{seed}_update183.ocv2policy") for seed in SEEDS]
     first = policies[0]
-    stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[p.params for p in policies])
+    stacked = stack_params([p.params for p in policies])
     rows = {}
     for way, on_block in (("batched", None), ("batched, recorded", lambda *_: None)):
         returns = cross_play(
