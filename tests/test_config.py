@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+from pathlib import Path
 
 import pytest
 import yaml
@@ -20,8 +21,10 @@ from population.config import (
     dump_config,
     load_config,
     parse_config,
+    yaml_io,
 )
 
+ROOT = Path(__file__).resolve().parents[1]
 SMALL_PPO = {"num_envs": 4, "num_steps": 16, "num_minibatches": 2, "total_timesteps": 640}
 
 
@@ -484,6 +487,17 @@ def test_yaml_values_a_config_cannot_hold(tmp_path, text, key, what):
     assert key in message and what in message
 
 
+def test_libyaml_reads_every_shipped_config_as_the_pure_python_parser_does():
+    """Configs are read by libyaml's parser (several times faster); what it reads must be what PyYAML's own parser
+    reads, the checks of ``StrictLoader`` included."""
+    assert yaml_io.FastStrictLoader is not None, "PyYAML without libyaml: PyPI's wheels have it"
+    paths = sorted(ROOT.joinpath("population", "config", "files").rglob("*.yaml"))
+    assert len(paths) > 50
+    for path in paths:
+        text = path.read_text(encoding="utf-8")
+        assert yaml_io._load(text, yaml_io.FastStrictLoader) == yaml_io._load(text, yaml_io.StrictLoader), path
+
+
 def test_yaml_alias_bomb_is_refused(tmp_path):
     lines = ["a: &l0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
     lines += [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]" for i in range(1, 8)]
@@ -494,6 +508,9 @@ def test_yaml_alias_bomb_is_refused(tmp_path):
     "text, what",
     [
         ("ppo: " + "[" * 5000 + "\n", "nested deeper than 64 levels"),
+        # libyaml's composer recurses in C: a segmentation fault of the whole process, were it reached (the mapping
+        # is level 1, so the 64th bracket is one too deep)
+        ("ppo: " + "[" * 200_000 + "\n", "nested deeper than 64 levels at line 1, column 69"),
         ("ppo: {lr: " + "1" * 4301 + "}\n", "an integer of 4301 digits (at most 100)"),
         ("ppo: {num_envs: " + "9" * 400 + "}\n", "an integer of 400 digits"),
         (
@@ -502,7 +519,7 @@ def test_yaml_alias_bomb_is_refused(tmp_path):
         ),
         ("ppo:\n  lr: 0.1\n  num_envs: 4\n  lr: 0.2\n", "duplicate key 'lr' (first at line 2) at line 4"),
     ],
-    ids=["5000-nested", "4301-digits", "400-digits", "env-twice", "key-twice"],
+    ids=["5000-nested", "200000-nested", "4301-digits", "400-digits", "env-twice", "key-twice"],
 )
 def test_hostile_or_ambiguous_yaml_is_a_one_line_error(tmp_path, text, what):
     """Deep nesting (RecursionError inside PyYAML), huge integers (ValueError past 4,300 digits) and a key

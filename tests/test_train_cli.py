@@ -12,6 +12,7 @@ import dataclasses
 import errno
 import importlib
 import json
+import logging
 import os
 import shutil
 import signal
@@ -149,7 +150,7 @@ def test_xp_command_rewrites_the_summary(sp_run, tmp_path):
 # ---------------------------------------------------------------------------------------------------
 
 
-def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp_path, capsys):
+def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp_path, capsys, caplog):
     run = tmp_path / "sa"
     assert train(run, "population.method=sa", extra=["--no-eval"]) == 0
     assert manifest(run)["status"] == "finished" and manifest(run)["method"] == "sa"
@@ -199,6 +200,19 @@ def test_sa_saves_one_buffer_per_iteration_collected_by_the_current_policies(tmp
     for seed in range(NUM_SEEDS):
         _assert_trees_equal(_raw_checkpoint(resumed, seed, NUM_UPDATES), _raw_checkpoint(run, seed, NUM_UPDATES))
     _assert_same_metrics(read_csv(resumed / "metrics.csv"), read_csv(run / "metrics.csv"))
+
+    # With its buffer still there, a resume loads it and its progress says so: "collecting states" on every
+    # resume of a 10-seed study sent a reader looking for a collection that never ran.
+    kept = tmp_path / "sa_kept_buffer"
+    shutil.copytree(run, kept)
+    for seed in range(NUM_SEEDS):
+        ckpt.checkpoint_path(kept, seed, NUM_UPDATES).unlink()
+    caplog.set_level(logging.INFO, logger="cluster")
+    args = ["train", SMOKE, "--out", str(kept), "--backend", "local", "--set", "population.method=sa"]
+    assert main([*args, "--resume", "--no-eval"]) == 0
+    notes = [m.strip() for m in caplog.messages if "SA iteration" in m]
+    assert notes == ["SA iteration 2/2: loading its states"], caplog.messages
+    _assert_same_metrics(read_csv(kept / "metrics.csv"), read_csv(run / "metrics.csv"))
 
     # "Augment from last month's cross-play": archived states join every iteration's buffer. Every 20th
     # state instead of every 10th, so that collected + archived states are as many as the run above

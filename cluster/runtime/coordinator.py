@@ -54,6 +54,10 @@ log = logging.getLogger(__name__)
 # ---------------------------------------------------------------------------------------------------
 
 
+def sa_buffer_path(run: RunDir, iteration: int) -> Path:
+    return run.path / "sa" / f"buffer_{iteration:03d}.msgpack"
+
+
 def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, extra=None) -> SABuffer:
     """The iteration's buffer: loaded if this run already collected it (resume), else collected and saved.
 
@@ -61,7 +65,7 @@ def sa_buffer(config: Config, run: RunDir, workers: Workers, iteration: int, ext
     the buffer file is written last, so its presence means the iteration is complete. ``extra``:
     states from ``population.sa.archives``, appended to the collected ones.
     """
-    path = run.path / "sa" / f"buffer_{iteration:03d}.msgpack"
+    path = sa_buffer_path(run, iteration)
     if path.exists():
         meta, _ = ckpt.read(path, config.fingerprint())
         return SABuffer(iteration, ckpt.load(path, buffer_template(config, meta["states"]), config.fingerprint())[1])
@@ -526,7 +530,9 @@ def _train_loop(
             if schedule.iteration_starts:
                 iteration = schedule.iteration_at(update)
                 if buffer is None or buffer.iteration != iteration:
-                    progress.note(f"SA iteration {iteration + 1}/{len(schedule.iteration_starts)}: collecting states")
+                    # A resume loads what an earlier driver collected: saying "collecting" there misled a reader.
+                    doing = "loading its states" if sa_buffer_path(run, iteration).exists() else "collecting states"
+                    progress.note(f"SA iteration {iteration + 1}/{len(schedule.iteration_starts)}: {doing}")
                     buffer = sa_buffer(config, run, workers, iteration, extra)
                     buffer_handle = workers.share(buffer)
             stop = schedule.next_stop(update)
