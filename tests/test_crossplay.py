@@ -186,7 +186,8 @@ def _stopped_at(monkeypatch, call: int) -> list:
 
 
 def _two_orders(run) -> list[str]:
-    """The run's 2 policies against each seed directory: 4 jobs with the rows in seat 0, 2 with the columns."""
+    """The run's 2 policies against each seed directory: 4 (row policy, column group) pieces with the rows in seat 0,
+    played in 2 jobs (the two one-policy directories are one batch of columns), and 2 pieces with the columns."""
     return ["--rows", str(run), "--cols", *(str(run / "checkpoints" / f"seed_{i}") for i in (0, 1))]
 
 
@@ -197,7 +198,7 @@ def test_a_stopped_cross_play_continues_where_it_stopped_and_ends_as_an_uninterr
     the uninterrupted command's, file for file. Stopped in the second seat order, so both orders' jobs are read."""
     whole, out = tmp_path / "whole", tmp_path / "stopped"
     assert _xp(whole, *_two_orders(run)) == 0
-    _stopped_at(monkeypatch, call=6)
+    _stopped_at(monkeypatch, call=4)  # after both jobs of the first order (4 pieces) and one of the second
     caplog.set_level("WARNING", logger="cluster.cli.xp")
     assert _xp(out, *_two_orders(run)) == 130
     kept = tmp_path / "stopped.unfinished"
@@ -219,6 +220,69 @@ def test_a_stopped_cross_play_continues_where_it_stopped_and_ends_as_an_uninterr
     assert ours == theirs
 
 
+def test_column_groups_of_one_network_are_one_job_per_row_policy_with_the_returns_of_one_job_per_group(
+    run, tmp_path, monkeypatch
+):
+    """Ten exported one-policy files as columns were ten jobs per seat-0 policy; neighbouring column groups of one
+    network now join in one job, which pays off because one call plays all its partners stacked, with the episode
+    keys of one call per group. A stop kept by one job per group (MAX_BATCH_POLICIES = 1, as before batches) that
+    left a batch half played continues with the rest of it one by one and ends as the batched command, file for
+    file; and one job per group from the start gives those files too."""
+    batched = tmp_path / "batched"
+    played = _stopped_at(monkeypatch, call=0)
+    assert _xp(batched, *_two_orders(run)) == 0
+    assert played == [(0, (0, 1), 0), (0, (0, 1), 1), (0, (0,), 0), (1, (0,), 0)]  # (row group, columns, row)
+
+    monkeypatch.setattr(crossplay, "MAX_BATCH_POLICIES", 1)
+    out = tmp_path / "half"
+    _stopped_at(monkeypatch, call=2)  # plays (run seed 0, seed_0 directory) only
+    assert _xp(out, *_two_orders(run)) == 130
+    monkeypatch.setattr(crossplay, "MAX_BATCH_POLICIES", 16)
+    played = _stopped_at(monkeypatch, call=0)
+    assert _xp(out, *_two_orders(run)) == 0
+    assert played == [(0, (1,), 0), (0, (0, 1), 1), (0, (0,), 0), (1, (0,), 0)]
+
+    monkeypatch.setattr(crossplay, "MAX_BATCH_POLICIES", 1)
+    one_by_one = tmp_path / "one_by_one"
+    played = _stopped_at(monkeypatch, call=0)
+    assert _xp(one_by_one, *_two_orders(run)) == 0
+    assert len(played) == 6
+    for folder in (out, one_by_one):
+        for name in ("matrix.csv", "matrix_cols_seat0.csv", "matrix_mean.csv", "episodes.csv", "blocks.csv"):
+            assert (folder / name).read_bytes() == (batched / name).read_bytes(), (folder, name)
+
+    # One-policy sources against themselves (a whole matrix replayed from exported files): each row is one job,
+    # its self-play cell included, with the returns of one job per pair.
+    square = ["--rows", *(str(run / "checkpoints" / f"seed_{i}") for i in (0, 1))]
+    assert _xp(tmp_path / "square_one_by_one", *square) == 0
+    monkeypatch.setattr(crossplay, "MAX_BATCH_POLICIES", 16)
+    played = _stopped_at(monkeypatch, call=0)
+    assert _xp(tmp_path / "square", *square) == 0
+    assert played == [(0, (0, 1), 0), (1, (0, 1), 0)]
+    for name in ("matrix.csv", "episodes.csv", "blocks.csv"):
+        assert (tmp_path / "square" / name).read_bytes() == (tmp_path / "square_one_by_one" / name).read_bytes()
+
+
+def test_column_batches_keep_the_row_group_itself_alone_and_never_leave_a_worker_idle():
+    spec = ("cnn", "relu", {"layout": "cramped_room"})
+
+    def group(name, n=1, other=spec):
+        return SimpleNamespace(ids=tuple(f"{name}{k}" for k in range(n)), spec=other, names=(name,) * n)
+
+    files = [group(f"f{c}") for c in range(5)]
+    assert crossplay.column_batches(group("row"), files) == [(0, 1, 2, 3, 4)]
+    # the row's own group of several policies plays itself through the in-run path: alone; so does another
+    # network's group; a one-policy file joins its neighbours in its own row too
+    other = group("x", other=("rnn", "relu", {"layout": "cramped_room"}))
+    run = group("run", 2)
+    assert crossplay.column_batches(run, [*files[:2], run, *files[2:], other]) == [(0, 1), (2,), (3, 4, 5), (6,)]
+    assert crossplay.column_batches(files[2], files) == [(0, 1, 2, 3, 4)]
+    assert crossplay.column_batches(group("row"), files, jobs=3) == [(0, 1), (2,), (3, 4)]
+    assert crossplay.column_batches(group("row", 2), files, jobs=3) == [(0, 1), (2, 3, 4)]
+    limit = crossplay.MAX_BATCH_POLICIES
+    assert crossplay.column_batches(group("row"), [group("big", limit - 1), *files[:2]]) == [(0, 1), (2,)]
+
+
 def test_a_stopped_cross_play_is_not_continued_with_other_settings_or_left_behind_with_nothing_played(
     run, tmp_path, monkeypatch, capsys
 ):
@@ -230,7 +294,7 @@ def test_a_stopped_cross_play_is_not_continued_with_other_settings_or_left_behin
     _stopped_at(monkeypatch, call=2)
     assert _xp(out, *_two_orders(run)) == 130
     before = sorted(p.name for p in kept.iterdir())
-    assert len(before) == 2  # request.json and one job
+    assert len(before) == 3  # request.json and the two pieces (one per column group) of one job
     capsys.readouterr()
     code = main(["xp", *_two_orders(run), "--episodes", "4", "--backend", "local", "--out", str(out), "--quiet"])
     err = capsys.readouterr().err.strip()
@@ -239,7 +303,7 @@ def test_a_stopped_cross_play_is_not_continued_with_other_settings_or_left_behin
     swapped = ["--rows", str(run / "checkpoints" / "seed_1"), *_two_orders(run)[2:]]  # other row policies
     assert _xp(out, *swapped) == 2 and "differs in: rows" in capsys.readouterr().err
     assert sorted(p.name for p in kept.iterdir()) == before and not out.exists()
-    (job,) = kept.glob("*.npz")
+    job = sorted(kept.glob("*.npz"))[0]
     job.write_bytes(job.read_bytes()[:100])  # cut short by a full disk, say
     assert _xp(out, *_two_orders(run)) == 2
     damaged = f"{job}: damaged (BadZipFile: File is not a zip file); remove {kept} to start the cross-play again"

@@ -376,15 +376,61 @@ def xp_key(seed: int) -> jax.Array:
     return derive_key(seed, "xp")
 
 
+#: Most policies one job plays against when it joins column groups (``column_batches``): a bound on one call's batch.
+MAX_BATCH_POLICIES = 16
+
+
+def _same(row_group: PolicyGroup, col_group: PolicyGroup) -> bool:
+    """A group against itself: played through the in-run code path (no partners), as a run's own cross-play."""
+    return row_group.ids == col_group.ids and row_group.spec == col_group.spec
+
+
+def column_batches(row_group: PolicyGroup, col_groups, jobs: int = 1) -> list[tuple[int, ...]]:
+    """The column groups each job of ``row_group``'s policies plays against, in column order: neighbours of one
+    network spec join (up to ``MAX_BATCH_POLICIES`` policies), so that ten exported one-policy files are one job
+    per seat-0 policy instead of ten. Every pair gets the same episode keys either way (a block's key is shared by
+    all pairs), so the returns do not change; one call against ten stacked partners played a Cramped Room row in
+    90 % of the time of ten calls (bench/xp_files.py, 2 CPU cores shared with a training run). A column group of several policies that is ``row_group``
+    itself stays alone: it keeps the in-run path against itself, so ``ocv2 xp --rows RUN`` is the run's own
+    cross-play. (A one-policy file joins its neighbours, also in its own row: its self-play cell then takes the
+    partners' path, whose returns equal the in-run path's, tested with an exported seed against its run; and one
+    batch size per matrix means one compiled program.) Batches are split again while the row group would have
+    fewer than ``jobs`` jobs, so that joining never leaves a Ray worker idle."""
+
+    def alone(group) -> bool:
+        return len(group.names) > 1 and _same(row_group, group)
+
+    batches: list[list[int]] = []
+    for c, group in enumerate(col_groups):
+        last = batches[-1] if batches else None
+        joins = (
+            last is not None
+            and not alone(group)
+            and not alone(col_groups[last[0]])
+            and col_groups[last[0]].spec == group.spec
+            and sum(len(col_groups[k].names) for k in last) + len(group.names) <= MAX_BATCH_POLICIES
+        )
+        if joins:
+            last.append(c)
+        else:
+            batches.append([c])
+    while len(row_group.names) * len(batches) < jobs and max(map(len, batches), default=1) > 1:
+        widest = max(range(len(batches)), key=lambda b: len(batches[b]))
+        half = len(batches[widest]) // 2
+        batches[widest : widest + 1] = [batches[widest][:half], batches[widest][half:]]
+    return [tuple(batch) for batch in batches]
+
+
 def play_matrix(
     row_groups, col_groups, workers, key, episodes: int, greedy: bool = False, progress=None, journal=None
 ) -> Matrix:
     """Every row policy against every column policy, ``episodes`` each, spread over ``workers``.
 
-    Jobs (one seat-0 policy x one column group) are handed out in waves of one per worker, so the
-    progress bar moves as jobs finish; every job's result is stored by its (group, row) position, so
-    a job that ran twice after a worker restart changes nothing. ``journal`` (an ``xp_journal.OrderJournal``)
-    supplies the jobs played before a stop, which are not played again, and saves each new one as it finishes.
+    A job plays one seat-0 policy against the policies of one batch of column groups (``column_batches``). Jobs
+    are handed out in waves of one per worker, so the progress bar moves as jobs finish; results are stored, and
+    counted by ``progress(done, total)``, per (group, row) and column group, so a job that ran twice after a worker
+    restart changes nothing. ``journal`` (an ``xp_journal.OrderJournal``) supplies the (row, column group) pieces
+    played before a stop, which are not played again, and saves each new one as it finishes.
     """
     check_same_env([*row_groups, *col_groups])
     row_offsets, col_offsets = _offsets(row_groups), _offsets(col_groups)
@@ -392,43 +438,61 @@ def play_matrix(
     returns = np.full((num_rows, num_cols, episodes), np.nan, np.float32)
     recipes = np.zeros((num_rows, num_cols, episodes), np.int32)
     row_params = [workers.share(g.params) for g in row_groups]
-    col_params = [workers.share(g.params) for g in col_groups]
-    items = [
-        (r, c, i) for r, group in enumerate(row_groups) for c in range(len(col_groups)) for i in range(len(group.names))
-    ]
+    shared = {}  # column batch -> its policies' params, stacked and shared once
 
-    def job(r: int, c: int, i: int) -> tuple:
-        same = row_groups[r].ids == col_groups[c].ids and row_groups[r].spec == col_groups[c].spec
+    def params_of(batch: tuple[int, ...]):
+        if batch not in shared:
+            parts = [col_groups[c].params for c in batch]
+            stacked = parts[0] if len(parts) == 1 else jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
+            shared[batch] = workers.share(stacked)
+        return shared[batch]
+
+    def job(r: int, batch: tuple[int, ...], i: int) -> tuple:
+        same = len(batch) == 1 and _same(row_groups[r], col_groups[batch[0]])
         return (
             row_groups[r].spec,
             row_params[r],
-            None if same else col_groups[c].spec,
-            None if same else col_params[c],
+            None if same else col_groups[batch[0]].spec,
+            None if same else params_of(batch),
             [i],
             np.asarray(key),
             episodes,
             greedy,
-            (r, c, i),
+            (r, batch, i),
         )
 
-    shapes = {(r, c, i): (col_offsets[c + 1] - col_offsets[c], episodes) for r, c, i in items}
+    pieces = [
+        (r, c, i) for r, group in enumerate(row_groups) for c in range(len(col_groups)) for i in range(len(group.names))
+    ]
+    shapes = {(r, c, i): (col_offsets[c + 1] - col_offsets[c], episodes) for r, c, i in pieces}
     played = journal.played(shapes) if journal is not None else {}
     for (r, c, i), (saved_returns, saved_recipes) in played.items():
         cols = slice(col_offsets[c], col_offsets[c + 1])
         returns[row_offsets[r] + i, cols], recipes[row_offsets[r] + i, cols] = saved_returns, saved_recipes
-    items = [item for item in items if item not in played]
+    items = []
+    jobs_per_group = -(-len(workers.shards) // len(row_groups))  # enough jobs for every worker, where they can be
+    for r, group in enumerate(row_groups):
+        for batch in column_batches(group, col_groups, jobs_per_group):
+            for i in range(len(group.names)):
+                left = tuple(c for c in batch if (r, c, i) not in played)
+                # a batch half played before a stop (by one job per group, as before batches): the rest one by one
+                items += [(r, left, i)] if left == batch else [(r, (c,), i) for c in left]
     if progress is not None:
-        progress(0, len(items))
+        progress(0, len(pieces) - len(played))
     for wave in in_waves(workers, items):  # at most one job per worker, then the bar moves
         for part in workers.call("play", [(shard, job(*item)) for shard, item in wave]):
-            r, c, i = (int(k) for k in part.job)
-            row = row_offsets[r] + i
-            cols = slice(col_offsets[c], col_offsets[c + 1])
-            returns[row, cols], recipes[row, cols] = part.returns[0], part.start_recipe[0]
-            if journal is not None:
-                journal.record((r, c, i), part.returns[0], part.start_recipe[0])
+            r, batch, i = part.job
+            row, first = row_offsets[r] + i, col_offsets[batch[0]]  # the batch's columns are consecutive
+            for c in batch:
+                cols, within = (
+                    slice(col_offsets[c], col_offsets[c + 1]),
+                    slice(col_offsets[c] - first, col_offsets[c + 1] - first),
+                )
+                returns[row, cols], recipes[row, cols] = part.returns[0][within], part.start_recipe[0][within]
+                if journal is not None:
+                    journal.record((r, c, i), returns[row, cols], recipes[row, cols])
         if progress is not None:
-            progress(len(wave), len(items))
+            progress(sum(len(batch) for _, (_, batch, _) in wave), len(pieces) - len(played))
     if np.isnan(returns).any():
         raise RuntimeError("cross-play: some pairs were not evaluated")
     return Matrix(returns, recipes, tuple(row_groups), tuple(col_groups))
