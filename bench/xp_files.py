@@ -10,7 +10,7 @@ checks that the returns are equal, and times each row. The first row of each way
 reported apart. Writes the block between ``<!-- xp_files:start -->`` and ``<!-- xp_files:end -->`` of
 docs/BENCHMARKS.md.
 
-    python bench/xp_files.py                      # CNN Cramped Room, 3 rows of 10 x 10, 128 episodes per pair
+    python bench/xp_files.py                      # CNN Cramped Room, 4 rows of 10 x 10, 64 episodes per pair
     python bench/xp_files.py --out ''             # print only
 """
 
@@ -52,26 +52,30 @@ def one_policy_sources(group: crossplay.PolicyGroup) -> list[crossplay.PolicyGro
     ]
 
 
-def play_rows(files, rows: int, episodes: int, batch: int, precision: str) -> tuple[np.ndarray, list[float]]:
-    """Rows 0..rows-1 of the files' matrix with ``MAX_BATCH_POLICIES = batch``: (returns, seconds per row)."""
-    crossplay.MAX_BATCH_POLICIES, saved = batch, crossplay.MAX_BATCH_POLICIES
+def play_rows(files, rows: int, episodes: int, precision: str) -> dict[int, tuple[np.ndarray, list[float]]]:
+    """Rows 0..rows-1 of the files' matrix both ways, interleaved row by row so that both see the same machine:
+    {MAX_BATCH_POLICIES: (returns, seconds per row)} for 1 (one job per file) and the default (joined)."""
+    ways = {1: ([], []), crossplay.MAX_BATCH_POLICIES: ([], [])}
+    players, saved = crossplay.LocalPlayers(precision), crossplay.MAX_BATCH_POLICIES
     try:
-        players, returns, seconds = crossplay.LocalPlayers(precision), [], []
         for row in files[:rows]:
-            started = time.perf_counter()
-            returns.append(crossplay.play_matrix([row], files, players, crossplay.xp_key(0), episodes).returns)
-            seconds.append(time.perf_counter() - started)
+            for batch, (returns, seconds) in ways.items():
+                crossplay.MAX_BATCH_POLICIES = batch
+                started = time.perf_counter()
+                returns.append(crossplay.play_matrix([row], files, players, crossplay.xp_key(0), episodes).returns)
+                seconds.append(time.perf_counter() - started)
     finally:
         crossplay.MAX_BATCH_POLICIES = saved
-    return np.concatenate(returns), seconds
+    return {batch: (np.concatenate(returns), seconds) for batch, (returns, seconds) in ways.items()}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", default="configs/paper/classic_cramped_room_sp.yaml")
     parser.add_argument("--policies", type=int, default=10)
-    parser.add_argument("--episodes", type=int, default=128)
-    parser.add_argument("--rows", type=int, default=3, help="seat-0 rows played each way (the first compiles)")
+    parser.add_argument("--episodes", type=int, default=64)
+    parser.add_argument("--rows", type=int, default=4, help="seat-0 rows played each way (the first compiles)")
+    parser.add_argument("--shared", default="", help="what else ran on the machine while measured, if anything")
     parser.add_argument("--out", default="docs/BENCHMARKS.md")
     args = parser.parse_args(argv)
     if not 2 <= args.rows <= args.policies:
@@ -81,8 +85,8 @@ def main(argv=None) -> int:
     env = policy_env(config.env_kwargs)
     files = one_policy_sources(random_population(config, args.policies))
     precision = config.run.precision
-    one_by_one, alone_s = play_rows(files, args.rows, args.episodes, 1, precision)
-    joined, joined_s = play_rows(files, args.rows, args.episodes, crossplay.MAX_BATCH_POLICIES, precision)
+    ways = play_rows(files, args.rows, args.episodes, precision)
+    (one_by_one, alone_s), (joined, joined_s) = ways[1], ways[crossplay.MAX_BATCH_POLICIES]
     np.testing.assert_array_equal(joined, one_by_one)  # the same returns, pair for pair
     alone_row, joined_row = float(np.median(alone_s[1:])), float(np.median(joined_s[1:]))
     steps = args.policies * args.episodes * env.max_steps  # env steps of one row
@@ -90,19 +94,22 @@ def main(argv=None) -> int:
         START,
         "## Cross-play of exported files (`bench/xp_files.py`)",
         "",
-        f"Measured {_dt.date.today().isoformat()} on {platform.machine()}, {os.cpu_count()} CPU cores (shared with "
-        f"a training run while measured), jax {jax.__version__} ({jax.default_backend()}).",
+        f"Measured {_dt.date.today().isoformat()} on {platform.machine()}, {os.cpu_count()} CPU cores"
+        + (f" (shared with {args.shared} while measured)" if args.shared else " (nothing else running)")
+        + f", jax {jax.__version__} ({jax.default_backend()}).",
         "",
         f"{args.policies} one-policy sources (what `ocv2 xp --rows f0 ... f{args.policies - 1}` of exported files "
         f"resolves; freshly initialised {config.model.kind.upper()} networks of {args.config}, layout "
         f"{config.env_kwargs['layout']}), {args.rows} seat-0 rows against all {args.policies}, {args.episodes} "
-        f"episodes of {env.max_steps} steps per pair, in one process. The returns of both ways are equal, pair "
-        "for pair (checked by the script).",
+        f"episodes of {env.max_steps} steps per pair, in one process, the two ways row by row in turn. The returns of "
+        "both ways are equal, pair for pair (checked by the script).",
         "",
-        "| jobs per row | first row (compiles) | one row after that (median) | env steps/s |",
+        f"| jobs per row | first row (compiles) | one row after that (median of {args.rows - 1}; range) | env steps/s |",
         "|---|---:|---:|---:|",
-        f"| one per file (before) | {alone_s[0]:.1f} s | {alone_row:.1f} s | {steps / alone_row:,.0f} |",
-        f"| files of one network joined | {joined_s[0]:.1f} s | {joined_row:.1f} s | {steps / joined_row:,.0f} |",
+        f"| one per file (before) | {alone_s[0]:.1f} s | {alone_row:.1f} s ({min(alone_s[1:]):.1f}-{max(alone_s[1:]):.1f}) "
+        f"| {steps / alone_row:,.0f} |",
+        f"| files of one network joined | {joined_s[0]:.1f} s | {joined_row:.1f} s ({min(joined_s[1:]):.1f}-"
+        f"{max(joined_s[1:]):.1f}) | {steps / joined_row:,.0f} |",
         "",
         f"Joined, a row takes {joined_row / alone_row:.0%} of the time it took.",
         "",

@@ -487,7 +487,7 @@ def test_yaml_values_a_config_cannot_hold(tmp_path, text, key, what):
     assert key in message and what in message
 
 
-def test_libyaml_reads_every_shipped_config_as_the_pure_python_parser_does():
+def test_libyaml_reads_every_shipped_config_as_the_pure_python_parser_does(monkeypatch):
     """Configs are read by libyaml's parser (several times faster); what it reads must be what PyYAML's own parser
     reads, the checks of ``StrictLoader`` included."""
     assert yaml_io.FastStrictLoader is not None, "PyYAML without libyaml: PyPI's wheels have it"
@@ -496,6 +496,10 @@ def test_libyaml_reads_every_shipped_config_as_the_pure_python_parser_does():
     for path in paths:
         text = path.read_text(encoding="utf-8")
         assert yaml_io._load(text, yaml_io.FastStrictLoader) == yaml_io._load(text, yaml_io.StrictLoader), path
+    used, real = [], yaml_io._load
+    monkeypatch.setattr(yaml_io, "_load", lambda text, loader: used.append(loader) or real(text, loader))
+    load_config(str(paths[0]))
+    assert used and set(used) == {yaml_io.FastStrictLoader}  # a valid config never takes the slow path
 
 
 def test_yaml_alias_bomb_is_refused(tmp_path):
@@ -511,6 +515,10 @@ def test_yaml_alias_bomb_is_refused(tmp_path):
         # libyaml's composer recurses in C: a segmentation fault of the whole process, were it reached (the mapping
         # is level 1, so the 64th bracket is one too deep)
         ("ppo: " + "[" * 200_000 + "\n", "nested deeper than 64 levels at line 1, column 69"),
+        # a scalar counts as a level, as it always did: 63 lists in the mapping hold no number
+        ("ppo: " + "[" * 63 + "1" + "]" * 63 + "\n", "nested deeper than 64 levels at line 1, column 69"),
+        # libyaml takes the tab as a space; PyYAML's own parser, and so ocv2 with or without libyaml, refuses it
+        ("ppo:\n  lr:\t0.1\n", "found character '\\t' that cannot start any token at line 2, column 6"),
         ("ppo: {lr: " + "1" * 4301 + "}\n", "an integer of 4301 digits (at most 100)"),
         ("ppo: {num_envs: " + "9" * 400 + "}\n", "an integer of 400 digits"),
         (
@@ -519,7 +527,16 @@ def test_yaml_alias_bomb_is_refused(tmp_path):
         ),
         ("ppo:\n  lr: 0.1\n  num_envs: 4\n  lr: 0.2\n", "duplicate key 'lr' (first at line 2) at line 4"),
     ],
-    ids=["5000-nested", "200000-nested", "4301-digits", "400-digits", "env-twice", "key-twice"],
+    ids=[
+        "5000-nested",
+        "200000-nested",
+        "scalar-too-deep",
+        "tab",
+        "4301-digits",
+        "400-digits",
+        "env-twice",
+        "key-twice",
+    ],
 )
 def test_hostile_or_ambiguous_yaml_is_a_one_line_error(tmp_path, text, what):
     """Deep nesting (RecursionError inside PyYAML), huge integers (ValueError past 4,300 digits) and a key
@@ -535,8 +552,10 @@ def test_hostile_or_ambiguous_yaml_is_a_one_line_error(tmp_path, text, what):
         ("ppo.lr=" + "1" * 5000, "an integer of 5000 digits"),
         ("env.x={a: 1, a: 2}", "duplicate key 'a'"),
         ("ppo." + ".".join(["a"] * 5000) + "=1", "nested deeper than 64 levels"),
+        # a byte that is not UTF-8 on the command line (a lone surrogate in Python): libyaml cannot even encode it
+        ("ppo.lr=\udcff", "the value is not valid YAML: unacceptable character #xdcff"),
     ],
-    ids=["5000-nested", "5000-digits", "key-twice", "5000-key-parts"],
+    ids=["5000-nested", "5000-digits", "key-twice", "5000-key-parts", "not-utf8"],
 )
 def test_hostile_set_values_are_one_line_errors_naming_the_override(tmp_path, item, what):
     message = _file_error(tmp_path, "{}", [item], start=f"--set {item[:20]}")

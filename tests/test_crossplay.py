@@ -251,6 +251,18 @@ def test_column_groups_of_one_network_are_one_job_per_row_policy_with_the_return
         for name in ("matrix.csv", "matrix_cols_seat0.csv", "matrix_mean.csv", "episodes.csv", "blocks.csv"):
             assert (folder / name).read_bytes() == (batched / name).read_bytes(), (folder, name)
 
+    # Joined groups of different sizes (a 2-seed run beside a one-policy directory): each piece lands in its
+    # own columns.
+    monkeypatch.setattr(crossplay, "MAX_BATCH_POLICIES", 16)
+    rows = [crossplay.resolve_source(str(run / "checkpoints" / "seed_0"))]
+    cols = [crossplay.resolve_source(str(run / "checkpoints" / "seed_1")), crossplay.resolve_source(str(run))]
+    assert crossplay.column_batches(rows[0], cols) == [(0, 1)]
+    joined = crossplay.play_matrix(rows, cols, crossplay.LocalPlayers(), crossplay.xp_key(0), 3)
+    monkeypatch.setattr(crossplay, "MAX_BATCH_POLICIES", 1)
+    apart = crossplay.play_matrix(rows, cols, crossplay.LocalPlayers(), crossplay.xp_key(0), 3)
+    np.testing.assert_array_equal(joined.returns, apart.returns)
+    np.testing.assert_array_equal(joined.start_recipe, apart.start_recipe)
+
     # One-policy sources against themselves (a whole matrix replayed from exported files): each row is one job,
     # its self-play cell included, with the returns of one job per pair.
     square = ["--rows", *(str(run / "checkpoints" / f"seed_{i}") for i in (0, 1))]

@@ -3,8 +3,9 @@
 A *source* is anything ``population.policy.load`` reads, plus ``human-proxy:LAYOUT``: a run directory
 contributes every seed (at the chosen checkpoint), a seed directory / checkpoint / exported file one
 policy. Each source is a ``PolicyGroup``: its policies share one network, so a job -- one seat-0
-policy against every policy of one column group -- is one vmapped, jitted program
-(``population.xp.cross_play``). Jobs go to workers in blocks, wave by wave (``in_waves``); the workers
+policy against every policy of one column group, or of neighbouring column groups of one network
+(``column_batches``) -- is one vmapped, jitted program (``population.xp.cross_play``). Jobs go to
+workers in blocks, wave by wave (``in_waves``); the workers
 are in-process (``LocalPlayers``) or Ray actors (``RayPlayers``, which reuse the Ray backend's
 retrying ``call``). Every cell uses the same episode keys whatever worker plays it, and a row group
 playing against itself goes through exactly the in-run cross-play code, so ``--rows RUN --cols RUN``
@@ -250,7 +251,7 @@ def played_precision(groups, chosen: str | None = None) -> str:
 
 
 class RowsResult(NamedTuple):
-    job: tuple  # (row group, col group, rows)
+    job: tuple  # (row group, batch of column groups, row)
     returns: np.ndarray  # [len(rows), C, E]
     start_recipe: np.ndarray
 
@@ -389,13 +390,16 @@ def column_batches(row_group: PolicyGroup, col_groups, jobs: int = 1) -> list[tu
     """The column groups each job of ``row_group``'s policies plays against, in column order: neighbours of one
     network spec join (up to ``MAX_BATCH_POLICIES`` policies), so that ten exported one-policy files are one job
     per seat-0 policy instead of ten. Every pair gets the same episode keys either way (a block's key is shared by
-    all pairs), so the returns do not change; one call against ten stacked partners played a Cramped Room row in
-    90 % of the time of ten calls (bench/xp_files.py, 2 CPU cores shared with a training run). A column group of several policies that is ``row_group``
-    itself stays alone: it keeps the in-run path against itself, so ``ocv2 xp --rows RUN`` is the run's own
-    cross-play. (A one-policy file joins its neighbours, also in its own row: its self-play cell then takes the
-    partners' path, whose returns equal the in-run path's, tested with an exported seed against its run; and one
-    batch size per matrix means one compiled program.) Batches are split again while the row group would have
-    fewer than ``jobs`` jobs, so that joining never leaves a Ray worker idle."""
+    all pairs), so the returns do not change: equal on a CPU, tested (a GPU may choose kernels by batch shape).
+    One call against ten stacked partners played a Cramped Room row in 90 % of the time of ten calls
+    (bench/xp_files.py, 2 CPU cores shared with a training run).
+
+    A column group of several policies that is ``row_group`` itself stays alone: it keeps the in-run path against
+    itself, so ``ocv2 xp --rows RUN`` is the run's own cross-play. A one-policy file joins its neighbours, also in
+    its own row: its self-play cell then takes the partners' path, whose returns equal the in-run path's on a CPU
+    (tested with an exported seed against its run), and one batch size per matrix means one compiled program.
+    Batches are split again while the row group would have fewer than ``jobs`` jobs, its share of the Ray
+    workers, so that joining does not leave most of them idle."""
 
     def alone(group) -> bool:
         return len(group.names) > 1 and _same(row_group, group)

@@ -94,12 +94,15 @@ def check_depth(text: str, loader=StrictLoader) -> None:
         depth = 0
         while events.check_event():
             event = events.get_event()
+            if isinstance(event, yaml.DocumentEndEvent):
+                return  # a second document is never composed: the loader refuses it as it reads its start
+            # every node counts, as PyYAML's composer counts its recursion: a scalar inside 64 lists is too deep
+            if isinstance(event, (*_OPENS, yaml.ScalarEvent, yaml.AliasEvent)) and depth + 1 > MAX_YAML_DEPTH:
+                raise yaml.composer.ComposerError(
+                    None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark
+                )
             if isinstance(event, _OPENS):
                 depth += 1
-                if depth > MAX_YAML_DEPTH:
-                    raise yaml.composer.ComposerError(
-                        None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark
-                    )
             elif isinstance(event, _CLOSES):
                 depth -= 1
     finally:
@@ -108,10 +111,12 @@ def check_depth(text: str, loader=StrictLoader) -> None:
 
 def load_yaml_text(text: str) -> Any:
     """``yaml.safe_load(text)`` through ``StrictLoader``: every YAML text ocv2 reads goes through it."""
-    if FastStrictLoader is not None:
+    # libyaml takes a tab as a separator where PyYAML's parser refuses it ("a:\t1"): such a text goes to the
+    # pure-Python parser, so that what a config may hold does not depend on whether PyYAML has libyaml.
+    if FastStrictLoader is not None and "\t" not in text:
         try:
             return _load(text, FastStrictLoader)
-        except yaml.YAMLError:
+        except (yaml.YAMLError, UnicodeError):  # UnicodeError: a lone surrogate, which libyaml cannot encode
             pass  # worded by the pure-Python parser below
     return _load(text, StrictLoader)
 
