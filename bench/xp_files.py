@@ -16,7 +16,6 @@ docs/BENCHMARKS.md.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import datetime as _dt
 import os
@@ -27,7 +26,7 @@ import time
 import jax
 import numpy as np
 from sections import publish  # bench/ is sys.path[0] when a script runs
-from xp_matrix import random_population
+from xp_matrix import matrix_parser, parse_matrix_args, random_population
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -70,16 +69,11 @@ def play_rows(files, rows: int, episodes: int, precision: str) -> dict[int, tupl
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", default="configs/paper/classic_cramped_room_sp.yaml")
-    parser.add_argument("--policies", type=int, default=10)
-    parser.add_argument("--episodes", type=int, default=64)
-    parser.add_argument("--rows", type=int, default=4, help="seat-0 rows played each way (the first compiles)")
+    parser = matrix_parser(
+        __doc__, "configs/paper/classic_cramped_room_sp.yaml", 64, 4, "seat-0 rows played each way (the first compiles)"
+    )
     parser.add_argument("--shared", default="", help="what else ran on the machine while measured, if anything")
-    parser.add_argument("--out", default="docs/BENCHMARKS.md")
-    args = parser.parse_args(argv)
-    if not 2 <= args.rows <= args.policies:
-        parser.error("--rows must be between 2 (one compile row + one steady row) and --policies")
+    args = parse_matrix_args(parser, argv)
 
     config = load_config(args.config)
     env = policy_env(config.env_kwargs)

@@ -74,16 +74,30 @@ class RowTimer(crossplay.LocalPlayers):
         return out
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", default="configs/paper/v2_grounded_coord_simple_sp.yaml")
+def matrix_parser(doc: str, config: str, episodes: int, rows: int, rows_help: str) -> argparse.ArgumentParser:
+    """The options of the cross-play benchmarks (this one and bench/xp_files.py): which networks, how many
+    policies, episodes per pair and seat-0 rows, and where the table goes; ``parse_matrix_args`` reads them."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", default=config)
     parser.add_argument("--policies", type=int, default=10)
-    parser.add_argument("--episodes", type=int, default=500)
-    parser.add_argument("--rows", type=int, default=10, help="seat-0 rows to play (fewer: extrapolate)")
+    parser.add_argument("--episodes", type=int, default=episodes)
+    parser.add_argument("--rows", type=int, default=rows, help=rows_help)
     parser.add_argument("--out", default="docs/BENCHMARKS.md")
+    return parser
+
+
+def parse_matrix_args(parser: argparse.ArgumentParser, argv) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if not 2 <= args.rows <= args.policies:
         parser.error("--rows must be between 2 (one compile row + one steady row) and --policies")
+    return args
+
+
+def main(argv=None) -> int:
+    parser = matrix_parser(
+        __doc__, "configs/paper/v2_grounded_coord_simple_sp.yaml", 500, 10, "seat-0 rows to play (fewer: extrapolate)"
+    )
+    args = parse_matrix_args(parser, argv)
 
     config = load_config(args.config)
     env = policy_env(config.env_kwargs)
