@@ -370,8 +370,8 @@ BUDGET_MODES = ("truncate", "compress")
 
 #: Overrides every study run starts from; the study file's ``set``, the run's ``set`` and ``ocv2 study run --set``
 #: come after them and win. The report reads each run's cross-play scores (``xp/summary.json``, ``xp/matrix.csv``,
-#: under 1 KB; the per-episode returns and start recipes are in ``xp/episodes.csv``), never its XP archive, which keeps every transition of every
-#: scored episode: 7.4 GB copied from the device and written for a 10-seed, 500-episode Coordination Ring matrix,
+#: under 1 KB; the per-episode returns and start recipes are in ``xp/episodes.csv``), never its XP archive, which
+#: keeps every transition of every scored episode: 7.4 GB copied from the device and written for a 10-seed, 500-episode Coordination Ring matrix,
 #: 11-12 GB on the V2 layouts. ``set: [archive.xp=true]`` asks for it (docs/studies.md).
 STUDY_DEFAULTS = ("archive.xp=false",)
 
