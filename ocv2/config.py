@@ -109,8 +109,9 @@ def build_config(layout="cramped_room", **params) -> EnvConfig:
     if view is not None:
         if isinstance(view, bool) or not isinstance(view, int):
             raise TypeError(f"agent_view_size must be None or a non-negative int, got {view!r}")
-        if view < 0:
-            raise ValueError(f"agent_view_size must be None or >= 0, got {view}")
+        if not 0 <= view < 2**31:
+            # the radius is compared with int32 positions inside jit
+            raise ValueError(f"agent_view_size must be None or an integer in [0, 2**31), got {view}")
     types = obs_type if isinstance(obs_type, tuple) else (obs_type,)
     if "featurized" in types:
         if layout.num_ingredients != 1:

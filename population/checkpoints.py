@@ -14,7 +14,6 @@ checksum).
 from __future__ import annotations
 
 import hashlib
-import json
 import re
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import jax
 import numpy as np
 from flax import serialization
 
+from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population.sealed import SealError, is_sealed, seal, unseal
 
@@ -177,13 +177,38 @@ def earlier_snapshots(run_dir) -> tuple[int, ...]:
     manifest.json records; () for a run never extended. They stay kept like the run's own snapshots."""
     path = Path(run_dir) / "manifest.json"
     try:
-        manifest = json.loads(path.read_text())
+        manifest = boundedjson.loads(path.read_text())
     except FileNotFoundError:
         return ()
-    except ValueError as error:
+    except ValueError as error:  # not JSON (UnicodeDecodeError is one too), or nested deeper than any manifest
         raise CheckpointError(f"{path}: is not valid JSON ({error})") from None
-    records = manifest.get("extensions", []) if isinstance(manifest, dict) else []
-    return tuple(sorted({int(u) for record in records for u in record.get("snapshots", [])}))
+    records = manifest_extensions(manifest, path) if isinstance(manifest, dict) else []
+    return tuple(sorted({u for record in records for u in record["snapshots"]}))
+
+
+def manifest_extensions(manifest: dict, path) -> list[dict]:
+    """The ``extensions`` records of a run's manifest (``cluster.runtime.extend`` writes one per earlier stop:
+    ``from_updates``, ``snapshots``, ...), checked for the keys that decide which checkpoints a run keeps and
+    reports: a damaged record would otherwise end a command in a ``TypeError`` or pick the wrong snapshots."""
+    records = manifest.get("extensions", [])
+    if not isinstance(records, list):
+        raise CheckpointError(f"{path}: 'extensions' must be a list of records, found {records!r:.80}")
+    for i, record in enumerate(records):
+        snapshots = record.get("snapshots") if isinstance(record, dict) else None
+        if not (
+            isinstance(snapshots, list)
+            and _is_update(record.get("from_updates"))
+            and all(_is_update(u) for u in snapshots)
+        ):
+            raise CheckpointError(
+                f"{path}: extensions[{i}] must be a record with from_updates and snapshots as update numbers "
+                f'(integers >= 0), e.g. {{"from_updates": 4, "snapshots": [0, 2, 4], ...}}; found {record!r:.120}'
+            )
+    return records
+
+
+def _is_update(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
 def run_snapshots(run_dir, num_updates: int, count: int) -> list[int]:

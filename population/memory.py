@@ -132,8 +132,8 @@ def machine_memory_mib() -> float | None:
 
 
 def check_fits(config: Config, place: str = "local", available_mib: float | None = None) -> MemoryEstimate:
-    """The estimate, or a ConfigError when it exceeds this machine's memory (``available_mib``, default:
-    its physical memory)."""
+    """The estimate, or a ConfigError when it, or the run's cross-play after training, exceeds this machine's
+    memory (``available_mib``, default: its physical memory)."""
     found = estimate(config, place)
     available = machine_memory_mib() if available_mib is None else available_mib
     if available is not None and found.total_mib > available:
@@ -152,7 +152,37 @@ def check_fits(config: Config, place: str = "local", available_mib: float | None
             f"({found.where}; docs/cluster.md, Memory) but it has {_gib(available)}: lower "
             f"population.num_seeds{' or ppo.num_envs' * (place != 'cluster')}{advice}"
         )
+    seeds = config.population.num_seeds  # the run's own cross-play after training: seeds x seeds
+    check_crossplay_fits(seeds, seeds, config.eval.episodes, "eval.episodes", available_mib=available)
     return found
+
+
+#: What cross-play holds per episode until its matrix is written: the return (float32) and the start recipe (int32);
+#: episodes.csv, written from them, holds a line per episode too.
+XP_BYTES_PER_EPISODE = 8
+
+
+def crossplay_mib(rows: int, cols: int, episodes: int, seats: int = 1) -> float:
+    """The per-episode arrays of a ``rows`` x ``cols`` cross-play of ``episodes`` per pair, played in ``seats``
+    seatings (``ocv2 xp``'s seat-fair play keeps both)."""
+    return rows * cols * episodes * seats * XP_BYTES_PER_EPISODE / MIB
+
+
+def check_crossplay_fits(
+    rows: int, cols: int, episodes: int, key: str, seats: int = 1, available_mib: float | None = None
+) -> float:
+    """``crossplay_mib``, or a ConfigError naming ``key`` when it exceeds this machine's memory: found at the
+    end of a cross-play, or of training, it would be a MemoryError after the hours of play before it."""
+    need = crossplay_mib(rows, cols, episodes, seats)
+    available = machine_memory_mib() if available_mib is None else available_mib
+    if available is not None and need > available:
+        seatings = f" in {seats} seatings" if seats > 1 else ""
+        raise ConfigError(
+            f"{key}: a {rows:,} x {cols:,} cross-play of {episodes:,} episodes per pair{seatings} keeps "
+            f"{XP_BYTES_PER_EPISODE} bytes per episode, about {_gib(need)}, but this machine has {_gib(available)}: "
+            "play fewer episodes per pair"
+        )
+    return need
 
 
 def _gib(mib: float) -> str:

@@ -43,7 +43,15 @@ from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from ocv2.config import build_config
 from population import checkpoints as ckpt
-from population.config import PRECISIONS, Config, ConfigError, ModelConfig, load_run_config, parse_config
+from population.config import (
+    PRECISIONS,
+    Config,
+    ConfigError,
+    ModelConfig,
+    is_update_number,
+    load_run_config,
+    parse_config,
+)
 from population.networks import init_params, make_network, same_function
 from population.sealed import SealError, is_sealed, seal, unseal
 
@@ -284,9 +292,12 @@ def _pick_update(run_dir: Path, config: Config, seed: int, checkpoint) -> int:
     if choice == "latest":
         return available[-1]
     if choice in ("init", "mid", "final"):
-        snapshots = ckpt.run_snapshots(run_dir, config.ppo.num_updates, config.run.num_checkpoints)
-        update = ckpt.resolve_snapshot(choice, snapshots)
-    elif choice.isdigit():
+        try:  # a damaged manifest.json, or snapshots that do not hold the choice
+            snapshots = ckpt.run_snapshots(run_dir, config.ppo.num_updates, config.run.num_checkpoints)
+            update = ckpt.resolve_snapshot(choice, snapshots)
+        except ckpt.CheckpointError as error:
+            raise PolicyError(str(error)) from None
+    elif is_update_number(choice):
         update = int(choice)
     else:
         raise PolicyError(

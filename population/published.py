@@ -22,6 +22,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from ocv2 import boundedjson
 from ocv2.atomic import atomic_write
 from population import checkpoints as ckpt
 from population.config import load_run_config
@@ -81,10 +82,10 @@ def read_listing(folder) -> list[PublishedPolicy]:
     if not listed.is_file():
         return []
     try:
-        raw = json.loads(listed.read_text())
+        raw = boundedjson.loads(listed.read_text())
     except UnicodeDecodeError as error:
         raise PolicyError(f"{listed}: not UTF-8 text (byte {error.start}: {error.reason})") from None
-    except json.JSONDecodeError as error:
+    except ValueError as error:  # not JSON, or nested deeper than a listing ever is
         raise PolicyError(f"{listed}: not JSON ({error})") from None
     if not isinstance(raw, list):
         raise PolicyError(f"{listed}: a list of entries expected, found {type(raw).__name__}")
@@ -123,7 +124,10 @@ def updates_to_publish(run_dir, seed: int, which: str = "snapshots") -> list[int
         return on_disk[-1:]
     config = load_run_config(run_dir)
     kept = set(ckpt.snapshot_updates(config.ppo.num_updates, config.run.num_checkpoints))
-    kept |= set(ckpt.earlier_snapshots(run_dir))  # an extended run's snapshots from before it was extended
+    try:
+        kept |= set(ckpt.earlier_snapshots(run_dir))  # an extended run's snapshots from before it was extended
+    except ckpt.CheckpointError as error:  # a damaged manifest.json
+        raise PolicyError(str(error)) from None
     return [u for u in on_disk if u in kept]
 
 

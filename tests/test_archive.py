@@ -470,7 +470,19 @@ def test_a_file_without_a_header_is_no_archive_and_nothing_to_recover(tmp_path, 
     capsys.readouterr()
     assert main(["archive", "recover", str(empty), "--out", str(tmp_path / "e.mcap")]) == 2
     assert "nothing to recover (empty file" in capsys.readouterr().err
+    # info once called the empty file an UNFINISHED archive and advised `archive recover`, exit 0
+    assert main(["archive", "info", str(empty)]) == 2
+    assert f"{empty}: no ocv2 header in its 0 bytes" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.mcap", "garbage.mcap"]
+
+
+def test_a_pipe_or_device_is_no_archive(tmp_path, capsys):
+    """/dev/null read as an empty (UNFINISHED) archive, and a named pipe blocked the read until a writer came."""
+    pipe = tmp_path / "pipe.mcap"
+    os.mkfifo(pipe)
+    for path in (str(pipe), os.devnull):
+        assert main(["archive", "info", path]) == 2
+        assert f"{path!r} is not a regular file (a pipe, socket or device)" in capsys.readouterr().err
 
 
 def test_a_file_with_no_complete_episode_is_refused_and_no_archive_is_written(tmp_path, archive, capsys):

@@ -206,6 +206,9 @@ def test_impossible_values_name_the_key():
     assert "model.gru_dim" in _error({"model": {"gru_dim": 0}})
     assert "run.num_checkpoints" in _error({"run": {"num_checkpoints": 1}})
     assert "population.fcp.checkpoints" in _error({"population": {"method": "fcp", "fcp": {"checkpoints": ["later"]}}})
+    assert "population.fcp.checkpoints: '\u00b2' is not" in _error(
+        {"population": {"method": "fcp", "fcp": {"checkpoints": ["\u00b2"]}}}
+    )
     assert "population.sa.iterations" in _error(
         {"ppo": SMALL_PPO, "population": {"method": "sa", "sa": {"iterations": 11}}}
     )

@@ -23,6 +23,7 @@ from cluster.cli.errors import CLIError
 from cluster.cli.xp import _check_poolable, _print_blocks
 from cluster.runtime import crossplay
 from cluster.runtime.rundir import read_matrix_csv
+from population import memory
 from population import policy as pol
 from population.config import ClusterConfig, load_config
 from population.evaluation import gather_params, play_row, stack_params
@@ -716,7 +717,23 @@ def test_sources_of_different_environments_are_refused(run, tmp_path):
         crossplay.check_same_env([crossplay.resolve_source(str(run)), crossplay.resolve_source(str(other))])
     assert main(["xp", "--cols", str(run)]) == 2  # needs --rows or RUN_DIR
     assert main(["xp", "--rows", str(run), "--checkpoint", "best"]) == 2
+    assert main(["xp", "--rows", str(run), "--checkpoint", "\u00b2"]) == 2  # "²".isdigit(), yet int("²") fails
     assert main(["xp", str(run), "--greedy", "--backend", "ray"]) == 2  # options of --rows are not ignored
+
+
+def test_episodes_past_what_the_machine_can_hold_are_refused_before_anything_plays(run, tmp_path, capsys, monkeypatch):
+    """--episodes had no upper bound: the per-episode arrays ended xp in a MemoryError (a GiB machine here)."""
+    monkeypatch.setattr(memory, "machine_memory_mib", lambda: 1024.0)
+    out = tmp_path / "xp"
+    argv = ["xp", "--rows", str(run), "--cols", str(run / "checkpoints" / "seed_0"), "--backend", "local"]
+    assert main([*argv, "--episodes", str(10**8), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--episodes: a 2 x 1 cross-play of 100,000,000 episodes per pair in 2 seatings" in err, err
+    assert main(["xp", str(run), "--episodes", str(10**8)]) == 2
+    assert "--episodes: a 2 x 2 cross-play of 100,000,000 episodes per pair keeps" in capsys.readouterr().err
+    assert main([*argv, "--episodes", str(2**31), "--out", str(out)]) == 2  # past int32: argparse refuses it
+    assert "below 2**31" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_settings_written_out_at_their_defaults_are_the_same_environment(run, tmp_path):

@@ -22,8 +22,9 @@ from test_train_cli import (
     train,
 )
 
+from cluster.cli import main
 from cluster.runtime.extend import extend_run, sealed_files
-from cluster.runtime.rundir import RunDirError
+from cluster.runtime.rundir import RunDir, RunDirError
 from population import checkpoints as ckpt
 from population import policy, published
 from population.config import load_config
@@ -164,3 +165,22 @@ def test_mid_of_an_extended_run_is_a_snapshot_it_kept(tmp_path):
     assert ckpt.list_updates(run, 0) == ckpt.run_snapshots(run, 6, 3) == [0, 2, 4, 6]
     assert policy.load(run, checkpoint="mid").meta["update"] == 4
     assert policy.load(run, seed=1, checkpoint="final").meta["update"] == 6
+
+
+@pytest.mark.parametrize("extensions", [[1], [{"snapshots": ["x"]}], [{"from_updates": 3}], {"snapshots": [0]}])
+def test_a_damaged_extension_record_is_named_not_a_traceback(truncated, tmp_path, capsys, extensions):
+    """manifest.json's ``extensions`` decide which snapshots an extended run kept ("mid" of the run); a record
+    edited by hand or cut once ended export, xp, render and play in an AttributeError or ValueError."""
+    run = tmp_path / "run"
+    shutil.copytree(truncated, run)
+    path = run / "manifest.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "extensions": extensions}))
+    with pytest.raises(ckpt.CheckpointError, match=r"manifest.json: .*extensions"):
+        ckpt.earlier_snapshots(run)
+    with pytest.raises(RunDirError, match=r"manifest.json: .*extensions"):
+        RunDir(run).read_manifest()
+    out = tmp_path / "mid.ocv2policy"
+    assert main(["export", str(run), "--checkpoint", "mid", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "manifest.json: " in err and "extensions" in err and "Traceback" not in err, err
+    assert not out.exists()

@@ -123,6 +123,8 @@ def test_bad_sources_are_one_line_errors(run, tmp_path):
         pol.load(run, checkpoint=3)
     with pytest.raises(pol.PolicyError, match="expected one of"):
         pol.load(run, checkpoint="best")
+    with pytest.raises(pol.PolicyError, match="expected one of"):  # a digit to str.isdigit, not to int
+        pol.load(run, checkpoint="\u00b2")
     with pytest.raises(pol.PolicyError, match="is one policy"):  # a file has no checkpoints to choose from
         pol.load(run / "checkpoints" / "seed_0" / "update_0000002.msgpack", checkpoint="mid")
     good = pol.load(run)

@@ -249,6 +249,9 @@ def test_a_listing_that_names_a_path_an_empty_one_or_a_folder_is_a_problem_named
         path.unlink()
     assert main(["verify", str(folder)]) == 1
     assert f"{folder / 'SHA256SUMS.json'}: lists no policies" in capsys.readouterr().err
+    (folder / "SHA256SUMS.json").write_text("[" * 100_000)  # json.loads once ended verify in a RecursionError
+    assert main(["verify", str(folder)]) == 1
+    assert "SHA256SUMS.json: not JSON (JSON nested deeper than 32 levels)" in capsys.readouterr().err
     (folder / "SHA256SUMS.json").unlink()
     (folder / "SHA256SUMS.json").mkdir()
     assert main(["verify", str(folder)]) == 1

@@ -344,6 +344,18 @@ def test_report_names_a_metrics_file_or_matrix_that_is_not_text(runs, tmp_path, 
     assert not (tmp_path / "r").exists()
 
 
+def test_report_drops_a_metrics_row_whose_numbers_overflow_and_says_so(tmp_path, capsys):
+    """``1e400`` reads as inf: its env_steps once ended report in ``int(inf)``'s OverflowError, its update in
+    the row check's."""
+    rows = [[0, 1, 100, 1.0, 2.0], [0, 2, "1e400", 3.0, 2.0], ["0", "1e400", 300, 5.0, 2.0], [0, 3, 300, 5.0, 2.0]]
+    run = make_run(tmp_path / "run", "cramped_room", "sp", table1(259.0, 1.0, 257.0, 2.0, 2.0), metrics=rows)
+    assert main(["report", str(run), "--out", str(tmp_path / "r")]) == 0
+    err = capsys.readouterr().err
+    assert err.count(f"{run / 'metrics.csv'}: the file is damaged: line ") == 2 and "Traceback" not in err, err
+    (row,) = read_csv(tmp_path / "r" / "report.csv")
+    assert (row["updates_done"], row["env_steps_per_seed"]) == ("3", "300")
+
+
 def test_report_on_a_non_run_directory_fails_naming_it(tmp_path, capsys):
     empty = tmp_path / "not_a_run"
     empty.mkdir()

@@ -1970,6 +1970,9 @@ def test_unpack_names_a_malformed_pack_json_or_a_cut_stream(finished, tmp_path, 
         (packed / "pack.json").write_text(json.dumps({**record, "parts": parts}))
         assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
         assert "pack.json" in _one_line(capsys) and not (tmp_path / "u").exists()
+    (packed / "pack.json").write_text("[" * 100_000)  # json.loads once ended unpack in a RecursionError
+    assert main(["study", "unpack", str(packed), "--out", str(tmp_path / "u")]) == 2
+    assert "pack.json: unreadable (JSON nested deeper than 32 levels)" in _one_line(capsys)
     cut = (packed / "study.tar.gz.000").read_bytes()[:-200]  # listed with its own sum: only gzip sees the cut
     (packed / "study.tar.gz.000").write_bytes(cut)
     parts = [{"file": "study.tar.gz.000", "bytes": len(cut), "sha256": hashlib.sha256(cut).hexdigest()}]

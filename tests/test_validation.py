@@ -112,7 +112,8 @@ def test_all_layouts_present():
     [
         ({"layout": "no_such_room"}, ValueError, r"unknown layout 'no_such_room'; choose one of: cramped_room"),
         ({"layout": 3}, TypeError, r"layout must be"),
-        ({"agent_view_size": -1}, ValueError, r"agent_view_size must be None or >= 0"),
+        ({"agent_view_size": -1}, ValueError, r"agent_view_size must be None or an integer in \[0, 2\*\*31\), got -1"),
+        ({"agent_view_size": 99999999999}, ValueError, r"agent_view_size .* got 99999999999"),
         ({"agent_view_size": 1.5}, TypeError, r"agent_view_size"),
         ({"observation_type": "pixels"}, ValueError, r"unknown observation_type 'pixels'"),
         ({"observation_type": ["default"]}, ValueError, r"lists 1 types but layout .* has 2 agents"),

@@ -14,6 +14,7 @@ import base64
 import dataclasses
 import io
 import os
+import stat
 import struct
 from collections.abc import Iterator, Sequence
 from typing import NamedTuple
@@ -87,6 +88,8 @@ def check_file(path: str) -> int:
         raise ArchiveError(f"no such file: {path!r}")
     if os.path.isdir(path):
         raise ArchiveError(f"{path!r} is a folder, not an archive file")
+    if not stat.S_ISREG(os.stat(path).st_mode):  # a pipe would block the read, a device has no size
+        raise ArchiveError(f"{path!r} is not a regular file (a pipe, socket or device); give an archive file")
     size = os.path.getsize(path)
     if size:
         with open(path, "rb") as f:
@@ -615,6 +618,12 @@ class ArchiveReader:
     def finished(self) -> bool:
         """Whether the file was properly finished (False for a killed or still-running writer's file)."""
         return self._status.finished
+
+    @property
+    def has_header(self) -> bool:
+        """Whether the file's ocv2 header record was read: False for an empty file, or one whose writer was killed
+        inside its first few bytes (nothing in it says it is an archive, and it holds nothing to recover)."""
+        return self._status.header is not None
 
     @property
     def warnings(self) -> list[str]:

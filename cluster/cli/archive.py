@@ -100,6 +100,11 @@ def _warn(path: str, warnings) -> None:
 def _info(args) -> int:
     reader = _reader(args.file)
     summary = reader.info()
+    if not reader.has_header:  # empty, or cut inside its first bytes: "UNFINISHED, recover it" would mislead
+        raise CLIError(
+            f"{args.file}: no ocv2 header in its {summary['size_bytes']} bytes (not an archive, or its writer was "
+            "killed before it wrote its header): there is nothing to read or recover"
+        )
     metas = reader.episodes()
     shown = metas if args.limit < 0 else metas[: args.limit]
     if args.json:

@@ -7,12 +7,14 @@ code 2); an unknown layout is a ``CLIError`` whose message lists the choices and
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from cluster.cli.errors import CLIError
 from ocv2.layouts import Layout, get_layout
-from population.config import MAX_SEED
+from population.config import MAX_SEED, is_update_number
 
 
 def layout_or_error(name: str) -> Layout:
@@ -44,6 +46,22 @@ def check_not_under_a_file(flag: str, out: str) -> None:
             break
 
 
+def resolved(path, flag: str = "") -> Path:
+    """``Path(path).resolve()``, or a ``CLIError`` naming ``flag`` and ``path`` where its symbolic links lead back
+    to themselves: Python 3.11 and 3.12 raise a ``RuntimeError`` there, 3.13 returns the path unresolved (and
+    ``os.stat`` says ELOOP on every version)."""
+    where = f"{flag} " if flag else ""
+    try:
+        os.stat(path)
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            raise CLIError(f"{where}{path}: its symbolic links cannot be followed ({error.strerror})") from None
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError) as error:
+        raise CLIError(f"{where}{path}: its symbolic links cannot be followed ({error})") from None
+
+
 def check_new_file(flag: str, out: str, force: bool = False) -> None:
     """Refuse an output file that exists (unless ``force``), is a folder, or lies under a file."""
     path = Path(out)
@@ -56,17 +74,25 @@ def check_new_file(flag: str, out: str, force: bool = False) -> None:
         raise CLIError(f"{flag} {out}: exists; pass --force to replace it, or give a new file name")
 
 
+# JAX counts steps, radii and indices in int32; a larger number would overflow deep inside a jitted function.
+MAX_INT = 2**31 - 1
+
+
 def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
-    """An argparse type: an integer >= ``minimum``, with a message naming ``what`` was expected."""
+    """An argparse type: an integer >= ``minimum`` and <= ``MAX_INT``, with a message naming ``what`` was expected."""
 
     def parse(text: str) -> int:
-        """``text`` as an integer; raises ``argparse.ArgumentTypeError`` if it is not one or is too small."""
+        """``text`` as an integer; raises ``argparse.ArgumentTypeError`` if it is not one or is out of range."""
         try:
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a {what} integer, got {text!r}") from None
         if value < minimum:
             raise argparse.ArgumentTypeError(f"expected a {what} integer, got {value}")
+        if value > MAX_INT:
+            raise argparse.ArgumentTypeError(
+                f"expected a {what} integer below 2**31 (JAX counts in int32), got {value}"
+            )
         return value
 
     return parse
@@ -122,7 +148,7 @@ def add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
 def checkpoint_choice(text: str, choices: Sequence[str]) -> str:
     """``text`` if it names a checkpoint (one of ``choices``, e.g. ``population.policy.CHECKPOINT_CHOICES``,
     or an update number), else a ``CLIError`` that lists them."""
-    if text in choices or text.isdigit():
+    if text in choices or is_update_number(text):
         return text
     raise CLIError(f"--checkpoint: expected one of {', '.join(choices)} or an update number, got {text!r}")
 

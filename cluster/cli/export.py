@@ -11,9 +11,8 @@ written inside a run directory, nor over a file without ``--force``.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from cluster.cli.args import check_new_file, checkpoint_choice, non_negative_int
+from cluster.cli.args import check_new_file, checkpoint_choice, non_negative_int, resolved
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime.rundir import enclosing_run
 from cluster.study.pack import PACK_NAME
@@ -50,7 +49,7 @@ def run_export(args) -> int:
     directory, and a source that holds no such policy."""
     checkpoint = checkpoint_choice(args.checkpoint, CHECKPOINT_CHOICES)
     check_new_file("--out", args.out, force=args.force)
-    run = enclosing_run(args.out)
+    run = enclosing_run(resolved(args.out, "--out"))
     if run is not None:  # its config.yaml, checkpoints or results would be replaced by a policy file
         raise CLIError(f"--out {args.out}: lies inside the run directory {run}; write the policy outside it")
     check_outside_kept_folders(args.out)
@@ -66,7 +65,7 @@ def check_outside_kept_folders(out: str) -> None:
     """Refuse an ``--out`` inside a study directory (its study.json is its only state), a published policies folder
     (a file there that SHA256SUMS.json does not list fails ``ocv2 verify``; one it lists would get other bytes) or a
     pack (its parts are checked against pack.json): each is written whole by its own command."""
-    parent = Path(out).resolve().parent
+    parent = resolved(out, "--out").parent
     for folder in (parent, *parent.parents):
         if is_study_directory(folder):
             raise CLIError(f"--out {out}: lies inside the study directory {folder}; write the policy outside it")

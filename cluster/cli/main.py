@@ -50,7 +50,7 @@ from typing import NamedTuple
 from rich.console import Console
 from rich.table import Table
 
-from cluster.cli.args import layout_or_error
+from cluster.cli.args import layout_or_error, resolved
 from cluster.cli.errors import (  # noqa: F401 (EXIT_* re-exported)
     EXIT_FAILURE,
     EXIT_OK,
@@ -355,6 +355,15 @@ def _sigterm_as_ctrl_c():
         signal.signal(signal.SIGTERM, previous)
 
 
+def _check_links_resolve(args) -> None:
+    """A CLIError for a path argument whose symbolic links lead back to themselves: every layer resolves the
+    paths it is given, and Python 3.11-3.12 raise a RuntimeError there (3.13's OSError is worded below)."""
+    for name, flag in (("out", "--out"), ("dir", ""), ("source", ""), ("study", "")):
+        value = getattr(args, name, None)
+        if isinstance(value, str):
+            resolved(value, flag)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``ocv2`` command line; returns the exit code (0 ok, 1 failure, 2 usage error)."""
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -374,6 +383,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     quiet = args.log_quiet or getattr(args, "quiet", False) is True
     configure_logging(1 if args.log_verbose else -1 if quiet else 0)
     try:
+        _check_links_resolve(args)
         with _sigterm_as_ctrl_c():
             code = int(resolve(args.func)(args))
         sys.stdout.flush()  # inside the try: a reader gone before the last buffered write is caught here

@@ -39,6 +39,7 @@ from cluster.play.server import PlayServer
 from cluster.play.session import PLAY_META_KEYS, SEAT_COLOURS, GameSession
 from ocv2.config import build_config
 from ocv2.render import check_frame_size
+from population.config import ConfigError, check_plain_data, load_yaml_text, yaml_problem
 
 DEFAULT_PORT = 8765
 DEFAULT_HOST = "127.0.0.1"
@@ -238,10 +239,13 @@ def _env_flags(args) -> dict:
     for key, text in args.env:
         if key == "layout":
             raise CLIError("--env layout=...: give the layout as the LAYOUT argument")
-        try:
-            flags[key] = yaml.safe_load(text) if text.strip() else None
+        try:  # read as --set reads a value: depth and alias limits, no dates or sets
+            flags[key] = load_yaml_text(text) if text.strip() else None
+            check_plain_data(flags[key], key)
         except yaml.YAMLError as error:
-            raise CLIError(f"--env {key}={text}: not a YAML value ({error})") from None
+            raise CLIError(f"--env {key}=...: not a YAML value: {yaml_problem(error)}") from None
+        except ConfigError as error:
+            raise CLIError(f"--env {key}=...: {'; '.join(error.problems)}") from None
     for key in ("agent_view_size", "max_steps"):
         if getattr(args, key) is not None:
             flags[key] = getattr(args, key)

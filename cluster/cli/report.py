@@ -36,6 +36,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from cluster.cli.args import resolved
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime.rundir import RunDir, RunDirError, float_or_nan, read_matrix_csv, seed_curves
 from ocv2 import boundedjson
@@ -226,7 +227,7 @@ def pick_baselines(runs: list[dict], chosen: list[str] | None = None) -> dict[st
     by_path = {Path(run["path"]).resolve(): run for run in runs}
     picked: dict[str, dict | None] = {}
     for text in chosen or ():
-        run = by_path.get(Path(text).resolve())
+        run = by_path.get(resolved(text, "--baseline"))
         if run is None:
             raise CLIError(f"--baseline {text}: not one of this report's RUN_DIRs; give it as a RUN_DIR too")
         method = run["config"].population.method
@@ -513,15 +514,16 @@ def run_report(args) -> int:
     the table. Returns ``EXIT_OK``; raises ``CLIError`` for an unreadable run or an ``--out`` that is a file."""
     seen: dict[Path, str] = {}
     for path in args.run_dirs:
-        if Path(path).resolve() in seen:
-            raise CLIError(f"{path}: given twice (also as {seen[Path(path).resolve()]}); each run is one row")
-        seen[Path(path).resolve()] = path
+        where = resolved(path)
+        if where in seen:
+            raise CLIError(f"{path}: given twice (also as {seen[where]}); each run is one row")
+        seen[where] = path
     runs = [load_run(path) for path in args.run_dirs]
     baselines = pick_baselines(runs, args.baseline)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out: {out} exists and is not a folder")
-    if (out / "config.yaml").is_file() or out.resolve() in seen:
+    if (out / "config.yaml").is_file() or resolved(out, "--out") in seen:
         raise CLIError(f"--out {out}: is a run directory; give a folder of its own for the report")
     check_replaceable(out)
     try:

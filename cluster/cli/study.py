@@ -20,7 +20,7 @@ from pathlib import Path
 
 from cluster.api import require_backend
 from cluster.archive import ArchiveError
-from cluster.cli.args import add_set_option, bounded, check_new_folder, positive_int
+from cluster.cli.args import add_set_option, bounded, check_new_folder, positive_int, resolved
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from cluster.runtime import ray_backend
 from cluster.runtime.loggers import MissingExtraError
@@ -289,14 +289,14 @@ def _status(directory: str) -> int:
 
 
 def _report(directory: str, dest: str | None) -> int:
-    out = Path(directory).resolve()
+    out = resolved(directory)
     try:
         state = read_state(out)
         if state is None:
             raise StudyError(f"{out}: not a study directory (no study.json)")
         if dest is not None:
             check_new_folder("--out", dest)
-            inside = Path(dest).resolve()
+            inside = resolved(dest, "--out")
             if inside == out or out in inside.parents:  # it would write over the study's own results
                 raise CLIError(f"--out {dest}: lies inside the study directory {out}; give a folder outside it")
         study = kept_study(state, out)

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from cluster.archive import ArchiveError
-from cluster.cli.args import check_new_folder, checkpoint_choice, seed
+from cluster.cli.args import check_new_folder, checkpoint_choice, positive_int, resolved, seed
 from cluster.cli.errors import EXIT_OK, CLIError
 from cluster.runtime import crossplay, ray_backend, xp_journal
 from cluster.runtime.environment import describe_devices
@@ -31,7 +31,8 @@ from cluster.runtime.rundir import RunDir, RunDirError
 from cluster.runtime.xp_journal import JournalMismatch, XPJournal
 from ocv2.atomic import staged_folder
 from population.checkpoints import CheckpointError
-from population.config import PRECISIONS, ClusterConfig
+from population.config import PRECISIONS, ClusterConfig, ConfigError
+from population.memory import check_crossplay_fits
 from population.policy import CHECKPOINT_CHOICES
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,9 @@ def add_xp(sub) -> argparse.ArgumentParser:
         help="with RUN_DIR: wait for the process that holds the run (training, another xp) instead of refusing",
     )
     parser.add_argument(
-        "--episodes", type=int, help="episodes per ordered pair (default: the config's eval.episodes; 500 with --rows)"
+        "--episodes",
+        type=positive_int,
+        help="episodes per ordered pair (default: the config's eval.episodes; 500 with --rows)",
     )
     parser.add_argument(
         "--seed",
@@ -113,8 +116,6 @@ def add_xp(sub) -> argparse.ArgumentParser:
 def run_xp(args) -> int:
     """Cross-play one run (``RUN_DIR``) or rows against columns of sources (``--rows``/``--cols``).
     Returns ``EXIT_OK``; raises ``CLIError`` for a bad option, source or run directory."""
-    if args.episodes is not None and args.episodes < 1:
-        raise CLIError(f"--episodes must be >= 1, got {args.episodes}")
     if args.rows is None:
         if args.run_dir is None:
             raise CLIError("give RUN_DIR (its own cross-play) or --rows SRC ... [--cols SRC ...]")
@@ -156,7 +157,7 @@ def _refuse_repeats(flag: str, sources: list[str]) -> None:
     cross-play (and the pooled matrix's diagonal blocks all NaN)."""
     seen: dict = {}
     for text in sources:
-        key = text if ":" in text and not Path(text).exists() else Path(text).resolve()  # human-proxy:LAYOUT
+        key = text if ":" in text and not Path(text).exists() else resolved(text, flag)  # human-proxy:LAYOUT
         if key in seen:
             raise CLIError(f"{flag}: {text} is given twice (also as {seen[key]}); give each source once")
         seen[key] = text
@@ -165,13 +166,16 @@ def _refuse_repeats(flag: str, sources: list[str]) -> None:
 def _in_run(args) -> int:
     try:
         run = RunDir.existing(args.run_dir)
+        if args.episodes is not None:
+            seeds = run.load_config().population.num_seeds
+            check_crossplay_fits(seeds, seeds, args.episodes, "--episodes")
         # the lock keeps out the trainer and a second evaluation, which write the same files
         run.lock(wait=args.wait, advice="wait for it to finish or pass --wait")
         try:
             evaluate_run(args.run_dir, episodes=args.episodes)
         finally:
             run.close()
-    except (RunDirError, CheckpointError, ArchiveError) as error:  # ArchiveError: archive.xp without mcap
+    except (RunDirError, CheckpointError, ArchiveError, ConfigError) as error:  # ArchiveError: archive.xp without mcap
         raise CLIError(str(error)) from None
     print(f"wrote {os.path.join(args.run_dir, 'xp')}/matrix.csv, episodes.csv, summary.json, heatmap.png")
     return EXIT_OK
@@ -219,9 +223,15 @@ def _cross_run(args) -> int:
             if args.pool:
                 _check_poolable(args, rows)
             episodes = args.episodes or 500
-            seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
-            jobs = sum(len(g.names) for g in rows) * len(cols)
             seats = args.seats or "both"
+            num_rows, num_cols = sum(len(g.names) for g in rows), sum(len(g.names) for g in cols)
+            seatings = 2 if args.cols and seats == "both" else 1  # rows against themselves: one matrix holds both
+            try:
+                check_crossplay_fits(num_rows, num_cols, episodes, "--episodes", seats=seatings)
+            except ConfigError as error:
+                raise CLIError(str(error)) from None
+            seed = args.seed if args.seed is not None else next((g.seed for g in rows if g.seed is not None), 0)
+            jobs = num_rows * len(cols)
             settings = {"episodes": episodes, "seed": seed, "greedy": bool(args.greedy), "seats": seats,
                         "precision": precision, "env": env_kwargs}  # fmt: skip
             total = crossplay.seat_fair_job_count(rows, cols, seats)

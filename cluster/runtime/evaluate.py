@@ -29,6 +29,7 @@ from population import ppo
 from population.config import Config
 from population.evaluation import play_episodes, stack_params
 from population.keys import derive_key
+from population.memory import check_crossplay_fits
 from population.numerics import matmul_precision
 from population.plots import training_curves, xp_heatmap
 from population.xp import CrossPlay, cross_play, recipe_names, summarize
@@ -133,13 +134,16 @@ def _cross_play_spread(workers, params, key, episodes: int, archive_dir, on_prog
 def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = True, workers=None) -> dict:
     """Cross-play of the run's final policies -> xp/matrix.csv, episodes.csv, summary.json, heatmap.png."""
     config, trainer, params = final_params(run_dir)
+    num = config.population.num_seeds
+    check_crossplay_fits(
+        num, num, episodes or config.eval.episodes, "eval.episodes" if episodes is None else "episodes"
+    )
     episodes = episodes or config.eval.episodes
     env = ppo.eval_env(config)
     key = derive_key(config.population.seed, "xp")
     started = time.perf_counter()
     run = RunDir(run_dir)
     archive_dir = run.subdir("archive", "xp") if config.archive.xp else None
-    num = config.population.num_seeds
     label = f"cross-play {num}x{num}, {episodes} episodes/pair"
     try:
         if workers is None:

@@ -35,6 +35,7 @@ import numpy as np
 from cluster.runtime.environment import environment_record
 from ocv2 import boundedjson
 from ocv2.atomic import atomic_write, is_temporary, remove_stale_temporaries
+from population import checkpoints as ckpt
 from population.config import Config, ConfigError, dump_config, load_run_config
 
 log = logging.getLogger(__name__)
@@ -330,6 +331,10 @@ class RunDir:
             ) from None
         if not isinstance(data, dict):
             raise RunDirError(f"{self.manifest_path}: holds a JSON {type(data).__name__}, not an object")
+        try:
+            ckpt.manifest_extensions(data, self.manifest_path)
+        except ckpt.CheckpointError as error:
+            raise RunDirError(str(error)) from None
         return data
 
     def write_manifest(self, data: dict) -> None:
@@ -448,7 +453,13 @@ class RunDir:
         records = list(reader)
         rows, damaged = [], []
         for number, row in enumerate(records, start=2):
-            if None in row or None in row.values() or not _is_int(row.get("update")) or not _is_int(row.get("seed")):
+            if (
+                None in row
+                or None in row.values()
+                or not _is_int(row.get("update"))
+                or not _is_int(row.get("seed"))
+                or not _is_count_or_blank(row.get("env_steps"))
+            ):
                 if number == len(records) + 1:  # the last row: what an appending writer's kill leaves
                     torn.insert(0, (number, _REFILLED))
                 else:  # ocv2 rewrites the file atomically: a bad row before the last is damage
@@ -554,8 +565,14 @@ def _is_int(text) -> bool:
     try:
         int(float(text))
         return True
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: "1e400" reads as inf
         return False
+
+
+def _is_count_or_blank(text) -> bool:
+    """A column ocv2 writes as a whole count (env_steps): absent, blank or a finite number; "1e400" or "inf" is damage
+    that would end a reader's ``int()`` in an OverflowError."""
+    return text is None or not str(text).strip() or math.isfinite(float_or_nan(text))
 
 
 class SeedCurves(NamedTuple):

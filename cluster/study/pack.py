@@ -212,11 +212,11 @@ def read_pack(source: Path) -> tuple[dict, bytes]:
     if source.exists() and not source.is_dir():
         raise StudyError(f"{source}: a file, not a pack folder (the folder holding {PACK_NAME} and its parts)")
     try:
-        record = json.loads((source / PACK_NAME).read_text())
+        record = boundedjson.loads((source / PACK_NAME).read_text())
         parts = record["parts"]
     except FileNotFoundError:
         raise StudyError(f"{source}: no {PACK_NAME} (not a packed study, or packing did not finish)") from None
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as error:
+    except (ValueError, KeyError, TypeError) as error:  # ValueError: not JSON, not UTF-8, or nested too deep
         raise StudyError(f"{source / PACK_NAME}: unreadable ({error})") from None
     if not isinstance(parts, list) or not all(isinstance(part, dict) for part in parts):
         raise StudyError(f"{source / PACK_NAME}: 'parts' must be a list of {{file, bytes, sha256}} entries")

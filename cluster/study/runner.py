@@ -902,7 +902,10 @@ def _over_training(plan: Plan, name: str, timer: StepTimer) -> dict:
     if not run_finished(path):
         raise StudyBlocked(f"run {name} has not finished")
     created = RunDir.existing(path).load_config()  # its snapshots are protected for good
-    snapshots = ckpt.run_snapshots(path, created.ppo.num_updates, created.run.num_checkpoints)
+    try:
+        snapshots = ckpt.run_snapshots(path, created.ppo.num_updates, created.run.num_checkpoints)
+    except ckpt.CheckpointError as error:  # a damaged manifest.json
+        raise RunDirError(str(error)) from None
     folder = out / "over_training" / name
     inputs = over_training_inputs(created)
     todo = []

@@ -51,6 +51,7 @@ from population.config.schema import (
     PPOConfig,
     RunConfig,
     SAConfig,
+    is_update_number,
 )
 from population.config.shards import shards, spread
 from population.config.yaml_io import (
@@ -71,6 +72,7 @@ __all__ = [
     "FCP_POOLS",
     "FCP_STAGE_SEED_OFFSET",
     "MAX_SEED",
+    "is_update_number",
     "MAX_YAML_NODES",
     "METHOD_TABLE",
     "METHODS",

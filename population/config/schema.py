@@ -18,6 +18,15 @@ _UNHASHED = ("eval", "run", "archive", "cluster")
 
 #: JAX's default PRNG keys are built from 32-bit seeds: a larger seed would silently wrap around.
 MAX_SEED = 2**32 - 1
+
+
+def is_update_number(text) -> bool:
+    """Whether ``text`` spells an update number (a checkpoint) in ASCII digits: ``str.isdigit`` alone also
+    takes "²", which ``int`` refuses."""
+    text = str(text)
+    return text.isascii() and text.isdigit()
+
+
 #: The SP stage of an FCP run without partners trains with ``population.seed + FCP_STAGE_SEED_OFFSET``.
 FCP_STAGE_SEED_OFFSET = 7919
 

@@ -23,6 +23,7 @@ from population.config.schema import (
     FCPConfig,
     PopulationConfig,
     PPOConfig,
+    is_update_number,
 )
 
 
@@ -93,7 +94,7 @@ def _validate_fcp(fcp: FCPConfig, num_agents: int, activation: str) -> list[str]
     if not fcp.checkpoints:
         problems.append("population.fcp.checkpoints: needs at least one checkpoint")
     for c in fcp.checkpoints:
-        if c not in ("init", "mid", "final") and not str(c).isdigit():
+        if c not in ("init", "mid", "final") and not is_update_number(c):
             problems.append(f"population.fcp.checkpoints: {c!r} is not init, mid, final or an update number")
     if num_agents != 2:
         problems.append("population.method: fcp needs a two-agent layout")
