@@ -389,8 +389,9 @@ def _check_options(agent_view_size, tile_size, subdivs):
         raise ValueError(f"tile_size must be a positive integer (pixels per cell), got {tile_size!r}")
     if not _whole(subdivs, 1):
         raise ValueError(f"subdivs must be a positive integer (supersampling factor), got {subdivs!r}")
-    if agent_view_size is not None and not _whole(agent_view_size, 0):
-        raise ValueError(f"agent_view_size must be None or a non-negative integer, got {agent_view_size!r}")
+    if agent_view_size is not None and not (_whole(agent_view_size, 0) and agent_view_size < 2**31):
+        # compared with int32 positions on the device
+        raise ValueError(f"agent_view_size must be None or an integer in [0, 2**31), got {agent_view_size!r}")
 
 
 def render(

@@ -192,7 +192,10 @@ def manifest_extensions(manifest: dict, path) -> list[dict]:
     reports: a damaged record would otherwise end a command in a ``TypeError`` or pick the wrong snapshots."""
     records = manifest.get("extensions", [])
     if not isinstance(records, list):
-        raise CheckpointError(f"{path}: 'extensions' must be a list of records, found {records!r:.80}")
+        raise CheckpointError(
+            f"{path}: 'extensions' must be a list of records, found {records!r:.80}; restore manifest.json from a copy "
+            "(`ocv2 study pack` keeps one) or repair it"
+        )
     for i, record in enumerate(records):
         snapshots = record.get("snapshots") if isinstance(record, dict) else None
         if not (
@@ -202,7 +205,8 @@ def manifest_extensions(manifest: dict, path) -> list[dict]:
         ):
             raise CheckpointError(
                 f"{path}: extensions[{i}] must be a record with from_updates and snapshots as update numbers "
-                f'(integers >= 0), e.g. {{"from_updates": 4, "snapshots": [0, 2, 4], ...}}; found {record!r:.120}'
+                f'(integers >= 0), e.g. {{"from_updates": 4, "snapshots": [0, 2, 4], ...}}; found {record!r:.120}; '
+                "restore manifest.json from a copy (`ocv2 study pack` keeps one) or repair that record"
             )
     return records
 

@@ -137,6 +137,11 @@ def test_cluster_num_gpus_is_auto_unless_a_number_is_given(tmp_path):
     assert "cluster.num_gpus: expected auto or a number >= 0, got 'many'" in _error({"cluster": {"num_gpus": "many"}})
     assert "cluster.num_gpus: must be >= 0" in _error({"cluster": {"num_gpus": -1}})
     assert "cluster.num_gpus: expected a number, got True" in _error({"cluster": {"num_gpus": True}})
+    assert parse_config({"cluster": {"address": "head:6379"}}).cluster.address == "head:6379"
+    for address in ("head:99999999", "head:\u0666\u0663\u0667\u0669", "head:"):  # past 65535; Arabic-Indic digits
+        assert "cluster.address: expected auto, HOST:PORT or ray://HOST:PORT" in _error(
+            {"cluster": {"address": address}}
+        )
     path = tmp_path / "config.yaml"
     dump_config(parse_config({}), path)
     assert load_config(path).cluster.num_gpus == "auto"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from population.config import ConfigError, parse_config
-from population.memory import MEASURED, check_crossplay_fits, check_fits, crossplay_mib, estimate
+from population.memory import MEASURED, XP_BYTES_PER_EPISODE, check_crossplay_fits, check_fits, crossplay_mib, estimate
 
 SMALL_PPO = {"num_envs": 4, "num_steps": 16, "num_minibatches": 2, "total_timesteps": 640}
 
@@ -66,14 +66,14 @@ def test_a_network_too_big_for_one_seed_is_blamed_not_the_seed_count():
 def test_a_cross_play_too_big_to_hold_is_refused_before_anything_plays():
     """eval.episodes (or ``ocv2 xp --episodes``) had no upper bound: 10 x 10 seeds x 2**31 - 1 episodes ended in a
     MemoryError where the per-episode arrays were made, after training, when nothing could be changed."""
-    assert crossplay_mib(10, 10, 500) == 10 * 10 * 500 * 8 / 2**20
+    assert crossplay_mib(10, 10, 500) == 10 * 10 * 500 * XP_BYTES_PER_EPISODE / 2**20
     assert crossplay_mib(10, 10, 500, seats=2) == 2 * crossplay_mib(10, 10, 500)
     greedy = parse_config({"ppo": SMALL_PPO}, ["population.num_seeds=10", f"eval.episodes={2**31 - 1}"])
     with pytest.raises(ConfigError) as info:
         check_fits(greedy, "local", available_mib=24 * 1024)
     message = str(info.value)
-    assert message.startswith("eval.episodes: a 10 x 10 cross-play of 2,147,483,647 episodes per pair keeps 8 bytes")
-    assert "about 1.6 TiB, but this machine has 24.0 GiB" in message and message.endswith("fewer episodes per pair")
+    assert message.startswith("eval.episodes: a 10 x 10 cross-play of 2,147,483,647 episodes per pair keeps 300 bytes")
+    assert "about 58.6 TiB, but this machine has 24.0 GiB" in message and message.endswith("fewer episodes per pair")
     with pytest.raises(ConfigError, match=r"^--episodes: a 3 x 4 cross-play .* in 2 seatings"):
         check_crossplay_fits(3, 4, 10**9, "--episodes", seats=2, available_mib=1024)
-    assert check_crossplay_fits(10, 10, 500, "eval.episodes", available_mib=1024) < 1
+    assert check_crossplay_fits(10, 10, 500, "eval.episodes", available_mib=1024) < 15  # the paper's: 14.3 MiB

@@ -71,6 +71,8 @@ def test_bad_options_and_mismatched_layout(cramped):
         render(state, tile_size=0)
     with pytest.raises(ValueError, match="agent_view_size"):
         render(state, agent_view_size=-1)
+    with pytest.raises(ValueError, match=r"agent_view_size must be None or an integer in \[0, 2\*\*31\)"):
+        render(state, agent_view_size=2**31)  # would overflow the int32 comparison on the device
     with pytest.raises(ValueError, match="long_room"):
         render(state, "long_room")
     with pytest.raises(ValueError, match="jax.vmap"):

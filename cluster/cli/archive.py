@@ -13,7 +13,7 @@ import os
 import sys
 
 from cluster.archive import PARTIAL_SUFFIX, ArchiveError, ArchiveReader, recover
-from cluster.cli.args import add_gif_options, check_new_file, check_not_under_a_file, int_at_least
+from cluster.cli.args import add_gif_options, check_new_file, check_not_under_a_file, int_at_least, non_negative_int
 from cluster.cli.errors import EXIT_FAILURE, EXIT_OK, CLIError
 from ocv2.render import check_frame_size, render_frames, write_gif
 
@@ -53,7 +53,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     replay.add_argument("file", help="archive file")
     replay.add_argument(
         "--episode",
-        type=int,
+        type=non_negative_int,
         default=0,
         metavar="N",
         help="episode number, as 'info' lists it in its # column (default 0)",

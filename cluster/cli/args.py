@@ -55,11 +55,16 @@ def resolved(path, flag: str = "") -> Path:
         os.stat(path)
     except OSError as error:
         if error.errno == errno.ELOOP:
-            raise CLIError(f"{where}{path}: its symbolic links cannot be followed ({error.strerror})") from None
+            raise CLIError(
+                f"{where}{path}: its symbolic links cannot be followed ({error.strerror}); {_LOOP}"
+            ) from None
     try:
         return Path(path).resolve()
     except (RuntimeError, OSError) as error:
-        raise CLIError(f"{where}{path}: its symbolic links cannot be followed ({error})") from None
+        raise CLIError(f"{where}{path}: its symbolic links cannot be followed ({error}); {_LOOP}") from None
+
+
+_LOOP = "a link on the way leads back to itself: remove the loop or give another path"
 
 
 def check_new_file(flag: str, out: str, force: bool = False) -> None:
@@ -78,8 +83,8 @@ def check_new_file(flag: str, out: str, force: bool = False) -> None:
 MAX_INT = 2**31 - 1
 
 
-def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
-    """An argparse type: an integer >= ``minimum`` and <= ``MAX_INT``, with a message naming ``what`` was expected."""
+def int_at_least(minimum: int, what: str, maximum: int = MAX_INT) -> Callable[[str], int]:
+    """An argparse type: an integer in [``minimum``, ``maximum``], with a message naming ``what`` was expected."""
 
     def parse(text: str) -> int:
         """``text`` as an integer; raises ``argparse.ArgumentTypeError`` if it is not one or is out of range."""
@@ -89,10 +94,9 @@ def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"expected a {what} integer, got {text!r}") from None
         if value < minimum:
             raise argparse.ArgumentTypeError(f"expected a {what} integer, got {value}")
-        if value > MAX_INT:
-            raise argparse.ArgumentTypeError(
-                f"expected a {what} integer below 2**31 (JAX counts in int32), got {value}"
-            )
+        if value > maximum:
+            below = "below 2**31 (JAX counts in int32)" if maximum == MAX_INT else f"at most {maximum}"
+            raise argparse.ArgumentTypeError(f"expected a {what} integer {below}, got {value}")
         return value
 
     return parse
@@ -121,7 +125,7 @@ def bounded(parse: Callable[[str], float], low, high, what: str, low_open: bool 
 
 def seed(text: str) -> int:
     """A PRNG seed: JAX's keys hold 32 bits, so a larger seed would silently wrap onto a small one."""
-    value = non_negative_int(text)
+    value = int_at_least(0, "non-negative", maximum=2**63)(text)  # past MAX_SEED: said below, as a seed's range
     if value > MAX_SEED:
         raise argparse.ArgumentTypeError(f"expected a seed in [0, {MAX_SEED}], got {value}")
     return value
@@ -158,7 +162,9 @@ def add_published_population(parser: argparse.ArgumentParser, default_folder: Pa
     files): --update, --episodes, --seeds, --method, --policies; ``published_files`` names the files they pick.
     With ``pairs``, also --pairs i,j ... (cross-play pairs: seat 0's seed, seat 1's), checked by
     ``published_pairs``."""
-    parser.add_argument("--update", type=int, required=True, help="the snapshot (<method>_seed<i>_update<U>)")
+    parser.add_argument(
+        "--update", type=non_negative_int, required=True, help="the snapshot (<method>_seed<i>_update<U>)"
+    )
     parser.add_argument("--episodes", type=positive_int, default=32)
     parser.add_argument("--seeds", type=positive_int, default=10)
     parser.add_argument("--method", default="sp", help="the file names' method prefix (sp, sa, ...)")
@@ -173,8 +179,8 @@ def seed_pair(text: str) -> tuple[int, int]:
         first, second = (int(part) for part in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: expected two seeds as i,j (seat 0's, seat 1's)") from None
-    if min(first, second) < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: seeds are 0 or more")
+    if min(first, second) < 0 or max(first, second) > MAX_INT:
+        raise argparse.ArgumentTypeError(f"{text!r}: seeds are 0 or more, below 2**31")
     return first, second
 
 

@@ -108,7 +108,9 @@ def add_xp(sub) -> argparse.ArgumentParser:
         help="with --rows: ray (default) spreads the jobs over Ray workers; local plays them here",
     )
     parser.add_argument("--address", help="Ray cluster to join: auto or HOST:PORT (default: start Ray here)")
-    parser.add_argument("--workers", type=int, help="Ray workers (default: one per available CPU, at most one per job)")
+    parser.add_argument(
+        "--workers", type=positive_int, help="Ray workers (default: one per available CPU, at most one per job)"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser
 
@@ -184,8 +186,6 @@ def _in_run(args) -> int:
 def _cross_run(args) -> int:
     # Ray workers and the driver share the machine's accelerator: never let the driver take most of it.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    if args.workers is not None and args.workers < 1:
-        raise CLIError(f"--workers must be >= 1, got {args.workers}")
     backend = args.backend or "ray"
     if backend == "local" and (args.address or args.workers):
         raise CLIError("--address and --workers need --backend ray")

@@ -224,8 +224,11 @@ def pool_updates(config: Config, partner_config: Config, partner_run) -> list[in
     """The partner run's updates that ``population.fcp.checkpoints`` names, in order, among the snapshots that
     run keeps (an extended run's earlier stops' too); ``RunDirError`` naming the key otherwise."""
     partner = partner_config.ppo.num_updates, partner_config.run.num_checkpoints
-    try:  # a damaged manifest.json of the partner run, or names that are no snapshot of it
+    try:
         snapshots = ckpt.run_snapshots(partner_run, *partner)
+    except ckpt.CheckpointError as error:  # a damaged manifest.json of the partner run: not the key's fault
+        raise RunDirError(f"the FCP partner run {partner_run}: {error}") from None
+    try:
         return ckpt.pool_updates(config.population.fcp.checkpoints, snapshots)
     except ckpt.CheckpointError as error:
         raise RunDirError(f"population.fcp.checkpoints: {partner_run}: {error}") from None

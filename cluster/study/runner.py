@@ -232,7 +232,10 @@ def check_same_study(study: Study, out: Path, state: StudyState, retrain: Sequen
         if not isinstance(config, str) or run.name in retrain:
             continue
         if source is not None and source.is_file():
-            kept_path, given = (source.parent / config).resolve(), Path(run.config).resolve()
+            try:
+                kept_path, given = (source.parent / config).resolve(), Path(run.config).resolve()
+            except RuntimeError as error:  # a symbolic link loop (Python 3.11-3.12)
+                raise StudyError(f"run {run.name!r}: its config file cannot be found: {error}") from None
             same = kept_path == given or _same_bytes(kept_path, given)  # e.g. the same file in another checkout
             kept = str(kept_path)
         else:

@@ -218,7 +218,12 @@ def _parse_run(where: str, index: int, entry, base: Path, shared: tuple[str, ...
     config = entry.get("config")
     if not isinstance(config, str) or not config:
         raise StudyError(f"{where}: {label}.config: expected a config file path")
-    config_path = (base / config).resolve()
+    try:
+        config_path = (base / config).resolve()
+    except RuntimeError as error:  # a symbolic link loop (Python 3.11-3.12; 3.13 leaves it to is_file below)
+        raise StudyError(
+            f"{where}: {label}.config: {config}: its symbolic links cannot be followed ({error})"
+        ) from None
     if config_path.is_dir():
         raise StudyError(f"{where}: {label}.config: {config} is a folder (at {config_path}); name a config file")
     if not config_path.is_file():

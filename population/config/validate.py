@@ -242,7 +242,8 @@ def _cluster_problems(cluster: ClusterConfig, num_seeds: int) -> list[str]:
     if cluster.address is not None:
         address = cluster.address.strip()
         host, _, port = address.rpartition(":")
-        if address != "auto" and not (host and port.isdigit()) and not address.startswith("ray://"):
+        is_port = is_update_number(port) and int(port) <= 65535  # ASCII digits: "²".isdigit() is True
+        if address != "auto" and not (host and is_port) and not address.startswith("ray://"):
             problems.append(f"cluster.address: expected auto, HOST:PORT or ray://HOST:PORT, got {cluster.address!r}")
     problems += _positive("cluster.workers", cluster.workers, allow_zero=True)
     problems += _positive("cluster.seeds_per_actor", cluster.seeds_per_actor)
