@@ -137,14 +137,16 @@ def check_fits(config: Config, place: str = "local", available_mib: float | None
     found = estimate(config, place)
     available = machine_memory_mib() if available_mib is None else available_mib
     if available is not None and found.total_mib > available:
-        one = estimate(
-            dataclasses.replace(config, population=dataclasses.replace(config.population, num_seeds=1)), place
-        )
-        if one.total_mib > available:  # fewer seeds cannot help: the network or the batch is what is too big
+        pop = config.population
+        fewest = dataclasses.replace(pop, num_seeds=1, fcp=dataclasses.replace(pop.fcp, partner_seeds=1))
+        one = estimate(dataclasses.replace(config, population=fewest), place)
+        if one.total_mib > available:  # fewer seeds cannot help: the network, batch or observation is too big
+            view = config.env_kwargs.get("agent_view_size")
+            wide = f", or a smaller env.agent_view_size (observations of {2 * view + 1} cells a side)" if view else ""
             raise ConfigError(
                 f"model: one seed alone needs about {_gib(one.total_mib)} of memory on this machine ({one.where}; "
                 f"docs/cluster.md, Memory) but it has {_gib(available)}: a smaller network (model.*) or fewer "
-                "ppo.num_envs / ppo.num_steps"
+                f"ppo.num_envs / ppo.num_steps{wide}"
             )
         advice = "" if place == "cluster" else ", or train on a Ray cluster (--address)"
         raise ConfigError(

@@ -20,6 +20,7 @@ from population.config import (
     apply_overrides,
     dump_config,
     load_config,
+    load_yaml_text,
     parse_config,
     yaml_io,
 )
@@ -762,3 +763,14 @@ def test_env_integers_may_be_written_as_1e3_as_elsewhere(tmp_path):
     assert env["max_steps"] == 1000 and env["agent_view_size"] == 2
     assert type(env["max_steps"]) is int and type(env["agent_view_size"]) is int
     _file_error(tmp_path, "env: {max_steps: 1.5}")
+
+
+def test_numbers_in_other_scripts_or_base_60_are_refused_not_read():
+    """float() reads "٤٠" as 40 and YAML 1.1 reads 1:00 as 60: a config with either trained on a number nobody
+    wrote; fcp.checkpoints already refused such digits."""
+    assert "env.max_steps" in _error({"env": {"max_steps": "\u0664\u0660"}})
+    assert "ppo.lr: expected a number, got" in _error({"ppo": {"lr": "\u0660.\u0660\u0660\u0661"}})
+    for text in ("ppo:\n  update_epochs: 1:00\n", "ppo:\n  lr: 1:30.5\n"):
+        with pytest.raises(yaml.YAMLError, match=r"(?s)reads as a base-60 number in YAML 1.1.*line 2"):
+            load_yaml_text(text)
+    assert load_yaml_text("cluster:\n  address: '10.0.0.1:6379'\n") == {"cluster": {"address": "10.0.0.1:6379"}}

@@ -77,3 +77,15 @@ def test_a_cross_play_too_big_to_hold_is_refused_before_anything_plays():
     with pytest.raises(ConfigError, match=r"^--episodes: a 3 x 4 cross-play .* in 2 seatings"):
         check_crossplay_fits(3, 4, 10**9, "--episodes", seats=2, available_mib=1024)
     assert check_crossplay_fits(10, 10, 500, "eval.episodes", available_mib=1024) < 15  # the paper's: 14.3 MiB
+
+
+def test_a_view_too_wide_is_named_and_partner_seeds_are_not_blamed_on_one_seed():
+    """agent_view_size 3000 was refused as "a smaller network", and 10**8 FCP partner seeds as "one seed alone
+    (the driver of 100,000,000 seeds)"; the view is named, and the partner stage is counted as seeds."""
+    wide = parse_config({"ppo": SMALL_PPO, "env": {"layout": "cramped_room", "agent_view_size": 3000}})
+    with pytest.raises(ConfigError, match=r"or a smaller env.agent_view_size \(observations of 6001 cells a side\)"):
+        check_fits(wide, "local", available_mib=24 * 1024)
+    many = parse_config({"ppo": SMALL_PPO, "population": {"method": "fcp", "fcp": {"partner_seeds": 100_000_000}}})
+    with pytest.raises(ConfigError) as info:
+        check_fits(many, "cluster", available_mib=24 * 1024)
+    assert str(info.value).startswith("population.num_seeds: the run needs about"), str(info.value)

@@ -742,6 +742,19 @@ def test_an_fcp_run_whose_partner_run_cannot_give_its_pool_is_refused_before_any
         (lambda d: d["runs"][1].update(sett=["a=b"]), "run 'sa': unknown key 'sett'; did you mean 'set'?"),
         (lambda d: d.update(comparsons=[]), "unknown key 'comparsons'; did you mean 'comparisons'?"),
         (lambda d: d["runs"][1].update(name="sp"), "run 'sp': duplicate run name (runs[0] has it too)"),
+        (lambda d: d["runs"][1].update(name="SP"), "run 'SP': duplicate run name (runs[0] has it too as 'sp': names"),
+        (lambda d: d["runs"][0]["paper"].update(note=False), "run 'sp'.paper.note: expected text"),
+        (  # partners_from overrode these without a word
+            lambda d: d["runs"][1].update(
+                partners_from="sp", set=["population.method=fcp", "population.fcp.pool=per_seed"]
+            ),
+            "run 'sa'.set: 'population.fcp.pool=per_seed' and run 'sa'.partners_from both give population.fcp.pool",
+        ),
+        (lambda d: d["runs"][0].update(config="/dev/null"), "run 'sp'.config: /dev/null is not a regular file"),
+        (
+            lambda d: d.update(study="s" * 65),
+            "study: expected a name (1-64 letters, digits, _ . -, the first a letter or digit), got 'sss",
+        ),
         (lambda d: d["comparisons"][0].update(runs=["sp", "op"]), "comparison 'sp_vs_sa'.runs: no run is named 'op'"),
         (
             lambda d: d["comparisons"].append({"name": "sp_vs_sa", "runs": ["sa", "sp"]}),
@@ -757,7 +770,7 @@ def test_an_fcp_run_whose_partner_run_cannot_give_its_pool_is_refused_before_any
         (lambda d: d.update(over_training=["sp", "sp"]), "over_training: names run 'sp' twice"),
         (
             lambda d: d["runs"][1].update(name="sa\n"),
-            "runs[1].name: expected a name (letters, digits, _ . -), got 'sa\\n'",
+            "runs[1].name: expected a name (1-64 letters, digits, _ . -, the first a letter or digit), got 'sa\\n'",
         ),
         (lambda d: d.update(study="tiny\n"), "study: expected a name"),
         (lambda d: d["comparisons"][0].update(name="c\n"), "comparisons[0].name: expected a name"),

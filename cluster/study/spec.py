@@ -47,6 +47,9 @@ PAPER_KEYS = ("source", "sp", "xp", "gap", "note")
 COMPARISON_KEYS = ("name", "runs", "human_proxy")
 #: A study, run or comparison name (a folder name): matched whole, so no trailing newline slips through ``$``.
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+NAME_RULE = "1-64 letters, digits, _ . -, the first a letter or digit"
+#: The FCP settings ``partners_from`` gives a run: set beside it, they were dropped without a word.
+PARTNER_KEYS = ("population.fcp.pool", "population.fcp.partners", "population.fcp.partner_seeds")
 #: Names a run or comparison may not take: the folders of pictures and archives ``cluster.study.pack`` leaves out.
 RESERVED_NAMES = ("archive", "gifs", "plots")
 
@@ -184,7 +187,7 @@ def parse_study(raw: Any, path: Path) -> Study:
     _unknown(where, "", raw, STUDY_KEYS)
     name = raw.get("study")
     if not isinstance(name, str) or not NAME.fullmatch(name):
-        raise StudyError(f"{where}: study: expected a name (letters, digits, _ . -), got {name!r}")
+        raise StudyError(f"{where}: study: expected a name ({NAME_RULE}), got {name!r}")
     shared = _overrides(where, "set", raw.get("set"))
     runs_raw = raw.get("runs")
     if not isinstance(runs_raw, list) or not runs_raw:
@@ -226,6 +229,8 @@ def _parse_run(where: str, index: int, entry, base: Path, shared: tuple[str, ...
         ) from None
     if config_path.is_dir():
         raise StudyError(f"{where}: {label}.config: {config} is a folder (at {config_path}); name a config file")
+    if config_path.exists() and not config_path.is_file():
+        raise StudyError(f"{where}: {label}.config: {config} is not a regular file (a device or pipe); name a config")
     if not config_path.is_file():
         raise StudyError(f"{where}: {label}.config: no such config file {config} (looked for {config_path})")
     partners = entry.get("partners_from")
@@ -236,6 +241,14 @@ def _parse_run(where: str, index: int, entry, base: Path, shared: tuple[str, ...
     paper = _parse_paper(where, label, entry.get("paper"))
     own = _overrides(where, f"{label}.set", entry.get("set"))
     sources = ("set",) * len(shared) + (f"{label}.set",) * len(own)
+    if partners is not None:
+        for item, source in zip(shared + own, sources, strict=True):
+            key = item.split("=", 1)[0].strip()
+            if key in PARTNER_KEYS:
+                raise StudyError(
+                    f"{where}: {source}: {item!r} and {label}.partners_from both give {key}; partners_from sets "
+                    f"the pool (shared), the partner run and its seeds: leave {key} out"
+                )
     return RunSpec(name, config_path, shared + own, partners, paper, sources)
 
 
@@ -249,7 +262,8 @@ def _parse_paper(where: str, label: str, raw) -> PaperNumbers | None:
     if not isinstance(source, str) or not source.strip():
         raise StudyError(f"{where}: {label}.paper.source: say which table and row the numbers come from")
     values = {key: _paper_value(where, f"{label}.paper.{key}", raw.get(key)) for key in ("sp", "xp", "gap")}
-    note = raw.get("note") or ""
+    note = raw.get("note")
+    note = "" if note is None else note  # false or [] is no text: refused below, not read as an empty note
     if not isinstance(note, str):
         raise StudyError(f"{where}: {label}.paper.note: expected text")
     return PaperNumbers(source.strip(), note=note.strip(), **values)
@@ -293,7 +307,7 @@ def _named_entry(where: str, section: str, noun: str, index: int, entry, keys, e
         raise StudyError(f"{where}: {label}: expected a mapping with keys {', '.join(keys)}")
     name = entry.get("name")
     if not isinstance(name, str) or not NAME.fullmatch(name):
-        raise StudyError(f"{where}: {label}.name: expected a name (letters, digits, _ . -), got {name!r}")
+        raise StudyError(f"{where}: {label}.name: expected a name ({NAME_RULE}), got {name!r}")
     if name in RESERVED_NAMES:
         raise StudyError(
             f"{where}: {label}.name: {name!r} names the folders a pack leaves out ({', '.join(RESERVED_NAMES)}), "
@@ -301,8 +315,11 @@ def _named_entry(where: str, section: str, noun: str, index: int, entry, keys, e
         )
     label = f"{noun} {name!r}"
     _unknown(where, f"{label}: ", entry, keys)
-    if name in earlier:
-        raise StudyError(f"{where}: {label}: duplicate {noun} name ({section}[{earlier.index(name)}] has it too)")
+    folded = [e.casefold() for e in earlier]  # "sp" and "SP" would share one folder on a case-insensitive disk
+    if name.casefold() in folded:
+        index = folded.index(name.casefold())
+        case = "" if earlier[index] == name else f" as {earlier[index]!r}: names differing only in case share a folder"
+        raise StudyError(f"{where}: {label}: duplicate {noun} name ({section}[{index}] has it too{case})")
     return name, label
 
 

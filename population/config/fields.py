@@ -95,6 +95,8 @@ def integral(value) -> int | None:
     if isinstance(value, int):
         return value
     if isinstance(value, str):
+        if not value.isascii():  # float() reads other scripts' digits ("٤٠" is 40): a config's numbers are ASCII
+            return None
         try:
             value = float(value)
         except ValueError:
@@ -112,7 +114,7 @@ def _integer(key: str, value) -> int:
 
 
 def _number(key: str, value) -> float:
-    if isinstance(value, str):
+    if isinstance(value, str) and value.isascii():  # float() reads other scripts' digits too: "٠.٠٠١" is 0.001
         try:
             value = float(value)  # YAML reads "1e-4" (no dot) as a string
         except ValueError:

@@ -57,7 +57,23 @@ class _Strict:
             raise yaml.constructor.ConstructorError(
                 None, None, f"an integer of {digits} digits (at most {MAX_YAML_INT_DIGITS})", node.start_mark
             )
+        _refuse_base_60(node)
         return super().construct_yaml_int(node)
+
+    def construct_yaml_float(self, node):
+        _refuse_base_60(node)
+        return super().construct_yaml_float(node)
+
+
+def _refuse_base_60(node) -> None:
+    """YAML 1.1 reads ``1:00`` as 60 (base 60, for times): a config holds no times, so it is a typo, said by line."""
+    if ":" in str(node.value):
+        raise yaml.constructor.ConstructorError(
+            None,
+            None,
+            f"{node.value} reads as a base-60 number in YAML 1.1; write the number, or quote it for a text",
+            node.start_mark,
+        )
 
 
 class StrictLoader(_Strict, yaml.SafeLoader):
@@ -82,6 +98,7 @@ else:
 
 for _loader in filter(None, (StrictLoader, FastStrictLoader)):
     _loader.add_constructor("tag:yaml.org,2002:int", _loader.construct_yaml_int)
+    _loader.add_constructor("tag:yaml.org,2002:float", _loader.construct_yaml_float)
 
 
 def check_depth(text: str, loader=StrictLoader) -> None:
