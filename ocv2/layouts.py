@@ -193,7 +193,7 @@ class Layout:
         """
         if not isinstance(grid, str):
             raise TypeError(f"layout {name!r}: from_string expects a str, got {type(grid).__name__}")
-        rows = grid.split("\n")
+        rows = grid.replace("\r\n", "\n").split("\n")  # a map saved with Windows line endings reads the same
         if rows and rows[0] == "":
             rows = rows[1:]
         if rows and rows[-1] == "":
@@ -205,8 +205,9 @@ class Layout:
         for y, row in enumerate(rows):
             for x, char in enumerate(row):
                 if char not in CHAR_TO_STATIC:
+                    hint = " (a carriage return: end the map's lines with \\n)" if char == "\r" else ""
                     raise ValueError(
-                        f"layout {name!r}: unknown character {char!r} at row {y}, column {x}; "
+                        f"layout {name!r}: unknown character {char!r}{hint} at row {y}, column {x} (counted from 0); "
                         f"valid characters are {''.join(sorted(CHAR_TO_STATIC))!r} and space"
                     )
                 static[y, x] = CHAR_TO_STATIC[char]

@@ -6,6 +6,7 @@ import warnings
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import ocv2
@@ -14,10 +15,21 @@ from ocv2.layouts import default_recipes
 GOOD = "WWPWW\n0A AX\nW   R\nWBWWW"
 
 
+def test_a_map_with_windows_line_endings_reads_as_the_same_map():
+    crlf, lf = ocv2.Layout.from_string(GOOD.replace("\n", "\r\n")), ocv2.Layout.from_string(GOOD)
+    np.testing.assert_array_equal(crlf.static_objects, lf.static_objects)
+    assert (crlf.agent_positions, crlf.num_ingredients, crlf.possible_recipes) == (
+        lf.agent_positions,
+        lf.num_ingredients,
+        lf.possible_recipes,
+    )
+
+
 @pytest.mark.parametrize(
     "grid,kwargs,match",
     [
-        ("WWPWW\n0A?AX\nW   R\nWBWWW", {}, r"unknown character '\?' at row 1, column 2"),
+        ("WWPWW\n0A?AX\nW   R\nWBWWW", {}, r"unknown character '\?' at row 1, column 2 \(counted from 0\)"),
+        ("WWPWW\r0A AX\nW   R\nWBWWW", {}, r"unknown character '\\r' \(a carriage return: end the map's lines with"),
         ("WWPWW\n0   X\nW   R\nWBWWW", {}, r"no agent"),
         ("WWPWW\n0A AX\n    R\nWBWWW", {}, r"map edge at row 2, column 0: the border is open"),
         ("WWPWW\n0A AX\nW   R\nWBW", {}, r"row 3 has 3 characters, the map is 5 wide.*open"),  # padded with floor
