@@ -744,6 +744,10 @@ def test_an_fcp_run_whose_partner_run_cannot_give_its_pool_is_refused_before_any
         (lambda d: d["runs"][1].update(name="sp"), "run 'sp': duplicate run name (runs[0] has it too)"),
         (lambda d: d["runs"][1].update(name="SP"), "run 'SP': duplicate run name (runs[0] has it too as 'sp': names"),
         (lambda d: d["runs"][0]["paper"].update(note=False), "run 'sp'.paper.note: expected text"),
+        (  # train called such a file a study file and study run a config, each sending the user to the other
+            lambda d: d.update(env={"layout": "cramped_room"}),
+            "holds a study file's study and runs and an experiment config's env: a file is one or the other",
+        ),
         (  # partners_from overrode these without a word
             lambda d: d["runs"][1].update(
                 partners_from="sp", set=["population.method=fcp", "population.fcp.pool=per_seed"]
@@ -797,6 +801,9 @@ def test_bad_study_files_are_one_line_errors_naming_the_entry(tmp_path, capsys, 
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err
     assert not (tmp_path / "out").exists()  # nothing written
+    if "a file is one or the other" in message:  # ocv2 train says the same of it
+        assert main(["train", str(path), "--out", str(tmp_path / "out")]) == 2
+        assert message in capsys.readouterr().err and not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize(

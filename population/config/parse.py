@@ -76,6 +76,9 @@ def parse_config(raw: Mapping, overrides: Sequence[str] = ()) -> Config:
     check_plain_data(raw)
     if is_ray_launcher_config(raw):
         raise ConfigError("a Ray cluster launcher config (for 'ray up'), not an ocv2 experiment config")
+    mixed = mixed_file_problem(raw)
+    if mixed is not None:
+        raise ConfigError(mixed)
     if is_study_data(raw):
         raise ConfigError(
             "a study file (it names a study or lists runs), not an experiment config: run it with `ocv2 study run "
@@ -192,6 +195,28 @@ RAY_LAUNCHER_KEYS = frozenset({"cluster_name", "provider"})
 
 def is_ray_launcher_config(raw) -> bool:
     return isinstance(raw, Mapping) and RAY_LAUNCHER_KEYS <= set(raw) and not set(raw) & set(SECTIONS[:-1])
+
+
+#: Sections of an experiment config whose presence marks a file as one (the sections ``SECTIONS`` lists, but ``run``,
+#: which a study file's typo of ``runs`` could be).
+CONFIG_MARKS = ("env", "ppo", "model", "population")
+
+
+def mixed_file_problem(raw) -> str | None:
+    """What is wrong with a file that has both a study file's keys (``study``, a list of ``runs``) and an experiment
+    config's sections: ``ocv2 train`` called it a study file and ``ocv2 study run`` a config, each sending the user to
+    the other. None for any other file."""
+    if not is_study_data(raw):
+        return None
+    marks = [key for key in CONFIG_MARKS if key in raw]
+    if not marks:
+        return None
+    study_keys = [key for key in ("study", "runs") if key in raw]
+    return (
+        f"holds a study file's {' and '.join(study_keys)} and an experiment config's {', '.join(marks)}: a file is one "
+        "or the other; put the sections in a config that a study run names (runs[i].config), or its overrides in "
+        "the study's set"
+    )
 
 
 def is_study_data(raw) -> bool:
