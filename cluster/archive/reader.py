@@ -88,9 +88,10 @@ def check_file(path: str) -> int:
         raise ArchiveError(f"no such file: {path!r}")
     if os.path.isdir(path):
         raise ArchiveError(f"{path!r} is a folder, not an archive file")
-    if not stat.S_ISREG(os.stat(path).st_mode):  # a pipe would block the read, a device has no size
+    info = os.stat(path)
+    if not stat.S_ISREG(info.st_mode):  # a pipe would block the read, a device has no size
         raise ArchiveError(f"{path!r} is not a regular file (a pipe, socket or device); give an archive file")
-    size = os.path.getsize(path)
+    size = info.st_size
     if size:
         with open(path, "rb") as f:
             head = f.read(len(MAGIC))

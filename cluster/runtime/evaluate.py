@@ -134,11 +134,10 @@ def _cross_play_spread(workers, params, key, episodes: int, archive_dir, on_prog
 def evaluate_run(run_dir, episodes: int | None = None, show_progress: bool = True, workers=None) -> dict:
     """Cross-play of the run's final policies -> xp/matrix.csv, episodes.csv, summary.json, heatmap.png."""
     config, trainer, params = final_params(run_dir)
-    num = config.population.num_seeds
-    check_crossplay_fits(
-        num, num, episodes or config.eval.episodes, "eval.episodes" if episodes is None else "episodes"
-    )
+    key = "eval.episodes" if episodes is None else "episodes"
     episodes = episodes or config.eval.episodes
+    num = config.population.num_seeds
+    check_crossplay_fits(num, num, episodes, key)
     env = ppo.eval_env(config)
     key = derive_key(config.population.seed, "xp")
     started = time.perf_counter()

@@ -40,7 +40,7 @@ from typing import Any
 
 from population.config import Config, ConfigError, load_config, read_yaml
 from population.config.errors import SET_PREFIX
-from population.config.parse import mixed_file_problem
+from population.config.parse import CONFIG_MARKS, mixed_file_problem
 
 STUDY_KEYS = ("study", "description", "set", "runs", "over_training", "comparisons")
 RUN_KEYS = ("name", "config", "set", "partners_from", "paper")
@@ -184,7 +184,7 @@ def parse_study(raw: Any, path: Path) -> Study:
     mixed = mixed_file_problem(raw)
     if mixed is not None:
         raise StudyError(f"{where}: {mixed}")
-    if "study" not in raw and {"env", "ppo", "model", "population"} & set(raw):
+    if "study" not in raw and set(CONFIG_MARKS) & set(raw):
         raise StudyError(
             f"{where}: is an experiment config, not a study file (no 'study' key); run it with `ocv2 train`"
         )
